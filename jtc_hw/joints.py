@@ -1,0 +1,69 @@
+"""Joint state and command vectors: float64 arrays in the configured joint order, SI units."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+F64 = NDArray[np.float64]
+
+
+def _array(values: Sequence[float] | F64 | None) -> F64 | None:
+    if values is None:
+        return None
+    return np.asarray(values, dtype=np.float64)
+
+
+@dataclass(frozen=True, eq=False, init=False)
+class JointState:
+    """Measured state of the controller's joints.
+
+    Args:
+        positions: rad (or m), one per joint, in the configured joint order. Required.
+        velocities: rad/s, when the ``velocity`` state interface is configured.
+        accelerations: rad/s^2, when the ``acceleration`` state interface is configured.
+    """
+
+    positions: F64
+    velocities: F64 | None
+    accelerations: F64 | None
+
+    def __init__(
+        self,
+        positions: Sequence[float] | F64,
+        velocities: Sequence[float] | F64 | None = None,
+        accelerations: Sequence[float] | F64 | None = None,
+    ) -> None:
+        object.__setattr__(self, "positions", np.asarray(positions, dtype=np.float64))
+        object.__setattr__(self, "velocities", _array(velocities))
+        object.__setattr__(self, "accelerations", _array(accelerations))
+
+
+@dataclass(frozen=True, eq=False, init=False)
+class JointCommand:
+    """Commands for the configured command interfaces.
+
+    A field is ``None`` when its interface is not configured. A ``NaN`` entry means "no value":
+    the hardware must not write that joint's interface this cycle (and, read back at
+    activation, that the interface holds no command yet).
+    """
+
+    positions: F64 | None
+    velocities: F64 | None
+    accelerations: F64 | None
+    effort: F64 | None
+
+    def __init__(
+        self,
+        positions: Sequence[float] | F64 | None = None,
+        velocities: Sequence[float] | F64 | None = None,
+        accelerations: Sequence[float] | F64 | None = None,
+        effort: Sequence[float] | F64 | None = None,
+    ) -> None:
+        object.__setattr__(self, "positions", _array(positions))
+        object.__setattr__(self, "velocities", _array(velocities))
+        object.__setattr__(self, "accelerations", _array(accelerations))
+        object.__setattr__(self, "effort", _array(effort))

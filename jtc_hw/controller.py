@@ -263,9 +263,7 @@ class JointTrajectoryController:
         tolerances = self._defaults.with_overrides(
             self.joint_names, path_tolerance, goal_tolerance, goal_time_tolerance
         )
-        new_ref = self._ref.splice(
-            now_ns, prepared, self.config.interpolation_method, self._wrap
-        )
+        new_ref = self._ref.splice(now_ns, prepared, self.config.interpolation_method, self._wrap)
         self._preempt(PREEMPTED_BY_ACTION, now_ns)
         handle = GoalHandle(self._next_goal_id)
         self._next_goal_id += 1
@@ -290,9 +288,7 @@ class JointTrajectoryController:
             self._request_stop(GoalTransition.PREEMPT, STOPPED_BY_TOPIC)
             return
         prepared = prepare(self.config, trajectory)
-        new_ref = self._ref.splice(
-            now_ns, prepared, self.config.interpolation_method, self._wrap
-        )
+        new_ref = self._ref.splice(now_ns, prepared, self.config.interpolation_method, self._wrap)
         self._preempt(PREEMPTED_BY_TOPIC, now_ns)
         start = prepared.start_time_ns or now_ns
         self._start(new_ref, _Execution(None, self._defaults, start, new_ref.end_ns))
@@ -490,7 +486,10 @@ class JointTrajectoryController:
         if ex is not None and ex.goal is not None:
             if ex.goal.status is GoalStatus.CANCELING:
                 self._finish(
-                    ex.goal, GoalTransition.PREEMPT, ErrorCode.SUCCESSFUL, CANCELED_ON_REQUEST,
+                    ex.goal,
+                    GoalTransition.PREEMPT,
+                    ErrorCode.SUCCESSFUL,
+                    CANCELED_ON_REQUEST,
                     now_ns,
                 )
             else:

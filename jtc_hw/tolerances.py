@@ -90,12 +90,16 @@ class SegmentTolerances:
                         INVALID_JOINTS,
                     )
                 if tol.name in seen:
-                    raise GoalRejected(f"{label}: joint '{tol.name}' is listed twice", INVALID_JOINTS)
+                    raise GoalRejected(
+                        f"{label}: joint '{tol.name}' is listed twice", INVALID_JOINTS
+                    )
                 seen.add(tol.name)
                 for row, field in enumerate(_FIELDS):
                     value = getattr(tol, field)
                     where = f"{label}.{tol.name}.{field}"
-                    table[row, index[tol.name]] = _resolve(table[row, index[tol.name]], value, where)
+                    table[row, index[tol.name]] = _resolve(
+                        table[row, index[tol.name]], value, where
+                    )
         goal_time = _resolve(self.goal_time, goal_time_tolerance, "goal_time_tolerance")
         return SegmentTolerances(path, goal, goal_time)
 
@@ -118,5 +122,5 @@ def _resolve(default: float, value: float, where: str) -> float:
 
 def violated(error: NDArray[np.float64], tolerance: NDArray[np.float64]) -> NDArray[np.bool_]:
     """Per joint, whether any checked field of ``error`` (3, n) exceeds ``tolerance`` (3, n)."""
-    bad: NDArray[np.bool_] = ((tolerance > 0.0) & (np.abs(error) > tolerance)).any(axis=0)
+    bad: NDArray[np.bool_] = np.any((tolerance > 0.0) & (np.abs(error) > tolerance), axis=0)
     return bad

@@ -30,7 +30,7 @@ import math
 from bisect import bisect_left, bisect_right
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -65,7 +65,11 @@ def seconds_to_ns(seconds: float) -> int:
     return round(seconds * NS_PER_S)
 
 
-def _field(values: Sequence[float] | None) -> tuple[float, ...] | None:
+Values = Sequence[float] | NDArray[np.floating[Any]]
+"""A joint vector as accepted from users: a sequence of floats or a float numpy array."""
+
+
+def _field(values: Values | None) -> tuple[float, ...] | None:
     if values is None:
         return None
     out = tuple(values)
@@ -94,10 +98,10 @@ class TrajectoryPoint:
     def __init__(
         self,
         time_from_start: float | None = None,
-        positions: Sequence[float] | None = None,
-        velocities: Sequence[float] | None = None,
-        accelerations: Sequence[float] | None = None,
-        effort: Sequence[float] | None = None,
+        positions: Values | None = None,
+        velocities: Values | None = None,
+        accelerations: Values | None = None,
+        effort: Values | None = None,
         *,
         time_from_start_ns: int | None = None,
     ) -> None:
@@ -502,4 +506,5 @@ class Trajectory:
         if not self._blocks.shape[0] or t_ns >= self._breaks[-1]:
             return np.zeros(self.n_joints, dtype=np.int8)
         i = max(bisect_right(self._breaks, t_ns) - 1, 0)
-        return self._kinds[i].copy()
+        kinds: NDArray[np.int8] = self._kinds[i].copy()
+        return kinds

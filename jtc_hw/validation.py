@@ -9,6 +9,7 @@ the past is found when it is spliced (``OLD_HEADER_TIMESTAMP``, -3, see ``Trajec
 from __future__ import annotations
 
 import math
+import numbers
 from typing import Any
 
 import numpy as np
@@ -74,15 +75,15 @@ def prepare(config: ControllerConfig, msg: Any) -> PreparedTrajectory:
                     "give one value per joint or leave the field empty"
                 )
             for j, value in enumerate(values):
-                if isinstance(value, bool) or not isinstance(value, (int, float)):
+                if isinstance(value, bool) or not isinstance(value, numbers.Real):
                     raise GoalRejected(
                         f"point #{i}: {name}[{j}] (joint '{msg.joint_names[j]}') is {value!r}, "
                         "not a number"
                     )
                 if not math.isfinite(value):
                     raise GoalRejected(
-                        f"point #{i}: {name}[{j}] (joint '{msg.joint_names[j]}') is {value!r}; "
-                        "values must be finite"
+                        f"point #{i}: {name}[{j}] (joint '{msg.joint_names[j]}') is "
+                        f"{float(value)!r}; values must be finite"
                     )
             arrays[name][i] = values
         _check_point_fields(config, i, present, point_index=i)
@@ -98,8 +99,8 @@ def prepare(config: ControllerConfig, msg: Any) -> PreparedTrajectory:
             if value != 0.0:
                 raise GoalRejected(
                     f"point #{m - 1} (the last): velocity of joint '{msg.joint_names[j]}' is "
-                    f"{float(value)!r}, must be 0 because allow_nonzero_velocity_at_trajectory_end is "
-                    "false"
+                    f"{float(value)!r}, must be 0 because "
+                    "allow_nonzero_velocity_at_trajectory_end is false"
                 )
     return PreparedTrajectory(
         joint_indices=joint_index,
@@ -119,7 +120,9 @@ def prepare(config: ControllerConfig, msg: Any) -> PreparedTrajectory:
 def _joint_columns(config: ControllerConfig, msg: JointTrajectory) -> np.ndarray[Any, Any]:
     names = msg.joint_names
     if not names:
-        raise GoalRejected("joint_names is empty; name the joints the points refer to", INVALID_JOINTS)
+        raise GoalRejected(
+            "joint_names is empty; name the joints the points refer to", INVALID_JOINTS
+        )
     index = {name: i for i, name in enumerate(config.joints)}
     seen: set[str] = set()
     cols = []

@@ -93,7 +93,8 @@ class Rig:
         from jtc_hw import GoalResult
 
         return [
-            e for e in self.events
+            e
+            for e in self.events
             if isinstance(e, GoalResult) and (goal_id is None or e.goal_id == goal_id)
         ]
 

@@ -8,7 +8,6 @@ from typing import Any
 import numpy as np
 import pytest
 
-from conftest import MS, S, Rig, make_config
 from jtc_hw import (
     ControllerStateError,
     ErrorCode,
@@ -26,11 +25,17 @@ from jtc_hw import (
     TrajectoryStopped,
 )
 
+from conftest import MS, Rig, S, make_config
+
 NAMES = ("j1", "j2")
 
 
-def traj(*points: tuple[float, list[float]], start_time_ns: int = 0, **fields: Any) -> JointTrajectory:
-    return JointTrajectory(NAMES, [TrajectoryPoint(t, p, **fields) for t, p in points], start_time_ns)
+def traj(
+    *points: tuple[float, list[float]], start_time_ns: int = 0, **fields: Any
+) -> JointTrajectory:
+    return JointTrajectory(
+        NAMES, [TrajectoryPoint(t, p, **fields) for t, p in points], start_time_ns
+    )
 
 
 def constraints(traj_tol: float = 0.0, goal_tol: float = 0.0, **extra: Any) -> dict[str, Any]:
@@ -103,7 +108,9 @@ def test_fault_deactivation_aborts_with_reason() -> None:
     events = rig.ctrl.deactivate(rig.now, "servo 3 overheated", abort=True)
     result = [e for e in events if isinstance(e, GoalResult)][0]
     assert (result.goal_id, result.status, result.error_string) == (
-        gid, GoalStatus.ABORTED, "servo 3 overheated"
+        gid,
+        GoalStatus.ABORTED,
+        "servo 3 overheated",
     )
 
 
@@ -136,7 +143,9 @@ def test_goal_succeeds_exactly_at_the_end_and_not_before() -> None:
     rig.step()
     (result,) = rig.results(gid)
     assert (result.status, result.error_code, result.time_ns) == (
-        GoalStatus.SUCCEEDED, ErrorCode.SUCCESSFUL, end
+        GoalStatus.SUCCEEDED,
+        ErrorCode.SUCCESSFUL,
+        end,
     )
     rig.step(100)
     assert rig.results(gid) == [result]
@@ -146,7 +155,16 @@ def test_goal_succeeds_exactly_at_the_end_and_not_before() -> None:
 def test_command_leads_by_one_period() -> None:
     """The command written at cycle t is the reference at t + T: an ideal joint tracks exactly."""
     rig = Rig(make_config(), [0.0, 0.0])
-    rig.ctrl.send_goal(rig.now, traj((0.5, [0.3, 0.1], ), (1.0, [1.0, -1.0])))
+    rig.ctrl.send_goal(
+        rig.now,
+        traj(
+            (
+                0.5,
+                [0.3, 0.1],
+            ),
+            (1.0, [1.0, -1.0]),
+        ),
+    )
     for _ in range(120):
         t = rig.now
         out = rig.step()
@@ -269,7 +287,8 @@ def test_path_violation_aborts_and_the_violating_cycle_already_holds() -> None:
     out = rig.run_until(lambda out: bool(rig.results(gid)))
     (result,) = rig.results(gid)
     assert (result.status, result.error_code) == (
-        GoalStatus.ABORTED, ErrorCode.PATH_TOLERANCE_VIOLATED
+        GoalStatus.ABORTED,
+        ErrorCode.PATH_TOLERANCE_VIOLATED,
     )
     assert "joint 'j2' position error" in result.error_string
     assert "j1" not in result.error_string
@@ -425,7 +444,9 @@ def pid_controller(command: str = "effort", **gains: Any) -> JointTrajectoryCont
     g = {"p": 0.0, "i": 0.0, "d": 0.0, "i_clamp": 0.0, "ff_velocity_scale": 0.0}
     g.update(gains)
     config = make_config(
-        joints=("j",), command_interfaces=(command,), gains={"j": g},
+        joints=("j",),
+        command_interfaces=(command,),
+        gains={"j": g},
         allow_nonzero_velocity_at_trajectory_end=True,
     )
     ctrl = JointTrajectoryController(config)
@@ -483,7 +504,9 @@ def test_velocity_only_uses_pid_and_stops_after_cancel() -> None:
     state = JointState([0.0], [0.0])
     for k in range(50):
         out = ctrl.update(k * 10 * MS, 10 * MS, state)
-        state = JointState(state.positions + out.command.velocities * 0.01 * 0.5, out.command.velocities)
+        state = JointState(
+            state.positions + out.command.velocities * 0.01 * 0.5, out.command.velocities
+        )
     assert abs(out.command.velocities[0]) > 0.1
     ctrl.cancel_goal(gid)
     out = ctrl.update(50 * 10 * MS, 10 * MS, JointState(state.positions, [0.0]))
@@ -505,7 +528,8 @@ def test_effort_joint_stops_pushing_after_abort() -> None:
 
 def test_forward_velocity_after_success_is_zero() -> None:
     config = make_config(
-        joints=("j",), command_interfaces=("position", "velocity"),
+        joints=("j",),
+        command_interfaces=("position", "velocity"),
         allow_nonzero_velocity_at_trajectory_end=True,
     )
     rig = Rig(config, [0.0])

@@ -12,12 +12,13 @@ from typing import Any
 import numpy as np
 import pytest
 
-from conftest import MS, S, frange, make_config
 from jtc_hw import GoalRejected, JointTrajectory, Trajectory, TrajectoryPoint
 from jtc_hw.config import ControllerConfig
 from jtc_hw.goals import ErrorCode
 from jtc_hw.interpolation import SegmentKind
 from jtc_hw.validation import prepare
+
+from conftest import MS, S, frange, make_config
 
 T0 = 7 * S
 GRID = [0.5, 1.0, 1.5, 2.0]
@@ -205,7 +206,9 @@ def test_none_method_is_zero_order_hold() -> None:
 
 
 def test_after_last_point_position_is_held() -> None:
-    traj = build(one_joint(allow_nonzero_velocity_at_trajectory_end=True), pts(pos=POS, vel=VEL[:3] + [2.0]))
+    traj = build(
+        one_joint(allow_nonzero_velocity_at_trajectory_end=True), pts(pos=POS, vel=VEL[:3] + [2.0])
+    )
     for t in (KNOTS[-1], KNOTS[-1] + 1, KNOTS[-1] + 100 * S):
         s = traj.sample(t)
         assert s.positions[0] == POS[-1]

@@ -7,9 +7,10 @@ from typing import Any
 
 import pytest
 
-from conftest import make_config
 from jtc_hw import ErrorCode, GoalRejected, JointState, JointTrajectory, JointTrajectoryController
 from jtc_hw import TrajectoryPoint as P
+
+from conftest import make_config
 
 J = ("j1", "j2")
 
@@ -40,7 +41,9 @@ def test_not_a_trajectory() -> None:
 
 
 def test_empty_joint_names() -> None:
-    assert "joint_names is empty" in reject(JointTrajectory((), [P(1.0, [])]), ErrorCode.INVALID_JOINTS)
+    assert "joint_names is empty" in reject(
+        JointTrajectory((), [P(1.0, [])]), ErrorCode.INVALID_JOINTS
+    )
 
 
 def test_unknown_joint() -> None:

@@ -1,0 +1,27 @@
+"""README's library snippet and the ``python -m jtc_hw`` demo run as documented."""
+
+from __future__ import annotations
+
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_readme_snippet_runs_and_succeeds(capsys: pytest.CaptureFixture[str]) -> None:
+    text = (ROOT / "README.md").read_text()
+    (snippet,) = re.findall(r"```python\n(.*?)```", text, flags=re.S)
+    exec(compile(snippet, "README.md", "exec"), {})
+    assert capsys.readouterr().out.startswith("succeeded Goal successfully reached!")
+
+
+def test_demo_module_succeeds() -> None:
+    done = subprocess.run(
+        [sys.executable, "-m", "jtc_hw"], capture_output=True, text=True, timeout=120, cwd=ROOT
+    )
+    assert done.returncode == 0, done.stderr
+    assert "goal 1 succeeded (error_code 0)" in done.stdout

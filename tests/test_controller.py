@@ -514,16 +514,58 @@ def test_velocity_only_uses_pid_and_stops_after_cancel() -> None:
 
 
 def test_effort_joint_stops_pushing_after_abort() -> None:
-    ctrl = pid_controller("effort", p=5.0, i=10.0, i_clamp=2.0)
+    config = make_config(
+        joints=("j",),
+        command_interfaces=("effort",),
+        gains={"j": {"p": 5.0, "i": 10.0, "i_clamp": 2.0}},
+        constraints={"j": {"trajectory": 0.5}},
+    )
+    ctrl = JointTrajectoryController(config)
+    ctrl.activate(0, JointState([0.0], [0.0]))
     gid = ctrl.send_goal(0, JointTrajectory(("j",), [TrajectoryPoint(1.0, [1.0])]))
-    for k in range(60):
-        out = ctrl.update(k * 10 * MS, 10 * MS, JointState([0.0], [0.0]))  # stuck joint
-    assert out.command.effort[0] > 2.0
-    ctrl.deactivate(60 * 10 * MS, "stop")
-    ctrl.activate(61 * 10 * MS, JointState([0.0], [0.0]))
-    out = ctrl.update(61 * 10 * MS, 10 * MS, JointState([0.0], [0.0]))
-    assert out.command.effort[0] == 0.0
-    assert gid == 1
+    stuck = JointState([0.0], [0.0])  # the joint is blocked
+    k = 0
+    results: list[Any] = []
+    while not results:
+        out = ctrl.update(k * 10 * MS, 10 * MS, stuck)
+        results = [e for e in out.events if isinstance(e, GoalResult)]
+        k += 1
+        if k == 40:
+            assert out.command.effort[0] > 2.0  # integral wound up while pushing
+    assert results[0].goal_id == gid
+    assert results[0].error_code == ErrorCode.PATH_TOLERANCE_VIOLATED
+    assert out.command.effort[0] == 0.0  # the aborting cycle already stops pushing
+    for _ in range(10):
+        k += 1
+        assert ctrl.update(k * 10 * MS, 10 * MS, stuck).command.effort[0] == 0.0
+
+
+def test_leaving_a_fault_rearms_without_a_jump() -> None:
+    rig = Rig(make_config(), [0.0, 0.0])
+    gid = rig.ctrl.send_goal(rig.now, traj((2.0, [1.0, 1.0])))
+    rig.step(50)
+    events = rig.ctrl.deactivate(rig.now, "servo 2: no status packet", abort=True)
+    assert [e.status for e in events if isinstance(e, GoalResult)] == [GoalStatus.ABORTED]
+    rig.mirror.p = rig.mirror.p - 0.05  # sagged while faulted
+    rig.ctrl.activate(rig.now, rig.mirror.state(), JointCommand(positions=[math.nan] * 2))
+    measured = rig.mirror.p.copy()
+    np.testing.assert_array_equal(rig.step().command.positions, measured)
+    assert rig.results(gid) == []
+
+
+def test_acceleration_interface_forwards_desired_acceleration() -> None:
+    config = make_config(command_interfaces=("position", "velocity", "acceleration"))
+    rig = Rig(config, [0.0, 0.0])
+    rig.ctrl.send_goal(
+        rig.now,
+        JointTrajectory(NAMES, [TrajectoryPoint(1.0, [1.0, -1.0], [0.0, 0.0], [0.0, 0.0])]),
+    )
+    t = rig.now
+    out = rig.step()
+    ahead = rig.ctrl.query_state(t + 10 * MS)
+    np.testing.assert_array_equal(out.command.accelerations, ahead.accelerations)
+    np.testing.assert_array_equal(out.command.velocities, ahead.velocities)
+    assert out.command.accelerations[0] > 0.0
 
 
 def test_forward_velocity_after_success_is_zero() -> None:

@@ -34,7 +34,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .config import ControllerConfig
-from .errors import ControllerStateError, GoalRejected, HardwareError
+from .errors import ControllerStateError, GoalRejected, HardwareError, StalePlan
 from .goals import (
     ErrorCode,
     Event,
@@ -51,6 +51,7 @@ from .tolerances import JointTolerance, SegmentTolerances, violated
 from .trajectory import (
     NS_PER_S,
     JointTrajectory,
+    PreparedTrajectory,
     Trajectory,
     TrajectorySample,
     shortest_angular_distance,
@@ -103,6 +104,90 @@ class _Outcome(NamedTuple):
     hold_measured: bool
 
 
+@dataclass(frozen=True, eq=False)
+class Plan:
+    """A command validated and fitted against one version of the reference, ready to commit.
+
+    Attributes:
+        goal: True for an action goal, False for a topic trajectory.
+        reference: the spliced reference to follow once committed.
+        base_version: the reference version it was spliced onto.
+        planned_ns: the time it was planned for; committing later than this is refused
+            (the splice would have started in the past, stepping the command).
+        start_ns: the command's start time (header stamp, or ``planned_ns`` for "now").
+        tolerances: the tolerances to monitor.
+    """
+
+    goal: bool
+    reference: Trajectory
+    base_version: int
+    planned_ns: int
+    start_ns: int
+    tolerances: SegmentTolerances
+
+
+class Planner:
+    """Validation and fitting of commands: a pure function of (reference, version, time, msg).
+
+    The controller uses one internally; the daemon runs another in its API process against a
+    replica of the loop's reference, so that parsing and fitting never run in the control loop
+    (the loop only commits a ready ``Plan``).
+    """
+
+    def __init__(self, config: ControllerConfig) -> None:
+        self.config = config
+        self.joint_names = tuple(config.joints)
+        self.wraparound = np.asarray(config.wraparound, dtype=bool)
+        self.defaults = SegmentTolerances.from_config(config)
+
+    def plan_goal(
+        self,
+        reference: Trajectory,
+        version: int,
+        now_ns: int,
+        trajectory: JointTrajectory,
+        path_tolerance: Sequence[JointTolerance] = (),
+        goal_tolerance: Sequence[JointTolerance] = (),
+        goal_time_tolerance: float = 0.0,
+    ) -> Plan:
+        """Validate and fit an action goal.
+
+        Raises:
+            GoalRejected: invalid trajectory or tolerances, or entirely in the past.
+        """
+        prepared = prepare(self.config, trajectory)
+        tolerances = self.defaults.with_overrides(
+            self.joint_names, path_tolerance, goal_tolerance, goal_time_tolerance
+        )
+        return self._plan(True, reference, version, now_ns, prepared, tolerances)
+
+    def plan_trajectory(
+        self, reference: Trajectory, version: int, now_ns: int, trajectory: JointTrajectory
+    ) -> Plan:
+        """Validate and fit a topic trajectory (non-empty; an empty one is a stop request).
+
+        Raises:
+            GoalRejected: invalid or entirely in the past.
+        """
+        prepared = prepare(self.config, trajectory)
+        return self._plan(False, reference, version, now_ns, prepared, self.defaults)
+
+    def _plan(
+        self,
+        goal: bool,
+        reference: Trajectory,
+        version: int,
+        now_ns: int,
+        prepared: PreparedTrajectory,
+        tolerances: SegmentTolerances,
+    ) -> Plan:
+        new_ref = reference.splice(
+            now_ns, prepared, self.config.interpolation_method, self.wraparound
+        )
+        start = prepared.start_time_ns or now_ns
+        return Plan(goal, new_ref, version, now_ns, start, tolerances)
+
+
 class JointTrajectoryController:
     """ROS 2 ``joint_trajectory_controller`` semantics, with time and state injected.
 
@@ -141,7 +226,8 @@ class JointTrajectoryController:
         self._lookahead_ns = round(NS_PER_S / config.update_rate)
         self._feedback_ns = round(NS_PER_S / config.action_monitor_rate)
         self._cmd_timeout_ns = round(config.effective_cmd_timeout * NS_PER_S)
-        self._defaults = SegmentTolerances.from_config(config)
+        self._planner = Planner(config)
+        self._version = 0
         self._active = False
         self._ref = Trajectory.constant(0, np.zeros(n))
         self._execution: _Execution | None = None
@@ -199,7 +285,7 @@ class JointTrajectoryController:
             and bool(np.isfinite(last_command.positions).all())
         ):
             start = np.array(last_command.positions, dtype=np.float64)
-        self._ref = Trajectory.constant(now_ns, start)
+        self._set_reference(Trajectory.constant(now_ns, start))
         self._last_command_positions = start.copy()
         self._execution = None
         self._pending_stop = None
@@ -257,19 +343,12 @@ class JointTrajectoryController:
             GoalRejected: inactive controller, invalid trajectory or tolerances, or a
                 trajectory entirely in the past; the reference is unchanged.
         """
-        if not self._active:
-            raise GoalRejected("the controller is not active; goals are accepted once it is")
-        prepared = prepare(self.config, trajectory)
-        tolerances = self._defaults.with_overrides(
-            self.joint_names, path_tolerance, goal_tolerance, goal_time_tolerance
+        plan = self.plan_goal(
+            now_ns, trajectory, path_tolerance, goal_tolerance, goal_time_tolerance
         )
-        new_ref = self._ref.splice(now_ns, prepared, self.config.interpolation_method, self._wrap)
-        self._preempt(PREEMPTED_BY_ACTION, now_ns)
-        handle = GoalHandle(self._next_goal_id)
-        self._next_goal_id += 1
-        start = prepared.start_time_ns or now_ns
-        self._start(new_ref, _Execution(handle, tolerances, start, new_ref.end_ns))
-        return handle.goal_id
+        goal_id = self.commit(plan, now_ns)
+        assert goal_id is not None
+        return goal_id
 
     def send_trajectory(self, now_ns: int, trajectory: JointTrajectory) -> None:
         """Fire-and-forget trajectory (the ``joint_trajectory`` topic).
@@ -282,16 +361,91 @@ class JointTrajectoryController:
         Raises:
             GoalRejected: inactive controller, invalid or entirely past trajectory.
         """
-        if not self._active:
-            raise GoalRejected("the controller is not active; trajectories are accepted once it is")
         if isinstance(trajectory, JointTrajectory) and not trajectory.points:
-            self._request_stop(GoalTransition.PREEMPT, STOPPED_BY_TOPIC)
+            self.request_stop()
             return
-        prepared = prepare(self.config, trajectory)
-        new_ref = self._ref.splice(now_ns, prepared, self.config.interpolation_method, self._wrap)
-        self._preempt(PREEMPTED_BY_TOPIC, now_ns)
-        start = prepared.start_time_ns or now_ns
-        self._start(new_ref, _Execution(None, self._defaults, start, new_ref.end_ns))
+        self.commit(self.plan_trajectory(now_ns, trajectory), now_ns)
+
+    def plan_goal(
+        self,
+        now_ns: int,
+        trajectory: JointTrajectory,
+        path_tolerance: Sequence[JointTolerance] = (),
+        goal_tolerance: Sequence[JointTolerance] = (),
+        goal_time_tolerance: float = 0.0,
+    ) -> Plan:
+        """First half of ``send_goal``: validate and fit against the current reference.
+
+        Raises:
+            GoalRejected: see ``send_goal``.
+        """
+        self._require_active_for_commands()
+        return self._planner.plan_goal(
+            self._ref,
+            self._version,
+            now_ns,
+            trajectory,
+            path_tolerance,
+            goal_tolerance,
+            goal_time_tolerance,
+        )
+
+    def plan_trajectory(self, now_ns: int, trajectory: JointTrajectory) -> Plan:
+        """First half of ``send_trajectory`` for a non-empty trajectory.
+
+        Raises:
+            GoalRejected: see ``send_trajectory``.
+        """
+        self._require_active_for_commands()
+        return self._planner.plan_trajectory(self._ref, self._version, now_ns, trajectory)
+
+    def commit(self, plan: Plan, now_ns: int) -> int | None:
+        """Second half: swap in a planned reference (O(1), no fitting).
+
+        Returns:
+            The goal id for a goal plan, None for a topic plan.
+
+        Raises:
+            GoalRejected: the controller is not active.
+            StalePlan: the reference changed since the plan was made (a stop, an abort or
+                another command), or ``now_ns`` is past the time it was planned for.
+        """
+        self._require_active_for_commands()
+        if plan.base_version != self._version:
+            raise StalePlan(
+                f"planned against reference version {plan.base_version}, current is {self._version}"
+            )
+        if now_ns > plan.planned_ns:
+            raise StalePlan(
+                f"planned for {plan.planned_ns} ns, committed late at {now_ns} ns "
+                f"({(now_ns - plan.planned_ns) / 1e6:.3f} ms)"
+            )
+        handle = None
+        if plan.goal:
+            self._preempt(PREEMPTED_BY_ACTION, now_ns)
+            handle = GoalHandle(self._next_goal_id)
+            self._next_goal_id += 1
+        else:
+            self._preempt(PREEMPTED_BY_TOPIC, now_ns)
+        self._set_reference(plan.reference)
+        self._execution = _Execution(handle, plan.tolerances, plan.start_ns, plan.reference.end_ns)
+        self._commanding = True
+        return None if handle is None else handle.goal_id
+
+    def request_stop(self) -> None:
+        """Stop as an empty topic trajectory does: hold the measured position from the next
+        cycle; an active goal ends ``CANCELED``.
+
+        Raises:
+            GoalRejected: the controller is not active.
+        """
+        self._require_active_for_commands()
+        self._request_stop(GoalTransition.PREEMPT, STOPPED_BY_TOPIC)
+
+    @property
+    def reference_version(self) -> int:
+        """Increments every time the reference changes (activation, commit, stop, abort)."""
+        return self._version
 
     def cancel_goal(self, goal_id: int) -> bool:
         """Request cancellation; the goal ends ``CANCELED`` at the next ``update``, which holds
@@ -478,8 +632,16 @@ class JointTrajectoryController:
     def _hold(self, now_ns: int, positions: F64) -> None:
         """Hold the measured position (open loop: the last commanded one), zero velocity."""
         hold = self._last_command_positions if self.config.open_loop_control else positions
-        self._ref = Trajectory.constant(now_ns, hold.copy())
+        self._set_reference(Trajectory.constant(now_ns, hold.copy()))
         self._pid.reset()
+
+    def _set_reference(self, reference: Trajectory) -> None:
+        self._ref = reference
+        self._version += 1
+
+    def _require_active_for_commands(self) -> None:
+        if not self._active:
+            raise GoalRejected("the controller is not active; commands are accepted once it is")
 
     def _preempt(self, message: str, now_ns: int) -> None:
         ex = self._execution
@@ -498,11 +660,6 @@ class JointTrajectoryController:
                 )
         self._execution = None
         self._pending_stop = None
-
-    def _start(self, new_ref: Trajectory, execution: _Execution) -> None:
-        self._ref = new_ref
-        self._execution = execution
-        self._commanding = True
 
     def _request_stop(self, transition: GoalTransition, reason: str) -> None:
         self._pending_stop = transition

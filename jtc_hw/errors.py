@@ -45,6 +45,13 @@ class ControllerStateError(JtcHwError, RuntimeError):
     """A controller method was called in a lifecycle state that does not allow it."""
 
 
+class StalePlan(JtcHwError):
+    """A planned command no longer fits: the reference changed, or its time has passed.
+
+    Raised by ``JointTrajectoryController.commit``; plan again against the current reference.
+    """
+
+
 class ProtocolError(JtcHwError):
     """A message on a wire (socket, serial, CAN) could not be decoded."""
 

@@ -24,6 +24,7 @@ from jtc_hw import (
     TrajectoryPoint,
     TrajectoryStopped,
 )
+from jtc_hw.errors import StalePlan
 
 from conftest import MS, Rig, S, make_config
 
@@ -624,3 +625,45 @@ def test_continuous_joint_never_spins_a_full_turn() -> None:
         rig.step()
         travel = max(travel, float(np.abs(rig.mirror.p - start).max()))
     assert travel == pytest.approx(2 * math.pi - 6.0)
+
+
+# -- plan / commit (how the daemon keeps fitting out of the loop) -------------------------------
+
+
+def test_plan_then_commit_equals_send_goal() -> None:
+    a, b = Rig(make_config(), [0.0, 0.0]), Rig(make_config(), [0.0, 0.0])
+    msg = traj((0.5, [0.3, 0.1]), (1.0, [1.0, -1.0]))
+    a.ctrl.send_goal(a.now, msg)
+    plan = b.ctrl.plan_goal(b.now, msg)
+    assert b.ctrl.commit(plan, b.now) == 1
+    for _ in range(120):
+        np.testing.assert_array_equal(a.step().command.positions, b.step().command.positions)
+
+
+def test_commit_refuses_a_plan_made_on_an_older_reference() -> None:
+    rig = Rig(make_config(constraints=constraints(0.05)), [0.0, 0.0])
+    gid = rig.ctrl.send_goal(rig.now, traj((1.0, [1.0, 1.0])))
+    plan = rig.ctrl.plan_goal(rig.now + 50 * MS, traj((1.0, [0.0, 0.0])))
+    rig.ctrl.cancel_goal(gid)
+    rig.step()  # the cancel re-anchors the reference: the plan's base is gone
+    with pytest.raises(StalePlan, match="version"):
+        rig.ctrl.commit(plan, rig.now)
+    assert rig.ctrl.holding and len(rig.results(gid)) == 1
+
+
+def test_commit_refuses_a_late_plan() -> None:
+    rig = Rig(make_config(), [0.0, 0.0])
+    plan = rig.ctrl.plan_goal(rig.now, traj((1.0, [1.0, 1.0])))
+    with pytest.raises(StalePlan, match="late"):
+        rig.ctrl.commit(plan, rig.now + 1)
+    assert rig.ctrl.commit(plan, rig.now) == 1  # on time it still fits
+
+
+def test_plan_for_a_later_cycle_keeps_the_reference_until_then() -> None:
+    rig = Rig(make_config(), [0.2, 0.2])
+    planned = rig.now + 30 * MS
+    plan = rig.ctrl.plan_goal(planned, traj((0.5, [1.0, 1.0])))
+    rig.ctrl.commit(plan, rig.now)
+    for _ in range(3):
+        np.testing.assert_array_equal(rig.step().command.positions, [0.2, 0.2])
+    assert rig.step().command.positions[0] > 0.2

@@ -1,0 +1,253 @@
+"""The systemd notification protocol (``sd_notify``), without libsystemd.
+
+Theory of operation: systemd passes ``NOTIFY_SOCKET`` (a filesystem path, or an abstract-namespace
+name written with a leading ``@``) to a ``Type=notify`` service. The service reports its state by
+sending one datagram of newline-separated ``KEY=VALUE`` assignments to that socket
+(``READY=1``, ``STATUS=...``, ``WATCHDOG=1``, ``STOPPING=1``, ...). With ``WatchdogSec=`` set,
+systemd also passes ``WATCHDOG_USEC`` (and ``WATCHDOG_PID``, the process meant to ping) and kills
+the service unless ``WATCHDOG=1`` arrives within that time; pinging at half of it is the
+documented practice.
+
+Each message opens a fresh non-blocking ``AF_UNIX``/``SOCK_DGRAM`` socket, sends one datagram and
+closes the socket, as libsystemd's ``sd_notify`` does: no descriptor is held between calls (nothing
+to leak or to close), no lock is needed (every call owns its socket, so any thread may call), and
+a stalled systemd can never block the caller (a full receive queue fails the send instead).
+
+A notifier without ``NOTIFY_SOCKET`` (run by hand, in tests, under another supervisor) does
+nothing and returns ``False``. A failed send never raises: the first failure is logged at warning
+on logger ``jtc_hw.sdnotify``, later ones at debug, so a broken socket cannot flood the journal
+from a loop pinging the watchdog.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import socket
+import time
+from collections.abc import Mapping
+
+__all__ = ["Notifier"]
+
+logger = logging.getLogger("jtc_hw.sdnotify")
+
+
+class Notifier:
+    """Sends state notifications to the service manager named by ``NOTIFY_SOCKET``.
+
+    Every sending method returns ``True`` when the datagram was handed to the kernel and ``False``
+    when notification is disabled or the send failed. All methods may be called from any thread.
+
+    Attributes:
+        address: the socket address (``bytes`` with a leading NUL for the abstract namespace,
+            ``str`` for a path), or ``None`` when notification is disabled.
+        watchdog_interval_s: how often to call :meth:`watchdog` (half of ``WATCHDOG_USEC``), or
+            ``None`` when the watchdog is not enabled for this process.
+    """
+
+    def __init__(self, environ: Mapping[str, str] | None = None) -> None:
+        """Reads the notification settings from ``environ`` (default ``os.environ``).
+
+        The environment is read once, here; later changes to it are not seen. The variables are
+        not removed from ``os.environ`` (child processes that must not notify should be started
+        with an environment lacking ``NOTIFY_SOCKET``; ``NotifyAccess=main`` makes systemd ignore
+        them anyway).
+
+        Args:
+            environ: the environment to read ``NOTIFY_SOCKET``, ``WATCHDOG_USEC`` and
+                ``WATCHDOG_PID`` from.
+
+        Raises:
+            Nothing: malformed values disable the feature concerned and are logged at warning.
+        """
+        env = os.environ if environ is None else environ
+        self.address: str | bytes | None = _parse_address(env.get("NOTIFY_SOCKET", ""))
+        self.watchdog_interval_s: float | None = _parse_watchdog(
+            env.get("WATCHDOG_USEC", ""), env.get("WATCHDOG_PID", "")
+        )
+        self._warned = False
+
+    @property
+    def enabled(self) -> bool:
+        """Whether a notification socket is configured (messages are actually sent)."""
+        return self.address is not None
+
+    def ready(self, status: str | None = None) -> bool:
+        """Tells the service manager that start-up is complete (``READY=1``).
+
+        Args:
+            status: optional one-line status shown by ``systemctl status``.
+
+        Returns:
+            Whether the datagram was sent.
+
+        Raises:
+            Nothing: send failures are logged and reported by the return value.
+        """
+        return self.send(_with_status("READY=1", status))
+
+    def status(self, text: str) -> bool:
+        """Updates the free-form status line (``STATUS=...``).
+
+        Args:
+            text: the status; newlines are replaced by spaces (the protocol is line based).
+
+        Returns:
+            Whether the datagram was sent.
+
+        Raises:
+            Nothing: send failures are logged and reported by the return value.
+        """
+        return self.send("STATUS=" + _one_line(text))
+
+    def watchdog(self) -> bool:
+        """Pings the service watchdog (``WATCHDOG=1``); call every :attr:`watchdog_interval_s`.
+
+        Returns:
+            Whether the datagram was sent.
+
+        Raises:
+            Nothing: send failures are logged and reported by the return value.
+        """
+        return self.send("WATCHDOG=1")
+
+    def stopping(self, status: str | None = None) -> bool:
+        """Tells the service manager that an orderly shutdown has begun (``STOPPING=1``).
+
+        Args:
+            status: optional one-line status, e.g. what the shutdown is waiting for.
+
+        Returns:
+            Whether the datagram was sent.
+
+        Raises:
+            Nothing: send failures are logged and reported by the return value.
+        """
+        return self.send(_with_status("STOPPING=1", status))
+
+    def reloading(self) -> bool:
+        """Tells the service manager that a configuration reload has begun (``RELOADING=1``).
+
+        ``MONOTONIC_USEC`` (``CLOCK_MONOTONIC`` now, in microseconds) is included as systemd 253+
+        requires for ``Type=notify-reload``; older managers ignore it. Send :meth:`ready` when the
+        reload is complete.
+
+        Returns:
+            Whether the datagram was sent.
+
+        Raises:
+            Nothing: send failures are logged and reported by the return value.
+        """
+        usec = time.clock_gettime_ns(time.CLOCK_MONOTONIC) // 1000
+        return self.send(f"RELOADING=1\nMONOTONIC_USEC={usec}")
+
+    def extend_timeout(self, usec: int) -> bool:
+        """Asks for more time for the current start-up, reload or shutdown.
+
+        The service manager extends the running timeout so that it expires ``usec`` from now;
+        send it again before that to keep extending (``EXTEND_TIMEOUT_USEC=...``).
+
+        Args:
+            usec: the extension, in microseconds; must be positive.
+
+        Returns:
+            Whether the datagram was sent.
+
+        Raises:
+            ValueError: ``usec`` is not a positive integer (a programming error, not a send
+                failure).
+        """
+        if isinstance(usec, bool) or not isinstance(usec, int) or usec <= 0:
+            raise ValueError(f"extend_timeout: usec must be a positive integer, got {usec!r}")
+        return self.send(f"EXTEND_TIMEOUT_USEC={usec}")
+
+    def send(self, message: str) -> bool:
+        """Sends ``message`` (newline-separated ``KEY=VALUE`` lines) as one datagram.
+
+        The primitive behind the other methods, for assignments they do not cover
+        (e.g. ``ERRNO=5`` or ``MAINPID=...``).
+
+        Args:
+            message: the assignments, UTF-8 encoded on the wire.
+
+        Returns:
+            ``True`` when the kernel accepted the datagram; ``False`` when notification is
+            disabled or the send failed (no listener, permission denied, queue full, ...).
+
+        Raises:
+            Nothing: every ``OSError`` is caught, logged once at warning, and reported as
+                ``False``.
+        """
+        if self.address is None:
+            return False
+        data = message.encode("utf-8")
+        try:
+            with socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM | socket.SOCK_CLOEXEC) as sock:
+                sock.setblocking(False)
+                sock.sendto(data, self.address)
+        except OSError as exc:
+            self._log_failure(exc)
+            return False
+        return True
+
+    def _log_failure(self, exc: OSError) -> None:
+        # Only the first failure is worth a warning; the watchdog pings every ~second and would
+        # otherwise repeat the same line forever.
+        level = logging.DEBUG if self._warned else logging.WARNING
+        self._warned = True
+        logger.log(
+            level,
+            "sd_notify to %r failed (%s); systemd will not see this service's state "
+            "(check NOTIFY_SOCKET and that the service manager is alive)",
+            self.address,
+            exc,
+        )
+
+
+def _parse_address(value: str) -> str | bytes | None:
+    """``NOTIFY_SOCKET`` to a socket address; ``None`` when unset or unusable."""
+    if not value:
+        return None
+    if value.startswith("@"):
+        # Abstract namespace: Linux names these with a leading NUL instead of a path.
+        return b"\0" + value[1:].encode("utf-8")
+    if value.startswith("/"):
+        return value
+    # systemd also knows "vsock:" addresses (VMs); nothing here runs under one.
+    logger.warning(
+        "NOTIFY_SOCKET=%r is neither an absolute path nor an abstract name (@...); "
+        "systemd notification disabled",
+        value,
+    )
+    return None
+
+
+def _parse_watchdog(usec_text: str, pid_text: str) -> float | None:
+    """The watchdog ping interval in seconds (half the timeout), as ``sd_watchdog_enabled``."""
+    if not usec_text:
+        return None
+    try:
+        usec = int(usec_text)
+    except ValueError:
+        usec = 0
+    if usec <= 0:
+        logger.warning("WATCHDOG_USEC=%r is not a positive integer; watchdog disabled", usec_text)
+        return None
+    if pid_text:
+        try:
+            pid = int(pid_text)
+        except ValueError:
+            logger.warning("WATCHDOG_PID=%r is not a process id; watchdog disabled", pid_text)
+            return None
+        if pid != os.getpid():
+            # The watchdog belongs to another process (e.g. we are a child of the service).
+            return None
+    return usec / 2_000_000
+
+
+def _one_line(text: str) -> str:
+    return text.replace("\r", " ").replace("\n", " ")
+
+
+def _with_status(head: str, status: str | None) -> str:
+    return head if status is None else f"{head}\nSTATUS={_one_line(status)}"

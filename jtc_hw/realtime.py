@@ -46,7 +46,7 @@ def apply_realtime(priority: int, lock_memory: bool, cpu_affinity: Sequence[int]
     thread before starting other threads.
 
     Args:
-        priority: SCHED_FIFO priority, 1 (lowest) to 99 (highest). Stay below the kernel's
+        priority: SCHED_FIFO priority, 1 (lowest) to 99 (highest); 0 keeps normal scheduling. Stay below the kernel's
             threaded interrupt handlers (50 by default) unless the bus driver's IRQ thread is
             raised above the loop too.
         lock_memory: whether to lock all current and future pages in RAM.
@@ -66,7 +66,9 @@ def apply_realtime(priority: int, lock_memory: bool, cpu_affinity: Sequence[int]
     return [
         _apply_affinity(cpus),
         _apply_memory_lock() if lock_memory else "memory locking disabled (lock_memory: false)",
-        _apply_fifo(priority),
+        _apply_fifo(priority)
+        if priority
+        else "normal scheduling (daemon.realtime.priority: 0; 1..99 asks for SCHED_FIFO)",
     ]
 
 
@@ -77,6 +79,8 @@ def _check_priority(priority: int) -> None:
             f"{_PATH}.priority",
             priority,
         )
+    if priority == 0:
+        return  # 0: leave the scheduling policy alone
     low, high = 1, 99
     if hasattr(os, "sched_get_priority_min"):
         low = os.sched_get_priority_min(os.SCHED_FIFO)

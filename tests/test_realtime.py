@@ -175,7 +175,7 @@ def test_everything_refused_still_returns_three_lines() -> None:
 # -- invalid values: raised before anything is applied (safe in-process) --------------------------
 
 
-@pytest.mark.parametrize("priority", [0, 100, -1, 1000, True, 50.0, "80"])
+@pytest.mark.parametrize("priority", [100, -1, 1000, True, 50.0, "80"])
 def test_priority_out_of_range_raises(priority: Any) -> None:
     before = (os.sched_getscheduler(0), os.sched_getaffinity(0))
     with pytest.raises(ConfigurationError) as info:
@@ -201,7 +201,7 @@ def test_missing_cpu_message_names_the_present_ones() -> None:
 
 
 def test_errors_are_raised_in_the_child_too() -> None:
-    out = run_child("0, False, []")
+    out = run_child("100, False, []")
     assert out["error"][0] == "ConfigurationError"
     assert out["error"][2] == "daemon.realtime.priority"
     assert out["policy"] == os.SCHED_OTHER
@@ -213,3 +213,9 @@ def test_errors_are_raised_in_the_child_too() -> None:
 )
 def test_kernel_cpu_list_format(text: str, cpus: set[int]) -> None:
     assert _parse_cpu_list(text) == cpus
+
+
+def test_priority_zero_keeps_normal_scheduling() -> None:
+    out = run_child("0, False, []")
+    assert out["policy"] == os.SCHED_OTHER
+    assert any("normal scheduling" in line for line in out["lines"])

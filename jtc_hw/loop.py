@@ -1,0 +1,353 @@
+"""The control loop process: read -> update -> write at absolute deadlines, nothing else.
+
+Theory of operation
+-------------------
+The loop runs in its own process so that API work (parsing, fitting a 2,000-point goal,
+serving clients) never shares an interpreter lock with it. It talks to the API process over
+one duplex ``multiprocessing`` connection:
+
+- in: ``("commit", plan_id, Plan)``, ``("request", request_id, op, args)``;
+- out: ``("ready", info)``, ``("reference", version, trajectory_or_None, plan_id_or_None)``,
+  ``("committed", plan_id, goal_id)``, ``("stale", plan_id, reason)``, ``("events", [...])``,
+  ``("state", snapshot)``, ``("status", dict)``, ``("reply", request_id, ok, value)``,
+  ``("log", level, message)``, ``("exit", code)``.
+
+Every change of the controller's reference is reported, in order, so the API process keeps an
+exact replica to plan against: a committed plan by its id (the API process made it), a hold by
+value (a constant trajectory, a few bytes). Incoming messages are received by a thread that
+blocks in ``recv`` (releasing the interpreter lock) and hands them over through a deque; the
+cycle only pops ready objects.
+
+One cycle at deadline ``t``: drain requests -> ``hardware.read(t)`` -> ``controller.update`` ->
+``hardware.write`` -> report events; a state snapshot at ``state_publish_rate``, statistics at
+2 Hz. The controller's clock is the deadline grid itself (exact multiples of the period); how
+late the process woke is measured and published, never fed into the control law. Garbage
+collection is disabled in the loop and run explicitly (generation 0) when a cycle has slack.
+"""
+
+from __future__ import annotations
+
+import collections
+import gc
+import logging
+import os
+import signal
+import threading
+import time
+from multiprocessing.connection import Connection
+from typing import Any
+
+import numpy as np
+
+from .clock import Ticker
+from .controller import JointTrajectoryController, Plan
+from .errors import HardwareError, JtcHwError, StalePlan
+from .goals import Event
+from .hardware import HardwareSet
+from .joints import JointCommand, JointState
+from .loopstats import LoopStats
+from .robot import RobotConfig, create_hardware_set, load_robot
+
+log = logging.getLogger("jtc_hw.loop")
+
+STATUS_PERIOD_NS = 500_000_000
+GC_SLACK_NS = 300_000  # run a gen-0 collection only with this much time left before the deadline
+
+
+class _Inbox:
+    """Messages from the API process, received by a thread blocked in ``recv``."""
+
+    def __init__(self, conn: Connection) -> None:
+        self._conn = conn
+        self._queue: collections.deque[Any] = collections.deque()
+        self.closed = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="jtc-hw-inbox", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        try:
+            while True:
+                self._queue.append(self._conn.recv())
+        except (EOFError, OSError):
+            self.closed.set()
+
+    def pop(self) -> Any | None:
+        try:
+            return self._queue.popleft()
+        except IndexError:
+            return None
+
+
+class ControlLoop:
+    """Owns the hardware and the controller; one instance per loop process."""
+
+    def __init__(self, robot: RobotConfig, conn: Connection) -> None:
+        self.robot = robot
+        self.conn = conn
+        self.config = robot.controller
+        self.period_ns = round(1e9 / self.config.update_rate)
+        self.ctrl = JointTrajectoryController(self.config)
+        self.hardware: HardwareSet = create_hardware_set(robot)
+        self.stats = LoopStats(self.config.update_rate)
+        self.state_every_ns = round(1e9 / self.config.state_publish_rate)
+        self.fault: str | None = None
+        self.running = True
+        self._version_sent = -1
+        self._committed_plan: int | None = None
+        self._next_state_ns = 0
+        self._next_status_ns = 0
+        self._last_state: JointState | None = None
+        self._last_command: JointCommand | None = None
+        self._shutdown_reason = "daemon stopping"
+
+    # -- messaging ----------------------------------------------------------------------------
+
+    def send(self, *message: Any) -> None:
+        try:
+            self.conn.send(message)
+        except (OSError, EOFError):
+            self.running = False  # the API process is gone: stop safely
+
+    def _report_reference(self) -> None:
+        version = self.ctrl.reference_version
+        if version == self._version_sent:
+            return
+        if self._committed_plan is not None:
+            self.send("reference", version, None, self._committed_plan)
+            self._committed_plan = None
+        else:
+            self.send("reference", version, self.ctrl.reference, None)
+        self._version_sent = version
+
+    def _send_events(self, events: tuple[Event, ...]) -> None:
+        if events:
+            self.send("events", events)
+
+    # -- lifecycle ----------------------------------------------------------------------------
+
+    def start(self, now_ns: int) -> None:
+        """Configure and activate the hardware, activate the controller (no jump)."""
+        self.hardware.configure()
+        last = self.hardware.activate(now_ns)
+        state = self.hardware.read(now_ns)
+        self.ctrl.activate(now_ns, state, last)
+        self._last_state = state
+
+    def _enter_fault(self, now_ns: int, reason: str) -> None:
+        self.fault = reason
+        log.error("hardware fault: %s; controller stopped, hardware safe action applied", reason)
+        self.send("log", logging.ERROR, f"hardware fault: {reason}")
+        if self.ctrl.active:
+            self._send_events(self.ctrl.deactivate(now_ns, f"hardware fault: {reason}", abort=True))
+        try:
+            self.hardware.deactivate(now_ns)
+        except JtcHwError as exc:
+            log.error("safe action after the fault failed too: %s", exc)
+
+    def _rearm(self, now_ns: int) -> None:
+        if self.fault is None and self.ctrl.active:
+            raise JtcHwError("nothing to re-arm: the controller is running")
+        try:
+            self.hardware.cleanup()
+        except JtcHwError:
+            pass
+        self.hardware = create_hardware_set(self.robot)
+        self.start(now_ns)
+        self.fault = None
+        log.info("re-armed: holding the measured position")
+
+    # -- requests -----------------------------------------------------------------------------
+
+    def _handle(self, message: Any, now_ns: int) -> None:
+        kind = message[0]
+        if kind == "commit":
+            _, plan_id, plan = message
+            self._commit(plan_id, plan, now_ns)
+        elif kind == "request":
+            _, request_id, op, args = message
+            try:
+                value = self._request(op, args, now_ns)
+            except JtcHwError as exc:
+                self.send("reply", request_id, False, f"{type(exc).__name__}: {exc}")
+            else:
+                self.send("reply", request_id, True, value)
+
+    def _commit(self, plan_id: int, plan: Plan, now_ns: int) -> None:
+        if self.fault is not None or not self.ctrl.active:
+            self.send("stale", plan_id, f"not active: {self.fault or 'controller stopped'}")
+            return
+        try:
+            goal_id = self.ctrl.commit(plan, now_ns)
+        except StalePlan as exc:
+            self.send("stale", plan_id, str(exc))
+            return
+        self._committed_plan = plan_id
+        self._report_reference()
+        self.send("committed", plan_id, goal_id)
+
+    def _request(self, op: str, args: dict[str, Any], now_ns: int) -> Any:
+        if op == "cancel":
+            return self.ctrl.cancel_goal(int(args["goal_id"]))
+        if op == "stop":
+            self.ctrl.request_stop()
+            return True
+        if op == "sim":
+            from .mirror import MirrorHardware
+
+            component = self.hardware.component(args["component"])
+            if not isinstance(component, MirrorHardware):
+                raise HardwareError(
+                    f"component '{args['component']}' is {component.kind} hardware; only "
+                    "simulated (mirror) components can be frozen"
+                )
+            component.set_frozen(bool(args["freeze"]))
+            return True
+        if op == "rearm":
+            self._rearm(now_ns)
+            self._report_reference()
+            return True
+        if op == "shutdown":
+            self._shutdown_reason = str(args.get("reason") or self._shutdown_reason)
+            self.running = False
+            return True
+        raise JtcHwError(f"unknown loop request {op!r}")
+
+    # -- the cycle ----------------------------------------------------------------------------
+
+    def cycle(self, now_ns: int, period_ns: int, inbox: _Inbox) -> None:
+        """One read -> update -> write at deadline ``now_ns``."""
+        message = inbox.pop()
+        while message is not None:
+            self._handle(message, now_ns)
+            message = inbox.pop()
+        if self.fault is not None or not self.ctrl.active:
+            return
+        try:
+            state = self.hardware.read(now_ns)
+            out = self.ctrl.update(now_ns, period_ns, state)
+            self.hardware.write(now_ns, out.command)
+        except HardwareError as exc:
+            self._enter_fault(now_ns, str(exc))
+            self._report_reference()
+            return
+        self._report_reference()
+        self._send_events(out.events)
+        if now_ns >= self._next_state_ns:
+            self._next_state_ns = now_ns + self.state_every_ns
+            self.send(
+                "state",
+                (
+                    now_ns,
+                    np.stack(out.desired),
+                    state.positions,
+                    state.velocities,
+                    out.error,
+                    out.command,
+                    self.ctrl.holding,
+                    self.ctrl.active_goal,
+                ),
+            )
+
+    def status(self) -> dict[str, Any]:
+        return {
+            "loop": self.stats.snapshot(),
+            "hardware": self.hardware.status(),
+            "controller": {
+                "active": self.ctrl.active,
+                "holding": self.ctrl.holding,
+                "active_goal": self.ctrl.active_goal,
+                "fault": self.fault,
+                "reference_version": self.ctrl.reference_version,
+            },
+        }
+
+    def run(self, inbox: _Inbox) -> None:
+        """Cycle until asked to stop or the API process disappears."""
+        ticker = Ticker(self.period_ns)
+        clock = time.monotonic_ns
+        gc.collect()
+        gc.freeze()
+        gc.disable()
+        previous = None
+        while self.running:
+            deadline, woke, skipped = ticker.wait()
+            period = self.period_ns if previous is None else deadline - previous
+            previous = deadline
+            self.cycle(deadline, period, inbox)
+            done = clock()
+            self.stats.record(woke - deadline, done - woke, skipped)
+            if deadline >= self._next_status_ns:
+                self._next_status_ns = deadline + STATUS_PERIOD_NS
+                self.send("status", self.status())
+            if inbox.closed.is_set():
+                log.warning("the API process went away: stopping the loop safely")
+                self._shutdown_reason = "daemon API process exited"
+                self.running = False
+            elif deadline + self.period_ns - clock() > GC_SLACK_NS:
+                gc.collect(0)
+        self.shutdown(clock())
+
+    def shutdown(self, now_ns: int) -> None:
+        """Give the active goal its result, hold, apply the safe action, release hardware."""
+        reason = self._shutdown_reason
+        if self.ctrl.active:
+            events = self.ctrl.deactivate(now_ns, f"{reason}: holding position")
+            self._send_events(events)
+        try:
+            if self.fault is None:
+                self.hardware.deactivate(now_ns)
+            self.hardware.cleanup()
+        except JtcHwError as exc:
+            log.error("releasing the hardware failed: %s", exc)
+        self.send("status", self.status())
+
+
+def loop_main(source: str | dict[str, Any], controller_name: str | None, conn: Connection) -> None:
+    """Entry point of the loop process (``multiprocessing`` spawn target).
+
+    Never raises: failures are reported as ``("exit", code)`` with a log line first.
+    """
+    # The API process coordinates shutdown; a terminal's Ctrl-C or systemd's SIGTERM to the
+    # whole group must not kill the loop before the goal got its result and the robot holds.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    code = 0
+    try:
+        robot = load_robot(source, controller_name)
+        loop = ControlLoop(robot, conn)
+        from .realtime import apply_realtime
+
+        rt = robot.daemon.realtime
+        for line in apply_realtime(rt.priority, rt.lock_memory, rt.cpu_affinity):
+            loop.send("log", logging.INFO, line)
+        now = time.monotonic_ns()
+        loop.start(now)
+        loop._report_reference()  # before "ready": the API process plans against it at once
+        loop.send(
+            "ready",
+            {
+                "pid": os.getpid(),
+                "t0_ns": now,
+                "period_ns": loop.period_ns,
+                "hardware": loop.hardware.status(),
+            },
+        )
+        inbox = _Inbox(conn)
+        loop.run(inbox)
+    except JtcHwError as exc:
+        log.error("%s", exc)
+        _send_quietly(conn, ("log", logging.ERROR, str(exc)))
+        code = 2
+    except Exception as exc:  # last resort: say what happened, never die silently
+        log.exception("control loop crashed")
+        _send_quietly(conn, ("log", logging.CRITICAL, f"control loop crashed: {exc!r}"))
+        code = 3
+    _send_quietly(conn, ("exit", code))
+
+
+def _send_quietly(conn: Connection, message: tuple[Any, ...]) -> None:
+    try:
+        conn.send(message)
+    except (OSError, EOFError):
+        pass

@@ -19,9 +19,13 @@ def test_readme_snippet_runs_and_succeeds(capsys: pytest.CaptureFixture[str]) ->
     assert capsys.readouterr().out.startswith("succeeded Goal successfully reached!")
 
 
-def test_demo_module_succeeds() -> None:
+def test_demo_runs_the_daemon_and_a_goal_succeeds() -> None:
+    """``jtc-hw demo``: a daemon subprocess on simulated joints, a goal, SIGTERM, exit 0."""
     done = subprocess.run(
-        [sys.executable, "-m", "jtc_hw"], capture_output=True, text=True, timeout=120, cwd=ROOT
+        [sys.executable, "-m", "jtc_hw", "demo"], capture_output=True, text=True, timeout=120,
+        cwd=ROOT,
     )
-    assert done.returncode == 0, done.stderr
+    assert done.returncode == 0, done.stdout + done.stderr
     assert "goal 1 succeeded (error_code 0)" in done.stdout
+    assert "daemon stopped (SIGTERM), exit status 0" in done.stdout
+    assert "stopped cleanly" in done.stderr

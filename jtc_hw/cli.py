@@ -1,0 +1,631 @@
+"""``jtc-hw``: run the daemon, check a configuration, and talk to a running daemon.
+
+Exit status: 0 success; 1 a goal ended without success (aborted, canceled); 2 bad input
+(configuration, trajectory file, rejected goal); 3 no daemon to talk to or it failed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import math
+import os
+import signal
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from .errors import ConfigurationError, GoalRejected, JtcHwError
+
+EXIT_OK, EXIT_GOAL_FAILED, EXIT_BAD_INPUT, EXIT_NO_DAEMON = 0, 1, 2, 3
+
+DESCRIPTION = """\
+Drive robot joints with ROS 2 joint_trajectory_controller semantics, without ROS.
+
+  jtc-hw demo                  start a daemon on simulated joints, run a goal, show it
+  jtc-hw check robot.yaml      validate a configuration and explain it
+  jtc-hw run robot.yaml        run the daemon (under systemd: see config/jtc-hw.service)
+  jtc-hw send goal.yaml        send a trajectory to a running daemon and watch it
+  jtc-hw state --watch         live table of the controller state
+
+Client commands find the daemon's socket from --socket, else --config's daemon.socket,
+else $JTC_HW_SOCKET, else the default path (see 'jtc-hw check' for a config's path).
+"""
+
+
+# -- trajectory files -------------------------------------------------------------------------
+
+
+def load_goal_file(path: str) -> dict[str, Any]:
+    """Read a trajectory from YAML, JSON or CSV into the protocol's goal form.
+
+    YAML/JSON: either a trajectory (``joint_names``, ``points``) or a goal wrapping one
+    (``trajectory``, optional ``path_tolerance``, ``goal_tolerance``, ``goal_time_tolerance``).
+    CSV: a header ``time_from_start,<joint>,...`` (positions); columns may also be named
+    ``<joint>.position``, ``<joint>.velocity``, ``<joint>.acceleration``, ``<joint>.effort``.
+
+    Raises:
+        ConfigurationError: unreadable file or malformed content, naming the line/field.
+    """
+    p = Path(path)
+    try:
+        text = p.read_text()
+    except OSError as exc:
+        raise ConfigurationError(f"cannot read the trajectory file: {exc.strerror}", path) from exc
+    if p.suffix.lower() == ".csv":
+        return {"trajectory": _csv_trajectory(text, path)}
+    try:
+        data = json.loads(text) if p.suffix.lower() == ".json" else yaml.safe_load(text)
+    except (ValueError, yaml.YAMLError) as exc:
+        raise ConfigurationError(
+            f"not valid {p.suffix[1:].upper() or 'YAML'}: {exc}", path
+        ) from exc
+    if not isinstance(data, dict):
+        raise ConfigurationError("expected a mapping with joint_names and points", path)
+    if "trajectory" in data:
+        return data
+    return {"trajectory": data}
+
+
+_FIELDS = {
+    "position": "positions",
+    "velocity": "velocities",
+    "acceleration": "accelerations",
+    "effort": "effort",
+}
+
+
+def _csv_trajectory(text: str, path: str) -> dict[str, Any]:
+    rows = list(csv.reader(line for line in text.splitlines() if line.strip()))
+    if len(rows) < 2:
+        raise ConfigurationError("a CSV trajectory needs a header row and at least one point", path)
+    header = [h.strip() for h in rows[0]]
+    if header[0] not in ("time_from_start", "time"):
+        raise ConfigurationError(
+            f"the first column must be time_from_start (seconds), got '{header[0]}'", path
+        )
+    columns: list[tuple[str, str]] = []
+    for name in header[1:]:
+        joint, _, field = name.rpartition(".")
+        if not joint or field not in _FIELDS:
+            joint, field = name, "position"
+        columns.append((joint, _FIELDS[field]))
+    joints = list(dict.fromkeys(j for j, _ in columns))
+    points = []
+    for line, row in enumerate(rows[1:], start=2):
+        if len(row) != len(header):
+            raise ConfigurationError(
+                f"line {line}: {len(row)} values, the header has {len(header)}", path
+            )
+        try:
+            values = [float(v) for v in row]
+        except ValueError as exc:
+            raise ConfigurationError(f"line {line}: {exc}", path) from exc
+        point: dict[str, Any] = {"time_from_start": values[0]}
+        for (joint, field), value in zip(columns, values[1:], strict=True):
+            point.setdefault(field, [math.nan] * len(joints))[joints.index(joint)] = value
+        for field, vector in point.items():
+            if field != "time_from_start" and any(math.isnan(v) for v in vector):
+                raise ConfigurationError(f"line {line}: {field} missing for some joints", path)
+        points.append(point)
+    return {"joint_names": joints, "points": points}
+
+
+# -- helpers ----------------------------------------------------------------------------------
+
+
+def _socket(args: argparse.Namespace) -> str:
+    if getattr(args, "socket", None):
+        return str(args.socket)
+    if getattr(args, "config", None):
+        from .robot import load_robot
+
+        return load_robot(args.config).daemon.socket
+    from .client import default_socket_path
+
+    return default_socket_path()
+
+
+def _connect(args: argparse.Namespace) -> Any:
+    from .client import Client
+
+    path = _socket(args)
+    try:
+        return Client.connect(path, timeout_s=args.timeout)
+    except (OSError, JtcHwError) as exc:
+        raise _NoDaemon(
+            f"cannot reach a jtc-hw daemon at {path}: {exc}. Is it running "
+            "('jtc-hw run CONFIG', or 'systemctl status jtc-hw')? Use --socket to point at it."
+        ) from exc
+
+
+class _NoDaemon(Exception):
+    pass
+
+
+def _fmt(values: Sequence[float | None] | None, width: int = 9) -> str:
+    if values is None:
+        return "-"
+    return " ".join(f"{v:{width}.4f}" if v is not None else f"{'nan':>{width}}" for v in values)
+
+
+class Progress:
+    """A one-line progress bar: time along the trajectory and the tracking error."""
+
+    def __init__(self, total_s: float, stream: Any = None, width: int = 30) -> None:
+        self.total_s = max(total_s, 1e-9)
+        self.stream = stream or sys.stdout
+        self.width = width
+        self.tty = hasattr(self.stream, "isatty") and self.stream.isatty()
+        self._last_print = 0.0
+
+    def update(self, feedback: dict[str, Any]) -> None:
+        t = max(0.0, float(feedback.get("time_from_start") or 0.0))
+        errors = [
+            abs(e) for e in (feedback.get("error", {}).get("positions") or []) if e is not None
+        ]
+        worst = max(errors, default=0.0)
+        frac = min(t / self.total_s, 1.0)
+        filled = round(frac * self.width)
+        line = (
+            f"[{'#' * filled}{'.' * (self.width - filled)}] {t:6.2f}/{self.total_s:.2f} s"
+            f"  max |error| {worst:.4f}"
+        )
+        if self.tty:
+            self.stream.write("\r" + line)
+            self.stream.flush()
+        elif time.monotonic() - self._last_print >= 0.5:
+            self._last_print = time.monotonic()
+            print(line, file=self.stream)
+
+    def finish(self) -> None:
+        if self.tty:
+            self.stream.write("\n")
+
+
+# -- commands ---------------------------------------------------------------------------------
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    from .daemon import run
+
+    return run(args.config_file, args.controller)
+
+
+def cmd_check(args: argparse.Namespace) -> int:
+    from .config import explain
+    from .robot import load_robot
+
+    robot = load_robot(args.config_file, args.controller)
+    c = robot.controller
+    print(f"{args.config_file}: OK")
+    print(f"  controller      {c.name}: {len(c.joints)} joints ({', '.join(c.joints)})")
+    print(f"  update_rate     {c.update_rate:g} Hz (period {1e3 / c.update_rate:.3f} ms)")
+    print(
+        f"  interfaces      command [{', '.join(c.command_interfaces)}], "
+        f"state [{', '.join(c.state_interfaces)}]"
+    )
+    law = "PID (gains per joint)" if c.use_pid else "desired values forwarded"
+    print(f"  control law     {law}; interpolation {c.interpolation_method}")
+    print(f"  tolerances      {'joint':<14} {'path':>8} {'goal':>8}   (0: not checked)")
+    for j in c.joints:
+        jc = c.constraints.joints[j]
+        print(f"                  {j:<14} {jc.trajectory:>8g} {jc.goal:>8g}")
+    print(
+        f"                  goal_time {c.constraints.goal_time:g} s, "
+        f"stopped_velocity_tolerance {c.constraints.stopped_velocity_tolerance:g}"
+    )
+    for h in robot.hardware:
+        print(f"  hardware        {h.name}: {h.kind}, joints {', '.join(h.joints)}")
+    d = robot.daemon
+    print(f"  socket          {d.socket} (mode {d.socket_mode:o})")
+    rt = d.realtime
+    print(
+        f"  realtime        priority {rt.priority or 'normal'}, lock_memory {rt.lock_memory}, "
+        f"cpu_affinity {list(rt.cpu_affinity) or 'any'}"
+    )
+    for warning in explain(c):
+        print(f"warning: {warning}")
+    return EXIT_OK
+
+
+def _goal_result(handle: Any, total_s: float, quiet: bool, timeout_s: float) -> int:
+    progress = None if quiet else Progress(total_s)
+    try:
+        for feedback in handle.feedback(timeout_s=timeout_s):
+            if progress is not None:
+                progress.update(feedback)
+        result = handle.wait(timeout_s=timeout_s)
+    except KeyboardInterrupt:
+        if progress is not None:
+            progress.finish()
+        print("interrupted: canceling the goal", file=sys.stderr)
+        result = handle.cancel(timeout_s=timeout_s)
+        result = handle.wait(timeout_s=timeout_s)
+    if progress is not None:
+        progress.finish()
+    print(
+        f"goal {result['goal_id']} {result['status']} (error_code {result['error_code']}): "
+        f"{result['error_string']}"
+    )
+    return EXIT_OK if result["status"] == "succeeded" else EXIT_GOAL_FAILED
+
+
+def cmd_send(args: argparse.Namespace) -> int:
+    goal = load_goal_file(args.file)
+    trajectory = goal["trajectory"]
+    points = trajectory.get("points") or []
+    total = float(points[-1].get("time_from_start", 0.0)) if points else 0.0
+    with _connect(args) as client:
+        if args.topic:
+            client.send_trajectory(trajectory, start_in=args.start_in)
+            print(f"trajectory sent ({len(points)} points, {total:.2f} s), not monitored")
+            return EXIT_OK
+        handle = client.send_goal(
+            trajectory,
+            goal.get("path_tolerance", ()),
+            goal.get("goal_tolerance", ()),
+            float(goal.get("goal_time_tolerance", 0.0)),
+            start_in=args.start_in,
+        )
+        print(f"goal {handle.goal_id} accepted: {len(points)} points over {total:.2f} s")
+        return _goal_result(handle, total + (args.start_in or 0.0), args.quiet, args.wait)
+
+
+def cmd_cancel(args: argparse.Namespace) -> int:
+    with _connect(args) as client:
+        goal_id = args.goal_id
+        if goal_id is None:
+            goal_id = client.get_status().get("controller", {}).get("active_goal")
+            if goal_id is None:
+                print("no goal is executing")
+                return EXIT_OK
+        reply = client.cancel(int(goal_id))
+        canceled = reply.get("canceled", reply.get("ok"))
+        print(f"goal {goal_id}: {'cancel requested' if canceled else 'not executing'}")
+        return EXIT_OK if canceled else EXIT_GOAL_FAILED
+
+
+def _print_state(state: dict[str, Any], header: bool) -> None:
+    names = state["joint_names"]
+    if header:
+        print(f"{'joint':<14} {'desired':>9} {'actual':>9} {'error':>9} {'velocity':>9}")
+    d, a, e = state["desired"], state["actual"], state["error"]
+    for i, name in enumerate(names):
+        vel = (a.get("velocities") or [None] * len(names))[i]
+        print(
+            f"{name:<14} {_fmt([d['positions'][i]])} {_fmt([a['positions'][i]])} "
+            f"{_fmt([e['positions'][i]])} {_fmt([vel])}"
+        )
+    goal = state.get("active_goal")
+    dropped = state.get("dropped") or 0
+    line = f"t={state['time_ns'] / 1e9:.3f} s  {'holding' if state['holding'] else 'moving'}"
+    if goal is not None:
+        line += f"  goal {goal}"
+    if dropped:
+        line += f"  ({dropped} state messages dropped: this terminal is slower than the rate)"
+    print(line)
+
+
+def cmd_state(args: argparse.Namespace) -> int:
+    with _connect(args) as client:
+        subscription = client.subscribe_state()
+        try:
+            first = True
+            while True:
+                state = subscription.get(timeout_s=args.timeout)
+                if args.watch and not first and sys.stdout.isatty():
+                    sys.stdout.write(f"\x1b[{len(state['joint_names']) + 2}A")
+                _print_state(state, header=True)
+                first = False
+                if not args.watch:
+                    return EXIT_OK
+        except KeyboardInterrupt:
+            return EXIT_OK
+        finally:
+            subscription.close()
+
+
+def cmd_query(args: argparse.Namespace) -> int:
+    with _connect(args) as client:
+        reply = client.query_state(in_s=args.t)
+        names = client.joint_names
+        print(f"desired state in {args.t:g} s:")
+        for key in ("positions", "velocities", "accelerations", "effort"):
+            values = reply.get(key) or reply.get("desired", {}).get(key)
+            print(f"  {key:<13} {_fmt(values)}")
+        print(f"  joints        {' '.join(f'{n:>9}' for n in names)}")
+        return EXIT_OK
+
+
+def cmd_status(args: argparse.Namespace) -> int:
+    with _connect(args) as client:
+        print(json.dumps(client.get_status(), indent=2, default=str))
+        return EXIT_OK
+
+
+# -- demo -------------------------------------------------------------------------------------
+
+DEMO_JOINTS = [f"joint{i}" for i in range(1, 7)]
+
+
+def demo_config(socket_path: str) -> dict[str, Any]:
+    """A six-joint arm on simulated (mirror) hardware at 500 Hz."""
+    return {
+        "controller_manager": {"ros__parameters": {"update_rate": 500}},
+        "joint_trajectory_controller": {
+            "ros__parameters": {
+                "joints": DEMO_JOINTS,
+                "command_interfaces": ["position"],
+                "state_interfaces": ["position", "velocity"],
+                "state_publish_rate": 50.0,
+                "action_monitor_rate": 10.0,
+                "constraints": {
+                    "stopped_velocity_tolerance": 0.05,
+                    "goal_time": 0.5,
+                    **{j: {"trajectory": 0.1, "goal": 0.01} for j in DEMO_JOINTS},
+                },
+            }
+        },
+        "hardware": [
+            {"name": "arm", "kind": "mirror", "joints": DEMO_JOINTS, "params": {"lag_s": 0.005}}
+        ],
+        "daemon": {"socket": socket_path},
+    }
+
+
+def demo_goal() -> dict[str, Any]:
+    """A wave through three waypoints over 3 s, ending at rest."""
+    return {
+        "joint_names": DEMO_JOINTS,
+        "points": [
+            {
+                "time_from_start": 1.0,
+                "positions": [0.2 * (i + 1) for i in range(6)],
+                "velocities": [0.1] * 6,
+            },
+            {
+                "time_from_start": 2.0,
+                "positions": [-0.1 * (i + 1) for i in range(6)],
+                "velocities": [-0.1] * 6,
+            },
+            {"time_from_start": 3.0, "positions": [0.0] * 6, "velocities": [0.0] * 6},
+        ],
+    }
+
+
+def _forward(stream: Any, prefix: str) -> None:
+    for line in iter(stream.readline, ""):
+        print(f"{prefix}{line.rstrip()}", file=sys.stderr)
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    from .client import Client
+
+    with tempfile.TemporaryDirectory(prefix="jtc-hw-demo-") as tmp:
+        if args.config:
+            config_path = args.config
+            from .robot import load_robot
+
+            socket_path = load_robot(config_path).daemon.socket
+            goal = None
+        else:
+            socket_path = os.path.join(tmp, "jtc-hw.sock")
+            config_path = os.path.join(tmp, "robot.yaml")
+            Path(config_path).write_text(yaml.safe_dump(demo_config(socket_path)))
+            goal = demo_goal()
+        print(f"jtc-hw demo: starting the daemon ({config_path})")
+        daemon = subprocess.Popen(
+            [sys.executable, "-m", "jtc_hw", "run", config_path],
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        assert daemon.stderr is not None
+        threading.Thread(target=_forward, args=(daemon.stderr, "  daemon | "), daemon=True).start()
+        client = None
+        deadline = time.monotonic() + args.timeout
+        while client is None:
+            if daemon.poll() is not None:
+                print(
+                    f"the daemon exited with status {daemon.returncode} before it was ready",
+                    file=sys.stderr,
+                )
+                return EXIT_NO_DAEMON
+            try:
+                client = Client.connect(socket_path, timeout_s=2.0)
+            except (OSError, JtcHwError):
+                if time.monotonic() > deadline:
+                    daemon.terminate()
+                    print("the daemon did not open its socket in time", file=sys.stderr)
+                    return EXIT_NO_DAEMON
+                time.sleep(0.05)  # CLI polling for a socket to appear; not in library code
+        try:
+            names = client.joint_names
+            if goal is None:
+                goal = {
+                    "joint_names": names,
+                    "points": [
+                        {
+                            "time_from_start": 2.0,
+                            "positions": [0.3] * len(names),
+                            "velocities": [0.0] * len(names),
+                        },
+                        {
+                            "time_from_start": 4.0,
+                            "positions": [0.0] * len(names),
+                            "velocities": [0.0] * len(names),
+                        },
+                    ],
+                }
+            total = goal["points"][-1]["time_from_start"]
+            handle = client.send_goal(goal)
+            print(
+                f"goal {handle.goal_id} accepted: {len(goal['points'])} points over {total} s "
+                f"on {len(names)} joints"
+            )
+            code = _goal_result(handle, total, False, args.timeout)
+            status = client.get_status()
+            loop = status.get("loop", {})
+            late = loop.get("lateness_us", {})
+            print(
+                f"loop: {loop.get('rate_hz')} Hz, {loop.get('cycles')} cycles, "
+                f"wake-up lateness p50 {late.get('p50')} us, p99 {late.get('p99')} us, "
+                f"overruns {loop.get('overruns')}"
+            )
+        finally:
+            client.close()
+            daemon.send_signal(signal.SIGTERM)
+            try:
+                status_code = daemon.wait(timeout=20)
+            except subprocess.TimeoutExpired:
+                daemon.kill()
+                status_code = daemon.wait()
+        print(f"daemon stopped (SIGTERM), exit status {status_code}")
+        return code if status_code == 0 else EXIT_NO_DAEMON
+
+
+# -- parser -----------------------------------------------------------------------------------
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="jtc-hw",
+        description=DESCRIPTION,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+
+    def client_options(p: argparse.ArgumentParser) -> None:
+        p.add_argument("--socket", help="the daemon's Unix socket path")
+        p.add_argument("--config", help="find the socket path in this robot configuration")
+        p.add_argument(
+            "--timeout",
+            type=float,
+            default=10.0,
+            help="seconds to wait for the daemon's answers (default 10)",
+        )
+
+    p = sub.add_parser(
+        "run",
+        help="run the daemon",
+        description=(
+            "Run the daemon: start the control loop on the configured hardware, open the socket, "
+            "notify systemd when ready. SIGTERM/SIGINT: the active goal gets its result, the robot "
+            "holds, the hardware applies its safe action, exit 0."
+        ),
+    )
+    p.add_argument("config_file", metavar="CONFIG", help="robot configuration (YAML)")
+    p.add_argument("--controller", help="controller section to use if the file has several")
+    p.set_defaults(func=cmd_run)
+
+    p = sub.add_parser(
+        "check",
+        help="validate a configuration and explain it",
+        description=(
+            "Validate a robot configuration (controller parameters with upstream names, hardware, "
+            "daemon settings), print what it will do, and warn about settings that have no effect."
+        ),
+    )
+    p.add_argument("config_file", metavar="CONFIG")
+    p.add_argument("--controller")
+    p.set_defaults(func=cmd_check)
+
+    p = sub.add_parser(
+        "demo",
+        help="run a goal on simulated joints and show what happened",
+        description=(
+            "Start a daemon on simulated joints (or on --config's hardware), "
+            "send a sample trajectory, show its progress and result, stop."
+        ),
+    )
+    p.add_argument("--config", help="use this robot configuration instead of the built-in arm")
+    p.add_argument("--timeout", type=float, default=30.0)
+    p.set_defaults(func=cmd_demo)
+
+    p = sub.add_parser(
+        "send",
+        help="send a trajectory file as a goal and watch it",
+        description=(
+            "Send a trajectory (YAML, JSON or CSV) to the daemon as a follow_joint_trajectory "
+            "goal, "
+            "show a progress bar (time along the trajectory, tracking error) and exit with the "
+            "result: 0 succeeded, 1 aborted/canceled, 2 rejected. Ctrl-C cancels the goal. "
+            "CSV: header 'time_from_start,<joint>,...' (positions) or '<joint>.velocity' etc."
+        ),
+    )
+    p.add_argument("file", metavar="FILE")
+    p.add_argument(
+        "--topic",
+        action="store_true",
+        help="send on the fire-and-forget topic interface instead (no result)",
+    )
+    p.add_argument(
+        "--start-in",
+        type=float,
+        default=None,
+        metavar="S",
+        help="start the trajectory S seconds from now",
+    )
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument(
+        "--wait",
+        type=float,
+        default=3600.0,
+        help="longest time to wait for the result (default 3600 s)",
+    )
+    client_options(p)
+    p.set_defaults(func=cmd_send)
+
+    p = sub.add_parser("cancel", help="cancel the executing goal")
+    p.add_argument("goal_id", nargs="?", type=int, help="default: the executing goal")
+    client_options(p)
+    p.set_defaults(func=cmd_cancel)
+
+    p = sub.add_parser("state", help="print the controller state (once, or --watch)")
+    p.add_argument("--watch", action="store_true", help="keep printing at state_publish_rate")
+    client_options(p)
+    p.set_defaults(func=cmd_state)
+
+    p = sub.add_parser("query", help="desired state T seconds from now (query_state)")
+    p.add_argument("t", type=float, metavar="T")
+    client_options(p)
+    p.set_defaults(func=cmd_query)
+
+    p = sub.add_parser("status", help="loop statistics, hardware and controller status (JSON)")
+    client_options(p)
+    p.set_defaults(func=cmd_status)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of ``jtc-hw``."""
+    args = build_parser().parse_args(argv)
+    try:
+        return int(args.func(args))
+    except ConfigurationError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except GoalRejected as exc:
+        code = getattr(exc, "error_code", -1)
+        print(f"rejected (error_code {code}): {exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except _NoDaemon as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return EXIT_NO_DAEMON
+    except JtcHwError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return EXIT_NO_DAEMON
+    except KeyboardInterrupt:
+        return 130
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -46,7 +46,8 @@ def apply_realtime(priority: int, lock_memory: bool, cpu_affinity: Sequence[int]
     thread before starting other threads.
 
     Args:
-        priority: SCHED_FIFO priority, 1 (lowest) to 99 (highest); 0 keeps normal scheduling. Stay below the kernel's
+        priority: SCHED_FIFO priority, 1 (lowest) to 99 (highest); 0 keeps normal
+            scheduling. Stay below the kernel's
             threaded interrupt handlers (50 by default) unless the bus driver's IRQ thread is
             raised above the loop too.
         lock_memory: whether to lock all current and future pages in RAM.

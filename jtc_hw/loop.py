@@ -316,11 +316,12 @@ def loop_main(source: str | dict[str, Any], controller_name: str | None, conn: C
     try:
         robot = load_robot(source, controller_name)
         loop = ControlLoop(robot, conn)
-        from .realtime import apply_realtime
+        from .realtime import apply_realtime, reduce_timer_slack
 
         rt = robot.daemon.realtime
         for line in apply_realtime(rt.priority, rt.lock_memory, rt.cpu_affinity):
             loop.send("log", logging.INFO, line)
+        loop.send("log", logging.INFO, reduce_timer_slack())
         now = time.monotonic_ns()
         loop.start(now)
         loop._report_reference()  # before "ready": the API process plans against it at once

@@ -225,15 +225,21 @@ class MirrorHardware(HardwareInterface):
         p0, v0 = self._p, self._v
         p, v, a = p0.copy(), v0.copy(), self._a.copy()
         mode = self._mode
-        for m, step in (
+        steps = (
             (_POSITION, self._position_step),
             (_VELOCITY, self._velocity_step),
             (_ACCELERATION, self._acceleration_step),
             (_EFFORT, self._effort_step),
-        ):
-            index = np.flatnonzero(mode == m)
-            if index.size:
-                p[index], v[index], a[index] = step(index, dt)
+        )
+        first = mode[0]
+        if (mode == first).all():
+            # Every joint driven the same way (the usual case): one step on whole arrays.
+            p, v, a = steps[int(first)][1](slice(None), dt)
+        else:
+            for m, step in steps:
+                index = np.flatnonzero(mode == m)
+                if index.size:
+                    p[index], v[index], a[index] = step(index, dt)
         over = (p < self._lower) | (p > self._upper)
         if over.any():
             p = np.clip(p, self._lower, self._upper)
@@ -241,7 +247,7 @@ class MirrorHardware(HardwareInterface):
             a[over] = 0.0
         self._p, self._v, self._a = p, v, a
 
-    def _position_step(self, i: NDArray[np.intp], dt: float) -> tuple[F64, F64, F64]:
+    def _position_step(self, i: NDArray[np.intp] | slice, dt: float) -> tuple[F64, F64, F64]:
         p0, v0 = self._p[i], self._v[i]
         target = self._target[i]
         vmax = self._vmax[i]
@@ -263,12 +269,12 @@ class MirrorHardware(HardwareInterface):
         v = (p - p0) / dt
         return p, v, (v - v0) / dt
 
-    def _velocity_step(self, i: NDArray[np.intp], dt: float) -> tuple[F64, F64, F64]:
+    def _velocity_step(self, i: NDArray[np.intp] | slice, dt: float) -> tuple[F64, F64, F64]:
         vmax = self._vmax[i]
         v = np.clip(self._held[_VELOCITY][i], -vmax, vmax)
         return self._p[i] + v * dt, v, (v - self._v[i]) / dt
 
-    def _acceleration_step(self, i: NDArray[np.intp], dt: float) -> tuple[F64, F64, F64]:
+    def _acceleration_step(self, i: NDArray[np.intp] | slice, dt: float) -> tuple[F64, F64, F64]:
         vmax = self._vmax[i]
         acc = self._held[_ACCELERATION][i]
         p0 = self._p[i]
@@ -288,7 +294,7 @@ class MirrorHardware(HardwareInterface):
             a[sat] = 0.0
         return p, v, a
 
-    def _effort_step(self, i: NDArray[np.intp], dt: float) -> tuple[F64, F64, F64]:
+    def _effort_step(self, i: NDArray[np.intp] | slice, dt: float) -> tuple[F64, F64, F64]:
         u = self._held[_EFFORT][i]
         p0, v0 = self._p[i], self._v[i]
         c = self._damping

@@ -219,3 +219,17 @@ def test_priority_zero_keeps_normal_scheduling() -> None:
     out = run_child("0, False, []")
     assert out["policy"] == os.SCHED_OTHER
     assert any("normal scheduling" in line for line in out["lines"])
+
+
+def test_reduce_timer_slack_in_a_child() -> None:
+    code = (
+        "from jtc_hw.realtime import reduce_timer_slack; "
+        "line = reduce_timer_slack(1); "
+        "print(line); print(open('/proc/self/timerslack_ns').read().strip())"
+    )
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    line, slack = done.stdout.splitlines()
+    if "not Linux" in line:
+        pytest.skip("no /proc/self/timerslack_ns on this system")
+    assert line == "timer slack set to 1 ns (sleeps end on time)"
+    assert slack == "1"

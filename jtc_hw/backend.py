@@ -28,7 +28,13 @@ import numpy as np
 
 from .config import ControllerConfig, config_to_dict
 from .controller import Plan, Planner
-from .errors import ControllerStateError, GoalRejected, HardwareError, JtcHwError
+from .errors import (
+    ConfigurationError,
+    ControllerStateError,
+    GoalRejected,
+    HardwareError,
+    JtcHwError,
+)
 from .goals import GoalFeedback, GoalResult, TrajectoryStopped
 from .joints import JointCommand
 from .robot import RobotConfig
@@ -38,6 +44,11 @@ from .trajectory import JointTrajectory, Trajectory, TrajectorySample
 log = logging.getLogger("jtc_hw.backend")
 
 ATTEMPTS = 5
+_LOOP_ERRORS: dict[str, type[JtcHwError]] = {
+    "ConfigurationError": ConfigurationError,
+    "ControllerStateError": ControllerStateError,
+    "GoalRejected": GoalRejected,
+}
 START_TIMEOUT_S = 30.0
 REQUEST_TIMEOUT_S = 5.0
 
@@ -78,6 +89,7 @@ class LoopBackend:
         self._process: multiprocessing.process.BaseProcess | None = None
         self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="jtc-hw-plan")
         self._margin_ns = max(5_000_000, 3 * round(1e9 / self.config.update_rate))
+        self._active_goal: int | None = None
         self.last_heard_ns = 0
         self.info: dict[str, Any] = {}
         self.exit_code: int | None = None
@@ -184,6 +196,8 @@ class LoopBackend:
             self._version = version
         elif kind in ("committed", "stale", "reply"):
             future = self._waiting.pop(message[1], None)
+            if kind == "committed":
+                self._active_goal = message[2]
             if future is not None and not future.done():
                 future.set_result(message)
             if kind == "stale":
@@ -195,6 +209,8 @@ class LoopBackend:
                 elif self._listener is not None:
                     self._listener.on_goal_event(event)
                 if isinstance(event, GoalResult):
+                    if event.goal_id == self._active_goal:
+                        self._active_goal = None
                     log.info(
                         "goal %d %s (%d): %s",
                         event.goal_id,
@@ -281,8 +297,12 @@ class LoopBackend:
         }
 
     def status(self) -> dict[str, Any]:
-        """The loop's latest statistics and hardware status (refreshed at 2 Hz)."""
-        return dict(self._status, alive=self.alive)
+        """The loop's statistics and hardware status (refreshed at 2 Hz); the active goal is
+        tracked from commits and results, so it is current."""
+        status = dict(self._status, alive=self.alive)
+        if "controller" in status:
+            status["controller"] = dict(status["controller"], active_goal=self._active_goal)
+        return status
 
     def query_state(self, time_ns: int) -> TrajectorySample:
         """Desired state at ``time_ns`` from the replica reference.
@@ -339,15 +359,12 @@ class LoopBackend:
         """
         await self._request("rearm", {})
 
-    def sim(self, component: str, freeze: bool) -> None:
-        """Freeze or release a simulated component's feedback (fire and forget)."""
-        self._send(("request", next(self._ids), "sim", {"component": component, "freeze": freeze}))
-
-    async def sim_async(self, component: str, freeze: bool) -> None:
-        """Like ``sim`` but waits for the loop to apply it.
+    async def sim(self, component: str, freeze: bool) -> None:
+        """Freeze or release a simulated component's feedback; returns once the loop did.
 
         Raises:
-            HardwareError: the component is unknown or not simulated.
+            ConfigurationError: no component of that name.
+            HardwareError: the component is not simulated hardware.
         """
         await self._request("sim", {"component": component, "freeze": freeze})
 
@@ -369,7 +386,8 @@ class LoopBackend:
             self._waiting.pop(request_id, None)
             raise HardwareError(f"the control loop did not answer {op!r} within 5 s") from None
         if not ok:
-            raise HardwareError(str(value))
+            kind, message = value
+            raise _LOOP_ERRORS.get(kind, HardwareError)(message)
         return value
 
     async def _plan_and_commit(self, make: Any) -> int | None:

@@ -107,6 +107,11 @@ class Daemon:
             self.notifier.stopping(status=self._reason)
             code = await self.backend.stop(self._reason)
             await server.close()
+            # asyncio restores the default (fatal) handlers when its loop closes: a second
+            # SIGTERM now must not turn a clean stop into death by signal.
+            for sig in (signal.SIGTERM, signal.SIGINT):
+                aio.remove_signal_handler(sig)
+                signal.signal(sig, signal.SIG_IGN)
         if self._failed or code not in (0, None):
             return 1
         log.info("stopped cleanly")

@@ -168,7 +168,7 @@ class ControlLoop:
             try:
                 value = self._request(op, args, now_ns)
             except JtcHwError as exc:
-                self.send("reply", request_id, False, f"{type(exc).__name__}: {exc}")
+                self.send("reply", request_id, False, (type(exc).__name__, str(exc)))
             else:
                 self.send("reply", request_id, True, value)
 

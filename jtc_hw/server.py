@@ -200,8 +200,8 @@ class Backend(Protocol):
         """
         ...
 
-    def sim(self, component: str, freeze: bool) -> None:
-        """Freeze or release a simulated component's feedback.
+    async def sim(self, component: str, freeze: bool) -> None:
+        """Freeze or release a simulated component's feedback (applied by the loop).
 
         Raises:
             ConfigurationError: no such simulated component.
@@ -951,7 +951,7 @@ class Server:
             case GetStatus():
                 return self._merge(req.id, backend.status(), {"server": self.stats(conn)})
             case Sim():
-                backend.sim(req.component, req.freeze)
+                await backend.sim(req.component, req.freeze)
                 return reply(req.id, component=req.component, frozen=req.freeze)
         raise AssertionError(f"unhandled request {req!r}")  # pragma: no cover
 

@@ -154,7 +154,7 @@ class FakeBackend:
     def query_state(self, time_ns: int) -> TrajectorySample:
         return self.ctrl.query_state(time_ns)
 
-    def sim(self, component: str, freeze: bool) -> None:
+    async def sim(self, component: str, freeze: bool) -> None:
         if component != "mirror":
             raise ConfigurationError(f"no simulated component '{component}' (have: mirror)")
         self.mirror.frozen = freeze

@@ -47,7 +47,13 @@ from typing import Any, ClassVar, Final
 import numpy as np
 from numpy.typing import NDArray
 
-from .config import COMMAND_INTERFACE_TYPES, STATE_INTERFACE_TYPES, _describe, _did_you_mean
+from .config import (
+    COMMAND_INTERFACE_TYPES,
+    STATE_INTERFACE_TYPES,
+    _coerce_string_array,
+    _describe,
+    _did_you_mean,
+)
 from .errors import ConfigurationError, ControllerStateError, HardwareError, JtcHwError
 from .joints import JointCommand, JointState
 
@@ -372,20 +378,8 @@ def _per_joint(spec: ParamSpec, value: Any, path: str, joints: Sequence[str]) ->
 
 
 def _strings(spec: ParamSpec, value: Any, path: str) -> tuple[str, ...]:
-    if not isinstance(value, (list, tuple)):
-        raise ConfigurationError(
-            f"expected a list of strings, got {_describe(value)}", path, value
-        )
-    for index, item in enumerate(value):
-        if not isinstance(item, str):
-            raise ConfigurationError(
-                f"expected a list of strings, but element {index} is {_describe(item)}",
-                path,
-                item,
-            )
-        if not item.strip():
-            raise ConfigurationError(f"element {index} is an empty name", path, item)
-    return tuple(value)
+    # The same rules (and messages) as the controller's string-array parameters.
+    return _coerce_string_array(value, path)
 
 
 def _list_checks(spec: ParamSpec, items: tuple[Any, ...], path: str, value: Any) -> None:

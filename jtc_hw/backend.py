@@ -373,7 +373,9 @@ class LoopBackend:
     def _send(self, message: tuple[Any, ...]) -> None:
         if self._conn is None or not self.alive:
             raise GoalRejected("the control loop is not running")
-        self._conn.send(message)
+        from .loop import send_framed
+
+        send_framed(self._conn, message)
 
     async def _request(self, op: str, args: dict[str, Any]) -> Any:
         request_id = next(self._ids)

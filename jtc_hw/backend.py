@@ -88,7 +88,8 @@ class LoopBackend:
         self._conn: Connection | None = None
         self._process: multiprocessing.process.BaseProcess | None = None
         self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="jtc-hw-plan")
-        self._margin_ns = max(5_000_000, 3 * round(1e9 / self.config.update_rate))
+        self._period_ns = round(1e9 / self.config.update_rate)
+        self._margin_ns = max(5_000_000, 3 * self._period_ns)
         self._active_goal: int | None = None
         self.last_heard_ns = 0
         self.info: dict[str, Any] = {}
@@ -327,8 +328,15 @@ class LoopBackend:
             GoalRejected: invalid goal, or the loop kept refusing the plan.
         """
         result = await self._plan_and_commit(
-            lambda ref, ver, now: self._planner.plan_goal(
-                ref, ver, now, traj, path_tolerance, goal_tolerance, goal_time_tolerance
+            lambda ref, ver, now, valid_from: self._planner.plan_goal(
+                ref,
+                ver,
+                now,
+                traj,
+                path_tolerance,
+                goal_tolerance,
+                goal_time_tolerance,
+                valid_from,
             )
         )
         assert result is not None
@@ -344,7 +352,9 @@ class LoopBackend:
             await self._request("stop", {})
             return
         await self._plan_and_commit(
-            lambda ref, ver, now: self._planner.plan_trajectory(ref, ver, now, traj)
+            lambda ref, ver, now, valid_from: self._planner.plan_trajectory(
+                ref, ver, now, traj, valid_from
+            )
         )
 
     async def cancel_goal(self, goal_id: int) -> bool:
@@ -399,10 +409,15 @@ class LoopBackend:
             if self._ref is None:
                 raise GoalRejected("the controller is not active yet")
             ref, version = self._ref, self._version
-            planned = self.now_ns() + margin
-            begin = time.monotonic_ns()
-            plan: Plan = await aio.run_in_executor(self._executor, make, ref, version, planned)
-            took = time.monotonic_ns() - begin
+            begin = self.now_ns()
+            planned = begin + margin
+            # The loop may commit as soon as the plan arrives, at a cycle whose deadline can lie
+            # up to a period before now: keep the current reference from there.
+            valid_from = begin - 2 * self._period_ns
+            plan: Plan = await aio.run_in_executor(
+                self._executor, make, ref, version, planned, valid_from
+            )
+            took = self.now_ns() - begin
             if self.now_ns() + self._margin_ns // 2 > planned:
                 margin = 2 * margin + took  # fitting took longer than the margin: plan later
                 continue

@@ -116,6 +116,8 @@ class Plan:
             (the splice would have started in the past, stepping the command).
         start_ns: the command's start time (header stamp, or ``planned_ns`` for "now").
         tolerances: the tolerances to monitor.
+        valid_from_ns: the earliest commit time for which ``reference`` still equals the base
+            reference up to ``planned_ns`` (committing earlier is refused).
     """
 
     goal: bool
@@ -124,6 +126,7 @@ class Plan:
     planned_ns: int
     start_ns: int
     tolerances: SegmentTolerances
+    valid_from_ns: int
 
 
 class Planner:
@@ -149,8 +152,9 @@ class Planner:
         path_tolerance: Sequence[JointTolerance] = (),
         goal_tolerance: Sequence[JointTolerance] = (),
         goal_time_tolerance: float = 0.0,
+        valid_from_ns: int | None = None,
     ) -> Plan:
-        """Validate and fit an action goal.
+        """Validate and fit an action goal (``valid_from_ns``: see ``Plan``; default ``now_ns``).
 
         Raises:
             GoalRejected: invalid trajectory or tolerances, or entirely in the past.
@@ -159,10 +163,15 @@ class Planner:
         tolerances = self.defaults.with_overrides(
             self.joint_names, path_tolerance, goal_tolerance, goal_time_tolerance
         )
-        return self._plan(True, reference, version, now_ns, prepared, tolerances)
+        return self._plan(True, reference, version, now_ns, prepared, tolerances, valid_from_ns)
 
     def plan_trajectory(
-        self, reference: Trajectory, version: int, now_ns: int, trajectory: JointTrajectory
+        self,
+        reference: Trajectory,
+        version: int,
+        now_ns: int,
+        trajectory: JointTrajectory,
+        valid_from_ns: int | None = None,
     ) -> Plan:
         """Validate and fit a topic trajectory (non-empty; an empty one is a stop request).
 
@@ -170,7 +179,7 @@ class Planner:
             GoalRejected: invalid or entirely in the past.
         """
         prepared = prepare(self.config, trajectory)
-        return self._plan(False, reference, version, now_ns, prepared, self.defaults)
+        return self._plan(False, reference, version, now_ns, prepared, self.defaults, valid_from_ns)
 
     def _plan(
         self,
@@ -180,12 +189,14 @@ class Planner:
         now_ns: int,
         prepared: PreparedTrajectory,
         tolerances: SegmentTolerances,
+        valid_from_ns: int | None,
     ) -> Plan:
+        valid_from = now_ns if valid_from_ns is None else min(valid_from_ns, now_ns)
         new_ref = reference.splice(
-            now_ns, prepared, self.config.interpolation_method, self.wraparound
+            now_ns, prepared, self.config.interpolation_method, self.wraparound, valid_from
         )
         start = prepared.start_time_ns or now_ns
-        return Plan(goal, new_ref, version, now_ns, start, tolerances)
+        return Plan(goal, new_ref, version, now_ns, start, tolerances, valid_from)
 
 
 class JointTrajectoryController:
@@ -373,6 +384,7 @@ class JointTrajectoryController:
         path_tolerance: Sequence[JointTolerance] = (),
         goal_tolerance: Sequence[JointTolerance] = (),
         goal_time_tolerance: float = 0.0,
+        valid_from_ns: int | None = None,
     ) -> Plan:
         """First half of ``send_goal``: validate and fit against the current reference.
 
@@ -388,6 +400,7 @@ class JointTrajectoryController:
             path_tolerance,
             goal_tolerance,
             goal_time_tolerance,
+            valid_from_ns,
         )
 
     def plan_trajectory(self, now_ns: int, trajectory: JointTrajectory) -> Plan:
@@ -414,6 +427,10 @@ class JointTrajectoryController:
         if plan.base_version != self._version:
             raise StalePlan(
                 f"planned against reference version {plan.base_version}, current is {self._version}"
+            )
+        if now_ns < plan.valid_from_ns:
+            raise StalePlan(
+                f"committed at {now_ns} ns, before the plan's validity ({plan.valid_from_ns} ns)"
             )
         if now_ns > plan.planned_ns:
             raise StalePlan(

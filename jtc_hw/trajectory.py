@@ -280,6 +280,7 @@ class Trajectory:
         new: PreparedTrajectory,
         interpolation_method: str = "splines",
         wraparound: NDArray[np.bool_] | None = None,
+        keep_from_ns: int | None = None,
     ) -> Trajectory:
         """Combine this trajectory with a new command (the reference's trajectory replacement).
 
@@ -290,6 +291,9 @@ class Trajectory:
             wraparound: per controller joint, whether it is continuous; the new command's
                 positions of such a joint are shifted by a multiple of 2 pi so that the first
                 kept point is within pi of the current reference (no full turn, no step).
+            keep_from_ns: the earliest time the result will be sampled, if before ``now_ns``
+                (a plan made ahead of time and swapped in early); this trajectory is kept from
+                there, so the result equals it on ``[keep_from_ns, max(start, now_ns))``.
 
         Returns:
             The new reference; ``self`` is unchanged.
@@ -312,7 +316,8 @@ class Trajectory:
         cols = new.joint_indices
         knot_times = [splice_at] + abs_times[keep:]
         knots = self._new_knots(new, keep, self.sample(splice_at), cols, knot_times, wraparound)
-        return self._combine(now_ns, splice_at, cols, knot_times, knots, interpolation_method)
+        keep_from = now_ns if keep_from_ns is None else min(keep_from_ns, now_ns)
+        return self._combine(keep_from, splice_at, cols, knot_times, knots, interpolation_method)
 
     @staticmethod
     def _new_knots(

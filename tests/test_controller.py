@@ -662,8 +662,29 @@ def test_commit_refuses_a_late_plan() -> None:
 def test_plan_for_a_later_cycle_keeps_the_reference_until_then() -> None:
     rig = Rig(make_config(), [0.2, 0.2])
     planned = rig.now + 30 * MS
-    plan = rig.ctrl.plan_goal(planned, traj((0.5, [1.0, 1.0])))
+    plan = rig.ctrl.plan_goal(planned, traj((0.5, [1.0, 1.0])), valid_from_ns=rig.now)
     rig.ctrl.commit(plan, rig.now)
     for _ in range(3):
         np.testing.assert_array_equal(rig.step().command.positions, [0.2, 0.2])
     assert rig.step().command.positions[0] > 0.2
+
+
+def test_plan_committed_early_on_a_moving_reference_does_not_step() -> None:
+    """A plan made for a later cycle and swapped in early keeps following the old motion."""
+    rig = Rig(make_config(), [0.0, 0.0])
+    # Moving at 1 rad/s with a knot every 50 ms, so knots lie between commit and planned time.
+    knots = [(0.05 * k, [0.05 * k, -0.05 * k]) for k in range(1, 41)]
+    rig.ctrl.send_goal(rig.now, traj(*knots))
+    rig.step(20)
+    early = 150 * MS
+    plan = rig.ctrl.plan_goal(
+        rig.now + early, traj((1.0, [0.0, 0.0])), valid_from_ns=rig.now - 10 * MS
+    )
+    with pytest.raises(StalePlan, match="before the plan's validity"):
+        rig.ctrl.commit(plan, rig.now - 20 * MS)
+    rig.ctrl.commit(plan, rig.now)
+    previous = rig.last.command.positions.copy()
+    for _ in range(40):  # across the planned splice time
+        out = rig.step()
+        assert np.abs(out.command.positions - previous).max() <= 0.011  # <= 1.1 rad/s * 10 ms
+        previous = out.command.positions.copy()

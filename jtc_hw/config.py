@@ -423,6 +423,22 @@ def _coerce_string_array(value: Any, path: str) -> tuple[str, ...]:
     return tuple(value)
 
 
+def _coerce_bool(value: Any, path: str, prefix: str = "") -> bool:
+    """``value`` if it is a YAML boolean; a quoted "true"/"false" gets a hint.
+
+    Raises:
+        ConfigurationError: not a boolean.
+    """
+    if not isinstance(value, bool):
+        hint = ""
+        if isinstance(value, str) and value.strip().lower() in ("true", "false"):
+            hint = f"; write {value.strip().lower()} without quotes"
+        raise ConfigurationError(
+            f"{prefix}expected true or false, got {_describe(value)}{hint}", path, value
+        )
+    return value
+
+
 def _coerce(param: Param, value: Any, path: str) -> Any:
     """Check ``value`` against ``param`` and return it normalised (float, tuple, ...).
 
@@ -445,14 +461,7 @@ def _coerce(param: Param, value: Any, path: str) -> Any:
             )
         return number
     if param.kind is Kind.BOOL:
-        if not isinstance(value, bool):
-            hint = ""
-            if isinstance(value, str) and value.strip().lower() in ("true", "false"):
-                hint = f"; write {value.strip().lower()} without quotes"
-            raise ConfigurationError(
-                f"expected true or false, got {_describe(value)}{hint}", path, value
-            )
-        return value
+        return _coerce_bool(value, path)
     if param.kind is Kind.STRING:
         if not isinstance(value, str):
             raise ConfigurationError(f"expected a string, got {_describe(value)}", path, value)

@@ -50,6 +50,7 @@ from numpy.typing import NDArray
 from .config import (
     COMMAND_INTERFACE_TYPES,
     STATE_INTERFACE_TYPES,
+    _coerce_bool,
     _coerce_string_array,
     _describe,
     _did_you_mean,
@@ -320,14 +321,7 @@ def _scalar(spec: ParamSpec, value: Any, path: str, what: str = "") -> Any:
         if value is None and spec.per_joint:
             return spec.default
         return _range(spec, value, path, what)
-    if not isinstance(value, bool):
-        hint = ""
-        if isinstance(value, str) and value.strip().lower() in ("true", "false"):
-            hint = f"; write {value.strip().lower()} without quotes"
-        raise ConfigurationError(
-            f"{what}expected true or false, got {_describe(value)}{hint}", path, value
-        )
-    return value
+    return _coerce_bool(value, path, what)
 
 
 def _looks_like_one(spec: ParamSpec, value: Any) -> bool:

@@ -127,6 +127,7 @@ _ALLOWED: Final[Mapping[str, frozenset[LifecycleState]]] = MappingProxyType({
     **{method: frozenset({state}) for (state, method) in TRANSITIONS},
     "read": frozenset({_I, _A}),
     "write": frozenset({_A}),
+    "recover": frozenset({_I}),
 })
 
 
@@ -778,6 +779,24 @@ class HardwareInterface(ABC):
         finally:
             self._state = LifecycleState.INACTIVE
 
+    def recover(self) -> None:
+        """Clear the device's latched faults: reboot a faulted servo, reset a drive's fault.
+
+        The daemon calls it on a client's explicit re-arm request, after ``configure`` and
+        before ``activate`` (which seeds the command from the measured position, so re-arming
+        never jumps). Devices that latch nothing do nothing.
+
+        Leaves INACTIVE (also when it fails: the caller keeps the controller stopped).
+
+        Raises:
+            ControllerStateError: not INACTIVE.
+            HardwareError: the fault could not be cleared (the message names the motor and
+                what to check).
+        """
+        self._guard("recover")
+        self._call("recover", self._recover)
+        self._last_fault = None
+
     def cleanup(self) -> None:
         """Release the device (close the port / bus).
 
@@ -873,6 +892,9 @@ class HardwareInterface(ABC):
 
     def _deactivate(self, now_ns: int, action: SafeAction) -> None:  # noqa: B027
         """Perform ``action`` (hold the position, or torque off). Default: nothing to do."""
+
+    def _recover(self) -> None:  # noqa: B027 - optional primitive, no-op by default
+        """Clear latched device faults (reboot, fault reset). Default: nothing to do."""
 
     def _cleanup(self) -> None:  # noqa: B027 - optional primitive, no-op by default
         """Release the device. Default: nothing to do."""
@@ -1180,6 +1202,18 @@ class HardwareSet:
         """
         self._guard("deactivate")
         self._fan_out(lambda comp: comp.deactivate(now_ns))
+
+    def recover(self) -> None:
+        """Clear every component's latched faults (see :meth:`HardwareInterface.recover`).
+
+        Leaves INACTIVE.
+
+        Raises:
+            ControllerStateError: a component is not INACTIVE (nothing was done).
+            HardwareError: a component could not clear its fault (every one is attempted).
+        """
+        self._guard("recover")
+        self._fan_out(lambda comp: comp.recover())
 
     def cleanup(self) -> None:
         """Clean up every component, even if one fails.

@@ -46,7 +46,7 @@ from .clock import Ticker
 from .controller import JointTrajectoryController, Plan
 from .errors import HardwareError, JtcHwError, StalePlan
 from .goals import Event
-from .hardware import HardwareSet
+from .hardware import HardwareSet, LifecycleState
 from .joints import JointCommand, JointState
 from .loopstats import LoopStats
 from .robot import RobotConfig, create_hardware_set, load_robot
@@ -154,9 +154,15 @@ class ControlLoop:
 
     # -- lifecycle ----------------------------------------------------------------------------
 
-    def start(self, now_ns: int) -> None:
-        """Configure and activate the hardware, activate the controller (no jump)."""
+    def start(self, now_ns: int, *, recover: bool = False) -> None:
+        """Configure and activate the hardware, activate the controller (no jump).
+
+        With ``recover``, the hardware clears its latched faults (reboot, fault reset) between
+        configuring and activating: the client's explicit re-arm request.
+        """
         self.hardware.configure()
+        if recover:
+            self.hardware.recover()
         last = self.hardware.activate(now_ns)
         state = self.hardware.read(now_ns)
         self.ctrl.activate(now_ns, state, last)
@@ -176,12 +182,29 @@ class ControlLoop:
     def _rearm(self, now_ns: int) -> None:
         if self.fault is None and self.ctrl.active:
             raise JtcHwError("nothing to re-arm: the controller is running")
+        # Re-open the devices (a port may have gone away), clear latched faults, then seed
+        # the command from the measured position: re-arming never jumps.
+        hardware = self.hardware
+        if hardware.state is LifecycleState.ACTIVE:
+            try:
+                hardware.deactivate(now_ns)
+            except JtcHwError as exc:
+                log.warning("re-arm: deactivating first failed: %s", exc)
+        if hardware.state is LifecycleState.INACTIVE:
+            try:
+                hardware.cleanup()
+            except JtcHwError as exc:
+                log.warning("re-arm: releasing the devices first failed: %s", exc)
         try:
-            self.hardware.cleanup()
-        except JtcHwError:
-            pass
-        self.hardware = create_hardware_set(self.robot)
-        self.start(now_ns)
+            self.start(now_ns, recover=True)
+        except JtcHwError as exc:
+            self.fault = f"re-arm failed: {exc}"
+            if hardware.state is LifecycleState.ACTIVE:
+                try:
+                    hardware.deactivate(now_ns)
+                except JtcHwError:
+                    pass
+            raise
         self.fault = None
         log.info("re-armed: holding the measured position")
 

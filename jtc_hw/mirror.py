@@ -139,7 +139,8 @@ class MirrorHardware(HardwareInterface):
         self._frozen = bool(frozen)
 
     def inject_fault(self, message: str) -> None:
-        """Make every read raise ``CommunicationError(message)`` until :meth:`clear_fault`.
+        """Make every read raise ``CommunicationError(message)`` until :meth:`clear_fault`
+        or :meth:`recover` (the fault latches, as a device's does).
 
         The joints keep following their commands meanwhile: the next good read shows where
         they got to.
@@ -151,6 +152,9 @@ class MirrorHardware(HardwareInterface):
         self._fault = None
 
     # -- primitives ---------------------------------------------------------------------------
+
+    def _recover(self) -> None:
+        self._fault = None
 
     def _configure(self) -> None:
         self._held.fill(np.nan)

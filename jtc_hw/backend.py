@@ -48,6 +48,9 @@ _LOOP_ERRORS: dict[str, type[JtcHwError]] = {
     "ConfigurationError": ConfigurationError,
     "ControllerStateError": ControllerStateError,
     "GoalRejected": GoalRejected,
+    "HardwareError": HardwareError,
+    "CommunicationError": HardwareError,
+    "MotorFault": HardwareError,
 }
 START_TIMEOUT_S = 30.0
 REQUEST_TIMEOUT_S = 5.0
@@ -361,22 +364,26 @@ class LoopBackend:
         """Cancel the executing goal ``goal_id``; False if it is not executing."""
         return bool(await self._request("cancel", {"goal_id": goal_id}))
 
-    async def rearm(self) -> None:
-        """Leave a hardware fault: re-create the hardware and hold the measured position.
+    async def rearm(self) -> bool:
+        """Leave a hardware fault: re-open the devices, clear their latched faults
+        (``recover``) and hold the measured position.
 
         Raises:
-            HardwareError: re-arming failed.
-        """
-        await self._request("rearm", {})
+            HardwareError: re-arming failed (the controller stays stopped).
 
-    async def sim(self, component: str, freeze: bool) -> None:
+        Returns:
+            False if there was nothing to re-arm (no fault, the controller is running).
+        """
+        return bool(await self._request("rearm", {}))
+
+    async def sim(self, component: str, freeze: bool | None, fault: str | None = None) -> None:
         """Freeze or release a simulated component's feedback; returns once the loop did.
 
         Raises:
             ConfigurationError: no component of that name.
             HardwareError: the component is not simulated hardware.
         """
-        await self._request("sim", {"component": component, "freeze": freeze})
+        await self._request("sim", {"component": component, "freeze": freeze, "fault": fault})
 
     # -- internals ----------------------------------------------------------------------------
 

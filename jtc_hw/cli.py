@@ -35,6 +35,8 @@ Drive robot joints with ROS 2 joint_trajectory_controller semantics, without ROS
   jtc-hw run robot.yaml        run the daemon (under systemd: see config/jtc-hw.service)
   jtc-hw send goal.yaml        send a trajectory to a running daemon and watch it
   jtc-hw state --watch         live table of the controller state
+  jtc-hw rearm                 leave a hardware fault, holding where the joints are
+  jtc-hw emulate dynamixel     emulated servos on a pseudo-terminal (no robot needed)
 
 Client commands find the daemon's socket from --socket, else --config's daemon.socket,
 else $JTC_HW_SOCKET, else the default path (see 'jtc-hw check' for a config's path).
@@ -346,6 +348,33 @@ def cmd_query(args: argparse.Namespace) -> int:
         return EXIT_OK
 
 
+def cmd_rearm(args: argparse.Namespace) -> int:
+    with _connect(args) as client:
+        fault = client.get_status().get("controller", {}).get("fault")
+        reply = client.rearm(timeout_s=args.timeout)
+        if not reply.get("rearmed"):
+            print("nothing to re-arm: the controller is running and no fault is latched")
+            return EXIT_OK
+        print(f"re-armed{f' after: {fault}' if fault else ''}; holding the measured position")
+        return EXIT_OK
+
+
+_EMULATORS = {
+    "dynamixel": "jtc_hw.drivers.dynamixel.emulator",
+    "can": "jtc_hw.drivers.can.emulator",
+}
+
+
+def cmd_emulate(args: argparse.Namespace) -> int:
+    import importlib
+
+    module = importlib.import_module(_EMULATORS[args.bus])
+    rest = list(args.args)
+    if rest[:1] == ["--"]:
+        rest = rest[1:]
+    return int(module.main(rest))
+
+
 def cmd_status(args: argparse.Namespace) -> int:
     with _connect(args) as client:
         print(json.dumps(client.get_status(), indent=2, default=str))
@@ -598,6 +627,36 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("t", type=float, metavar="T")
     client_options(p)
     p.set_defaults(func=cmd_query)
+
+    p = sub.add_parser(
+        "rearm",
+        help="leave a hardware fault: reboot / reset the devices and hold where they are",
+        description=(
+            "After a hardware fault (a motor that stopped answering or reported an error) the "
+            "controller stays stopped, in the configured safe state, until a client asks to "
+            "re-arm. The daemon then re-opens the devices, reboots faulted servos / resets "
+            "drive faults, reads the joints and holds exactly there (no jump). Check the cause "
+            "first: 'jtc-hw status' shows the fault."
+        ),
+    )
+    client_options(p)
+    p.set_defaults(func=cmd_rearm)
+
+    p = sub.add_parser(
+        "emulate",
+        help="run an emulated motor bus (Dynamixel on a pty, CAN motors) to test without a robot",
+        description=(
+            "Run emulated motors speaking the real wire protocol, until Ctrl-C. "
+            "'jtc-hw emulate dynamixel --ids 1-6 --model XM430-W350' opens a pseudo-terminal "
+            "and prints its path: put it as the 'port' of a dynamixel hardware component. "
+            "'jtc-hw emulate can --protocol mit --ids 1-6' serves MIT-mode motors (or "
+            "--protocol cia402 drives) and prints how python-can connects to them. "
+            "'jtc-hw emulate dynamixel --help' lists each emulator's options."
+        ),
+    )
+    p.add_argument("bus", choices=sorted(_EMULATORS), help="which bus to emulate")
+    p.add_argument("args", nargs=argparse.REMAINDER, help="the emulator's options (see its --help)")
+    p.set_defaults(func=cmd_emulate)
 
     p = sub.add_parser("status", help="loop statistics, hardware and controller status (JSON)")
     client_options(p)

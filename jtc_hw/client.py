@@ -596,15 +596,40 @@ class Client:
         """
         return dict(self._request("get_config", {}, timeout_s)["config"])
 
-    def sim(self, component: str, freeze: bool, timeout_s: float | None = None) -> dict[str, Any]:
-        """Freeze (or release) a simulated component's feedback.
+    def sim(
+        self,
+        component: str,
+        freeze: bool | None = None,
+        timeout_s: float | None = None,
+        *,
+        fault: str | None = None,
+    ) -> dict[str, Any]:
+        """Freeze (or release) a simulated component's feedback, or inject a read fault that
+        latches until :meth:`rearm`.
 
         Raises:
             RequestError: no such simulated component (``bad_request``), or it failed.
             TimeoutError: no reply within the timeout.
             ClientConnectionError: the connection is lost.
         """
-        return self._request("sim", {"component": component, "freeze": freeze}, timeout_s)
+        fields: dict[str, Any] = {"component": component}
+        if freeze is not None:
+            fields["freeze"] = freeze
+        if fault is not None:
+            fields["fault"] = fault
+        return self._request("sim", fields, timeout_s)
+
+    def rearm(self, timeout_s: float | None = None) -> dict[str, Any]:
+        """Leave a hardware fault: the daemon reboots / fault-resets the devices, re-reads the
+        joints and holds where they are (no jump). Goals can be sent again afterwards.
+
+        Raises:
+            RequestError: nothing to re-arm (the controller is running), or re-arming failed
+                (the message says why; the daemon stays in its safe state).
+            TimeoutError: no reply within the timeout.
+            ClientConnectionError: the connection is lost.
+        """
+        return self._request("rearm", {}, timeout_s)
 
     # -- lifecycle ----------------------------------------------------------------------------
 

@@ -1269,8 +1269,8 @@ ENTRY_POINT_GROUP: Final = "jtc_hw.hardware"
 BUILTIN_HARDWARE: Final[Mapping[str, str]] = MappingProxyType({
     "mirror": "jtc_hw.mirror:MirrorHardware",
     "dynamixel": "jtc_hw.drivers.dynamixel.hardware:DynamixelHardware",
-    "can-mit": "jtc_hw.drivers.can.hardware:MitHardware",
-    "can-cia402": "jtc_hw.drivers.can.hardware:Cia402Hardware",
+    "can-mit": "jtc_hw.drivers.can.mit:MitHardware",
+    "can-cia402": "jtc_hw.drivers.can.cia402:Cia402Hardware",
 })
 """Built-in kinds, as lazy ``"module:Class"`` strings."""
 

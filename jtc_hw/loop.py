@@ -172,16 +172,21 @@ class ControlLoop:
         self.fault = reason
         log.error("hardware fault: %s; controller stopped, hardware safe action applied", reason)
         self.send("log", logging.ERROR, f"hardware fault: {reason}")
+        events: tuple[Event, ...] = ()
         if self.ctrl.active:
-            self._send_events(self.ctrl.deactivate(now_ns, f"hardware fault: {reason}", abort=True))
+            events = self.ctrl.deactivate(now_ns, f"hardware fault: {reason}", abort=True)
         try:
             self.hardware.deactivate(now_ns)
         except JtcHwError as exc:
             log.error("safe action after the fault failed too: %s", exc)
+        # The status (with the fault) goes before the goal's result, so that a client that
+        # asks for the status on seeing the result finds the fault.
+        self.send("status", self.status())
+        self._send_events(events)
 
-    def _rearm(self, now_ns: int) -> None:
+    def _rearm(self, now_ns: int) -> bool:
         if self.fault is None and self.ctrl.active:
-            raise JtcHwError("nothing to re-arm: the controller is running")
+            return False
         # Re-open the devices (a port may have gone away), clear latched faults, then seed
         # the command from the measured position: re-arming never jumps.
         hardware = self.hardware
@@ -199,6 +204,8 @@ class ControlLoop:
             self.start(now_ns, recover=True)
         except JtcHwError as exc:
             self.fault = f"re-arm failed: {exc}"
+            log.error("%s", self.fault)
+            self.send("status", self.status())
             if hardware.state is LifecycleState.ACTIVE:
                 try:
                     hardware.deactivate(now_ns)
@@ -207,6 +214,8 @@ class ControlLoop:
             raise
         self.fault = None
         log.info("re-armed: holding the measured position")
+        self.send("status", self.status())
+        return True
 
     # -- requests -----------------------------------------------------------------------------
 
@@ -252,12 +261,15 @@ class ControlLoop:
                     f"component '{args['component']}' is {component.kind} hardware; only "
                     "simulated (mirror) components can be frozen"
                 )
-            component.set_frozen(bool(args["freeze"]))
+            if args.get("freeze") is not None:
+                component.set_frozen(bool(args["freeze"]))
+            if args.get("fault"):
+                component.inject_fault(str(args["fault"]))
             return True
         if op == "rearm":
-            self._rearm(now_ns)
+            done = self._rearm(now_ns)
             self._report_reference()
-            return True
+            return done
         if op == "shutdown":
             self._shutdown_reason = str(args.get("reason") or self._shutdown_reason)
             self.running = False

@@ -59,6 +59,7 @@ NOT_ACTIVE = "not_active"
 NOT_FOUND = "not_found"
 BUSY = "busy"
 UNAUTHORIZED = "unauthorized"
+HARDWARE = "hardware"
 INTERNAL = "internal"
 ERROR_CODES = (
     BAD_JSON,
@@ -70,6 +71,7 @@ ERROR_CODES = (
     NOT_FOUND,
     BUSY,
     UNAUTHORIZED,
+    HARDWARE,
     INTERNAL,
 )
 
@@ -267,12 +269,22 @@ class GetStatus:
 
 @dataclass(frozen=True)
 class Sim:
-    """``sim``: freeze or release a simulated component's feedback."""
+    """``sim``: freeze or release a simulated component's feedback, or inject a latched
+    read fault (``fault``: its message; cleared by ``rearm``)."""
 
     op: ClassVar[str] = "sim"
     id: RequestId = None
     component: str = ""
-    freeze: bool = False
+    freeze: bool | None = False
+    fault: str | None = None
+
+
+@dataclass(frozen=True)
+class Rearm:
+    """``rearm``: leave a hardware fault (reboot / fault-reset the devices, hold the position)."""
+
+    op: ClassVar[str] = "rearm"
+    id: RequestId = None
 
 
 Request = (
@@ -287,6 +299,7 @@ Request = (
     | GetConfig
     | GetStatus
     | Sim
+    | Rearm
 )
 
 _OP_FIELDS: dict[str, tuple[str, ...]] = {
@@ -300,7 +313,8 @@ _OP_FIELDS: dict[str, tuple[str, ...]] = {
     "unsubscribe_state": (),
     "get_config": (),
     "get_status": (),
-    "sim": ("component", "freeze"),
+    "sim": ("component", "freeze", "fault"),
+    "rearm": (),
 }
 OPS: tuple[str, ...] = tuple(_OP_FIELDS)
 """Every operation name, in documentation order."""
@@ -576,13 +590,19 @@ def parse_request(obj: Any) -> Request:
         return QueryState(rid, in_s=_seconds(o["in"], "in", rid))
     if op == "sim":
         component = f.string("component", f.required("component", "the simulated component"))
-        freeze = f.boolean("freeze", f.required("freeze", "true to freeze its feedback"))
-        return Sim(rid, component, freeze)
+        fault = f.string("fault", o["fault"]) if f.has("fault") else None
+        if fault is not None and not fault.strip():
+            raise f.error("must not be empty (it is the fault's message)", "fault")
+        freeze: bool | None = None
+        if fault is None or f.has("freeze"):
+            freeze = f.boolean("freeze", f.required("freeze", "true to freeze its feedback"))
+        return Sim(rid, component, freeze, fault)
     simple: dict[str, type[Request]] = {
         "subscribe_state": SubscribeState,
         "unsubscribe_state": UnsubscribeState,
         "get_config": GetConfig,
         "get_status": GetStatus,
+        "rearm": Rearm,
     }
     return simple[op](rid)
 

@@ -52,6 +52,7 @@ from .errors import (
     ConfigurationError,
     ControllerStateError,
     GoalRejected,
+    HardwareError,
     JtcHwError,
 )
 from .goals import GoalFeedback, GoalResult
@@ -60,6 +61,7 @@ from .protocol import (
     BUSY,
     DEFAULT_MAX_MESSAGE_BYTES,
     GOAL_REJECTED,
+    HARDWARE,
     INTERNAL,
     NOT_ACTIVE,
     NOT_FOUND,
@@ -72,6 +74,7 @@ from .protocol import (
     GetStatus,
     Hello,
     QueryState,
+    Rearm,
     Request,
     RequestError,
     SendGoal,
@@ -200,12 +203,24 @@ class Backend(Protocol):
         """
         ...
 
-    async def sim(self, component: str, freeze: bool) -> None:
-        """Freeze or release a simulated component's feedback (applied by the loop).
+    async def sim(self, component: str, freeze: bool | None, fault: str | None = None) -> None:
+        """Freeze or release a simulated component's feedback (``None``: unchanged), or
+        inject a latched read fault (applied by the loop).
 
         Raises:
             ConfigurationError: no such simulated component.
             HardwareError: the hardware could not do it.
+        """
+        ...
+
+    async def rearm(self) -> bool:
+        """Leave a hardware fault: clear the devices' latched faults and hold the position.
+
+        Returns:
+            False if there was nothing to re-arm (the controller is running, no fault).
+
+        Raises:
+            HardwareError: re-arming failed (the controller stays stopped).
         """
         ...
 
@@ -820,6 +835,8 @@ class Server:
             self._reject(conn, item, RequestError(NOT_ACTIVE, str(exc), item.id))
         except ConfigurationError as exc:
             self._reject(conn, item, RequestError(BAD_REQUEST, str(exc), item.id))
+        except HardwareError as exc:
+            self._reject(conn, item, RequestError(HARDWARE, str(exc), item.id))
         except JtcHwError as exc:
             self._reject(conn, item, RequestError(INTERNAL, str(exc), item.id))
         except Exception as exc:
@@ -951,8 +968,15 @@ class Server:
             case GetStatus():
                 return self._merge(req.id, backend.status(), {"server": self.stats(conn)})
             case Sim():
-                await backend.sim(req.component, req.freeze)
+                await backend.sim(req.component, req.freeze, req.fault)
+                if req.fault is not None:
+                    return reply(req.id, component=req.component, fault=req.fault)
                 return reply(req.id, component=req.component, frozen=req.freeze)
+            case Rearm():
+                done = await backend.rearm()
+                if not done:
+                    return reply(req.id, rearmed=False, message="nothing to re-arm: no fault")
+                return reply(req.id, rearmed=True)
         raise AssertionError(f"unhandled request {req!r}")  # pragma: no cover
 
     @staticmethod

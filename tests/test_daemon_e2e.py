@@ -507,6 +507,43 @@ def test_path_tolerance_violation_aborts_and_the_robot_holds(arm: DaemonProcess)
         assert_exactly_one_result(client, goal.goal_id)
 
 
+def test_a_hardware_fault_aborts_and_holds_until_rearm(
+    fresh_daemon: Callable[..., DaemonProcess],
+) -> None:
+    d = fresh_daemon()
+    with connect(d) as client, client.subscribe_state() as sub:
+        p0 = next_state(sub, lambda s: s["active_goal"] is None)["actual"]["positions"]
+        assert client.rearm()["rearmed"] is False  # no fault: nothing to do
+        goal = client.send_goal(traj([p + 0.5 for p in p0], 2.0))
+        for feedback in goal.feedback(timeout_s=WAIT_S):
+            if feedback["time_from_start"] >= 0.5:  # well on its way
+                break
+        client.sim("arm", fault="servo 3 stopped answering (injected)")
+        result = goal.wait(timeout_s=WAIT_S)
+        assert (result["status"], result["error_code"]) == ("aborted", -1), result
+        assert "hardware fault" in result["error_string"]
+        assert "servo 3 stopped answering (injected)" in result["error_string"]
+        status = client.get_status()
+        assert "servo 3 stopped answering" in status["controller"]["fault"]
+        assert status["controller"]["active"] is False
+        with pytest.raises(GoalRejected):
+            client.send_goal(traj(p0, 1.0))
+        # Re-arming clears the (latched) fault and holds where the joints are: no jump.
+        assert client.rearm()["rearmed"] is True
+        status = client.get_status()
+        assert status["controller"]["fault"] is None and status["controller"]["active"] is True
+        after = settle(sub, client.hello()["now_ns"] + 20 * MS)
+        assert after["holding"] is True and after["active_goal"] is None
+        assert after["desired"]["positions"] == pytest.approx(
+            after["actual"]["positions"], abs=1e-9
+        )
+        moved = [a - b for a, b in zip(after["actual"]["positions"], p0)]
+        assert all(0.0 < m < 0.5 for m in moved), moved  # stopped part-way, where it was
+        back = client.send_goal(traj(p0, 1.0)).wait(timeout_s=WAIT_S)
+        assert back["status"] == "succeeded", back
+    assert_exactly_one_result(client, goal.goal_id)
+
+
 # -- 4. preemption and cancel ------------------------------------------------------------------
 
 

@@ -28,6 +28,7 @@ from jtc_hw.protocol import (
     Hello,
     MessageDecoder,
     QueryState,
+    Rearm,
     RequestError,
     SendGoal,
     SendTrajectory,
@@ -262,6 +263,9 @@ def test_missing_fields() -> None:
     error(line({"op": "send_goal"}), BAD_REQUEST, "send_goal: missing required field 'trajectory'")
     error(line({"op": "cancel_goal"}), BAD_REQUEST, "missing required field 'goal_id'")
     error(line({"op": "sim", "component": "m"}), BAD_REQUEST, "missing required field 'freeze'")
+    error(line({"op": "sim", "component": "m", "fault": " "}), BAD_REQUEST, "fault: must not be")
+    error(line({"op": "sim", "component": "m", "fault": 3}), BAD_REQUEST, "expected a string")
+    error(line({"op": "rearm", "now": True}), BAD_REQUEST, "unknown field 'now'")
     error(line({"op": "auth"}), BAD_REQUEST, "missing required field 'token'")
     msg = goal(points=[{"positions": [1, 2]}])
     error(line(msg), BAD_REQUEST, "trajectory.points[0]: missing required field 'time_from_start'")
@@ -399,6 +403,15 @@ def test_start_time_resolution() -> None:
         ({"op": "get_config"}, GetConfig()),
         ({"op": "get_status"}, GetStatus()),
         ({"op": "sim", "component": "arm", "freeze": True}, Sim(component="arm", freeze=True)),
+        (
+            {"op": "sim", "component": "arm", "fault": "servo 3 silent"},
+            Sim(component="arm", freeze=None, fault="servo 3 silent"),
+        ),
+        (
+            {"op": "sim", "component": "arm", "freeze": False, "fault": "x"},
+            Sim(component="arm", freeze=False, fault="x"),
+        ),
+        ({"op": "rearm"}, Rearm()),
     ],
 )
 def test_every_simple_op(obj: dict[str, Any], expected: Any) -> None:
@@ -518,5 +531,6 @@ def test_error_codes_are_the_documented_set() -> None:
         "not_found",
         "busy",
         "unauthorized",
+        "hardware",
         "internal",
     }

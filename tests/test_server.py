@@ -154,7 +154,10 @@ class FakeBackend:
     def query_state(self, time_ns: int) -> TrajectorySample:
         return self.ctrl.query_state(time_ns)
 
-    async def sim(self, component: str, freeze: bool) -> None:
+    async def rearm(self) -> bool:
+        return False
+
+    async def sim(self, component: str, freeze: bool | None, fault: str | None = None) -> None:
         if component != "mirror":
             raise ConfigurationError(f"no simulated component '{component}' (have: mirror)")
         self.mirror.frozen = freeze

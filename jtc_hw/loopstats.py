@@ -146,11 +146,14 @@ def _summary(samples: NDArray[np.int64], worst_ns: int) -> dict[str, float | Non
     n = samples.size
     if n == 0:
         return {"p50": None, "p99": None, "max": None, "worst": None}
-    ordered = np.sort(samples)
+    # A selection, not a sort: the loop thread publishes this twice a second, and sorting a
+    # 10 s window at 1 kHz took ~0.4 ms of its spare time (partition: a fraction of it).
+    ranks = (_rank(50, n), _rank(99, n), n - 1)
+    picked = np.partition(samples, ranks)
     return {
-        "p50": _us(ordered[_rank(50, n)]),
-        "p99": _us(ordered[_rank(99, n)]),
-        "max": _us(ordered[-1]),
+        "p50": _us(picked[ranks[0]]),
+        "p99": _us(picked[ranks[1]]),
+        "max": _us(picked[ranks[2]]),
         "worst": _us(worst_ns),
     }
 

@@ -1,0 +1,769 @@
+"""CiA 402 servo drives on CANopen (kind ``can-cia402``): cyclic synchronous position / velocity.
+
+Theory of operation
+-------------------
+Configuration (``configure``) uses the ``canopen`` library while a python-can ``Notifier``
+thread feeds it: per drive an NMT *reset communication* and the wait for its boot-up message
+(proof that it is there, and PDO parameters back to their defaults), an SDO check of the
+device type (profile 402), the PDO mapping written with canopen's PDO API (RPDO1
+controlword + target position / velocity, TPDO1 statusword + position actual + torque actual,
+TPDO2 velocity actual + error code + modes of operation display, all of transmission type 1:
+synchronous), the mode of operation (0x6060 = 8 CSP or 9 CSV, checked in 0x6061: a refused
+mode switch is an error), then NMT *start*. The Notifier is then stopped: in cyclic operation
+the driver owns the bus receive (``bus.py``'s non-blocking drain), so the control-loop process
+has no second Python thread competing for the interpreter lock.
+
+The cycle (layouts and state machine from :mod:`~jtc_hw.drivers.can.cia402_codec`):
+
+* ``write``: late frames (answers to the previous SYNC that came after its read) are taken
+  and counted, then per bus every drive's RPDO1 (controlword, target) and one SYNC; buses
+  are independent wires, so they all transmit at once (their frames interleaved).
+* ``read``: if no SYNC is outstanding (the first read, reads while inactive) one is sent; then
+  per bus the TPDOs answering it are collected, bounded by the bus's ``receive_timeout``;
+  the newest frame per TPDO is kept. A drive with no answer for ``feedback_timeout_s`` is a
+  :class:`~jtc_hw.errors.CommunicationError`; while active, a drive in Fault (error code from
+  its TPDO), out of Operation Enabled or in the wrong mode is a :class:`~jtc_hw.errors.MotorFault`.
+  Each names the node id, joint and bus.
+
+Feedback is therefore sampled at the previous cycle's SYNC (CiA 402's usual one-cycle
+latency). ``activate`` walks each drive through the state machine with checked transitions
+(Switch On Disabled -> Ready to Switch On -> Switched On -> Operation Enabled), seeding the
+target position from the measured one right before Enable Operation, so nothing jumps.
+``recover`` (the explicit re-arm) sends a fault reset (controlword bit 7 rising edge) to every
+faulted drive and checks that it left Fault. Safe actions: ``hold`` leaves the drives in
+Operation Enabled holding the last target (CSV: target velocity 0); ``torque_off`` sends
+Disable Voltage and checks Switch On Disabled.
+
+Units (per joint; formula symmetric for commands)::
+
+    joint = direction * (2*pi * counts / counts_per_revolution) / gear_ratio + offset
+
+velocities the same with counts/s (``velocity_unit: counts_per_second``) or motor rpm.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field, replace
+from itertools import zip_longest
+from pathlib import Path
+from types import MappingProxyType
+from typing import Any, ClassVar
+
+import can
+import canopen
+import numpy as np
+from canopen.network import MessageListener
+from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
+from jtc_hw.drivers.can import bus as canbus
+from jtc_hw.drivers.can import cia402_codec as c4
+
+from jtc_hw.errors import CommunicationError, ConfigurationError, HardwareError, MotorFault
+from jtc_hw.hardware import (
+    HardwareInterface,
+    LifecycleState,
+    ParamKind,
+    ParamSpec,
+    SafeAction,
+    param_table,
+)
+from jtc_hw.joints import JointCommand, JointState
+
+__all__ = ["Cia402Hardware"]
+
+_log = logging.getLogger(__name__)
+
+_PROFILE_402 = 402
+_NOTIFIER_CYCLE_S = 0.02
+_FAULTY = (c4.State.FAULT, c4.State.FAULT_REACTION_ACTIVE)
+
+
+@dataclass
+class _Drive:
+    """One drive: its configuration and its newest feedback."""
+
+    joint: str
+    index: int
+    node_id: int
+    bus: str
+    scale: c4.JointScale
+    lower: float
+    upper: float
+    vmax: float
+    tpdo1: int = 0
+    tpdo2: int = 0
+    rpdo1: int = 0
+    emcy: int = 0
+    statusword: int | None = None
+    state: c4.State | None = None
+    position_counts: int = 0
+    torque_permille: int = 0
+    velocity_value: int = 0
+    error_code: int = 0
+    mode_display: int = 0
+    rx1_at: float = 0.0
+    rx2_at: float = 0.0
+    fresh: bool = False
+    late: int = 0
+    missed: int = 0
+    last_emcy: int | None = None
+    controlword: int = 0
+    target: int = 0
+
+    def __post_init__(self) -> None:
+        self.tpdo1 = c4.tpdo_cob_id(1, self.node_id)
+        self.tpdo2 = c4.tpdo_cob_id(2, self.node_id)
+        self.rpdo1 = c4.rpdo_cob_id(1, self.node_id)
+        self.emcy = c4.emcy_cob_id(self.node_id)
+
+    def who(self) -> str:
+        return f"drive node {self.node_id} (joint {self.joint!r}, bus {self.bus!r})"
+
+    def describe_state(self) -> str:
+        if self.statusword is None or self.state is None:
+            return "no statusword yet"
+        return f"{self.state.value} (statusword 0x{self.statusword:04X})"
+
+
+@dataclass
+class _Bus:
+    """One CAN bus and the drives on it."""
+
+    settings: canbus.BusSettings
+    drives: list[_Drive]
+    health: canbus.BusHealth
+    bus: can.BusABC | None = None
+    keys: dict[int, tuple[_Drive, int]] = field(default_factory=dict)
+    sync_outstanding: bool = False
+    syncs: int = 0
+    opened_at: float = 0.0
+
+    def __post_init__(self) -> None:
+        for d in self.drives:
+            self.keys[d.tpdo1] = (d, 1)
+            self.keys[d.tpdo2] = (d, 2)
+            self.keys[d.emcy] = (d, 0)
+
+    def key(self, msg: can.Message) -> int | None:
+        cob = int(msg.arbitration_id)
+        return cob if cob in self.keys else None
+
+
+def _tuned(settings: canbus.BusSettings) -> canbus.BusSettings:
+    """``socketcand`` with ``tcp_tune`` on unless configured: without TCP_NODELAY the RPDOs and
+    the SYNC of one cycle, written separately, wait for Nagle's algorithm and the server's
+    delayed ACK (tens of ms), and every cycle's answers come late."""
+    if settings.interface != "socketcand" or "tcp_tune" in settings.options:
+        return settings
+    return replace(settings, options=MappingProxyType({**settings.options, "tcp_tune": True}))
+
+
+class Cia402Hardware(HardwareInterface):
+    """CiA 402 drives over CANopen in cyclic synchronous position or velocity mode.
+
+    The mode follows the command interface: ``position`` -> CSP (8), ``velocity`` -> CSV (9).
+    See the module docstring for the cycle and the state machine handling.
+
+    Raises:
+        ConfigurationError: invalid parameters, duplicate node ids on a bus, or both
+            ``position`` and ``velocity`` command interfaces.
+    """
+
+    kind: ClassVar[str] = "can-cia402"
+    COMMAND_INTERFACES: ClassVar[tuple[str, ...]] = ("position", "velocity")
+    STATE_INTERFACES: ClassVar[tuple[str, ...]] = ("position", "velocity")
+
+    PARAMS: ClassVar[Mapping[str, ParamSpec]] = param_table(
+        canbus.buses_param(),
+        canbus.joint_bus_param(),
+        ParamSpec("node_id", ParamKind.INT, None, "per joint: CANopen node id of its drive",
+                  minimum=1, maximum=127, per_joint=True, required=True),
+        ParamSpec("counts_per_revolution", ParamKind.INT, 131072,
+                  "per joint: position counts per motor revolution (the position factor)",
+                  minimum=1, per_joint=True),
+        ParamSpec("gear_ratio", ParamKind.FLOAT, 1.0,
+                  "per joint: motor revolutions per joint revolution", minimum=1e-9,
+                  per_joint=True),
+        ParamSpec("direction", ParamKind.INT, 1, "per joint: 1 or -1 (joint sense vs motor)",
+                  minimum=-1, maximum=1, per_joint=True),
+        ParamSpec("offset", ParamKind.FLOAT, 0.0,
+                  "per joint: joint position at motor count 0, rad", per_joint=True),
+        ParamSpec("position_limits", ParamKind.RANGE, (-math.inf, math.inf),
+                  "per joint [min, max] position commands are clamped to, rad (null: none)",
+                  per_joint=True, nullable=True),
+        ParamSpec("velocity_limit", ParamKind.FLOAT, 0.0,
+                  "per joint: velocity commands are clamped to +-this, rad/s (0: none)",
+                  minimum=0.0, per_joint=True),
+        ParamSpec("velocity_unit", ParamKind.STRING, "counts_per_second",
+                  "unit of 0x606C / 0x60FF: counts_per_second or rpm (motor)",
+                  choices=("counts_per_second", "rpm")),
+        ParamSpec("feedback_timeout_s", ParamKind.FLOAT, 0.05,
+                  "s without a TPDO from a drive before it is a communication fault",
+                  minimum=0.001, maximum=10.0),
+        ParamSpec("boot_timeout_s", ParamKind.FLOAT, 2.0,
+                  "s to wait for a drive's boot-up after NMT reset communication",
+                  minimum=0.01, maximum=60.0),
+        ParamSpec("transition_timeout_s", ParamKind.FLOAT, 0.5,
+                  "s a drive may take for one state-machine transition or fault reset",
+                  minimum=0.001, maximum=10.0),
+        ParamSpec("eds", ParamKind.STRING, "",
+                  "EDS file of the drives (empty: the shipped jtc_hw_drive.eds)"),
+    )
+
+    def __init__(
+        self,
+        name: str,
+        joints: Sequence[str],
+        command_interfaces: Sequence[str],
+        state_interfaces: Sequence[str],
+        params: Mapping[str, Any],
+    ) -> None:
+        super().__init__(name, joints, command_interfaces, state_interfaces, params)
+        p = self.params
+        if len(self.command_interfaces) != 1:
+            raise ConfigurationError(
+                f"{self._owner()}: CiA 402 cyclic synchronous modes take one command "
+                f"interface, position (CSP) or velocity (CSV); got "
+                f"[{', '.join(self.command_interfaces)}]",
+                "command_interfaces", list(self.command_interfaces),
+            )
+        self.mode = (
+            c4.Mode.CYCLIC_SYNC_POSITION if self.command_interfaces[0] == "position"
+            else c4.Mode.CYCLIC_SYNC_VELOCITY
+        )
+        self._csp = self.mode is c4.Mode.CYCLIC_SYNC_POSITION
+        self._rpdo_layout = c4.RPDO_CSP if self._csp else c4.RPDO_CSV
+        buses: Mapping[str, canbus.BusSettings] = p["buses"]
+        bus_of = canbus.joint_buses(self.joints, p["bus"], buses)
+        self._eds = str(p["eds"] or c4.DEFAULT_EDS)
+        if p["eds"] and not Path(p["eds"]).is_file():
+            raise ConfigurationError(f"no such EDS file {p['eds']!r}", "params.eds", p["eds"])
+        drives: list[_Drive] = []
+        for i, joint in enumerate(self.joints):
+            direction = p["direction"][i]
+            if direction == 0:
+                raise ConfigurationError(
+                    f"joint {joint!r}: direction must be 1 or -1, got 0",
+                    f"params.direction.{joint}", 0,
+                )
+            low, high = p["position_limits"][i]
+            vmax = p["velocity_limit"][i]
+            drives.append(_Drive(
+                joint=joint, index=i, node_id=p["node_id"][i], bus=bus_of[i],
+                scale=c4.JointScale(p["counts_per_revolution"][i], p["gear_ratio"][i],
+                                    direction, p["offset"][i], p["velocity_unit"]),
+                lower=low, upper=high, vmax=vmax if vmax > 0.0 else math.inf,
+            ))
+        self._drives = drives
+        self._buses: dict[str, _Bus] = {}
+        for name_, settings in buses.items():
+            on = [d for d in drives if d.bus == name_]
+            seen: dict[int, str] = {}
+            for d in on:
+                if d.node_id in seen:
+                    raise ConfigurationError(
+                        f"joints {seen[d.node_id]!r} and {d.joint!r} both use node id "
+                        f"{d.node_id} on bus {name_!r}; node ids must be unique per bus",
+                        f"params.node_id.{d.joint}", d.node_id,
+                    )
+                seen[d.node_id] = d.joint
+            if on:
+                self._buses[name_] = _Bus(settings, on, canbus.BusHealth(settings))
+        self._feedback_timeout_s: float = p["feedback_timeout_s"]
+        self._boot_timeout_s: float = p["boot_timeout_s"]
+        self._transition_timeout_s: float = p["transition_timeout_s"]
+        self._last_fault_by_node: dict[int, str] = {}
+
+    # -- lifecycle primitives ---------------------------------------------------------------------
+
+    def _configure(self) -> None:
+        try:
+            for b in self._buses.values():
+                b.health = canbus.BusHealth(b.settings)
+                b.bus = canbus.open_settings(_tuned(b.settings))
+                b.opened_at = time.monotonic()
+                b.sync_outstanding = False
+                self._configure_bus(b)
+        except BaseException:
+            self._cleanup()
+            raise
+        for d in self._drives:
+            d.statusword = d.state = None
+            d.rx1_at = d.rx2_at = 0.0
+            d.fresh = False
+
+    def _configure_bus(self, b: _Bus) -> None:
+        assert b.bus is not None
+        network = canopen.Network(b.bus)
+        nodes = {d.node_id: network.add_node(d.node_id, self._eds) for d in b.drives}
+        booted: dict[int, bool] = {}
+
+        def on_heartbeat(node_id: int) -> Any:
+            def callback(state: int) -> None:
+                if state == 0:
+                    booted[node_id] = True
+            return callback
+
+        canbus.flush(b.bus)  # boot-ups and answers from before: not ours
+        notifier = can.Notifier(b.bus, [MessageListener(network)], timeout=_NOTIFIER_CYCLE_S)
+        try:
+            for d in b.drives:
+                node = nodes[d.node_id]
+                node.sdo.RESPONSE_TIMEOUT = b.settings.setup_timeout
+                node.nmt.add_heartbeat_callback(on_heartbeat(d.node_id))
+                node.nmt.send_command(c4.NMT_RESET_COMMUNICATION)
+            deadline = time.monotonic() + self._boot_timeout_s
+            for d in b.drives:
+                node = nodes[d.node_id]
+                with node.nmt.state_update:
+                    while not booted.get(d.node_id):
+                        remaining = deadline - time.monotonic()
+                        if remaining <= 0.0:
+                            raise CommunicationError(
+                                f"{self._owner()}: {d.who()} sent no boot-up message within "
+                                f"{self._boot_timeout_s:g} s of an NMT reset communication; "
+                                "check its power, wiring, node id and that the bus runs at "
+                                f"{b.settings.bitrate} bit/s"
+                            )
+                        node.nmt.state_update.wait(remaining)
+            for d in b.drives:
+                self._setup_drive(d, nodes[d.node_id])
+            for d in b.drives:
+                nodes[d.node_id].nmt.send_command(c4.NMT_START)
+        finally:
+            notifier.stop(timeout=2.0)
+        # canopen's PDO maps subscribed to their frames while saving; the cycle decodes them.
+        network.subscribers.clear()
+
+    def _sdo_error(self, d: _Drive, what: str, exc: Exception) -> HardwareError:
+        if isinstance(exc, SdoAbortedError):
+            return HardwareError(
+                f"{self._owner()}: {d.who()} refused {what}: SDO abort 0x{exc.code:08X} "
+                f"({exc}); check that the drive supports it (EDS: {self._eds})"
+            )
+        return CommunicationError(
+            f"{self._owner()}: {d.who()} did not answer while {what} ({exc}); check the "
+            "drive's power and wiring"
+        )
+
+    def _setup_drive(self, d: _Drive, node: canopen.RemoteNode) -> None:
+        what = "reading the device type 0x1000"
+        try:
+            device_type = int(node.sdo[c4.DEVICE_TYPE].raw)
+            if device_type & 0xFFFF != _PROFILE_402:
+                raise HardwareError(
+                    f"{self._owner()}: {d.who()} is not a CiA 402 drive: device type "
+                    f"0x{device_type:08X} (profile {device_type & 0xFFFF}); check the node id"
+                )
+            what = "mapping its PDOs"
+            self._map(node.rpdo[1], d.rpdo1, self._rpdo_layout)
+            self._map(node.rpdo[2], c4.rpdo_cob_id(2, d.node_id), None)
+            self._map(node.tpdo[1], d.tpdo1, c4.TPDO_STATUS)
+            self._map(node.tpdo[2], d.tpdo2, c4.TPDO_FEEDBACK)
+            what = f"setting the mode of operation 0x6060 to {int(self.mode)} ({self.mode.name})"
+            node.sdo[c4.MODES_OF_OPERATION].raw = int(self.mode)
+            shown = int(node.sdo[c4.MODES_OF_OPERATION_DISPLAY].raw)
+        except (SdoAbortedError, SdoCommunicationError) as exc:
+            raise self._sdo_error(d, what, exc) from exc
+        d.mode_display = shown
+        if shown != int(self.mode):
+            raise HardwareError(
+                f"{self._owner()}: {d.who()}: mode switch failed: 0x6060 was set to "
+                f"{int(self.mode)} ({self.mode.name}) but 0x6061 displays {shown}; check "
+                "that the drive supports cyclic synchronous modes (0x6502) and is not "
+                "being commanded by another master"
+            )
+
+    @staticmethod
+    def _map(pdo: Any, cob_id: int, layout: c4.PdoLayout | None) -> None:
+        pdo.clear()
+        pdo.cob_id = cob_id
+        if layout is None:
+            pdo.enabled = False
+        else:
+            for entry in layout.entries:
+                pdo.add_variable(entry.index, entry.subindex)
+            pdo.trans_type = 1
+            pdo.enabled = True
+        pdo.save()
+
+    def _activate(self, now_ns: int) -> JointCommand:
+        for b in self._buses.values():
+            self._flush(b)
+        self._exchange(send_rpdo=False)
+        for d in self._drives:
+            if d.state in _FAULTY:
+                raise self._fault(d, "cannot enable a drive in fault; re-arm to fault-reset it")
+            d.target = d.position_counts if self._csp else 0
+            if d.state is c4.State.OPERATION_ENABLED:
+                d.controlword = c4.encode_controlword(c4.Command.ENABLE_OPERATION)
+        self._walk_to_enabled()
+        held = np.array(
+            [d.scale.position(d.target) for d in self._drives] if self._csp
+            else [0.0] * len(self._drives), dtype=np.float64,
+        )
+        return JointCommand(held, None) if self._csp else JointCommand(None, held)
+
+    def _walk_to_enabled(self) -> None:
+        """Step every drive to Operation Enabled, checking each transition."""
+        step_started = {d.node_id: time.monotonic() for d in self._drives}
+        expected: dict[int, tuple[c4.State, c4.Command, c4.State]] = {}
+        while True:
+            pending = [d for d in self._drives if d.state is not c4.State.OPERATION_ENABLED]
+            if not pending:
+                return
+            for d in pending:
+                assert d.state is not None
+                if d.state in _FAULTY:
+                    raise self._fault(d, "went to fault while being enabled")
+                command = c4.PATH_TO_OPERATION_ENABLED.get(d.state)
+                if command is None:
+                    # Not Ready to Switch On: the drive leaves it by itself.
+                    expected.pop(d.node_id, None)
+                    continue
+                if command is c4.Command.ENABLE_OPERATION and self._csp:
+                    d.target = d.position_counts  # seed: enabling must not jump
+                d.controlword = c4.encode_controlword(command)
+                previous = expected.get(d.node_id)
+                if previous is None or previous[0] is not d.state:
+                    step_started[d.node_id] = time.monotonic()
+                expected[d.node_id] = (d.state, command, c4.expected_after(d.state, command))
+            self._exchange(send_rpdo=True)
+            now = time.monotonic()
+            for d in pending:
+                step = expected.get(d.node_id)
+                if step is None:
+                    if now - step_started[d.node_id] > self._transition_timeout_s:
+                        raise HardwareError(
+                            f"{self._owner()}: {d.who()} stayed {d.describe_state()} for "
+                            f"{self._transition_timeout_s:g} s; check its power stage supply"
+                        )
+                    continue
+                before, command, want = step
+                if d.state is want or d.state is before and (
+                    now - step_started[d.node_id] <= self._transition_timeout_s
+                ):
+                    continue
+                if d.state in _FAULTY:
+                    raise self._fault(d, f"went to fault on {command.value}")
+                raise HardwareError(
+                    f"{self._owner()}: {d.who()}: transition failed: {command.value} "
+                    f"(controlword 0x{c4.encode_controlword(command):04X}) from "
+                    f"{before.value} should lead to {want.value}, but the drive reports "
+                    f"{d.describe_state()} after {now - step_started[d.node_id]:.3f} s; "
+                    "check enable inputs (STO), DC link voltage and the drive's own errors"
+                )
+
+    def _deactivate(self, now_ns: int, action: SafeAction) -> None:
+        if action is SafeAction.HOLD:
+            if self._csp:
+                for b in self._buses.values():
+                    self._flush(b)
+                return  # the drives hold the last target in Operation Enabled
+            for d in self._drives:
+                d.target = 0
+            self._exchange(send_rpdo=True, strict=False)
+            return
+        for d in self._drives:
+            d.controlword = c4.encode_controlword(c4.Command.DISABLE_VOLTAGE)
+        deadline = time.monotonic() + self._transition_timeout_s
+        while True:
+            self._exchange(send_rpdo=True, strict=False)
+            left = [
+                d for d in self._drives
+                if d.state is not c4.State.SWITCH_ON_DISABLED and d.state not in _FAULTY
+            ]
+            if not left:
+                break
+            if time.monotonic() > deadline:
+                d = left[0]
+                raise CommunicationError(
+                    f"{self._owner()}: torque off failed: {d.who()} is "
+                    f"{d.describe_state()} after Disable Voltage; it may still hold torque: "
+                    "check it and its wiring"
+                )
+        for b in self._buses.values():
+            self._flush(b)
+
+    def _recover(self) -> None:
+        self._exchange(send_rpdo=False)
+        faulted = [d for d in self._drives if d.state in _FAULTY]
+        if not faulted:
+            return
+        for d in faulted:
+            d.controlword = c4.encode_controlword(c4.Command.DISABLE_VOLTAGE)
+        self._exchange(send_rpdo=True)  # bit 7 low first: the reset acts on its rising edge
+        for d in faulted:
+            d.controlword = c4.encode_controlword(c4.Command.FAULT_RESET)
+        deadline = time.monotonic() + self._transition_timeout_s
+        while True:
+            self._exchange(send_rpdo=True)
+            left = [d for d in faulted if d.state in _FAULTY]
+            if not left or time.monotonic() > deadline:
+                break
+        for d in faulted:
+            d.controlword = c4.encode_controlword(c4.Command.DISABLE_VOLTAGE)
+        self._exchange(send_rpdo=True)
+        for d in faulted:
+            if d.state in _FAULTY:
+                raise self._fault(
+                    d, "fault reset did not clear the fault: its cause persists; check the "
+                    "drive (temperature, supply, motor) before re-arming again",
+                )
+            self._last_fault_by_node.pop(d.node_id, None)
+
+    def _cleanup(self) -> None:
+        for b in self._buses.values():
+            bus, b.bus = b.bus, None
+            canbus.close_bus(bus)
+            b.sync_outstanding = False
+
+    # -- the cycle --------------------------------------------------------------------------------
+
+    def _read(self, now_ns: int) -> JointState:
+        self._send_cycle(
+            [b for b in self._buses.values() if not b.sync_outstanding], send_rpdo=False
+        )
+        start = time.monotonic()
+        for b in self._buses.values():
+            # Until a drive has answered once, wait as long as during setup.
+            first = any(d.rx1_at == 0.0 for d in b.drives)
+            wait = b.settings.setup_timeout if first else b.settings.receive_timeout
+            self._collect(b, start + wait)
+            b.sync_outstanding = False
+        now = time.monotonic()
+        active = self.state is LifecycleState.ACTIVE
+        for d in self._drives:
+            self._check(d, now, active)
+        n = len(self._drives)
+        positions = np.empty(n)
+        velocities = np.empty(n) if self._velocity_state else None
+        for d in self._drives:
+            positions[d.index] = d.scale.position(d.position_counts)
+            if velocities is not None:
+                velocities[d.index] = d.scale.velocity(d.velocity_value)
+        return JointState(positions, velocities)
+
+    def _check(self, d: _Drive, now: float, active: bool) -> None:
+        age = now - d.rx1_at if d.rx1_at else math.inf
+        if age > self._feedback_timeout_s:
+            raise self._comm_lost(d, age)
+        if not active:
+            return
+        if d.state in _FAULTY:
+            raise self._fault(d, "reported a fault")
+        if d.state is not c4.State.OPERATION_ENABLED:
+            raise self._fault(
+                d, f"left Operation Enabled (now {d.describe_state()}): quick stop or "
+                "an enable input went off",
+            )
+        if d.mode_display != int(self.mode):
+            raise self._fault(
+                d, f"changed its mode of operation: 0x6061 displays {d.mode_display}, "
+                f"expected {int(self.mode)} ({self.mode.name})",
+            )
+
+    def _write(self, now_ns: int, command: JointCommand) -> None:
+        values = command.positions if self._csp else command.velocities
+        if values is not None:
+            for d in self._drives:
+                v = float(values[d.index])
+                if not math.isfinite(v):
+                    continue  # NaN: the drive keeps its target
+                if self._csp:
+                    d.target = d.scale.position_counts(min(max(v, d.lower), d.upper))
+                else:
+                    d.target = d.scale.velocity_value(max(-d.vmax, min(d.vmax, v)))
+        for b in self._buses.values():
+            self._drain_late(b)
+            b.sync_outstanding = True
+        self._send_cycle(list(self._buses.values()), send_rpdo=True)
+
+    # -- bus helpers ------------------------------------------------------------------------------
+
+    def _bus_of(self, b: _Bus) -> can.BusABC:
+        if b.bus is None:
+            raise CommunicationError(f"{self._owner()}: {b.settings.describe()} is not open")
+        return b.bus
+
+    def _send(self, b: _Bus, msg: can.Message) -> bool:
+        try:
+            return canbus.send(self._bus_of(b), msg, b.health)
+        except can.CanError as exc:
+            raise CommunicationError(
+                f"{self._owner()}: sending on {b.settings.describe()} failed: {exc}; check "
+                "the interface and the bus"
+            ) from exc
+
+    def _send_cycle(self, buses: Sequence[_Bus], *, send_rpdo: bool) -> None:
+        """Every drive's RPDO1 (optionally) then one SYNC, on each of ``buses``.
+
+        The buses' frames are interleaved: each wire starts carrying its first frame at once
+        instead of after the other buses' frames were handed over.
+        """
+        queues: list[list[can.Message]] = []
+        for b in buses:
+            frames: list[can.Message] = []
+            for d in b.drives:
+                d.fresh = False
+                if send_rpdo:
+                    frames.append(can.Message(
+                        arbitration_id=d.rpdo1, is_extended_id=False,
+                        data=self._rpdo_layout.encode(d.controlword, d.target),
+                    ))
+            frames.append(
+                can.Message(arbitration_id=c4.SYNC_COB_ID, is_extended_id=False, data=b"")
+            )
+            queues.append(frames)
+            b.syncs += 1
+        for row in zip_longest(*queues):
+            for b, msg in zip(buses, row, strict=True):
+                if msg is not None:
+                    self._send(b, msg)
+
+    def _collect(self, b: _Bus, deadline: float) -> None:
+        latest: dict[int, can.Message] = {}
+        want = {d.tpdo1 for d in b.drives} | {d.tpdo2 for d in b.drives}
+        try:
+            result = canbus.collect_until(self._bus_of(b), latest, want, deadline, b.key)
+        except can.CanError as exc:
+            raise CommunicationError(
+                f"{self._owner()}: receiving on {b.settings.describe()} failed: {exc}"
+            ) from exc
+        self._take(b, latest, result)
+        for d in b.drives:
+            if not d.fresh:
+                d.missed += 1
+        b.health.check(self._bus_of(b), self._owner())
+
+    def _take(self, b: _Bus, latest: Mapping[int, can.Message], result: Any) -> None:
+        for err in result.errors:
+            b.health.note_error_frame(err)
+        b.health.rx_frames += result.stored
+        now = time.monotonic()
+        for cob, msg in latest.items():
+            d, which = b.keys[cob]
+            data = bytes(msg.data)
+            try:
+                if which == 1:
+                    d.statusword, d.position_counts, d.torque_permille = c4.TPDO_STATUS.decode(data)
+                    d.state = c4.decode_statusword(d.statusword)
+                    d.rx1_at = now
+                    d.fresh = True
+                elif which == 2:
+                    d.velocity_value, d.error_code, d.mode_display = c4.TPDO_FEEDBACK.decode(data)
+                    d.rx2_at = now
+                elif len(data) >= 2:
+                    d.last_emcy = int.from_bytes(data[:2], "little")
+            except Exception as exc:  # noqa: BLE001 - a garbled frame is a protocol fault
+                raise CommunicationError(
+                    f"{self._owner()}: {d.who()} sent a frame the configured mapping cannot "
+                    f"decode ({exc}); another master may have remapped its PDOs"
+                ) from exc
+
+    def _drain_late(self, b: _Bus) -> None:
+        """Take the answers that came after the last read's window, counting them as late.
+
+        They are still the newest feedback (a cycle shorter than the bus needs makes every
+        answer late; dropping them would starve the driver of feedback), and they are taken
+        before the next SYNC, so an answer is never mistaken for one to a later SYNC.
+        """
+        latest: dict[int, can.Message] = {}
+        try:
+            result = canbus.drain_latest(self._bus_of(b), latest, b.key)
+        except can.CanError as exc:
+            raise CommunicationError(
+                f"{self._owner()}: receiving on {b.settings.describe()} failed: {exc}"
+            ) from exc
+        self._take(b, latest, result)
+        for cob in latest:
+            d, which = b.keys[cob]
+            if which == 1:
+                d.late += 1
+
+    def _flush(self, b: _Bus) -> None:
+        if b.bus is None:
+            return
+        try:
+            b.health.stale_flushed += canbus.flush(b.bus)
+        except can.CanError as exc:
+            raise CommunicationError(
+                f"{self._owner()}: flushing {b.settings.describe()} failed: {exc}"
+            ) from exc
+        b.sync_outstanding = False
+
+    def _exchange(self, *, send_rpdo: bool, strict: bool = True) -> None:
+        """One RPDO + SYNC round on every bus, waiting (bounded) for every drive's TPDOs.
+
+        Raises:
+            CommunicationError: with ``strict``, a drive did not answer.
+        """
+        self._send_cycle(list(self._buses.values()), send_rpdo=send_rpdo)
+        deadline = time.monotonic() + max(b.settings.setup_timeout for b in self._buses.values())
+        for b in self._buses.values():
+            self._collect(b, deadline)
+            b.sync_outstanding = False
+        if strict:
+            for d in self._drives:
+                if not d.fresh:
+                    raise self._comm_lost(d, None)
+
+    # -- errors -----------------------------------------------------------------------------------
+
+    def _comm_lost(self, d: _Drive, age: float | None) -> CommunicationError:
+        b = self._buses[d.bus]
+        if age is None:
+            what = f"did not answer a SYNC within {b.settings.setup_timeout:g} s"
+        elif d.rx1_at == 0.0:
+            what = f"sent no TPDO in {age:.3f} s since the bus was opened"
+        else:
+            what = (
+                f"sent no TPDO for {age:.3f} s (feedback_timeout_s {self._feedback_timeout_s:g}; "
+                f"{d.late} late, {d.missed} missed answers)"
+            )
+        message = (
+            f"{self._owner()}: {d.who()} {what}; check its power, CAN wiring and "
+            f"termination, node id and bit rate ({b.settings.bitrate} bit/s)"
+        )
+        self._last_fault_by_node[d.node_id] = message
+        return CommunicationError(message)
+
+    def _fault(self, d: _Drive, what: str) -> MotorFault:
+        code = d.error_code or d.last_emcy or 0
+        message = (
+            f"{self._owner()}: {d.who()} {what}: state {d.describe_state()}, error code "
+            f"{c4.describe_error(code)}"
+        )
+        self._last_fault_by_node[d.node_id] = message
+        return MotorFault(message)
+
+    # -- status -----------------------------------------------------------------------------------
+
+    def _details(self) -> Mapping[str, Any]:
+        now = time.monotonic()
+        return {
+            "mode": self.mode.name.lower(),
+            "buses": {name: {**b.health.as_dict(), "syncs": b.syncs}
+                      for name, b in self._buses.items()},
+            "drives": {
+                d.joint: {
+                    "node_id": d.node_id,
+                    "bus": d.bus,
+                    "state": None if d.state is None else d.state.value,
+                    "statusword": None if d.statusword is None else f"0x{d.statusword:04X}",
+                    "error_code": f"0x{d.error_code:04X}",
+                    "error": c4.describe_error(d.error_code),
+                    "last_emcy": None if d.last_emcy is None else f"0x{d.last_emcy:04X}",
+                    "mode_display": d.mode_display,
+                    "torque_permille": d.torque_permille,
+                    "feedback_age_s": None if d.rx1_at == 0.0 else round(now - d.rx1_at, 6),
+                    "late": d.late,
+                    "missed": d.missed,
+                    "last_fault": self._last_fault_by_node.get(d.node_id),
+                }
+                for d in self._drives
+            },
+        }

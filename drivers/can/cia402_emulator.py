@@ -1,0 +1,621 @@
+"""An emulated CiA 402 servo drive on a python-can bus: a peer speaking real CANopen.
+
+Theory of operation
+-------------------
+Each :class:`Cia402DriveEmulator` is one node: its object dictionary is the shipped EDS
+(``jtc_hw_drive.eds``) served by canopen's :class:`~canopen.LocalNode` SDO server; this module
+adds what canopen's local node does not do: NMT (boot-up message, pre-operational /
+operational / stopped, reset communication restoring the PDO parameters), the CiA 402 state
+machine (:data:`~jtc_hw.drivers.can.cia402_codec.DRIVE_TRANSITIONS`), synchronous PDOs and
+the physics of the joint (:class:`~jtc_hw.drivers.motor_model.Motor`).
+
+Emulators given the same ``bus`` object share one receive thread (a *hub*), as drives share a
+wire; emulators on different bus objects (e.g. one virtual bus each, same channel) run their
+own. On every SYNC (COB-ID 0x080), in node-id order, each operational drive
+
+1. advances the motor by the monotonic time since its previous SYNC (capped at 0.1 s), with
+   the set-points in force (CSP: ``Motor.step_position`` toward the target position; CSV:
+   ``Motor.step_velocity``; otherwise it coasts);
+2. applies the RPDOs received since the previous SYNC (synchronous RPDOs take effect at the
+   SYNC): the controlword drives the state machine, the targets become the new set-points;
+3. answers with its synchronous TPDOs, built from the mapping currently in its object
+   dictionary (so a host that did not configure the mapping gets what it asked for).
+
+With ``pace_bitrate`` the hub models the wire: every frame seen or sent occupies the bus for
+its stuffed bit time (:func:`~jtc_hw.drivers.can.bus.wire_time_s`), and answers are released
+no earlier than the bus would have carried them. Fault injection: :meth:`inject_fault`
+(latched drive fault, e.g. 0x4310 over-temperature, cleared by a fault reset),
+:meth:`set_silent`, :meth:`drop_tpdos`, :meth:`set_tpdo_delay`, :meth:`refuse_enable`,
+:meth:`refuse_mode`, :meth:`inject_bus_off` (an error frame, then silence).
+"""
+
+from __future__ import annotations
+
+import heapq
+import itertools
+import logging
+import struct
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import can
+import canopen
+from canopen.sdo.exceptions import SdoAbortedError
+from jtc_hw.drivers.can import cia402_codec as c4
+from jtc_hw.drivers.can.bus import CAN_ERR_BUSOFF, wire_time_s
+from jtc_hw.drivers.motor_model import Motor, MotorParams
+
+__all__ = ["DEFAULT_EDS", "Cia402DriveEmulator", "NmtState"]
+
+_log = logging.getLogger(__name__)
+
+DEFAULT_EDS: Path = c4.DEFAULT_EDS
+"""The EDS of the emulated drive (shipped with the package)."""
+
+_MAX_DT_S = 0.1
+_COMM_RANGE = range(0x1000, 0x2000)
+_RPDO_COMM, _RPDO_MAP, _TPDO_COMM, _TPDO_MAP = 0x1400, 0x1600, 0x1800, 0x1A00
+_PDO_PARAM_RANGE = range(0x1400, 0x1C00)
+_SUPPORTED_MODES = (int(c4.Mode.CYCLIC_SYNC_POSITION), int(c4.Mode.CYCLIC_SYNC_VELOCITY))
+_ABORT_VALUE_RANGE = 0x06090030
+_ABORT_STATE = 0x08000022  # data cannot be transferred because of the present device state
+
+
+_Layouts = tuple[dict[int, c4.PdoLayout], list[tuple[int, c4.PdoLayout, int]]]
+"""(RPDO cob id -> layout, [(TPDO cob id, layout, transmission type)])."""
+
+
+class NmtState:
+    """NMT states (the values a heartbeat carries)."""
+
+    INITIALISING = 0
+    STOPPED = 4
+    OPERATIONAL = 5
+    PRE_OPERATIONAL = 127
+
+
+class _Hub:
+    """One receive thread per bus object, dispatching to the drives on it."""
+
+    _lock = threading.Lock()
+    _hubs: dict[int, _Hub] = {}
+
+    def __init__(self, bus: can.BusABC, pace_bitrate: int | None) -> None:
+        self.bus = bus
+        self.pace_bitrate = pace_bitrate
+        self.network = canopen.Network(bus)  # no notifier: the hub thread feeds it
+        self.drives: dict[int, Cia402DriveEmulator] = {}
+        self.free_at = 0.0  # monotonic time the modelled wire becomes idle
+        self._wire_cache: dict[tuple[int, bool, bytes], float] = {}
+        self.bus_off = False
+        self._pending: list[tuple[float, int, can.Message]] = []
+        self._seq = itertools.count()
+        self._send_lock = threading.Lock()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(
+            target=self._run, name=f"cia402-emulator-{bus.channel_info}", daemon=True
+        )
+        self.error: BaseException | None = None
+
+    @classmethod
+    def join(cls, drive: Cia402DriveEmulator) -> _Hub:
+        with cls._lock:
+            hub = cls._hubs.get(id(drive.bus))
+            if hub is None:
+                hub = cls(drive.bus, drive.pace_bitrate)
+                cls._hubs[id(drive.bus)] = hub
+                start = True
+            else:
+                start = False
+            if drive.node_id in hub.drives:
+                raise ValueError(f"node id {drive.node_id} already emulated on this bus")
+            hub.drives[drive.node_id] = drive
+            hub.network[drive.node_id] = drive.node
+            # The emulator does NMT itself (canopen's slave sends no boot-up on a reset).
+            hub.network.unsubscribe(0, drive.node.nmt.on_command)
+            if start:
+                hub._thread.start()
+            return hub
+
+    def leave(self, drive: Cia402DriveEmulator) -> None:
+        with self._lock:
+            self.drives.pop(drive.node_id, None)
+            if drive.node_id in self.network:
+                # LocalNode.remove_network unsubscribes its NMT handler, taken off in join().
+                self.network.subscribe(0, drive.node.nmt.on_command)
+                del self.network[drive.node_id]
+            last = not self.drives
+            if last:
+                self._hubs.pop(id(self.bus), None)
+        if last:
+            self._stop.set()
+            if self._thread.is_alive() and self._thread is not threading.current_thread():
+                self._thread.join(timeout=5.0)
+
+    # -- transmission ---------------------------------------------------------------------------
+
+    def _occupy(self, msg: can.Message, now: float) -> float:
+        """Put ``msg`` on the modelled wire; the time its transmission ends."""
+        if self.pace_bitrate is None:
+            return now
+        key = (int(msg.arbitration_id), bool(msg.is_extended_id), bytes(msg.data))
+        duration = self._wire_cache.get(key)
+        if duration is None:
+            # The exact stuffed length costs ~30 us of Python per frame; frames repeat (a
+            # drive at rest sends the same TPDOs every cycle), so remember them.
+            if len(self._wire_cache) > 4096:
+                self._wire_cache.clear()
+            duration = self._wire_cache[key] = wire_time_s((msg,), self.pace_bitrate)
+        self.free_at = max(self.free_at, now) + duration
+        return self.free_at
+
+    def transmit(self, msg: can.Message, delay_s: float = 0.0) -> None:
+        """Queue ``msg`` for sending when the modelled wire has carried it (and ``delay_s``)."""
+        now = time.monotonic()
+        due = self._occupy(msg, now + delay_s)
+        heapq.heappush(self._pending, (due, next(self._seq), msg))
+
+    def _send_due(self) -> float | None:
+        """Send what is due; the time until the next pending frame (None: nothing pending)."""
+        while self._pending:
+            due = self._pending[0][0]
+            now = time.monotonic()
+            if due > now:
+                return due - now
+            _, _, msg = heapq.heappop(self._pending)
+            if self.bus_off and not msg.is_error_frame:
+                continue
+            try:
+                with self.network.send_lock:
+                    self.bus.send(msg)
+            except can.CanError as exc:
+                _log.warning("emulator: sending %s failed: %s", msg, exc)
+        return None
+
+    # -- reception ------------------------------------------------------------------------------
+
+    def _run(self) -> None:
+        try:
+            while not self._stop.is_set():
+                wait = self._send_due()
+                timeout = 0.05 if wait is None else min(wait, 0.05)
+                msg = self.bus.recv(timeout=timeout)
+                if msg is None or msg.is_error_frame:
+                    continue
+                now = time.monotonic()
+                # The frame took the wire when it was sent (its receive stamp on a virtual
+                # bus, wall clock), not when this thread got round to it.
+                sent = msg.timestamp - (time.time() - now) if msg.timestamp else now
+                self._occupy(msg, min(now, max(sent, now - 0.01)))
+                self._dispatch(msg)
+        except Exception as exc:  # noqa: BLE001 - reported by the drives' `error`
+            if not self._stop.is_set():
+                _log.exception("CiA 402 emulator hub stopped")
+                self.error = exc
+
+    def _dispatch(self, msg: can.Message) -> None:
+        if self.bus_off:
+            return
+        cob = int(msg.arbitration_id)
+        data = bytes(msg.data)
+        now = time.monotonic()
+        if cob == c4.SYNC_COB_ID:
+            for node_id in sorted(self.drives):
+                self.drives[node_id]._on_sync(now)
+                # Drives work in parallel: what the wire could already carry goes out while
+                # the next drive's physics is computed.
+                self._send_due()
+        elif cob == 0:
+            try:
+                command, target = c4.decode_nmt(data)
+            except Exception:  # noqa: BLE001 - a malformed NMT frame is ignored, as nodes do
+                return
+            for node_id in sorted(self.drives):
+                if target in (0, node_id):
+                    self.drives[node_id]._on_nmt(command)
+        else:
+            drive = self.drives.get(cob & 0x7F)
+            if drive is not None and (drive._silent or drive._on_frame(cob, data)):
+                return
+            self.network.notify(cob, bytearray(data), msg.timestamp)
+
+
+class Cia402DriveEmulator:
+    """One emulated CiA 402 drive (see the module docstring).
+
+    Args:
+        bus: the python-can bus it listens and talks on (not closed by :meth:`stop`).
+        node_id: CANopen node id, 1..127.
+        pace_bitrate: model the wire at this bit rate (bit/s); None: frames are instant.
+            Emulators sharing a bus object share the first one's setting.
+        counts_per_revolution: position counts per motor revolution.
+        motor_params: physics of the motor (output side of the drive's own units).
+        initial_position: motor position at start, rad.
+        eds: the object dictionary (default: the shipped EDS).
+        rated_torque: N*m that 0x6077 = 1000 stands for (default: the motor's torque limit).
+
+    Raises:
+        ValueError: node id out of range.
+    """
+
+    def __init__(
+        self,
+        bus: can.BusABC,
+        node_id: int,
+        *,
+        pace_bitrate: int | None = None,
+        counts_per_revolution: int = 131072,
+        motor_params: MotorParams | None = None,
+        initial_position: float = 0.0,
+        eds: str | Path | None = None,
+        rated_torque: float | None = None,
+    ) -> None:
+        if not 1 <= node_id <= 127:
+            raise ValueError(f"node id must be 1..127, got {node_id!r}")
+        self.bus = bus
+        self.node_id = node_id
+        self.pace_bitrate = pace_bitrate
+        self.counts_per_revolution = int(counts_per_revolution)
+        self.motor = Motor(motor_params, initial_position)
+        self.rated_torque = rated_torque or self.motor.params.torque_limit or 1.0
+        self.node = canopen.LocalNode(node_id, str(eds or DEFAULT_EDS))
+        # canopen's callback registration is untyped.
+        register: Any = self.node
+        register.add_read_callback(self._od_read)
+        register.add_write_callback(self._od_write)
+        self._lock = threading.RLock()
+        self.nmt_state = NmtState.INITIALISING
+        self.state = c4.State.SWITCH_ON_DISABLED
+        self.mode = 0
+        self.mode_display = 0
+        self.controlword = 0
+        self.target_position = 0
+        self.target_velocity = 0
+        self.error_code = 0
+        self._fault_persistent = False
+        self._last_sync: float | None = None
+        self._sync_count = 0
+        self._pending_rpdo: dict[int, bytes] = {}
+        self._layout_cache: _Layouts | None = None
+        self._silent = False
+        self._drop = 0
+        self._tpdo_delay_s = 0.0
+        self._refuse_enable = False
+        self._refuse_mode = False
+        self._emcy_pending: bytes | None = None
+        self.syncs_seen = 0
+        self.tpdos_sent = 0
+        self.rpdos_applied = 0
+        self.enable_jump_counts: int | None = None
+        self._hub: _Hub | None = None
+
+    # -- lifecycle ------------------------------------------------------------------------------
+
+    def start(self) -> None:
+        """Join the bus and boot: send the boot-up message and enter pre-operational.
+
+        Raises:
+            ValueError: another emulator with this node id is on the same bus object.
+            RuntimeError: already started.
+        """
+        if self._hub is not None:
+            raise RuntimeError(f"drive {self.node_id} already started")
+        self._hub = _Hub.join(self)
+        self._boot()
+
+    def stop(self) -> None:
+        """Leave the bus (its thread stops with the last drive on it). Idempotent."""
+        hub, self._hub = self._hub, None
+        if hub is not None:
+            hub.leave(self)
+
+    def __enter__(self) -> Cia402DriveEmulator:
+        self.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    @property
+    def error(self) -> BaseException | None:
+        """The exception that stopped the receive thread, if any."""
+        return None if self._hub is None else self._hub.error
+
+    # -- observation ----------------------------------------------------------------------------
+
+    @property
+    def position_counts(self) -> int:
+        """Position actual, counts."""
+        return round(self.motor.position * self.counts_per_revolution / c4.TWO_PI)
+
+    @property
+    def velocity_counts(self) -> int:
+        """Velocity actual, counts/s."""
+        return round(self.motor.velocity * self.counts_per_revolution / c4.TWO_PI)
+
+    @property
+    def statusword(self) -> int:
+        """The statusword the drive reports now."""
+        following = self.state is c4.State.OPERATION_ENABLED
+        return c4.encode_statusword(
+            self.state,
+            voltage_enabled=self.state is not c4.State.SWITCH_ON_DISABLED,
+            following=following,
+        )
+
+    # -- fault injection ------------------------------------------------------------------------
+
+    def inject_fault(self, error_code: int = 0x4310, *, persistent: bool = False) -> None:
+        """Latch a drive fault (Fault Reaction Active, then Fault; torque off) with
+        ``error_code`` in 0x603F and an EMCY message. A fault reset clears it unless
+        ``persistent`` (the condition is still there), until :meth:`clear_condition`."""
+        with self._lock:
+            self.error_code = error_code & 0xFFFF
+            self._fault_persistent = persistent
+            self.state = c4.State.FAULT_REACTION_ACTIVE
+            self._emcy_pending = struct.pack("<HB5x", self.error_code, 0x01)
+
+    def clear_condition(self) -> None:
+        """The cause of a persistent fault is gone: the next fault reset succeeds."""
+        with self._lock:
+            self._fault_persistent = False
+
+    def set_silent(self, silent: bool) -> None:
+        """A silent drive receives but never transmits (power loss of its CAN transceiver)."""
+        self._silent = bool(silent)
+
+    def drop_tpdos(self, syncs: int) -> None:
+        """Do not answer the next ``syncs`` SYNCs (the state still advances)."""
+        self._drop = max(0, int(syncs))
+
+    def set_tpdo_delay(self, delay_s: float) -> None:
+        """Send the TPDOs ``delay_s`` after the SYNC (late answers)."""
+        self._tpdo_delay_s = max(0.0, float(delay_s))
+
+    def refuse_enable(self, refuse: bool) -> None:
+        """Ignore Enable Operation (stays Switched On): a failed transition for the host."""
+        self._refuse_enable = bool(refuse)
+
+    def refuse_mode(self, refuse: bool) -> None:
+        """Accept writes to 0x6060 but keep the display 0x6061 (a failed mode switch)."""
+        self._refuse_mode = bool(refuse)
+
+    def inject_bus_off(self) -> None:
+        """Put an error frame reporting bus-off on the bus, then keep every drive of this
+        bus object silent until :meth:`clear_bus_off`."""
+        hub = self._hub
+        if hub is None:
+            return
+        frame = can.Message(
+            arbitration_id=CAN_ERR_BUSOFF, is_error_frame=True, is_extended_id=False,
+            data=bytes(8),
+        )
+        hub.transmit(frame)
+        hub.bus_off = True
+
+    def clear_bus_off(self) -> None:
+        """The bus recovered (every drive of this bus object talks again)."""
+        if self._hub is not None:
+            self._hub.bus_off = False
+
+    # -- NMT ------------------------------------------------------------------------------------
+
+    def _boot(self) -> None:
+        self.nmt_state = NmtState.INITIALISING
+        self._pending_rpdo.clear()
+        self._layout_cache = None
+        self._send(c4.bootup_cob_id(self.node_id), b"\x00", force=True)
+        self.nmt_state = NmtState.PRE_OPERATIONAL
+
+    def _on_nmt(self, command: int) -> None:
+        with self._lock:
+            if command == c4.NMT_START:
+                self.nmt_state = NmtState.OPERATIONAL
+                self._last_sync = None
+            elif command == c4.NMT_STOP:
+                self.nmt_state = NmtState.STOPPED
+            elif command == c4.NMT_ENTER_PRE_OPERATIONAL:
+                self.nmt_state = NmtState.PRE_OPERATIONAL
+            elif command in (c4.NMT_RESET_NODE, c4.NMT_RESET_COMMUNICATION):
+                for index in [i for i in self.node.data_store if i in _COMM_RANGE]:
+                    del self.node.data_store[index]
+                if command == c4.NMT_RESET_NODE:
+                    self.node.data_store.clear()
+                    self.state = c4.State.SWITCH_ON_DISABLED
+                    self.mode = self.mode_display = 0
+                    if not self._fault_persistent:
+                        self.error_code = 0
+                    else:
+                        self.state = c4.State.FAULT
+                self._boot()
+
+    # -- object dictionary ------------------------------------------------------------------------
+
+    def _live(self, index: int) -> int | None:
+        return self._snapshot().get(index)
+
+    def _snapshot(self) -> dict[int, int]:
+        """The live value of every mappable object now."""
+        return {
+            c4.STATUSWORD: self.statusword,
+            c4.CONTROLWORD: self.controlword,
+            c4.POSITION_ACTUAL: self.position_counts,
+            c4.VELOCITY_ACTUAL: self.velocity_counts,
+            c4.TORQUE_ACTUAL: round(1000.0 * self.motor.torque / self.rated_torque),
+            c4.ERROR_CODE: self.error_code,
+            c4.MODES_OF_OPERATION: self.mode,
+            c4.MODES_OF_OPERATION_DISPLAY: self.mode_display,
+            c4.TARGET_POSITION: self.target_position,
+            c4.TARGET_VELOCITY: self.target_velocity,
+        }
+
+    def _od_read(self, index: int, subindex: int, od: Any) -> int | None:
+        return self._live(index)
+
+    def _od_write(self, index: int, subindex: int, od: Any, data: bytes) -> None:
+        if index in _PDO_PARAM_RANGE:
+            if self.nmt_state == NmtState.OPERATIONAL and index >= _RPDO_MAP:
+                pass  # real drives may refuse; accepting keeps hosts that remap live working
+            self._layout_cache = None
+            return
+        if index in c4.OBJECTS:
+            bits, signed = c4.OBJECTS[index]
+            value = int.from_bytes(data[: bits // 8], "little", signed=signed)
+            with self._lock:
+                if index == c4.MODES_OF_OPERATION:
+                    if value not in _SUPPORTED_MODES:
+                        raise SdoAbortedError(_ABORT_VALUE_RANGE)
+                    self.mode = value
+                    if not self._refuse_mode:
+                        self.mode_display = value
+                elif index == c4.CONTROLWORD:
+                    self._apply_controlword(value)
+                elif index == c4.TARGET_POSITION:
+                    self.target_position = value
+                elif index == c4.TARGET_VELOCITY:
+                    self.target_velocity = value
+                else:
+                    raise SdoAbortedError(_ABORT_STATE)
+
+    def _u32(self, index: int, subindex: int) -> int:
+        return int.from_bytes(self.node.get_data(index, subindex), "little")
+
+    def _layouts(self) -> _Layouts:
+        """(RPDO cob id -> layout, [(TPDO cob id, layout, transmission type)]) from the OD."""
+        if self._layout_cache is not None:
+            return self._layout_cache
+        rpdos: dict[int, c4.PdoLayout] = {}
+        tpdos: list[tuple[int, c4.PdoLayout, int]] = []
+        for comm, mapping, is_rx in ((_RPDO_COMM, _RPDO_MAP, True), (_TPDO_COMM, _TPDO_MAP, False)):
+            for n in range(4):
+                if comm + n not in self.node.object_dictionary:
+                    continue
+                cob = self._u32(comm + n, 1)
+                if cob & 0x80000000:
+                    continue  # not valid
+                ttype = int.from_bytes(self.node.get_data(comm + n, 2), "little")
+                count = int.from_bytes(self.node.get_data(mapping + n, 0), "little")
+                entries = []
+                for sub in range(1, count + 1):
+                    index, subindex, bits = c4.decode_mapping(self._u32(mapping + n, sub))
+                    signed = c4.OBJECTS.get(index, (bits, False))[1]
+                    entries.append(c4.PdoEntry(index, subindex, bits, signed))
+                layout = c4.PdoLayout(tuple(entries))
+                if is_rx:
+                    rpdos[cob & 0x7FF] = layout
+                else:
+                    tpdos.append((cob & 0x7FF, layout, ttype))
+        self._layout_cache = (rpdos, tpdos)
+        return self._layout_cache
+
+    # -- PDO and the state machine --------------------------------------------------------------
+
+    def _on_frame(self, cob: int, data: bytes) -> bool:
+        """Handle an RPDO; False for frames that are not (SDO: canopen's server)."""
+        if self.nmt_state != NmtState.OPERATIONAL:
+            return False
+        rpdos = self._layouts()[0]
+        if cob not in rpdos:
+            return False
+        self._pending_rpdo[cob] = data
+        return True
+
+    def _apply_controlword(self, controlword: int) -> None:
+        previous, self.controlword = self.controlword, controlword
+        state = self.state
+        if state is c4.State.FAULT:
+            rising = controlword & c4.CW_FAULT_RESET and not previous & c4.CW_FAULT_RESET
+            if rising and not self._fault_persistent:
+                self.error_code = 0
+                self.state = c4.State.SWITCH_ON_DISABLED
+            return
+        if state is c4.State.FAULT_REACTION_ACTIVE:
+            return
+        command = c4.decode_controlword(controlword)
+        if command is c4.Command.FAULT_RESET:
+            return  # no fault to reset; the drive ignores the rest of the word
+        new = c4.expected_after(state, command)
+        if new is c4.State.OPERATION_ENABLED and new is not state:
+            if self._refuse_enable:
+                return
+            # Record how far the first set-point is from where the joint stands: a host
+            # that does not seed the target from the actual position makes the joint jump.
+            self.enable_jump_counts = self.target_position - self.position_counts
+            self.motor.reset_reference()
+        self.state = new
+
+    def _step_physics(self, dt: float) -> None:
+        if dt <= 0.0:
+            return
+        state = self.state
+        if state is c4.State.OPERATION_ENABLED:
+            if self.mode_display == c4.Mode.CYCLIC_SYNC_POSITION:
+                goal = self.target_position * c4.TWO_PI / self.counts_per_revolution
+                self.motor.step_position(dt, goal)
+                return
+            if self.mode_display == c4.Mode.CYCLIC_SYNC_VELOCITY:
+                speed = self.target_velocity * c4.TWO_PI / self.counts_per_revolution
+                self.motor.step_velocity(dt, speed)
+                return
+        elif state is c4.State.QUICK_STOP_ACTIVE:
+            self.motor.step_velocity(dt, 0.0)
+            if abs(self.motor.velocity) < 1e-3:
+                self.state = c4.State.SWITCH_ON_DISABLED
+            return
+        self.motor.coast(dt)
+
+    def _on_sync(self, now: float) -> None:
+        with self._lock:
+            if self.nmt_state != NmtState.OPERATIONAL:
+                return
+            self.syncs_seen += 1
+            self._sync_count += 1
+            dt = 0.0 if self._last_sync is None else min(now - self._last_sync, _MAX_DT_S)
+            self._last_sync = now
+            self._step_physics(dt)
+            if self.state is c4.State.FAULT_REACTION_ACTIVE:
+                self.state = c4.State.FAULT
+            rpdos, tpdos = self._layouts()
+            for cob, data in self._pending_rpdo.items():
+                layout = rpdos.get(cob)
+                if layout is None or len(data) != layout.size:
+                    continue
+                values = layout.decode(data)
+                self.rpdos_applied += 1
+                # Targets first: an Enable Operation in the same PDO must see its set-point.
+                ordered = sorted(
+                    zip(layout.entries, values, strict=True),
+                    key=lambda ev: ev[0].index == c4.CONTROLWORD,
+                )
+                for entry, value in ordered:
+                    if entry.index == c4.CONTROLWORD:
+                        self._apply_controlword(value)
+                    elif entry.index == c4.TARGET_POSITION:
+                        self.target_position = value
+                    elif entry.index == c4.TARGET_VELOCITY:
+                        self.target_velocity = value
+            self._pending_rpdo.clear()
+            if self._emcy_pending is not None:
+                self._send(c4.emcy_cob_id(self.node_id), self._emcy_pending)
+                self._emcy_pending = None
+            if self._drop > 0:
+                self._drop -= 1
+                return
+            live = self._snapshot()
+            for cob, layout, ttype in tpdos:
+                if not 1 <= ttype <= 240 or self._sync_count % ttype:
+                    continue
+                sample = [live.get(e.index, 0) for e in layout.entries]
+                self._send(cob, layout.encode(*sample), delay_s=self._tpdo_delay_s)
+                self.tpdos_sent += 1
+
+    def _send(self, cob: int, data: bytes, *, delay_s: float = 0.0, force: bool = False) -> None:
+        hub = self._hub
+        if hub is None or (self._silent and not force) or (hub.bus_off and not force):
+            return
+        hub.transmit(
+            can.Message(arbitration_id=cob, data=data, is_extended_id=False), delay_s
+        )
+

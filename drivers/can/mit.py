@@ -1,0 +1,551 @@
+"""MIT-mode CAN motors (kind ``can-mit``): CubeMars AK, Damiao DM, mini-cheetah drivers.
+
+Theory of operation
+-------------------
+Every motor runs its own PD law ``t = kp (p_des - p) + kd (v_des - v) + t_ff`` and answers
+each frame it receives with one state reply (position, velocity, torque; Damiao adds a state
+code and temperatures). So one cycle on a bus is "send one frame per motor, collect one reply
+per motor" and a motor is heard from only when it is spoken to.
+
+* ``write`` encodes the held set-points (updated from the command's finite entries) and sends
+  one frame per motor, on every bus, before anything is collected: buses transmit
+  concurrently, so several buses cost the slowest one, not the sum.
+* ``read`` collects the replies to the last ``write`` (waiting for them at most the bus's
+  ``receive_timeout``; 0 never waits). When nothing was written since the previous read
+  (inactive, or two reads in a row) it first sends each motor its held frame (the set-point
+  in motor mode, ``exit motor mode`` otherwise) to get an answer -- MIT has no read-only
+  request. Replies are drained without blocking and only the newest per motor is kept; a
+  motor whose newest feedback is older than its ``feedback_timeout`` is a communication
+  fault.
+* Bus-off (``bus.state`` where the interface reports it, or a SocketCAN bus-off error frame)
+  is a fault; error-passive is counted and logged. A full transmit buffer flushes the stale
+  queue (the motor then misses one cycle, which its ``feedback_timeout`` tolerates). Stale
+  received frames are flushed on configure, activate and deactivate, and the transmit queue
+  on deactivate, so nothing queued before a stop is replayed.
+
+Command interfaces, per joint (the MIT PD is how position commands reach the motor):
+
+* ``position`` (optionally + ``velocity``): ``p_des`` = command, ``v_des`` = velocity command
+  (0 without it), the configured ``kp``/``kd``, ``t_ff`` = effort command if ``effort`` is also
+  an interface, else 0.
+* ``velocity`` alone: ``kp = 0``, ``kd`` = configured kd, ``v_des`` = command.
+* ``effort`` alone: ``t_ff`` = command, ``kp = 0``, ``kd = effort_kd`` (0: pure torque).
+
+Units. Per joint, with ``s = direction`` (+1/-1), ``g = gear_ratio`` (external gearing
+between the motor's output shaft and the joint) and ``o = offset``::
+
+    joint_position = s * motor_position / g + o      motor_position = s * g * (joint_position - o)
+    joint_velocity = s * motor_velocity / g          motor_velocity = s * g * joint_velocity
+    joint_effort   = s * g * motor_torque            motor_torque   = s * joint_effort / g
+
+``kp``/``kd`` are sent as given: motor-side units (N*m/rad, N*m*s/rad of the motor's output).
+Position commands are clamped to ``position_limits`` (joint units), then every value to the
+model's MIT ranges by the codec.
+
+Lifecycle: ``configure`` opens the buses and pings every motor (MIT has no read-only request:
+a motor this instance left holding, e.g. across a re-arm, gets its held set-point and keeps
+holding; any other motor, e.g. after the daemon restarted, gets ``exit motor mode``, the
+conservative choice for a motor in an unknown state); ``activate`` enters motor mode and
+seeds the set-point from the measured position (no jump; motors still holding keep their
+set-point); ``deactivate`` holds (set-point = last commanded position, v = t_ff = 0, the
+configured gains; effort-driven joints hold where they are) or exits motor mode (torque off);
+``recover`` (re-arm) resets the bus health after the reopen of ``configure``, clears
+Damiao errors (``FB``) and marks the motors that faulted for re-entering motor mode; motors
+still holding keep their set-point through the re-arm (no sag, no re-entry).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any, ClassVar
+
+import can
+import numpy as np
+from jtc_hw.drivers.can.bus import (
+    BusHealth,
+    BusSettings,
+    buses_param,
+    close_bus,
+    collect_until,
+    drain_latest,
+    flush,
+    joint_bus_param,
+    joint_buses,
+    open_settings,
+    send,
+)
+from jtc_hw.drivers.can.frames import (
+    CLEAR_ERROR,
+    DAMIAO_STATES,
+    ENTER_MOTOR_MODE,
+    EXIT_MOTOR_MODE,
+    MODEL_PRESETS,
+    SET_ZERO,
+    MitCommand,
+    MitLimits,
+    decode_reply,
+    encode_command,
+    reply_motor_id,
+)
+from numpy.typing import NDArray
+
+from jtc_hw.errors import CommunicationError, ConfigurationError, HardwareError, MotorFault
+from jtc_hw.hardware import HardwareInterface, ParamKind, ParamSpec, SafeAction, param_table
+from jtc_hw.joints import JointCommand, JointState
+
+__all__ = ["MitHardware"]
+
+_log = logging.getLogger(__name__)
+F64 = NDArray[np.float64]
+NS_PER_S = 1_000_000_000
+
+
+@dataclass
+class _Link:
+    """One bus and the motors on it."""
+
+    settings: BusSettings
+    joints: list[int]  # indices into the component's joints
+    ids: list[int]
+    health: BusHealth
+    reply_ids: frozenset[int]
+    reply_format: str
+    bus: can.BusABC | None = None
+    latest: dict[int, can.Message] = field(default_factory=dict)
+    pending: set[int] = field(default_factory=set)
+    index_of: dict[int, int] = field(default_factory=dict)  # motor id -> joint index
+
+    def key(self, msg: can.Message) -> int | None:
+        if msg.arbitration_id not in self.reply_ids or msg.is_extended_id:
+            return None
+        motor = reply_motor_id(msg.data, self.reply_format)
+        return motor if motor in self.index_of else None
+
+
+class MitHardware(HardwareInterface):
+    """MIT-mode CAN motors on one or more python-can buses (see the module docstring).
+
+    Raises:
+        ConfigurationError: invalid parameters (unknown model or bus, duplicate motor id on a
+            bus, an id the model's reply cannot carry, a zero direction).
+    """
+
+    kind: ClassVar[str] = "can-mit"
+    COMMAND_INTERFACES: ClassVar[tuple[str, ...]] = ("position", "velocity", "effort")
+    STATE_INTERFACES: ClassVar[tuple[str, ...]] = ("position", "velocity")
+
+    PARAMS: ClassVar[Mapping[str, ParamSpec]] = param_table(
+        buses_param(),
+        joint_bus_param(),
+        ParamSpec("ids", ParamKind.INT, None, "per joint: the motor's CAN id",
+                  per_joint=True, required=True, minimum=1, maximum=0x7FF),
+        ParamSpec("model", ParamKind.STRING, "AK80-9",
+                  "per joint: motor model, which sets the MIT ranges and reply format",
+                  per_joint=True, choices=tuple(MODEL_PRESETS)),
+        ParamSpec("p_max", ParamKind.FLOAT, 0.0,
+                  "per joint: MIT position range override, rad (0: the model's)",
+                  per_joint=True, minimum=0.0),
+        ParamSpec("v_max", ParamKind.FLOAT, 0.0,
+                  "per joint: MIT velocity range override, rad/s (0: the model's)",
+                  per_joint=True, minimum=0.0),
+        ParamSpec("t_max", ParamKind.FLOAT, 0.0,
+                  "per joint: MIT torque range override, N*m (0: the model's)",
+                  per_joint=True, minimum=0.0),
+        ParamSpec("master_id", ParamKind.INT, 0,
+                  "per joint: arbitration id the motor's replies use (AK: 0; Damiao: its "
+                  "MST_ID)", per_joint=True, minimum=0, maximum=0x7FF),
+        ParamSpec("kp", ParamKind.FLOAT, 20.0,
+                  "per joint: MIT kp for position commands and holding, N*m/rad (motor side)",
+                  per_joint=True, minimum=0.0),
+        ParamSpec("kd", ParamKind.FLOAT, 0.5,
+                  "per joint: MIT kd for position / velocity commands and holding, N*m*s/rad",
+                  per_joint=True, minimum=0.0),
+        ParamSpec("effort_kd", ParamKind.FLOAT, 0.0,
+                  "per joint: MIT kd (damping) with effort commands, N*m*s/rad",
+                  per_joint=True, minimum=0.0),
+        ParamSpec("offset", ParamKind.FLOAT, 0.0, "per joint: joint position at motor zero, rad",
+                  per_joint=True),
+        ParamSpec("direction", ParamKind.INT, 1, "per joint: +1 or -1", per_joint=True,
+                  minimum=-1, maximum=1),
+        ParamSpec("gear_ratio", ParamKind.FLOAT, 1.0,
+                  "per joint: motor output turns per joint turn (external gearing)",
+                  per_joint=True, minimum=1e-6),
+        ParamSpec("position_limits", ParamKind.RANGE, (-math.inf, math.inf),
+                  "per joint [min, max] commanded position, rad (null: unlimited)",
+                  per_joint=True, nullable=True),
+        ParamSpec("feedback_timeout", ParamKind.FLOAT, 0.02,
+                  "per joint: s after which a motor's newest feedback counts as lost",
+                  per_joint=True, minimum=0.0005, maximum=10.0),
+        ParamSpec("max_temperature_c", ParamKind.FLOAT, 80.0,
+                  "per joint: drive temperature (Damiao replies) above which it is a fault, "
+                  "degC", per_joint=True, minimum=0.0, maximum=200.0),
+    )
+
+    def __init__(
+        self,
+        name: str,
+        joints: Sequence[str],
+        command_interfaces: Sequence[str],
+        state_interfaces: Sequence[str],
+        params: Mapping[str, Any],
+    ) -> None:
+        super().__init__(name, joints, command_interfaces, state_interfaces, params)
+        p = self.params
+        n = len(self.joints)
+        self._ids: tuple[int, ...] = p["ids"]
+        buses: Mapping[str, BusSettings] = p["buses"]
+        self._bus_of = joint_buses(self.joints, p["bus"], buses)
+        self._limits: list[MitLimits] = []
+        for i, joint in enumerate(self.joints):
+            base = MODEL_PRESETS[p["model"][i]]
+            self._limits.append(MitLimits(
+                p["p_max"][i] or base.p_max, p["v_max"][i] or base.v_max,
+                p["t_max"][i] or base.t_max, base.kp_max, base.kd_max, base.reply,
+            ))
+            if p["direction"][i] == 0:
+                raise ConfigurationError(f"joint {joint!r}: direction must be +1 or -1",
+                                         f"params.direction.{joint}", 0)
+            if base.reply == "damiao" and self._ids[i] > 0x0F:
+                raise ConfigurationError(
+                    f"joint {joint!r}: {p['model'][i]} replies carry ids 1..15, got "
+                    f"{self._ids[i]}", f"params.ids.{joint}", self._ids[i])
+        self._links: dict[str, _Link] = {}
+        for bus_name, settings in buses.items():
+            members = [i for i in range(n) if self._bus_of[i] == bus_name]
+            if not members:
+                continue
+            formats = {self._limits[i].reply for i in members}
+            if len(formats) > 1:
+                raise ConfigurationError(
+                    f"bus {bus_name!r} mixes reply formats {sorted(formats)}; put AK and "
+                    "Damiao motors on separate buses", "params.model", sorted(formats))
+            ids = [self._ids[i] for i in members]
+            for motor_id in ids:
+                if ids.count(motor_id) > 1:
+                    dupes = [self.joints[i] for i in members if self._ids[i] == motor_id]
+                    raise ConfigurationError(
+                        f"motor id {motor_id} is used by {', '.join(dupes)} on bus {bus_name!r}",
+                        "params.ids", motor_id)
+            link = _Link(settings, members, ids, BusHealth(settings),
+                         frozenset(p["master_id"][i] for i in members), formats.pop())
+            link.index_of = {self._ids[i]: i for i in members}
+            self._links[bus_name] = link
+        self._sign = np.array(p["direction"], dtype=np.float64)
+        self._gear = np.array(p["gear_ratio"], dtype=np.float64)
+        self._offset = np.array(p["offset"], dtype=np.float64)
+        self._lower = np.array([lim[0] for lim in p["position_limits"]], dtype=np.float64)
+        self._upper = np.array([lim[1] for lim in p["position_limits"]], dtype=np.float64)
+        self._kp = np.array(p["kp"], dtype=np.float64)
+        self._kd = np.array(p["kd"], dtype=np.float64)
+        self._effort_kd = np.array(p["effort_kd"], dtype=np.float64)
+        self._timeout_ns = np.array([round(t * NS_PER_S) for t in p["feedback_timeout"]],
+                                    dtype=np.int64)
+        self._damiao = any(lim.reply == "damiao" for lim in self._limits)
+        self._max_temp = np.array(p["max_temperature_c"], dtype=np.float64)
+        ci = self.command_interfaces
+        self._cmd_position = "position" in ci
+        self._cmd_velocity = "velocity" in ci
+        self._cmd_effort = "effort" in ci
+        # Motor-side state and held set-points (persist across cleanup/configure: a motor
+        # left holding keeps holding, and configure's ping must not change that).
+        self._p = np.full(n, np.nan)
+        self._v = np.zeros(n)
+        self._t = np.zeros(n)
+        self._rx_ns = np.zeros(n, dtype=np.int64)
+        self._temperature: list[int | None] = [None] * n
+        self._state_code: list[int | None] = [None] * n
+        self._missed = [0] * n
+        self._held_p = np.zeros(n)
+        self._held_v = np.zeros(n)
+        self._held_t = np.zeros(n)
+        self._held_kp = np.zeros(n)
+        self._held_kd = np.zeros(n)
+        self._motor_mode = np.zeros(n, dtype=bool)
+        self._written = False
+        self._faults: dict[str, str] = {}
+
+    # -- public extras ------------------------------------------------------------------------
+
+    def set_zero(self, joints: Sequence[str] | None = None) -> None:
+        """Make the current position each motor's zero (the ``FE`` command; Damiao/AK store
+        it). Only while INACTIVE: the motor's notion of position jumps.
+
+        Raises:
+            HardwareError: not INACTIVE, or a motor did not answer.
+        """
+        if self.state.value != "inactive":
+            raise HardwareError(f"{self._owner()}: set_zero() needs the component configured "
+                                f"and inactive, it is {self.state.value}")
+        which = set(self.joints if joints is None else joints)
+        self._exchange(lambda i: SET_ZERO if self.joints[i] in which else None, setup=True)
+
+    # -- primitives ---------------------------------------------------------------------------
+
+    def _configure(self) -> None:
+        opened: list[_Link] = []
+        try:
+            for link in self._links.values():
+                link.bus = open_settings(link.settings)
+                opened.append(link)
+                link.health.state = "active"
+                link.health.stale_flushed += flush(link.bus)
+                link.latest.clear()
+                link.pending.clear()
+            self._exchange(self._ping_frame, setup=True)
+        except BaseException:
+            for link in opened:
+                close_bus(link.bus)
+                link.bus = None
+            raise
+
+    def _ping_frame(self, i: int) -> bytes:
+        if self._motor_mode[i]:
+            return self._setpoint(i)
+        return EXIT_MOTOR_MODE
+
+    def _recover(self) -> None:
+        for link in self._links.values():
+            link.health.state = "active"
+        damiao = [i for i in range(len(self.joints)) if self._limits[i].reply == "damiao"]
+        if damiao:
+            self._exchange(lambda i: CLEAR_ERROR if i in damiao else None, setup=True)
+        # A motor that faulted may have left motor mode without saying so (an AK reply has no
+        # state): it gets "enter motor mode" again; the others keep holding undisturbed.
+        for i, joint in enumerate(self.joints):
+            if joint in self._faults:
+                self._motor_mode[i] = False
+        self._faults.clear()
+
+    def _activate(self, now_ns: int) -> JointCommand:
+        for link in self._links.values():
+            assert link.bus is not None
+            link.health.stale_flushed += flush(link.bus)
+        # Motors already holding (a re-arm after a hold) keep their set-point: re-entering
+        # motor mode could reset it, and re-seeding from the measured position would let a
+        # loaded joint sag by its PD error. A Damiao reply says whether it is really enabled.
+        holding = self._motor_mode & np.array(
+            [code is None or code == 1 for code in self._state_code], dtype=bool)
+        entering = ~holding
+        try:
+            self._exchange(
+                lambda i: self._setpoint(i) if holding[i] else ENTER_MOTOR_MODE, setup=True)
+            self._check_faults(time.monotonic_ns())
+            self._motor_mode[:] = True
+            # Seed the others: hold where the motor is.
+            self._held_p[entering] = self._p[entering]
+            self._held_v[:] = 0.0
+            self._held_t[:] = 0.0
+            if self._cmd_position:
+                self._held_kp[:], self._held_kd[:] = self._kp, self._kd
+            elif self._cmd_velocity:
+                self._held_kp[:], self._held_kd[:] = 0.0, self._kd
+            else:
+                self._held_kp[:], self._held_kd[:] = 0.0, self._effort_kd
+            self._exchange(self._setpoint, setup=True)
+        except BaseException:
+            # Do not leave motors that this activation enabled in motor mode with no
+            # set-point (free, or worse): switch them off again, best effort.
+            self._motor_mode[entering] = False
+            try:
+                self._send_all(lambda i: EXIT_MOTOR_MODE if entering[i] else None)
+                self._collect(setup=True)
+            except Exception as exc:  # noqa: BLE001 - the original error matters more
+                _log.warning("%s: switching motors off after a failed activation: %s",
+                             self._owner(), exc)
+            raise
+        held = self.nan_command()
+        if held.positions is not None:
+            held.positions[:] = self._sign * self._held_p / self._gear + self._offset
+        return held
+
+    def _read(self, now_ns: int) -> JointState:
+        if not self._written:
+            self._send_all(self._ping_frame)
+        self._written = False
+        self._collect(setup=False)
+        self._check_faults(time.monotonic_ns())
+        return JointState(
+            self._joint_positions(),
+            self._sign * self._v / self._gear if self._velocity_state else None,
+        )
+
+    def _write(self, now_ns: int, command: JointCommand) -> None:
+        sign, gear, offset = self._sign, self._gear, self._offset
+        if self._cmd_position and command.positions is not None:
+            given = np.isfinite(command.positions)
+            target = np.clip(command.positions, self._lower, self._upper)
+            self._held_p[given] = (sign * gear * (target - offset))[given]
+        elif not self._cmd_position:
+            self._held_p[:] = self._p  # kp = 0: the position set-point is unused
+        if self._cmd_velocity and command.velocities is not None:
+            given = np.isfinite(command.velocities)
+            self._held_v[given] = (sign * gear * command.velocities)[given]
+        if self._cmd_effort and command.effort is not None:
+            given = np.isfinite(command.effort)
+            self._held_t[given] = (sign * command.effort / gear)[given]
+        self._send_all(self._setpoint)
+        self._written = True
+
+    def _deactivate(self, now_ns: int, action: SafeAction) -> None:
+        for link in self._links.values():
+            if link.bus is not None:
+                link.health.stale_flushed += flush(link.bus)
+        if action is SafeAction.TORQUE_OFF:
+            self._motor_mode[:] = False
+            frame = self._ping_frame
+        else:
+            if not self._cmd_position:
+                self._held_p[:] = np.where(np.isfinite(self._p), self._p, self._held_p)
+            self._held_v[:] = 0.0
+            self._held_t[:] = 0.0
+            self._held_kp[:], self._held_kd[:] = self._kp, self._kd
+            frame = self._setpoint
+        self._written = False
+        self._send_all(frame)
+        self._collect(setup=False)
+
+    def _cleanup(self) -> None:
+        for link in self._links.values():
+            close_bus(link.bus)
+            link.bus = None
+            link.latest.clear()
+            link.pending.clear()
+
+    def _details(self) -> Mapping[str, Any]:
+        now = time.monotonic_ns()
+        motors = {}
+        for i, joint in enumerate(self.joints):
+            age = (now - int(self._rx_ns[i])) / NS_PER_S if self._rx_ns[i] else None
+            motors[joint] = {
+                "id": self._ids[i],
+                "bus": self._bus_of[i],
+                "motor_mode": bool(self._motor_mode[i]),
+                "feedback_age_s": age,
+                "missed_replies": self._missed[i],
+                "temperature_c": self._temperature[i],
+                "state_code": self._state_code[i],
+                "fault": self._faults.get(joint),
+            }
+        return {
+            "buses": {name: link.health.as_dict() for name, link in self._links.items()},
+            "motors": motors,
+        }
+
+    # -- helpers ------------------------------------------------------------------------------
+
+    def _joint_positions(self) -> F64:
+        result: F64 = self._sign * self._p / self._gear + self._offset
+        return result
+
+    def _setpoint(self, i: int) -> bytes:
+        return encode_command(
+            MitCommand(float(self._held_p[i]), float(self._held_v[i]), float(self._held_kp[i]),
+                       float(self._held_kd[i]), float(self._held_t[i])),
+            self._limits[i],
+        )
+
+    def _send_all(self, frame_of: Any) -> None:
+        """Send one frame per motor on every bus (all buses before any collecting)."""
+        for link in self._links.values():
+            bus = link.bus
+            if bus is None:
+                raise CommunicationError(f"{self._owner()}: {link.settings.describe()} is "
+                                         "not open; configure first")
+            for motor_id, i in zip(link.ids, link.joints, strict=True):
+                data = frame_of(i)
+                if data is None:
+                    continue
+                link.latest.pop(motor_id, None)
+                msg = can.Message(arbitration_id=motor_id, is_extended_id=False, data=data)
+                try:
+                    ok = send(bus, msg, link.health)
+                except can.CanError as exc:
+                    raise CommunicationError(
+                        f"{self._owner()}: sending to motor {motor_id} (joint "
+                        f"{self.joints[i]!r}) on {link.settings.describe()} failed: {exc}"
+                    ) from exc
+                if ok:
+                    link.pending.add(motor_id)
+
+    def _collect(self, setup: bool) -> None:
+        """Collect the replies pending on every bus; decode the newest per motor."""
+        for link in self._links.values():
+            bus = link.bus
+            assert bus is not None
+            timeout = link.settings.setup_timeout if setup else link.settings.receive_timeout
+            deadline = time.monotonic() + timeout
+            try:
+                if link.pending:
+                    result = collect_until(bus, link.latest, link.pending, deadline, link.key)
+                else:
+                    result = drain_latest(bus, link.latest, link.key)
+            except can.CanError as exc:
+                raise CommunicationError(
+                    f"{self._owner()}: receiving on {link.settings.describe()} failed: {exc}"
+                ) from exc
+            stamp = time.monotonic_ns()
+            link.health.rx_frames += result.stored
+            for error in result.errors:
+                link.health.note_error_frame(error)
+            for motor_id in link.pending:
+                self._missed[link.index_of[motor_id]] += 1
+            link.pending.clear()
+            for motor_id, msg in link.latest.items():
+                i = link.index_of[motor_id]
+                reply = decode_reply(msg.data, self._limits[i])
+                self._p[i], self._v[i], self._t[i] = reply.position, reply.velocity, reply.torque
+                self._rx_ns[i] = stamp
+                self._temperature[i] = reply.temperature
+                self._state_code[i] = reply.error_code
+            link.latest.clear()
+            link.health.check(bus, self._owner())
+
+    def _exchange(self, frame_of: Any, setup: bool) -> None:
+        """Send, collect, and require an answer from every motor that was sent a frame."""
+        before = self._rx_ns.copy()
+        self._written = False
+        self._send_all(frame_of)
+        self._collect(setup)
+        silent = [i for i in range(len(self.joints))
+                  if frame_of(i) is not None and self._rx_ns[i] == before[i]]
+        if silent:
+            raise CommunicationError(
+                f"{self._owner()}: no answer from "
+                + ", ".join(f"motor {self._ids[i]} (joint {self.joints[i]!r}) on "
+                            f"{self._links[self._bus_of[i]].settings.describe()}"
+                            for i in silent)
+                + "; check its power, CAN id, bitrate, wiring and termination"
+            )
+
+    def _check_faults(self, now_ns: int) -> None:
+        stale = (self._rx_ns == 0) | (now_ns - self._rx_ns > self._timeout_ns)
+        if not (self._damiao or stale.any()):
+            return  # the usual cycle: one vector comparison
+        for i, joint in enumerate(self.joints):
+            code = self._state_code[i]
+            where = (f"motor {self._ids[i]} (joint {joint!r}) on bus "
+                     f"{self._bus_of[i]!r}")
+            if code is not None and code >= 8:
+                message = (f"{self._owner()}: {where} reports "
+                           f"{DAMIAO_STATES.get(code, f'error code {code:#x}')}; check supply, "
+                           "load and cooling, then re-arm (clears the error)")
+                self._faults[joint] = message
+                raise MotorFault(message)
+            temp = self._temperature[i]
+            if temp is not None and temp > self._max_temp[i]:
+                message = (f"{self._owner()}: {where} is at {temp} degC, above "
+                           f"max_temperature_c {self._max_temp[i]:g}; let it cool, then re-arm")
+                self._faults[joint] = message
+                raise MotorFault(message)
+            if stale[i]:
+                age = now_ns - int(self._rx_ns[i])
+                message = (f"{self._owner()}: no feedback from {where} for "
+                           f"{age / 1e6:.0f} ms (feedback_timeout "
+                           f"{self._timeout_ns[i] / 1e6:g} ms); check its power, CAN id and "
+                           "wiring")
+                self._faults[joint] = message
+                raise CommunicationError(message)

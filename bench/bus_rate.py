@@ -1,0 +1,261 @@
+#!/usr/bin/env python3
+"""Bus cycle rate: the real driver's read + write cycle against paced emulated motors.
+
+Dynamixel: six XM430-W350 at 1, 2 and 4 Mbit/s. The emulator runs in its own process
+(``python -m jtc_hw.drivers.dynamixel.emulator --pace``) so that it holds every reply back to the
+wire time of a real bus and does not share this process's interpreter lock. The real
+``DynamixelHardware`` (real SDK, real pty) runs ``read`` (one Sync Read of the present block) and
+``write`` (one Sync Write of Goal Position) back to back for ``--duration`` seconds.
+
+Columns: ``rate_hz`` achieved cycles per second; ``cycle_us`` the mean cycle; ``wire_us`` the
+cycle's wire time from the packet sizes (``packets.sync_read_cycle_bytes`` +
+``sync_write_bytes``, 10 bits per byte) plus the servos' return delays; ``ratio`` cycle_us /
+wire_us; ``driver_cpu_us`` this thread's CPU time per cycle (the driver's own cost, excluding the
+emulator's) and ``driver_ratio`` (wire_us + driver_cpu_us) / wire_us. Target (the issue): at
+4 Mbit/s, ratio <= 1.3.
+
+``--profile`` also runs each configuration unpaced (the emulator answers at once) and splits the
+paced cycle into read and write: what is left over the wire time is the software (SDK, Python,
+pty round trips, emulator) cost.
+
+CAN rows (``--bus can-mit`` / ``can-cia402``) come from ``bench/bus_rate_can.py``
+(``mit_rows(duration_s)``) and ``bench/bus_rate_cia402.py`` (``cia402_rows(duration_s)``) when
+those files exist; otherwise those buses are reported as not available.
+
+Usage:  python bench/bus_rate.py [--duration 3] [--bus dynamixel can-mit can-cia402]
+                                 [--bitrates 1000000 2000000 4000000] [--profile] [--json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import gc
+import importlib.util
+import json
+import math
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from jtc_hw.drivers.dynamixel.control_table import PRESENT_BLOCK_SIZE  # noqa: E402
+from jtc_hw.drivers.dynamixel.hardware import DynamixelHardware  # noqa: E402
+from jtc_hw.drivers.dynamixel.packets import (  # noqa: E402
+    sync_read_cycle_bytes,
+    sync_write_bytes,
+    wire_time_s,
+)
+
+from jtc_hw.joints import JointCommand  # noqa: E402
+
+MOTORS = 6
+BITRATES = (1_000_000, 2_000_000, 4_000_000)
+TARGET_RATIO = 1.3
+RETURN_DELAY_US = 0  # written to the servos by the driver (return_delay_time_us)
+CAN_SOURCES = {
+    "can-mit": ("bus_rate_can.py", "mit_rows"),
+    "can-cia402": ("bus_rate_cia402.py", "cia402_rows"),
+}
+
+
+@contextmanager
+def emulator_process(bitrate: int, pace: bool) -> Iterator[str]:
+    """A paced emulator of MOTORS servos in a subprocess; yields the device path."""
+    with tempfile.TemporaryDirectory() as tmp:
+        link = os.path.join(tmp, "dxl")
+        env = dict(os.environ)
+        env["PYTHONPATH"] = os.pathsep.join(p for p in (str(ROOT), env.get("PYTHONPATH")) if p)
+        argv = [sys.executable, "-m", "jtc_hw.drivers.dynamixel.emulator",
+                "--ids", f"1-{MOTORS}", "--baud", str(bitrate), "--link", link]
+        if pace:
+            argv.append("--pace")
+        proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL,
+                                env=env, text=True)
+        try:
+            assert proc.stdout is not None
+            path = proc.stdout.readline().strip()  # printed once the pty is served
+            if not path:
+                raise RuntimeError(f"the emulator did not start (exit {proc.wait()})")
+            yield path
+        finally:
+            proc.terminate()
+            try:
+                proc.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
+
+
+def wire_us(bitrate: int) -> float:
+    """Wire time of one read + write cycle of MOTORS servos, plus their return delays, us."""
+    sent, received = sync_read_cycle_bytes(MOTORS, PRESENT_BLOCK_SIZE, False)
+    written = sync_write_bytes(MOTORS, 4)
+    return wire_time_s(sent + received + written, bitrate) * 1e6 + MOTORS * RETURN_DELAY_US
+
+
+def measure(bitrate: int, duration_s: float, pace: bool) -> dict[str, float]:
+    """Run the driver's cycle for ``duration_s``; mean cycle, read and write times, us."""
+    with emulator_process(bitrate, pace) as device:
+        joints = [f"joint{i}" for i in range(1, MOTORS + 1)]
+        hw = DynamixelHardware(
+            "bench", joints, ["position"], ["position", "velocity"],
+            {"port": device, "baud_rate": bitrate, "ids": list(range(1, MOTORS + 1)),
+             "offset": -math.pi, "return_delay_time_us": RETURN_DELAY_US,
+             "timeout_ms": 50.0, "latency_timer_warn": False},
+        )
+        hw.configure()
+        try:
+            held = hw.activate(time.monotonic_ns())
+            assert held.positions is not None
+            command = JointCommand(positions=held.positions)
+            clock = time.perf_counter_ns
+            for _ in range(20):  # warm up
+                hw.read(time.monotonic_ns())
+                hw.write(time.monotonic_ns(), command)
+            gc.collect()
+            gc.disable()
+            read_ns = write_ns = 0
+            cycles = 0
+            cpu0 = time.thread_time_ns()
+            start = clock()
+            end = start + int(duration_s * 1e9)
+            now = start
+            while now < end:
+                t0 = clock()
+                hw.read(t0)
+                t1 = clock()
+                hw.write(t1, command)
+                now = clock()
+                read_ns += t1 - t0
+                write_ns += now - t1
+                cycles += 1
+            cpu_ns = time.thread_time_ns() - cpu0
+            gc.enable()
+            elapsed = now - start
+        finally:
+            hw.shutdown(time.monotonic_ns())
+    return {
+        "cycles": cycles,
+        "cycle_us": elapsed / cycles / 1e3,
+        "read_us": read_ns / cycles / 1e3,
+        "write_us": write_ns / cycles / 1e3,
+        "driver_cpu_us": cpu_ns / cycles / 1e3,
+    }
+
+
+def dynamixel_rows(duration_s: float, bitrates: list[int], profile: bool) -> list[dict[str, Any]]:
+    rows = []
+    for bitrate in bitrates:
+        paced = measure(bitrate, duration_s, pace=True)
+        wire = wire_us(bitrate)
+        row: dict[str, Any] = {
+            "bus": "dynamixel",
+            "bitrate": bitrate,
+            "motors": MOTORS,
+            "buses": 1,
+            "rate_hz": round(1e6 / paced["cycle_us"], 1),
+            "cycle_us": round(paced["cycle_us"], 1),
+            "wire_us": round(wire, 1),
+            "ratio": round(paced["cycle_us"] / wire, 2),
+            # The driver's own CPU per cycle (SDK, Python, numpy): what a real bus adds to the
+            # wire time at most if nothing overlaps, whatever the emulator costs.
+            "driver_cpu_us": round(paced["driver_cpu_us"], 1),
+            "driver_ratio": round((wire + paced["driver_cpu_us"]) / wire, 2),
+        }
+        if profile:
+            unpaced = measure(bitrate, duration_s, pace=False)
+            row["profile"] = {
+                "read_us": round(paced["read_us"], 1),
+                "write_us": round(paced["write_us"], 1),
+                "unpaced_cycle_us": round(unpaced["cycle_us"], 1),
+                "unpaced_read_us": round(unpaced["read_us"], 1),
+                "unpaced_write_us": round(unpaced["write_us"], 1),
+            }
+        rows.append(row)
+    return rows
+
+
+def can_rows(bus: str, duration_s: float) -> list[dict[str, Any]] | str:
+    """Rows from another helper's bench module, or why there are none."""
+    filename, function = CAN_SOURCES[bus]
+    path = Path(__file__).resolve().parent / filename
+    if not path.exists():
+        return f"{bus}: bench/{filename} is not available"
+    spec = importlib.util.spec_from_file_location(path.stem, path)
+    if spec is None or spec.loader is None:
+        return f"{bus}: cannot load bench/{filename}"
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    produce: Callable[[float], list[dict[str, Any]]] = getattr(module, function)
+    return list(produce(duration_s))
+
+
+def print_table(rows: list[dict[str, Any]], notes: list[str]) -> None:
+    print(f"{'bus':<21} {'bit/s':>9} {'motors':>6} {'buses':>5} {'rate Hz':>9} "
+          f"{'cycle us':>9} {'wire us':>9} {'ratio':>6} {'cpu us':>7} {'cpu ratio':>9}")
+    for r in rows:
+        flag = ""
+        if r["bus"] == "dynamixel" and r["bitrate"] == 4_000_000:
+            flag = "  ok" if r["ratio"] <= TARGET_RATIO else f"  above target {TARGET_RATIO}"
+        label = r["bus"] + (f"/{r['transport']}" if "transport" in r else "")
+        print(f"{label:<21} {r['bitrate']:>9} {r['motors']:>6} {r['buses']:>5} "
+              f"{r['rate_hz']:>9.1f} {r['cycle_us']:>9.1f} {r['wire_us']:>9.1f} "
+              f"{r['ratio']:>6.2f} {r.get('driver_cpu_us', float('nan')):>7.1f} "
+              f"{r.get('driver_ratio', float('nan')):>9.2f}{flag}")
+        if "profile" in r:
+            p = r["profile"]
+            print(f"{'':<21} paced: read {p['read_us']:.1f} us + write {p['write_us']:.1f} us; "
+                  f"unpaced cycle {p['unpaced_cycle_us']:.1f} us (read {p['unpaced_read_us']:.1f}"
+                  f" + write {p['unpaced_write_us']:.1f})")
+    for note in notes:
+        print(note)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(
+        description=__doc__.split("\n\n")[0] if __doc__ else None,
+        epilog="CAN buses are measured by bench/bus_rate_can.py (mit_rows) and "
+        "bench/bus_rate_cia402.py (cia402_rows), imported only if those files exist.",
+    )
+    parser.add_argument("--duration", type=float, default=3.0,
+                        help="seconds per configuration (default 3)")
+    parser.add_argument("--bus", nargs="+", default=["dynamixel"],
+                        choices=["dynamixel", *CAN_SOURCES],
+                        help="buses to measure (default dynamixel)")
+    parser.add_argument("--bitrates", nargs="+", type=int, default=list(BITRATES),
+                        help="Dynamixel bit rates (default 1000000 2000000 4000000)")
+    parser.add_argument("--profile", action="store_true",
+                        help="also split the cycle into read / write and run it unpaced")
+    parser.add_argument("--json", action="store_true", help="one JSON object per line")
+    args = parser.parse_args(argv)
+    rows: list[dict[str, Any]] = []
+    notes: list[str] = []
+    for bus in args.bus:
+        if bus == "dynamixel":
+            rows += dynamixel_rows(args.duration, args.bitrates, args.profile)
+        else:
+            got = can_rows(bus, args.duration)
+            if isinstance(got, str):
+                notes.append(got)
+            else:
+                rows += got
+    if args.json:
+        for row in rows:
+            print(json.dumps(row))
+        for note in notes:
+            print(note, file=sys.stderr)
+    else:
+        print_table(rows, notes)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,641 @@
+"""The Dynamixel bus: the one module that imports ``dynamixel_sdk``.
+
+Theory of operation
+-------------------
+:class:`DynamixelBus` wraps the ROBOTIS SDK's ``PortHandler`` / ``Protocol2PacketHandler`` for a
+Protocol 2.0 bus and exposes snake_case calls that either return good data or raise an error that
+names the servo and the cause. The SDK's return codes never leave this module.
+
+The SDK has traps, each handled here:
+
+* **Busy polling.** ``PortHandler`` opens the port with ``timeout=0`` and the packet handler
+  calls ``readPort`` in a loop until the packet timeout: one core at 100 % while waiting for a
+  reply. :class:`_Port` overrides ``readPort`` to block in ``select()`` until bytes arrive or the
+  packet deadline passes, so waiting costs no CPU and a reply is picked up as soon as it lands.
+* **Wall-clock timeouts.** ``getCurrentTime`` uses ``time.time()``; an NTP step would stretch or
+  cut a timeout. :class:`_Port` uses ``time.monotonic_ns()``.
+* **Latency timer.** The SDK's packet timeout is ``wire time + 2 * LATENCY_TIMER + 2 ms`` with
+  the module constant ``LATENCY_TIMER = 16`` (ms, the FTDI default): one silent servo stalls a
+  read for ~34 ms. Here the allowance beyond the wire time is ``timeout_ms`` (given per bus, the
+  SDK constant is not touched), and :meth:`DynamixelBus.open` warns when a USB serial adapter's
+  own latency timer (``/sys/bus/usb-serial/devices/<tty>/latency_timer``) is above 1 ms, saying
+  how to lower it.
+* **getData after a failure.** ``GroupSyncRead.getData`` returns 0 for every servo after a failed
+  read: a timeout would become position 0. The sync read here is written against the packet
+  handler directly (``syncReadTx`` then one ``readRx`` per servo), returns bytes only when every
+  servo answered, and raises otherwise, naming the first servo that did not answer.
+* **Lost hardware-error bits.** ``GroupSyncRead`` drops the status packets' error byte; here it is
+  returned per servo (:attr:`SyncReadResult.errors`) so that the caller sees the alert bit.
+* **Fast sync read.** ``GroupSyncRead.fastSyncRead`` indexes past the end of the reply
+  (``IndexError``) when a servo is missing. The fast variant here parses the combined reply with
+  length and id checks and names the missing servo.
+* **Stuck busy flag.** ``port.is_using`` stays set if anything raises inside a transaction, after
+  which every call returns "port busy"; it is reset after every transaction.
+* **Late replies.** A reply arriving after its timeout would be taken as the answer to the next
+  request; after a failed transaction the input is drained (bounded by ``timeout_ms``).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import select
+import time
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Final
+
+import dynamixel_sdk as _sdk  # type: ignore[import-untyped]
+
+from jtc_hw.errors import CommunicationError, HardwareError
+
+__all__ = [
+    "BROADCAST_ID",
+    "ERROR_ALERT",
+    "MAX_ID",
+    "BusStats",
+    "DynamixelBus",
+    "ServoCommunicationError",
+    "ServoStatusError",
+    "SyncReadResult",
+    "latency_timer_ms",
+    "usb_serial_tty",
+]
+
+_log = logging.getLogger(__name__)
+
+BROADCAST_ID: Final = 0xFE
+MAX_ID: Final = 252
+ERROR_ALERT: Final = 0x80
+"""Bit of a status packet's error byte: the servo has a latched hardware error."""
+
+_COMM_SUCCESS: Final[int] = _sdk.COMM_SUCCESS
+_COMM_CAUSES: Final[Mapping[int, str]] = {
+    _sdk.COMM_PORT_BUSY: "port busy (another transaction in progress)",
+    _sdk.COMM_TX_FAIL: "could not transmit the instruction packet",
+    _sdk.COMM_RX_FAIL: "no status packet",
+    _sdk.COMM_TX_ERROR: "malformed instruction packet",
+    _sdk.COMM_RX_WAITING: "status packet incomplete",
+    _sdk.COMM_RX_TIMEOUT: "timeout (no reply)",
+    _sdk.COMM_RX_CORRUPT: "corrupt reply (CRC or framing error)",
+    _sdk.COMM_NOT_AVAILABLE: "instruction not available",
+}
+_STATUS_CAUSES: Final[Mapping[int, str]] = {
+    1: "result fail (the servo could not process the instruction)",
+    2: "instruction error",
+    3: "the servo received a packet with a bad CRC",
+    4: "data range error (value out of range)",
+    5: "data length error",
+    6: "data limit error (value beyond a limit register)",
+    7: "access error (read-only / EEPROM with torque on / no such address)",
+}
+
+_FAST_SYNC_READ_OVERHEAD: Final = 4  # per servo in the combined reply: error, id, CRC16
+_FAST_STATUS_PREFIX: Final = 8  # header (4), id, length (2), instruction
+
+
+def _check_id(servo_id: int) -> None:
+    if not isinstance(servo_id, int) or isinstance(servo_id, bool) or not 0 <= servo_id <= MAX_ID:
+        raise ValueError(f"servo id must be an integer in 0..{MAX_ID}, got {servo_id!r}")
+
+
+class ServoCommunicationError(CommunicationError):
+    """A servo did not answer, or answered garbage.
+
+    Attributes:
+        servo_id: the servo concerned (``None``: the bus itself, e.g. the port).
+        cause: short cause (``"timeout (no reply)"``, ``"corrupt reply ..."``).
+    """
+
+    def __init__(self, message: str, servo_id: int | None, cause: str) -> None:
+        super().__init__(message)
+        self.servo_id = servo_id
+        self.cause = cause
+
+
+class ServoStatusError(HardwareError):
+    """A servo answered with an error in its status packet (other than the alert bit).
+
+    Attributes:
+        servo_id: the servo concerned.
+        error: the status packet's error byte.
+    """
+
+    def __init__(self, message: str, servo_id: int, error: int) -> None:
+        super().__init__(message)
+        self.servo_id = servo_id
+        self.error = error
+
+
+@dataclass(frozen=True)
+class SyncReadResult:
+    """A successful sync read.
+
+    Attributes:
+        data: servo id -> the ``size`` bytes read, for every servo asked.
+        errors: servo id -> the status packet's error byte, only where it is not 0 (the
+            :data:`ERROR_ALERT` bit means a latched hardware error; the data is still valid).
+    """
+
+    data: Mapping[int, bytes]
+    errors: Mapping[int, int]
+
+
+@dataclass
+class BusStats:
+    """Counters of one bus (JSON-able with :meth:`as_dict`)."""
+
+    transactions: int = 0
+    timeouts: int = 0
+    corrupt: int = 0
+    other_errors: int = 0
+    last_error: str | None = None
+    by_servo: dict[int, int] = field(default_factory=dict)
+
+    def as_dict(self) -> dict[str, Any]:
+        """The counters as a JSON-able mapping."""
+        return {
+            "transactions": self.transactions,
+            "timeouts": self.timeouts,
+            "corrupt": self.corrupt,
+            "other_errors": self.other_errors,
+            "last_error": self.last_error,
+            "errors_by_servo": {str(k): v for k, v in sorted(self.by_servo.items())},
+        }
+
+
+def usb_serial_tty(port: str) -> str:
+    """The kernel's tty name of ``port`` (symlinks such as ``/dev/serial/by-id/...`` resolved)."""
+    return os.path.basename(os.path.realpath(port))
+
+
+def latency_timer_ms(port: str, sysfs_root: Path = Path("/sys")) -> int | None:
+    """The USB serial adapter's latency timer of ``port``, in ms (``None``: not a USB serial
+    adapter, or not Linux).
+
+    Args:
+        port: the device path (symlinks are resolved).
+        sysfs_root: where sysfs is mounted (injectable for tests).
+    """
+    path = sysfs_root / "bus" / "usb-serial" / "devices" / usb_serial_tty(port) / "latency_timer"
+    try:
+        return int(path.read_text().strip())
+    except (OSError, ValueError):
+        return None
+
+
+class _Port(_sdk.PortHandler):  # type: ignore[misc]
+    """``PortHandler`` with monotonic time, a blocking bounded read and our timeout allowance."""
+
+    def __init__(self, port_name: str, allowance_ms: float) -> None:
+        super().__init__(port_name)
+        self.allowance_ms = allowance_ms
+        self.fd = -1
+        self._rx = bytearray()
+
+    # The SDK's names are kept on this subclass only: they are what it calls.
+    def getCurrentTime(self) -> float:  # noqa: N802 - SDK override
+        return time.monotonic_ns() / 1e6
+
+    def setPacketTimeout(self, packet_length: int) -> None:  # noqa: N802 - SDK override
+        self.packet_start_time = self.getCurrentTime()
+        self.packet_timeout = self.tx_time_per_byte * packet_length + self.allowance_ms
+
+    def setupPort(self, cflag_baud: int) -> bool:  # noqa: N802 - SDK override
+        ok = bool(super().setupPort(cflag_baud))
+        self.fd = self.ser.fileno()
+        return ok
+
+    def clearPort(self) -> None:  # noqa: N802 - SDK override
+        self._rx.clear()
+        super().clearPort()
+
+    def readPort(self, length: int) -> bytes:  # noqa: N802 - SDK override
+        # Whatever has arrived is taken in one system call and served from a buffer: the SDK
+        # asks for a header first, then the rest, then the next servo's reply; reading only
+        # what it asks for doubles the select/read calls per reply.
+        if length <= 0:
+            return b""
+        rx = self._rx
+        if not rx:
+            remaining_s = (self.packet_timeout - self.getTimeSinceStart()) / 1000.0
+            ready, _, _ = select.select([self.fd], [], [], max(0.0, remaining_s))
+            if not ready:
+                return b""
+            try:
+                rx += os.read(self.fd, 4096)
+            except BlockingIOError:
+                return b""
+        data = bytes(rx[:length])
+        del rx[:length]
+        return data
+
+    def writePort(self, packet: list[int]) -> int:  # noqa: N802 - SDK override
+        # Straight to the descriptor: pyserial's write adds a timeout object and a select per
+        # call, which is measurable at 4 Mbit/s.
+        data = memoryview(bytes(packet))
+        written = 0
+        while written < len(data):
+            try:
+                written += os.write(self.fd, data[written:])
+            except BlockingIOError:
+                # The adapter's buffer is full; a port that stays full this long is gone (the
+                # SDK then reports a transmit failure).
+                _, ready, _ = select.select([], [self.fd], [], 0.1)
+                if not ready:
+                    break
+        return written
+
+    def drain(self, quiet_s: float) -> int:
+        """Discard input until the line has been quiet for ``quiet_s``; bytes discarded."""
+        discarded = len(self._rx)
+        self._rx.clear()
+        deadline = time.monotonic() + 10 * quiet_s  # bounded even if a servo keeps talking
+        while time.monotonic() < deadline:
+            ready, _, _ = select.select([self.fd], [], [], quiet_s)
+            if not ready:
+                break
+            try:
+                discarded += len(os.read(self.fd, 4096))
+            except BlockingIOError:
+                break
+        return discarded
+
+
+class DynamixelBus:
+    """One Protocol 2.0 bus on a serial port.
+
+    Args:
+        port: serial device (``/dev/ttyUSB0``, a ``/dev/serial/by-id/...`` link, a pty).
+        baud_rate: bit/s; one of the SDK's standard rates (57600 ... 4000000).
+        timeout_ms: allowance beyond the wire time of the expected replies before a request
+            counts as unanswered (covers the adapter's latency timer and return delays).
+        sysfs_root: where sysfs is mounted (for the latency-timer check; injectable for tests).
+        latency_timer_warn: log a warning at :meth:`open` when the adapter's latency timer is
+            above 1 ms.
+
+    Raises:
+        ValueError: ``timeout_ms`` is not positive.
+    """
+
+    def __init__(
+        self,
+        port: str,
+        baud_rate: int,
+        *,
+        timeout_ms: float = 4.0,
+        sysfs_root: Path = Path("/sys"),
+        latency_timer_warn: bool = True,
+    ) -> None:
+        if not timeout_ms > 0:
+            raise ValueError(f"timeout_ms must be > 0, got {timeout_ms!r}")
+        self.port = port
+        self.baud_rate = baud_rate
+        self.timeout_ms = float(timeout_ms)
+        self.sysfs_root = sysfs_root
+        self.latency_timer_warn = latency_timer_warn
+        self.stats = BusStats()
+        self._port = _Port(port, self.timeout_ms)
+        self._handler = _sdk.PacketHandler(2.0)
+        self._open = False
+        self.latency_timer: int | None = None
+        """The adapter's latency timer (ms) found at :meth:`open` (``None``: not a USB adapter)."""
+
+    @property
+    def is_open(self) -> bool:
+        """Whether the port is open."""
+        return self._open
+
+    def __repr__(self) -> str:
+        state = "open" if self._open else "closed"
+        return f"<DynamixelBus {self.port} {self.baud_rate} bit/s {state}>"
+
+    def __enter__(self) -> DynamixelBus:
+        self.open()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # -- port -----------------------------------------------------------------------------------
+
+    def open(self) -> None:
+        """Open the port at the configured baud rate (checks the latency timer).
+
+        Raises:
+            ServoCommunicationError: the port cannot be opened or the baud rate is not
+                supported (the message says what to check).
+        """
+        if self._open:
+            return
+        if self._port.getCFlagBaud(self.baud_rate) <= 0:
+            raise ServoCommunicationError(
+                f"Dynamixel bus {self.port}: baud rate {self.baud_rate} is not supported; use "
+                "57600, 115200, 1000000, 2000000, 3000000 or 4000000",
+                None,
+                "unsupported baud rate",
+            )
+        self._port.baudrate = self.baud_rate
+        try:
+            ok = self._port.openPort()
+        except Exception as exc:  # serial.SerialException, OSError
+            raise ServoCommunicationError(
+                f"Dynamixel bus {self.port}: cannot open the port: {exc}; check that the "
+                "adapter is plugged in, the path is right and you may access it (group dialout)",
+                None,
+                "cannot open port",
+            ) from exc
+        if not ok:
+            raise ServoCommunicationError(
+                f"Dynamixel bus {self.port}: cannot set {self.baud_rate} bit/s",
+                None,
+                "cannot set baud rate",
+            )
+        self._open = True
+        self.latency_timer = self.latency_timer_ms()
+        if self.latency_timer_warn:
+            self._check_latency_timer()
+
+    def close(self) -> None:
+        """Close the port (idempotent)."""
+        if not self._open:
+            return
+        self._open = False
+        try:
+            self._port.closePort()
+        except Exception as exc:  # noqa: BLE001 - closing must not fail the caller
+            _log.warning("Dynamixel bus %s: closing the port failed: %s", self.port, exc)
+
+    def latency_timer_ms(self) -> int | None:
+        """The USB serial adapter's latency timer, ms (``None``: not a USB serial adapter)."""
+        return latency_timer_ms(self.port, self.sysfs_root)
+
+    def _check_latency_timer(self) -> None:
+        value = self.latency_timer
+        if value is not None and value > 1:
+            tty = usb_serial_tty(self.port)
+            _log.warning(
+                "Dynamixel bus %s: the USB serial adapter's latency timer is %d ms, which "
+                "delays every reply by up to that long; set it to 1 ms: "
+                "echo 1 | sudo tee /sys/bus/usb-serial/devices/%s/latency_timer  (or "
+                "permanently with a udev rule: ACTION==\"add\", SUBSYSTEM==\"usb-serial\", "
+                "DRIVER==\"ftdi_sio\", ATTR{latency_timer}=\"1\")",
+                self.port, value, tty,
+            )
+
+    # -- single-servo transactions --------------------------------------------------------------
+
+    def ping(self, servo_id: int) -> int:
+        """Ping a servo.
+
+        Returns:
+            Its model number.
+
+        Raises:
+            ValueError: bad id.
+            ServoCommunicationError: no reply, corrupt reply, or the port failed.
+        """
+        _check_id(servo_id)
+        model, result, _error = self._transact(
+            servo_id, "ping", lambda: self._handler.ping(self._port, servo_id)
+        )
+        return int(model)
+
+    def read(self, servo_id: int, address: int, size: int) -> int:
+        """Read an unsigned little-endian register of 1, 2 or 4 bytes.
+
+        Raises:
+            ValueError: bad id or size.
+            ServoCommunicationError: no reply, corrupt reply, or the port failed.
+            ServoStatusError: the servo refused (the alert bit alone is not an error).
+        """
+        return int.from_bytes(self.read_bytes(servo_id, address, size), "little")
+
+    def read_bytes(self, servo_id: int, address: int, size: int) -> bytes:
+        """Read ``size`` bytes from ``address``.
+
+        Raises:
+            ValueError: bad id or size.
+            ServoCommunicationError: no reply, corrupt reply, or the port failed.
+            ServoStatusError: the servo refused (the alert bit alone is not an error).
+        """
+        _check_id(servo_id)
+        if size <= 0:
+            raise ValueError(f"size must be positive, got {size}")
+        data, _result, error = self._transact(
+            servo_id,
+            f"read of {size} bytes at address {address}",
+            lambda: self._handler.readTxRx(self._port, servo_id, address, size),
+        )
+        self._check_status(servo_id, error, f"read at address {address}")
+        if len(data) != size:
+            raise self._comm_error(servo_id, "corrupt reply (wrong length)",
+                                   f"read at address {address}")
+        return bytes(data)
+
+    def write(self, servo_id: int, address: int, size: int, value: int) -> int:
+        """Write a little-endian register of ``size`` bytes (negative values: two's complement).
+
+        Returns:
+            The status packet's error byte (0, or :data:`ERROR_ALERT` when the servo has a
+            latched hardware error).
+
+        Raises:
+            ValueError: bad id, or a value that does not fit.
+            ServoCommunicationError: no reply, corrupt reply, or the port failed.
+            ServoStatusError: the servo refused the value (range, limit, access).
+        """
+        _check_id(servo_id)
+        raw = _to_bytes(value, size)
+        _, _result, error = self._transact(
+            servo_id,
+            f"write of {value} at address {address}",
+            lambda: (None, *self._handler.writeTxRx(self._port, servo_id, address, size,
+                                                    list(raw))),
+        )
+        self._check_status(servo_id, error, f"write of {value} at address {address}")
+        return int(error)
+
+    def reboot(self, servo_id: int) -> None:
+        """Reboot a servo (clears its latched hardware error; it is silent for a while).
+
+        Raises:
+            ValueError: bad id.
+            ServoCommunicationError: no acknowledgement.
+        """
+        _check_id(servo_id)
+        self._transact(
+            servo_id, "reboot",
+            lambda: (None, *self._handler.reboot(self._port, servo_id)),
+        )
+
+    # -- group transactions ---------------------------------------------------------------------
+
+    def sync_read(
+        self, ids: Iterable[int], address: int, size: int, *, fast: bool = False
+    ) -> SyncReadResult:
+        """One Sync Read (or Fast Sync Read) of ``size`` bytes at ``address`` from ``ids``.
+
+        All or nothing: either every servo answered with a good packet, or this raises (no
+        partial or zero-filled data is ever returned).
+
+        Raises:
+            ValueError: no ids or a bad id.
+            ServoCommunicationError: a servo did not answer or its reply was corrupt; names the
+                first servo (in request order) that failed.
+        """
+        id_list = list(ids)
+        if not id_list:
+            raise ValueError("sync_read needs at least one servo id")
+        for servo_id in id_list:
+            _check_id(servo_id)
+        what = f"{'fast ' if fast else ''}sync read of {size} bytes at address {address}"
+        port, handler = self._port, self._handler
+        self.stats.transactions += 1
+        failed_id: int | None = None
+        try:
+            result = handler.syncReadTx(port, address, size, id_list, len(id_list), fast)
+            if result != _COMM_SUCCESS:
+                raise self._comm_error(None, _cause(result), what)
+            if fast:
+                return self._fast_sync_read_rx(id_list, size, what)
+            data: dict[int, bytes] = {}
+            errors: dict[int, int] = {}
+            for servo_id in id_list:
+                payload, result, error = handler.readRx(port, servo_id, size)
+                if result != _COMM_SUCCESS or len(payload) != size:
+                    failed_id = servo_id
+                    cause = _cause(result) if result != _COMM_SUCCESS else "short reply"
+                    raise self._comm_error(servo_id, cause, what)
+                data[servo_id] = bytes(payload)
+                if error:
+                    errors[servo_id] = int(error)
+            return SyncReadResult(data, errors)
+        except ServoCommunicationError:
+            self._recover_port()
+            raise
+        except Exception as exc:
+            self._recover_port()
+            raise self._comm_error(failed_id, f"{type(exc).__name__}: {exc}", what) from exc
+        finally:
+            port.is_using = False
+
+    def _fast_sync_read_rx(self, ids: list[int], size: int, what: str) -> SyncReadResult:
+        packet, result = self._handler.rxPacket(self._port, True)
+        stride = size + _FAST_SYNC_READ_OVERHEAD
+        if result != _COMM_SUCCESS:
+            # The servos append their pieces in request order, each after the previous one:
+            # the first incomplete piece belongs to the servo that did not answer.
+            complete = max(0, len(packet) - _FAST_STATUS_PREFIX) // stride
+            blamed = ids[min(complete, len(ids) - 1)]
+            raise self._comm_error(blamed, _cause(result), what)
+        body = bytes(packet[_FAST_STATUS_PREFIX:-2])  # the pieces, without the final CRC
+        data: dict[int, bytes] = {}
+        errors: dict[int, int] = {}
+        for index, servo_id in enumerate(ids):
+            start = index * stride
+            chunk = body[start:start + stride]
+            if len(chunk) < stride - 2 or chunk[1] != servo_id:
+                raise self._comm_error(servo_id, "missing from the fast sync read reply", what)
+            data[servo_id] = chunk[2:2 + size]
+            if chunk[0]:
+                errors[servo_id] = chunk[0]
+        return SyncReadResult(data, errors)
+
+    def sync_write(self, address: int, size: int, values: Mapping[int, int]) -> None:
+        """One Sync Write of ``size``-byte values (no replies: errors show in later reads).
+
+        Raises:
+            ValueError: a bad id or a value that does not fit.
+            ServoCommunicationError: the port failed.
+        """
+        if not values:
+            return
+        param: list[int] = []
+        for servo_id, value in values.items():
+            _check_id(servo_id)
+            param.append(servo_id)
+            param.extend(_to_bytes(value, size))
+        what = f"sync write of {size} bytes at address {address}"
+        self.stats.transactions += 1
+        try:
+            result = self._handler.syncWriteTxOnly(self._port, address, size, param, len(param))
+        except Exception as exc:
+            raise self._comm_error(None, f"{type(exc).__name__}: {exc}", what) from exc
+        finally:
+            self._port.is_using = False
+        if result != _COMM_SUCCESS:
+            raise self._comm_error(None, _cause(result), what)
+
+    # -- helpers --------------------------------------------------------------------------------
+
+    def _transact(self, servo_id: int, what: str, call: Any) -> tuple[Any, int, int]:
+        if not self._open:
+            raise ServoCommunicationError(
+                f"Dynamixel bus {self.port}: {what} on servo {servo_id}: the port is not open",
+                servo_id, "port not open",
+            )
+        self.stats.transactions += 1
+        try:
+            value, result, error = call()
+        except Exception as exc:
+            self._recover_port()
+            raise self._comm_error(servo_id, f"{type(exc).__name__}: {exc}", what) from exc
+        finally:
+            self._port.is_using = False
+        if result != _COMM_SUCCESS:
+            self._recover_port()
+            raise self._comm_error(servo_id, _cause(result), what)
+        return value, result, int(error)
+
+    def _check_status(self, servo_id: int, error: int, what: str) -> None:
+        code = error & ~ERROR_ALERT
+        if code:
+            cause = _STATUS_CAUSES.get(code, f"status error {code}")
+            self.stats.other_errors += 1
+            message = f"Dynamixel servo {servo_id} on {self.port}: {what} refused: {cause}"
+            self.stats.last_error = message
+            raise ServoStatusError(message, servo_id, error)
+
+    def _comm_error(self, servo_id: int | None, cause: str, what: str) -> ServoCommunicationError:
+        if cause.startswith("timeout"):
+            self.stats.timeouts += 1
+        elif cause.startswith("corrupt"):
+            self.stats.corrupt += 1
+        else:
+            self.stats.other_errors += 1
+        if servo_id is not None:
+            self.stats.by_servo[servo_id] = self.stats.by_servo.get(servo_id, 0) + 1
+            who = f"servo {servo_id}"
+        else:
+            who = "the bus"
+        message = (
+            f"Dynamixel {who} on {self.port} ({self.baud_rate} bit/s): {what}: {cause}; check "
+            "its power, cable and id, and that every servo uses this baud rate"
+        )
+        self.stats.last_error = message
+        return ServoCommunicationError(message, servo_id, cause)
+
+    def _recover_port(self) -> None:
+        """After a failure: drop late replies so that they are not taken for the next one."""
+        self._port.is_using = False
+        if self._open:
+            try:
+                self._port.drain(min(self.timeout_ms, 20.0) / 1000.0)
+            except OSError:
+                pass
+
+
+def _cause(result: int) -> str:
+    return _COMM_CAUSES.get(result, f"communication error {result}")
+
+
+def _to_bytes(value: int, size: int) -> bytes:
+    if size not in (1, 2, 4):
+        raise ValueError(f"register size must be 1, 2 or 4 bytes, got {size}")
+    value = int(value)
+    low, high = -(1 << (8 * size - 1)), (1 << (8 * size)) - 1
+    if not low <= value <= high:
+        raise ValueError(f"value {value} does not fit in {size} bytes")
+    return (value & high).to_bytes(size, "little")

@@ -1,0 +1,961 @@
+"""A bus of emulated Dynamixel X-series servos on a pseudo-terminal (Protocol 2.0).
+
+Theory of operation
+-------------------
+:class:`DynamixelEmulator` opens a pty pair and serves the slave side (``/dev/pts/N``, or a
+symlink to it) to any Protocol 2.0 host: the official SDK, our driver, a terminal tool. One thread
+waits on the master side with ``select`` (so :meth:`~DynamixelEmulator.close` is prompt), feeds
+the bytes to the shared :class:`~jtc_hw.drivers.dynamixel.packets.Decoder` and answers each
+instruction packet as the addressed servos would:
+
+- PING, READ, WRITE, REG_WRITE, ACTION, REBOOT, CLEAR (multi-turn), SYNC_READ, SYNC_WRITE,
+  BULK_READ, BULK_WRITE, FAST_SYNC_READ, FAST_BULK_READ; FACTORY_RESET is refused with a
+  "result fail" status (the emulator never forgets its ids). Broadcast (id 0xFE) where the
+  protocol allows it: PING (every servo answers, in id order), WRITE, REG_WRITE, ACTION, REBOOT,
+  CLEAR and the group instructions. A packet with a bad CRC addressed to one servo gets a
+  "CRC error" status.
+- Status Return Level (0: PING only, 1: PING and reads, 2: everything) and the Return Delay Time
+  (register value * 2 us, waited before each reply). In group reads the servos answer in the
+  requested order, each after the previous one, as on a real bus. Fast Sync/Bulk Read answers
+  with one status packet written in per-servo pieces; a servo that does not answer (silent,
+  dropping or rebooting) truncates it there, as the next servo would be waiting for it.
+- Replies that are already due are written together and waits under 0.2 ms are skipped: when
+  the host shares the emulator's interpreter (tests), every wait costs it a thread switch.
+- With ``pace=True`` replies are held back so that the request and the replies take their wire
+  time (10 bits per byte at the servo's Baud Rate register) measured with ``time.monotonic``:
+  the host sees the timing of a real bus, not of a pty.
+
+Each servo keeps its control table as a ``bytearray`` built from the model's defaults. Writes
+must cover whole registers; read-only registers and EEPROM registers while torque is on are
+refused with the access error; values out of a register's range give the data range error and
+values beyond a limit register (Goal Position outside the position limits in position mode,
+Goal Current/Velocity/PWM beyond their limits) the data limit error. Writes are all-or-nothing.
+
+Physics: each servo drives one :class:`~jtc_hw.drivers.motor_model.Motor` (stall torque and
+no-load speed from the model), advanced to ``time.monotonic()`` whenever a packet arrives and
+every few milliseconds otherwise. Operating modes: position, extended position (profile velocity
+and acceleration from their registers; 0 means no limit), current-based position (torque limited
+by Goal Current), velocity, current (Goal Current * current unit * torque constant), PWM (a
+crude voltage model); torque off coasts. Present registers (position, velocity, current or load,
+PWM, moving, moving status, trajectories, realtime tick, voltage, temperature) follow the motor.
+
+Register <-> shaft mapping (the e-Manual's "Present Position = actual position + Homing Offset",
+with Drive Mode bit 0 reversing the direction)::
+
+    present_position = direction * shaft_ticks + homing_offset
+    shaft_ticks      = direction * (goal_position - homing_offset)
+    present_velocity = direction * shaft_velocity;  present_current likewise
+
+where ``direction`` is -1 with Drive Mode bit 0 set, else +1. The time-based profile (Drive Mode
+bit 2) and "torque on by goal update" (bit 3) are not emulated: profiles are always velocity
+based. Bus Watchdog: with torque on and no instruction packet on the bus for longer than its
+value * 20 ms, the servo stops (goals set to "stay here"), Bus Watchdog reads -1 and writes to the
+goal registers get the data range error until 0 is written to it.
+Enabling torque copies Present Position into Goal Position so that nothing jumps (emulator choice).
+
+Faults for tests (all thread-safe): :meth:`~DynamixelEmulator.drop_replies`,
+:meth:`~DynamixelEmulator.delay_replies`, :meth:`~DynamixelEmulator.corrupt_crc`,
+:meth:`~DynamixelEmulator.set_silent`, :meth:`~DynamixelEmulator.raise_hardware_error` (latched
+until REBOOT: alert bit in every status, torque off, torque cannot be enabled).
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import dataclasses
+import errno
+import math
+import os
+import select
+import signal
+import sys
+import threading
+import time
+import tty
+from collections.abc import Mapping, Sequence
+from types import TracebackType
+
+from jtc_hw.drivers.dynamixel.control_table import (
+    BAUD_RATES,
+    HardwareError,
+    Model,
+    OperatingMode,
+    Register,
+    model_by_name,
+)
+from jtc_hw.drivers.dynamixel.packets import (
+    ALERT_BIT,
+    BROADCAST_ID,
+    Decoder,
+    ErrorNumber,
+    Instruction,
+    Packet,
+    encode_status,
+    fast_status_parts,
+    parse_bulk_read,
+    parse_bulk_write,
+    parse_sync_read,
+    parse_sync_write,
+    wire_time_s,
+)
+from jtc_hw.drivers.motor_model import Motor, MotorParams
+
+__all__ = ["DynamixelEmulator", "build_parser", "main", "parse_ids"]
+
+_TWO_PI = 2.0 * math.pi
+#: Physics advance period while the bus is idle, s.
+_IDLE_STEP_S = 0.005
+#: Waits shorter than this are skipped (sleeping that briefly is not accurate anyway), s.
+_MIN_WAIT_S = 0.0002
+#: A partial packet older than this is dropped (the servos' inter-byte timeout), s.
+_PARTIAL_TIMEOUT_S = 0.1
+#: CLEAR's fixed parameters (option 0x01 "clear multi-turn" and the "DXL" key + 0x22).
+_CLEAR_MULTI_TURN = bytes((0x01, 0x44, 0x58, 0x4C, 0x22))
+_POSITION_MODES = (
+    OperatingMode.POSITION,
+    OperatingMode.EXTENDED_POSITION,
+    OperatingMode.CURRENT_BASED_POSITION,
+)
+
+
+class _Servo:
+    """One emulated servo: its control table, motor and injected faults."""
+
+    def __init__(self, model: Model, servo_id: int, position: float, baud_value: int) -> None:
+        self.model = model
+        self.table = model.defaults()
+        self.epoch = time.monotonic()
+        self.set("id", servo_id)
+        self.set("baud_rate", baud_value)
+        self.params = MotorParams(
+            inertia=0.002 * max(model.stall_torque_nm, 0.1),
+            damping=0.02 * model.stall_torque_nm / max(model.no_load_speed_rad_s, 1e-6),
+            torque_limit=model.stall_torque_nm,
+            velocity_limit=model.no_load_speed_rad_s,
+            servo_bandwidth_hz=20.0,
+            max_step_s=0.0005,
+        )
+        self.motor = Motor(self.params, position)
+        self.last_step = self.epoch
+        self.last_instruction = self.epoch
+        self.registered: tuple[int, bytes] | None = None
+        self.rebooting_until = 0.0
+        # faults
+        self.drop = 0
+        self.delay_s = 0.0
+        self.corrupt = 0
+        self.silent = False
+        self.sync_present()
+
+    # -- table access -------------------------------------------------------------------------
+
+    @property
+    def id(self) -> int:
+        return self.table[7]
+
+    def get(self, name: str) -> int:
+        reg = self.model.registers[name]
+        return reg.decode(self.table[reg.address : reg.end])
+
+    def set(self, name: str, value: int) -> None:
+        reg = self.model.registers.get(name)
+        if reg is not None:
+            self.table[reg.address : reg.end] = _clamped_bytes(reg, value)
+
+    @property
+    def direction(self) -> int:
+        return -1 if self.get("drive_mode") & 0x01 else 1
+
+    @property
+    def torque_on(self) -> bool:
+        return self.table[64] == 1
+
+    @property
+    def error_byte(self) -> int:
+        return ALERT_BIT if self.get("hardware_error_status") else 0
+
+    def baud(self) -> int:
+        return BAUD_RATES.get(self.get("baud_rate"), 57600)
+
+    def return_delay_s(self) -> float:
+        return self.get("return_delay_time") * 2e-6
+
+    # -- physics ------------------------------------------------------------------------------
+
+    def present_ticks(self) -> int:
+        m = self.model
+        return self.direction * m.rad_to_ticks(self.motor.position) + self.get("homing_offset")
+
+    def goal_shaft_rad(self) -> float:
+        raw = self.direction * (self.get("goal_position") - self.get("homing_offset"))
+        return self.model.ticks_to_rad(raw)
+
+    def step(self, now: float) -> None:
+        dt = now - self.last_step
+        self.last_step = now
+        if dt <= 0.0:
+            return
+        m, motor = self.model, self.motor
+        watchdog = self.get("bus_watchdog")
+        if self.torque_on and watchdog > 0 and now - self.last_instruction > watchdog * 0.02:
+            self.trip_watchdog()
+        if not self.torque_on or self.get("hardware_error_status"):
+            motor.coast(dt)
+            return
+        mode = self.get("operating_mode")
+        d = self.direction
+        if mode in _POSITION_MODES:
+            limit = m.stall_torque_nm
+            if mode == OperatingMode.CURRENT_BASED_POSITION and m.current_unit_a is not None:
+                kt = m.torque_constant_nm_per_a or 0.0
+                limit = min(limit, abs(self.get("goal_current")) * m.current_unit_a * kt)
+            if motor.params.torque_limit != limit:
+                motor.params = dataclasses.replace(self.params, torque_limit=limit)
+            motor.step_position(
+                dt,
+                self.goal_shaft_rad(),
+                m.velocity_to_rad_s(self.get("profile_velocity")),
+                self.get("profile_acceleration") * m.profile_acceleration_unit_rad_s2,
+            )
+            if motor.params is not self.params:
+                motor.params = self.params
+        elif mode == OperatingMode.VELOCITY:
+            motor.step_velocity(
+                dt,
+                d * m.velocity_to_rad_s(self.get("goal_velocity")),
+                self.get("profile_acceleration") * m.profile_acceleration_unit_rad_s2,
+            )
+        elif mode == OperatingMode.CURRENT and m.current_unit_a is not None:
+            kt = m.torque_constant_nm_per_a or 0.0
+            motor.step_torque(dt, d * self.get("goal_current") * m.current_unit_a * kt)
+        elif mode == OperatingMode.PWM:
+            duty = self.get("goal_pwm") / 885.0
+            back_emf = motor.velocity / max(m.no_load_speed_rad_s, 1e-6)
+            motor.step_torque(dt, m.stall_torque_nm * (d * duty - back_emf))
+        else:
+            motor.coast(dt)
+
+    def trip_watchdog(self) -> None:
+        """Stop where the shaft is and latch the bus watchdog error (Bus Watchdog = -1)."""
+        self.set("bus_watchdog", -1)
+        for name in ("goal_velocity", "goal_current", "goal_pwm"):
+            self.set(name, 0)
+        self.set("goal_position", self.present_ticks())
+        self.motor.reset_reference()
+
+    def sync_present(self) -> None:
+        """Copy the motor's state into the present registers."""
+        m, motor, d = self.model, self.motor, self.direction
+        now = self.last_step
+        self.set("present_position", self.present_ticks())
+        self.set("present_velocity", d * m.rad_s_to_velocity(motor.velocity))
+        if m.current_unit_a is not None and m.torque_constant_nm_per_a:
+            amps = motor.torque / m.torque_constant_nm_per_a
+            self.set("present_current", d * m.a_to_current(amps))
+        else:
+            self.set("present_load", d * round(1000.0 * motor.torque / m.stall_torque_nm))
+        self.set("present_pwm", d * round(885.0 * motor.torque / m.stall_torque_nm))
+        moving = abs(m.rad_s_to_velocity(motor.velocity)) > self.get("moving_threshold")
+        self.set("moving", int(moving))
+        in_position = abs(self.get("goal_position") - self.present_ticks()) <= 20
+        profiling = abs(motor.reference - motor.position) > 1e-3 or moving
+        self.set("moving_status", (0x01 if in_position else 0) | (0x02 if profiling else 0))
+        self.set(
+            "position_trajectory", d * m.rad_to_ticks(motor.reference) + self.get("homing_offset")
+        )
+        self.set("velocity_trajectory", d * m.rad_s_to_velocity(motor.velocity))
+        self.set("realtime_tick", int((now - self.epoch) * 1000.0) % 32768)
+        self.set("present_input_voltage", round(m.nominal_voltage_v * 10.0))
+        self.set("present_temperature", 35)
+
+    # -- writes -------------------------------------------------------------------------------
+
+    def check_write(self, address: int, data: bytes) -> int:
+        """The error number a write of ``data`` at ``address`` gets (0: accepted)."""
+        m = self.model
+        end = address + len(data)
+        if not data:
+            return ErrorNumber.DATA_LENGTH
+        covered: list[tuple[Register, int]] = []
+        for reg in m.registers.values():
+            if reg.end <= address or reg.address >= end:
+                continue
+            if reg.address < address or reg.end > end:
+                return ErrorNumber.DATA_LENGTH
+            covered.append((reg, reg.decode(data[reg.address - address : reg.end - address])))
+        if not covered or end > len(self.table):
+            return ErrorNumber.ACCESS
+        pending = {reg.name: value for reg, value in covered}
+        for reg, value in covered:
+            if not reg.writable or (reg.eeprom and self.torque_on):
+                return ErrorNumber.ACCESS
+            if not reg.minimum <= value <= reg.maximum:
+                return ErrorNumber.DATA_RANGE
+        if "operating_mode" in pending:
+            try:
+                if OperatingMode(pending["operating_mode"]) not in m.operating_modes:
+                    return ErrorNumber.DATA_RANGE
+            except ValueError:
+                return ErrorNumber.DATA_RANGE
+        if self.get("bus_watchdog") < 0 and any(name.startswith("goal_") for name in pending):
+            return ErrorNumber.DATA_RANGE  # goals are read-only after a watchdog trip
+        if pending.get("torque_enable") == 1 and self.get("hardware_error_status"):
+            return ErrorNumber.RESULT_FAIL
+
+        def limit(name: str) -> int:
+            return pending[name] if name in pending else self.get(name)
+
+        mode = limit("operating_mode")
+        if "goal_position" in pending and mode == OperatingMode.POSITION:
+            if (
+                not limit("min_position_limit")
+                <= pending["goal_position"]
+                <= limit("max_position_limit")
+            ):
+                return ErrorNumber.DATA_LIMIT
+        for goal, lim in (
+            ("goal_current", "current_limit"),
+            ("goal_velocity", "velocity_limit"),
+            ("goal_pwm", "pwm_limit"),
+        ):
+            if goal in pending and abs(pending[goal]) > limit(lim):
+                return ErrorNumber.DATA_LIMIT
+        return 0
+
+    def apply_write(self, address: int, data: bytes) -> None:
+        """Store an accepted write and apply its side effects."""
+        was_on = self.torque_on
+        self.table[address : address + len(data)] = data
+        if self.torque_on and not was_on:
+            self.motor.reset_reference()
+            self.set("goal_position", self.present_ticks())
+
+    def write(self, address: int, data: bytes) -> int:
+        error = self.check_write(address, data)
+        if not error:
+            self.apply_write(address, data)
+        return error
+
+    def reboot(self, now: float, reboot_time_s: float) -> None:
+        """Reset the RAM area and the latched errors; silent for ``reboot_time_s``."""
+        defaults = self.model.defaults()
+        self.table[64:] = defaults[64:]
+        self.registered = None
+        self.motor.reset_reference()
+        self.epoch = now
+        self.rebooting_until = now + reboot_time_s
+        self.sync_present()
+
+
+def _clamped_bytes(reg: Register, value: int) -> bytes:
+    lo = -(1 << (8 * reg.size - 1)) if reg.signed else 0
+    hi = (1 << (8 * reg.size - 1)) - 1 if reg.signed else (1 << (8 * reg.size)) - 1
+    return reg.encode(max(lo, min(hi, int(value))))
+
+
+@dataclasses.dataclass
+class _Reply:
+    servo: _Servo
+    data: bytes
+
+
+class DynamixelEmulator:
+    """One bus of emulated servos on a pseudo-terminal (see the module docstring).
+
+    Args:
+        ids: the servo ids (1..252), all of ``model``.
+        model: the servo model's name (see ``control_table.MODELS``).
+        baud: the servos' baud rate in bit/s (a value of ``BAUD_RATES``); used for pacing.
+        pace: hold replies back so that requests and replies take their wire time.
+        link: a path to create as a symlink to the pty slave (an existing symlink is replaced).
+        initial_positions: id -> shaft position, rad (default pi: tick 2048, mid-range).
+        return_delay_us: initial Return Delay Time, us (default: the model's, 500 us).
+        reboot_time_s: how long a servo stays silent after REBOOT.
+
+    Raises:
+        ValueError: bad ids or baud rate.
+        KeyError: unknown model (``UnknownModelError``).
+    """
+
+    def __init__(
+        self,
+        ids: Sequence[int],
+        model: str = "XM430-W350",
+        *,
+        baud: int = 4_000_000,
+        pace: bool = False,
+        link: str | None = None,
+        initial_positions: Mapping[int, float] | None = None,
+        return_delay_us: float | None = None,
+        reboot_time_s: float = 0.05,
+    ) -> None:
+        ids = list(ids)
+        if not ids or any(not 0 <= i <= 252 for i in ids) or len(set(ids)) != len(ids):
+            raise ValueError(f"ids must be distinct values in 0..252, got {ids}")
+        self.model = model_by_name(model)
+        values = {bps: v for v, bps in self.model.baud_rates.items()}
+        if baud not in values:
+            raise ValueError(
+                f"{self.model.name} does not support {baud} bit/s; choose one of {sorted(values)}"
+            )
+        self.pace = pace
+        self.reboot_time_s = reboot_time_s
+        self._link = link
+        positions = dict(initial_positions or {})
+        self._servos = [_Servo(self.model, i, positions.get(i, math.pi), values[baud]) for i in ids]
+        if return_delay_us is not None:
+            value = max(0, min(254, round(return_delay_us / 2.0)))
+            for s in self._servos:
+                s.set("return_delay_time", value)
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._master = -1
+        self._slave = -1
+        self._slave_path = ""
+        self._decoder = Decoder()
+        self._bus_free = 0.0
+        self.packets_served = 0
+        self.replies_sent = 0
+        self.bytes_dropped = 0
+        self.errors_sent = 0
+
+    # -- lifecycle ----------------------------------------------------------------------------
+
+    def start(self) -> DynamixelEmulator:
+        """Open the pty (and the link) and start serving.
+
+        Raises:
+            RuntimeError: already started.
+            OSError: the pty or the link cannot be created.
+            FileExistsError: ``link`` exists and is not a symlink.
+        """
+        if self._thread is not None:
+            raise RuntimeError("the emulator is already started")
+        self._master, self._slave = os.openpty()
+        try:
+            # Raw mode: no echo, no line discipline translating bytes such as 0x0D or 0x11.
+            tty.setraw(self._slave)
+            os.set_blocking(self._master, False)
+            self._slave_path = os.ttyname(self._slave)
+            if self._link:
+                if os.path.islink(self._link):
+                    os.unlink(self._link)
+                elif os.path.exists(self._link):
+                    raise FileExistsError(f"{self._link} exists and is not a symlink")
+                os.symlink(self._slave_path, self._link)
+        except BaseException:
+            os.close(self._master)
+            os.close(self._slave)
+            self._master = self._slave = -1
+            raise
+        self._stop.clear()
+        self._thread = threading.Thread(target=self._serve, name="dxl-emulator", daemon=True)
+        self._thread.start()
+        return self
+
+    def close(self) -> None:
+        """Stop serving, join the thread, close the pty and remove the link (idempotent)."""
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=5.0)
+            self._thread = None
+        for fd in (self._master, self._slave):
+            if fd >= 0:
+                with contextlib.suppress(OSError):
+                    os.close(fd)
+        self._master = self._slave = -1
+        if self._link and os.path.islink(self._link):
+            with contextlib.suppress(OSError):
+                if os.readlink(self._link) == self._slave_path:
+                    os.unlink(self._link)
+
+    def __enter__(self) -> DynamixelEmulator:
+        if self._thread is None:
+            self.start()
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.close()
+
+    @property
+    def device_path(self) -> str:
+        """The path a host opens: the link if one was asked for, else ``/dev/pts/N``."""
+        return self._link or self._slave_path
+
+    @property
+    def slave_path(self) -> str:
+        """The pty slave's path (``/dev/pts/N``)."""
+        return self._slave_path
+
+    # -- observation and faults ---------------------------------------------------------------
+
+    def _servo(self, servo_id: int) -> _Servo:
+        for s in self._servos:
+            if s.id == servo_id:
+                return s
+        raise KeyError(f"no emulated servo with id {servo_id}")
+
+    def positions(self) -> dict[int, float]:
+        """id -> Present Position in rad (``present_position * 2*pi / ticks_per_rev``), now."""
+        with self._lock:
+            now = time.monotonic()
+            out = {}
+            for s in self._servos:
+                s.step(now)
+                out[s.id] = self.model.ticks_to_rad(s.present_ticks())
+            return out
+
+    def register(self, servo_id: int, name: str) -> int:
+        """The value of register ``name`` of servo ``servo_id`` (present values refreshed).
+
+        Raises:
+            KeyError: unknown servo or register.
+        """
+        with self._lock:
+            s = self._servo(servo_id)
+            s.step(time.monotonic())
+            s.sync_present()
+            self.model.register(name)
+            return s.get(name)
+
+    def drop_replies(self, servo_id: int, count: int) -> None:
+        """Servo ``servo_id`` leaves its next ``count`` replies unsent.
+
+        Raises:
+            KeyError: unknown servo.
+        """
+        with self._lock:
+            self._servo(servo_id).drop = max(0, int(count))
+
+    def delay_replies(self, servo_id: int, seconds: float) -> None:
+        """Servo ``servo_id`` answers ``seconds`` late (0 to stop).
+
+        Raises:
+            KeyError: unknown servo.
+        """
+        with self._lock:
+            self._servo(servo_id).delay_s = max(0.0, float(seconds))
+
+    def corrupt_crc(self, servo_id: int, count: int) -> None:
+        """Servo ``servo_id`` sends its next ``count`` replies with a wrong CRC.
+
+        Raises:
+            KeyError: unknown servo.
+        """
+        with self._lock:
+            self._servo(servo_id).corrupt = max(0, int(count))
+
+    def set_silent(self, servo_id: int, silent: bool) -> None:
+        """Servo ``servo_id`` never answers (group reads included) while ``silent``.
+
+        Raises:
+            KeyError: unknown servo.
+        """
+        with self._lock:
+            self._servo(servo_id).silent = bool(silent)
+
+    def raise_hardware_error(self, servo_id: int, bits: HardwareError) -> None:
+        """Latch hardware error ``bits`` on servo ``servo_id`` until it is rebooted.
+
+        Raises:
+            KeyError: unknown servo.
+        """
+        with self._lock:
+            s = self._servo(servo_id)
+            s.step(time.monotonic())
+            s.set("hardware_error_status", s.get("hardware_error_status") | int(bits))
+            s.set("torque_enable", 0)
+
+    def stats(self) -> dict[str, int]:
+        """Counters: packets served, replies sent, CRC errors and junk bytes seen, ..."""
+        with self._lock:
+            return {
+                "packets_served": self.packets_served,
+                "replies_sent": self.replies_sent,
+                "errors_sent": self.errors_sent,
+                "crc_errors": self._decoder.crc_errors,
+                "junk_bytes": self._decoder.junk_bytes,
+                "bytes_dropped": self.bytes_dropped,
+            }
+
+    @property
+    def crc_errors(self) -> int:
+        """Instruction packets received with a bad CRC."""
+        return self._decoder.crc_errors
+
+    # -- serving ------------------------------------------------------------------------------
+
+    def _serve(self) -> None:
+        last_rx = time.monotonic()
+        while not self._stop.is_set():
+            try:
+                readable, _, _ = select.select([self._master], [], [], _IDLE_STEP_S)
+            except (OSError, ValueError):
+                return
+            now = time.monotonic()
+            if readable:
+                try:
+                    data = os.read(self._master, 4096)
+                except BlockingIOError:
+                    data = b""
+                except OSError as exc:
+                    if exc.errno == errno.EIO:  # no slave open (cannot happen: we hold one)
+                        self._stop.wait(_IDLE_STEP_S)
+                        continue
+                    return
+                if data:
+                    if self._decoder.pending and now - last_rx > _PARTIAL_TIMEOUT_S:
+                        self._decoder.reset()
+                    last_rx = now
+                    for packet in self._decoder.feed(data):
+                        self._handle(packet, now)
+                        now = time.monotonic()
+            with self._lock:
+                for s in self._servos:
+                    s.step(now)
+
+    def _handle(self, packet: Packet, arrival: float) -> None:
+        with self._lock:
+            for s in self._servos:
+                s.step(arrival)
+                s.sync_present()
+                if packet.crc_ok and not packet.is_status:
+                    s.last_instruction = arrival
+            replies, fast = self._dispatch(packet, arrival)
+            if replies or fast:
+                self.packets_served += 1
+            elif packet.crc_ok and not packet.is_status:
+                self.packets_served += 1
+        if replies or fast:
+            self._transmit(packet, replies, fast, arrival)
+
+    def _awake(self, now: float) -> list[_Servo]:
+        return [s for s in self._servos if s.rebooting_until <= now]
+
+    def _status(self, s: _Servo, error: int, data: bytes = b"") -> _Reply:
+        if error:
+            self.errors_sent += 1
+        return _Reply(s, encode_status(s.id, error | s.error_byte, data))
+
+    def _dispatch(self, p: Packet, now: float) -> tuple[list[_Reply], list[_Reply]]:
+        """Apply ``p``; return ``(status packets, fast status blocks)`` to send, in order."""
+        if p.is_status:
+            return [], []
+        awake = self._awake(now)
+        targets = [s for s in awake if s.id == p.id]
+        if not p.crc_ok:
+            if targets and p.instruction not in _GROUP:
+                return [self._status(targets[0], ErrorNumber.CRC)], []
+            return [], []
+        inst, params = p.instruction, p.params
+        broadcast = p.id == BROADCAST_ID
+        if broadcast:
+            targets = sorted(awake, key=lambda s: s.id)
+        if inst == Instruction.PING:
+            return [self._status(s, 0, bytes(s.table[0:2] + s.table[6:7])) for s in targets], []
+        if inst in _GROUP:
+            if not broadcast:
+                return [], []
+            return self._group(inst, params, now)
+        if not targets:
+            return [], []
+        replies: list[_Reply] = []
+        for s in targets:
+            level = s.get("status_return_level")  # before the instruction may change it
+            error, data = self._single(s, inst, params, broadcast, now)
+            if broadcast or error < 0:
+                continue
+            if level == 2 or (level == 1 and inst == Instruction.READ):
+                replies.append(self._status(s, error, data))
+        return replies, []
+
+    def _single(
+        self, s: _Servo, inst: int, params: bytes, broadcast: bool, now: float
+    ) -> tuple[int, bytes]:
+        """Execute a one-servo instruction; ``(error, data)``, error -1 for no reply."""
+        if inst == Instruction.READ:
+            if broadcast or len(params) != 4:
+                return (-1 if broadcast else ErrorNumber.DATA_LENGTH), b""
+            address, length = params[0] | params[1] << 8, params[2] | params[3] << 8
+            if address + length > len(s.table) or length == 0:
+                return ErrorNumber.ACCESS, b""
+            return 0, bytes(s.table[address : address + length])
+        if inst in (Instruction.WRITE, Instruction.REG_WRITE):
+            if len(params) < 3:
+                return ErrorNumber.DATA_LENGTH, b""
+            address, data = params[0] | params[1] << 8, bytes(params[2:])
+            error = s.check_write(address, data)
+            if not error:
+                if inst == Instruction.WRITE:
+                    s.apply_write(address, data)
+                else:
+                    s.registered = (address, data)
+                    s.set("registered_instruction", 1)
+            return error, b""
+        if inst == Instruction.ACTION:
+            if s.registered is None:
+                return ErrorNumber.INSTRUCTION, b""
+            address, data = s.registered
+            s.registered = None
+            s.set("registered_instruction", 0)
+            return s.write(address, data), b""
+        if inst == Instruction.REBOOT:
+            s.reboot(now, self.reboot_time_s)
+            return 0, b""
+        if inst == Instruction.CLEAR:
+            if bytes(params) != _CLEAR_MULTI_TURN:
+                return ErrorNumber.DATA_RANGE, b""
+            if s.get("moving"):
+                return ErrorNumber.RESULT_FAIL, b""
+            s.motor.position = math.remainder(s.motor.position, _TWO_PI) % _TWO_PI
+            s.motor.reset_reference()
+            s.sync_present()
+            return 0, b""
+        if inst == Instruction.FACTORY_RESET:
+            return ErrorNumber.RESULT_FAIL, b""
+        return ErrorNumber.INSTRUCTION, b""
+
+    def _group(self, inst: int, params: bytes, now: float) -> tuple[list[_Reply], list[_Reply]]:
+        awake = {s.id: s for s in self._awake(now)}
+        try:
+            if inst in (Instruction.SYNC_WRITE, Instruction.BULK_WRITE):
+                if inst == Instruction.SYNC_WRITE:
+                    address, _, items = parse_sync_write(params)
+                    writes = [(i, address, d) for i, d in items]
+                else:
+                    writes = parse_bulk_write(params)
+                for servo_id, address, data in writes:
+                    if servo_id in awake:
+                        awake[servo_id].write(address, data)
+                return [], []
+            if inst in (Instruction.SYNC_READ, Instruction.FAST_SYNC_READ):
+                address, length, ids = parse_sync_read(params)
+                reads = [(i, address, length) for i in ids]
+            else:
+                reads = [(e.id, e.address, e.length) for e in parse_bulk_read(params)]
+        except ValueError:
+            return [], []
+        fast = inst in (Instruction.FAST_SYNC_READ, Instruction.FAST_BULK_READ)
+        replies: list[_Reply] = []
+        for servo_id, address, length in reads:
+            s = awake.get(servo_id)
+            if s is None or s.get("status_return_level") == 0:
+                if fast:
+                    break  # the following servos would wait for this one forever
+                continue
+            if address + length > len(s.table) or length == 0:
+                error, data = int(ErrorNumber.ACCESS), bytes(length)
+            else:
+                error, data = 0, bytes(s.table[address : address + length])
+            if fast:
+                replies.append(_Reply(s, bytes((error | s.error_byte,)) + data))
+            else:
+                replies.append(self._status(s, error, data))
+        if fast:
+            return [], replies
+        return replies, []
+
+    # -- output -------------------------------------------------------------------------------
+
+    def _transmit(
+        self, request: Packet, replies: list[_Reply], fast: list[_Reply], arrival: float
+    ) -> None:
+        """Send the replies in order, each after its servo's delays (and wire time)."""
+        bus_baud = replies[0].servo.baud() if replies else fast[0].servo.baud()
+        t = max(arrival, self._bus_free)
+        if self.pace:
+            t += wire_time_s(len(request.raw), bus_baud)
+        chunks: list[tuple[_Servo, bytes]]
+        if fast:
+            chunks = []
+            with self._lock:
+                entries = [(r.servo.id, r.data[0], r.data[1:]) for r in fast]
+                parts = fast_status_parts(entries)
+                for r, part in zip(fast, parts, strict=True):
+                    if self._consume_drop(r.servo):
+                        break
+                    chunks.append((r.servo, part))
+                if any([self._consume_corrupt(servo) for servo, _ in chunks]):
+                    servo, last = chunks[-1]
+                    chunks[-1] = (servo, last[:-1] + bytes((last[-1] ^ 0xFF,)))
+        else:
+            chunks = []
+            with self._lock:
+                for r in replies:
+                    if self._consume_drop(r.servo):
+                        continue
+                    data = r.data
+                    if self._consume_corrupt(r.servo):
+                        data = data[:-1] + bytes((data[-1] ^ 0xFF,))
+                    chunks.append((r.servo, data))
+        # Each reply goes out when it is due. Replies already due are written together: every
+        # wait costs the host a thread switch when it shares our interpreter (tests), so waits
+        # shorter than _MIN_WAIT_S are skipped.
+        pending: list[bytes] = []
+        for servo, data in chunks:
+            t += servo.return_delay_s() + servo.delay_s
+            if self.pace:
+                t += wire_time_s(len(data), servo.baud())
+            remaining = t - time.monotonic()
+            if remaining > _MIN_WAIT_S:
+                if pending:
+                    self._write(pending)
+                    pending = []
+                if self._stop.wait(remaining):
+                    return
+            pending.append(data)
+        if pending:
+            self._write(pending)
+        self._bus_free = t
+
+    def _consume_drop(self, s: _Servo) -> bool:
+        if s.silent:
+            return True
+        if s.drop > 0:
+            s.drop -= 1
+            return True
+        return False
+
+    def _consume_corrupt(self, s: _Servo) -> bool:
+        if s.corrupt > 0:
+            s.corrupt -= 1
+            return True
+        return False
+
+    def _write(self, replies: list[bytes]) -> None:
+        data = b"".join(replies)
+        try:
+            written = os.write(self._master, data)
+        except BlockingIOError:
+            written = 0  # nobody reads the slave and its buffer is full: the bytes are lost
+        except OSError:
+            return
+        self.bytes_dropped += len(data) - written
+        if written:
+            self.replies_sent += len(replies)
+
+
+_GROUP = frozenset(
+    {
+        Instruction.SYNC_READ,
+        Instruction.SYNC_WRITE,
+        Instruction.FAST_SYNC_READ,
+        Instruction.BULK_READ,
+        Instruction.BULK_WRITE,
+        Instruction.FAST_BULK_READ,
+    }
+)
+
+
+# -- command line ---------------------------------------------------------------------------------
+
+
+def parse_ids(text: str) -> list[int]:
+    """``"1-6"``, ``"1,3,5"``, ``"1-3,7"`` -> a list of ids.
+
+    Raises:
+        ValueError: malformed text, ids out of 0..252 or duplicated.
+    """
+    ids: list[int] = []
+    for part in text.split(","):
+        part = part.strip()
+        if not part:
+            continue
+        if "-" in part:
+            lo_text, hi_text = part.split("-", 1)
+            lo, hi = int(lo_text), int(hi_text)
+            if hi < lo:
+                raise ValueError(f"empty id range {part!r}")
+            ids.extend(range(lo, hi + 1))
+        else:
+            ids.append(int(part))
+    if not ids or any(not 0 <= i <= 252 for i in ids) or len(set(ids)) != len(ids):
+        raise ValueError(f"ids must be distinct values in 0..252: {text!r}")
+    return ids
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The ``jtc-hw emulate dynamixel`` argument parser."""
+    p = argparse.ArgumentParser(
+        prog="jtc-hw emulate dynamixel",
+        description="Emulated Dynamixel X-series servos (Protocol 2.0) on a pseudo-terminal. "
+        "Prints the device path, then serves until SIGINT/SIGTERM.",
+    )
+    p.add_argument("--ids", default="1", help="servo ids, e.g. 1-6 or 1,2,5-7 (default 1)")
+    p.add_argument("--model", default="XM430-W350", help="servo model (default XM430-W350)")
+    p.add_argument(
+        "--baud", type=int, default=4_000_000, help="servo baud rate, bit/s (default 4000000)"
+    )
+    p.add_argument(
+        "--pace",
+        action="store_true",
+        help="hold replies back to the wire time of a real bus at that baud rate",
+    )
+    p.add_argument("--link", default=None, help="also create this symlink to the pty")
+    p.add_argument(
+        "--return-delay-us",
+        type=float,
+        default=None,
+        help="Return Delay Time in us (default: the servo's, 500)",
+    )
+    return p
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run the emulator from the command line; 0 on a clean stop, 2 on bad options."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        ids = parse_ids(args.ids)
+        emulator = DynamixelEmulator(
+            ids,
+            args.model,
+            baud=args.baud,
+            pace=args.pace,
+            link=args.link,
+            return_delay_us=args.return_delay_us,
+        )
+    except (ValueError, KeyError) as exc:
+        print(f"jtc-hw emulate dynamixel: {exc}", file=sys.stderr)
+        return 2
+    stop = threading.Event()
+
+    def on_signal(signum: int, frame: object) -> None:
+        stop.set()
+
+    previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        with emulator:
+            print(emulator.device_path, flush=True)
+            print(
+                f"serving {len(ids)} x {emulator.model.name} (ids {args.ids}) at {args.baud} "
+                f"bit/s{' paced' if args.pace else ''} on {emulator.slave_path}",
+                file=sys.stderr,
+                flush=True,
+            )
+            last: dict[str, int] = {}
+            while not stop.wait(1.0):
+                stats = emulator.stats()
+                if stats != last:
+                    print(
+                        " ".join(f"{k}={v}" for k, v in stats.items()), file=sys.stderr, flush=True
+                    )
+                    last = stats
+    except OSError as exc:
+        print(f"jtc-hw emulate dynamixel: {exc}", file=sys.stderr)
+        return 2
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

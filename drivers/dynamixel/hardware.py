@@ -1,0 +1,724 @@
+"""Dynamixel X-series servos on one Protocol 2.0 bus (hardware kind ``dynamixel``).
+
+Theory of operation
+-------------------
+One :class:`DynamixelHardware` owns one serial bus (:class:`~jtc_hw.drivers.dynamixel.bus.
+DynamixelBus`, the only module that imports the SDK) and one servo per joint. Each cycle costs
+exactly one transaction per direction:
+
+* ``read``: one Sync Read of the contiguous block Present Current / Velocity / Position
+  (addresses 126..135, 10 bytes per servo), decoded for all servos at once with numpy;
+* ``write``: one Sync Write of the goal register of the operating mode.
+
+**Operating mode** follows from the controller's command interface (exactly one):
+``position`` -> Position Control (or Extended Position with ``extended_position: true``),
+``velocity`` -> Velocity Control, ``effort`` -> Current Control.
+
+**Units.** For joint *i* with model resolution ``ticks_per_rev``, ``direction`` d (+1 / -1),
+``gear_ratio`` g (motor turns per joint turn) and ``offset`` o (rad)::
+
+    motor_rad   = ticks * 2*pi / ticks_per_rev          (tick 0 is 0 rad; mid-range 2048 is pi)
+    joint       = d * motor_rad / g + o
+    ticks       = round(d * (joint - o) * g * ticks_per_rev / (2*pi))
+    joint_vel   = d * raw_velocity * velocity_unit / g   (velocity_unit = 0.229 rev/min in rad/s)
+    raw_velocity= round(d * joint_vel * g / velocity_unit)
+    joint_effort= d * raw_current * current_unit * torque_constant * g
+    raw_current = round(d * joint_effort / (torque_constant * g * current_unit))
+
+The same per-joint factors are used both ways, so ``ticks -> joint -> ticks`` is the identity.
+Commands are clamped to the servo's limits (position limits, Velocity Limit, Current Limit read
+back at configure) before they are sent: a Sync Write has no reply, so a value the servo would
+refuse must never be sent.
+
+**Faults.** A failed Sync Read is retried up to ``max_retries`` times within the cycle; then a
+:class:`~jtc_hw.errors.CommunicationError` names the servo (id and joint) and the cause. A status
+packet with the alert bit makes the driver read that servo's Hardware Error Status and raise
+:class:`~jtc_hw.errors.MotorFault` naming the cause (overload, overheating, ...). A failed read
+never changes the last known positions. The loop then aborts the goal and applies the
+``safe_action``. ``recover`` (the client's explicit ``rearm``) reboots every servo with a latched
+error, waits (bounded by ``reboot_timeout_s``) for it to answer, re-applies its setup; ``activate``
+then seeds the goal from the measured position, so re-arming never jumps.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from collections.abc import Mapping, Sequence
+from typing import Any, ClassVar, Final
+
+import numpy as np
+from jtc_hw.drivers.dynamixel.bus import (
+    ERROR_ALERT,
+    DynamixelBus,
+    ServoCommunicationError,
+    ServoStatusError,
+    SyncReadResult,
+)
+from jtc_hw.drivers.dynamixel.control_table import (
+    BAUD_RATES,
+    PRESENT_BLOCK_ADDRESS,
+    PRESENT_BLOCK_SIZE,
+    Model,
+    OperatingMode,
+    UnknownModelError,
+    model_by_name,
+    model_by_number,
+)
+from jtc_hw.drivers.dynamixel.control_table import (
+    HardwareError as ServoHardwareError,
+)
+from numpy.typing import NDArray
+
+from jtc_hw.config import STATE_INTERFACE_TYPES
+from jtc_hw.errors import CommunicationError, ConfigurationError, HardwareError, MotorFault
+from jtc_hw.hardware import HardwareInterface, ParamKind, ParamSpec, SafeAction, param_table
+from jtc_hw.joints import JointCommand, JointState
+
+__all__ = ["DynamixelHardware"]
+
+_log = logging.getLogger(__name__)
+
+F64 = NDArray[np.float64]
+I64 = NDArray[np.int64]
+
+_SDK_BAUD_RATES: Final = tuple(sorted(b for b in BAUD_RATES.values() if b <= 4_000_000))
+_POSITION_MODE_TICKS: Final = (0, 4095)
+_EXTENDED_TICKS: Final = (-1_048_575, 1_048_575)
+_PRESENT_DTYPE: Final = np.dtype([("current", "<i2"), ("velocity", "<i4"), ("position", "<i4")])
+_GAINS: Final = (
+    "position_p_gain", "position_i_gain", "position_d_gain", "velocity_p_gain", "velocity_i_gain"
+)
+
+
+def _coerce_baud(value: Any, path: str) -> int:
+    if value not in _SDK_BAUD_RATES or isinstance(value, bool):
+        raise ConfigurationError(
+            f"baud rate must be one of {', '.join(str(b) for b in _SDK_BAUD_RATES)} bit/s, "
+            f"got {value!r}",
+            path,
+            value,
+        )
+    return int(value)
+
+
+def _hardware_error_text(flags: int) -> str:
+    names = [flag.name.lower() for flag in ServoHardwareError if flags & flag and flag.name]
+    return ", ".join(names) if names else f"unknown hardware error 0x{flags:02x}"
+
+
+class DynamixelHardware(HardwareInterface):
+    """Dynamixel X-series servos, one per joint, on one serial bus (see the module docstring).
+
+    Raises:
+        ConfigurationError: invalid parameters (see :attr:`PARAMS`): duplicate ids, an unknown
+            model or one without the needed operating mode, a direction other than +-1,
+            position limits outside the servo's range, or an unsupported interface combination.
+    """
+
+    kind: ClassVar[str] = "dynamixel"
+    COMMAND_INTERFACES: ClassVar[tuple[str, ...]] = ("position", "velocity", "effort")
+    STATE_INTERFACES: ClassVar[tuple[str, ...]] = tuple(
+        i for i in ("position", "velocity", "effort") if i in STATE_INTERFACE_TYPES
+    )
+
+    PARAMS: ClassVar[Mapping[str, ParamSpec]] = param_table(
+        ParamSpec("port", ParamKind.STRING, None,
+                  "serial device of the bus (e.g. /dev/ttyUSB0 or /dev/serial/by-id/...)",
+                  required=True),
+        ParamSpec("baud_rate", ParamKind.INT, 57600,
+                  "bus bit rate (bit/s); the X series' factory default is 57600",
+                  coerce=_coerce_baud),
+        ParamSpec("ids", ParamKind.INT, None, "per joint servo id (0..252, unique)",
+                  minimum=0, maximum=252, per_joint=True, required=True),
+        ParamSpec("model", ParamKind.STRING, "XM430-W350", "per joint servo model",
+                  per_joint=True),
+        ParamSpec("offset", ParamKind.FLOAT, 0.0,
+                  "per joint offset o, rad: joint = direction * motor / gear_ratio + o",
+                  per_joint=True),
+        ParamSpec("direction", ParamKind.INT, 1, "per joint direction, 1 or -1",
+                  minimum=-1, maximum=1, per_joint=True),
+        ParamSpec("gear_ratio", ParamKind.FLOAT, 1.0,
+                  "per joint motor turns per joint turn", minimum=1e-9, per_joint=True),
+        ParamSpec("position_limits", ParamKind.RANGE, (-math.inf, math.inf),
+                  "per joint [min, max] joint position, rad (null: the servo's limit registers)",
+                  per_joint=True, nullable=True),
+        ParamSpec("extended_position", ParamKind.BOOL, False,
+                  "position interface: Extended Position mode (multi-turn) instead of Position"),
+        ParamSpec("return_delay_time_us", ParamKind.INT, 0,
+                  "Return Delay Time written to every servo, us (0..508, in 2 us steps)",
+                  minimum=0, maximum=508),
+        ParamSpec("profile_velocity", ParamKind.FLOAT, 0.0,
+                  "per joint Profile Velocity, rad/s at the joint (0: none)", minimum=0.0,
+                  per_joint=True),
+        ParamSpec("profile_acceleration", ParamKind.FLOAT, 0.0,
+                  "per joint Profile Acceleration, rad/s^2 at the joint (0: none)", minimum=0.0,
+                  per_joint=True),
+        *(
+            ParamSpec(gain, ParamKind.INT, None,
+                      f"per joint {gain.replace('_', ' ')} register (null: the servo's)",
+                      minimum=0, maximum=16383, nullable=True, per_joint=True)
+            for gain in _GAINS
+        ),
+        ParamSpec("fast_sync_read", ParamKind.BOOL, False,
+                  "use Fast Sync Read (one combined reply; firmware 45+)"),
+        ParamSpec("timeout_ms", ParamKind.FLOAT, 5.0,
+                  "allowance beyond the wire time before a reply counts as missing, ms",
+                  minimum=0.1, maximum=1000.0),
+        ParamSpec("max_retries", ParamKind.INT, 1,
+                  "retries of a failed read within one cycle before it is a fault",
+                  minimum=0, maximum=10),
+        ParamSpec("reboot_timeout_s", ParamKind.FLOAT, 2.0,
+                  "how long recover() waits for a rebooted servo to answer, s",
+                  minimum=0.01, maximum=30.0),
+        ParamSpec("latency_timer_warn", ParamKind.BOOL, True,
+                  "warn when the USB serial adapter's latency timer is above 1 ms"),
+    )
+
+    def __init__(
+        self,
+        name: str,
+        joints: Sequence[str],
+        command_interfaces: Sequence[str],
+        state_interfaces: Sequence[str],
+        params: Mapping[str, Any],
+    ) -> None:
+        super().__init__(name, joints, command_interfaces, state_interfaces, params)
+        p = self.params
+        n = len(self.joints)
+        if len(self.command_interfaces) != 1:
+            raise ConfigurationError(
+                f"{self._owner()}: a servo takes exactly one command interface (position, "
+                f"velocity or effort: its operating mode), got "
+                f"[{', '.join(self.command_interfaces)}]",
+                "command_interfaces",
+                self.command_interfaces,
+            )
+        self._interface: str = self.command_interfaces[0]
+        self.ids: tuple[int, ...] = tuple(p["ids"])
+        seen: dict[int, str] = {}
+        for joint, servo_id in zip(self.joints, self.ids, strict=True):
+            if servo_id in seen:
+                raise ConfigurationError(
+                    f"servo id {servo_id} is given to both {seen[servo_id]!r} and {joint!r}; "
+                    "each joint needs its own servo",
+                    "params.ids",
+                    servo_id,
+                )
+            seen[servo_id] = joint
+        models: list[Model] = []
+        for joint, model_name in zip(self.joints, p["model"], strict=True):
+            try:
+                models.append(model_by_name(model_name))
+            except UnknownModelError as exc:
+                raise ConfigurationError(f"joint {joint!r}: {exc}", "params.model",
+                                         model_name) from None
+        self.models: tuple[Model, ...] = tuple(models)
+        for joint, direction in zip(self.joints, p["direction"], strict=True):
+            if direction not in (1, -1):
+                raise ConfigurationError(
+                    f"joint {joint!r}: direction must be 1 or -1, got {direction}",
+                    "params.direction", direction,
+                )
+        if self._interface == "position":
+            self.mode = (OperatingMode.EXTENDED_POSITION if p["extended_position"]
+                         else OperatingMode.POSITION)
+        elif self._interface == "velocity":
+            self.mode = OperatingMode.VELOCITY
+        else:
+            self.mode = OperatingMode.CURRENT
+        for joint, model in zip(self.joints, self.models, strict=True):
+            if self.mode not in model.operating_modes or (
+                self.mode is OperatingMode.CURRENT and model.current_unit_a is None
+            ):
+                raise ConfigurationError(
+                    f"joint {joint!r}: {model.name} has no {self.mode.name.lower()} mode, "
+                    f"needed by the {self._interface!r} command interface",
+                    "command_interfaces", self._interface,
+                )
+
+        self._direction = np.array(p["direction"], dtype=np.float64)
+        self._gear = np.array(p["gear_ratio"], dtype=np.float64)
+        self._offset = np.array(p["offset"], dtype=np.float64)
+        # Motor-side units of one count, per joint.
+        self._rad_per_tick = np.array([2.0 * math.pi / m.ticks_per_rev for m in self.models])
+        self._rad_s_per_count = np.array([m.velocity_unit_rad_s for m in self.models])
+        self._nm_per_count = np.array([
+            (m.current_unit_a or 0.0) * (m.torque_constant_nm_per_a or 0.0) for m in self.models
+        ])
+        # Joint units per register count and back, computed once: the hot path is then one
+        # multiply (and one add for positions) per direction, the same factors both ways.
+        d, g = self._direction, self._gear
+        self._pos_scale = d * self._rad_per_tick / g
+        self._pos_inverse = d * g / self._rad_per_tick
+        self._vel_scale = d * self._rad_s_per_count / g
+        self._vel_inverse = d * g / self._rad_s_per_count
+        self._effort_scale = d * self._nm_per_count * g
+        sensing = self._nm_per_count > 0
+        self._effort_inverse = np.where(
+            sensing, d / (g * np.where(sensing, self._nm_per_count, 1.0)), 0.0)
+        limits = p["position_limits"]
+        self._joint_lower = np.array([lim[0] for lim in limits], dtype=np.float64)
+        self._joint_upper = np.array([lim[1] for lim in limits], dtype=np.float64)
+        # Tick limits from the joint limits (inf where not given).
+        a = self.joint_to_ticks_float(self._joint_lower)
+        b = self.joint_to_ticks_float(self._joint_upper)
+        self._limit_ticks_lo = np.where(np.isnan(a), -np.inf, np.minimum(a, b))
+        self._limit_ticks_hi = np.where(np.isnan(b), np.inf, np.maximum(a, b))
+        if self.mode is OperatingMode.POSITION:
+            low, high = _POSITION_MODE_TICKS
+            for i, joint in enumerate(self.joints):
+                lo, hi = self._limit_ticks_lo[i], self._limit_ticks_hi[i]
+                if (np.isfinite(lo) and lo < low - 0.5) or (np.isfinite(hi) and hi > high + 0.5):
+                    raise ConfigurationError(
+                        f"joint {joint!r}: position_limits [{self._joint_lower[i]:g}, "
+                        f"{self._joint_upper[i]:g}] rad map to servo ticks [{lo:.0f}, {hi:.0f}], "
+                        f"outside Position mode's {low}..{high}; adjust offset (tick 2048 is "
+                        "the middle) or set extended_position: true",
+                        "params.position_limits", limits[i],
+                    )
+        self._n = n
+        self._bus: DynamixelBus | None = None
+        # Effective command clamps in register units, set at configure.
+        self._cmd_lo = np.full(n, -np.inf)
+        self._cmd_hi = np.full(n, np.inf)
+        self._positions: F64 | None = None  # last good read, joint units
+        self._present_ticks: NDArray[Any] = np.zeros(n, dtype=np.int32)
+        self._velocities: F64 = np.zeros(n)
+        self._efforts: F64 = np.zeros(n)
+        self._latched: dict[int, int] = {}  # servo id -> hardware error flags
+        self._last_fault_by_servo: dict[int, str] = {}
+        self._retries = 0
+        self._joint_of = dict(zip(self.ids, self.joints, strict=True))
+        self._index_of = {servo_id: i for i, servo_id in enumerate(self.ids)}
+        self._effort_state = "effort" in self.state_interfaces
+        # What write() sends: the command field, its register, and the conversion to counts.
+        self._command_field = {"position": "positions", "velocity": "velocities",
+                               "effort": "effort"}[self._interface]
+        self._goal_name = {"position": "goal_position", "velocity": "goal_velocity",
+                           "effort": "goal_current"}[self._interface]
+        if self._interface == "position":
+            self._goal_offset, self._goal_inverse = self._offset, self._pos_inverse
+        elif self._interface == "velocity":
+            self._goal_offset, self._goal_inverse = np.zeros(n), self._vel_inverse
+        else:
+            self._goal_offset, self._goal_inverse = np.zeros(n), self._effort_inverse
+
+    # -- conversions (public: tests and tools use them) ----------------------------------------
+
+    def ticks_to_joint(self, ticks: NDArray[Any]) -> F64:
+        """Present Position ticks -> joint positions, rad (see the module docstring)."""
+        result: F64 = np.asarray(ticks) * self._pos_scale + self._offset
+        return result
+
+    def joint_to_ticks_float(self, joint: NDArray[Any]) -> F64:
+        """Joint positions, rad -> ticks, unrounded (infinite stays infinite)."""
+        result: F64 = (np.asarray(joint, dtype=np.float64) - self._offset) * self._pos_inverse
+        return result
+
+    def joint_to_ticks(self, joint: NDArray[Any]) -> I64:
+        """Joint positions, rad -> ticks, rounded to the nearest (the inverse of
+        :meth:`ticks_to_joint` on whole ticks)."""
+        result: I64 = np.rint(self.joint_to_ticks_float(joint)).astype(np.int64)
+        return result
+
+    def velocity_to_joint(self, raw: NDArray[Any]) -> F64:
+        """Velocity register counts -> joint velocities, rad/s."""
+        result: F64 = np.asarray(raw) * self._vel_scale
+        return result
+
+    def joint_to_velocity(self, joint_vel: NDArray[Any]) -> I64:
+        """Joint velocities, rad/s -> velocity register counts (rounded)."""
+        result: I64 = np.rint(np.asarray(joint_vel) * self._vel_inverse).astype(np.int64)
+        return result
+
+    def current_to_joint(self, raw: NDArray[Any]) -> F64:
+        """Current register counts -> joint efforts, N*m (torque constant times gear ratio)."""
+        result: F64 = np.asarray(raw) * self._effort_scale
+        return result
+
+    def joint_to_current(self, effort: NDArray[Any]) -> I64:
+        """Joint efforts, N*m -> current register counts (rounded; 0 without current sensing)."""
+        result: I64 = np.rint(np.asarray(effort) * self._effort_inverse).astype(np.int64)
+        return result
+
+    # -- labels ---------------------------------------------------------------------------------
+
+    def _servo(self, servo_id: int | None) -> str:
+        if servo_id is None:
+            return f"{self._owner()} (bus {self.params['port']})"
+        joint = self._joint_of.get(servo_id, "?")
+        return f"{self._owner()}: servo {servo_id} (joint {joint!r})"
+
+    def _require_bus(self) -> DynamixelBus:
+        if self._bus is None or not self._bus.is_open:
+            raise CommunicationError(f"{self._owner()}: the bus is not open")
+        return self._bus
+
+    def _comm_error(self, exc: ServoCommunicationError, what: str,
+                    attempts: int = 1) -> CommunicationError:
+        tries = f" after {attempts} attempts" if attempts > 1 else ""
+        message = (
+            f"{self._servo(exc.servo_id)}: {what} failed{tries}: {exc.cause}; check the "
+            f"servo's power and cable, its id and baud rate ({self.params['baud_rate']} bit/s)"
+        )
+        if exc.servo_id is not None:
+            self._last_fault_by_servo[exc.servo_id] = exc.cause
+        return CommunicationError(message)
+
+    def _motor_fault(self, servo_id: int, flags: int) -> MotorFault:
+        cause = _hardware_error_text(flags)
+        self._latched[servo_id] = flags
+        self._last_fault_by_servo[servo_id] = cause
+        return MotorFault(
+            f"{self._servo(servo_id)}: hardware error: {cause} (the servo switched its torque "
+            "off); remove the cause (load, temperature, supply), then re-arm (jtc-hw rearm) to "
+            "reboot it"
+        )
+
+    # -- lifecycle primitives -------------------------------------------------------------------
+
+    def _configure(self) -> None:
+        p = self.params
+        bus = DynamixelBus(
+            p["port"], p["baud_rate"], timeout_ms=p["timeout_ms"],
+            latency_timer_warn=p["latency_timer_warn"],
+        )
+        bus.open()
+        self._bus = bus
+        try:
+            for i, servo_id in enumerate(self.ids):
+                self._check_model(i, servo_id)
+            self._latched = {}
+            for i, servo_id in enumerate(self.ids):
+                flags = self._read_register(servo_id, "hardware_error_status")
+                if flags:
+                    self._latched[servo_id] = flags
+                    self._last_fault_by_servo[servo_id] = _hardware_error_text(flags)
+                self._setup_servo(i)
+        except BaseException:
+            bus.close()
+            self._bus = None
+            raise
+
+    def _check_model(self, i: int, servo_id: int) -> None:
+        bus = self._require_bus()
+        try:
+            number = bus.ping(servo_id)
+        except ServoCommunicationError as exc:
+            raise self._comm_error(exc, "ping at configure") from exc
+        expected = self.models[i]
+        if number != expected.model_number:
+            found = model_by_number(number)
+            found_name = found.name if found else "an unknown model"
+            raise ConfigurationError(
+                f"{self._servo(servo_id)} is {found_name} (model number {number}) but the "
+                f"configuration says {expected.name} (model number {expected.model_number}); "
+                "fix params.model or the servo's id",
+                "params.model",
+                expected.name,
+            )
+
+    def _read_register(self, servo_id: int, name: str) -> int:
+        bus = self._require_bus()
+        reg = self.models[self._index_of[servo_id]].register(name)
+        try:
+            raw = bus.read_bytes(servo_id, reg.address, reg.size)
+        except ServoCommunicationError as exc:
+            raise self._comm_error(exc, f"reading {name}") from exc
+        value: int = reg.decode(raw)
+        return value
+
+    def _write_register(self, servo_id: int, name: str, value: int) -> None:
+        bus = self._require_bus()
+        reg = self.models[self._index_of[servo_id]].register(name)
+        try:
+            bus.write(servo_id, reg.address, reg.size, int(value))
+        except ServoCommunicationError as exc:
+            raise self._comm_error(exc, f"writing {name} = {value}") from exc
+        except ServoStatusError as exc:
+            raise HardwareError(f"{self._servo(servo_id)}: writing {name} = {value}: {exc}") \
+                from exc
+
+    def _setup_servo(self, i: int) -> None:
+        """Operating mode, return delay and limits (EEPROM, only if they differ: writing them
+        needs the torque off), then gains and profile (RAM); read back the command clamps."""
+        p = self.params
+        servo_id = self.ids[i]
+        model = self.models[i]
+        eeprom: dict[str, int] = {
+            "operating_mode": int(self.mode),
+            "return_delay_time": p["return_delay_time_us"] // 2,
+        }
+        if self.mode is OperatingMode.POSITION:
+            lo, hi = self._limit_ticks_lo[i], self._limit_ticks_hi[i]
+            if np.isfinite(lo):
+                eeprom["min_position_limit"] = max(_POSITION_MODE_TICKS[0], round(lo))
+            if np.isfinite(hi):
+                eeprom["max_position_limit"] = min(_POSITION_MODE_TICKS[1], round(hi))
+        changes = {
+            name: value for name, value in eeprom.items()
+            if self._read_register(servo_id, name) != value
+        }
+        if changes:
+            if self._read_register(servo_id, "torque_enable"):
+                self._write_register(servo_id, "torque_enable", 0)
+            for name, value in changes.items():
+                self._write_register(servo_id, name, value)
+        for gain in _GAINS:
+            value = p[gain][i]
+            if value is not None:
+                self._write_register(servo_id, gain, value)
+        for name, per_joint, unit in (
+            ("profile_velocity", p["profile_velocity"][i], model.velocity_unit_rad_s),
+            ("profile_acceleration", p["profile_acceleration"][i],
+             model.profile_acceleration_unit_rad_s2),
+        ):
+            counts = max(1, round(per_joint * self._gear[i] / unit)) if per_joint > 0 else 0
+            if self._read_register(servo_id, name) != counts:
+                self._write_register(servo_id, name, counts)
+        # Clamps in register units of the goal register.
+        if self.mode is OperatingMode.POSITION:
+            lo = self._read_register(servo_id, "min_position_limit")
+            hi = self._read_register(servo_id, "max_position_limit")
+            self._cmd_lo[i] = max(lo, self._limit_ticks_lo[i])
+            self._cmd_hi[i] = min(hi, self._limit_ticks_hi[i])
+        elif self.mode is OperatingMode.EXTENDED_POSITION:
+            self._cmd_lo[i] = max(_EXTENDED_TICKS[0], self._limit_ticks_lo[i])
+            self._cmd_hi[i] = min(_EXTENDED_TICKS[1], self._limit_ticks_hi[i])
+        elif self.mode is OperatingMode.VELOCITY:
+            limit = self._read_register(servo_id, "velocity_limit")
+            self._cmd_lo[i], self._cmd_hi[i] = -limit, limit
+        else:
+            limit = self._read_register(servo_id, "current_limit")
+            self._cmd_lo[i], self._cmd_hi[i] = -limit, limit
+
+    def _activate(self, now_ns: int) -> JointCommand:
+        for servo_id, flags in self._latched.items():
+            raise self._motor_fault(servo_id, flags)
+        state = self._read(now_ns)  # also raises MotorFault on an alert bit
+        n = self._n
+        held_positions = np.full(n, np.nan)
+        held_velocities = np.full(n, np.nan)
+        held_effort = np.full(n, np.nan)
+        for servo_id in self.ids:
+            if self._read_register(servo_id, "operating_mode") != int(self.mode):
+                # deactivate(HOLD) may have left a current-mode servo holding in position mode.
+                self._write_register(servo_id, "torque_enable", 0)
+                self._write_register(servo_id, "operating_mode", int(self.mode))
+        if self._interface == "position":
+            ticks = self._present_ticks
+            self._sync_write_goal("goal_position", {
+                servo_id: int(ticks[i]) for i, servo_id in enumerate(self.ids)})
+            # The held command is exactly where the servo is (whole ticks): no jump.
+            held_positions = state.positions.copy()
+        elif self._interface == "velocity":
+            self._sync_write_goal("goal_velocity", dict.fromkeys(self.ids, 0))
+            held_velocities = np.zeros(n)
+        else:
+            self._sync_write_goal("goal_current", dict.fromkeys(self.ids, 0))
+            held_effort = np.zeros(n)
+        for servo_id in self.ids:
+            self._write_register(servo_id, "torque_enable", 1)
+        return JointCommand(
+            held_positions if self._interface == "position" else None,
+            held_velocities if self._interface == "velocity" else None,
+            None,
+            held_effort if self._interface == "effort" else None,
+        )
+
+    def _sync_read_present(self) -> SyncReadResult:
+        bus = self._require_bus()
+        attempts = self.params["max_retries"] + 1
+        last: ServoCommunicationError | None = None
+        for _ in range(attempts):
+            try:
+                return bus.sync_read(
+                    self.ids, PRESENT_BLOCK_ADDRESS, PRESENT_BLOCK_SIZE,
+                    fast=self.params["fast_sync_read"],
+                )
+            except ServoCommunicationError as exc:
+                last = exc
+                self._retries += 1
+        self._retries -= 1  # the last attempt was not a retry
+        assert last is not None
+        raise self._comm_error(last, "reading the present state", attempts) from last
+
+    def _read(self, now_ns: int) -> JointState:
+        result = self._sync_read_present()
+        for servo_id, error in result.errors.items():
+            if error & ERROR_ALERT:
+                flags = self._read_register(servo_id, "hardware_error_status")
+                raise self._motor_fault(servo_id, flags or 0)
+        data = result.data
+        raw = np.frombuffer(b"".join([data[i] for i in self.ids]), dtype=_PRESENT_DTYPE)
+        # Only now, with every servo's data good, does the state change.
+        ticks = raw["position"]
+        positions: F64 = ticks * self._pos_scale + self._offset
+        self._present_ticks = ticks
+        self._positions = positions
+        self._velocities = raw["velocity"] * self._vel_scale
+        self._efforts = raw["current"] * self._effort_scale
+        velocities = self._velocities.copy() if self._velocity_state else None
+        if self._effort_state:
+            return JointState(positions.copy(), velocities, None,
+                              self._efforts.copy())  # type: ignore[call-arg]
+        return JointState(positions.copy(), velocities)
+
+    def _write(self, now_ns: int, command: JointCommand) -> None:
+        values = getattr(command, self._command_field)
+        if values is None:
+            return
+        # NaN stays NaN through the clamps (np.maximum / np.minimum propagate it).
+        raw = np.minimum(
+            np.maximum((values - self._goal_offset) * self._goal_inverse, self._cmd_lo),
+            self._cmd_hi,
+        )
+        counts = np.rint(raw)
+        missing = np.isnan(counts)
+        if missing.any():
+            keep = ~missing
+            ids = [i for i, k in zip(self.ids, keep.tolist(), strict=True) if k]
+            goals = dict(zip(ids, counts[keep].astype(np.int64).tolist(), strict=True))
+        else:
+            goals = dict(zip(self.ids, counts.astype(np.int64).tolist(), strict=True))
+        if goals:
+            self._sync_write_goal(self._goal_name, goals)
+
+    def _sync_write_goal(self, name: str, values: Mapping[int, int]) -> None:
+        bus = self._require_bus()
+        reg = self.models[0].register(name)
+        try:
+            bus.sync_write(reg.address, reg.size, values)
+        except ServoCommunicationError as exc:
+            raise self._comm_error(exc, f"writing {name}") from exc
+
+    def _deactivate(self, now_ns: int, action: SafeAction) -> None:
+        errors: list[Exception] = []
+        if action is SafeAction.TORQUE_OFF:
+            for servo_id in self.ids:
+                try:
+                    self._write_register(servo_id, "torque_enable", 0)
+                except HardwareError as exc:
+                    errors.append(exc)
+        elif self._interface == "velocity":
+            try:
+                self._sync_write_goal("goal_velocity", dict.fromkeys(self.ids, 0))
+            except HardwareError as exc:
+                errors.append(exc)
+        elif self._interface == "effort":
+            # Zero current would let the joints fall: hold in position mode until the next
+            # activation switches back (a few ms with the torque off).
+            for servo_id in self.ids:
+                try:
+                    if servo_id in self._latched:
+                        continue
+                    present = self._read_register(servo_id, "present_position")
+                    self._write_register(servo_id, "torque_enable", 0)
+                    self._write_register(servo_id, "operating_mode", int(OperatingMode.POSITION))
+                    lo = self._read_register(servo_id, "min_position_limit")
+                    hi = self._read_register(servo_id, "max_position_limit")
+                    self._write_register(servo_id, "goal_position", min(max(present, lo), hi))
+                    self._write_register(servo_id, "torque_enable", 1)
+                except HardwareError as exc:
+                    errors.append(exc)
+        elif self._positions is not None:
+            # Position mode already holds its last goal; pin it to where the joint is.
+            try:
+                ticks = self._present_ticks
+                self._sync_write_goal("goal_position", {
+                    servo_id: int(np.clip(ticks[i], self._cmd_lo[i], self._cmd_hi[i]))
+                    for i, servo_id in enumerate(self.ids) if servo_id not in self._latched
+                })
+            except HardwareError as exc:
+                errors.append(exc)
+        if errors:
+            first = errors[0]
+            for other in errors[1:]:
+                first.add_note(f"also: {other}")
+            raise first
+
+    def _recover(self) -> None:
+        bus = self._require_bus()
+        deadline_s = self.params["reboot_timeout_s"]
+        for i, servo_id in enumerate(self.ids):
+            flags = self._latched.get(servo_id)
+            if not flags:
+                continue
+            try:
+                bus.reboot(servo_id)
+            except ServoCommunicationError as exc:
+                raise self._comm_error(exc, "reboot") from exc
+            self._wait_for(servo_id, deadline_s)
+            remaining = self._read_register(servo_id, "hardware_error_status")
+            if remaining:
+                raise self._motor_fault(servo_id, remaining)
+            del self._latched[servo_id]
+            self._last_fault_by_servo.pop(servo_id, None)
+            self._setup_servo(i)
+            _log.info("%s: rebooted, hardware error %s cleared", self._servo(servo_id),
+                      _hardware_error_text(flags))
+
+    def _wait_for(self, servo_id: int, timeout_s: float) -> None:
+        """Ping until the rebooted servo answers, at most ``timeout_s`` (each ping is itself
+        bounded by the bus timeout, so this never spins)."""
+        bus = self._require_bus()
+        deadline = time.monotonic() + timeout_s
+        while True:
+            try:
+                bus.ping(servo_id)
+                return
+            except ServoCommunicationError as exc:
+                if time.monotonic() >= deadline:
+                    raise CommunicationError(
+                        f"{self._servo(servo_id)}: did not answer within {timeout_s:g} s after "
+                        f"its reboot ({exc.cause}); check its power and cable"
+                    ) from exc
+
+    def _cleanup(self) -> None:
+        if self._bus is not None:
+            self._bus.close()
+            self._bus = None
+
+    def _details(self) -> Mapping[str, Any]:
+        bus = self._bus
+        return {
+            "port": self.params["port"],
+            "baud_rate": self.params["baud_rate"],
+            "operating_mode": self.mode.name.lower(),
+            "bus": bus.stats.as_dict() if bus is not None else None,
+            "latency_timer_ms": bus.latency_timer if bus is not None else None,
+            "retries": self._retries,
+            "servos": {
+                str(servo_id): {
+                    "joint": joint,
+                    "model": model.name,
+                    "hardware_error": (_hardware_error_text(self._latched[servo_id])
+                                       if servo_id in self._latched else None),
+                    "last_fault": self._last_fault_by_servo.get(servo_id),
+                    "effort": (float(self._efforts[i]) if self._positions is not None
+                               and model.current_unit_a else None),
+                }
+                for i, (servo_id, joint, model) in enumerate(
+                    zip(self.ids, self.joints, self.models, strict=True))
+            },
+        }
+
+    # -- test / tool accessors ------------------------------------------------------------------
+
+    @property
+    def last_positions(self) -> F64 | None:
+        """The joint positions of the last good read (``None`` before the first)."""
+        return None if self._positions is None else self._positions.copy()
+
+    @property
+    def last_efforts(self) -> F64:
+        """The joint efforts of the last good read, N*m (present current * torque constant *
+        gear ratio)."""
+        return self._efforts.copy()
+
+    @property
+    def bus(self) -> DynamixelBus | None:
+        """The bus while configured (``None`` otherwise)."""
+        return self._bus

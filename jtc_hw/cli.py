@@ -386,10 +386,18 @@ def cmd_status(args: argparse.Namespace) -> int:
 DEMO_JOINTS = [f"joint{i}" for i in range(1, 7)]
 
 
-def demo_config(socket_path: str) -> dict[str, Any]:
-    """A six-joint arm on simulated (mirror) hardware at 500 Hz."""
+def demo_config(
+    socket_path: str,
+    hardware: list[dict[str, Any]] | None = None,
+    update_rate: int = 500,
+) -> dict[str, Any]:
+    """A six-joint arm, by default on simulated (mirror) hardware at 500 Hz."""
+    if hardware is None:
+        hardware = [
+            {"name": "arm", "kind": "mirror", "joints": DEMO_JOINTS, "params": {"lag_s": 0.005}}
+        ]
     return {
-        "controller_manager": {"ros__parameters": {"update_rate": 500}},
+        "controller_manager": {"ros__parameters": {"update_rate": update_rate}},
         "joint_trajectory_controller": {
             "ros__parameters": {
                 "joints": DEMO_JOINTS,
@@ -404,11 +412,75 @@ def demo_config(socket_path: str) -> dict[str, Any]:
                 },
             }
         },
-        "hardware": [
-            {"name": "arm", "kind": "mirror", "joints": DEMO_JOINTS, "params": {"lag_s": 0.005}}
-        ],
+        "hardware": hardware,
         "daemon": {"socket": socket_path},
     }
+
+
+DEMO_HARDWARE = ("mirror", "dynamixel", "can-mit", "can-cia402")
+
+
+def _start_emulator(kind: str, timeout_s: float) -> tuple[subprocess.Popen[str], str]:
+    """Start ``jtc-hw emulate`` for a demo hardware kind; return it and its connection line."""
+    if kind == "dynamixel":
+        argv = ["dynamixel", "--ids", "1-6", "--model", "XM430-W350", "--baud", "4000000"]
+    else:
+        protocol = "mit" if kind == "can-mit" else "cia402"
+        argv = ["can", "--protocol", protocol, "--ids", "1-6", "--pace",
+                "--interface", "socketcand", "--socketcand-port", "0"]
+    emulator = subprocess.Popen(
+        [sys.executable, "-m", "jtc_hw", "emulate", *argv],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    assert emulator.stdout is not None and emulator.stderr is not None
+    threading.Thread(
+        target=_forward, args=(emulator.stderr, "  emulator | "), daemon=True
+    ).start()
+    found: list[str] = []
+    reader = threading.Thread(target=lambda: found.append(emulator.stdout.readline()), daemon=True)
+    reader.start()
+    reader.join(timeout_s)
+    line = found[0].strip() if found else ""
+    if not line:
+        emulator.kill()
+        emulator.wait()
+        raise JtcHwError(f"the {kind} emulator did not start (exit status {emulator.returncode})")
+    return emulator, line
+
+
+def demo_hardware(kind: str, line: str) -> tuple[list[dict[str, Any]], int]:
+    """The demo arm's hardware section and update rate on an emulator (``line``: what
+    ``jtc-hw emulate`` printed: a device path, or ``interface=... host=... port=...``)."""
+    if kind == "dynamixel":
+        params: dict[str, Any] = {
+            "port": line,
+            "baud_rate": 4000000,
+            "ids": [1, 2, 3, 4, 5, 6],
+            "model": "XM430-W350",
+            "offset": -math.pi,  # the emulated servos start at tick 2048 (pi): joint zero
+            "timeout_ms": 20.0,  # a pty served by another process on a possibly busy machine
+            "latency_timer_warn": False,
+        }
+        return [{"name": "arm", "kind": "dynamixel", "joints": DEMO_JOINTS, "params": params}], 200
+    fields = dict(item.split("=", 1) for item in line.split() if "=" in item)
+    bus = {
+        "interface": "socketcand",
+        "channel": fields["channel"].split(",")[0],
+        "host": fields["host"],
+        "port": int(fields["port"]),
+        "bitrate": 1000000,
+        "receive_timeout": 0.002,
+        "setup_timeout": 0.5,
+    }
+    if kind == "can-mit":
+        params = {"buses": {"can0": bus}, "ids": [1, 2, 3, 4, 5, 6], "model": "AK80-9",
+                  "kp": 40.0, "kd": 1.0, "feedback_timeout": 0.1}
+    else:
+        params = {"buses": {"can0": bus}, "node_id": [1, 2, 3, 4, 5, 6],
+                  "feedback_timeout_s": 0.25}
+    return [{"name": "arm", "kind": kind, "joints": DEMO_JOINTS, "params": params}], 250
 
 
 def demo_goal() -> dict[str, Any]:
@@ -437,6 +509,26 @@ def _forward(stream: Any, prefix: str) -> None:
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
+    emulator = None
+    hardware = None
+    update_rate = 500
+    if args.hardware != "mirror" and not args.config:
+        emulator, line = _start_emulator(args.hardware, args.timeout)
+        print(f"jtc-hw demo: emulated {args.hardware} motors: {line}")
+        hardware, update_rate = demo_hardware(args.hardware, line)
+    try:
+        return _demo(args, hardware, update_rate)
+    finally:
+        if emulator is not None:
+            emulator.send_signal(signal.SIGTERM)
+            try:
+                emulator.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                emulator.kill()
+                emulator.wait()
+
+
+def _demo(args: argparse.Namespace, hardware: list[dict[str, Any]] | None, rate: int) -> int:
     from .client import Client
 
     with tempfile.TemporaryDirectory(prefix="jtc-hw-demo-") as tmp:
@@ -449,7 +541,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
         else:
             socket_path = os.path.join(tmp, "jtc-hw.sock")
             config_path = os.path.join(tmp, "robot.yaml")
-            Path(config_path).write_text(yaml.safe_dump(demo_config(socket_path)))
+            config = demo_config(socket_path, hardware, rate)
+            Path(config_path).write_text(yaml.safe_dump(config))
             goal = demo_goal()
         print(f"jtc-hw demo: starting the daemon ({config_path})")
         daemon = subprocess.Popen(
@@ -576,6 +669,18 @@ def build_parser() -> argparse.ArgumentParser:
         ),
     )
     p.add_argument("--config", help="use this robot configuration instead of the built-in arm")
+    p.add_argument(
+        "--hardware",
+        choices=DEMO_HARDWARE,
+        default="mirror",
+        help=(
+            "what the built-in six-joint arm runs on: simulated joints (mirror, the default), "
+            "or emulated motors speaking the real protocol, started for the demo: dynamixel "
+            "(six XM430-W350 on a pseudo-terminal, through the Dynamixel SDK), can-mit (six "
+            "AK80-9 in MIT mode) or can-cia402 (six CiA 402 drives), both over python-can's "
+            "socketcand interface"
+        ),
+    )
     p.add_argument("--timeout", type=float, default=30.0)
     p.set_defaults(func=cmd_demo)
 

@@ -434,12 +434,11 @@ def _start_emulator(kind: str, timeout_s: float) -> tuple[subprocess.Popen[str],
         stderr=subprocess.PIPE,
         text=True,
     )
-    assert emulator.stdout is not None and emulator.stderr is not None
-    threading.Thread(
-        target=_forward, args=(emulator.stderr, "  emulator | "), daemon=True
-    ).start()
+    stdout, stderr = emulator.stdout, emulator.stderr
+    assert stdout is not None and stderr is not None
+    threading.Thread(target=_forward, args=(stderr, "  emulator | "), daemon=True).start()
     found: list[str] = []
-    reader = threading.Thread(target=lambda: found.append(emulator.stdout.readline()), daemon=True)
+    reader = threading.Thread(target=lambda: found.append(stdout.readline()), daemon=True)
     reader.start()
     reader.join(timeout_s)
     line = found[0].strip() if found else ""

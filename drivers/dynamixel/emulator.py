@@ -63,12 +63,14 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import ctypes
 import dataclasses
 import errno
 import math
 import os
 import select
 import signal
+import struct
 import sys
 import threading
 import time
@@ -106,8 +108,15 @@ __all__ = ["DynamixelEmulator", "build_parser", "main", "parse_ids"]
 _TWO_PI = 2.0 * math.pi
 #: Physics advance period while the bus is idle, s.
 _IDLE_STEP_S = 0.005
-#: Waits shorter than this are skipped (sleeping that briefly is not accurate anyway), s.
+#: Unpaced: waits shorter than this are skipped (sleeping that briefly is not accurate), s.
 _MIN_WAIT_S = 0.0002
+#: Paced: the last part of a wait is spun rather than slept (a sleep wakes ~20-35 us late even
+#: with a 1 us timer slack on this kind of machine), s.
+_SPIN_S = 0.00006
+#: Paced waits longer than this sleep on the stop event so that close() stays prompt, s.
+_PROMPT_WAIT_S = 0.002
+#: Timer slack asked for the serving thread (Linux ``PR_SET_TIMERSLACK``; default 50 us), ns.
+_TIMER_SLACK_NS = 1000
 #: A partial packet older than this is dropped (the servos' inter-byte timeout), s.
 _PARTIAL_TIMEOUT_S = 0.1
 #: CLEAR's fixed parameters (option 0x01 "clear multi-turn" and the "DXL" key + 0x22).
@@ -117,6 +126,80 @@ _POSITION_MODES = (
     OperatingMode.EXTENDED_POSITION,
     OperatingMode.CURRENT_BASED_POSITION,
 )
+#: The present registers that follow the motor, written together once per physics step.
+_PRESENT_NAMES = (
+    "realtime_tick",
+    "moving",
+    "moving_status",
+    "present_pwm",
+    "present_current",
+    "present_load",
+    "present_velocity",
+    "present_position",
+    "velocity_trajectory",
+    "position_trajectory",
+    "present_input_voltage",
+    "present_temperature",
+)
+_STRUCT_CODES = {(1, False): "B", (1, True): "b", (2, False): "H", (2, True): "h",
+                 (4, False): "I", (4, True): "i"}
+
+
+@dataclasses.dataclass(frozen=True)
+class _Layout:
+    """A model's registers in the form the hot paths want (no Register method calls).
+
+    Attributes:
+        fields: name -> (address, end, signed, lowest, highest encodable value).
+        present_names: the registers of :data:`_PRESENT_NAMES` the model has, by address.
+        present_struct: packs ``present_names`` (gaps padded) starting at ``present_start``.
+        present_bounds: (lowest, highest) encodable value of each of ``present_names``.
+    """
+
+    fields: Mapping[str, tuple[int, int, bool, int, int]]
+    present_names: tuple[str, ...]
+    present_start: int
+    present_struct: struct.Struct
+    present_bounds: tuple[tuple[int, int], ...]
+
+
+def _bounds(reg: Register) -> tuple[int, int]:
+    """The values ``reg``'s size and signedness can hold (the clamp of :meth:`_Servo.set`)."""
+    if reg.signed:
+        return -(1 << (8 * reg.size - 1)), (1 << (8 * reg.size - 1)) - 1
+    return 0, (1 << (8 * reg.size)) - 1
+
+
+_LAYOUTS: dict[str, _Layout] = {}
+
+
+def _layout(model: Model) -> _Layout:
+    """The :class:`_Layout` of ``model`` (built once per model name)."""
+    cached = _LAYOUTS.get(model.name)
+    if cached is not None:
+        return cached
+    fields = {
+        name: (reg.address, reg.end, reg.signed, *_bounds(reg))
+        for name, reg in model.registers.items()
+    }
+    present = sorted(
+        (model.registers[n] for n in _PRESENT_NAMES if n in model.registers),
+        key=lambda r: r.address,
+    )
+    start = present[0].address
+    fmt, at = "<", start
+    for reg in present:
+        fmt += "x" * (reg.address - at) + _STRUCT_CODES[reg.size, reg.signed]
+        at = reg.end
+    layout = _Layout(
+        fields=fields,
+        present_names=tuple(r.name for r in present),
+        present_start=start,
+        present_struct=struct.Struct(fmt),
+        present_bounds=tuple(_bounds(r) for r in present),
+    )
+    _LAYOUTS[model.name] = layout
+    return layout
 
 
 class _Servo:
@@ -125,6 +208,11 @@ class _Servo:
     def __init__(self, model: Model, servo_id: int, position: float, baud_value: int) -> None:
         self.model = model
         self.table = model.defaults()
+        self._layout = _layout(model)
+        self._fields = self._layout.fields
+        # The present registers are rewritten lazily: after a physics step or a write they are
+        # stale until something reads the table (see refresh()).
+        self.stale = True
         self.epoch = time.monotonic()
         self.set("id", servo_id)
         self.set("baud_rate", baud_value)
@@ -155,13 +243,17 @@ class _Servo:
         return self.table[7]
 
     def get(self, name: str) -> int:
-        reg = self.model.registers[name]
-        return reg.decode(self.table[reg.address : reg.end])
+        address, end, signed, _, _ = self._fields[name]
+        return int.from_bytes(self.table[address:end], "little", signed=signed)
 
     def set(self, name: str, value: int) -> None:
-        reg = self.model.registers.get(name)
-        if reg is not None:
-            self.table[reg.address : reg.end] = _clamped_bytes(reg, value)
+        """Store ``value`` (clamped to what the register's bytes hold); unknown names ignored."""
+        f = self._fields.get(name)
+        if f is not None:
+            address, end, signed, lo, hi = f
+            value = max(lo, min(hi, int(value)))
+            self.table[address:end] = value.to_bytes(end - address, "little", signed=signed)
+            self.stale = True
 
     @property
     def direction(self) -> int:
@@ -193,9 +285,10 @@ class _Servo:
 
     def step(self, now: float) -> None:
         dt = now - self.last_step
-        self.last_step = now
         if dt <= 0.0:
             return
+        self.last_step = now
+        self.stale = True
         m, motor = self.model, self.motor
         watchdog = self.get("bus_watchdog")
         if self.torque_on and watchdog > 0 and now - self.last_instruction > watchdog * 0.02:
@@ -244,30 +337,47 @@ class _Servo:
         self.set("goal_position", self.present_ticks())
         self.motor.reset_reference()
 
+    def refresh(self) -> None:
+        """Bring the present registers up to date if a step or a write made them stale."""
+        if self.stale:
+            self.sync_present()
+
     def sync_present(self) -> None:
-        """Copy the motor's state into the present registers."""
+        """Copy the motor's state into the present registers (one ``pack_into`` of the block)."""
         m, motor, d = self.model, self.motor, self.direction
         now = self.last_step
-        self.set("present_position", self.present_ticks())
-        self.set("present_velocity", d * m.rad_s_to_velocity(motor.velocity))
+        present_ticks = self.present_ticks()
+        velocity = m.rad_s_to_velocity(motor.velocity)
+        values = {
+            "present_position": present_ticks,
+            "present_velocity": d * velocity,
+            "present_pwm": d * round(885.0 * motor.torque / m.stall_torque_nm),
+        }
         if m.current_unit_a is not None and m.torque_constant_nm_per_a:
             amps = motor.torque / m.torque_constant_nm_per_a
-            self.set("present_current", d * m.a_to_current(amps))
+            values["present_current"] = d * m.a_to_current(amps)
         else:
-            self.set("present_load", d * round(1000.0 * motor.torque / m.stall_torque_nm))
-        self.set("present_pwm", d * round(885.0 * motor.torque / m.stall_torque_nm))
-        moving = abs(m.rad_s_to_velocity(motor.velocity)) > self.get("moving_threshold")
-        self.set("moving", int(moving))
-        in_position = abs(self.get("goal_position") - self.present_ticks()) <= 20
+            values["present_load"] = d * round(1000.0 * motor.torque / m.stall_torque_nm)
+        moving = abs(velocity) > self.get("moving_threshold")
+        values["moving"] = int(moving)
+        in_position = abs(self.get("goal_position") - present_ticks) <= 20
         profiling = abs(motor.reference - motor.position) > 1e-3 or moving
-        self.set("moving_status", (0x01 if in_position else 0) | (0x02 if profiling else 0))
-        self.set(
-            "position_trajectory", d * m.rad_to_ticks(motor.reference) + self.get("homing_offset")
+        values["moving_status"] = (0x01 if in_position else 0) | (0x02 if profiling else 0)
+        values["position_trajectory"] = (
+            d * m.rad_to_ticks(motor.reference) + self.get("homing_offset")
         )
-        self.set("velocity_trajectory", d * m.rad_s_to_velocity(motor.velocity))
-        self.set("realtime_tick", int((now - self.epoch) * 1000.0) % 32768)
-        self.set("present_input_voltage", round(m.nominal_voltage_v * 10.0))
-        self.set("present_temperature", 35)
+        values["velocity_trajectory"] = d * velocity
+        values["realtime_tick"] = int((now - self.epoch) * 1000.0) % 32768
+        values["present_input_voltage"] = round(m.nominal_voltage_v * 10.0)
+        values["present_temperature"] = 35
+        layout = self._layout
+        packed = [
+            # Clamped like set(); a register the motor does not drive keeps its value.
+            max(lo, min(hi, int(values[name]))) if name in values else self.get(name)
+            for name, (lo, hi) in zip(layout.present_names, layout.present_bounds, strict=True)
+        ]
+        layout.present_struct.pack_into(self.table, layout.present_start, *packed)
+        self.stale = False
 
     # -- writes -------------------------------------------------------------------------------
 
@@ -327,6 +437,7 @@ class _Servo:
         """Store an accepted write and apply its side effects."""
         was_on = self.torque_on
         self.table[address : address + len(data)] = data
+        self.stale = True  # goals, offsets and the drive mode feed the present registers
         if self.torque_on and not was_on:
             self.motor.reset_reference()
             self.set("goal_position", self.present_ticks())
@@ -348,10 +459,19 @@ class _Servo:
         self.sync_present()
 
 
-def _clamped_bytes(reg: Register, value: int) -> bytes:
-    lo = -(1 << (8 * reg.size - 1)) if reg.signed else 0
-    hi = (1 << (8 * reg.size - 1)) - 1 if reg.signed else (1 << (8 * reg.size)) - 1
-    return reg.encode(max(lo, min(hi, int(value))))
+def _precise_timers() -> None:
+    """Ask Linux for a 1 us timer slack on this thread so that short paced sleeps end on time.
+
+    Best effort: elsewhere (or if ``prctl`` is unavailable) the default slack stays and the
+    spin at the end of each wait absorbs it.
+    """
+    if not sys.platform.startswith("linux"):
+        return
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(29, _TIMER_SLACK_NS, 0, 0, 0)  # 29: PR_SET_TIMERSLACK (per thread)
+    except (OSError, AttributeError):
+        pass
 
 
 @dataclasses.dataclass
@@ -415,7 +535,11 @@ class DynamixelEmulator:
         self._slave = -1
         self._slave_path = ""
         self._decoder = Decoder()
+        self._baud = baud
+        # When the bus is next idle (the end of the last request or reply on the wire, paced
+        # mode; the last reply's due time, unpaced).
         self._bus_free = 0.0
+        self._last_step = 0.0  # when every servo was last stepped (idle stepping)
         self.packets_served = 0
         self.replies_sent = 0
         self.bytes_dropped = 0
@@ -593,7 +717,9 @@ class DynamixelEmulator:
     # -- serving ------------------------------------------------------------------------------
 
     def _serve(self) -> None:
+        _precise_timers()
         last_rx = time.monotonic()
+        first_byte = last_rx  # when the first byte of the packet being received arrived
         while not self._stop.is_set():
             try:
                 readable, _, _ = select.select([self._master], [], [], _IDLE_STEP_S)
@@ -613,28 +739,49 @@ class DynamixelEmulator:
                 if data:
                     if self._decoder.pending and now - last_rx > _PARTIAL_TIMEOUT_S:
                         self._decoder.reset()
+                    if not self._decoder.pending:
+                        first_byte = now
                     last_rx = now
+                    arrival = now
                     for packet in self._decoder.feed(data):
-                        self._handle(packet, now)
-                        now = time.monotonic()
-            with self._lock:
-                for s in self._servos:
-                    s.step(now)
+                        self._handle(packet, arrival, first_byte)
+                        # Further packets of this chunk began on the wire with it at the
+                        # latest (pacing queues them behind the previous one anyway).
+                        first_byte = now
+                        arrival = time.monotonic()
+            # Physics runs once per request (in _handle); the idle bus only needs the watchdog
+            # and the coasting motors to move on now and then.
+            now = time.monotonic()
+            if now - self._last_step >= _IDLE_STEP_S:
+                with self._lock:
+                    for s in self._servos:
+                        s.step(now)
+                    self._last_step = now
 
-    def _handle(self, packet: Packet, arrival: float) -> None:
+    def _handle(self, packet: Packet, arrival: float, first_byte: float) -> None:
+        """Step the physics to ``arrival``, execute ``packet`` and send its replies.
+
+        ``first_byte`` is when the packet's first byte arrived: paced replies are timed from
+        there (or from when the bus is free, if later).
+        """
         with self._lock:
             for s in self._servos:
                 s.step(arrival)
-                s.sync_present()
                 if packet.crc_ok and not packet.is_status:
                     s.last_instruction = arrival
+            self._last_step = arrival
             replies, fast = self._dispatch(packet, arrival)
             if replies or fast:
                 self.packets_served += 1
             elif packet.crc_ok and not packet.is_status:
                 self.packets_served += 1
         if replies or fast:
-            self._transmit(packet, replies, fast, arrival)
+            self._transmit(packet, replies, fast, first_byte if self.pace else arrival)
+        elif self.pace:
+            # No reply, but the packet held the bus for its wire time: a request right behind
+            # it (a Sync Read after a Sync Write) starts on the wire only after it.
+            start = max(first_byte, self._bus_free)
+            self._bus_free = start + wire_time_s(len(packet.raw), self._baud)
 
     def _awake(self, now: float) -> list[_Servo]:
         return [s for s in self._servos if s.rebooting_until <= now]
@@ -686,6 +833,7 @@ class DynamixelEmulator:
             address, length = params[0] | params[1] << 8, params[2] | params[3] << 8
             if address + length > len(s.table) or length == 0:
                 return ErrorNumber.ACCESS, b""
+            s.refresh()
             return 0, bytes(s.table[address : address + length])
         if inst in (Instruction.WRITE, Instruction.REG_WRITE):
             if len(params) < 3:
@@ -712,6 +860,7 @@ class DynamixelEmulator:
         if inst == Instruction.CLEAR:
             if bytes(params) != _CLEAR_MULTI_TURN:
                 return ErrorNumber.DATA_RANGE, b""
+            s.refresh()
             if s.get("moving"):
                 return ErrorNumber.RESULT_FAIL, b""
             s.motor.position = math.remainder(s.motor.position, _TWO_PI) % _TWO_PI
@@ -753,6 +902,7 @@ class DynamixelEmulator:
             if address + length > len(s.table) or length == 0:
                 error, data = int(ErrorNumber.ACCESS), bytes(length)
             else:
+                s.refresh()
                 error, data = 0, bytes(s.table[address : address + length])
             if fast:
                 replies.append(_Reply(s, bytes((error | s.error_byte,)) + data))
@@ -765,11 +915,16 @@ class DynamixelEmulator:
     # -- output -------------------------------------------------------------------------------
 
     def _transmit(
-        self, request: Packet, replies: list[_Reply], fast: list[_Reply], arrival: float
+        self, request: Packet, replies: list[_Reply], fast: list[_Reply], start: float
     ) -> None:
-        """Send the replies in order, each after its servo's delays (and wire time)."""
+        """Send the replies in order, each after its servo's delays (and wire time).
+
+        Paced, the replies are computed at once and each is written when its last byte would
+        arrive on a real bus: ``start`` (the request's first byte, or when the bus is free) +
+        the request's wire time + for each reply in turn its return delay and wire time.
+        """
         bus_baud = replies[0].servo.baud() if replies else fast[0].servo.baud()
-        t = max(arrival, self._bus_free)
+        t = max(start, self._bus_free)
         if self.pace:
             t += wire_time_s(len(request.raw), bus_baud)
         chunks: list[tuple[_Servo, bytes]]
@@ -795,15 +950,25 @@ class DynamixelEmulator:
                     if self._consume_corrupt(r.servo):
                         data = data[:-1] + bytes((data[-1] ^ 0xFF,))
                     chunks.append((r.servo, data))
-        # Each reply goes out when it is due. Replies already due are written together: every
-        # wait costs the host a thread switch when it shares our interpreter (tests), so waits
-        # shorter than _MIN_WAIT_S are skipped.
-        pending: list[bytes] = []
+        due: list[tuple[float, bytes]] = []
         for servo, data in chunks:
             t += servo.return_delay_s() + servo.delay_s
             if self.pace:
                 t += wire_time_s(len(data), servo.baud())
-            remaining = t - time.monotonic()
+            due.append((t, data))
+        self._bus_free = t
+        if self.pace:
+            for when, data in due:
+                if self._wait_until(when):
+                    return
+                self._write([data])
+            return
+        # Unpaced, replies already due are written together: every wait costs the host a
+        # thread switch when it shares our interpreter (tests), so waits shorter than
+        # _MIN_WAIT_S are skipped.
+        pending: list[bytes] = []
+        for when, data in due:
+            remaining = when - time.monotonic()
             if remaining > _MIN_WAIT_S:
                 if pending:
                     self._write(pending)
@@ -813,7 +978,25 @@ class DynamixelEmulator:
             pending.append(data)
         if pending:
             self._write(pending)
-        self._bus_free = t
+
+    def _wait_until(self, deadline: float) -> bool:
+        """Wait until ``time.monotonic()`` reaches ``deadline``; ``True`` if stopped meanwhile.
+
+        Sleeps (on the stop event when long, else in ``select``) until _SPIN_S before the
+        deadline, then spins: a test device's pacing, bounded to ~_SPIN_S of busy waiting.
+        """
+        while True:
+            remaining = deadline - time.monotonic()
+            if remaining <= _SPIN_S:
+                break
+            if remaining > _PROMPT_WAIT_S:
+                if self._stop.wait(remaining - _SPIN_S):
+                    return True
+            else:
+                select.select([], [], [], remaining - _SPIN_S)
+        while time.monotonic() < deadline:
+            pass
+        return self._stop.is_set()
 
     def _consume_drop(self, s: _Servo) -> bool:
         if s.silent:

@@ -1,9 +1,11 @@
 #!/usr/bin/env python3
 """Cycle rate of the real CiA 402 driver against wire-paced emulated drives.
 
-Six drives (``Cia402DriveEmulator``, pacing their bus at 1 Mbit/s) on one bus, and on two
-buses of three, each on python-can ``virtual`` buses in this process. The real
-``Cia402Hardware`` runs read + write cycles as fast as it can for ``--duration`` seconds:
+Six drives on one 1 Mbit/s bus, on two buses of three, and (the parallelism reference) three
+drives on one bus alone. Each bus and its drives are one ``jtc-hw emulate can --protocol
+cia402 --pace`` process (outside the driver's process and each other's, as separate hardware
+is), reached through python-can's stock ``socketcand`` interface (``tcp_tune`` on). The real
+``Cia402Hardware`` runs write + read cycles as fast as it can for ``--duration`` seconds:
 ``write`` sends every drive's RPDO1 (controlword + target position, 6 bytes) and a SYNC, then
 ``read`` waits (bounded at 50 ms) until every drive's two TPDOs (8 + 7 bytes) have arrived.
 
@@ -14,11 +16,12 @@ Figures per row:
   bit count (``jtc_hw.drivers.can.bus.wire_time_s``): RPDOs + SYNC + TPDOs; with two buses
   the buses carry their frames at the same time, so the larger of the two.
 - ``ratio``: ``cycle_us / wire_us`` (1.0: the wire is the only limit).
+- ``driver_cpu_us``: the cycling thread's CPU time per cycle; ``driver_ratio``:
+  ``(wire + driver cpu) / wire``.
+- the two-bus row: ``alone_rate_hz`` (three drives on one bus alone) and ``parallel`` (its
+  rate over that; >= 0.9 counts as parallel).
 
-The emulators share this process (and its interpreter lock) with the driver: their receive
-threads, the motor physics and the pacing sleeps compete with the driver for the CPU, which a
-real bus with real drives would not. ``--profile`` adds where the driver's cycle time goes
-(time inside ``read`` waiting for frames vs. everything else).
+``--profile`` adds the time spent inside ``read`` and the missed answers.
 
 Usage:  python bench/bus_rate_cia402.py [--duration S] [--json] [--profile]
 Target: cycle <= 1.3 x wire time; two buses in parallel at about the rate of one bus of three.
@@ -27,26 +30,26 @@ Target: cycle <= 1.3 x wire time; two buses in parallel at about the rate of one
 from __future__ import annotations
 
 import argparse
+import gc
 import json
+import sys
 import time
-import uuid
+from pathlib import Path
 from typing import Any
 
 import can
-import numpy as np
 from jtc_hw.drivers.can import cia402_codec as c4
 from jtc_hw.drivers.can.bus import wire_time_s
 from jtc_hw.drivers.can.cia402 import Cia402Hardware
-from jtc_hw.drivers.can.cia402_emulator import Cia402DriveEmulator
-from jtc_hw.drivers.motor_model import MotorParams
 
 from jtc_hw.joints import JointCommand
+from jtc_hw.realtime import reduce_timer_slack
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bus_rate_can import _mark_parallel, emulator_processes, parallel_check  # noqa: E402
 
 BITRATE = 1_000_000
 MOTORS = 6
-PHYSICS = MotorParams(max_step_s=0.0005)
-"""Motor physics integrated in sub-steps of at most 0.5 ms (the default 0.2 ms costs the
-emulators' thread, which shares this interpreter with the driver, 2.5x the CPU)."""
 
 
 def _cycle_frames(node_ids: list[int]) -> list[can.Message]:
@@ -69,58 +72,51 @@ def _run(
     buses: int, duration_s: float, profile: bool = False, motors: int = MOTORS
 ) -> dict[str, Any]:
     per_bus = motors // buses
-    tag = uuid.uuid4().hex[:6]
-    channels = [f"bench-cia402-{tag}-{i}" for i in range(buses)]
-    emulator_buses = [can.Bus(interface="virtual", channel=ch) for ch in channels]
-    layout = {ch: list(range(1, per_bus + 1)) for ch in channels}
-    drives = [
-        Cia402DriveEmulator(bus, node, pace_bitrate=BITRATE, motor_params=PHYSICS)
-        for bus, ch in zip(emulator_buses, channels, strict=True) for node in layout[ch]
-    ]
+    layout = {f"can{i}": list(range(1, per_bus + 1)) for i in range(buses)}
     joints = [f"j{i}" for i in range(motors)]
-    params = {
-        "buses": {f"can{i}": {"interface": "virtual", "channel": ch, "bitrate": BITRATE,
-                              "receive_timeout": 0.05, "setup_timeout": 0.5}
-                  for i, ch in enumerate(channels)},
-        "bus": [f"can{i // per_bus}" for i in range(motors)],
-        "node_id": [layout[channels[i // per_bus]][i % per_bus] for i in range(motors)],
-        "feedback_timeout_s": 1.0,
-    }
-    hw = Cia402Hardware("bench", joints, ["position"], ["position", "velocity"], params)
     waited = 0.0
-    try:
-        for d in drives:
-            d.start()
-        hw.configure()
-        held = hw.activate(time.monotonic_ns())
-        target = held.positions
-        assert target is not None
-        command = JointCommand(target.copy())
-        # Warm-up, then the measured run.
-        for _ in range(20):
-            hw.write(time.monotonic_ns(), command)
-            hw.read(time.monotonic_ns())
-        cycles = 0
-        start = time.perf_counter()
-        end = start + duration_s
-        while True:
-            now = time.perf_counter()
-            if now >= end:
-                break
-            hw.write(time.monotonic_ns(), command)
-            t = time.perf_counter()
-            hw.read(time.monotonic_ns())
-            waited += time.perf_counter() - t
-            cycles += 1
-        elapsed = time.perf_counter() - start
-        missed = sum(v["missed"] for v in hw.status()["details"]["drives"].values())
-    finally:
-        hw.shutdown(time.monotonic_ns())
-        for d in drives:
-            d.stop()
-        for bus in emulator_buses:
-            bus.shutdown()
-    wire_s = max(wire_time_s(_cycle_frames(layout[ch]), BITRATE) for ch in channels)
+    with emulator_processes("cia402", layout) as bus_params:
+        params = {
+            "buses": {name: {**settings, "bitrate": BITRATE, "receive_timeout": 0.05,
+                             "setup_timeout": 0.5}
+                      for name, settings in bus_params.items()},
+            "bus": [name for name, ids in layout.items() for _ in ids],
+            "node_id": [n for ids in layout.values() for n in ids],
+            "feedback_timeout_s": 1.0,
+        }
+        hw = Cia402Hardware("bench", joints, ["position"], ["position", "velocity"], params)
+        try:
+            hw.configure()
+            held = hw.activate(time.monotonic_ns())
+            target = held.positions
+            assert target is not None
+            command = JointCommand(target.copy())
+            # Warm-up, then the measured run.
+            for _ in range(50):
+                hw.write(time.monotonic_ns(), command)
+                hw.read(time.monotonic_ns())
+            gc.collect()
+            gc.freeze()
+            cycles = 0
+            cpu0 = time.thread_time()
+            start = time.perf_counter()
+            end = start + duration_s
+            while True:
+                now = time.perf_counter()
+                if now >= end:
+                    break
+                hw.write(time.monotonic_ns(), command)
+                t = time.perf_counter()
+                hw.read(time.monotonic_ns())
+                waited += time.perf_counter() - t
+                cycles += 1
+            elapsed = time.perf_counter() - start
+            cpu = time.thread_time() - cpu0
+            gc.unfreeze()
+            missed = sum(v["missed"] for v in hw.status()["details"]["drives"].values())
+        finally:
+            hw.shutdown(time.monotonic_ns())
+    wire_s = max(wire_time_s(_cycle_frames(ids), BITRATE) for ids in layout.values())
     cycle_s = elapsed / max(cycles, 1)
     row: dict[str, Any] = {
         "bus": "can-cia402",
@@ -131,6 +127,9 @@ def _run(
         "cycle_us": round(cycle_s * 1e6, 1),
         "wire_us": round(wire_s * 1e6, 1),
         "ratio": round(cycle_s / wire_s, 3),
+        "transport": "socketcand",
+        "driver_cpu_us": round(cpu / max(cycles, 1) * 1e6, 1),
+        "driver_ratio": round((wire_s + cpu / max(cycles, 1)) / wire_s, 3),
     }
     if profile:
         row["read_wait_us"] = round(waited / max(cycles, 1) * 1e6, 1)
@@ -138,13 +137,20 @@ def _run(
     return row
 
 
-def cia402_rows(duration_s: float, profile: bool = False) -> list[dict[str, Any]]:
-    """Rows for six drives on one 1 Mbit/s bus and on two buses of three (module docstring).
+def cia402_rows(
+    duration_s: float, profile: bool = False, reference: bool = True
+) -> list[dict[str, Any]]:
+    """Rows for six drives on one 1 Mbit/s bus, on two buses of three and, with
+    ``reference``, three drives on one bus alone (the parallelism check; module docstring).
 
     Raises:
         jtc_hw.errors.HardwareError: the emulated drives could not be configured or enabled.
+        RuntimeError: an emulator process did not start.
     """
-    return [_run(buses, duration_s, profile) for buses in (1, 2)]
+    layouts = [(MOTORS, 1), (MOTORS, 2)] + ([(MOTORS // 2, 1)] if reference else [])
+    rows = [_run(buses, duration_s, profile, motors=motors) for motors, buses in layouts]
+    _mark_parallel(rows)
+    return rows
 
 
 def main() -> None:
@@ -153,6 +159,7 @@ def main() -> None:
     parser.add_argument("--json", action="store_true", help="one JSON object per line")
     parser.add_argument("--profile", action="store_true", help="add read-wait figures")
     args = parser.parse_args()
+    reduce_timer_slack()  # as the daemon's loop process does
     rows = cia402_rows(args.duration, args.profile)
     if args.json:
         for row in rows:
@@ -162,12 +169,8 @@ def main() -> None:
     print("  ".join(f"{k:>14}" for k in keys))
     for row in rows:
         print("  ".join(f"{row[k]!s:>14}" for k in keys))
-    best = np.array([r["ratio"] for r in rows])
-    print(f"target: ratio <= 1.3 (worst here {best.max():.2f})")
-    if args.profile:
-        alone = _run(1, args.duration, True, motors=MOTORS // 2)
-        print(f"reference: {MOTORS // 2} drives on one bus alone: {alone['rate_hz']} Hz "
-              f"(two buses of {MOTORS // 2}: {rows[1]['rate_hz']} Hz), ratio {alone['ratio']}")
+    for line in parallel_check(rows):
+        print(line)
 
 
 if __name__ == "__main__":

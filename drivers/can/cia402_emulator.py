@@ -45,6 +45,7 @@ import canopen
 from canopen.sdo.exceptions import SdoAbortedError
 from jtc_hw.drivers.can import cia402_codec as c4
 from jtc_hw.drivers.can.bus import CAN_ERR_BUSOFF, wire_time_s
+from jtc_hw.drivers.can.emulator import WakeEarly
 from jtc_hw.drivers.motor_model import Motor, MotorParams
 
 __all__ = ["DEFAULT_EDS", "Cia402DriveEmulator", "NmtState"]
@@ -91,6 +92,8 @@ class _Hub:
         self._wire_cache: dict[tuple[int, bool, bytes], float] = {}
         self.bus_off = False
         self._pending: list[tuple[float, int, can.Message]] = []
+        self._answer_at: float | None = None  # while answering a SYNC: when it ended
+        self._early = WakeEarly()
         self._seq = itertools.count()
         self._send_lock = threading.Lock()
         self._stop = threading.Event()
@@ -152,9 +155,14 @@ class _Hub:
         return self.free_at
 
     def transmit(self, msg: can.Message, delay_s: float = 0.0) -> None:
-        """Queue ``msg`` for sending when the modelled wire has carried it (and ``delay_s``)."""
-        now = time.monotonic()
-        due = self._occupy(msg, now + delay_s)
+        """Queue ``msg`` for sending when the modelled wire has carried it (and ``delay_s``).
+
+        An answer to a SYNC is ready when the SYNC's last bit has crossed the wire (a drive
+        reacts in microseconds), not when this thread got round to the SYNC: it queues from
+        the SYNC's end.
+        """
+        start = time.monotonic() if self._answer_at is None else self._answer_at
+        due = self._occupy(msg, start + delay_s)
         heapq.heappush(self._pending, (due, next(self._seq), msg))
 
     def _send_due(self) -> float | None:
@@ -180,16 +188,31 @@ class _Hub:
         try:
             while not self._stop.is_set():
                 wait = self._send_due()
-                timeout = 0.05 if wait is None else min(wait, 0.05)
+                early = self._early.early_s if self.pace_bitrate is not None else 0.0
+                if wait is not None and wait <= early:
+                    # The frame is ready; hold it until its modelled time (see WakeEarly).
+                    self._early.spin_until(time.monotonic() + wait)
+                    continue
+                timeout = 0.05 if wait is None else min(wait - early, 0.05)
+                asked = time.monotonic()
                 msg = self.bus.recv(timeout=timeout)
-                if msg is None or msg.is_error_frame:
+                if msg is None:
+                    if wait is not None:
+                        self._early.observe(asked + timeout, time.monotonic())
+                    continue
+                if msg.is_error_frame:
                     continue
                 now = time.monotonic()
                 # The frame took the wire when it was sent (its receive stamp on a virtual
                 # bus, wall clock), not when this thread got round to it.
                 sent = msg.timestamp - (time.time() - now) if msg.timestamp else now
-                self._occupy(msg, min(now, max(sent, now - 0.01)))
-                self._dispatch(msg)
+                end = self._occupy(msg, min(now, max(sent, now - 0.01)))
+                if msg.arbitration_id == c4.SYNC_COB_ID and not msg.is_extended_id:
+                    self._answer_at = end if self.pace_bitrate is not None else None
+                try:
+                    self._dispatch(msg)
+                finally:
+                    self._answer_at = None
         except Exception as exc:  # noqa: BLE001 - reported by the drives' `error`
             if not self._stop.is_set():
                 _log.exception("CiA 402 emulator hub stopped")

@@ -18,8 +18,10 @@ Wire-time pacing (``pace=True``): the emulator models the bus as one serial wire
 ``bitrate``. A command occupies the wire from when it was sent (its python-can timestamp, not
 when this thread got to it; or from when the wire frees up)
 for :func:`~jtc_hw.drivers.can.bus.wire_time_s` of its bits; the reply follows it; the reply
-is delivered only when its last bit would have arrived. Replies are kept in a due-time queue,
-so the thread sleeps only until the next one is due.
+is delivered only when its last bit would have arrived. Replies are computed when the command is
+handled (before they are due) and kept in a due-time queue, so the thread sleeps only until
+the next one is due, then only sends it; it wakes a little before (:class:`WakeEarly`) and spins the
+rest, so that wake-up latency does not delay the release.
 
 Fault injection (thread-safe setters): a silent motor, dropping the next N replies, delaying
 replies, the drive temperature and a Damiao error code (``"damiao"`` reply format only: the
@@ -35,6 +37,7 @@ from __future__ import annotations
 import argparse
 import heapq
 import math
+import queue
 import signal
 import sys
 import threading
@@ -59,9 +62,49 @@ from jtc_hw.drivers.motor_model import Motor, MotorParams
 
 from jtc_hw.realtime import reduce_timer_slack
 
-__all__ = ["MitBusEmulator", "build_parser", "main", "parse_ids"]
+__all__ = ["MitBusEmulator", "WakeEarly", "build_parser", "main", "parse_ids"]
 
 _IDLE_POLL_S = 0.05  # how often an idle emulator thread looks at its stop flag
+class WakeEarly:
+    """When a paced emulator thread should wake before a frame's due time, learnt.
+
+    Timed waits of a thread in a process with other Python threads wake late (30-130 us on
+    the development machine: timer, scheduler, a virtual CPU leaving idle, the interpreter
+    lock), which would add to every cycle a driver measures against the emulator. The
+    thread wakes :attr:`early_s` before the due time and spins the rest. ``early_s`` follows
+    a high quantile of the observed lateness of the timed waits (faster up than down) plus
+    a small margin, bounded by :attr:`MAX_EARLY_S`, so the spin is usually a few tens of
+    microseconds and the frame leaves at its modelled time (a wake later than that releases
+    it late by the difference). Emulators only: the driver never spins.
+    """
+
+    MARGIN_S = 10e-6
+    MAX_EARLY_S = 200e-6
+
+    def __init__(self) -> None:
+        self.lateness_s = 50e-6
+
+    @property
+    def early_s(self) -> float:
+        """How long before a due time to end the timed wait."""
+        return min(self.lateness_s + self.MARGIN_S, self.MAX_EARLY_S)
+
+    def observe(self, planned: float, woke: float) -> None:
+        """A timed wait meant to end at ``planned`` (monotonic) ended at ``woke``."""
+        late = woke - planned
+        if late < 0.0:
+            return  # ended by an event, not by its timeout: says nothing
+        # Up a quarter of the way, down a 32nd: tracks a high quantile of the lateness, not
+        # its rare outliers (a release that late is late; one that early spins longer).
+        step = 4.0 if late > self.lateness_s else 32.0
+        self.lateness_s = min(self.lateness_s + (late - self.lateness_s) / step,
+                              self.MAX_EARLY_S)
+
+    @staticmethod
+    def spin_until(due: float) -> None:
+        """Spin to ``due`` (callers only do so within :attr:`early_s` of it)."""
+        while time.monotonic() < due:
+            pass
 
 
 @dataclass
@@ -136,6 +179,9 @@ class MitBusEmulator:
                 raise ValueError(f"motor id {motor_id} out of range 1..{top} for this model")
             self._slots[motor_id] = _MotorSlot(Motor(params, initial.get(motor_id, 0.0)), limits)
         self._lock = threading.Lock()
+        self._wake = threading.Condition(self._lock)  # push mode: a new earliest due reply
+        self._push = False
+        self._early = WakeEarly()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._bus_off = False
@@ -149,10 +195,28 @@ class MitBusEmulator:
 
     # -- lifecycle ----------------------------------------------------------------------------
 
-    def start(self) -> None:
-        """Start answering (one daemon thread)."""
+    def start(self, push: bool = False) -> None:
+        """Start answering (one daemon thread).
+
+        Args:
+            push: the bus is a python-can ``virtual`` bus whose frames should be handled in
+                the sending peer's thread (see :meth:`_on_frame`), the thread only
+                releasing the due replies: one thread hand-over less per frame. Used by
+                ``jtc-hw emulate can`` behind its socketcand server.
+
+        Raises:
+            ValueError: ``push`` with a bus that is not a python-can virtual bus.
+        """
         if self._thread is not None:
             return
+        if push and not self._push:
+            from jtc_hw.drivers.can.socketcand import attach_sink
+
+            try:
+                attach_sink(self.bus, _PushSink(self))
+            except (AttributeError, ValueError) as exc:
+                raise ValueError(f"push mode needs a python-can virtual bus ({exc})") from exc
+            self._push = True
         self._stop.clear()
         self._thread = threading.Thread(target=self._run, name="mit-emulator", daemon=True)
         self._thread.start()
@@ -160,6 +224,8 @@ class MitBusEmulator:
     def stop(self, timeout_s: float = 5.0) -> None:
         """Stop answering and join the thread (the bus stays open)."""
         self._stop.set()
+        with self._wake:
+            self._wake.notify_all()
         if self._thread is not None:
             self._thread.join(timeout_s)
             self._thread = None
@@ -260,15 +326,50 @@ class MitBusEmulator:
             # Replies are due at exact times: without this, Linux may wake us 50 us late.
             reduce_timer_slack()
         try:
+            if self._push:
+                self._release_loop()
+                return
             while not self._stop.is_set():
                 now = time.monotonic()
                 self._deliver_due(now)
                 with self._lock:
                     next_due = self._due[0][0] if self._due else None
-                timeout = _IDLE_POLL_S if next_due is None else max(0.0, next_due - now)
-                msg = self.bus.recv(timeout=min(timeout, _IDLE_POLL_S))
+                if next_due is not None and next_due - now <= self._early.early_s:
+                    # The reply is ready; hold it until its modelled time (see WakeEarly).
+                    self._early.spin_until(next_due)
+                    continue
+                timeout = min(_IDLE_POLL_S, _IDLE_POLL_S if next_due is None
+                              else next_due - now - self._early.early_s)
+                msg = self.bus.recv(timeout=timeout)
                 if msg is not None:
                     self._handle(msg, self._sent_at(msg))
+                elif next_due is not None:
+                    self._early.observe(now + timeout, time.monotonic())
+        except Exception as exc:  # noqa: BLE001 - reported through .error, test sees it
+            self.error = exc
+
+    def _release_loop(self) -> None:
+        """Push mode: frames are handled by :meth:`_on_frame`; this thread only sends the
+        replies at their due time."""
+        while not self._stop.is_set():
+            with self._wake:
+                next_due = self._due[0][0] if self._due else None
+                now = time.monotonic()
+                wait = _IDLE_POLL_S if next_due is None else (
+                    next_due - now - self._early.early_s)
+                if wait > 0.0:
+                    wait = min(wait, _IDLE_POLL_S)
+                    if not self._wake.wait(wait) and next_due is not None:
+                        self._early.observe(now + wait, time.monotonic())
+                    continue
+            assert next_due is not None
+            self._early.spin_until(next_due)  # within WakeEarly.early_s of it
+            self._deliver_due(time.monotonic())
+
+    def _on_frame(self, msg: can.Message) -> None:
+        """Push mode: a frame on the bus, handled in the sender's thread."""
+        try:
+            self._handle(msg, self._sent_at(msg))
         except Exception as exc:  # noqa: BLE001 - reported through .error, test sees it
             self.error = exc
 
@@ -347,6 +448,8 @@ class MitBusEmulator:
                 immediate = False
                 self._seq += 1
                 heapq.heappush(self._due, (due, self._seq, reply))
+                if self._push and self._due[0][1] == self._seq:
+                    self._wake.notify()  # the release thread waits for a later one
         if immediate:
             self._send(reply)
 
@@ -371,6 +474,32 @@ class MitBusEmulator:
         )
         return can.Message(arbitration_id=self.master_id, is_extended_id=False,
                            data=encode_reply(state, self.limits))
+
+
+class _PushSink:
+    """Stands in for the emulator bus's receive queue in push mode: frames other peers send
+    are handled at once, in their thread."""
+
+    def __init__(self, emulator: MitBusEmulator) -> None:
+        self.emulator = emulator
+
+    def put(self, msg: can.Message, block: bool = True, timeout: float | None = None) -> None:
+        self.emulator._on_frame(msg)
+
+    def put_nowait(self, msg: can.Message) -> None:
+        self.emulator._on_frame(msg)
+
+    def get(self, block: bool = True, timeout: float | None = None) -> can.Message:
+        raise queue.Empty
+
+    def get_nowait(self) -> can.Message:
+        raise queue.Empty
+
+    def empty(self) -> bool:
+        return True
+
+    def qsize(self) -> int:
+        return 0
 
 
 # --------------------------------------------------------------------------------------------
@@ -483,12 +612,23 @@ def main(argv: Sequence[str] | None = None) -> int:
                 emulators.append(MitBusEmulator(bus, ids, args.model, bitrate=args.bitrate,
                                                 pace=args.pace, master_id=args.master_id))
             else:
-                for node in ids:
-                    bus = can.Bus(interface="virtual", channel=virtual[ch])
-                    buses.append(bus)
-                    emulators.append(factory(bus, node))
+                # One bus object per channel: its drives share one receive thread and one
+                # modelled wire, as drives on one cable do.
+                bus = can.Bus(interface="virtual", channel=virtual[ch])
+                buses.append(bus)
+                pace = args.bitrate if args.pace else None
+                # 0.5 ms physics sub-steps, as for the MIT motors (a quarter of the default's
+                # CPU, stable at these gains).
+                physics = MotorParams(max_step_s=0.0005)
+                emulators.extend(factory(bus, node, pace_bitrate=pace, motor_params=physics)
+                                 for node in ids)
         for emulator in emulators:
-            emulator.start()
+            if args.protocol == "mit" and args.interface == "socketcand":
+                # Nothing else in this process uses the bus: frames from the socketcand
+                # clients are handled in the server's reading thread (no hand-over).
+                emulator.start(push=True)
+            else:
+                emulator.start()
         if args.interface == "socketcand":
             from jtc_hw.drivers.can.socketcand import SocketcandServer
 

@@ -449,13 +449,25 @@ class MitHardware(HardwareInterface):
         )
 
     def _send_all(self, frame_of: Any) -> None:
-        """Send one frame per motor on every bus (all buses before any collecting)."""
+        """Send one frame per motor on every bus (all buses before any collecting).
+
+        The buses take turns, one frame each (bus A's first, bus B's first, A's second...):
+        every bus gets its first frame, and so starts transmitting, as early as possible,
+        instead of waiting for the frames of the buses before it to be handed over.
+        """
         for link in self._links.values():
-            bus = link.bus
-            if bus is None:
+            if link.bus is None:
                 raise CommunicationError(f"{self._owner()}: {link.settings.describe()} is "
                                          "not open; configure first")
-            for motor_id, i in zip(link.ids, link.joints, strict=True):
+        rounds = max(len(link.ids) for link in self._links.values()) if self._links else 0
+        links = list(self._links.values())
+        for k in range(rounds):
+            for link in links:
+                if k >= len(link.ids):
+                    continue
+                bus = link.bus
+                assert bus is not None  # checked above
+                motor_id, i = link.ids[k], link.joints[k]
                 data = frame_of(i)
                 if data is None:
                     continue

@@ -18,29 +18,42 @@ server -> client            ``< error ID SECS.USECS HEXDATA >`` for error frames
 
 Each client gets its own python-can ``virtual`` bus on the channel's virtual name, so frames a
 client sends reach the emulators and every other client, never itself (a CAN controller does
-not receive its own frames; python-can's virtual bus does not echo either). Two threads per
-client: one reads the socket and sends on the virtual bus, one receives from the virtual bus
-and writes the socket. A client disconnecting (or the server stopping) ends both and shuts its
-virtual bus down.
+not receive its own frames; python-can's virtual bus does not echo either). One thread per
+client reads the socket, parses the ``< send >`` elements of each TCP segment and puts them on
+its virtual bus, stamped with the segment's arrival time (when the frame reached "the
+controller", not when this thread got to it). Frames in the other direction take no thread
+of their own: the client's receive queue on the virtual channel is replaced by a sink that
+formats the frame and writes it to the socket in the sending peer's thread (an emulator
+releasing a reply at its due time writes it to TCP at once, instead of waking a writer thread,
+a hop that costs tens of microseconds under the interpreter lock). A client disconnecting
+(or the server stopping) ends its thread and shuts its virtual bus down.
 
 python-can's client reads the handshake replies with one ``recv`` each and compares them
 exactly, so no bus frame may be written to a client before it has read the ``< ok >`` of
-``rawmode``: frames are forwarded only after the client's first ``< send >`` or
-:data:`FORWARD_AFTER_S` after that ``< ok >``, whichever is first.
+``rawmode``: frames are held (in order) and forwarded only after the client's first
+``< send >`` or :data:`FORWARD_AFTER_S` after that ``< ok >``, whichever is first.
+
+The sink relies on python-can's ``virtual`` interface keeping, per channel, a list of
+receive queues that ``send`` calls ``put(msg, block=True, timeout=...)`` on, and skipping
+the sender's own ``queue``: true of python-can 4.x (checked when a client opens a channel,
+with a clear error otherwise).
 """
 
 from __future__ import annotations
 
 import logging
-import re
+import queue
 import socket
+import struct
+import sys
 import threading
 import time
 from collections.abc import Mapping
+from typing import Any
 
 import can
 
-__all__ = ["FORWARD_AFTER_S", "SocketcandServer", "format_frame", "parse_send"]
+__all__ = ["FORWARD_AFTER_S", "SocketcandServer", "attach_sink", "format_frame", "parse_send"]
 
 _log = logging.getLogger(__name__)
 
@@ -49,9 +62,11 @@ FORWARD_AFTER_S = 0.05
 
 _POLL_S = 0.1  # how often blocked threads look at their stop flag
 _MAX_ELEMENT = 512
-_SEND = re.compile(
-    r"<\s*send\s+([0-9A-Fa-f]{1,8})\s+([0-9A-Fa-f]{1,2})((?:\s+[0-9A-Fa-f]{1,2})*)\s*>"
-)
+# SO_TIMESTAMPNS (= SCM_TIMESTAMPNS), not exported by the socket module; Linux value (64-bit
+# struct timespec ancillary data).
+_SO_TIMESTAMPNS = 35 if sys.platform.startswith("linux") else None
+_MAX_HELD = 10_000  # frames held for a client that has not started reading yet
+_HEX = frozenset("0123456789abcdefABCDEF")
 
 
 def format_frame(msg: can.Message) -> str:
@@ -71,16 +86,53 @@ def format_frame(msg: can.Message) -> str:
 
 def parse_send(element: str) -> can.Message | None:
     """A client's ``< send ID LEN DATA >`` element as a frame (``None``: not a send)."""
-    match = _SEND.fullmatch(element.strip())
-    if match is None:
+    text = element.strip()
+    if len(text) < 2 or text[0] != "<" or text[-1] != ">":
         return None
-    ident_text, length_text, data_text = match.groups()
-    data = bytes(int(b, 16) for b in data_text.split())
+    words = text[1:-1].split()
+    if len(words) < 3 or words[0] != "send":
+        return None
+    ident_text, length_text, data_words = words[1], words[2], words[3:]
+    if (
+        not 1 <= len(ident_text) <= 8
+        or not 1 <= len(length_text) <= 2
+        or any(not 1 <= len(b) <= 2 for b in data_words)
+        or not _HEX.issuperset("".join(words[1:]))
+    ):
+        return None
+    data = bytes(int(b, 16) for b in data_words)
     length = int(length_text, 16)
     if length != len(data) or length > 8:
         return None
     return can.Message(arbitration_id=int(ident_text, 16), is_extended_id=len(ident_text) > 3,
                        data=data)
+
+
+class _Sink:
+    """Stands in for a client's receive queue on a python-can virtual channel: ``put``
+    writes the frame to the client's socket in the caller's thread (see the module
+    docstring)."""
+
+    def __init__(self, client: _Client) -> None:
+        self.client = client
+
+    def put(self, msg: can.Message, block: bool = True, timeout: float | None = None) -> None:
+        self.client.deliver(msg)
+
+    def put_nowait(self, msg: can.Message) -> None:
+        self.client.deliver(msg)
+
+    def get(self, block: bool = True, timeout: float | None = None) -> can.Message:
+        raise queue.Empty  # nobody receives from the client's own bus: frames go to TCP
+
+    def get_nowait(self) -> can.Message:
+        raise queue.Empty
+
+    def empty(self) -> bool:
+        return True
+
+    def qsize(self) -> int:
+        return 0
 
 
 class _Client:
@@ -90,15 +142,44 @@ class _Client:
         self.peer = peer
         self.bus: can.BusABC | None = None
         self.stop = threading.Event()
-        self.forward = threading.Event()
         self.send_lock = threading.Lock()
+        # Frames for the client before it may get them (see the module docstring), in order;
+        # None once forwarding.
+        self.held: list[bytes] | None = []
+        self.forward_at: float | None = None  # monotonic time to start forwarding anyway
         self.reader = threading.Thread(target=self._read_tcp, name=f"socketcand-{peer}",
                                        daemon=True)
-        self.writer: threading.Thread | None = None
 
     def write(self, text: str) -> None:
         with self.send_lock:
             self.conn.sendall(text.encode("ascii"))
+
+    def deliver(self, msg: can.Message) -> None:
+        """A bus frame for this client: written to the socket now (in the caller's thread),
+        or held until forwarding starts."""
+        data = format_frame(msg).encode("ascii")
+        with self.send_lock:
+            if self.stop.is_set():
+                return
+            if self.held is not None:
+                if len(self.held) < _MAX_HELD:
+                    self.held.append(data)
+                return
+            try:
+                self.conn.sendall(data)
+            except OSError as exc:  # gone, or not reading for the socket's timeout
+                _log.debug("socketcand client %s: %s", self.peer, exc)
+                self.stop.set()
+                return
+        self.server.frames_to_clients += 1
+
+    def _start_forwarding(self) -> None:
+        with self.send_lock:
+            held, self.held = self.held, None
+            if held:
+                self.conn.sendall(b"".join(held))
+        if held:
+            self.server.frames_to_clients += len(held)
 
     def _read_tcp(self) -> None:
         buffer = ""
@@ -106,12 +187,21 @@ class _Client:
             self.write("< hi >")
             self.conn.settimeout(_POLL_S)
             while not self.stop.is_set():
+                if self.forward_at is not None and self.held is not None:
+                    wait = self.forward_at - time.monotonic()
+                    if wait <= 0.0:
+                        self._start_forwarding()
+                    self.conn.settimeout(min(max(wait, 0.001), _POLL_S))
                 try:
-                    chunk = self.conn.recv(4096)
+                    chunk, ancillary, _, _ = self.conn.recvmsg(65536, _ANCILLARY_SPACE)
                 except TimeoutError:
                     continue
                 if not chunk:
                     break
+                # Every frame of this segment reached "the controller" when the kernel
+                # received the segment (SO_TIMESTAMPNS), not when this thread woke up for it:
+                # the wire starts then.
+                arrived = _kernel_stamp(ancillary)
                 buffer += chunk.decode("ascii", errors="replace")
                 while True:
                     start = buffer.find("<")
@@ -123,64 +213,58 @@ class _Client:
                         buffer = buffer[start:] if len(buffer) - start < _MAX_ELEMENT else ""
                         break
                     element, buffer = buffer[start:end + 1], buffer[end + 1:]
-                    self._element(element)
+                    self._element(element, arrived)
         except OSError as exc:
             _log.debug("socketcand client %s: %s", self.peer, exc)
         finally:
             self.close()
 
-    def _element(self, element: str) -> None:
-        words = element.strip("<> ").split()
-        if not words:
-            return
-        if words[0] == "send":
+    def _element(self, element: str, arrived: float) -> None:
+        if element.startswith("< send "):
             msg = parse_send(element)
             if msg is None or self.bus is None:
                 self.write("< error bad send >")
                 return
-            self.forward.set()
+            if self.held is not None and self.forward_at is not None:
+                self._start_forwarding()
+            msg.timestamp = arrived
             self.bus.send(msg)
             self.server.frames_from_clients += 1
+            return
+        words = element.strip("<> ").split()
+        if not words:
+            return
+        if words[0] == "send":
+            self._element("< " + " ".join(words) + " >", arrived)
         elif words[0] == "open" and len(words) == 2 and self.bus is None:
             virtual = self.server.virtual_channel(words[1])
             if virtual is None:
                 self.write(f"< error no such channel {words[1]} >")
                 return
-            self.bus = can.Bus(interface="virtual", channel=virtual)
+            bus = can.Bus(interface="virtual", channel=virtual, preserve_timestamps=True)
+            try:
+                attach_sink(bus, _Sink(self))
+            except (AttributeError, ValueError):
+                bus.shutdown()
+                self.write("< error server cannot attach to the virtual bus >")
+                raise
+            self.bus = bus
             self.write("< ok >")
         elif words[0] == "rawmode" and self.bus is not None:
             self.write("< ok >")
-            self.writer = threading.Thread(target=self._write_tcp, name=f"socketcand-w-{self.peer}",
-                                           daemon=True)
-            self.writer.start()
+            self.forward_at = time.monotonic() + FORWARD_AFTER_S
         elif words[0] == "echo":
             self.write("< echo >")
         else:
             self.write(f"< error unsupported {words[0]} >")
 
-    def _write_tcp(self) -> None:
-        assert self.bus is not None
-        self.forward.wait(FORWARD_AFTER_S)
-        try:
-            while not self.stop.is_set():
-                msg = self.bus.recv(timeout=_POLL_S)
-                if msg is not None:
-                    self.write(format_frame(msg))
-                    self.server.frames_to_clients += 1
-        except (OSError, can.CanError) as exc:
-            _log.debug("socketcand client %s: %s", self.peer, exc)
-        finally:
-            self.stop.set()
-
     def close(self) -> None:
         self.stop.set()
-        writer = self.writer
-        if writer is not None and writer is not threading.current_thread():
-            writer.join(2.0)
-        try:
-            self.conn.close()
-        except OSError:
-            pass
+        with self.send_lock:  # no sender is writing to the socket while it closes
+            try:
+                self.conn.close()
+            except OSError:
+                pass
         if self.bus is not None:
             self.bus.shutdown()
             self.bus = None
@@ -188,6 +272,36 @@ class _Client:
 
     def join(self, timeout_s: float) -> None:
         self.reader.join(timeout_s)
+
+
+_ANCILLARY_SPACE = socket.CMSG_SPACE(16)
+
+
+def _kernel_stamp(ancillary: list[tuple[int, int, bytes]]) -> float:
+    """The kernel's receive time (wall clock) from ``SO_TIMESTAMPNS`` ancillary data, or now."""
+    for level, kind, data in ancillary:
+        if level == socket.SOL_SOCKET and kind == _SO_TIMESTAMPNS and len(data) >= 16:
+            secs, nanos = struct.unpack("@qq", data[:16])
+            return float(secs + nanos * 1e-9)
+    return time.time()
+
+
+def attach_sink(bus: can.BusABC, sink: Any) -> None:
+    """Replace a python-can virtual bus's receive queue by ``sink`` (an object with
+    ``put(msg, block, timeout)``), in the channel's list of receivers too, so that frames
+    other peers send reach the sink in their thread and the bus's own frames still skip it.
+    Nothing may ``recv`` from that bus afterwards.
+
+    Raises:
+        AttributeError, ValueError: python-can's virtual bus is not laid out as expected.
+    """
+    from can.interfaces import virtual
+
+    with virtual.channels_lock:
+        receivers = bus.channel  # type: ignore[attr-defined]
+        index = receivers.index(bus.queue)  # type: ignore[attr-defined]
+        receivers[index] = sink
+        bus.queue = sink  # type: ignore[attr-defined]
 
 
 class SocketcandServer:
@@ -263,6 +377,11 @@ class SocketcandServer:
             except OSError:
                 break
             conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+            if _SO_TIMESTAMPNS is not None:
+                try:
+                    conn.setsockopt(socket.SOL_SOCKET, _SO_TIMESTAMPNS, 1)
+                except OSError:
+                    pass  # no kernel receive stamps: frames are stamped when read
             client = _Client(self, conn, f"{addr[0]}:{addr[1]}")
             with self._lock:
                 if self._stop.is_set():

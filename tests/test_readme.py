@@ -29,3 +29,18 @@ def test_demo_runs_the_daemon_and_a_goal_succeeds() -> None:
     assert "goal 1 succeeded (error_code 0)" in done.stdout
     assert "daemon stopped (SIGTERM), exit status 0" in done.stdout
     assert "stopped cleanly" in done.stderr
+
+
+@pytest.mark.parametrize("hardware", ["dynamixel", "can-mit", "can-cia402"])
+def test_demo_on_emulated_motors(hardware: str) -> None:
+    """``jtc-hw demo --hardware KIND``: the emulator in its own process, the daemon driving it
+    through the real driver (and SDK / python-can), a goal that succeeds, a clean stop."""
+    done = subprocess.run(
+        [sys.executable, "-m", "jtc_hw", "demo", "--hardware", hardware],
+        capture_output=True, text=True, timeout=120, cwd=ROOT,
+    )
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert f"jtc-hw demo: emulated {hardware} motors:" in done.stdout
+    assert "goal 1 succeeded (error_code 0)" in done.stdout
+    assert "daemon stopped (SIGTERM), exit status 0" in done.stdout
+    assert f"on {hardware}" in done.stderr and "stopped cleanly" in done.stderr

@@ -19,11 +19,17 @@ instruction packet as the addressed servos would:
   requested order, each after the previous one, as on a real bus. Fast Sync/Bulk Read answers
   with one status packet written in per-servo pieces; a servo that does not answer (silent,
   dropping or rebooting) truncates it there, as the next servo would be waiting for it.
-- Replies that are already due are written together and waits under 0.2 ms are skipped: when
-  the host shares the emulator's interpreter (tests), every wait costs it a thread switch.
-- With ``pace=True`` replies are held back so that the request and the replies take their wire
-  time (10 bits per byte at the servo's Baud Rate register) measured with ``time.monotonic``:
-  the host sees the timing of a real bus, not of a pty.
+- Unpaced, replies that are already due are written together and waits under 0.2 ms are
+  skipped: when the host shares the emulator's interpreter (tests), every wait costs it a thread
+  switch.
+- With ``pace=True`` the host sees the timing of a real bus, not of a pty (``time.monotonic``,
+  10 bits per byte at the servo's Baud Rate register). A request starts on the wire when its
+  first byte arrived, or when the bus is free if a previous packet still holds it (a Sync Write
+  takes its wire time even though nobody answers it). Its replies are computed at once; each is
+  then written when its last byte would have arrived: request start + request wire time + for
+  each reply in turn the servo's return delay (and injected delay) and the reply's wire time.
+  The wait sleeps (with a 1 us timer slack asked for the serving thread) until ~100 us before
+  that moment and spins the rest: this is a test device, and a sleep alone wakes 20-70 us late.
 
 Each servo keeps its control table as a ``bytearray`` built from the model's defaults. Writes
 must cover whole registers; read-only registers and EEPROM registers while torque is on are
@@ -32,8 +38,12 @@ values beyond a limit register (Goal Position outside the position limits in pos
 Goal Current/Velocity/PWM beyond their limits) the data limit error. Writes are all-or-nothing.
 
 Physics: each servo drives one :class:`~jtc_hw.drivers.motor_model.Motor` (stall torque and
-no-load speed from the model), advanced to ``time.monotonic()`` whenever a packet arrives and
-every few milliseconds otherwise. Operating modes: position, extended position (profile velocity
+no-load speed from the model), advanced once per packet to its arrival time, and every few
+milliseconds while the bus is idle. The present registers are rewritten from the motor (one
+``struct.pack_into`` of the block 120..146) only when something reads the table after a step or
+a write, so a Sync Read of the present block is a slice of the table.
+
+Operating modes: position, extended position (profile velocity
 and acceleration from their registers; 0 means no limit), current-based position (torque limited
 by Goal Current), velocity, current (Goal Current * current unit * torque constant), PWM (a
 crude voltage model); torque off coasts. Present registers (position, velocity, current or load,
@@ -112,7 +122,7 @@ _IDLE_STEP_S = 0.005
 _MIN_WAIT_S = 0.0002
 #: Paced: the last part of a wait is spun rather than slept (a sleep wakes ~20-35 us late even
 #: with a 1 us timer slack on this kind of machine), s.
-_SPIN_S = 0.00006
+_SPIN_S = 0.0001
 #: Paced waits longer than this sleep on the stop event so that close() stays prompt, s.
 _PROMPT_WAIT_S = 0.002
 #: Timer slack asked for the serving thread (Linux ``PR_SET_TIMERSLACK``; default 50 us), ns.
@@ -154,6 +164,9 @@ class _Layout:
         present_names: the registers of :data:`_PRESENT_NAMES` the model has, by address.
         present_struct: packs ``present_names`` (gaps padded) starting at ``present_start``.
         present_bounds: (lowest, highest) encodable value of each of ``present_names``.
+        registers: every register, by address.
+        coverage: (address, end) of a write -> the registers it covers, or the error number of
+            a write that splits a register; filled on first use (hosts repeat their writes).
     """
 
     fields: Mapping[str, tuple[int, int, bool, int, int]]
@@ -161,6 +174,28 @@ class _Layout:
     present_start: int
     present_struct: struct.Struct
     present_bounds: tuple[tuple[int, int], ...]
+    registers: tuple[Register, ...]
+    coverage: dict[tuple[int, int], tuple[Register, ...] | int]
+
+    def covered(self, address: int, end: int) -> tuple[Register, ...] | int:
+        """The registers a write of ``address .. end`` covers, or ``ErrorNumber.DATA_LENGTH``
+        if it covers part of one."""
+        key = (address, end)
+        found = self.coverage.get(key)
+        if found is None:
+            regs: list[Register] = []
+            found = tuple(regs)
+            for reg in self.registers:
+                if reg.end <= address or reg.address >= end:
+                    continue
+                if reg.address < address or reg.end > end:
+                    found = int(ErrorNumber.DATA_LENGTH)
+                    break
+                regs.append(reg)
+            else:
+                found = tuple(regs)
+            self.coverage[key] = found
+        return found
 
 
 def _bounds(reg: Register) -> tuple[int, int]:
@@ -197,6 +232,8 @@ def _layout(model: Model) -> _Layout:
         present_start=start,
         present_struct=struct.Struct(fmt),
         present_bounds=tuple(_bounds(r) for r in present),
+        registers=tuple(sorted(model.registers.values(), key=lambda r: r.address)),
+        coverage={},
     )
     _LAYOUTS[model.name] = layout
     return layout
@@ -210,6 +247,10 @@ class _Servo:
         self.table = model.defaults()
         self._layout = _layout(model)
         self._fields = self._layout.fields
+        # Decoded register values: every physics step reads a dozen of them, and the table
+        # changes only through set(), apply_write(), reboot() and sync_present(), which keep
+        # this in step.
+        self._values: dict[str, int] = {}
         # The present registers are rewritten lazily: after a physics step or a write they are
         # stale until something reads the table (see refresh()).
         self.stale = True
@@ -243,8 +284,12 @@ class _Servo:
         return self.table[7]
 
     def get(self, name: str) -> int:
-        address, end, signed, _, _ = self._fields[name]
-        return int.from_bytes(self.table[address:end], "little", signed=signed)
+        value = self._values.get(name)
+        if value is None:
+            address, end, signed, _, _ = self._fields[name]
+            value = int.from_bytes(self.table[address:end], "little", signed=signed)
+            self._values[name] = value
+        return value
 
     def set(self, name: str, value: int) -> None:
         """Store ``value`` (clamped to what the register's bytes hold); unknown names ignored."""
@@ -253,6 +298,7 @@ class _Servo:
             address, end, signed, lo, hi = f
             value = max(lo, min(hi, int(value)))
             self.table[address:end] = value.to_bytes(end - address, "little", signed=signed)
+            self._values[name] = value
             self.stale = True
 
     @property
@@ -377,6 +423,7 @@ class _Servo:
             for name, (lo, hi) in zip(layout.present_names, layout.present_bounds, strict=True)
         ]
         layout.present_struct.pack_into(self.table, layout.present_start, *packed)
+        self._values.update(zip(layout.present_names, packed, strict=True))
         self.stale = False
 
     # -- writes -------------------------------------------------------------------------------
@@ -387,13 +434,14 @@ class _Servo:
         end = address + len(data)
         if not data:
             return ErrorNumber.DATA_LENGTH
-        covered: list[tuple[Register, int]] = []
-        for reg in m.registers.values():
-            if reg.end <= address or reg.address >= end:
-                continue
-            if reg.address < address or reg.end > end:
-                return ErrorNumber.DATA_LENGTH
-            covered.append((reg, reg.decode(data[reg.address - address : reg.end - address])))
+        regs = self._layout.covered(address, end)
+        if isinstance(regs, int):
+            return regs
+        covered = [
+            (reg, int.from_bytes(data[reg.address - address : reg.end - address], "little",
+                                 signed=reg.signed))
+            for reg in regs
+        ]
         if not covered or end > len(self.table):
             return ErrorNumber.ACCESS
         pending = {reg.name: value for reg, value in covered}
@@ -436,7 +484,14 @@ class _Servo:
     def apply_write(self, address: int, data: bytes) -> None:
         """Store an accepted write and apply its side effects."""
         was_on = self.torque_on
-        self.table[address : address + len(data)] = data
+        end = address + len(data)
+        self.table[address:end] = data
+        regs = self._layout.covered(address, end)
+        if isinstance(regs, int):  # not through check_write: forget every decoded value
+            self._values.clear()
+        else:
+            for reg in regs:
+                self._values.pop(reg.name, None)
         self.stale = True  # goals, offsets and the drive mode feed the present registers
         if self.torque_on and not was_on:
             self.motor.reset_reference()
@@ -452,6 +507,7 @@ class _Servo:
         """Reset the RAM area and the latched errors; silent for ``reboot_time_s``."""
         defaults = self.model.defaults()
         self.table[64:] = defaults[64:]
+        self._values.clear()
         self.registered = None
         self.motor.reset_reference()
         self.epoch = now
@@ -923,7 +979,8 @@ class DynamixelEmulator:
         arrive on a real bus: ``start`` (the request's first byte, or when the bus is free) +
         the request's wire time + for each reply in turn its return delay and wire time.
         """
-        bus_baud = replies[0].servo.baud() if replies else fast[0].servo.baud()
+        with self._lock:  # register reads go through the servos' decoded-value caches
+            bus_baud = replies[0].servo.baud() if replies else fast[0].servo.baud()
         t = max(start, self._bus_free)
         if self.pace:
             t += wire_time_s(len(request.raw), bus_baud)
@@ -951,11 +1008,12 @@ class DynamixelEmulator:
                         data = data[:-1] + bytes((data[-1] ^ 0xFF,))
                     chunks.append((r.servo, data))
         due: list[tuple[float, bytes]] = []
-        for servo, data in chunks:
-            t += servo.return_delay_s() + servo.delay_s
-            if self.pace:
-                t += wire_time_s(len(data), servo.baud())
-            due.append((t, data))
+        with self._lock:
+            for servo, data in chunks:
+                t += servo.return_delay_s() + servo.delay_s
+                if self.pace:
+                    t += wire_time_s(len(data), servo.baud())
+                due.append((t, data))
         self._bus_free = t
         if self.pace:
             for when, data in due:

@@ -59,7 +59,6 @@ from jtc_hw.drivers.dynamixel.packets import (  # noqa: E402
     sync_write_bytes,
     wire_time_s,
 )
-
 from jtc_hw.joints import JointCommand  # noqa: E402
 
 MOTORS = 6

@@ -52,7 +52,6 @@ from jtc_hw.drivers.can.frames import (  # noqa: E402
     encode_reply,
 )
 from jtc_hw.drivers.can.mit import MitHardware  # noqa: E402
-
 from jtc_hw.joints import JointCommand  # noqa: E402
 from jtc_hw.realtime import reduce_timer_slack  # noqa: E402
 

@@ -38,10 +38,10 @@ from pathlib import Path
 from typing import Any
 
 import can
+
 from jtc_hw.drivers.can import cia402_codec as c4
 from jtc_hw.drivers.can.bus import wire_time_s
 from jtc_hw.drivers.can.cia402 import Cia402Hardware
-
 from jtc_hw.joints import JointCommand
 from jtc_hw.realtime import reduce_timer_slack
 

@@ -18,11 +18,11 @@ from typing import Any
 import can
 import numpy as np
 import pytest
+from test_server import no_leaks  # noqa: F401  (autouse: threads, sockets, resources)
+
 from jtc_hw.drivers.can.cia402 import Cia402Hardware
 from jtc_hw.drivers.can.cia402_codec import State
 from jtc_hw.drivers.can.cia402_emulator import Cia402DriveEmulator, NmtState
-from test_server import no_leaks  # noqa: F401  (autouse: threads, sockets, resources)
-
 from jtc_hw.errors import CommunicationError, ConfigurationError, HardwareError, MotorFault
 from jtc_hw.hardware import HardwareSpec, LifecycleState, create_hardware
 from jtc_hw.joints import JointCommand

@@ -5,9 +5,9 @@ from __future__ import annotations
 import math
 
 import pytest
+
 from jtc_hw.drivers.can import cia402_codec as c4
 from jtc_hw.drivers.can.cia402_codec import Command, State
-
 from jtc_hw.errors import ProtocolError
 
 # -- statusword ----------------------------------------------------------------------------------

@@ -12,6 +12,7 @@ import can
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+
 from jtc_hw.drivers.can.bus import wire_bits, wire_time_s
 from jtc_hw.drivers.can.emulator import MitBusEmulator
 from jtc_hw.drivers.can.frames import (

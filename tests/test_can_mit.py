@@ -16,12 +16,12 @@ from typing import Any
 import can
 import numpy as np
 import pytest
+from test_server import no_leaks  # noqa: F401  (autouse: threads, sockets, resources)
+
 from jtc_hw.drivers.can.bus import open_bus
 from jtc_hw.drivers.can.emulator import MitBusEmulator
 from jtc_hw.drivers.can.frames import MODEL_PRESETS, MitReply, encode_reply, quantum
 from jtc_hw.drivers.can.mit import MitHardware
-from test_server import no_leaks  # noqa: F401  (autouse: threads, sockets, resources)
-
 from jtc_hw.errors import CommunicationError, ConfigurationError, HardwareError, MotorFault
 from jtc_hw.hardware import HardwareSpec, create_hardware
 from jtc_hw.joints import JointCommand

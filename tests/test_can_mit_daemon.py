@@ -16,8 +16,6 @@ from typing import Any
 import can
 import pytest
 import yaml
-from jtc_hw.drivers.can.emulator import MitBusEmulator
-from jtc_hw.drivers.can.socketcand import SocketcandServer
 from test_daemon_e2e import (  # noqa: F401  (daemon_log_on_failure: autouse)
     GOAL_TOL,
     JOINTS,
@@ -34,6 +32,8 @@ from test_daemon_e2e import (  # noqa: F401  (daemon_log_on_failure: autouse)
 from test_server import no_leaks  # noqa: F401  (autouse: threads, sockets, resources)
 
 from jtc_hw.client import Client
+from jtc_hw.drivers.can.emulator import MitBusEmulator
+from jtc_hw.drivers.can.socketcand import SocketcandServer
 
 IDS = [1, 2, 3, 4, 5, 6]
 

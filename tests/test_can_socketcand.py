@@ -13,13 +13,13 @@ from collections.abc import Callable, Iterator
 import can
 import numpy as np
 import pytest
+from test_daemon_e2e import ROOT, daemon_env
+from test_server import no_leaks  # noqa: F401  (autouse: threads, sockets, resources)
+
 from jtc_hw.drivers.can.emulator import MitBusEmulator
 from jtc_hw.drivers.can.frames import ENTER_MOTOR_MODE
 from jtc_hw.drivers.can.mit import MitHardware
 from jtc_hw.drivers.can.socketcand import SocketcandServer, format_frame, parse_send
-from test_daemon_e2e import ROOT, daemon_env
-from test_server import no_leaks  # noqa: F401  (autouse: threads, sockets, resources)
-
 from jtc_hw.joints import JointCommand
 
 WAIT_S = 5.0

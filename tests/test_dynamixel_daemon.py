@@ -15,13 +15,13 @@ from typing import Any
 
 import pytest
 import yaml
-from jtc_hw.drivers.dynamixel.control_table import HardwareError
-from jtc_hw.drivers.dynamixel.emulator import DynamixelEmulator
 from test_daemon_e2e import MS, WAIT_S, DaemonProcess, connect, next_state, settle
 from test_server import no_leaks  # noqa: F401  (autouse: threads, sockets, resources)
 
 from jtc_hw import GoalRejected
 from jtc_hw.client import Client
+from jtc_hw.drivers.dynamixel.control_table import HardwareError
+from jtc_hw.drivers.dynamixel.emulator import DynamixelEmulator
 
 JOINTS = [f"joint{i}" for i in range(1, 7)]
 IDS = list(range(1, 7))

@@ -20,6 +20,7 @@ from typing import Any
 import dynamixel_sdk as sdk
 import pytest
 from dynamixel_sdk import port_handler
+
 from jtc_hw.drivers.dynamixel.control_table import MODELS, HardwareError
 from jtc_hw.drivers.dynamixel.emulator import DynamixelEmulator, parse_ids
 from jtc_hw.drivers.dynamixel.packets import ALERT_BIT, ErrorNumber

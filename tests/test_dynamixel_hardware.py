@@ -18,11 +18,11 @@ from typing import Any
 
 import numpy as np
 import pytest
+
 from jtc_hw.drivers.dynamixel.bus import DynamixelBus, ServoStatusError, latency_timer_ms
 from jtc_hw.drivers.dynamixel.control_table import HardwareError, model_by_name
 from jtc_hw.drivers.dynamixel.emulator import DynamixelEmulator
 from jtc_hw.drivers.dynamixel.hardware import DynamixelHardware
-
 from jtc_hw.errors import CommunicationError, ConfigurationError, MotorFault
 from jtc_hw.hardware import LifecycleState
 from jtc_hw.joints import JointCommand

@@ -6,6 +6,7 @@ import math
 
 import numpy as np
 import pytest
+
 from jtc_hw.drivers.dynamixel import control_table as ct
 from jtc_hw.drivers.dynamixel import packets as pk
 

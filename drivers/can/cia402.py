@@ -58,8 +58,6 @@ import canopen
 import numpy as np
 from canopen.network import MessageListener
 from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
-from jtc_hw.drivers.can import bus as canbus
-from jtc_hw.drivers.can import cia402_codec as c4
 
 from jtc_hw.errors import CommunicationError, ConfigurationError, HardwareError, MotorFault
 from jtc_hw.hardware import (
@@ -71,6 +69,9 @@ from jtc_hw.hardware import (
     param_table,
 )
 from jtc_hw.joints import JointCommand, JointState
+
+from . import bus as canbus
+from . import cia402_codec as c4
 
 __all__ = ["Cia402Hardware"]
 

@@ -43,10 +43,11 @@ from typing import Any
 import can
 import canopen
 from canopen.sdo.exceptions import SdoAbortedError
-from jtc_hw.drivers.can import cia402_codec as c4
-from jtc_hw.drivers.can.bus import CAN_ERR_BUSOFF, wire_time_s
-from jtc_hw.drivers.can.emulator import WakeEarly
-from jtc_hw.drivers.motor_model import Motor, MotorParams
+
+from ..motor_model import Motor, MotorParams
+from . import cia402_codec as c4
+from .bus import CAN_ERR_BUSOFF, wire_time_s
+from .emulator import WakeEarly
 
 __all__ = ["DEFAULT_EDS", "Cia402DriveEmulator", "NmtState"]
 

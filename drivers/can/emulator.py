@@ -48,8 +48,12 @@ from dataclasses import dataclass
 from typing import Any
 
 import can
-from jtc_hw.drivers.can.bus import CAN_ERR_BUSOFF, wire_time_s
-from jtc_hw.drivers.can.frames import (
+
+from jtc_hw.realtime import reduce_timer_slack
+
+from ..motor_model import Motor, MotorParams
+from .bus import CAN_ERR_BUSOFF, wire_time_s
+from .frames import (
     MODEL_PRESETS,
     MitCommand,
     MitLimits,
@@ -58,9 +62,6 @@ from jtc_hw.drivers.can.frames import (
     encode_reply,
     special_command,
 )
-from jtc_hw.drivers.motor_model import Motor, MotorParams
-
-from jtc_hw.realtime import reduce_timer_slack
 
 __all__ = ["MitBusEmulator", "WakeEarly", "build_parser", "main", "parse_ids"]
 
@@ -210,7 +211,7 @@ class MitBusEmulator:
         if self._thread is not None:
             return
         if push and not self._push:
-            from jtc_hw.drivers.can.socketcand import attach_sink
+            from .socketcand import attach_sink
 
             try:
                 attach_sink(self.bus, _PushSink(self))
@@ -585,7 +586,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     factory: Any = None
     if args.protocol == "cia402":
         try:
-            from jtc_hw.drivers.can.cia402_emulator import Cia402DriveEmulator
+            from .cia402_emulator import Cia402DriveEmulator
         except ImportError as exc:
             print(f"jtc-hw emulate can: the CiA 402 emulator is not available ({exc}); "
                   "it lives in jtc_hw.drivers.can.cia402_emulator", file=sys.stderr)
@@ -630,7 +631,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             else:
                 emulator.start()
         if args.interface == "socketcand":
-            from jtc_hw.drivers.can.socketcand import SocketcandServer
+            from .socketcand import SocketcandServer
 
             server = SocketcandServer(port=args.socketcand_port, channels=virtual)
             server.start()

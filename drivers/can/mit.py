@@ -65,7 +65,13 @@ from typing import Any, ClassVar
 
 import can
 import numpy as np
-from jtc_hw.drivers.can.bus import (
+from numpy.typing import NDArray
+
+from jtc_hw.errors import CommunicationError, ConfigurationError, HardwareError, MotorFault
+from jtc_hw.hardware import HardwareInterface, ParamKind, ParamSpec, SafeAction, param_table
+from jtc_hw.joints import JointCommand, JointState
+
+from .bus import (
     BusHealth,
     BusSettings,
     buses_param,
@@ -78,7 +84,7 @@ from jtc_hw.drivers.can.bus import (
     open_settings,
     send,
 )
-from jtc_hw.drivers.can.frames import (
+from .frames import (
     CLEAR_ERROR,
     DAMIAO_STATES,
     ENTER_MOTOR_MODE,
@@ -91,11 +97,6 @@ from jtc_hw.drivers.can.frames import (
     encode_command,
     reply_motor_id,
 )
-from numpy.typing import NDArray
-
-from jtc_hw.errors import CommunicationError, ConfigurationError, HardwareError, MotorFault
-from jtc_hw.hardware import HardwareInterface, ParamKind, ParamSpec, SafeAction, param_table
-from jtc_hw.joints import JointCommand, JointState
 
 __all__ = ["MitHardware"]
 

@@ -55,9 +55,10 @@ from pathlib import Path
 from typing import Any, Final
 
 import dynamixel_sdk as _sdk  # type: ignore[import-untyped]
-from jtc_hw.drivers.dynamixel.packets import Decoder, crc16
 
 from jtc_hw.errors import CommunicationError, HardwareError
+
+from .packets import Decoder, crc16
 
 __all__ = [
     "BROADCAST_ID",

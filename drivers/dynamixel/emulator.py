@@ -88,7 +88,8 @@ import tty
 from collections.abc import Mapping, Sequence
 from types import TracebackType
 
-from jtc_hw.drivers.dynamixel.control_table import (
+from ..motor_model import Motor, MotorParams
+from .control_table import (
     BAUD_RATES,
     HardwareError,
     Model,
@@ -96,7 +97,7 @@ from jtc_hw.drivers.dynamixel.control_table import (
     Register,
     model_by_name,
 )
-from jtc_hw.drivers.dynamixel.packets import (
+from .packets import (
     ALERT_BIT,
     BROADCAST_ID,
     Decoder,
@@ -111,7 +112,6 @@ from jtc_hw.drivers.dynamixel.packets import (
     parse_sync_write,
     wire_time_s,
 )
-from jtc_hw.drivers.motor_model import Motor, MotorParams
 
 __all__ = ["DynamixelEmulator", "build_parser", "main", "parse_ids"]
 

@@ -49,14 +49,21 @@ from collections.abc import Mapping, Sequence
 from typing import Any, ClassVar, Final
 
 import numpy as np
-from jtc_hw.drivers.dynamixel.bus import (
+from numpy.typing import NDArray
+
+from jtc_hw.config import STATE_INTERFACE_TYPES
+from jtc_hw.errors import CommunicationError, ConfigurationError, HardwareError, MotorFault
+from jtc_hw.hardware import HardwareInterface, ParamKind, ParamSpec, SafeAction, param_table
+from jtc_hw.joints import JointCommand, JointState
+
+from .bus import (
     ERROR_ALERT,
     DynamixelBus,
     ServoCommunicationError,
     ServoStatusError,
     SyncReadResult,
 )
-from jtc_hw.drivers.dynamixel.control_table import (
+from .control_table import (
     BAUD_RATES,
     PRESENT_BLOCK_ADDRESS,
     PRESENT_BLOCK_SIZE,
@@ -66,15 +73,9 @@ from jtc_hw.drivers.dynamixel.control_table import (
     model_by_name,
     model_by_number,
 )
-from jtc_hw.drivers.dynamixel.control_table import (
+from .control_table import (
     HardwareError as ServoHardwareError,
 )
-from numpy.typing import NDArray
-
-from jtc_hw.config import STATE_INTERFACE_TYPES
-from jtc_hw.errors import CommunicationError, ConfigurationError, HardwareError, MotorFault
-from jtc_hw.hardware import HardwareInterface, ParamKind, ParamSpec, SafeAction, param_table
-from jtc_hw.joints import JointCommand, JointState
 
 __all__ = ["DynamixelHardware"]
 

@@ -260,9 +260,9 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument("--duration", type=float, default=3.0,
                         help="seconds per configuration (default 3)")
-    parser.add_argument("--bus", nargs="+", default=["dynamixel"],
+    parser.add_argument("--bus", nargs="+", default=["dynamixel", *CAN_SOURCES],
                         choices=["dynamixel", *CAN_SOURCES],
-                        help="buses to measure (default dynamixel)")
+                        help="buses to measure (default: all)")
     parser.add_argument("--bitrates", nargs="+", type=int, default=list(BITRATES),
                         help="Dynamixel bit rates (default 1000000 2000000 4000000)")
     parser.add_argument("--profile", action="store_true",

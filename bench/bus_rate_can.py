@@ -6,10 +6,12 @@ on one bus alone, the cycle ``write`` (one set-point frame per motor, the buses 
 then ``read`` (waits for every reply, bounded by the bus's ``receive_timeout``) runs as fast
 as it can for ``--duration`` seconds.
 
-Each bus and its motors are one ``jtc-hw emulate can --pace`` process (the bus is hardware
-outside the driver's process: an emulator sharing the driver's interpreter lock, or another
-bus's, would queue its work behind the driver's instead of overlapping the wire time), reached
-through python-can's stock ``socketcand`` interface (``tcp_tune`` on). The emulator releases
+The buses and their motors are one ``jtc-hw emulate can --pace --one-thread`` process (the
+buses are hardware outside the driver's process: an emulator sharing the driver's interpreter
+lock would queue its work behind the driver's instead of overlapping the wire time; one thread
+serves every bus, each bus's wire modelled on its own, so with two buses two busy processes
+share the two cores, not three), reached through python-can's stock ``socketcand`` interface
+(``tcp_tune`` on). The emulator releases
 each reply when the command's and the reply's bits (exact stuffing) would have crossed the
 wire, frames on one bus one after another, the wire starting when the command reached the
 server's socket (kernel receive stamp).
@@ -77,18 +79,26 @@ def _wire_us(ids: list[int]) -> float:
 
 @contextmanager
 def emulator_processes(
-    protocol: str, layout: dict[str, list[int]], extra: Sequence[str] = ()
+    protocol: str, layout: dict[str, list[int]], extra: Sequence[str] = (),
+    separate: bool = False,
 ) -> Iterator[dict[str, dict[str, Any]]]:
-    """One paced ``jtc-hw emulate can`` process per bus (the bus and its motors are hardware
-    outside the driver's process: they must not share its interpreter lock, nor each other's,
-    as two real buses do not). Yields ``{bus name: socketcand bus settings}``."""
+    """The paced ``jtc-hw emulate can --one-thread`` process serving every bus of ``layout``
+    (``separate``: one process per bus). The buses and their motors are hardware outside the
+    driver's process: they must not share its interpreter lock. One thread serves every bus
+    (a heap of due replies per bus, each bus's wire modelled on its own, the buses
+    concurrent): with two buses, two busy processes on the two cores (driver, emulator),
+    where a process per bus made three compete for them. Yields ``{bus name: socketcand bus
+    settings}``."""
     procs: list[subprocess.Popen[str]] = []
     settings: dict[str, dict[str, Any]] = {}
+    groups = [[n] for n in layout] if separate else [list(layout)]
     try:
-        for name, ids in layout.items():
+        for group in groups:
             cmd = [sys.executable, "-m", "jtc_hw", "emulate", "can", "--protocol", protocol,
-                   "--ids", ",".join(map(str, ids)), "--pace", "--bitrate", str(BITRATE),
-                   "--socketcand-port", "0", "--channel", name, *extra]
+                   "--pace", "--bitrate", str(BITRATE), "--socketcand-port", "0",
+                   "--one-thread", *extra]
+            for name in group:
+                cmd += ["--channel", name, "--ids", ",".join(map(str, layout[name]))]
             proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, text=True)
             procs.append(proc)
             assert proc.stdout is not None
@@ -96,8 +106,9 @@ def emulator_processes(
             if not line:
                 raise RuntimeError(f"emulator for {name} did not start (exit {proc.wait()})")
             fields = dict(f.split("=", 1) for f in line.split())
-            settings[name] = {"interface": "socketcand", "channel": fields["channel"],
-                              "host": fields["host"], "port": int(fields["port"])}
+            for name in group:
+                settings[name] = {"interface": "socketcand", "channel": name,
+                                  "host": fields["host"], "port": int(fields["port"])}
         yield settings
     finally:
         for proc in procs:
@@ -130,8 +141,8 @@ def parallel_check(rows: list[dict[str, Any]]) -> list[str]:
 
 
 def measure(motors: int, buses: int, duration_s: float) -> dict[str, Any]:
-    """One row: ``motors`` MIT motors spread over ``buses`` paced buses, each emulated by its
-    own process behind a socketcand server, reached with python-can's stock ``socketcand``
+    """One row: ``motors`` MIT motors spread over ``buses`` paced buses, emulated by one
+    one-thread process behind a socketcand server, reached with python-can's stock ``socketcand``
     client (``tcp_tune`` on)."""
     per_bus = motors // buses
     layout = {f"can{b}": list(range(1, per_bus + 1)) for b in range(buses)}
@@ -216,7 +227,7 @@ def main(argv: list[str] | None = None) -> int:
         for row in rows:
             print(json.dumps(row))
         return 0
-    print(f"MIT mode at {BITRATE // 1000} kbit/s, one paced emulator process per bus, "
+    print(f"MIT mode at {BITRATE // 1000} kbit/s, one paced one-thread emulator process, "
           f"socketcand (target ratio <= {TARGET_RATIO})")
     print(f"{'motors':>6} {'buses':>5} {'rate Hz':>8} {'cycle us':>8} {'wire us':>7} "
           f"{'ratio':>6} {'driver cpu us':>13} {'wire+cpu':>8} {'missed':>6}")

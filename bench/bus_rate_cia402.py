@@ -2,9 +2,11 @@
 """Cycle rate of the real CiA 402 driver against wire-paced emulated drives.
 
 Six drives on one 1 Mbit/s bus, on two buses of three, and (the parallelism reference) three
-drives on one bus alone. Each bus and its drives are one ``jtc-hw emulate can --protocol
-cia402 --pace`` process (outside the driver's process and each other's, as separate hardware
-is), reached through python-can's stock ``socketcand`` interface (``tcp_tune`` on). The real
+drives on one bus alone. The buses and their drives are one ``jtc-hw emulate can --protocol
+cia402 --pace --one-thread`` process (outside the driver's process, as separate hardware is;
+one thread serves every bus, each bus's wire modelled on its own, so two buses make two busy
+processes on the two cores, not three), reached through python-can's stock ``socketcand``
+interface (``tcp_tune`` on). The real
 ``Cia402Hardware`` runs write + read cycles as fast as it can for ``--duration`` seconds:
 ``write`` sends every drive's RPDO1 (controlword + target position, 6 bytes) and a SYNC, then
 ``read`` waits (bounded at 50 ms) until every drive's two TPDOs (8 + 7 bytes) have arrived.

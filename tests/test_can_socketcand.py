@@ -197,3 +197,58 @@ def test_emulate_process_cia402_or_a_clear_message() -> None:
         assert line.startswith("interface=socketcand ") and code == 0, (line, err)
     else:  # the CiA 402 emulator module is missing or broken: a clear message, status 2
         assert code == 2 and "CiA 402 emulator is not available" in err, err
+
+
+@pytest.mark.parametrize("protocol", ["mit", "cia402"])
+def test_one_thread_emulator_serves_two_buses_and_reconnects(protocol: str) -> None:
+    """``jtc-hw emulate can --one-thread``: both channels answer from one thread, a client
+    may leave and come back, SIGTERM ends it cleanly."""
+    process = subprocess.Popen(
+        [sys.executable, "-m", "jtc_hw", "emulate", "can", "--protocol", protocol,
+         "--one-thread", "--pace", "--channel", "can0", "--ids", "1-2",
+         "--channel", "can1", "--ids", "3"],
+        stdout=subprocess.PIPE, text=True, env=daemon_env(), cwd=ROOT,
+    )
+    try:
+        assert process.stdout is not None
+        fields = dict(item.split("=", 1) for item in process.stdout.readline().split())
+        assert fields["interface"] == "socketcand" and fields["channel"] == "can0,can1"
+        for _ in range(2):  # connect, leave, come back
+            buses = [
+                can.Bus(interface="socketcand", host=fields["host"], port=int(fields["port"]),
+                        channel=channel, tcp_tune=True)
+                for channel in ("can0", "can1")
+            ]
+            try:
+                for bus, node in zip(buses, (1, 3)):
+                    if protocol == "mit":
+                        ask = can.Message(arbitration_id=node, is_extended_id=False,
+                                          data=ENTER_MOTOR_MODE)
+                    else:  # SDO upload of the statusword (0x6041)
+                        ask = can.Message(arbitration_id=0x600 + node, is_extended_id=False,
+                                          data=bytes([0x40, 0x41, 0x60, 0, 0, 0, 0, 0]))
+                    bus.send(ask)
+                    deadline = time.monotonic() + WAIT_S
+                    answer = None
+                    while answer is None and time.monotonic() < deadline:
+                        frame = bus.recv(timeout=0.5)
+                        if frame is None:
+                            continue
+                        if protocol == "mit" or frame.arbitration_id == 0x580 + node:
+                            answer = frame
+                    assert answer is not None, f"no answer from node {node} ({protocol})"
+                    if protocol == "mit":
+                        assert answer.data[0] == node  # the reply names its motor
+                    else:
+                        assert answer.data[0] == 0x4B and bytes(answer.data[1:3]) == b"\x41\x60"
+            finally:
+                for bus in buses:
+                    bus.shutdown()
+        process.send_signal(signal.SIGTERM)
+        assert process.wait(timeout=10) == 0
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.wait()
+        if process.stdout is not None:
+            process.stdout.close()

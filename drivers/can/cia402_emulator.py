@@ -34,6 +34,7 @@ from __future__ import annotations
 import heapq
 import itertools
 import logging
+import queue
 import struct
 import threading
 import time
@@ -104,13 +105,21 @@ class _Hub:
         self.error: BaseException | None = None
 
     @classmethod
-    def join(cls, drive: Cia402DriveEmulator) -> _Hub:
+    def join(cls, drive: Cia402DriveEmulator, push: bool = False) -> _Hub:
         with cls._lock:
             hub = cls._hubs.get(id(drive.bus))
             if hub is None:
                 hub = cls(drive.bus, drive.pace_bitrate)
+                if push:
+                    from .socketcand import attach_sink
+
+                    try:
+                        attach_sink(drive.bus, _HubSink(hub))
+                    except (AttributeError, ValueError) as exc:
+                        raise ValueError(
+                            f"push mode needs a python-can virtual bus ({exc})") from exc
                 cls._hubs[id(drive.bus)] = hub
-                start = True
+                start = not push
             else:
                 start = False
             if drive.node_id in hub.drives:
@@ -201,23 +210,43 @@ class _Hub:
                     if wait is not None:
                         self._early.observe(asked + timeout, time.monotonic())
                     continue
-                if msg.is_error_frame:
-                    continue
-                now = time.monotonic()
-                # The frame took the wire when it was sent (its receive stamp on a virtual
-                # bus, wall clock), not when this thread got round to it.
-                sent = msg.timestamp - (time.time() - now) if msg.timestamp else now
-                end = self._occupy(msg, min(now, max(sent, now - 0.01)))
-                if msg.arbitration_id == c4.SYNC_COB_ID and not msg.is_extended_id:
-                    self._answer_at = end if self.pace_bitrate is not None else None
-                try:
-                    self._dispatch(msg)
-                finally:
-                    self._answer_at = None
+                self._on_message(msg)
         except Exception as exc:  # noqa: BLE001 - reported by the drives' `error`
             if not self._stop.is_set():
                 _log.exception("CiA 402 emulator hub stopped")
                 self.error = exc
+
+    def _on_message(self, msg: can.Message) -> None:
+        """A frame on the bus: occupies the modelled wire, then reaches the drives."""
+        if msg.is_error_frame:
+            return
+        now = time.monotonic()
+        # The frame took the wire when it was sent (its receive stamp on a virtual bus, wall
+        # clock), not when this thread got round to it.
+        sent = msg.timestamp - (time.time() - now) if msg.timestamp else now
+        end = self._occupy(msg, min(now, max(sent, now - 0.01)))
+        if msg.arbitration_id == c4.SYNC_COB_ID and not msg.is_extended_id:
+            self._answer_at = end if self.pace_bitrate is not None else None
+        try:
+            self._dispatch(msg)
+        finally:
+            self._answer_at = None
+
+    def _on_pushed(self, msg: can.Message) -> None:
+        """Push mode: a frame another peer sent, handled in its thread."""
+        try:
+            self._on_message(msg)
+        except Exception as exc:  # noqa: BLE001 - reported by the drives' `error`
+            _log.exception("CiA 402 emulator hub failed")
+            self.error = exc
+
+    def next_due(self) -> float | None:
+        """Push mode: the monotonic time the next frame is due (``None``: none pending)."""
+        return self._pending[0][0] if self._pending else None
+
+    def release_due(self, now: float) -> None:
+        """Push mode: send every frame that is due (``now`` is read again per frame)."""
+        self._send_due()
 
     def _dispatch(self, msg: can.Message) -> None:
         if self.bus_off:
@@ -244,6 +273,32 @@ class _Hub:
             if drive is not None and (drive._silent or drive._on_frame(cob, data)):
                 return
             self.network.notify(cob, bytearray(data), msg.timestamp)
+
+
+class _HubSink:
+    """Stands in for a push-mode hub's receive queue on its virtual bus: frames other peers
+    send are handled at once, in their thread (see :meth:`Cia402DriveEmulator.start`)."""
+
+    def __init__(self, hub: _Hub) -> None:
+        self.hub = hub
+
+    def put(self, msg: can.Message, block: bool = True, timeout: float | None = None) -> None:
+        self.hub._on_pushed(msg)
+
+    def put_nowait(self, msg: can.Message) -> None:
+        self.hub._on_pushed(msg)
+
+    def get(self, block: bool = True, timeout: float | None = None) -> can.Message:
+        raise queue.Empty
+
+    def get_nowait(self) -> can.Message:
+        raise queue.Empty
+
+    def empty(self) -> bool:
+        return True
+
+    def qsize(self) -> int:
+        return 0
 
 
 class Cia402DriveEmulator:
@@ -317,17 +372,35 @@ class Cia402DriveEmulator:
 
     # -- lifecycle ------------------------------------------------------------------------------
 
-    def start(self) -> None:
+    def start(self, push: bool = False) -> None:
         """Join the bus and boot: send the boot-up message and enter pre-operational.
 
+        Args:
+            push: (first drive on the bus object) the bus is a python-can ``virtual`` bus
+                whose frames are handled in the sending peer's thread and no thread is
+                started: the caller releases the due frames (:meth:`timer`'s
+                ``next_due`` / ``release_due``; a one-thread socketcand server's timer).
+
         Raises:
-            ValueError: another emulator with this node id is on the same bus object.
+            ValueError: another emulator with this node id is on the same bus object, or
+                ``push`` with a bus that is not a python-can virtual bus.
             RuntimeError: already started.
         """
         if self._hub is not None:
             raise RuntimeError(f"drive {self.node_id} already started")
-        self._hub = _Hub.join(self)
+        self._hub = _Hub.join(self, push)
         self._boot()
+
+    def timer(self) -> Any:
+        """The object releasing this drive's bus's due frames (``next_due(): float | None``,
+        ``release_due(now)``), shared by the drives on the bus object; started drives only.
+
+        Raises:
+            RuntimeError: not started.
+        """
+        if self._hub is None:
+            raise RuntimeError(f"drive {self.node_id} not started")
+        return self._hub
 
     def stop(self) -> None:
         """Leave the bus (its thread stops with the last drive on it). Idempotent."""

@@ -30,6 +30,12 @@ replies, the drive temperature and a Damiao error code (``"damiao"`` reply forma
 
 ``main(argv)`` runs emulators in a process, behind a socketcand server (default) so that other
 processes reach them with python-can's stock ``socketcand`` interface, until SIGINT/SIGTERM.
+With ``--one-thread`` the emulators start no threads (``start(push=True, thread=False)``; CiA
+402 drives ``start(push=True)``): the server's single thread reads every client, the frames
+reach the emulators in it, and it releases every bus's due replies (each emulator keeps its
+own heap of due replies and its own wire, so the buses stay independent and concurrent). A
+process serving several buses then keeps one busy thread: no interpreter lock to contend for,
+no thread hand-over.
 """
 
 from __future__ import annotations
@@ -196,7 +202,7 @@ class MitBusEmulator:
 
     # -- lifecycle ----------------------------------------------------------------------------
 
-    def start(self, push: bool = False) -> None:
+    def start(self, push: bool = False, thread: bool = True) -> None:
         """Start answering (one daemon thread).
 
         Args:
@@ -204,12 +210,18 @@ class MitBusEmulator:
                 the sending peer's thread (see :meth:`_on_frame`), the thread only
                 releasing the due replies: one thread hand-over less per frame. Used by
                 ``jtc-hw emulate can`` behind its socketcand server.
+            thread: ``False`` (push mode only): start no thread; the caller releases the
+                due replies (:meth:`next_due`, :meth:`release_due`: a one-thread
+                socketcand server's timer).
 
         Raises:
-            ValueError: ``push`` with a bus that is not a python-can virtual bus.
+            ValueError: ``push`` with a bus that is not a python-can virtual bus, or no
+                thread without ``push``.
         """
         if self._thread is not None:
             return
+        if not thread and not push:
+            raise ValueError("an emulator without a thread needs push mode")
         if push and not self._push:
             from .socketcand import attach_sink
 
@@ -219,8 +231,19 @@ class MitBusEmulator:
                 raise ValueError(f"push mode needs a python-can virtual bus ({exc})") from exc
             self._push = True
         self._stop.clear()
+        if not thread:
+            return
         self._thread = threading.Thread(target=self._run, name="mit-emulator", daemon=True)
         self._thread.start()
+
+    def next_due(self) -> float | None:
+        """The monotonic time the next reply is due (``None``: none pending)."""
+        with self._lock:
+            return self._due[0][0] if self._due else None
+
+    def release_due(self, now: float) -> None:
+        """Send every reply due at or before ``now`` (monotonic)."""
+        self._deliver_due(now)
 
     def stop(self, timeout_s: float = 5.0) -> None:
         """Stop answering and join the thread (the bus stays open)."""
@@ -550,6 +573,9 @@ def build_parser() -> argparse.ArgumentParser:
                         help="socketcand: serve over TCP; virtual: in-process bus only")
     parser.add_argument("--channel", action="append", default=None,
                         help="bus channel name (repeatable; default can0)")
+    parser.add_argument("--one-thread", action="store_true",
+                        help="socketcand: serve every channel, and release every emulator's "
+                        "replies, from one thread (no threads of the emulators' own)")
     parser.add_argument("--master-id", type=lambda s: int(s, 0), default=0,
                         help="MIT reply arbitration id")
     return parser
@@ -623,17 +649,25 @@ def main(argv: Sequence[str] | None = None) -> int:
                 physics = MotorParams(max_step_s=0.0005)
                 emulators.extend(factory(bus, node, pace_bitrate=pace, motor_params=physics)
                                  for node in ids)
+        one_thread = args.one_thread and args.interface == "socketcand"
+        timers: list[Any] = []
         for emulator in emulators:
             if args.protocol == "mit" and args.interface == "socketcand":
                 # Nothing else in this process uses the bus: frames from the socketcand
                 # clients are handled in the server's reading thread (no hand-over).
+                emulator.start(push=True, thread=not one_thread)
+                timers.append(emulator)
+            elif one_thread:
                 emulator.start(push=True)
+                if all(emulator.timer() is not t for t in timers):
+                    timers.append(emulator.timer())  # one per bus: its drives share it
             else:
                 emulator.start()
         if args.interface == "socketcand":
             from .socketcand import SocketcandServer
 
-            server = SocketcandServer(port=args.socketcand_port, channels=virtual)
+            server = SocketcandServer(port=args.socketcand_port, channels=virtual,
+                                      timers=timers if one_thread else None)
             server.start()
             print(f"interface=socketcand host={server.host} port={server.port} "
                   f"channel={','.join(virtual)}", flush=True)

@@ -28,6 +28,14 @@ releasing a reply at its due time writes it to TCP at once, instead of waking a 
 a hop that costs tens of microseconds under the interpreter lock). A client disconnecting
 (or the server stopping) ends its thread and shuts its virtual bus down.
 
+One-thread mode (``timers=``): one thread accepts, waits with ``select`` on the listener and
+every client socket (``select.select``: its timeout has microsecond resolution, ``epoll``'s
+only milliseconds) until a client sends or the earliest due frame of the given timers (the
+emulators, each with its own heap of due frames) is near, handles the clients' elements in
+itself (the emulators in push mode answer in it) and releases the due frames (waking a little
+early and spinning the rest, :class:`~jtc_hw.drivers.can.emulator.WakeEarly`). No thread of
+the process then competes for the interpreter lock or waits on another.
+
 python-can's client reads the handshake replies with one ``recv`` each and compares them
 exactly, so no bus frame may be written to a client before it has read the ``< ok >`` of
 ``rawmode``: frames are held (in order) and forwarded only after the client's first
@@ -43,17 +51,22 @@ from __future__ import annotations
 
 import logging
 import queue
+import select
 import socket
 import struct
 import sys
 import threading
 import time
-from collections.abc import Mapping
-from typing import Any
+from collections.abc import Mapping, Sequence
+from typing import Any, Protocol
 
 import can
 
-__all__ = ["FORWARD_AFTER_S", "SocketcandServer", "attach_sink", "format_frame", "parse_send"]
+from jtc_hw.realtime import reduce_timer_slack
+
+__all__ = [
+    "FORWARD_AFTER_S", "SocketcandServer", "Timer", "attach_sink", "format_frame", "parse_send",
+]
 
 _log = logging.getLogger(__name__)
 
@@ -147,6 +160,7 @@ class _Client:
         # None once forwarding.
         self.held: list[bytes] | None = []
         self.forward_at: float | None = None  # monotonic time to start forwarding anyway
+        self.buffer = ""  # received text not yet making a whole element
         self.reader = threading.Thread(target=self._read_tcp, name=f"socketcand-{peer}",
                                        daemon=True)
 
@@ -182,7 +196,6 @@ class _Client:
             self.server.frames_to_clients += len(held)
 
     def _read_tcp(self) -> None:
-        buffer = ""
         try:
             self.write("< hi >")
             self.conn.settimeout(_POLL_S)
@@ -193,31 +206,41 @@ class _Client:
                         self._start_forwarding()
                     self.conn.settimeout(min(max(wait, 0.001), _POLL_S))
                 try:
-                    chunk, ancillary, _, _ = self.conn.recvmsg(65536, _ANCILLARY_SPACE)
+                    if not self.receive():
+                        break
                 except TimeoutError:
                     continue
-                if not chunk:
-                    break
-                # Every frame of this segment reached "the controller" when the kernel
-                # received the segment (SO_TIMESTAMPNS), not when this thread woke up for it:
-                # the wire starts then.
-                arrived = _kernel_stamp(ancillary)
-                buffer += chunk.decode("ascii", errors="replace")
-                while True:
-                    start = buffer.find("<")
-                    end = buffer.find(">", start + 1) if start >= 0 else -1
-                    if start < 0:
-                        buffer = ""
-                        break
-                    if end < 0:
-                        buffer = buffer[start:] if len(buffer) - start < _MAX_ELEMENT else ""
-                        break
-                    element, buffer = buffer[start:end + 1], buffer[end + 1:]
-                    self._element(element, arrived)
         except OSError as exc:
             _log.debug("socketcand client %s: %s", self.peer, exc)
         finally:
             self.close()
+
+    def receive(self) -> bool:
+        """Read one TCP segment and act on its elements; ``False``: the client is gone.
+
+        Raises:
+            OSError: the socket failed (``TimeoutError``: nothing came in its timeout).
+        """
+        chunk, ancillary, _, _ = self.conn.recvmsg(65536, _ANCILLARY_SPACE)
+        if not chunk:
+            return False
+        # Every frame of this segment reached "the controller" when the kernel received the
+        # segment (SO_TIMESTAMPNS), not when this thread woke up for it: the wire starts then.
+        arrived = _kernel_stamp(ancillary)
+        buffer = self.buffer + chunk.decode("ascii", errors="replace")
+        while True:
+            start = buffer.find("<")
+            end = buffer.find(">", start + 1) if start >= 0 else -1
+            if start < 0:
+                buffer = ""
+                break
+            if end < 0:
+                buffer = buffer[start:] if len(buffer) - start < _MAX_ELEMENT else ""
+                break
+            element, buffer = buffer[start:end + 1], buffer[end + 1:]
+            self._element(element, arrived)
+        self.buffer = buffer
+        return True
 
     def _element(self, element: str, arrived: float) -> None:
         if element.startswith("< send "):
@@ -271,7 +294,8 @@ class _Client:
         self.server._forget(self)
 
     def join(self, timeout_s: float) -> None:
-        self.reader.join(timeout_s)
+        if self.reader.is_alive():  # one-thread servers start no reader
+            self.reader.join(timeout_s)
 
 
 _ANCILLARY_SPACE = socket.CMSG_SPACE(16)
@@ -284,6 +308,16 @@ def _kernel_stamp(ancillary: list[tuple[int, int, bytes]]) -> float:
             secs, nanos = struct.unpack("@qq", data[:16])
             return float(secs + nanos * 1e-9)
     return time.time()
+
+
+class Timer(Protocol):
+    """Frames due at set times, released by a one-thread :class:`SocketcandServer`."""
+
+    def next_due(self) -> float | None:
+        """The monotonic time the next frame is due (``None``: nothing pending)."""
+
+    def release_due(self, now: float) -> None:
+        """Send every frame due at or before ``now``."""
 
 
 def attach_sink(bus: can.BusABC, sink: Any) -> None:
@@ -312,6 +346,12 @@ class SocketcandServer:
         port: TCP port, 0 for any free one (read :attr:`port` after :meth:`start`).
         channels: client channel name -> python-can virtual channel name; ``None``: any
             name a client opens is served as the virtual channel of that name.
+        timers: one-thread mode: the emulators (in push mode, without threads of their own)
+            whose due frames this server's single thread releases. One thread then accepts,
+            reads every client (the frames reaching the emulators in it) and sends the
+            emulators' answers at their due time: a process serving several buses keeps one
+            busy thread, with nothing to hand over and no interpreter lock to contend for.
+            ``None``: a thread per client, the emulators' own threads send their answers.
     """
 
     def __init__(
@@ -319,7 +359,10 @@ class SocketcandServer:
         host: str = "127.0.0.1",
         port: int = 0,
         channels: Mapping[str, str] | None = None,
+        timers: Sequence[Timer] | None = None,
     ) -> None:
+        self._timers = list(timers) if timers is not None else None
+        self.error: BaseException | None = None
         self.host = host
         self._requested_port = port
         self.port = port
@@ -363,8 +406,12 @@ class SocketcandServer:
         self._listener = listener
         self.port = listener.getsockname()[1]
         self._stop.clear()
-        self._acceptor = threading.Thread(target=self._accept, name="socketcand-accept",
-                                          daemon=True)
+        if self._timers is not None:
+            self._acceptor = threading.Thread(target=self._serve, name="socketcand",
+                                              daemon=True)
+        else:
+            self._acceptor = threading.Thread(target=self._accept, name="socketcand-accept",
+                                              daemon=True)
         self._acceptor.start()
 
     def _accept(self) -> None:
@@ -376,20 +423,97 @@ class SocketcandServer:
                 continue
             except OSError:
                 break
-            conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-            if _SO_TIMESTAMPNS is not None:
-                try:
-                    conn.setsockopt(socket.SOL_SOCKET, _SO_TIMESTAMPNS, 1)
-                except OSError:
-                    pass  # no kernel receive stamps: frames are stamped when read
-            client = _Client(self, conn, f"{addr[0]}:{addr[1]}")
-            with self._lock:
-                if self._stop.is_set():
-                    conn.close()
-                    break
-                self._clients.append(client)
-                self.connections += 1
+            client = self._new_client(conn, addr)
+            if client is None:
+                break
             client.reader.start()
+
+    def _new_client(self, conn: socket.socket, addr: Any) -> _Client | None:
+        """Set up an accepted connection (``None``: the server is stopping)."""
+        conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        if _SO_TIMESTAMPNS is not None:
+            try:
+                conn.setsockopt(socket.SOL_SOCKET, _SO_TIMESTAMPNS, 1)
+            except OSError:
+                pass  # no kernel receive stamps: frames are stamped when read
+        client = _Client(self, conn, f"{addr[0]}:{addr[1]}")
+        with self._lock:
+            if self._stop.is_set():
+                conn.close()
+                return None
+            self._clients.append(client)
+            self.connections += 1
+        return client
+
+    def _serve(self) -> None:
+        """One-thread mode: accept, read every client and release the timers' due frames
+        in this thread (see the class docstring)."""
+        from .emulator import WakeEarly  # (emulator imports this module lazily, too)
+
+        assert self._listener is not None
+        reduce_timer_slack()  # frames are due at exact times; the slack is per thread
+        early = WakeEarly()
+        timers = self._timers or []
+        listener = self._listener
+        readers: dict[int, _Client] = {}
+        try:
+            while not self._stop.is_set():
+                now = time.monotonic()
+                due: float | None = None
+                for timer in timers:
+                    t = timer.next_due()
+                    if t is not None and (due is None or t < due):
+                        due = t
+                if due is not None and due - now <= early.early_s:
+                    # A frame is ready; hold it until its modelled time (see WakeEarly).
+                    early.spin_until(due)
+                    now = time.monotonic()
+                    for timer in timers:
+                        timer.release_due(now)
+                    continue
+                timeout = _POLL_S if due is None else min(_POLL_S, due - now - early.early_s)
+                for client in readers.values():
+                    if client.held is not None and client.forward_at is not None:
+                        wait = client.forward_at - now
+                        if wait <= 0.0:
+                            client._start_forwarding()
+                        timeout = min(timeout, max(wait, 0.0))
+                ready, _, _ = select.select([listener, *[c.conn for c in readers.values()]],
+                                            [], [], timeout)
+                if not ready:
+                    if due is not None:
+                        early.observe(now + timeout, time.monotonic())
+                    continue
+                for sock in ready:
+                    if sock is listener:
+                        try:
+                            conn, addr = listener.accept()
+                        except OSError:
+                            continue
+                        conn.settimeout(_POLL_S)  # bounds a send to a client not reading
+                        new = self._new_client(conn, addr)
+                        if new is None:
+                            return
+                        readers[conn.fileno()] = new
+                        new.write("< hi >")
+                        continue
+                    client = readers[sock.fileno()]
+                    try:
+                        alive = client.receive() and not client.stop.is_set()
+                    except TimeoutError:
+                        alive = True
+                    except OSError as exc:
+                        _log.debug("socketcand client %s: %s", client.peer, exc)
+                        alive = False
+                    if not alive:
+                        del readers[sock.fileno()]
+                        client.close()
+        except Exception as exc:  # noqa: BLE001 - reported through .error
+            _log.exception("socketcand server stopped")
+            self.error = exc
+        finally:
+            for client in list(readers.values()):
+                client.close()
 
     def _forget(self, client: _Client) -> None:
         with self._lock:

@@ -34,7 +34,6 @@ from __future__ import annotations
 import heapq
 import itertools
 import logging
-import queue
 import struct
 import threading
 import time
@@ -48,7 +47,7 @@ from canopen.sdo.exceptions import SdoAbortedError
 from ..motor_model import Motor, MotorParams
 from . import cia402_codec as c4
 from .bus import CAN_ERR_BUSOFF, wire_time_s
-from .emulator import WakeEarly
+from .emulator import PushSink, WakeEarly
 
 __all__ = ["DEFAULT_EDS", "Cia402DriveEmulator", "NmtState"]
 
@@ -114,7 +113,7 @@ class _Hub:
                     from .socketcand import attach_sink
 
                     try:
-                        attach_sink(drive.bus, _HubSink(hub))
+                        attach_sink(drive.bus, PushSink(hub._on_pushed))
                     except (AttributeError, ValueError) as exc:
                         raise ValueError(
                             f"push mode needs a python-can virtual bus ({exc})") from exc
@@ -273,32 +272,6 @@ class _Hub:
             if drive is not None and (drive._silent or drive._on_frame(cob, data)):
                 return
             self.network.notify(cob, bytearray(data), msg.timestamp)
-
-
-class _HubSink:
-    """Stands in for a push-mode hub's receive queue on its virtual bus: frames other peers
-    send are handled at once, in their thread (see :meth:`Cia402DriveEmulator.start`)."""
-
-    def __init__(self, hub: _Hub) -> None:
-        self.hub = hub
-
-    def put(self, msg: can.Message, block: bool = True, timeout: float | None = None) -> None:
-        self.hub._on_pushed(msg)
-
-    def put_nowait(self, msg: can.Message) -> None:
-        self.hub._on_pushed(msg)
-
-    def get(self, block: bool = True, timeout: float | None = None) -> can.Message:
-        raise queue.Empty
-
-    def get_nowait(self) -> can.Message:
-        raise queue.Empty
-
-    def empty(self) -> bool:
-        return True
-
-    def qsize(self) -> int:
-        return 0
 
 
 class Cia402DriveEmulator:

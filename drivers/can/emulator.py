@@ -49,7 +49,7 @@ import sys
 import threading
 import time
 import uuid
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -226,7 +226,7 @@ class MitBusEmulator:
             from .socketcand import attach_sink
 
             try:
-                attach_sink(self.bus, _PushSink(self))
+                attach_sink(self.bus, PushSink(self._on_frame))
             except (AttributeError, ValueError) as exc:
                 raise ValueError(f"push mode needs a python-can virtual bus ({exc})") from exc
             self._push = True
@@ -500,18 +500,22 @@ class MitBusEmulator:
                            data=encode_reply(state, self.limits))
 
 
-class _PushSink:
-    """Stands in for the emulator bus's receive queue in push mode: frames other peers send
-    are handled at once, in their thread."""
+class PushSink:
+    """Stands in for an emulator bus's receive queue in push mode: frames other peers send
+    are handed to ``handle`` at once, in their thread (MIT motors and CiA 402 drives alike).
 
-    def __init__(self, emulator: MitBusEmulator) -> None:
-        self.emulator = emulator
+    Args:
+        handle: called with each frame sent on the channel by another peer.
+    """
+
+    def __init__(self, handle: Callable[[can.Message], object]) -> None:
+        self.handle = handle
 
     def put(self, msg: can.Message, block: bool = True, timeout: float | None = None) -> None:
-        self.emulator._on_frame(msg)
+        self.handle(msg)
 
     def put_nowait(self, msg: can.Message) -> None:
-        self.emulator._on_frame(msg)
+        self.handle(msg)
 
     def get(self, block: bool = True, timeout: float | None = None) -> can.Message:
         raise queue.Empty

@@ -39,7 +39,7 @@ import time
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import can
 
@@ -140,6 +140,43 @@ def parallel_check(rows: list[dict[str, Any]]) -> list[str]:
     return lines
 
 
+class CycleRun(NamedTuple):
+    """What :func:`run_cycles` measured."""
+
+    cycles: int
+    elapsed_s: float
+    cpu_s: float  # this thread's CPU time: the driver's own work
+    read_s: float  # time spent in read(): mostly waiting for the replies
+
+
+def run_cycles(hw: Any, command: JointCommand, duration_s: float) -> CycleRun:
+    """Warm up, then run ``hw.write`` + ``hw.read`` back to back for ``duration_s``."""
+    clock = time.monotonic_ns
+    for _ in range(50):  # warm up (caches, TCP windows)
+        hw.write(clock(), command)
+        hw.read(clock())
+    gc.collect()
+    gc.freeze()
+    try:
+        cycles = 0
+        read_s = 0.0
+        now = time.perf_counter
+        cpu0 = time.thread_time()
+        t0 = now()
+        end = t0 + duration_s
+        while (t := now()) < end:
+            hw.write(clock(), command)
+            t = now()
+            hw.read(clock())
+            read_s += now() - t
+            cycles += 1
+        elapsed = now() - t0
+        cpu = time.thread_time() - cpu0
+    finally:
+        gc.unfreeze()
+    return CycleRun(cycles, elapsed, cpu, read_s)
+
+
 def measure(motors: int, buses: int, duration_s: float) -> dict[str, Any]:
     """One row: ``motors`` MIT motors spread over ``buses`` paced buses, emulated by one
     one-thread process behind a socketcand server, reached with python-can's stock ``socketcand``
@@ -158,25 +195,8 @@ def measure(motors: int, buses: int, duration_s: float) -> dict[str, Any]:
         try:
             hw.configure()
             hold = hw.activate(time.monotonic_ns())
-            command = JointCommand(positions=hold.positions)
-            for _ in range(50):  # warm up (caches, TCP windows)
-                hw.write(time.monotonic_ns(), command)
-                hw.read(time.monotonic_ns())
-            gc.collect()
-            gc.freeze()
-            cycles = 0
-            cpu0 = time.thread_time()
-            t0 = time.perf_counter()
-            end = t0 + duration_s
-            now = time.perf_counter
-            clock = time.monotonic_ns
-            while now() < end:
-                hw.write(clock(), command)
-                hw.read(clock())
-                cycles += 1
-            elapsed = time.perf_counter() - t0
-            cpu = time.thread_time() - cpu0
-            gc.unfreeze()
+            run = run_cycles(hw, JointCommand(positions=hold.positions), duration_s)
+            cycles, elapsed, cpu = run.cycles, run.elapsed_s, run.cpu_s
             missed = sum(m["missed_replies"] for m in hw.status()["details"]["motors"].values())
         finally:
             hw.shutdown(time.monotonic_ns())

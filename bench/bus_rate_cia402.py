@@ -32,7 +32,6 @@ Target: cycle <= 1.3 x wire time; two buses in parallel at about the rate of one
 from __future__ import annotations
 
 import argparse
-import gc
 import json
 import sys
 import time
@@ -48,7 +47,12 @@ from jtc_hw.joints import JointCommand
 from jtc_hw.realtime import reduce_timer_slack
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bus_rate_can import _mark_parallel, emulator_processes, parallel_check  # noqa: E402
+from bus_rate_can import (  # noqa: E402
+    _mark_parallel,
+    emulator_processes,
+    parallel_check,
+    run_cycles,
+)
 
 BITRATE = 1_000_000
 MOTORS = 6
@@ -76,7 +80,7 @@ def _run(
     per_bus = motors // buses
     layout = {f"can{i}": list(range(1, per_bus + 1)) for i in range(buses)}
     joints = [f"j{i}" for i in range(motors)]
-    waited = 0.0
+
     with emulator_processes("cia402", layout) as bus_params:
         params = {
             "buses": {name: {**settings, "bitrate": BITRATE, "receive_timeout": 0.05,
@@ -92,29 +96,8 @@ def _run(
             held = hw.activate(time.monotonic_ns())
             target = held.positions
             assert target is not None
-            command = JointCommand(target.copy())
-            # Warm-up, then the measured run.
-            for _ in range(50):
-                hw.write(time.monotonic_ns(), command)
-                hw.read(time.monotonic_ns())
-            gc.collect()
-            gc.freeze()
-            cycles = 0
-            cpu0 = time.thread_time()
-            start = time.perf_counter()
-            end = start + duration_s
-            while True:
-                now = time.perf_counter()
-                if now >= end:
-                    break
-                hw.write(time.monotonic_ns(), command)
-                t = time.perf_counter()
-                hw.read(time.monotonic_ns())
-                waited += time.perf_counter() - t
-                cycles += 1
-            elapsed = time.perf_counter() - start
-            cpu = time.thread_time() - cpu0
-            gc.unfreeze()
+            run = run_cycles(hw, JointCommand(target.copy()), duration_s)
+            cycles, elapsed, cpu, waited = run.cycles, run.elapsed_s, run.cpu_s, run.read_s
             missed = sum(v["missed"] for v in hw.status()["details"]["drives"].values())
         finally:
             hw.shutdown(time.monotonic_ns())

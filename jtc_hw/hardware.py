@@ -66,6 +66,7 @@ __all__ = [
     "HardwareInterface",
     "HardwareSet",
     "HardwareSpec",
+    "JOINT_MAPPING_PARAMS",
     "LifecycleState",
     "ParamKind",
     "ParamSpec",
@@ -190,7 +191,7 @@ class ParamSpec:
         description: one-line description.
         minimum: inclusive lower bound for numbers (each element for lists and ranges).
         maximum: inclusive upper bound for numbers.
-        choices: allowed values for strings.
+        choices: allowed values for strings and integers.
         required: the parameter must be given.
         nullable: an explicit ``null`` means "use the default".
         unique: list without duplicates.
@@ -211,7 +212,7 @@ class ParamSpec:
     description: str
     minimum: float | None = None
     maximum: float | None = None
-    choices: tuple[str, ...] = ()
+    choices: tuple[str, ...] | tuple[int, ...] = ()
     required: bool = False
     nullable: bool = False
     unique: bool = False
@@ -277,6 +278,9 @@ def _integer(spec: ParamSpec, value: Any, path: str, what: str = "") -> int:
         raise ConfigurationError(
             f"{what}expected an integer, got {_describe(value)}", path, value
         )
+    if spec.choices and value not in spec.choices:
+        allowed = " or ".join(str(c) for c in spec.choices)
+        raise ConfigurationError(f"{what}must be {allowed}, got {value}", path, value)
     _check_bounds(spec, value, value, path, what)
     return value
 
@@ -301,9 +305,10 @@ def _string(spec: ParamSpec, value: Any, path: str, what: str = "") -> str:
     if not isinstance(value, str):
         raise ConfigurationError(f"{what}expected a string, got {_describe(value)}", path, value)
     if spec.choices and value not in spec.choices:
+        names = [str(c) for c in spec.choices]
         raise ConfigurationError(
             f"{what}{value!r} is not allowed; allowed values: "
-            f"{', '.join(repr(c) for c in spec.choices)}{_did_you_mean(value, spec.choices)}",
+            f"{', '.join(repr(c) for c in spec.choices)}{_did_you_mean(value, names)}",
             path,
             value,
         )
@@ -504,6 +509,20 @@ COMMON_PARAMS: Final[Mapping[str, ParamSpec]] = param_table(
               choices=tuple(a.value for a in SafeAction)),
 )
 """Parameters every hardware kind accepts (merged with the kind's ``PARAMS``)."""
+
+JOINT_MAPPING_PARAMS: Final[tuple[ParamSpec, ...]] = (
+    ParamSpec("offset", ParamKind.FLOAT, 0.0,
+              "per joint: joint position at motor zero, rad "
+              "(joint = direction * motor / gear_ratio + offset)", per_joint=True),
+    ParamSpec("direction", ParamKind.INT, 1,
+              "per joint: 1 or -1, the joint's sense against the motor's",
+              choices=(1, -1), per_joint=True),
+    ParamSpec("gear_ratio", ParamKind.FLOAT, 1.0,
+              "per joint: motor turns per joint turn (external gearing)",
+              minimum=1e-9, per_joint=True),
+)
+"""How a motor's position maps to its joint's, for drivers to include in their ``PARAMS``
+(``param_table(*JOINT_MAPPING_PARAMS, ...)``): one convention for every kind."""
 
 
 # --------------------------------------------------------------------------------------------

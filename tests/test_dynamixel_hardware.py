@@ -204,7 +204,7 @@ def test_bad_parameters_are_configuration_errors() -> None:
 
     with pytest.raises(ConfigurationError, match="servo id 1 is given to both"):
         build(ids=[1, 1])
-    with pytest.raises(ConfigurationError, match="direction must be 1 or -1"):
+    with pytest.raises(ConfigurationError, match=r"params\.direction: must be 1 or -1, got 0"):
         build(direction=0)
     with pytest.raises(ConfigurationError, match="baud rate must be one of"):
         build(baud_rate=12345)

@@ -930,3 +930,19 @@ def test_per_joint_strings_ints_and_required_mappings() -> None:
     )
     with pytest.raises(ValueError, match="'x': STRINGS cannot be per joint"):
         param_table(ParamSpec("x", ParamKind.STRINGS, (), "x", per_joint=True))
+
+
+def test_integer_choices_and_the_shared_joint_mapping_rows() -> None:
+    from jtc_hw.hardware import JOINT_MAPPING_PARAMS
+
+    schema = param_table(*JOINT_MAPPING_PARAMS)
+    joints = ("a", "b")
+    ok = validate_params(schema, {"direction": [1, -1], "gear_ratio": 2.0}, "params",
+                         joints=joints)
+    assert ok["direction"] == (1, -1) and ok["gear_ratio"] == (2.0, 2.0)
+    assert ok["offset"] == (0.0, 0.0)
+    with pytest.raises(ConfigurationError, match=r"params\.direction\[1\]: \(joint 'b'\) "
+                       r"must be 1 or -1, got 0"):
+        validate_params(schema, {"direction": [1, 0]}, "params", joints=joints)
+    with pytest.raises(ConfigurationError, match=r"params\.direction\.a: must be 1 or -1, got 2"):
+        validate_params(schema, {"direction": {"a": 2}}, "params", joints=joints)

@@ -61,6 +61,7 @@ from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
 
 from jtc_hw.errors import CommunicationError, ConfigurationError, HardwareError, MotorFault
 from jtc_hw.hardware import (
+    JOINT_MAPPING_PARAMS,
     HardwareInterface,
     LifecycleState,
     ParamKind,
@@ -185,13 +186,7 @@ class Cia402Hardware(HardwareInterface):
         ParamSpec("counts_per_revolution", ParamKind.INT, 131072,
                   "per joint: position counts per motor revolution (the position factor)",
                   minimum=1, per_joint=True),
-        ParamSpec("gear_ratio", ParamKind.FLOAT, 1.0,
-                  "per joint: motor revolutions per joint revolution", minimum=1e-9,
-                  per_joint=True),
-        ParamSpec("direction", ParamKind.INT, 1, "per joint: 1 or -1 (joint sense vs motor)",
-                  minimum=-1, maximum=1, per_joint=True),
-        ParamSpec("offset", ParamKind.FLOAT, 0.0,
-                  "per joint: joint position at motor count 0, rad", per_joint=True),
+        *JOINT_MAPPING_PARAMS,
         ParamSpec("position_limits", ParamKind.RANGE, (-math.inf, math.inf),
                   "per joint [min, max] position commands are clamped to, rad (null: none)",
                   per_joint=True, nullable=True),
@@ -245,11 +240,6 @@ class Cia402Hardware(HardwareInterface):
         drives: list[_Drive] = []
         for i, joint in enumerate(self.joints):
             direction = p["direction"][i]
-            if direction == 0:
-                raise ConfigurationError(
-                    f"joint {joint!r}: direction must be 1 or -1, got 0",
-                    f"params.direction.{joint}", 0,
-                )
             low, high = p["position_limits"][i]
             vmax = p["velocity_limit"][i]
             drives.append(_Drive(

@@ -68,7 +68,14 @@ import numpy as np
 from numpy.typing import NDArray
 
 from jtc_hw.errors import CommunicationError, ConfigurationError, HardwareError, MotorFault
-from jtc_hw.hardware import HardwareInterface, ParamKind, ParamSpec, SafeAction, param_table
+from jtc_hw.hardware import (
+    JOINT_MAPPING_PARAMS,
+    HardwareInterface,
+    ParamKind,
+    ParamSpec,
+    SafeAction,
+    param_table,
+)
 from jtc_hw.joints import JointCommand, JointState
 
 from .bus import (
@@ -168,13 +175,7 @@ class MitHardware(HardwareInterface):
         ParamSpec("effort_kd", ParamKind.FLOAT, 0.0,
                   "per joint: MIT kd (damping) with effort commands, N*m*s/rad",
                   per_joint=True, minimum=0.0),
-        ParamSpec("offset", ParamKind.FLOAT, 0.0, "per joint: joint position at motor zero, rad",
-                  per_joint=True),
-        ParamSpec("direction", ParamKind.INT, 1, "per joint: +1 or -1", per_joint=True,
-                  minimum=-1, maximum=1),
-        ParamSpec("gear_ratio", ParamKind.FLOAT, 1.0,
-                  "per joint: motor output turns per joint turn (external gearing)",
-                  per_joint=True, minimum=1e-6),
+        *JOINT_MAPPING_PARAMS,
         ParamSpec("position_limits", ParamKind.RANGE, (-math.inf, math.inf),
                   "per joint [min, max] commanded position, rad (null: unlimited)",
                   per_joint=True, nullable=True),
@@ -207,9 +208,6 @@ class MitHardware(HardwareInterface):
                 p["p_max"][i] or base.p_max, p["v_max"][i] or base.v_max,
                 p["t_max"][i] or base.t_max, base.kp_max, base.kd_max, base.reply,
             ))
-            if p["direction"][i] == 0:
-                raise ConfigurationError(f"joint {joint!r}: direction must be +1 or -1",
-                                         f"params.direction.{joint}", 0)
             if base.reply == "damiao" and self._ids[i] > 0x0F:
                 raise ConfigurationError(
                     f"joint {joint!r}: {p['model'][i]} replies carry ids 1..15, got "

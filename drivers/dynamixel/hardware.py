@@ -53,7 +53,14 @@ from numpy.typing import NDArray
 
 from jtc_hw.config import STATE_INTERFACE_TYPES
 from jtc_hw.errors import CommunicationError, ConfigurationError, HardwareError, MotorFault
-from jtc_hw.hardware import HardwareInterface, ParamKind, ParamSpec, SafeAction, param_table
+from jtc_hw.hardware import (
+    JOINT_MAPPING_PARAMS,
+    HardwareInterface,
+    ParamKind,
+    ParamSpec,
+    SafeAction,
+    param_table,
+)
 from jtc_hw.joints import JointCommand, JointState
 
 from .bus import (
@@ -135,13 +142,7 @@ class DynamixelHardware(HardwareInterface):
                   minimum=0, maximum=252, per_joint=True, required=True),
         ParamSpec("model", ParamKind.STRING, "XM430-W350", "per joint servo model",
                   per_joint=True),
-        ParamSpec("offset", ParamKind.FLOAT, 0.0,
-                  "per joint offset o, rad: joint = direction * motor / gear_ratio + o",
-                  per_joint=True),
-        ParamSpec("direction", ParamKind.INT, 1, "per joint direction, 1 or -1",
-                  minimum=-1, maximum=1, per_joint=True),
-        ParamSpec("gear_ratio", ParamKind.FLOAT, 1.0,
-                  "per joint motor turns per joint turn", minimum=1e-9, per_joint=True),
+        *JOINT_MAPPING_PARAMS,
         ParamSpec("position_limits", ParamKind.RANGE, (-math.inf, math.inf),
                   "per joint [min, max] joint position, rad (null: the servo's limit registers)",
                   per_joint=True, nullable=True),
@@ -216,12 +217,6 @@ class DynamixelHardware(HardwareInterface):
                 raise ConfigurationError(f"joint {joint!r}: {exc}", "params.model",
                                          model_name) from None
         self.models: tuple[Model, ...] = tuple(models)
-        for joint, direction in zip(self.joints, p["direction"], strict=True):
-            if direction not in (1, -1):
-                raise ConfigurationError(
-                    f"joint {joint!r}: direction must be 1 or -1, got {direction}",
-                    "params.direction", direction,
-                )
         if self._interface == "position":
             self.mode = (OperatingMode.EXTENDED_POSITION if p["extended_position"]
                          else OperatingMode.POSITION)

@@ -288,7 +288,6 @@ class DynamixelHardware(HardwareInterface):
         self._retries = 0
         self._joint_of = dict(zip(self.ids, self.joints, strict=True))
         self._index_of = {servo_id: i for i, servo_id in enumerate(self.ids)}
-        self._effort_state = "effort" in self.state_interfaces
         # What write() sends: the command field, its register, and the conversion to counts.
         self._command_field = {"position": "positions", "velocity": "velocities",
                                "effort": "effort"}[self._interface]
@@ -556,10 +555,8 @@ class DynamixelHardware(HardwareInterface):
         self._positions = positions
         self._velocities = raw["velocity"] * self._vel_scale
         self._efforts = raw["current"] * self._effort_scale
+        # Effort is no state interface of the JTC: it is reported in status() details only.
         velocities = self._velocities.copy() if self._velocity_state else None
-        if self._effort_state:
-            return JointState(positions.copy(), velocities, None,
-                              self._efforts.copy())  # type: ignore[call-arg]
         return JointState(positions.copy(), velocities)
 
     def _write(self, now_ns: int, command: JointCommand) -> None:

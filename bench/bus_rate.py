@@ -52,6 +52,7 @@ from typing import Any
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from jtc_hw.controller.joints import JointCommand  # noqa: E402
 from jtc_hw.drivers.dynamixel.control_table import PRESENT_BLOCK_SIZE  # noqa: E402
 from jtc_hw.drivers.dynamixel.hardware import DynamixelHardware  # noqa: E402
 from jtc_hw.drivers.dynamixel.packets import (  # noqa: E402
@@ -59,7 +60,6 @@ from jtc_hw.drivers.dynamixel.packets import (  # noqa: E402
     sync_write_bytes,
     wire_time_s,
 )
-from jtc_hw.joints import JointCommand  # noqa: E402
 
 MOTORS = 6
 BITRATES = (1_000_000, 2_000_000, 4_000_000)

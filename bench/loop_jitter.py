@@ -15,26 +15,26 @@ two scenarios on it, one after the other:
           results (canceled = preempted by the next one) are counted and reported.
 
 Optionally (``--scenarios bare idle loaded``), ``bare`` first runs the loop's clock alone for
-the same time: ``jtc_hw.clock.Ticker`` in a fresh process with the same real-time set-up
+the same time: ``jtc_hw.daemon.clock.Ticker`` in a fresh process with the same real-time set-up
 (``apply_realtime``, timer slack, frozen GC) and nothing to do per cycle. What it measures is the
 floor set by this machine, its kernel and the interpreter, not by jtc_hw.
 
 Where the figures come from:
 
 - lateness (``woke - deadline`` of each cycle) is measured by the loop itself
-  (``jtc_hw.loopstats``) and published in ``get_status()["loop"]`` every 0.5 s. Its percentiles
-  cover a sliding window of the last 10 s of cycles and cannot be reset from a client, so
-  ``p50``/``p99`` are those of the window that ends with the run (the run's last 10 s; a run
-  shorter than that is preceded by a warm-up in the same scenario so that the window holds
-  nothing else); ``p99 worst`` is the largest p99 of the windows published during the scenario
-  (every 10 s stretch of the run is inside one of them); ``max`` is the largest window maximum
-  of those windows, which together cover the whole run (plus at most the scenario's warm-up).
-- overruns: the loop's count of skipped deadlines, end of the run minus start.
-- CPU: utime + stime from ``/proc/<pid>/stat`` before and after the run, as percent of one
-  core, for the loop process (the daemon's child) and the API process (the daemon itself);
-  also for this process (the clients) and, from ``/proc/stat``, for the whole machine (all
-  processes, tick-sampled, so only roughly comparable), since other processes competing for
-  the CPUs change the figures, above all those of a normally scheduled loop.
+  (``jtc_hw.daemon.loopstats``) and published in ``get_status()["loop"]`` every 0.5 s. Its
+  percentiles cover a sliding window of the last 10 s of cycles and cannot be reset from a
+  client, so ``p50``/``p99`` are those of the window that ends with the run (the run's last 10
+  s; a run shorter than that is preceded by a warm-up in the same scenario so that the window
+  holds nothing else); ``p99 worst`` is the largest p99 of the windows published during the
+  scenario (every 10 s stretch of the run is inside one of them); ``max`` is the largest window
+  maximum of those windows, which together cover the whole run (plus at most the scenario's
+  warm-up). - overruns: the loop's count of skipped deadlines, end of the run minus start. -
+  CPU: utime + stime from ``/proc/<pid>/stat`` before and after the run, as percent of one core,
+  for the loop process (the daemon's child) and the API process (the daemon itself); also for
+  this process (the clients) and, from ``/proc/stat``, for the whole machine (all processes,
+  tick-sampled, so only roughly comparable), since other processes competing for the CPUs change
+  the figures, above all those of a normally scheduled loop.
 
 Usage:  python bench/loop_jitter.py [--duration S] [--rates 500 1000]
             [--scenarios [bare] idle loaded] [--priority N] [--cpu N] [--lock-memory] [--json]
@@ -64,10 +64,10 @@ import yaml
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from jtc_hw.api.client import Client  # noqa: E402
 from jtc_hw.cli import DEMO_JOINTS, demo_config  # noqa: E402
-from jtc_hw.client import Client  # noqa: E402
+from jtc_hw.daemon.loopstats import DEFAULT_WINDOW_S  # noqa: E402
 from jtc_hw.errors import GoalRejected, JtcHwError  # noqa: E402
-from jtc_hw.loopstats import DEFAULT_WINDOW_S  # noqa: E402
 
 TARGET_RATE_HZ = 1000.0
 TARGET_P99_US = 300.0
@@ -366,9 +366,10 @@ class Load:
 
 BARE_LOOP = """
 import gc, json, resource, sys, time
-from jtc_hw.clock import Ticker
-from jtc_hw.loopstats import LoopStats
-from jtc_hw.realtime import apply_realtime, reduce_timer_slack
+from jtc_hw.daemon.clock import Ticker
+from jtc_hw.daemon.loopstats import LoopStats
+from jtc_hw.daemon.realtime import apply_realtime
+from jtc_hw.hardware.timing import reduce_timer_slack
 
 rate, duration, priority, cpus, lock = json.loads(sys.argv[1])
 apply_realtime(priority, lock, cpus)

@@ -3,8 +3,13 @@
 The controller core is a pure library: feed it time and state, get commands and goal events.
 """
 
-from .config import ControllerConfig, load_config
-from .controller import JointTrajectoryController, UpdateResult
+from .controller.config import ControllerConfig
+from .controller.config_io import load_config
+from .controller.controller import JointTrajectoryController, UpdateResult
+from .controller.goals import ErrorCode, GoalFeedback, GoalResult, GoalStatus, TrajectoryStopped
+from .controller.joints import JointCommand, JointState
+from .controller.tolerances import JointTolerance
+from .controller.trajectory import JointTrajectory, Trajectory, TrajectoryPoint, TrajectorySample
 from .errors import (
     CommunicationError,
     ConfigurationError,
@@ -15,10 +20,6 @@ from .errors import (
     MotorFault,
     ProtocolError,
 )
-from .goals import ErrorCode, GoalFeedback, GoalResult, GoalStatus, TrajectoryStopped
-from .joints import JointCommand, JointState
-from .tolerances import JointTolerance
-from .trajectory import JointTrajectory, Trajectory, TrajectoryPoint, TrajectorySample
 
 __all__ = [
     "CommunicationError",

@@ -128,16 +128,16 @@ def _socket(args: argparse.Namespace) -> str:
     if getattr(args, "socket", None):
         return str(args.socket)
     if getattr(args, "config", None):
-        from .robot import load_robot
+        from .daemon.robot import load_robot
 
         return load_robot(args.config).daemon.socket
-    from .client import default_socket_path
+    from .api.client import default_socket_path
 
     return default_socket_path()
 
 
 def _connect(args: argparse.Namespace) -> Any:
-    from .client import Client
+    from .api.client import Client
 
     path = _socket(args)
     try:
@@ -197,14 +197,14 @@ class Progress:
 
 
 def cmd_run(args: argparse.Namespace) -> int:
-    from .daemon import run
+    from .daemon.service import run
 
     return run(args.config_file, args.controller)
 
 
 def cmd_check(args: argparse.Namespace) -> int:
-    from .config import explain
-    from .robot import load_robot
+    from .controller.config_io import explain
+    from .daemon.robot import load_robot
 
     robot = load_robot(args.config_file, args.controller)
     c = robot.controller
@@ -528,12 +528,12 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 
 def _demo(args: argparse.Namespace, hardware: list[dict[str, Any]] | None, rate: int) -> int:
-    from .client import Client
+    from .api.client import Client
 
     with tempfile.TemporaryDirectory(prefix="jtc-hw-demo-") as tmp:
         if args.config:
             config_path = args.config
-            from .robot import load_robot
+            from .daemon.robot import load_robot
 
             socket_path = load_robot(config_path).daemon.socket
             goal = None

@@ -1,15 +1,27 @@
-"""Shared helpers: configurations, a simulated clock, and a mirror joint set."""
+"""Shared helpers: configurations, a simulated clock, a mirror joint set, and leak checks.
+
+Heavier helpers live in ``tests/helpers/`` (the daemon as a subprocess, a stand-in backend).
+"""
 
 from __future__ import annotations
 
-from collections.abc import Iterator, Sequence
+import gc
+import os
+import sys
+import threading
+import warnings
+from collections.abc import Iterator, Mapping, Sequence
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
 
 from jtc_hw import JointState, JointTrajectoryController, load_config
-from jtc_hw.config import ControllerConfig
+from jtc_hw.controller.config import ControllerConfig
+
+ROOT = Path(__file__).resolve().parents[1]
+"""The repository checkout."""
 
 S = 1_000_000_000  # ns per second
 MS = 1_000_000
@@ -29,6 +41,47 @@ def make_config(
     mapping.setdefault("update_rate", 100.0)
     mapping.update(params)
     return load_config(mapping)
+
+
+def make_robot_config(
+    socket_path: str | Path,
+    joints: Sequence[str],
+    hardware: Sequence[dict[str, Any]],
+    *,
+    command_interfaces: Sequence[str] = ("position",),
+    controller: Mapping[str, Any] | None = None,
+    update_rate: int = 500,
+    goal_time: float = 0.5,
+    path_tolerance: float = 0.05,
+    goal_tolerance: float = 0.01,
+    **daemon: Any,
+) -> dict[str, Any]:
+    """A robot file (upstream controller layout plus ``hardware`` and ``daemon``) as a mapping.
+
+    Position + velocity state, state at 50 Hz and feedback at 20 Hz, the same path and goal
+    tolerance on every joint; ``controller`` adds or overrides controller parameters. Every
+    daemon test builds its file here.
+    """
+    return {
+        "controller_manager": {"ros__parameters": {"update_rate": update_rate}},
+        "joint_trajectory_controller": {
+            "ros__parameters": {
+                "joints": list(joints),
+                "command_interfaces": list(command_interfaces),
+                "state_interfaces": ["position", "velocity"],
+                "state_publish_rate": 50.0,
+                "action_monitor_rate": 20.0,
+                "constraints": {
+                    "stopped_velocity_tolerance": 0.05,
+                    "goal_time": goal_time,
+                    **{j: {"trajectory": path_tolerance, "goal": goal_tolerance} for j in joints},
+                },
+                **(controller or {}),
+            }
+        },
+        "hardware": list(hardware),
+        "daemon": {"socket": str(socket_path), **daemon},
+    }
 
 
 class Mirror:
@@ -109,3 +162,49 @@ def frange(start: int, stop: int, step: int) -> Iterator[int]:
     while t <= stop:
         yield t
         t += step
+
+
+def _socket_fds() -> set[str]:
+    out = set()
+    for fd in os.listdir("/proc/self/fd"):
+        try:
+            target = os.readlink(f"/proc/self/fd/{fd}")
+        except OSError:
+            continue
+        if target.startswith("socket:"):
+            out.add(f"{fd}->{target}")
+    return out
+
+
+@pytest.fixture
+def no_leaks() -> Iterator[None]:
+    """Fail a test that leaves threads running, sockets open, or unclosed resources behind.
+
+    Modules that start threads, sockets or processes opt in with
+    ``pytestmark = pytest.mark.usefixtures("no_leaks")``.
+    """
+    threads = set(threading.enumerate())
+    sockets = _socket_fds()
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", ResourceWarning)
+        yield
+        gc.collect()
+    leaked_threads = [t.name for t in threading.enumerate() if t not in threads and t.is_alive()]
+    leaked_sockets = _socket_fds() - sockets
+    unclosed = [str(w.message) for w in caught if issubclass(w.category, ResourceWarning)]
+    assert not leaked_threads, f"threads left running: {leaked_threads}"
+    assert not leaked_sockets, f"sockets left open: {sorted(leaked_sockets)}"
+    assert not unclosed, f"unclosed resources: {unclosed}"
+
+
+@pytest.fixture(autouse=True)
+def daemon_log_on_failure() -> Iterator[None]:
+    """Print what the daemons logged during the test (pytest shows it when the test fails)."""
+    helpers = sys.modules.get("helpers.daemon")  # not imported: no daemon was started
+    daemons = helpers._DAEMONS if helpers is not None else []
+    offsets = {id(d): len(d.log()) for d in daemons}
+    yield
+    for d in daemons:
+        new = d.log()[offsets.get(id(d), 0) :]
+        if new:
+            print(f"--- daemon {d.config_path} stderr ---\n{new}")

@@ -63,13 +63,14 @@ from jtc_hw.errors import CommunicationError, ConfigurationError, HardwareError,
 from jtc_hw.hardware import (
     JOINT_MAPPING_PARAMS,
     HardwareInterface,
+    JointCommand,
+    JointState,
     LifecycleState,
     ParamKind,
     ParamSpec,
     SafeAction,
     param_table,
 )
-from jtc_hw.joints import JointCommand, JointState
 
 from . import bus as canbus
 from . import cia402_codec as c4

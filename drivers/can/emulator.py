@@ -55,7 +55,7 @@ from typing import Any
 
 import can
 
-from jtc_hw.realtime import reduce_timer_slack
+from jtc_hw.hardware.timing import reduce_timer_slack
 
 from ..motor_model import Motor, MotorParams
 from .bus import CAN_ERR_BUSOFF, wire_time_s

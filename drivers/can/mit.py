@@ -71,12 +71,13 @@ from jtc_hw.errors import CommunicationError, ConfigurationError, HardwareError,
 from jtc_hw.hardware import (
     JOINT_MAPPING_PARAMS,
     HardwareInterface,
+    JointCommand,
+    JointState,
     ParamKind,
     ParamSpec,
     SafeAction,
     param_table,
 )
-from jtc_hw.joints import JointCommand, JointState
 
 from .bus import (
     BusHealth,

@@ -62,7 +62,7 @@ from typing import Any, Protocol
 
 import can
 
-from jtc_hw.realtime import reduce_timer_slack
+from jtc_hw.hardware.timing import reduce_timer_slack
 
 __all__ = [
     "FORWARD_AFTER_S", "SocketcandServer", "Timer", "attach_sink", "format_frame", "parse_send",

@@ -51,17 +51,18 @@ from typing import Any, ClassVar, Final
 import numpy as np
 from numpy.typing import NDArray
 
-from jtc_hw.config import STATE_INTERFACE_TYPES
+from jtc_hw.controller.config import STATE_INTERFACE_TYPES
 from jtc_hw.errors import CommunicationError, ConfigurationError, HardwareError, MotorFault
 from jtc_hw.hardware import (
     JOINT_MAPPING_PARAMS,
     HardwareInterface,
+    JointCommand,
+    JointState,
     ParamKind,
     ParamSpec,
     SafeAction,
     param_table,
 )
-from jtc_hw.joints import JointCommand, JointState
 
 from .bus import (
     ERROR_ALERT,

@@ -1,0 +1,23 @@
+"""What a client needs: the wire protocol (no I/O) and a synchronous Python client.
+
+- :mod:`.protocol`: the requests, their checks and the error codes; :mod:`.framing`:
+  newline-delimited JSON in and out (see ``docs/protocol.md``).
+- :mod:`.client`: :class:`Client`, :class:`GoalHandle`, :class:`StateSubscription`.
+- :mod:`.paths`: where the daemon's socket is by default.
+"""
+
+from .client import (
+    Client,
+    ClientConnectionError,
+    GoalHandle,
+    StateSubscription,
+    default_socket_path,
+)
+
+__all__ = [
+    "Client",
+    "ClientConnectionError",
+    "GoalHandle",
+    "StateSubscription",
+    "default_socket_path",
+]

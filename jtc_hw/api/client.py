@@ -1,0 +1,833 @@
+"""A synchronous Python client for the daemon's socket API (see ``docs/protocol.md``).
+
+Theory of operation
+-------------------
+One background thread reads the socket and dispatches every message as it arrives: a reply
+wakes the caller waiting for it (each request carries a client-chosen ``id``), a goal's
+``feedback`` / ``result`` go to its ``GoalHandle``, ``state`` events to the open
+``StateSubscription``s. Callers wait on ``threading`` conditions with explicit timeouts; nothing
+polls. The handle of an accepted goal is created by the reader thread as it reads the
+``accepted`` reply, before it reads anything else, so no event of the goal can be missed.
+
+Example::
+
+    with Client.connect("/run/jtc-hw/jtc-hw.sock") as client:
+        goal = client.send_goal({"joint_names": ["j1"], "points": [
+            {"time_from_start": 1.0, "positions": [0.5]}]})
+        print(goal.wait(timeout_s=10.0)["status"])
+"""
+
+from __future__ import annotations
+
+import collections
+import itertools
+import logging
+import os
+import socket
+import threading
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from types import TracebackType
+from typing import Any
+
+from ..controller.tolerances import JointTolerance
+from ..controller.trajectory import JointTrajectory
+from ..errors import GoalRejected, ProtocolError
+from .paths import default_socket_path as daemon_default
+from .protocol import (
+    BUSY,
+    GOAL_REJECTED,
+    PROTOCOL_VERSION,
+    MessageDecoder,
+    RequestError,
+    encode,
+    tolerances_to_json,
+    trajectory_to_json,
+)
+
+log = logging.getLogger("jtc_hw.client")
+
+DEFAULT_TIMEOUT_S = 5.0
+CLIENT_MAX_MESSAGE_BYTES = 64 << 20
+"""Longest message the client accepts from the daemon (a large ``get_config``)."""
+
+FeedbackCallback = Callable[[dict[str, Any]], None]
+TrajectoryLike = JointTrajectory | Mapping[str, Any]
+ToleranceLike = JointTolerance | Mapping[str, Any]
+
+
+def default_socket_path() -> str:
+    """``$JTC_HW_SOCKET`` if set, else where a daemon of this user puts its socket by default
+    (:func:`jtc_hw.api.paths.default_socket_path`).
+
+    Raises:
+        Nothing.
+    """
+    explicit = os.environ.get("JTC_HW_SOCKET")
+    if explicit:
+        return explicit
+    return daemon_default()
+
+
+class ClientConnectionError(ProtocolError):
+    """The connection to the daemon could not be made, or was lost.
+
+    Attributes:
+        code: the machine code of the error the daemon sent before closing (``busy``,
+            ``unauthorized``), if any.
+    """
+
+    def __init__(self, message: str, code: str | None = None) -> None:
+        super().__init__(message)
+        self.code = code
+
+
+class _Pending:
+    """A request waiting for its reply."""
+
+    __slots__ = ("op", "done", "reply", "error", "on_feedback", "feedback_maxlen", "goal")
+
+    def __init__(self, op: str, on_feedback: FeedbackCallback | None, feedback_maxlen: int):
+        self.op = op
+        self.done = threading.Event()
+        self.reply: dict[str, Any] | None = None
+        self.error: Exception | None = None
+        self.on_feedback = on_feedback
+        self.feedback_maxlen = feedback_maxlen
+        self.goal: GoalHandle | None = None
+
+
+class GoalHandle:
+    """An accepted goal: its feedback and its one result.
+
+    Attributes:
+        goal_id: the daemon's id of the goal.
+        feedback_dropped: feedback messages discarded here because nobody consumed them
+            (the buffer keeps the newest ``feedback_maxlen``).
+    """
+
+    def __init__(
+        self,
+        client: Client,
+        goal_id: int,
+        on_feedback: FeedbackCallback | None = None,
+        feedback_maxlen: int = 1000,
+    ) -> None:
+        self.goal_id = goal_id
+        self.feedback_dropped = 0
+        self._client = client
+        self._on_feedback = on_feedback
+        self._cond = threading.Condition()
+        self._feedback: collections.deque[dict[str, Any]] = collections.deque()
+        self._maxlen = feedback_maxlen
+        self._result: dict[str, Any] | None = None
+        self._lost: Exception | None = None
+
+    def __repr__(self) -> str:
+        state = self._result["status"] if self._result else "running"
+        return f"GoalHandle(goal_id={self.goal_id}, {state})"
+
+    # -- called by the reader thread --
+
+    def _add_feedback(self, message: dict[str, Any]) -> None:
+        if self._on_feedback is not None:
+            try:
+                self._on_feedback(message)
+            except Exception:  # a broken callback must not kill the reader thread
+                log.exception("goal %d: the feedback callback failed", self.goal_id)
+        with self._cond:
+            if len(self._feedback) >= self._maxlen:
+                self._feedback.popleft()
+                self.feedback_dropped += 1
+            self._feedback.append(message)
+            self._cond.notify_all()
+
+    def _set_result(self, message: dict[str, Any]) -> None:
+        with self._cond:
+            self._result = message
+            self._cond.notify_all()
+
+    def _connection_lost(self, error: Exception) -> None:
+        with self._cond:
+            if self._result is None:
+                self._lost = error
+            self._cond.notify_all()
+
+    # -- public --
+
+    @property
+    def done(self) -> bool:
+        """Whether the result has arrived."""
+        with self._cond:
+            return self._result is not None
+
+    @property
+    def result(self) -> dict[str, Any] | None:
+        """The ``result`` event (``status``, ``error_code``, ``error_string``, ``time_ns``), or
+        ``None`` while the goal runs."""
+        with self._cond:
+            return self._result
+
+    def wait(self, timeout_s: float) -> dict[str, Any]:
+        """Block until the goal's result arrives.
+
+        Returns:
+            The ``result`` event; a failed goal is a result too (``status`` ``aborted``).
+
+        Raises:
+            TimeoutError: no result within ``timeout_s`` (the goal keeps running).
+            ClientConnectionError: the connection was lost before the result arrived.
+        """
+        with self._cond:
+            self._cond.wait_for(
+                lambda: self._result is not None or self._lost is not None, timeout_s
+            )
+            if self._result is not None:
+                return self._result
+            if self._lost is not None:
+                raise self._lost
+        raise TimeoutError(f"goal {self.goal_id}: no result within {timeout_s} s")
+
+    def feedback(self, timeout_s: float) -> Iterator[dict[str, Any]]:
+        """Iterate over the goal's ``feedback`` events, ending when its result has arrived.
+
+        Feedback already received (up to ``feedback_maxlen``) comes first.
+
+        Args:
+            timeout_s: the longest wait for the next feedback or the result.
+
+        Raises:
+            TimeoutError: nothing arrived for ``timeout_s``.
+            ClientConnectionError: the connection was lost before the result arrived.
+        """
+        while True:
+            with self._cond:
+                self._cond.wait_for(
+                    lambda: (
+                        bool(self._feedback) or self._result is not None or self._lost is not None
+                    ),
+                    timeout_s,
+                )
+                if self._feedback:
+                    item = self._feedback.popleft()
+                elif self._result is not None:
+                    return
+                elif self._lost is not None:
+                    raise self._lost
+                else:
+                    raise TimeoutError(
+                        f"goal {self.goal_id}: no feedback or result within {timeout_s} s"
+                    )
+            yield item
+
+    def cancel(self, timeout_s: float | None = None) -> dict[str, Any]:
+        """Ask the daemon to cancel this goal; its result (``canceled``) follows.
+
+        Raises:
+            RequestError: ``not_found`` when the goal is no longer executing.
+            TimeoutError: no reply within the timeout.
+            ClientConnectionError: the connection is lost.
+        """
+        return self._client.cancel(self.goal_id, timeout_s=timeout_s)
+
+
+class StateSubscription:
+    """``state`` events of the daemon; ``close`` (or leaving the ``with`` block) unsubscribes.
+
+    Iterating waits up to the subscription's ``timeout_s`` for each message.
+
+    Attributes:
+        dropped_locally: messages discarded here because nobody consumed them (the buffer
+            keeps the newest ``maxlen``); each message's ``dropped`` counts the daemon's side.
+    """
+
+    def __init__(self, client: Client, timeout_s: float, maxlen: int) -> None:
+        self.timeout_s = timeout_s
+        self.dropped_locally = 0
+        self._client = client
+        self._maxlen = maxlen
+        self._cond = threading.Condition()
+        self._queue: collections.deque[dict[str, Any]] = collections.deque()
+        self._closed = False
+        self._lost: Exception | None = None
+
+    def _add(self, message: dict[str, Any]) -> None:
+        with self._cond:
+            if len(self._queue) >= self._maxlen:
+                self._queue.popleft()
+                self.dropped_locally += 1
+            self._queue.append(message)
+            self._cond.notify_all()
+
+    def _connection_lost(self, error: Exception) -> None:
+        with self._cond:
+            self._lost = error
+            self._cond.notify_all()
+
+    def get(self, timeout_s: float | None = None) -> dict[str, Any]:
+        """The next ``state`` event.
+
+        Raises:
+            TimeoutError: none within ``timeout_s`` (default: the subscription's).
+            ClientConnectionError: the connection was lost.
+            StopIteration: the subscription is closed.
+        """
+        timeout = self.timeout_s if timeout_s is None else timeout_s
+        with self._cond:
+            self._cond.wait_for(
+                lambda: bool(self._queue) or self._closed or self._lost is not None, timeout
+            )
+            if self._queue:
+                return self._queue.popleft()
+            if self._closed:
+                raise StopIteration
+            if self._lost is not None:
+                raise self._lost
+        raise TimeoutError(f"no state message within {timeout} s")
+
+    def __iter__(self) -> Iterator[dict[str, Any]]:
+        return self
+
+    def __next__(self) -> dict[str, Any]:
+        return self.get()
+
+    def close(self, timeout_s: float | None = None) -> None:
+        """Stop receiving; unsubscribes when it is the client's last subscription. Idempotent.
+
+        Raises:
+            TimeoutError: the daemon did not confirm within the timeout.
+        """
+        with self._cond:
+            if self._closed:
+                return
+            self._closed = True
+            self._cond.notify_all()
+        self._client._unsubscribe(self, timeout_s)
+
+    def __enter__(self) -> StateSubscription:
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.close()
+
+
+class Client:
+    """A connection to the daemon; create it with ``Client.connect``.
+
+    Every method takes an optional ``timeout_s`` (default: the one given to ``connect``).
+    Errors reported by the daemon raise ``GoalRejected`` (goal rejections, with
+    ``error_code``) or ``RequestError`` (a ``ProtocolError`` with the machine ``code``), with
+    the daemon's message. Methods may be called from several threads, but not from inside a
+    feedback callback (it runs in the reader thread, which would then wait for itself).
+
+    Attributes:
+        info: the ``hello`` reply received at connection (joint names, rates, versions).
+    """
+
+    def __init__(self, sock: socket.socket, timeout_s: float, label: str) -> None:
+        self.timeout_s = timeout_s
+        self.label = label
+        self.info: dict[str, Any] = {}
+        self._sock = sock
+        self._ids = itertools.count(1)
+        self._lock = threading.Lock()  # pending, goals, subscriptions, lost
+        self._send_lock = threading.Lock()
+        self._pending: dict[int, _Pending] = {}
+        self._goals: dict[int, GoalHandle] = {}
+        self._subscriptions: list[StateSubscription] = []
+        self._lost: ClientConnectionError | None = None
+        self._unclaimed: RequestError | None = None  # an id-less error no request waited for
+        self._closing = False
+        self._reader = threading.Thread(
+            target=self._read, name=f"jtc_hw-client-reader {label}", daemon=True
+        )
+        self._reader.start()
+
+    @classmethod
+    def connect(
+        cls,
+        path: str | os.PathLike[str] | None = None,
+        *,
+        tcp: tuple[str, int] | None = None,
+        token: str | None = None,
+        timeout_s: float = DEFAULT_TIMEOUT_S,
+    ) -> Client:
+        """Connect, authenticate (TCP), and say ``hello``.
+
+        Args:
+            path: the daemon's unix socket (default: ``default_socket_path()``); not with
+                ``tcp``.
+            tcp: ``(host, port)`` of the daemon's loopback TCP endpoint.
+            token: the TCP token.
+            timeout_s: for connecting and the default for every request.
+
+        Raises:
+            ValueError: both ``path`` and ``tcp``, or ``tcp`` without ``token``.
+            ClientConnectionError: nobody listens, the daemon is busy (``code`` ``busy``),
+                or the connection dropped.
+            RequestError: the daemon refused the token (``unauthorized``) or the ``hello``.
+            ProtocolError: the daemon speaks another protocol version.
+            TimeoutError: no answer within ``timeout_s``.
+        """
+        if path is not None and tcp is not None:
+            raise ValueError("give either a unix socket path or tcp=(host, port), not both")
+        address: str | tuple[str, int]
+        if tcp is not None:
+            if not token:
+                raise ValueError("a TCP connection needs the daemon's token")
+            family, address, label = socket.AF_INET, tcp, f"tcp {tcp[0]}:{tcp[1]}"
+            if ":" in tcp[0]:
+                family = socket.AF_INET6
+        else:
+            where = os.fspath(path) if path is not None else default_socket_path()
+            family, address, label = socket.AF_UNIX, where, str(where)
+        sock = socket.socket(family, socket.SOCK_STREAM)
+        try:
+            sock.settimeout(timeout_s)
+            sock.connect(address)
+            sock.settimeout(None)
+        except OSError as exc:
+            sock.close()
+            hint = "" if isinstance(exc, TimeoutError) else "; is the daemon running?"
+            raise ClientConnectionError(
+                f"cannot connect to the daemon at {label}: {exc.strerror or exc}{hint}"
+            ) from None
+        client = cls(sock, timeout_s, label)
+        try:
+            if tcp is not None:
+                assert token is not None
+                client._request("auth", {"token": token}, timeout_s)
+            client.info = client._request(
+                "hello", {"protocol_version": PROTOCOL_VERSION}, timeout_s
+            )
+        except RequestError as exc:
+            client.close()
+            if exc.code == BUSY:  # sent before any request: a refusal of the connection
+                raise ClientConnectionError(f"{label}: {exc.message}", BUSY) from None
+            raise
+        except BaseException:
+            client.close()
+            raise
+        return client
+
+    # -- operations ---------------------------------------------------------------------------
+
+    def hello(self, timeout_s: float | None = None) -> dict[str, Any]:
+        """Versions, joint names, rates and the daemon clock (``now_ns``).
+
+        Raises:
+            RequestError: the daemon refused it.
+            TimeoutError: no reply within the timeout.
+            ClientConnectionError: the connection is lost.
+        """
+        return self._request("hello", {}, timeout_s)
+
+    @property
+    def joint_names(self) -> list[str]:
+        """The controller's joints, from the ``hello`` at connection."""
+        return list(self.info.get("joint_names", []))
+
+    def send_goal(
+        self,
+        trajectory: TrajectoryLike,
+        path_tolerance: Sequence[ToleranceLike] = (),
+        goal_tolerance: Sequence[ToleranceLike] = (),
+        goal_time_tolerance: float = 0.0,
+        *,
+        start_in: float | None = None,
+        on_feedback: FeedbackCallback | None = None,
+        feedback_maxlen: int = 1000,
+        timeout_s: float | None = None,
+    ) -> GoalHandle:
+        """Send a ``follow_joint_trajectory`` goal.
+
+        Args:
+            trajectory: a ``JointTrajectory`` or its wire form (a mapping).
+            path_tolerance, goal_tolerance: ``JointTolerance`` objects or their wire form.
+            goal_time_tolerance: seconds allowed past the end (0: the default).
+            start_in: start this many seconds after the daemon receives the goal.
+            on_feedback: called with each ``feedback`` event, in the reader thread (keep it
+                short; do not call client methods from it).
+            feedback_maxlen: feedback events buffered for ``GoalHandle.feedback``.
+            timeout_s: for the accept/reject reply.
+
+        Returns:
+            The accepted goal's handle.
+
+        Raises:
+            GoalRejected: the daemon rejected the goal (``error_code`` says why).
+            RequestError: the request was malformed (``bad_request``, naming the field).
+            TimeoutError: no reply within the timeout (the goal may still have been accepted;
+                its events are then ignored).
+            ClientConnectionError: the connection is lost.
+        """
+        fields: dict[str, Any] = {"trajectory": _trajectory(trajectory, start_in)}
+        if path_tolerance:
+            fields["path_tolerance"] = _tolerances(path_tolerance)
+        if goal_tolerance:
+            fields["goal_tolerance"] = _tolerances(goal_tolerance)
+        if goal_time_tolerance:
+            fields["goal_time_tolerance"] = goal_time_tolerance
+        pending = _Pending("send_goal", on_feedback, feedback_maxlen)
+        self._request("send_goal", fields, timeout_s, pending)
+        assert pending.goal is not None
+        return pending.goal
+
+    def cancel(self, goal_id: int, timeout_s: float | None = None) -> dict[str, Any]:
+        """Cancel the executing goal ``goal_id``; its ``canceled`` result follows.
+
+        Raises:
+            RequestError: ``not_found`` when the goal is not executing.
+            TimeoutError: no reply within the timeout.
+            ClientConnectionError: the connection is lost.
+        """
+        return self._request("cancel_goal", {"goal_id": goal_id}, timeout_s)
+
+    def send_trajectory(
+        self,
+        trajectory: TrajectoryLike,
+        *,
+        start_in: float | None = None,
+        timeout_s: float | None = None,
+    ) -> dict[str, Any]:
+        """Fire-and-forget trajectory (the ``joint_trajectory`` topic); no points: stop.
+
+        Raises:
+            GoalRejected: the daemon refused the trajectory.
+            RequestError: the request was malformed.
+            TimeoutError: no reply within the timeout.
+            ClientConnectionError: the connection is lost.
+        """
+        return self._request(
+            "send_trajectory", {"trajectory": _trajectory(trajectory, start_in)}, timeout_s
+        )
+
+    def stop(self, timeout_s: float | None = None) -> dict[str, Any]:
+        """Hold the current position (an empty topic trajectory); cancels an active goal.
+
+        Raises:
+            GoalRejected: the controller is not active.
+            TimeoutError: no reply within the timeout.
+            ClientConnectionError: the connection is lost.
+        """
+        return self.send_trajectory({"joint_names": [], "points": []}, timeout_s=timeout_s)
+
+    def query_state(
+        self,
+        *,
+        in_s: float | None = None,
+        time_ns: int | None = None,
+        timeout_s: float | None = None,
+    ) -> dict[str, Any]:
+        """The desired state at ``time_ns`` (daemon clock) or ``in_s`` seconds from now.
+
+        Returns:
+            ``time_ns``, ``joint_names``, ``positions``, ``velocities``, ``accelerations``,
+            ``effort``.
+
+        Raises:
+            ValueError: not exactly one of ``in_s`` and ``time_ns``.
+            RequestError: ``not_active`` when the controller is not active.
+            TimeoutError: no reply within the timeout.
+            ClientConnectionError: the connection is lost.
+        """
+        if (in_s is None) == (time_ns is None):
+            raise ValueError("give exactly one of in_s (seconds from now) and time_ns")
+        fields: dict[str, Any] = {"in": in_s} if in_s is not None else {"time_ns": time_ns}
+        return self._request("query_state", fields, timeout_s)
+
+    def subscribe_state(
+        self, *, timeout_s: float | None = None, maxlen: int = 100
+    ) -> StateSubscription:
+        """Receive ``state`` events until the subscription is closed.
+
+        Args:
+            timeout_s: for the reply, and the default wait of each ``get``/iteration.
+            maxlen: messages buffered here; older ones are discarded beyond it.
+
+        Raises:
+            TimeoutError: no reply within the timeout.
+            ClientConnectionError: the connection is lost.
+        """
+        timeout = self.timeout_s if timeout_s is None else timeout_s
+        subscription = StateSubscription(self, timeout, maxlen)
+        with self._lock:
+            self._subscriptions.append(subscription)
+        try:
+            self._request("subscribe_state", {}, timeout)
+        except BaseException:
+            with self._lock:
+                self._subscriptions.remove(subscription)
+            raise
+        return subscription
+
+    def _unsubscribe(self, subscription: StateSubscription, timeout_s: float | None) -> None:
+        with self._lock:
+            if subscription in self._subscriptions:
+                self._subscriptions.remove(subscription)
+            last = not self._subscriptions
+            usable = self._lost is None and not self._closing
+        if last and usable:
+            try:
+                self._request("unsubscribe_state", {}, timeout_s)
+            except ClientConnectionError:
+                pass  # the connection is gone, and with it the subscription
+
+    def get_status(self, timeout_s: float | None = None) -> dict[str, Any]:
+        """Loop, hardware, controller and server statistics.
+
+        Raises:
+            TimeoutError: no reply within the timeout.
+            ClientConnectionError: the connection is lost.
+        """
+        return self._request("get_status", {}, timeout_s)
+
+    def get_config(self, timeout_s: float | None = None) -> dict[str, Any]:
+        """The configuration in effect (the reply's ``config``).
+
+        Raises:
+            TimeoutError: no reply within the timeout.
+            ClientConnectionError: the connection is lost.
+        """
+        return dict(self._request("get_config", {}, timeout_s)["config"])
+
+    def sim(
+        self,
+        component: str,
+        freeze: bool | None = None,
+        timeout_s: float | None = None,
+        *,
+        fault: str | None = None,
+    ) -> dict[str, Any]:
+        """Freeze (or release) a simulated component's feedback, or inject a read fault that
+        latches until :meth:`rearm`.
+
+        Raises:
+            RequestError: no such simulated component (``bad_request``), or it failed.
+            TimeoutError: no reply within the timeout.
+            ClientConnectionError: the connection is lost.
+        """
+        fields: dict[str, Any] = {"component": component}
+        if freeze is not None:
+            fields["freeze"] = freeze
+        if fault is not None:
+            fields["fault"] = fault
+        return self._request("sim", fields, timeout_s)
+
+    def rearm(self, timeout_s: float | None = None) -> dict[str, Any]:
+        """Leave a hardware fault: the daemon reboots / fault-resets the devices, re-reads the
+        joints and holds where they are (no jump). Goals can be sent again afterwards.
+
+        Raises:
+            RequestError: nothing to re-arm (the controller is running), or re-arming failed
+                (the message says why; the daemon stays in its safe state).
+            TimeoutError: no reply within the timeout.
+            ClientConnectionError: the connection is lost.
+        """
+        return self._request("rearm", {}, timeout_s)
+
+    # -- lifecycle ----------------------------------------------------------------------------
+
+    def close(self) -> None:
+        """Close the connection and join the reader thread. Idempotent.
+
+        A goal still running goes on in the daemon; its result is discarded there.
+
+        Raises:
+            Nothing.
+        """
+        with self._lock:
+            self._closing = True
+        try:
+            self._sock.shutdown(socket.SHUT_RDWR)
+        except OSError:
+            pass
+        if self._reader is not threading.current_thread():
+            self._reader.join()
+        self._sock.close()
+
+    def __enter__(self) -> Client:
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.close()
+
+    def __repr__(self) -> str:
+        return f"Client({self.label!r})"
+
+    # -- internals ----------------------------------------------------------------------------
+
+    def _request(
+        self,
+        op: str,
+        fields: dict[str, Any],
+        timeout_s: float | None,
+        pending: _Pending | None = None,
+    ) -> dict[str, Any]:
+        timeout = self.timeout_s if timeout_s is None else timeout_s
+        pending = pending or _Pending(op, None, 0)
+        request_id = next(self._ids)
+        data = encode({"id": request_id, "op": op, **fields})
+        with self._lock:
+            if self._lost is not None:
+                raise self._lost
+            if self._closing:
+                raise ClientConnectionError(f"{op}: the client is closed")
+            self._pending[request_id] = pending
+        try:
+            with self._send_lock:
+                self._sock.sendall(data)
+        except OSError as exc:
+            # The daemon closed the connection; it may have said why first ("busy"): let the
+            # reader thread read that and the end of the stream.
+            if self._reader is not threading.current_thread():
+                self._reader.join(timeout)
+            with self._lock:
+                self._pending.pop(request_id, None)
+                lost = self._lost
+            if not pending.done.is_set():
+                raise lost or ClientConnectionError(
+                    f"{op}: sending to {self.label} failed: {exc}"
+                ) from None
+        if not pending.done.wait(timeout):
+            with self._lock:
+                self._pending.pop(request_id, None)
+            if not pending.done.is_set():
+                raise TimeoutError(f"no reply to {op!r} from {self.label} within {timeout} s")
+        if pending.error is not None:
+            raise pending.error
+        assert pending.reply is not None
+        return pending.reply
+
+    def _read(self) -> None:
+        decoder = MessageDecoder(CLIENT_MAX_MESSAGE_BYTES)
+        reason = "the daemon closed the connection"
+        try:
+            while True:
+                data = self._sock.recv(65536)
+                for item in decoder.feed(data) if data else decoder.end():
+                    if isinstance(item, RequestError):
+                        reason = f"the daemon sent an unreadable message: {item.message}"
+                        return
+                    self._dispatch(item)
+                if not data:
+                    return
+        except OSError as exc:
+            reason = f"connection error: {exc}"
+        finally:
+            code = None
+            with self._lock:
+                if self._closing:
+                    reason = "the client was closed"
+                elif self._unclaimed is not None:
+                    code = self._unclaimed.code
+                    reason = f"{reason} ({code}: {self._unclaimed.message})"
+            self._fail_all(ClientConnectionError(f"{self.label}: {reason}", code))
+
+    def _dispatch(self, message: dict[str, Any]) -> None:
+        event = message.get("event")
+        if event is not None:
+            self._dispatch_event(event, message)
+            return
+        request_id = message.get("id")
+        with self._lock:
+            if request_id is None and not message.get("ok", False):
+                # An error the daemon could not tie to an id (a message too large to read, or
+                # "busy" before any request): replies come in request order, so it answers the
+                # oldest request still waiting.
+                key = next(iter(self._pending), None)
+            else:
+                key = request_id if isinstance(request_id, int) else None
+            pending = self._pending.pop(key, None) if key is not None else None
+        if pending is None:
+            if not message.get("ok", False):
+                error = _error(message)
+                if isinstance(error, RequestError) and request_id is None:
+                    self._unclaimed = error  # e.g. "busy" before our first request was sent
+            return  # otherwise a reply to a request that timed out
+        if message.get("ok"):
+            if pending.op == "send_goal":
+                goal_id = int(message["goal_id"])
+                handle = GoalHandle(self, goal_id, pending.on_feedback, pending.feedback_maxlen)
+                with self._lock:
+                    self._goals[goal_id] = handle
+                pending.goal = handle
+            pending.reply = message
+        else:
+            pending.error = _error(message)
+        pending.done.set()
+
+    def _dispatch_event(self, event: str, message: dict[str, Any]) -> None:
+        if event == "state":
+            with self._lock:
+                subscriptions = list(self._subscriptions)
+            for subscription in subscriptions:
+                subscription._add(message)
+            return
+        goal_id = message.get("goal_id")
+        if not isinstance(goal_id, int):
+            return
+        with self._lock:
+            handle = self._goals.get(goal_id)
+            if handle is not None and event == "result":
+                del self._goals[goal_id]
+        if handle is None:
+            return
+        if event == "feedback":
+            handle._add_feedback(message)
+        elif event == "result":
+            handle._set_result(message)
+
+    def _fail_all(self, error: ClientConnectionError) -> None:
+        with self._lock:
+            self._lost = error
+            pending, self._pending = list(self._pending.values()), {}
+            goals, self._goals = list(self._goals.values()), {}
+            subscriptions = list(self._subscriptions)
+        for p in pending:
+            p.error = error
+            p.done.set()
+        for goal in goals:
+            goal._connection_lost(error)
+        for subscription in subscriptions:
+            subscription._connection_lost(error)
+
+
+def _error(message: dict[str, Any]) -> Exception:
+    error = message.get("error")
+    if not isinstance(error, dict):
+        return ProtocolError(f"the daemon sent a failed reply without an error: {message!r:.200}")
+    code = str(error.get("code", "internal"))
+    text = str(error.get("message", ""))
+    error_code = error.get("error_code")
+    if code == GOAL_REJECTED:
+        return GoalRejected(text, int(error_code) if isinstance(error_code, int) else -1)
+    return RequestError(
+        code, text, message.get("id"), error_code if isinstance(error_code, int) else None
+    )
+
+
+def _trajectory(trajectory: TrajectoryLike, start_in: float | None) -> dict[str, Any]:
+    if isinstance(trajectory, JointTrajectory):
+        return trajectory_to_json(trajectory, start_in)
+    out = dict(trajectory)
+    if start_in is not None:
+        if "start_time_ns" in out:
+            raise ValueError("give either the trajectory's start_time_ns or start_in, not both")
+        out["start_in"] = start_in
+    return out
+
+
+def _tolerances(tolerances: Sequence[ToleranceLike]) -> list[Any]:
+    return [
+        tolerances_to_json([t])[0] if isinstance(t, JointTolerance) else dict(t) for t in tolerances
+    ]

@@ -1,0 +1,352 @@
+"""Newline-delimited JSON framing of the socket API, no I/O: bytes to messages and back.
+
+Every message is one JSON object on one line, UTF-8, ending with ``\\n`` (a ``\\r`` before it is
+ignored, blank lines are skipped). :class:`MessageDecoder` turns whatever the socket gave into
+complete JSON objects, with the refusals the protocol adds to Python's ``json`` (``NaN`` tokens,
+duplicate keys, over-long lines reported once and skipped); :func:`encode` writes one message.
+The error codes and :class:`RequestError` live here because both directions use them; what a
+request means is :mod:`jtc_hw.api.protocol`.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from enum import Enum
+from typing import Any
+
+import numpy as np
+
+from ..errors import ProtocolError
+
+__all__ = [
+    "BAD_JSON", "BAD_REQUEST", "BUSY", "DEFAULT_MAX_MESSAGE_BYTES", "ERROR_CODES", "GOAL_REJECTED",
+    "HARDWARE", "INTERNAL", "NOT_ACTIVE", "NOT_FOUND", "PROTOCOL_VERSION", "TOO_LARGE",
+    "UNAUTHORIZED", "UNKNOWN_OP", "MessageDecoder", "RequestError", "RequestId", "encode",
+    "error_reply", "reply",
+]
+
+PROTOCOL_VERSION = 1
+"""Version of this wire format; ``hello`` reports it and may ask for it."""
+
+DEFAULT_MAX_MESSAGE_BYTES = 4 << 20
+"""Default limit on one request line (bytes, without the newline): 4 MiB, as the robot file's
+``daemon.max_message_bytes`` default."""
+
+# Machine error codes (``error.code`` of a failed reply).
+BAD_JSON = "bad_json"
+TOO_LARGE = "too_large"
+BAD_REQUEST = "bad_request"
+UNKNOWN_OP = "unknown_op"
+GOAL_REJECTED = "goal_rejected"
+NOT_ACTIVE = "not_active"
+NOT_FOUND = "not_found"
+BUSY = "busy"
+UNAUTHORIZED = "unauthorized"
+HARDWARE = "hardware"
+INTERNAL = "internal"
+ERROR_CODES = (
+    BAD_JSON,
+    TOO_LARGE,
+    BAD_REQUEST,
+    UNKNOWN_OP,
+    GOAL_REJECTED,
+    NOT_ACTIVE,
+    NOT_FOUND,
+    BUSY,
+    UNAUTHORIZED,
+    HARDWARE,
+    INTERNAL,
+)
+
+RequestId = int | str | None
+"""A client-chosen request id, echoed in the reply (``None``: the request had none)."""
+
+
+class RequestError(ProtocolError):
+    """A request that cannot be served, as a value (``Decoder.feed``) or raised (the client).
+
+    ``str(error)`` is the human message.
+
+    Attributes:
+        code: one of ``ERROR_CODES``.
+        message: precise human text (names the JSON path, the value, what would be accepted).
+        request_id: the request's ``id`` when it could be read, else ``None``.
+        error_code: for ``goal_rejected``, the ``FollowJointTrajectory`` result code.
+    """
+
+    def __init__(
+        self,
+        code: str,
+        message: str,
+        request_id: RequestId = None,
+        error_code: int | None = None,
+    ) -> None:
+        super().__init__(message)
+        self.code = code
+        self.message = message
+        self.request_id = request_id
+        self.error_code = error_code
+
+    def reply(self) -> dict[str, Any]:
+        """The error reply for this error.
+
+        Raises:
+            Nothing.
+        """
+        return error_reply(self.request_id, self.code, self.message, self.error_code)
+
+    def __repr__(self) -> str:
+        return f"RequestError({self.code!r}, {self.message!r}, request_id={self.request_id!r})"
+
+
+
+def _describe(value: Any) -> str:
+    """A JSON-flavoured description of a received value, for error messages."""
+    if value is None:
+        return "null"
+    if isinstance(value, bool):
+        return f"a boolean ({'true' if value else 'false'})"
+    if isinstance(value, (int, float)):
+        text = repr(value)
+        return f"a number ({text if len(text) <= 24 else text[:21] + '...'})"
+    if isinstance(value, str):
+        text = json.dumps(value, ensure_ascii=False)
+        return f"a string ({text if len(text) <= 40 else text[:37] + '...'})"
+    if isinstance(value, list):
+        return f"an array of {len(value)} element(s)"
+    if isinstance(value, dict):
+        return "an object"
+    return type(value).__name__  # pragma: no cover - json.loads produces nothing else
+
+
+
+# -- decoding ---------------------------------------------------------------------------------
+
+
+class _Refused(ValueError):
+    """Raised from inside ``json.loads`` hooks."""
+
+
+def _refuse_constant(name: str) -> Any:
+    raise _Refused(f"'{name}' is not JSON (non-finite numbers are refused); send a finite number")
+
+
+def _unique_keys(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+    obj = dict(pairs)
+    if len(obj) != len(pairs):
+        seen: set[str] = set()
+        for key, _ in pairs:
+            if key in seen:
+                raise _Refused(f"duplicate key '{key}' in an object")
+            seen.add(key)
+    return obj
+
+
+def _loads_line(line: bytes, lineno: int) -> Any:
+    """Decode one message's JSON.
+
+    Raises:
+        RequestError: ``bad_json``, with the connection line and the column.
+    """
+    try:
+        text = line.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise RequestError(
+            BAD_JSON, f"line {lineno}: not valid UTF-8 at byte {exc.start + 1}"
+        ) from None
+    try:
+        return json.loads(text, parse_constant=_refuse_constant, object_pairs_hook=_unique_keys)
+    except json.JSONDecodeError as exc:
+        raise RequestError(
+            BAD_JSON, f"line {lineno}, column {exc.colno}: malformed JSON: {exc.msg}"
+        ) from None
+    except _Refused as exc:
+        raise RequestError(BAD_JSON, f"line {lineno}: {exc}") from None
+    except RecursionError:
+        raise RequestError(BAD_JSON, f"line {lineno}: JSON nested too deeply") from None
+    except ValueError as exc:  # e.g. an integer literal with more than 4300 digits
+        raise RequestError(BAD_JSON, f"line {lineno}: {exc}") from None
+
+
+class _Lines:
+    """Splits a byte stream into lines, enforcing the line-length limit."""
+
+    def __init__(self, max_bytes: int) -> None:
+        if max_bytes < 1:
+            raise ValueError(f"max_message_bytes must be >= 1, got {max_bytes}")
+        self.max_bytes = max_bytes
+        self._buf = bytearray()
+        self._scanned = 0  # bytes of _buf known to hold no newline
+        self._discarding = False
+        self.lineno = 0  # lines completed so far
+
+    def feed(self, data: bytes) -> list[tuple[int, bytes | None]]:
+        """Complete lines as ``(line number, content)``; ``None`` content: it was too long."""
+        out: list[tuple[int, bytes | None]] = []
+        if self._discarding:
+            nl = data.find(b"\n")
+            if nl < 0:
+                return out
+            self._discarding = False
+            self.lineno += 1
+            data = data[nl + 1 :]
+        buf = self._buf
+        buf += data
+        start = 0
+        while True:
+            nl = buf.find(b"\n", start + self._scanned)
+            if nl < 0:
+                break
+            self._scanned = 0
+            self.lineno += 1
+            out.append(self._line(bytes(buf[start:nl])))
+            start = nl + 1
+        del buf[:start]
+        if len(buf) > self.max_bytes:
+            out.append((self.lineno + 1, None))
+            buf.clear()
+            self._discarding = True
+        self._scanned = len(buf)
+        return out
+
+    def end(self) -> list[tuple[int, bytes | None]]:
+        """The last, unterminated line at end of input, if any."""
+        rest, self._buf, self._scanned = bytes(self._buf), bytearray(), 0
+        if self._discarding or not rest:
+            self._discarding = False
+            return []
+        self.lineno += 1
+        return [self._line(rest)]
+
+    def _line(self, line: bytes) -> tuple[int, bytes | None]:
+        if line.endswith(b"\r"):
+            line = line[:-1]
+        return (self.lineno, line if len(line) <= self.max_bytes else None)
+
+
+class MessageDecoder:
+    """Newline-delimited JSON objects from a byte stream (used by the client for replies).
+
+    Args:
+        max_message_bytes: longest accepted line, without its newline.
+    """
+
+    def __init__(self, max_message_bytes: int = DEFAULT_MAX_MESSAGE_BYTES) -> None:
+        self._lines = _Lines(max_message_bytes)
+
+    @property
+    def max_message_bytes(self) -> int:
+        """The line-length limit."""
+        return self._lines.max_bytes
+
+    def feed(self, data: bytes) -> list[dict[str, Any] | RequestError]:
+        """Messages completed by ``data``, in order; unusable ones as ``RequestError`` values.
+
+        Blank lines are skipped. An over-long line yields one ``too_large`` error, as soon as
+        the limit is passed, and its remaining bytes are discarded up to the next newline.
+
+        Raises:
+            Nothing: every problem is returned as a value.
+        """
+        return self._decode(self._lines.feed(data))
+
+    def end(self) -> list[dict[str, Any] | RequestError]:
+        """Call at end of input: decodes a last line that had no newline.
+
+        Raises:
+            Nothing: every problem is returned as a value.
+        """
+        return self._decode(self._lines.end())
+
+    def _decode(self, lines: list[tuple[int, bytes | None]]) -> list[dict[str, Any] | RequestError]:
+        out: list[dict[str, Any] | RequestError] = []
+        for lineno, line in lines:
+            if line is None:
+                out.append(
+                    RequestError(
+                        TOO_LARGE,
+                        f"line {lineno}: message longer than the limit of "
+                        f"{self._lines.max_bytes} bytes; it was discarded up to its newline",
+                    )
+                )
+                continue
+            if not line.strip():
+                continue
+            try:
+                obj = _loads_line(line, lineno)
+            except RequestError as exc:
+                out.append(exc)
+                continue
+            if not isinstance(obj, dict):
+                out.append(
+                    RequestError(
+                        BAD_REQUEST,
+                        f"line {lineno}: a message must be a JSON object, got {_describe(obj)}",
+                    )
+                )
+                continue
+            out.append(obj)
+        return out
+
+
+# -- encoding ---------------------------------------------------------------------------------
+
+
+def _jsonable(obj: Any) -> Any:
+    if obj is None or isinstance(obj, (str, bool)):
+        return obj
+    if isinstance(obj, Enum):
+        return _jsonable(obj.value)
+    if isinstance(obj, int):
+        return int(obj)
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {str(k): _jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_jsonable(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return _jsonable(obj.tolist())
+    if isinstance(obj, np.generic):
+        return _jsonable(obj.item())
+    raise TypeError(f"cannot encode a {type(obj).__name__} as JSON: {obj!r:.60}")
+
+
+def encode(obj: Any) -> bytes:
+    """One message: compact JSON, UTF-8, ending with a newline.
+
+    Accepts dicts, lists, tuples, strings, numbers, booleans, ``None``, enums (their value),
+    numpy arrays and scalars. A non-finite float (``NaN``, ``inf``) is written as ``null``: it
+    means "no value" (e.g. a joint without a velocity reading), and JSON has no such numbers.
+
+    Raises:
+        TypeError: ``obj`` contains something else.
+    """
+    text = json.dumps(_jsonable(obj), allow_nan=False, ensure_ascii=False, separators=(",", ":"))
+    return text.encode("utf-8") + b"\n"
+
+
+def reply(request_id: RequestId, **fields: Any) -> dict[str, Any]:
+    """A successful reply.
+
+    Raises:
+        Nothing.
+    """
+    return {"id": request_id, "ok": True, **fields}
+
+
+def error_reply(
+    request_id: RequestId, code: str, message: str, error_code: int | None = None
+) -> dict[str, Any]:
+    """A failed reply; ``error_code`` (goal rejections) goes into the ``error`` object.
+
+    Raises:
+        Nothing.
+    """
+    error: dict[str, Any] = {"code": code, "message": message}
+    if error_code is not None:
+        error["error_code"] = int(error_code)
+    return {"id": request_id, "ok": False, "error": error}
+
+

@@ -1,0 +1,740 @@
+"""The daemon's socket API wire format (version 1): newline-delimited JSON, no I/O.
+
+Theory of operation
+-------------------
+Every message is one JSON object on one line, UTF-8, ending with ``\\n`` (a ``\\r`` before it is
+ignored, blank lines are skipped), so ``socat - UNIX-CONNECT:/path`` is a usable client. The
+complete specification, with an example per operation and event, is ``docs/protocol.md``.
+
+This module only turns bytes into values and values into bytes, in the manner of h11: the server
+and the client own the sockets. The line framing and the error codes are
+:mod:`jtc_hw.api.framing` (re-exported here); this module says what a request means.
+``Decoder.feed(data)`` takes whatever the socket gave (half a message, several messages) and
+returns the requests completed by it, in order; a message that cannot be used comes back as a
+``RequestError`` *value* in the same list, carrying the machine code, a message naming the
+offending JSON path, and the request ``id`` when it could be read. A message longer than the
+limit is reported once and skipped up to its newline, so the connection survives it.
+
+Things Python's ``json`` accepts but the protocol refuses: ``NaN``/``Infinity`` tokens (not
+JSON), duplicate keys in an object (ambiguous), numbers too large for a float64 where a number
+is expected, unknown fields (a misspelt ``time_from_start`` must not silently become 0).
+``encode`` never emits a non-finite number: ``NaN`` and infinities become ``null``.
+"""
+
+from __future__ import annotations
+
+import difflib
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any, ClassVar
+
+from ..controller.goals import GoalFeedback, GoalResult
+from ..controller.tolerances import JointTolerance
+from ..controller.trajectory import (
+    NS_PER_S,
+    JointTrajectory,
+    TrajectoryPoint,
+    TrajectorySample,
+    seconds_to_ns,
+)
+from .framing import (
+    BAD_JSON,
+    BAD_REQUEST,
+    BUSY,
+    DEFAULT_MAX_MESSAGE_BYTES,
+    ERROR_CODES,
+    GOAL_REJECTED,
+    HARDWARE,
+    INTERNAL,
+    NOT_ACTIVE,
+    NOT_FOUND,
+    PROTOCOL_VERSION,
+    TOO_LARGE,
+    UNAUTHORIZED,
+    UNKNOWN_OP,
+    MessageDecoder,
+    RequestError,
+    RequestId,
+    _describe,
+    encode,
+    error_reply,
+    reply,
+)
+
+__all__ = [
+    "Auth",
+    "BAD_JSON",
+    "BAD_REQUEST",
+    "BUSY",
+    "CancelGoal",
+    "DEFAULT_MAX_MESSAGE_BYTES",
+    "Decoder",
+    "ERROR_CODES",
+    "GOAL_REJECTED",
+    "GetConfig",
+    "GetStatus",
+    "HARDWARE",
+    "Hello",
+    "INTERNAL",
+    "MAX_NS",
+    "MessageDecoder",
+    "NOT_ACTIVE",
+    "NOT_FOUND",
+    "OPS",
+    "PROTOCOL_VERSION",
+    "QueryState",
+    "Rearm",
+    "Request",
+    "RequestError",
+    "RequestId",
+    "SendGoal",
+    "SendTrajectory",
+    "Sim",
+    "SubscribeState",
+    "TOO_LARGE",
+    "UNAUTHORIZED",
+    "UNKNOWN_OP",
+    "UnsubscribeState",
+    "WireTrajectory",
+    "encode",
+    "error_reply",
+    "feedback_event",
+    "parse_request",
+    "parse_trajectory",
+    "reply",
+    "result_event",
+    "sample_to_json",
+    "tolerances_to_json",
+    "trajectory_to_json",
+]
+
+MAX_NS = 2**63 - 1
+"""Largest time in nanoseconds the protocol carries (int64)."""
+
+_MAX_SECONDS = MAX_NS / NS_PER_S
+
+# -- requests ---------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class WireTrajectory:
+    """A trajectory as received: its start is resolved by the server (``to_joint_trajectory``).
+
+    Attributes:
+        start_time_ns: absolute start on the daemon clock, if given.
+        start_in: start in seconds from when the daemon received the request, if given.
+    """
+
+    joint_names: tuple[str, ...]
+    points: tuple[TrajectoryPoint, ...]
+    start_time_ns: int | None = None
+    start_in: float | None = None
+
+    def to_joint_trajectory(self, now_ns: int) -> JointTrajectory:
+        """The controller's trajectory message, with ``start_in`` resolved against ``now_ns``.
+
+        Neither start given: start time 0 ("when the controller receives it").
+
+        Raises:
+            RequestError: ``start_in`` puts the start outside the daemon clock's range.
+        """
+        if self.start_time_ns is not None:
+            start = self.start_time_ns
+        elif self.start_in is not None:
+            start = now_ns + seconds_to_ns(self.start_in)
+            if not 0 <= start <= MAX_NS:
+                raise RequestError(
+                    BAD_REQUEST,
+                    f"trajectory.start_in: {self.start_in!r} s from now ({now_ns} ns) is "
+                    f"{start} ns, outside the daemon clock's range 0..{MAX_NS}",
+                )
+        else:
+            start = 0
+        return JointTrajectory(self.joint_names, self.points, start)
+
+
+@dataclass(frozen=True)
+class Hello:
+    """``hello``: protocol and server versions, joints, rates, the daemon clock."""
+
+    op: ClassVar[str] = "hello"
+    id: RequestId = None
+    protocol_version: int | None = None
+
+
+@dataclass(frozen=True)
+class Auth:
+    """``auth``: the token of a TCP connection (must be its first request)."""
+
+    op: ClassVar[str] = "auth"
+    id: RequestId = None
+    token: str = ""
+
+    def __repr__(self) -> str:  # never log a token
+        return f"Auth(id={self.id!r}, token=<{len(self.token)} characters>)"
+
+
+@dataclass(frozen=True)
+class SendGoal:
+    """``send_goal``: a ``follow_joint_trajectory`` action goal."""
+
+    op: ClassVar[str] = "send_goal"
+    id: RequestId = None
+    trajectory: WireTrajectory = field(default_factory=lambda: WireTrajectory((), ()))
+    path_tolerance: tuple[JointTolerance, ...] = ()
+    goal_tolerance: tuple[JointTolerance, ...] = ()
+    goal_time_tolerance: float = 0.0
+
+
+@dataclass(frozen=True)
+class CancelGoal:
+    """``cancel_goal``: ask the executing goal ``goal_id`` to stop."""
+
+    op: ClassVar[str] = "cancel_goal"
+    id: RequestId = None
+    goal_id: int = 0
+
+
+@dataclass(frozen=True)
+class SendTrajectory:
+    """``send_trajectory``: the ``joint_trajectory`` topic (no points: stop)."""
+
+    op: ClassVar[str] = "send_trajectory"
+    id: RequestId = None
+    trajectory: WireTrajectory = field(default_factory=lambda: WireTrajectory((), ()))
+
+
+@dataclass(frozen=True)
+class QueryState:
+    """``query_state``: the desired state at an absolute time or at a time from now."""
+
+    op: ClassVar[str] = "query_state"
+    id: RequestId = None
+    time_ns: int | None = None
+    in_s: float | None = None
+
+    def resolve(self, now_ns: int) -> int:
+        """The absolute time asked for.
+
+        Raises:
+            RequestError: ``in`` puts the time outside the daemon clock's range.
+        """
+        if self.time_ns is not None:
+            return self.time_ns
+        t = now_ns + seconds_to_ns(self.in_s or 0.0)
+        if not 0 <= t <= MAX_NS:
+            raise RequestError(
+                BAD_REQUEST,
+                f"in: {self.in_s!r} s from now ({now_ns} ns) is outside the daemon clock's "
+                f"range 0..{MAX_NS} ns",
+                self.id,
+            )
+        return t
+
+
+@dataclass(frozen=True)
+class SubscribeState:
+    """``subscribe_state``: receive ``state`` events."""
+
+    op: ClassVar[str] = "subscribe_state"
+    id: RequestId = None
+
+
+@dataclass(frozen=True)
+class UnsubscribeState:
+    """``unsubscribe_state``: stop receiving ``state`` events."""
+
+    op: ClassVar[str] = "unsubscribe_state"
+    id: RequestId = None
+
+
+@dataclass(frozen=True)
+class GetConfig:
+    """``get_config``: the configuration in effect."""
+
+    op: ClassVar[str] = "get_config"
+    id: RequestId = None
+
+
+@dataclass(frozen=True)
+class GetStatus:
+    """``get_status``: loop, hardware, controller and server statistics."""
+
+    op: ClassVar[str] = "get_status"
+    id: RequestId = None
+
+
+@dataclass(frozen=True)
+class Sim:
+    """``sim``: freeze or release a simulated component's feedback, or inject a latched
+    read fault (``fault``: its message; cleared by ``rearm``)."""
+
+    op: ClassVar[str] = "sim"
+    id: RequestId = None
+    component: str = ""
+    freeze: bool | None = False
+    fault: str | None = None
+
+
+@dataclass(frozen=True)
+class Rearm:
+    """``rearm``: leave a hardware fault (reboot / fault-reset the devices, hold the position)."""
+
+    op: ClassVar[str] = "rearm"
+    id: RequestId = None
+
+
+Request = (
+    Hello
+    | Auth
+    | SendGoal
+    | CancelGoal
+    | SendTrajectory
+    | QueryState
+    | SubscribeState
+    | UnsubscribeState
+    | GetConfig
+    | GetStatus
+    | Sim
+    | Rearm
+)
+
+_OP_FIELDS: dict[str, tuple[str, ...]] = {
+    "hello": ("protocol_version",),
+    "auth": ("token",),
+    "send_goal": ("trajectory", "path_tolerance", "goal_tolerance", "goal_time_tolerance"),
+    "cancel_goal": ("goal_id",),
+    "send_trajectory": ("trajectory",),
+    "query_state": ("time_ns", "in"),
+    "subscribe_state": (),
+    "unsubscribe_state": (),
+    "get_config": (),
+    "get_status": (),
+    "sim": ("component", "freeze", "fault"),
+    "rearm": (),
+}
+OPS: tuple[str, ...] = tuple(_OP_FIELDS)
+"""Every operation name, in documentation order."""
+
+_TRAJECTORY_FIELDS = ("joint_names", "points", "start_time_ns", "start_in")
+_POINT_FIELDS = ("time_from_start", "positions", "velocities", "accelerations", "effort")
+_TOLERANCE_FIELDS = ("name", "position", "velocity", "acceleration")
+
+
+def _join(path: str, key: str) -> str:
+    return f"{path}.{key}" if path else key
+
+
+def _suggest(name: str, choices: Sequence[str]) -> str:
+    close = difflib.get_close_matches(name, choices, n=1, cutoff=0.6)
+    return f"; did you mean '{close[0]}'?" if close else ""
+
+
+class _Fields:
+    """Typed access to one JSON object's fields, errors naming the JSON path."""
+
+    def __init__(
+        self, obj: Any, path: str, where: str, known: Sequence[str], request_id: RequestId
+    ) -> None:
+        self.path = path
+        self.where = where  # how to name the object itself: its path, or the op at top level
+        self.rid = request_id
+        if not isinstance(obj, dict):
+            raise self.error(f"expected an object, got {_describe(obj)}", where)
+        for key in obj:
+            if key not in known:
+                listing = ", ".join(known) if known else "none"
+                raise self.error(
+                    f"unknown field '{key}'{_suggest(key, known)} (fields here: {listing})", where
+                )
+        self.obj: dict[str, Any] = obj
+
+    def error(self, problem: str, where: str | None = None) -> RequestError:
+        return RequestError(BAD_REQUEST, f"{where or self.where}: {problem}", self.rid)
+
+    def has(self, key: str) -> bool:
+        return key in self.obj
+
+    def required(self, key: str, what: str) -> Any:
+        if key not in self.obj:
+            raise self.error(f"missing required field '{key}' ({what})")
+        return self.obj[key]
+
+    def number(self, key: str, value: Any) -> float:
+        return _number(value, _join(self.path, key), self.rid)
+
+    def integer(self, key: str, value: Any, low: int, high: int) -> int:
+        return _integer(value, _join(self.path, key), self.rid, low, high)
+
+    def string(self, key: str, value: Any) -> str:
+        if not isinstance(value, str):
+            raise self.error(f"expected a string, got {_describe(value)}", _join(self.path, key))
+        return value
+
+    def boolean(self, key: str, value: Any) -> bool:
+        if not isinstance(value, bool):
+            raise self.error(
+                f"expected true or false, got {_describe(value)}", _join(self.path, key)
+            )
+        return value
+
+    def array(self, key: str, value: Any) -> list[Any]:
+        if not isinstance(value, list):
+            raise self.error(f"expected an array, got {_describe(value)}", _join(self.path, key))
+        return value
+
+
+def _number(value: Any, path: str, rid: RequestId) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise RequestError(BAD_REQUEST, f"{path}: expected a number, got {_describe(value)}", rid)
+    try:
+        result = float(value)
+    except OverflowError:
+        result = math.inf
+    if not math.isfinite(result):
+        raise RequestError(
+            BAD_REQUEST, f"{path}: {_describe(value)} is out of the range of a float64", rid
+        )
+    return result
+
+
+def _integer(value: Any, path: str, rid: RequestId, low: int, high: int) -> int:
+    if isinstance(value, bool) or not isinstance(value, int):
+        hint = " (write it without a fraction or exponent)" if isinstance(value, float) else ""
+        raise RequestError(
+            BAD_REQUEST, f"{path}: expected an integer, got {_describe(value)}{hint}", rid
+        )
+    if not low <= value <= high:
+        raise RequestError(
+            BAD_REQUEST, f"{path}: {value} is out of range; expected {low}..{high}", rid
+        )
+    return value
+
+
+def _seconds(value: Any, path: str, rid: RequestId) -> float:
+    seconds = _number(value, path, rid)
+    if abs(seconds) > _MAX_SECONDS:
+        raise RequestError(
+            BAD_REQUEST,
+            f"{path}: {seconds!r} s is out of range; expected at most {_MAX_SECONDS:.6g} s "
+            "in magnitude",
+            rid,
+        )
+    return seconds
+
+
+def _vector(value: Any, path: str, rid: RequestId) -> tuple[float, ...]:
+    if not isinstance(value, list):
+        raise RequestError(
+            BAD_REQUEST, f"{path}: expected an array of numbers, got {_describe(value)}", rid
+        )
+    return tuple(_number(v, f"{path}[{i}]", rid) for i, v in enumerate(value))
+
+
+def parse_trajectory(
+    obj: Any, path: str = "trajectory", request_id: RequestId = None
+) -> WireTrajectory:
+    """Check a trajectory object's shape and types (content is the controller's business).
+
+    Raises:
+        RequestError: ``bad_request`` naming the JSON path of the first problem.
+    """
+    f = _Fields(obj, path, path, _TRAJECTORY_FIELDS, request_id)
+    names_raw = f.array("joint_names", f.required("joint_names", "array of joint names"))
+    names = tuple(f.string(f"joint_names[{i}]", n) for i, n in enumerate(names_raw))
+    points_raw = f.array("points", f.required("points", "array of points; empty means stop"))
+    points = tuple(
+        _parse_point(p, f"{path}.points[{i}]", request_id) for i, p in enumerate(points_raw)
+    )
+    start_time_ns: int | None = None
+    start_in: float | None = None
+    if f.has("start_time_ns") and f.has("start_in"):
+        raise f.error(
+            "'start_time_ns' (absolute daemon clock) and 'start_in' (seconds from now) are "
+            "mutually exclusive; give at most one"
+        )
+    if f.has("start_time_ns"):
+        start_time_ns = f.integer("start_time_ns", f.obj["start_time_ns"], 0, MAX_NS)
+    if f.has("start_in"):
+        start_in = _seconds(f.obj["start_in"], _join(path, "start_in"), request_id)
+    return WireTrajectory(names, points, start_time_ns, start_in)
+
+
+def _parse_point(obj: Any, path: str, rid: RequestId) -> TrajectoryPoint:
+    f = _Fields(obj, path, path, _POINT_FIELDS, rid)
+    t = _seconds(
+        f.required("time_from_start", "seconds after the trajectory's start"),
+        _join(path, "time_from_start"),
+        rid,
+    )
+    values = {
+        name: _vector(f.obj[name], _join(path, name), rid) if f.has(name) else None
+        for name in _POINT_FIELDS[1:]
+    }
+    return TrajectoryPoint(
+        time_from_start_ns=seconds_to_ns(t),
+        positions=values["positions"],
+        velocities=values["velocities"],
+        accelerations=values["accelerations"],
+        effort=values["effort"],
+    )
+
+
+def _parse_tolerances(value: Any, path: str, rid: RequestId) -> tuple[JointTolerance, ...]:
+    if not isinstance(value, list):
+        raise RequestError(
+            BAD_REQUEST,
+            f'{path}: expected an array of {{"name", "position", "velocity", '
+            f'"acceleration"}} objects, got {_describe(value)}',
+            rid,
+        )
+    out = []
+    for i, item in enumerate(value):
+        where = f"{path}[{i}]"
+        f = _Fields(item, where, where, _TOLERANCE_FIELDS, rid)
+        name = f.string("name", f.required("name", "the joint's name"))
+        numbers = {k: f.number(k, f.obj[k]) if f.has(k) else 0.0 for k in _TOLERANCE_FIELDS[1:]}
+        out.append(JointTolerance(name, **numbers))
+    return tuple(out)
+
+
+def _request_id(obj: dict[str, Any]) -> RequestId:
+    rid = obj.get("id")
+    if rid is None or isinstance(rid, str):
+        return rid
+    if isinstance(rid, int) and not isinstance(rid, bool):
+        return rid
+    raise RequestError(
+        BAD_REQUEST, f"id: expected an integer or a string, got {_describe(rid)}", None
+    )
+
+
+def parse_request(obj: Any) -> Request:
+    """Turn one decoded JSON value into a typed request.
+
+    Raises:
+        RequestError: ``bad_request`` (not an object, missing or mistyped field, unknown
+            field) or ``unknown_op``; carries the request ``id`` when it was readable.
+    """
+    if not isinstance(obj, dict):
+        raise RequestError(
+            BAD_REQUEST, f"a request must be a JSON object, got {_describe(obj)}", None
+        )
+    rid = _request_id(obj)
+    if "op" not in obj:
+        raise RequestError(
+            BAD_REQUEST, f"missing required field 'op' (one of: {', '.join(OPS)})", rid
+        )
+    op = obj["op"]
+    if not isinstance(op, str):
+        raise RequestError(BAD_REQUEST, f"op: expected a string, got {_describe(op)}", rid)
+    if op not in _OP_FIELDS:
+        raise RequestError(
+            UNKNOWN_OP, f"unknown op '{op}'{_suggest(op, OPS)} (ops: {', '.join(OPS)})", rid
+        )
+    f = _Fields(obj, "", op, ("id", "op", *_OP_FIELDS[op]), rid)
+    o = f.obj
+    if op == "hello":
+        version = None
+        if f.has("protocol_version"):
+            version = f.integer("protocol_version", o["protocol_version"], 0, 2**31 - 1)
+        return Hello(rid, version)
+    if op == "auth":
+        return Auth(rid, f.string("token", f.required("token", "the daemon's TCP token")))
+    if op == "send_goal":
+        traj = parse_trajectory(
+            f.required("trajectory", "the trajectory to execute"), "trajectory", rid
+        )
+        path_tol = _parse_tolerances(o.get("path_tolerance", []), "path_tolerance", rid)
+        goal_tol = _parse_tolerances(o.get("goal_tolerance", []), "goal_tolerance", rid)
+        gtt = f.number("goal_time_tolerance", o.get("goal_time_tolerance", 0.0))
+        return SendGoal(rid, traj, path_tol, goal_tol, gtt)
+    if op == "cancel_goal":
+        goal_id = f.integer("goal_id", f.required("goal_id", "the goal to cancel"), 0, MAX_NS)
+        return CancelGoal(rid, goal_id)
+    if op == "send_trajectory":
+        traj = parse_trajectory(
+            f.required("trajectory", "the trajectory; no points means stop"), "trajectory", rid
+        )
+        return SendTrajectory(rid, traj)
+    if op == "query_state":
+        if f.has("time_ns") == f.has("in"):
+            raise f.error(
+                "give exactly one of 'time_ns' (absolute daemon clock, ns) or 'in' "
+                f"(seconds from now){'; both were given' if f.has('in') else ''}"
+            )
+        if f.has("time_ns"):
+            return QueryState(rid, time_ns=f.integer("time_ns", o["time_ns"], 0, MAX_NS))
+        return QueryState(rid, in_s=_seconds(o["in"], "in", rid))
+    if op == "sim":
+        component = f.string("component", f.required("component", "the simulated component"))
+        fault = f.string("fault", o["fault"]) if f.has("fault") else None
+        if fault is not None and not fault.strip():
+            raise f.error("must not be empty (it is the fault's message)", "fault")
+        freeze: bool | None = None
+        if fault is None or f.has("freeze"):
+            freeze = f.boolean("freeze", f.required("freeze", "true to freeze its feedback"))
+        return Sim(rid, component, freeze, fault)
+    simple: dict[str, type[Request]] = {
+        "subscribe_state": SubscribeState,
+        "unsubscribe_state": UnsubscribeState,
+        "get_config": GetConfig,
+        "get_status": GetStatus,
+        "rearm": Rearm,
+    }
+    return simple[op](rid)
+
+
+class Decoder:
+    """Requests from a client's byte stream (the server side of the protocol).
+
+    Example::
+
+        decoder = Decoder()
+        for item in decoder.feed(data):
+            if isinstance(item, RequestError):
+                send(encode(item.reply()))
+            else:
+                handle(item)
+
+    Args:
+        max_message_bytes: longest accepted request line, without its newline.
+    """
+
+    def __init__(self, max_message_bytes: int = DEFAULT_MAX_MESSAGE_BYTES) -> None:
+        self._messages = MessageDecoder(max_message_bytes)
+
+    @property
+    def max_message_bytes(self) -> int:
+        """The line-length limit."""
+        return self._messages.max_message_bytes
+
+    def feed(self, data: bytes) -> list[Request | RequestError]:
+        """Requests completed by ``data``, in order; unusable ones as ``RequestError`` values.
+
+        Raises:
+            Nothing: every problem is returned as a value.
+        """
+        return [self._parse(item) for item in self._messages.feed(data)]
+
+    def end(self) -> list[Request | RequestError]:
+        """Call at end of input: decodes a last request that had no newline.
+
+        Raises:
+            Nothing: every problem is returned as a value.
+        """
+        return [self._parse(item) for item in self._messages.end()]
+
+    @staticmethod
+    def _parse(item: dict[str, Any] | RequestError) -> Request | RequestError:
+        if isinstance(item, RequestError):
+            return item
+        try:
+            return parse_request(item)
+        except RequestError as exc:
+            return exc
+
+
+# -- events ------------------------------------------------------------------------------------
+
+
+def sample_to_json(sample: TrajectorySample) -> dict[str, Any]:
+    """A desired state as ``{positions, velocities, accelerations, effort}`` arrays.
+
+    Raises:
+        Nothing.
+    """
+    return {
+        "positions": sample.positions,
+        "velocities": sample.velocities,
+        "accelerations": sample.accelerations,
+        "effort": sample.effort,
+    }
+
+
+def result_event(result: GoalResult) -> dict[str, Any]:
+    """The ``result`` event of a goal.
+
+    Raises:
+        Nothing.
+    """
+    return {
+        "event": "result",
+        "goal_id": result.goal_id,
+        "status": result.status.value,
+        "error_code": int(result.error_code),
+        "error_string": result.error_string,
+        "time_ns": result.time_ns,
+    }
+
+
+def feedback_event(feedback: GoalFeedback, joint_names: Sequence[str]) -> dict[str, Any]:
+    """The ``feedback`` event of a goal (``actual.velocities`` is null without a reading).
+
+    Raises:
+        Nothing.
+    """
+    error = feedback.error
+    return {
+        "event": "feedback",
+        "goal_id": feedback.goal_id,
+        "time_ns": feedback.time_ns,
+        "time_from_start": feedback.time_from_start,
+        "joint_names": list(joint_names),
+        "desired": sample_to_json(feedback.desired),
+        "actual": {
+            "positions": feedback.actual_positions,
+            "velocities": feedback.actual_velocities,
+        },
+        "error": {
+            "positions": error[0],
+            "velocities": error[1],
+            "accelerations": error[2],
+        },
+    }
+
+
+def trajectory_to_json(
+    trajectory: JointTrajectory, start_in: float | None = None
+) -> dict[str, Any]:
+    """The wire form of a ``JointTrajectory`` (for clients).
+
+    ``start_time_ns`` is written when non-zero; ``start_in`` instead, when given.
+
+    Raises:
+        ValueError: both a non-zero ``start_time_ns`` and ``start_in``.
+    """
+    if start_in is not None and trajectory.start_time_ns:
+        raise ValueError("give either a trajectory start_time_ns or start_in, not both")
+    points = []
+    for p in trajectory.points:
+        point: dict[str, Any] = {"time_from_start": p.time_from_start_ns / NS_PER_S}
+        for name in _POINT_FIELDS[1:]:
+            values = getattr(p, name)
+            if values is not None:
+                point[name] = list(values)
+        points.append(point)
+    out: dict[str, Any] = {"joint_names": list(trajectory.joint_names), "points": points}
+    if start_in is not None:
+        out["start_in"] = start_in
+    elif trajectory.start_time_ns:
+        out["start_time_ns"] = trajectory.start_time_ns
+    return out
+
+
+def tolerances_to_json(tolerances: Sequence[JointTolerance]) -> list[dict[str, Any]]:
+    """The wire form of tolerance overrides.
+
+    Raises:
+        Nothing.
+    """
+    return [
+        {
+            "name": t.name,
+            "position": t.position,
+            "velocity": t.velocity,
+            "acceleration": t.acceleration,
+        }
+        for t in tolerances
+    ]

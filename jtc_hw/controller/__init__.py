@@ -1,0 +1,19 @@
+"""The joint trajectory controller as a pure library: no I/O, no clock, no threads.
+
+Time is a parameter (integer nanoseconds), state comes in, commands and goal events go out. The
+layering contract in ``pyproject.toml`` (checked by ``lint-imports`` on every test run) keeps it
+that way: nothing here imports the hardware, daemon or API layers, or a socket, thread or clock.
+
+- :mod:`.config`: the upstream parameters, one schema table per level, and
+  :class:`~.config.ControllerConfig`; :mod:`.config_io`: ``load_config`` / ``config_to_dict`` /
+  ``explain``; :mod:`.parsing`: strict YAML and value checks shared with the robot file.
+- :mod:`.joints`: joint state and command vectors.
+- :mod:`.interpolation`, :mod:`.trajectory`: splines and the immutable reference.
+- :mod:`.validation`, :mod:`.tolerances`, :mod:`.pid`, :mod:`.goals`: goal checks, tolerances,
+  the control law and the goal state machine.
+- :mod:`.controller`: :class:`JointTrajectoryController` and the planner the daemon uses.
+"""
+
+from .controller import JointTrajectoryController, Plan, Planner, UpdateResult
+
+__all__ = ["JointTrajectoryController", "Plan", "Planner", "UpdateResult"]

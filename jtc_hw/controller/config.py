@@ -1,0 +1,617 @@
+"""Controller parameters: read, check and freeze the ``joint_trajectory_controller`` settings.
+
+The parameter names, types, defaults and ranges are those of the upstream controller's
+parameter list; they live in one schema table per level (:data:`PARAMETERS`,
+:data:`CONSTRAINT_PARAMETERS`, :data:`JOINT_CONSTRAINT_PARAMETERS`, :data:`GAIN_PARAMETERS`).
+The tables drive validation, the dataclass defaults, :data:`DEFAULTS` and
+:func:`config_to_dict`.
+
+Two source layouts are accepted by :func:`~jtc_hw.controller.config_io.load_config`:
+
+* the upstream ROS 2 parameter file::
+
+      controller_manager:
+        ros__parameters:
+          update_rate: 100
+          joint_trajectory_controller:
+            type: joint_trajectory_controller/JointTrajectoryController
+      joint_trajectory_controller:
+        ros__parameters:
+          joints: [joint1, joint2]
+          command_interfaces: [position]
+          state_interfaces: [position, velocity]
+
+* a plain mapping holding the controller's parameters directly (plus ``update_rate``).
+
+The result is an immutable :class:`ControllerConfig`. Constructing one directly runs the same
+checks, so every instance is valid (including copies made with :func:`dataclasses.replace`).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass, field
+from enum import Enum
+from types import MappingProxyType
+from typing import Any, Final
+
+from ..errors import ConfigurationError
+from .parsing import coerce_bool, coerce_string_array, describe, did_you_mean, fmt_list
+
+__all__ = [
+    "ALLOWED_COMMAND_INTERFACE_COMBINATIONS",
+    "ALLOWED_STATE_INTERFACE_COMBINATIONS",
+    "COMMAND_INTERFACE_TYPES",
+    "CONSTRAINT_PARAMETERS",
+    "CONTROLLER_TYPE",
+    "ControllerConfig",
+    "Constraints",
+    "DEFAULTS",
+    "DEFAULT_CONTROLLER_NAME",
+    "GAIN_PARAMETERS",
+    "Gains",
+    "JOINT_CONSTRAINT_PARAMETERS",
+    "JointConstraints",
+    "Kind",
+    "PARAMETERS",
+    "Param",
+    "STATE_INTERFACE_TYPES",
+]
+
+DEFAULT_CONTROLLER_NAME: Final = "joint_trajectory_controller"
+"""Controller name used for the plain-mapping form when no name is given."""
+
+CONTROLLER_TYPE: Final = "joint_trajectory_controller/JointTrajectoryController"
+"""The only controller type this project implements (``controller_manager`` ``type`` entry)."""
+
+CONTROLLER_MANAGER: Final = "controller_manager"
+ROS_PARAMETERS: Final = "ros__parameters"
+RESERVED_TOP_LEVEL_KEYS: Final = frozenset({"hardware", "daemon"})
+"""Top-level keys that belong to the daemon; :func:`load_config` skips them."""
+
+JOINTS_PLACEHOLDER: Final = "<joints>"
+"""Placeholder key used by the reference's example parameter file."""
+
+COMMAND_INTERFACE_TYPES: Final = ("position", "velocity", "acceleration", "effort")
+STATE_INTERFACE_TYPES: Final = ("position", "velocity", "acceleration")
+
+ALLOWED_COMMAND_INTERFACE_COMBINATIONS: Final[tuple[tuple[str, ...], ...]] = (
+    ("position",),
+    ("position", "velocity"),
+    ("position", "velocity", "acceleration"),
+    ("velocity",),
+    ("effort",),
+)
+"""Supported command interface sets (order in the configuration does not matter)."""
+
+ALLOWED_STATE_INTERFACE_COMBINATIONS: Final[tuple[tuple[str, ...], ...]] = (
+    ("position",),
+    ("position", "velocity"),
+    ("position", "velocity", "acceleration"),
+)
+"""Supported state interface sets (order in the configuration does not matter)."""
+
+_SECTIONS: Final = ("constraints", "gains")
+_PID_TERMS: Final = ("p", "i", "d", "i_clamp", "ff_velocity_scale")
+
+
+# --------------------------------------------------------------------------------------------
+# Schema
+# --------------------------------------------------------------------------------------------
+
+
+class Kind(Enum):
+    """Value type of a parameter; the value is the wording used in error messages."""
+
+    FLOAT = "a number"
+    BOOL = "true or false"
+    STRING = "a string"
+    STRING_ARRAY = "a list of strings"
+
+
+@dataclass(frozen=True)
+class Param:
+    """One row of a schema table.
+
+    Attributes:
+        name: parameter name (last component of its dotted path).
+        kind: value type.
+        default: default value (a tuple for string arrays).
+        description: one-line description, from the reference.
+        minimum: inclusive lower bound for numbers, if any.
+        choices: allowed values for strings / string-array elements, if restricted.
+        required: the parameter must be given (no usable default).
+        unique: string array without duplicates.
+        non_empty: string array that must have at least one element.
+    """
+
+    name: str
+    kind: Kind
+    default: float | bool | str | tuple[str, ...]
+    description: str
+    minimum: float | None = None
+    choices: tuple[str, ...] = ()
+    required: bool = False
+    unique: bool = False
+    non_empty: bool = False
+
+
+def _table(*params: Param) -> Mapping[str, Param]:
+    return MappingProxyType({p.name: p for p in params})
+
+
+_F, _B, _S, _A = Kind.FLOAT, Kind.BOOL, Kind.STRING, Kind.STRING_ARRAY
+
+PARAMETERS: Final[Mapping[str, Param]] = _table(
+    Param("joints", _A, (), "joint names to control and listen to",
+          required=True, unique=True, non_empty=True),
+    Param("command_joints", _A, (),
+          "joint names to control, if they differ from the state joints (controller chains)",
+          unique=True),
+    Param("command_interfaces", _A, (), "command interfaces provided for all joints",
+          choices=COMMAND_INTERFACE_TYPES, required=True, unique=True, non_empty=True),
+    Param("state_interfaces", _A, (), "state interfaces provided for all joints",
+          choices=STATE_INTERFACE_TYPES, required=True, unique=True, non_empty=True),
+    Param("allow_partial_joints_goal", _B, False,
+          "allow goals defining a trajectory for only some joints"),
+    Param("open_loop_control", _B, False,
+          "use the last commands instead of the states as the start of new trajectories"),
+    Param("allow_integration_in_goal_trajectories", _B, False,
+          "accept goals without positions (or velocities) and integrate them"),
+    Param("state_publish_rate", _F, 50.0, "rate the controller state is published, Hz",
+          minimum=0.1),
+    Param("set_last_command_interface_value_as_state_on_activation", _B, True,
+          "on activation, use the last command interface values as current and commanded state"),
+    Param("action_monitor_rate", _F, 20.0, "rate action goals are monitored, Hz", minimum=0.1),
+    Param("interpolation_method", _S, "splines", "type of interpolation, if any",
+          choices=("splines", "none")),
+    Param("allow_nonzero_velocity_at_trajectory_end", _B, True,
+          "if false, goals whose last point has a non-zero velocity are rejected"),
+    Param("cmd_timeout", _F, 0.0,
+          "seconds after the last point after which the command is stale (0: off)", minimum=0.0),
+    Param("start_with_holding", _B, True,
+          "hold the position after activation (otherwise command nothing until a trajectory)"),
+    Param("update_rate", _F, 100.0, "control loop rate, Hz (the controller manager's setting)",
+          minimum=0.1),
+)
+"""Top-level controller parameters (``constraints`` and ``gains`` are sections, below)."""
+
+CONSTRAINT_PARAMETERS: Final[Mapping[str, Param]] = _table(
+    Param("stopped_velocity_tolerance", _F, 0.01,
+          "velocity below which the system counts as stopped at the trajectory end",
+          minimum=0.0),
+    Param("goal_time", _F, 0.0,
+          "time tolerance for reaching the goal, seconds (0: wait indefinitely)", minimum=0.0),
+)
+"""``constraints.*`` parameters other than the per-joint entries."""
+
+JOINT_CONSTRAINT_PARAMETERS: Final[Mapping[str, Param]] = _table(
+    Param("trajectory", _F, 0.0, "position tolerance during the motion (0: not checked)",
+          minimum=0.0),
+    Param("goal", _F, 0.0, "position tolerance at the goal (0: not checked)", minimum=0.0),
+)
+"""``constraints.<joint>.*`` parameters."""
+
+GAIN_PARAMETERS: Final[Mapping[str, Param]] = _table(
+    Param("p", _F, 0.0, "proportional gain"),
+    Param("i", _F, 0.0, "integral gain"),
+    Param("d", _F, 0.0, "derivative gain"),
+    Param("i_clamp", _F, 0.0, "symmetric integral clamp", minimum=0.0),
+    Param("ff_velocity_scale", _F, 0.0, "velocity feed-forward scale"),
+    Param("normalize_error", _B, False, "(deprecated) normalise the position error to [-pi, pi]"),
+    Param("angle_wraparound", _B, False,
+          "continuous joint: normalise the position error to [-pi, pi]"),
+)
+"""``gains.<joint>.*`` parameters."""
+
+
+def _freeze(value: Any) -> Any:
+    if isinstance(value, Mapping):
+        return MappingProxyType({k: _freeze(v) for k, v in value.items()})
+    return value
+
+
+def _defaults_of(table: Mapping[str, Param]) -> dict[str, Any]:
+    return {name: p.default for name, p in table.items()}
+
+
+DEFAULTS: Final[Mapping[str, Any]] = _freeze({
+    **_defaults_of(PARAMETERS),
+    "constraints": {
+        **_defaults_of(CONSTRAINT_PARAMETERS),
+        JOINTS_PLACEHOLDER: _defaults_of(JOINT_CONSTRAINT_PARAMETERS),
+    },
+    "gains": {JOINTS_PLACEHOLDER: _defaults_of(GAIN_PARAMETERS)},
+})
+"""Every default, nested like the parameter file (``<joints>`` stands for each joint)."""
+
+
+def _float_default(table: Mapping[str, Param], name: str) -> float:
+    value = table[name].default
+    if not isinstance(value, float):  # pragma: no cover - guards the tables above
+        raise TypeError(f"schema default of {name} is not a float")
+    return value
+
+
+def _bool_default(table: Mapping[str, Param], name: str) -> bool:
+    value = table[name].default
+    if not isinstance(value, bool):  # pragma: no cover - guards the tables above
+        raise TypeError(f"schema default of {name} is not a bool")
+    return value
+
+
+def _str_default(table: Mapping[str, Param], name: str) -> str:
+    value = table[name].default
+    if not isinstance(value, str):  # pragma: no cover - guards the tables above
+        raise TypeError(f"schema default of {name} is not a str")
+    return value
+
+
+def _empty_mapping() -> Mapping[str, Any]:
+    return MappingProxyType({})
+
+
+# --------------------------------------------------------------------------------------------
+# Result types
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class JointConstraints:
+    """Default tolerances of one joint (``constraints.<joint>``); 0 means "not checked"."""
+
+    trajectory: float = _float_default(JOINT_CONSTRAINT_PARAMETERS, "trajectory")
+    goal: float = _float_default(JOINT_CONSTRAINT_PARAMETERS, "goal")
+
+
+@dataclass(frozen=True)
+class Constraints:
+    """Default tolerances (``constraints``).
+
+    Inside a :class:`ControllerConfig`, ``joints`` has one entry for every configured joint.
+    """
+
+    stopped_velocity_tolerance: float = _float_default(
+        CONSTRAINT_PARAMETERS, "stopped_velocity_tolerance"
+    )
+    goal_time: float = _float_default(CONSTRAINT_PARAMETERS, "goal_time")
+    joints: Mapping[str, JointConstraints] = field(default_factory=_empty_mapping)
+
+    def __post_init__(self) -> None:
+        if isinstance(self.joints, Mapping) and not isinstance(self.joints, MappingProxyType):
+            object.__setattr__(self, "joints", MappingProxyType(dict(self.joints)))
+
+
+@dataclass(frozen=True)
+class Gains:
+    """PID gains of one joint (``gains.<joint>``)."""
+
+    p: float = _float_default(GAIN_PARAMETERS, "p")
+    i: float = _float_default(GAIN_PARAMETERS, "i")
+    d: float = _float_default(GAIN_PARAMETERS, "d")
+    i_clamp: float = _float_default(GAIN_PARAMETERS, "i_clamp")
+    ff_velocity_scale: float = _float_default(GAIN_PARAMETERS, "ff_velocity_scale")
+    normalize_error: bool = _bool_default(GAIN_PARAMETERS, "normalize_error")
+    angle_wraparound: bool = _bool_default(GAIN_PARAMETERS, "angle_wraparound")
+
+    @property
+    def wraps(self) -> bool:
+        """Whether the position error wraps (``angle_wraparound`` or ``normalize_error``)."""
+        return self.angle_wraparound or self.normalize_error
+
+
+@dataclass(frozen=True, kw_only=True)
+class ControllerConfig:
+    """Validated, immutable controller configuration.
+
+    Construction checks every value (types, ranges, interface combinations, joint names in
+    ``constraints``/``gains``) and fills ``constraints.joints`` and ``gains`` with defaults for
+    every configured joint. Lists become tuples, mappings become read-only.
+
+    Raises:
+        ConfigurationError: on any invalid value (at construction).
+    """
+
+    name: str = DEFAULT_CONTROLLER_NAME
+    joints: tuple[str, ...]
+    command_joints: tuple[str, ...] = ()
+    command_interfaces: tuple[str, ...]
+    state_interfaces: tuple[str, ...]
+    allow_partial_joints_goal: bool = _bool_default(PARAMETERS, "allow_partial_joints_goal")
+    open_loop_control: bool = _bool_default(PARAMETERS, "open_loop_control")
+    allow_integration_in_goal_trajectories: bool = _bool_default(
+        PARAMETERS, "allow_integration_in_goal_trajectories"
+    )
+    state_publish_rate: float = _float_default(PARAMETERS, "state_publish_rate")
+    set_last_command_interface_value_as_state_on_activation: bool = _bool_default(
+        PARAMETERS, "set_last_command_interface_value_as_state_on_activation"
+    )
+    action_monitor_rate: float = _float_default(PARAMETERS, "action_monitor_rate")
+    interpolation_method: str = _str_default(PARAMETERS, "interpolation_method")
+    allow_nonzero_velocity_at_trajectory_end: bool = _bool_default(
+        PARAMETERS, "allow_nonzero_velocity_at_trajectory_end"
+    )
+    cmd_timeout: float = _float_default(PARAMETERS, "cmd_timeout")
+    start_with_holding: bool = _bool_default(PARAMETERS, "start_with_holding")
+    constraints: Constraints = field(default_factory=Constraints)
+    gains: Mapping[str, Gains] = field(default_factory=_empty_mapping)
+    update_rate: float = _float_default(PARAMETERS, "update_rate")
+
+    def __post_init__(self) -> None:
+        _validate(self)
+
+    def has_command(self, iface: str) -> bool:
+        """Whether ``iface`` is one of the command interfaces."""
+        return iface in self.command_interfaces
+
+    def has_state(self, iface: str) -> bool:
+        """Whether ``iface`` is one of the state interfaces."""
+        return iface in self.state_interfaces
+
+    @property
+    def use_pid(self) -> bool:
+        """Whether commands come from the PID loop (effort, or velocity alone in closed loop)."""
+        return "effort" in self.command_interfaces or (
+            self.command_interfaces == ("velocity",) and not self.open_loop_control
+        )
+
+    @property
+    def effective_cmd_timeout(self) -> float:
+        """``cmd_timeout`` if active, else 0: it must be greater than ``constraints.goal_time``."""
+        if self.cmd_timeout > 0.0 and self.cmd_timeout > self.constraints.goal_time:
+            return self.cmd_timeout
+        return 0.0
+
+    @property
+    def wraparound(self) -> tuple[bool, ...]:
+        """Per joint (in ``joints`` order): whether its position error wraps to [-pi, pi]."""
+        return tuple(self.gains[j].wraps for j in self.joints)
+
+
+# --------------------------------------------------------------------------------------------
+# Value checks
+# --------------------------------------------------------------------------------------------
+
+
+def _coerce(param: Param, value: Any, path: str) -> Any:
+    """Check ``value`` against ``param`` and return it normalised (float, tuple, ...).
+
+    Raises:
+        ConfigurationError: wrong type, out of range, not an allowed choice, duplicate or
+            empty where not allowed.
+    """
+    if param.kind is Kind.FLOAT:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ConfigurationError(f"expected a number, got {describe(value)}", path, value)
+        try:
+            number = float(value)
+        except OverflowError:
+            number = math.inf
+        if not math.isfinite(number):
+            raise ConfigurationError(f"expected a finite number, got {value!r}", path, value)
+        if param.minimum is not None and number < param.minimum:
+            raise ConfigurationError(
+                f"must be >= {param.minimum:g}, got {value!r}", path, value
+            )
+        return number
+    if param.kind is Kind.BOOL:
+        return coerce_bool(value, path)
+    if param.kind is Kind.STRING:
+        if not isinstance(value, str):
+            raise ConfigurationError(f"expected a string, got {describe(value)}", path, value)
+        if param.choices and value not in param.choices:
+            raise ConfigurationError(
+                f"{value!r} is not allowed; allowed values: "
+                f"{', '.join(repr(c) for c in param.choices)}{did_you_mean(value, param.choices)}",
+                path,
+                value,
+            )
+        return value
+    items = coerce_string_array(value, path)
+    if param.non_empty and not items:
+        raise ConfigurationError(
+            f"must not be empty (required: {param.description})", path, value
+        )
+    if param.unique:
+        seen: set[str] = set()
+        for item in items:
+            if item in seen:
+                raise ConfigurationError(
+                    f"contains {item!r} more than once (duplicates are not allowed)", path, item
+                )
+            seen.add(item)
+    if param.choices:
+        for item in items:
+            if item not in param.choices:
+                raise ConfigurationError(
+                    f"{item!r} is not an allowed interface type; allowed: "
+                    f"{fmt_list(param.choices)}{did_you_mean(item, param.choices)}",
+                    path,
+                    item,
+                )
+    return items
+
+
+def _command_combination_reason(interfaces: frozenset[str]) -> str:
+    if "effort" in interfaces:
+        return "'effort' has to be the only command interface"
+    if "velocity" in interfaces and "position" not in interfaces:
+        return "'velocity' can only be used alone or together with 'position'"
+    return "'acceleration' can only be used together with 'position' and 'velocity'"
+
+
+def _state_combination_reason(interfaces: frozenset[str]) -> str:
+    if "acceleration" in interfaces and not {"position", "velocity"} <= interfaces:
+        return (
+            "the acceleration state interface cannot be used if position and velocity "
+            "interfaces are not present"
+        )
+    if "velocity" in interfaces and "position" not in interfaces:
+        return "the velocity state interface cannot be used if the position interface is missing"
+    return "the controller expects at least position feedback"  # pragma: no cover
+
+
+def _check_interfaces(command: tuple[str, ...], state: tuple[str, ...]) -> None:
+    command_set = frozenset(command)
+    allowed_command = [frozenset(c) for c in ALLOWED_COMMAND_INTERFACE_COMBINATIONS]
+    if command_set not in allowed_command:
+        raise ConfigurationError(
+            f"combination {fmt_list(command)} is not supported: "
+            f"{_command_combination_reason(command_set)}; allowed combinations: "
+            + ", ".join(fmt_list(c) for c in ALLOWED_COMMAND_INTERFACE_COMBINATIONS),
+            "command_interfaces",
+            command,
+        )
+    state_set = frozenset(state)
+    if state_set not in [frozenset(c) for c in ALLOWED_STATE_INTERFACE_COMBINATIONS]:
+        raise ConfigurationError(
+            f"combination {fmt_list(state)} is not supported: "
+            f"{_state_combination_reason(state_set)}"
+            "; allowed combinations: "
+            + ", ".join(fmt_list(c) for c in ALLOWED_STATE_INTERFACE_COMBINATIONS),
+            "state_interfaces",
+            state,
+        )
+    needs_velocity_state = (
+        command_set == {"velocity"} or "effort" in command_set or "acceleration" in command_set
+    )
+    if needs_velocity_state and not {"position", "velocity"} <= state_set:
+        raise ConfigurationError(
+            f"with command_interfaces {fmt_list(command)} the state interfaces must include "
+            f"position and velocity, got {fmt_list(state)}",
+            "state_interfaces",
+            state,
+        )
+
+
+def _check_key(key: Any, path: str) -> str:
+    if not isinstance(key, str):
+        raise ConfigurationError(
+            f"keys must be strings, got {describe(key)}; quote it", path, key
+        )
+    return key
+
+
+def _join(prefix: str, key: str) -> str:
+    return f"{prefix}.{key}" if prefix else key
+
+
+def _unknown_parameter(key: str, known: Iterable[str], prefix: str = "") -> ConfigurationError:
+    known = list(known)
+    head = key.split(".", 1)[0]
+    if "." in key and head in known:
+        hint = f"; dotted names are not expanded: nest it under '{head}'"
+    else:
+        hint = did_you_mean(key, known) or f"; known parameters: {', '.join(known)}"
+    return ConfigurationError(f"unknown parameter {key!r}{hint}", _join(prefix, key), key)
+
+
+def _not_a_joint(
+    key: str, section: str, joints: Sequence[str], others: Sequence[str] = ()
+) -> ConfigurationError:
+    listed = ", ".join(joints) if joints else "none"
+    path = f"{section}.{key}"
+    if key == JOINTS_PLACEHOLDER:
+        return ConfigurationError(
+            f"{JOINTS_PLACEHOLDER!r} is a placeholder from the reference's example file; "
+            f"replace it with a joint name (configured joints: {listed})",
+            path,
+            key,
+        )
+    also = f" nor one of {', '.join(others)}" if others else ""
+    return ConfigurationError(
+        f"{key!r} is not a configured joint{also} (joints: {listed})"
+        f"{did_you_mean(key, [*joints, *others])}",
+        path,
+        key,
+    )
+
+
+def _check_keys(mapping: Mapping[Any, Any], table: Mapping[str, Param], prefix: str) -> None:
+    for key in mapping:
+        if _check_key(key, prefix) not in table:
+            raise _unknown_parameter(key, table, prefix)
+
+
+def _expect_mapping(value: Any, path: str) -> Mapping[Any, Any]:
+    if not isinstance(value, Mapping):
+        raise ConfigurationError(f"expected a mapping, got {describe(value)}", path, value)
+    return value
+
+
+def _checked_fields(obj: Any, table: Mapping[str, Param], prefix: str) -> dict[str, Any]:
+    return {name: _coerce(p, getattr(obj, name), _join(prefix, name)) for name, p in table.items()}
+
+
+def _validate(cfg: ControllerConfig) -> None:
+    """Check and normalise every field of ``cfg`` in place (it is frozen, hence setattr)."""
+
+    def put(name: str, value: Any) -> None:
+        object.__setattr__(cfg, name, value)
+
+    if not isinstance(cfg.name, str) or not cfg.name:
+        raise ConfigurationError(
+            f"expected a non-empty controller name, got {describe(cfg.name)}", "name", cfg.name
+        )
+    for name, value in _checked_fields(cfg, PARAMETERS, "").items():
+        put(name, value)
+    joints = cfg.joints
+    if cfg.command_joints and len(cfg.command_joints) != len(joints):
+        raise ConfigurationError(
+            f"has {len(cfg.command_joints)} names but joints has {len(joints)}; give one "
+            "command joint per joint, or leave command_joints empty",
+            "command_joints",
+            cfg.command_joints,
+        )
+    _check_interfaces(cfg.command_interfaces, cfg.state_interfaces)
+
+    constraints = cfg.constraints
+    if not isinstance(constraints, Constraints):
+        raise ConfigurationError(
+            f"expected a Constraints instance, got {describe(constraints)}",
+            "constraints",
+            constraints,
+        )
+    per_joint = _expect_mapping(constraints.joints, "constraints")
+    for key in per_joint:
+        if _check_key(key, "constraints") not in joints:
+            raise _not_a_joint(key, "constraints", joints, tuple(CONSTRAINT_PARAMETERS))
+    joint_constraints: dict[str, JointConstraints] = {}
+    for joint in joints:
+        given = per_joint.get(joint, JointConstraints())
+        if not isinstance(given, JointConstraints):
+            raise ConfigurationError(
+                f"expected a JointConstraints instance, got {describe(given)}",
+                f"constraints.{joint}",
+                given,
+            )
+        checked = _checked_fields(given, JOINT_CONSTRAINT_PARAMETERS, f"constraints.{joint}")
+        joint_constraints[joint] = JointConstraints(**checked)
+    put(
+        "constraints",
+        Constraints(
+            **_checked_fields(constraints, CONSTRAINT_PARAMETERS, "constraints"),
+            joints=MappingProxyType(joint_constraints),
+        ),
+    )
+
+    gains = _expect_mapping(cfg.gains, "gains")
+    for key in gains:
+        if _check_key(key, "gains") not in joints:
+            raise _not_a_joint(key, "gains", joints)
+    joint_gains: dict[str, Gains] = {}
+    for joint in joints:
+        given_gains = gains.get(joint, Gains())
+        if not isinstance(given_gains, Gains):
+            raise ConfigurationError(
+                f"expected a Gains instance, got {describe(given_gains)}",
+                f"gains.{joint}",
+                given_gains,
+            )
+        checked_gains = _checked_fields(given_gains, GAIN_PARAMETERS, f"gains.{joint}")
+        joint_gains[joint] = Gains(**checked_gains)
+    put("gains", MappingProxyType(joint_gains))
+
+
+# --------------------------------------------------------------------------------------------

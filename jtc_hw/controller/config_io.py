@@ -1,0 +1,354 @@
+"""Controller configuration in and out: ``load_config``, ``config_to_dict``, ``explain``.
+
+:func:`load_config` reads either source layout (the upstream ``ros__parameters`` file, with the
+controller found by name or by type, or a plain mapping; see :mod:`jtc_hw.controller.config`)
+and returns a checked, immutable :class:`~jtc_hw.controller.config.ControllerConfig`;
+:func:`config_to_dict` gives back plain data that it reads again, and :func:`explain` the
+human summary that ``jtc-hw check`` prints.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+from ..errors import ConfigurationError
+from .config import (
+    _PID_TERMS,
+    _SECTIONS,
+    CONSTRAINT_PARAMETERS,
+    CONTROLLER_MANAGER,
+    CONTROLLER_TYPE,
+    DEFAULT_CONTROLLER_NAME,
+    GAIN_PARAMETERS,
+    JOINT_CONSTRAINT_PARAMETERS,
+    PARAMETERS,
+    RESERVED_TOP_LEVEL_KEYS,
+    ROS_PARAMETERS,
+    Constraints,
+    ControllerConfig,
+    Gains,
+    JointConstraints,
+    _check_key,
+    _check_keys,
+    _coerce,
+    _expect_mapping,
+    _not_a_joint,
+    _unknown_parameter,
+)
+from .parsing import (
+    closest,
+    coerce_string_array,
+    describe,
+    did_you_mean,
+    fmt_list,
+    read_source,
+)
+
+__all__ = ["config_to_dict", "explain", "load_config"]
+
+# Loading
+# --------------------------------------------------------------------------------------------
+
+
+def _is_section(value: Any) -> bool:
+    return isinstance(value, Mapping) and ROS_PARAMETERS in value
+
+
+def _controller_manager(data: Mapping[str, Any]) -> tuple[float | None, dict[str, Any]]:
+    """Return the controller manager's update rate and declared controller types."""
+    if CONTROLLER_MANAGER not in data:
+        return None, {}
+    section = data[CONTROLLER_MANAGER]
+    if not _is_section(section):
+        raise ConfigurationError(
+            f"expected a mapping with a {ROS_PARAMETERS!r} entry, got {describe(section)}",
+            CONTROLLER_MANAGER,
+            section,
+        )
+    prefix = f"{CONTROLLER_MANAGER}.{ROS_PARAMETERS}"
+    params = section[ROS_PARAMETERS]
+    if params is None:
+        return None, {}
+    params = _expect_mapping(params, prefix)
+    update_rate = None
+    if "update_rate" in params:
+        update_rate = _coerce(
+            PARAMETERS["update_rate"], params["update_rate"], f"{prefix}.update_rate"
+        )
+    types = {
+        name: entry["type"]
+        for name, entry in params.items()
+        if isinstance(entry, Mapping) and "type" in entry
+    }
+    return update_rate, types
+
+
+def _select_controller(
+    data: Mapping[Any, Any], controller_name: str | None
+) -> tuple[str, Mapping[Any, Any], float | None]:
+    """Return (name, raw parameters, controller manager update rate or None)."""
+    for key in data:
+        _check_key(key, "")
+    if not any(_is_section(v) for v in data.values()):
+        params = {k: v for k, v in data.items() if k not in RESERVED_TOP_LEVEL_KEYS}
+        return controller_name or DEFAULT_CONTROLLER_NAME, params, None
+
+    cm_update_rate, declared = _controller_manager(data)
+    sections = {
+        k: v for k, v in data.items() if k != CONTROLLER_MANAGER and _is_section(v)
+    }
+    for key, value in data.items():
+        if key in sections or key == CONTROLLER_MANAGER or key in RESERVED_TOP_LEVEL_KEYS:
+            continue
+        hint = did_you_mean(key, [*sections, CONTROLLER_MANAGER, *RESERVED_TOP_LEVEL_KEYS])
+        if isinstance(value, Mapping):
+            close = closest(ROS_PARAMETERS, [str(k) for k in value])
+            if close is not None:
+                hint = f"; did you mean {ROS_PARAMETERS!r} instead of {close!r}?"
+        raise ConfigurationError(
+            f"top-level key {key!r} is not a controller section (a mapping with a "
+            f"{ROS_PARAMETERS!r} entry), {CONTROLLER_MANAGER!r} or one of "
+            f"{', '.join(sorted(RESERVED_TOP_LEVEL_KEYS))}{hint}",
+            key,
+            key,
+        )
+    for name, section in sections.items():
+        for key in section:
+            if key != ROS_PARAMETERS:
+                raise ConfigurationError(
+                    f"unexpected key {key!r} next to {ROS_PARAMETERS!r}; the controller's "
+                    f"parameters go under {ROS_PARAMETERS!r}",
+                    f"{name}.{key}",
+                    key,
+                )
+
+    if not sections:
+        raise ConfigurationError(
+            f"no controller section found: only {CONTROLLER_MANAGER!r} has "
+            f"{ROS_PARAMETERS!r}; add '<controller_name>: {{{ROS_PARAMETERS}: {{joints: ...}}}}'",
+            "",
+            None,
+        )
+    if controller_name is not None:
+        if controller_name not in sections:
+            raise ConfigurationError(
+                f"no controller section named {controller_name!r}; controllers in the "
+                f"configuration: {', '.join(sections)}{did_you_mean(controller_name, sections)}",
+                "",
+                controller_name,
+            )
+        name = controller_name
+    elif len(sections) == 1:
+        name = next(iter(sections))
+    else:
+        ours = [n for n in sections if declared.get(n) == CONTROLLER_TYPE]
+        if len(ours) != 1:
+            raise ConfigurationError(
+                f"the configuration has several controllers ({', '.join(sections)}); "
+                "choose one with controller_name",
+                "",
+                tuple(sections),
+            )
+        name = ours[0]
+    declared_type = declared.get(name)
+    if declared_type is not None and declared_type != CONTROLLER_TYPE:
+        raise ConfigurationError(
+            f"controller {name!r} is declared with type {declared_type!r}; only "
+            f"{CONTROLLER_TYPE!r} is implemented",
+            f"{CONTROLLER_MANAGER}.{ROS_PARAMETERS}.{name}.type",
+            declared_type,
+        )
+    params = sections[name][ROS_PARAMETERS]
+    if params is None:
+        params = {}
+    return name, _expect_mapping(params, f"{name}.{ROS_PARAMETERS}"), cm_update_rate
+
+
+def _parse_constraints(raw: Any, joints: Sequence[str]) -> Constraints:
+    mapping = _expect_mapping(raw, "constraints")
+    scalars: dict[str, Any] = {}
+    per_joint: dict[str, JointConstraints] = {}
+    for key, value in mapping.items():
+        _check_key(key, "constraints")
+        if key in CONSTRAINT_PARAMETERS:
+            scalars[key] = value
+        elif key in joints:
+            entry = _expect_mapping(value, f"constraints.{key}")
+            _check_keys(entry, JOINT_CONSTRAINT_PARAMETERS, f"constraints.{key}")
+            per_joint[key] = JointConstraints(**entry)
+        else:
+            raise _not_a_joint(key, "constraints", joints, tuple(CONSTRAINT_PARAMETERS))
+    return Constraints(**scalars, joints=per_joint)
+
+
+def _parse_gains(raw: Any, joints: Sequence[str]) -> dict[str, Gains]:
+    mapping = _expect_mapping(raw, "gains")
+    gains: dict[str, Gains] = {}
+    for key, value in mapping.items():
+        _check_key(key, "gains")
+        if key not in joints:
+            raise _not_a_joint(key, "gains", joints)
+        entry = _expect_mapping(value, f"gains.{key}")
+        _check_keys(entry, GAIN_PARAMETERS, f"gains.{key}")
+        gains[key] = Gains(**entry)
+    return gains
+
+
+def _build(name: str, params: Mapping[Any, Any], cm_update_rate: float | None) -> ControllerConfig:
+    known = [*PARAMETERS, *_SECTIONS]
+    for key in params:
+        if _check_key(key, "") not in known:
+            raise _unknown_parameter(key, known)
+    for param in PARAMETERS.values():
+        if param.required and param.name not in params:
+            raise ConfigurationError(
+                f"missing required parameter {param.name!r} ({param.description})",
+                param.name,
+            )
+    joints = coerce_string_array(params["joints"], "joints")
+    kwargs: dict[str, Any] = {k: v for k, v in params.items() if k in PARAMETERS}
+    if cm_update_rate is not None:
+        if "update_rate" in params:
+            own = _coerce(PARAMETERS["update_rate"], params["update_rate"], "update_rate")
+            if own != cm_update_rate:
+                raise ConfigurationError(
+                    f"{own:g} Hz differs from {CONTROLLER_MANAGER}.{ROS_PARAMETERS}.update_rate "
+                    f"({cm_update_rate:g} Hz); the loop has one rate: give it once",
+                    "update_rate",
+                    params["update_rate"],
+                )
+        kwargs["update_rate"] = cm_update_rate
+    kwargs["constraints"] = _parse_constraints(params.get("constraints", {}), joints)
+    kwargs["gains"] = _parse_gains(params.get("gains", {}), joints)
+    return ControllerConfig(name=name, **kwargs)
+
+
+def load_config(
+    source: str | os.PathLike[str] | Mapping[str, Any], controller_name: str | None = None
+) -> ControllerConfig:
+    """Read, check and freeze a controller configuration.
+
+    Args:
+        source: path of a YAML file, or an already parsed mapping. Either the upstream
+            layout (``<name>: {ros__parameters: {...}}`` plus an optional
+            ``controller_manager`` section whose ``update_rate`` is used), or the parameters
+            directly at the top level (plus an optional ``update_rate``). Top-level
+            ``hardware`` and ``daemon`` keys are skipped (they configure the daemon).
+        controller_name: which controller section to use when there are several. Without
+            it, the only section is used, or the only one the controller manager declares
+            with the joint_trajectory_controller type. For the plain layout it is the
+            resulting name (default ``joint_trajectory_controller``).
+
+    Returns:
+        The validated configuration, with defaults filled for every joint.
+
+    Raises:
+        ConfigurationError: the file cannot be read or parsed, a key is unknown, a required
+            parameter is missing, a value has the wrong type or range, or the interfaces
+            form an unsupported combination. The message names the dotted key path.
+        TypeError: ``source`` is neither a path nor a mapping.
+    """
+    data = read_source(source)
+    name, params, cm_update_rate = _select_controller(data, controller_name)
+    return _build(name, params, cm_update_rate)
+
+
+# --------------------------------------------------------------------------------------------
+# Output and diagnostics
+# --------------------------------------------------------------------------------------------
+
+
+def _plain(value: Any) -> Any:
+    return list(value) if isinstance(value, tuple) else value
+
+
+def config_to_dict(cfg: ControllerConfig, *, nested: bool = False) -> dict[str, Any]:
+    """Return the configuration as plain data that :func:`load_config` reads back.
+
+    Args:
+        cfg: the configuration.
+        nested: give the upstream layout (controller section under ``cfg.name`` and a
+            ``controller_manager`` section with ``update_rate`` and the controller type)
+            instead of the plain mapping. Only the nested layout keeps the name.
+
+    Returns:
+        A new dict of dicts, lists, strings, numbers and booleans (YAML-safe).
+    """
+    params: dict[str, Any] = {name: _plain(getattr(cfg, name)) for name in PARAMETERS}
+    params["constraints"] = {
+        **{name: getattr(cfg.constraints, name) for name in CONSTRAINT_PARAMETERS},
+        **{
+            joint: {name: getattr(jc, name) for name in JOINT_CONSTRAINT_PARAMETERS}
+            for joint, jc in cfg.constraints.joints.items()
+        },
+    }
+    params["gains"] = {
+        joint: {name: getattr(g, name) for name in GAIN_PARAMETERS}
+        for joint, g in cfg.gains.items()
+    }
+    if not nested:
+        return params
+    update_rate = params.pop("update_rate")
+    if float(update_rate).is_integer():
+        update_rate = int(update_rate)  # the controller manager declares it as an integer
+    return {
+        CONTROLLER_MANAGER: {
+            ROS_PARAMETERS: {"update_rate": update_rate, cfg.name: {"type": CONTROLLER_TYPE}}
+        },
+        cfg.name: {ROS_PARAMETERS: params},
+    }
+
+
+def explain(cfg: ControllerConfig) -> list[str]:
+    """List settings that are valid but probably not what was meant.
+
+    Args:
+        cfg: the configuration.
+
+    Returns:
+        One human-readable warning per finding, each starting with the dotted key path;
+        empty if nothing looks suspicious.
+    """
+    warnings: list[str] = []
+    goal_time = cfg.constraints.goal_time
+    if cfg.cmd_timeout > 0.0 and cfg.cmd_timeout <= goal_time:
+        warnings.append(
+            f"cmd_timeout: {cfg.cmd_timeout:g} s is ignored: it must be greater than "
+            f"constraints.goal_time ({goal_time:g} s)"
+        )
+    output = "effort" if "effort" in cfg.command_interfaces else "velocity"
+    if cfg.command_interfaces == ("velocity",):
+        why = "open_loop_control disables the PID loop"
+    else:
+        why = (
+            f"with command_interfaces {fmt_list(cfg.command_interfaces)} commands are forwarded; "
+            "the PID loop only runs with effort, or velocity as the only command interface"
+        )
+    for joint in cfg.joints:
+        g = cfg.gains[joint]
+        path = f"gains.{joint}"
+        if g.normalize_error:
+            warnings.append(
+                f"{path}.normalize_error: deprecated; use angle_wraparound instead"
+            )
+        if not cfg.use_pid:
+            changed = [t for t in _PID_TERMS if getattr(g, t) != GAIN_PARAMETERS[t].default]
+            if changed:
+                warnings.append(
+                    f"{path}: gains ({', '.join(changed)}) are ignored with these command "
+                    f"interfaces: {why}"
+                )
+            continue
+        if g.i != 0.0 and g.i_clamp == 0.0:
+            warnings.append(
+                f"{path}.i_clamp: is 0 while i is {g.i:g}: the integral term is clamped to "
+                "zero; set i_clamp"
+            )
+        if g.p == 0.0 and g.i == 0.0 and g.d == 0.0 and g.ff_velocity_scale == 0.0:
+            warnings.append(
+                f"{path}: p, i, d and ff_velocity_scale are all 0: the {output} command of "
+                f"{joint!r} is always 0"
+            )
+    return warnings

@@ -1,0 +1,728 @@
+"""The joint trajectory controller: goals, tolerances, outcomes and the control law.
+
+Theory of operation
+-------------------
+The controller never reads a clock and does no I/O: every method takes the time (integer
+nanoseconds on one monotonic clock) and ``update`` takes the measured state. It always follows
+one immutable reference ``Trajectory``: at activation a hold at the start state, then every
+accepted command is spliced into it (see ``Trajectory.splice``), and every stop re-anchors it
+as a hold.
+
+One ``update(now, period, state)``:
+
+1. apply a pending stop (cancel, empty topic trajectory): hold the measured position;
+2. sample the reference at ``now`` and compute the error, desired minus measured (shortest
+   angle for continuous joints);
+3. if a command is executing, check it *before* commanding anything: path tolerance while
+   moving (and at the first sample, even if it is already the end), goal tolerance past the
+   end, ``goal_time`` and ``cmd_timeout``; decide success or abort; an abort holds the measured
+   position in this same cycle;
+4. compute the command: forwarded interfaces (position, velocity without PID, acceleration)
+   take the reference at ``now + 1/update_rate`` -- a command written at cycle ``t`` is what
+   the joints should reach by the next cycle; PID outputs (velocity alone, effort) act on the
+   error measured now: ``u = k_ff v_d + effort_d + k_p e + k_i sum(e dt) + k_d (v_d - v)``;
+5. return the command and the events (goal results, feedback at ``action_monitor_rate``).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ..errors import ControllerStateError, GoalRejected, HardwareError, StalePlan
+from .config import ControllerConfig
+from .goals import (
+    ErrorCode,
+    Event,
+    GoalFeedback,
+    GoalHandle,
+    GoalResult,
+    GoalStatus,
+    GoalTransition,
+    TrajectoryStopped,
+)
+from .joints import JointCommand, JointState
+from .pid import Pid
+from .tolerances import JointTolerance, SegmentTolerances, violated
+from .trajectory import (
+    NS_PER_S,
+    JointTrajectory,
+    PreparedTrajectory,
+    Trajectory,
+    TrajectorySample,
+    shortest_angular_distance,
+)
+from .validation import prepare
+
+F64 = NDArray[np.float64]
+
+PREEMPTED_BY_ACTION = "Current goal cancelled due to new incoming action."
+PREEMPTED_BY_TOPIC = "Current goal cancelled due to new incoming trajectory on the topic interface."
+STOPPED_BY_TOPIC = "Current goal cancelled: an empty trajectory on the topic interface stopped it."
+CANCELED_ON_REQUEST = "Goal canceled on request; holding the current position."
+DEACTIVATED = "Current goal cancelled during deactivate transition."
+SUCCEEDED = "Goal successfully reached!"
+
+
+class UpdateResult(NamedTuple):
+    """What one cycle produced.
+
+    Attributes:
+        command: values to write; ``NaN`` entries mean "write nothing".
+        events: goal results, feedback and stop notices, in the order they happened
+            (including those caused by ``send_goal`` / ``cancel_goal`` since the last cycle).
+        desired: the reference at ``now``.
+        error: ``(3, n)`` desired minus measured position / velocity / acceleration.
+    """
+
+    command: JointCommand
+    events: tuple[Event, ...]
+    desired: TrajectorySample
+    error: F64
+
+
+@dataclass
+class _Execution:
+    """The command being monitored: an action goal, or a topic trajectory (goal is None)."""
+
+    goal: GoalHandle | None
+    tolerances: SegmentTolerances
+    start_ns: int
+    end_ns: int
+    first_sample: bool = True
+    next_feedback_ns: int = 0
+
+
+class _Outcome(NamedTuple):
+    transition: GoalTransition
+    code: ErrorCode
+    message: str
+    hold_measured: bool
+
+
+@dataclass(frozen=True, eq=False)
+class Plan:
+    """A command validated and fitted against one version of the reference, ready to commit.
+
+    Attributes:
+        goal: True for an action goal, False for a topic trajectory.
+        reference: the spliced reference to follow once committed.
+        base_version: the reference version it was spliced onto.
+        planned_ns: the time it was planned for; committing later than this is refused
+            (the splice would have started in the past, stepping the command).
+        start_ns: the command's start time (header stamp, or ``planned_ns`` for "now").
+        tolerances: the tolerances to monitor.
+        valid_from_ns: the earliest commit time for which ``reference`` still equals the base
+            reference up to ``planned_ns`` (committing earlier is refused).
+    """
+
+    goal: bool
+    reference: Trajectory
+    base_version: int
+    planned_ns: int
+    start_ns: int
+    tolerances: SegmentTolerances
+    valid_from_ns: int
+
+
+class Planner:
+    """Validation and fitting of commands: a pure function of (reference, version, time, msg).
+
+    The controller uses one internally; the daemon runs another in its API process against a
+    replica of the loop's reference, so that parsing and fitting never run in the control loop
+    (the loop only commits a ready ``Plan``).
+    """
+
+    def __init__(self, config: ControllerConfig) -> None:
+        self.config = config
+        self.joint_names = tuple(config.joints)
+        self.wraparound = np.asarray(config.wraparound, dtype=bool)
+        self.defaults = SegmentTolerances.from_config(config)
+
+    def plan_goal(
+        self,
+        reference: Trajectory,
+        version: int,
+        now_ns: int,
+        trajectory: JointTrajectory,
+        path_tolerance: Sequence[JointTolerance] = (),
+        goal_tolerance: Sequence[JointTolerance] = (),
+        goal_time_tolerance: float = 0.0,
+        valid_from_ns: int | None = None,
+    ) -> Plan:
+        """Validate and fit an action goal (``valid_from_ns``: see ``Plan``; default ``now_ns``).
+
+        Raises:
+            GoalRejected: invalid trajectory or tolerances, or entirely in the past.
+        """
+        prepared = prepare(self.config, trajectory)
+        tolerances = self.defaults.with_overrides(
+            self.joint_names, path_tolerance, goal_tolerance, goal_time_tolerance
+        )
+        return self._plan(True, reference, version, now_ns, prepared, tolerances, valid_from_ns)
+
+    def plan_trajectory(
+        self,
+        reference: Trajectory,
+        version: int,
+        now_ns: int,
+        trajectory: JointTrajectory,
+        valid_from_ns: int | None = None,
+    ) -> Plan:
+        """Validate and fit a topic trajectory (non-empty; an empty one is a stop request).
+
+        Raises:
+            GoalRejected: invalid or entirely in the past.
+        """
+        prepared = prepare(self.config, trajectory)
+        return self._plan(False, reference, version, now_ns, prepared, self.defaults, valid_from_ns)
+
+    def _plan(
+        self,
+        goal: bool,
+        reference: Trajectory,
+        version: int,
+        now_ns: int,
+        prepared: PreparedTrajectory,
+        tolerances: SegmentTolerances,
+        valid_from_ns: int | None,
+    ) -> Plan:
+        valid_from = now_ns if valid_from_ns is None else min(valid_from_ns, now_ns)
+        new_ref = reference.splice(
+            now_ns, prepared, self.config.interpolation_method, self.wraparound, valid_from
+        )
+        start = prepared.start_time_ns or now_ns
+        return Plan(goal, new_ref, version, now_ns, start, tolerances, valid_from)
+
+
+class JointTrajectoryController:
+    """ROS 2 ``joint_trajectory_controller`` semantics, with time and state injected.
+
+    Example::
+
+        ctrl = JointTrajectoryController(load_config("robot.yaml"))
+        ctrl.activate(now_ns, JointState(positions))
+        goal_id = ctrl.send_goal(now_ns, JointTrajectory(names, points))
+        out = ctrl.update(now_ns, period_ns, JointState(positions, velocities))
+        write(out.command); handle(out.events)
+    """
+
+    def __init__(self, config: ControllerConfig) -> None:
+        self.config = config
+        self.joint_names = tuple(config.joints)
+        n = len(self.joint_names)
+        self._n = n
+        self._wrap = np.asarray(config.wraparound, dtype=bool)
+        self._any_wrap = bool(self._wrap.any())
+        gains = [config.gains[j] for j in self.joint_names]
+        self._pid = Pid(
+            np.array([g.p for g in gains]),
+            np.array([g.i for g in gains]),
+            np.array([g.d for g in gains]),
+            np.array([g.i_clamp for g in gains]),
+        )
+        self._ff = np.array([g.ff_velocity_scale for g in gains])
+        cmd = config.command_interfaces
+        self._cmd_pos = "position" in cmd
+        self._cmd_vel = "velocity" in cmd
+        self._cmd_acc = "acceleration" in cmd
+        self._cmd_eff = "effort" in cmd
+        self._use_pid = config.use_pid
+        self._has_vel_state = "velocity" in config.state_interfaces
+        self._has_acc_state = "acceleration" in config.state_interfaces
+        self._lookahead_ns = round(NS_PER_S / config.update_rate)
+        self._feedback_ns = round(NS_PER_S / config.action_monitor_rate)
+        self._cmd_timeout_ns = round(config.effective_cmd_timeout * NS_PER_S)
+        self._planner = Planner(config)
+        self._version = 0
+        self._active = False
+        self._ref = Trajectory.constant(0, np.zeros(n))
+        self._execution: _Execution | None = None
+        self._pending_stop: GoalTransition | None = None
+        self._stop_reason = ""
+        self._commanding = True
+        self._events: list[Event] = []
+        self._next_goal_id = 1
+        self._last_command_positions = np.zeros(n)
+        self._nan = np.full(n, np.nan)
+        self._nan.setflags(write=False)
+
+    # -- lifecycle ----------------------------------------------------------------------------
+
+    @property
+    def active(self) -> bool:
+        """Whether ``activate`` was called and ``deactivate`` not since."""
+        return self._active
+
+    @property
+    def active_goal(self) -> int | None:
+        """The id of the goal being executed, if any."""
+        ex = self._execution
+        return ex.goal.goal_id if ex is not None and ex.goal is not None else None
+
+    @property
+    def holding(self) -> bool:
+        """True when no command is being executed (holding a position)."""
+        return self._execution is None
+
+    def activate(
+        self, now_ns: int, state: JointState, last_command: JointCommand | None = None
+    ) -> None:
+        """Start: hold the start state, with no jump.
+
+        The start position is the measured one, or -- when
+        ``set_last_command_interface_value_as_state_on_activation`` is true and ``last_command``
+        carries a finite position for every joint -- the last position command. Any trajectory
+        or goal from an earlier activation is gone; PID integrators start at zero.
+
+        Raises:
+            ControllerStateError: already active.
+            HardwareError: the measured positions are missing or not finite.
+        """
+        if self._active:
+            raise ControllerStateError("activate: the controller is already active")
+        positions = self._checked_positions(state)
+        start = positions.copy()
+        if (
+            self.config.set_last_command_interface_value_as_state_on_activation
+            and last_command is not None
+            and last_command.positions is not None
+            and self._cmd_pos
+            and last_command.positions.shape == (self._n,)
+            and bool(np.isfinite(last_command.positions).all())
+        ):
+            start = np.array(last_command.positions, dtype=np.float64)
+        self._set_reference(Trajectory.constant(now_ns, start))
+        self._last_command_positions = start.copy()
+        self._execution = None
+        self._pending_stop = None
+        self._pid.reset()
+        self._commanding = self.config.start_with_holding
+        self._active = True
+
+    def deactivate(
+        self, now_ns: int, reason: str | None = None, *, abort: bool = False
+    ) -> tuple[Event, ...]:
+        """Stop: the active goal gets its result and no more commands are produced.
+
+        Args:
+            now_ns: the time, stamped on the result.
+            reason: the result's message (default: upstream's deactivation message).
+            abort: report the goal ``ABORTED`` (a fault) instead of ``CANCELED``.
+
+        Returns:
+            The events not yet delivered, ending with the goal's result if one was active.
+
+        Raises:
+            ControllerStateError: not active.
+        """
+        if not self._active:
+            raise ControllerStateError("deactivate: the controller is not active")
+        ex = self._execution
+        if ex is not None and ex.goal is not None:
+            transition = GoalTransition.ABORT if abort else GoalTransition.PREEMPT
+            self._finish(ex.goal, transition, ErrorCode.INVALID_GOAL, reason or DEACTIVATED, now_ns)
+        self._execution = None
+        self._pending_stop = None
+        self._active = False
+        events, self._events = tuple(self._events), []
+        return events
+
+    # -- commands -----------------------------------------------------------------------------
+
+    def send_goal(
+        self,
+        now_ns: int,
+        trajectory: JointTrajectory,
+        path_tolerance: Sequence[JointTolerance] = (),
+        goal_tolerance: Sequence[JointTolerance] = (),
+        goal_time_tolerance: float = 0.0,
+    ) -> int:
+        """Accept an action goal (``follow_joint_trajectory``) or raise why not.
+
+        On acceptance the trajectory is spliced into the reference and the previous goal, if
+        any, is canceled (its result is delivered with the next ``update``).
+
+        Returns:
+            The goal id; its result arrives exactly once among ``update``/``deactivate`` events.
+
+        Raises:
+            GoalRejected: inactive controller, invalid trajectory or tolerances, or a
+                trajectory entirely in the past; the reference is unchanged.
+        """
+        plan = self.plan_goal(
+            now_ns, trajectory, path_tolerance, goal_tolerance, goal_time_tolerance
+        )
+        goal_id = self.commit(plan, now_ns)
+        assert goal_id is not None
+        return goal_id
+
+    def send_trajectory(self, now_ns: int, trajectory: JointTrajectory) -> None:
+        """Fire-and-forget trajectory (the ``joint_trajectory`` topic).
+
+        An empty trajectory (no points) stops: the measured position is held from the next
+        cycle and an active goal is canceled. Otherwise the trajectory is spliced in, an active
+        goal is canceled, and the default path tolerances and ``goal_time`` are monitored
+        (a violation holds the position and emits ``TrajectoryStopped``).
+
+        Raises:
+            GoalRejected: inactive controller, invalid or entirely past trajectory.
+        """
+        if isinstance(trajectory, JointTrajectory) and not trajectory.points:
+            self.request_stop()
+            return
+        self.commit(self.plan_trajectory(now_ns, trajectory), now_ns)
+
+    def plan_goal(
+        self,
+        now_ns: int,
+        trajectory: JointTrajectory,
+        path_tolerance: Sequence[JointTolerance] = (),
+        goal_tolerance: Sequence[JointTolerance] = (),
+        goal_time_tolerance: float = 0.0,
+        valid_from_ns: int | None = None,
+    ) -> Plan:
+        """First half of ``send_goal``: validate and fit against the current reference.
+
+        Raises:
+            GoalRejected: see ``send_goal``.
+        """
+        self._require_active_for_commands()
+        return self._planner.plan_goal(
+            self._ref,
+            self._version,
+            now_ns,
+            trajectory,
+            path_tolerance,
+            goal_tolerance,
+            goal_time_tolerance,
+            valid_from_ns,
+        )
+
+    def plan_trajectory(self, now_ns: int, trajectory: JointTrajectory) -> Plan:
+        """First half of ``send_trajectory`` for a non-empty trajectory.
+
+        Raises:
+            GoalRejected: see ``send_trajectory``.
+        """
+        self._require_active_for_commands()
+        return self._planner.plan_trajectory(self._ref, self._version, now_ns, trajectory)
+
+    def commit(self, plan: Plan, now_ns: int) -> int | None:
+        """Second half: swap in a planned reference (O(1), no fitting).
+
+        Returns:
+            The goal id for a goal plan, None for a topic plan.
+
+        Raises:
+            GoalRejected: the controller is not active.
+            StalePlan: the reference changed since the plan was made (a stop, an abort or
+                another command), or ``now_ns`` is past the time it was planned for.
+        """
+        self._require_active_for_commands()
+        if plan.base_version != self._version:
+            raise StalePlan(
+                f"planned against reference version {plan.base_version}, current is {self._version}"
+            )
+        if now_ns < plan.valid_from_ns:
+            raise StalePlan(
+                f"committed at {now_ns} ns, before the plan's validity ({plan.valid_from_ns} ns)"
+            )
+        if now_ns > plan.planned_ns:
+            raise StalePlan(
+                f"planned for {plan.planned_ns} ns, committed late at {now_ns} ns "
+                f"({(now_ns - plan.planned_ns) / 1e6:.3f} ms)"
+            )
+        handle = None
+        if plan.goal:
+            self._preempt(PREEMPTED_BY_ACTION, now_ns)
+            handle = GoalHandle(self._next_goal_id)
+            self._next_goal_id += 1
+        else:
+            self._preempt(PREEMPTED_BY_TOPIC, now_ns)
+        self._set_reference(plan.reference)
+        self._execution = _Execution(handle, plan.tolerances, plan.start_ns, plan.reference.end_ns)
+        self._commanding = True
+        return None if handle is None else handle.goal_id
+
+    def request_stop(self) -> None:
+        """Stop as an empty topic trajectory does: hold the measured position from the next
+        cycle; an active goal ends ``CANCELED``.
+
+        Raises:
+            GoalRejected: the controller is not active.
+        """
+        self._require_active_for_commands()
+        self._request_stop(GoalTransition.PREEMPT, STOPPED_BY_TOPIC)
+
+    @property
+    def reference_version(self) -> int:
+        """Increments every time the reference changes (activation, commit, stop, abort)."""
+        return self._version
+
+    def cancel_goal(self, goal_id: int) -> bool:
+        """Request cancellation; the goal ends ``CANCELED`` at the next ``update``, which holds
+        the measured position.
+
+        Returns:
+            False if ``goal_id`` is not the executing goal (unknown, finished or canceling).
+        """
+        ex = self._execution
+        if ex is None or ex.goal is None or ex.goal.goal_id != goal_id:
+            return False
+        if ex.goal.status is not GoalStatus.EXECUTING:
+            return False
+        ex.goal.transition(GoalTransition.REQUEST_CANCEL)
+        self._request_stop(GoalTransition.CANCEL_DONE, CANCELED_ON_REQUEST)
+        return True
+
+    def query_state(self, t_ns: int) -> TrajectorySample:
+        """The desired state at any time (``query_state`` service); no side effects.
+
+        Raises:
+            ControllerStateError: the controller is not active.
+        """
+        if not self._active:
+            raise ControllerStateError("query_state: the controller is not active")
+        return self._ref.sample(t_ns)
+
+    @property
+    def reference(self) -> Trajectory:
+        """The trajectory being followed (immutable)."""
+        return self._ref
+
+    # -- the cycle ----------------------------------------------------------------------------
+
+    def update(self, now_ns: int, period_ns: int, state: JointState) -> UpdateResult:
+        """One control cycle; see the module docstring for the order of decisions.
+
+        Args:
+            now_ns: this cycle's time.
+            period_ns: time since the previous cycle (PID integration step).
+            state: measured state at ``now_ns``.
+
+        Raises:
+            ControllerStateError: the controller is not active.
+            HardwareError: the state has missing or non-finite positions (a failed read must
+                never be taken for a position); nothing is commanded.
+        """
+        if not self._active:
+            raise ControllerStateError("update: the controller is not active")
+        positions = self._checked_positions(state)
+        if self._pending_stop is not None:
+            self._apply_stop(now_ns, positions)
+        desired = self._ref.sample(now_ns)
+        error = self._error(desired, state, positions)
+        ex = self._execution
+        if ex is not None:
+            outcome = self._check(now_ns, ex, error)
+            if outcome is not None:
+                self._conclude(now_ns, ex, outcome, positions)
+                if outcome.hold_measured:
+                    desired = self._ref.sample(now_ns)
+                    error = self._error(desired, state, positions)
+            elif ex.goal is not None and now_ns >= ex.next_feedback_ns:
+                ex.next_feedback_ns = now_ns + self._feedback_ns
+                self._events.append(
+                    GoalFeedback(
+                        ex.goal.goal_id,
+                        now_ns,
+                        (now_ns - ex.start_ns) / NS_PER_S,
+                        desired,
+                        positions,
+                        state.velocities,
+                        error,
+                    )
+                )
+        command = self._control(now_ns, period_ns, desired, error)
+        events, self._events = tuple(self._events), []
+        return UpdateResult(command, events, desired, error)
+
+    # -- internals ----------------------------------------------------------------------------
+
+    def _checked_positions(self, state: JointState) -> F64:
+        positions = state.positions
+        if positions.shape != (self._n,):
+            raise HardwareError(
+                f"state has {positions.shape} positions, expected {self._n} "
+                f"({', '.join(self.joint_names)})"
+            )
+        if not np.isfinite(positions).all():
+            bad = [self.joint_names[i] for i in np.flatnonzero(~np.isfinite(positions))]
+            raise HardwareError(
+                f"state position of joint(s) {', '.join(bad)} is not finite; check the "
+                "hardware read"
+            )
+        return positions
+
+    def _error(self, desired: TrajectorySample, state: JointState, positions: F64) -> F64:
+        error = np.zeros((3, self._n))
+        if self._any_wrap:
+            error[0] = np.where(
+                self._wrap,
+                shortest_angular_distance(positions, desired.positions),
+                desired.positions - positions,
+            )
+        else:
+            error[0] = desired.positions - positions
+        if self._has_vel_state and state.velocities is not None:
+            error[1] = desired.velocities - state.velocities
+        if self._has_acc_state and state.accelerations is not None:
+            error[2] = desired.accelerations - state.accelerations
+        return error
+
+    def _check(self, now_ns: int, ex: _Execution, error: F64) -> _Outcome | None:
+        tol = ex.tolerances
+        before_end = now_ns < ex.end_ns
+        first, ex.first_sample = ex.first_sample, False
+        if before_end or first:
+            bad = violated(error, tol.path)
+            if bad.any():
+                return _Outcome(
+                    GoalTransition.ABORT,
+                    ErrorCode.PATH_TOLERANCE_VIOLATED,
+                    "Aborted due to path tolerance violation: "
+                    + self._describe(error, tol.path, bad),
+                    True,
+                )
+        if before_end:
+            return None
+        outside = violated(error, tol.goal)
+        if not outside.any():
+            return _Outcome(GoalTransition.SUCCEED, ErrorCode.SUCCESSFUL, SUCCEEDED, False)
+        late_ns = now_ns - ex.end_ns
+        if tol.goal_time > 0.0 and late_ns > round(tol.goal_time * NS_PER_S):
+            return _Outcome(
+                GoalTransition.ABORT,
+                ErrorCode.GOAL_TOLERANCE_VIOLATED,
+                f"Aborted due to goal_time_tolerance exceeding by {late_ns / NS_PER_S:.6f} "
+                f"seconds: " + self._describe(error, tol.goal, outside),
+                True,
+            )
+        if self._cmd_timeout_ns and late_ns > self._cmd_timeout_ns:
+            return _Outcome(
+                GoalTransition.ABORT,
+                ErrorCode.GOAL_TOLERANCE_VIOLATED,
+                f"Aborted due to command timeout: {late_ns / NS_PER_S:.6f} s past the last "
+                f"point (cmd_timeout {self.config.cmd_timeout} s) and still outside the goal "
+                "tolerance: " + self._describe(error, tol.goal, outside),
+                True,
+            )
+        return None
+
+    def _describe(self, error: F64, tolerance: F64, bad: NDArray[np.bool_]) -> str:
+        parts = []
+        for j in np.flatnonzero(bad):
+            for row, name in enumerate(("position", "velocity", "acceleration")):
+                t = tolerance[row, j]
+                e = error[row, j]
+                if t > 0.0 and abs(e) > t:
+                    parts.append(
+                        f"joint '{self.joint_names[j]}' {name} error {e:+.6g} exceeds {t:.6g}"
+                    )
+        return "; ".join(parts)
+
+    def _conclude(self, now_ns: int, ex: _Execution, outcome: _Outcome, positions: F64) -> None:
+        self._execution = None
+        if ex.goal is not None:
+            self._finish(ex.goal, outcome.transition, outcome.code, outcome.message, now_ns)
+        elif outcome.transition is GoalTransition.ABORT:
+            self._events.append(TrajectoryStopped(outcome.message, now_ns))
+        if outcome.hold_measured:
+            self._hold(now_ns, positions)
+
+    def _finish(
+        self,
+        goal: GoalHandle,
+        transition: GoalTransition,
+        code: ErrorCode,
+        message: str,
+        now_ns: int,
+    ) -> None:
+        status = goal.transition(transition)
+        self._events.append(GoalResult(goal.goal_id, status, code, message, now_ns))
+
+    def _hold(self, now_ns: int, positions: F64) -> None:
+        """Hold the measured position (open loop: the last commanded one), zero velocity."""
+        hold = self._last_command_positions if self.config.open_loop_control else positions
+        self._set_reference(Trajectory.constant(now_ns, hold.copy()))
+        self._pid.reset()
+
+    def _set_reference(self, reference: Trajectory) -> None:
+        self._ref = reference
+        self._version += 1
+
+    def _require_active_for_commands(self) -> None:
+        if not self._active:
+            raise GoalRejected("the controller is not active; commands are accepted once it is")
+
+    def _preempt(self, message: str, now_ns: int) -> None:
+        ex = self._execution
+        if ex is not None and ex.goal is not None:
+            if ex.goal.status is GoalStatus.CANCELING:
+                self._finish(
+                    ex.goal,
+                    GoalTransition.PREEMPT,
+                    ErrorCode.SUCCESSFUL,
+                    CANCELED_ON_REQUEST,
+                    now_ns,
+                )
+            else:
+                self._finish(
+                    ex.goal, GoalTransition.PREEMPT, ErrorCode.INVALID_GOAL, message, now_ns
+                )
+        self._execution = None
+        self._pending_stop = None
+
+    def _request_stop(self, transition: GoalTransition, reason: str) -> None:
+        self._pending_stop = transition
+        self._stop_reason = reason
+
+    def _apply_stop(self, now_ns: int, positions: F64) -> None:
+        transition, self._pending_stop = self._pending_stop, None
+        ex, self._execution = self._execution, None
+        if ex is not None and ex.goal is not None and transition is not None:
+            code = (
+                ErrorCode.SUCCESSFUL
+                if transition is GoalTransition.CANCEL_DONE
+                else ErrorCode.INVALID_GOAL
+            )
+            self._finish(ex.goal, transition, code, self._stop_reason, now_ns)
+        self._hold(now_ns, positions)
+        self._commanding = True
+
+    def _control(
+        self, now_ns: int, period_ns: int, desired: TrajectorySample, error: F64
+    ) -> JointCommand:
+        if not self._commanding:
+            nan = self._nan
+            return JointCommand(
+                nan if self._cmd_pos else None,
+                nan if self._cmd_vel else None,
+                nan if self._cmd_acc else None,
+                nan if self._cmd_eff else None,
+            )
+        ahead = self._ref.sample(now_ns + self._lookahead_ns)
+        pid_out: F64 | None = None
+        if self._use_pid:
+            pid_out = self._ff * desired.velocities + self._pid.compute(
+                error[0], error[1], period_ns / NS_PER_S
+            )
+        position = velocity = acceleration = effort = None
+        if self._cmd_pos:
+            position = ahead.positions
+            self._last_command_positions = position
+        if self._cmd_vel:
+            velocity = pid_out if pid_out is not None else ahead.velocities
+        if self._cmd_acc:
+            acceleration = ahead.accelerations
+        if self._cmd_eff:
+            assert pid_out is not None
+            effort = pid_out + desired.effort
+        if not self._cmd_pos:
+            self._last_command_positions = ahead.positions
+        return JointCommand(position, velocity, acceleration, effort)

@@ -1,0 +1,448 @@
+"""The API process's view of the control loop: planning, a replica reference, the loop process.
+
+Theory of operation
+-------------------
+``LoopBackend`` starts the loop process (``jtc_hw.daemon.loop``) and implements the ``Backend``
+interface the socket server uses. Goals are validated and fitted here, in a worker thread of
+the API process, against a replica of the loop's reference (the loop reports every change, in
+order). A fitted ``Plan`` is planned for a time a little ahead of now (``margin``) and sent to
+the loop, which swaps it in at its next cycle if the reference has not changed meanwhile and
+that cycle is not later than the planned time; otherwise it answers "stale" and we plan again
+against the newer reference with a larger margin. ``query_state`` is answered from the replica
+without involving the loop at all.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import itertools
+import logging
+import multiprocessing
+import time
+from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
+from multiprocessing.connection import Connection
+from typing import Any, Protocol
+
+import numpy as np
+
+from ..controller.config import ControllerConfig
+from ..controller.config_io import config_to_dict
+from ..controller.controller import Plan, Planner
+from ..controller.goals import GoalFeedback, GoalResult, TrajectoryStopped
+from ..controller.joints import JointCommand
+from ..controller.tolerances import JointTolerance
+from ..controller.trajectory import JointTrajectory, Trajectory, TrajectorySample
+from ..errors import (
+    ConfigurationError,
+    ControllerStateError,
+    GoalRejected,
+    HardwareError,
+    JtcHwError,
+)
+from .robot import RobotConfig
+
+log = logging.getLogger("jtc_hw.backend")
+
+ATTEMPTS = 5
+_LOOP_ERRORS: dict[str, type[JtcHwError]] = {
+    "ConfigurationError": ConfigurationError,
+    "ControllerStateError": ControllerStateError,
+    "GoalRejected": GoalRejected,
+    "HardwareError": HardwareError,
+    "CommunicationError": HardwareError,
+    "MotorFault": HardwareError,
+}
+START_TIMEOUT_S = 30.0
+REQUEST_TIMEOUT_S = 5.0
+
+
+class Listener(Protocol):
+    """Receives what the loop publishes (called in the asyncio thread)."""
+
+    def on_goal_event(self, event: GoalResult | GoalFeedback) -> None: ...
+
+    def on_state(self, snapshot: dict[str, Any]) -> None: ...
+
+
+def _vector(a: Any) -> list[float | None] | None:
+    if a is None:
+        return None
+    return [float(x) if np.isfinite(x) else None for x in np.asarray(a, dtype=float)]
+
+
+class LoopBackend:
+    """Runs the loop process and serves the socket server's requests."""
+
+    def __init__(self, robot: RobotConfig, source: str | dict[str, Any]) -> None:
+        self.robot = robot
+        self.config: ControllerConfig = robot.controller
+        self.joint_names = tuple(self.config.joints)
+        self._source = source
+        self._planner = Planner(self.config)
+        self._ref: Trajectory | None = None
+        self._version = -1
+        self._plans: dict[int, Plan] = {}
+        self._waiting: dict[int, asyncio.Future[Any]] = {}
+        self._ids = itertools.count(1)
+        self._listener: Listener | None = None
+        self._status: dict[str, Any] = {}
+        self._ready: asyncio.Future[dict[str, Any]] | None = None
+        self._exited: asyncio.Future[int] | None = None
+        self._conn: Connection | None = None
+        self._process: multiprocessing.process.BaseProcess | None = None
+        self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="jtc-hw-plan")
+        self._period_ns = round(1e9 / self.config.update_rate)
+        self._margin_ns = max(5_000_000, 3 * self._period_ns)
+        self._active_goal: int | None = None
+        self.last_heard_ns = 0
+        self.info: dict[str, Any] = {}
+        self.exit_code: int | None = None
+
+    # -- process ------------------------------------------------------------------------------
+
+    async def start(self) -> dict[str, Any]:
+        """Spawn the loop process and wait until the hardware is active.
+
+        Raises:
+            HardwareError: the loop process failed to start (its log says why).
+        """
+        from .loop import loop_main
+
+        aio = asyncio.get_running_loop()
+        ctx = multiprocessing.get_context("spawn")
+        parent, child = ctx.Pipe(duplex=True)
+        self._conn = parent
+        self._ready = aio.create_future()
+        self._exited = aio.create_future()
+        self._process = ctx.Process(
+            target=loop_main,
+            args=(self._source, self.config.name, child),
+            name="jtc-hw-loop",
+            daemon=True,
+        )
+        self._process.start()
+        child.close()
+        aio.add_reader(parent.fileno(), self._readable)
+        waiters: set[asyncio.Future[Any]] = {self._ready, self._exited}
+        done, _ = await asyncio.wait(
+            waiters, timeout=START_TIMEOUT_S, return_when=asyncio.FIRST_COMPLETED
+        )
+        if self._ready in done:
+            self.info = self._ready.result()
+            return self.info
+        raise HardwareError(
+            "the control loop did not start (see the log above)"
+            if done
+            else f"the control loop did not become ready within {START_TIMEOUT_S:.0f} s"
+        )
+
+    async def stop(self, reason: str) -> int:
+        """Ask the loop to finish (goal result, hold, safe action) and wait for it to exit."""
+        if self._process is None or self._exited is None:
+            return 0
+        if not self._exited.done():
+            try:
+                await self._request("shutdown", {"reason": reason})
+            except JtcHwError as exc:
+                log.warning("shutdown request: %s", exc)
+            try:
+                await asyncio.wait_for(asyncio.shield(self._exited), timeout=10.0)
+            except TimeoutError:
+                log.error("the control loop did not stop within 10 s; terminating it")
+                self._process.terminate()
+        await asyncio.get_running_loop().run_in_executor(None, self._process.join, 5.0)
+        self._close()
+        return self.exit_code or 0
+
+    def _close(self) -> None:
+        if self._conn is not None:
+            try:
+                asyncio.get_running_loop().remove_reader(self._conn.fileno())
+            except (ValueError, OSError):
+                pass
+            self._conn.close()
+            self._conn = None
+        self._executor.shutdown(wait=False)
+
+    @property
+    def alive(self) -> bool:
+        """The loop process runs and is ready."""
+        return (
+            self._process is not None
+            and self._process.is_alive()
+            and self._exited is not None
+            and not self._exited.done()
+        )
+
+    # -- messages from the loop ---------------------------------------------------------------
+
+    def _readable(self) -> None:
+        assert self._conn is not None
+        try:
+            while self._conn.poll():
+                self._dispatch(self._conn.recv())
+        except (EOFError, OSError):
+            asyncio.get_running_loop().remove_reader(self._conn.fileno())
+            if self._exited is not None and not self._exited.done():
+                self.exit_code = self.exit_code if self.exit_code is not None else 3
+                self._exited.set_result(self.exit_code)
+            self._fail_waiting("the control loop exited")
+
+    def _dispatch(self, message: tuple[Any, ...]) -> None:
+        self.last_heard_ns = time.monotonic_ns()
+        kind = message[0]
+        if kind == "reference":
+            _, version, trajectory, plan_id = message
+            if plan_id is not None:
+                self._ref = self._plans.pop(plan_id).reference
+            else:
+                self._ref = trajectory
+            self._version = version
+        elif kind in ("committed", "stale", "reply"):
+            future = self._waiting.pop(message[1], None)
+            if kind == "committed":
+                self._active_goal = message[2]
+            if future is not None and not future.done():
+                future.set_result(message)
+            if kind == "stale":
+                self._plans.pop(message[1], None)
+        elif kind == "events":
+            for event in message[1]:
+                if isinstance(event, TrajectoryStopped):
+                    log.warning("topic trajectory stopped: %s", event.reason)
+                elif self._listener is not None:
+                    self._listener.on_goal_event(event)
+                if isinstance(event, GoalResult):
+                    if event.goal_id == self._active_goal:
+                        self._active_goal = None
+                    log.info(
+                        "goal %d %s (%d): %s",
+                        event.goal_id,
+                        event.status.value,
+                        int(event.error_code),
+                        event.error_string,
+                    )
+        elif kind == "state":
+            if self._listener is not None:
+                self._listener.on_state(self._snapshot(message[1]))
+        elif kind == "status":
+            self._status = message[1]
+        elif kind == "log":
+            log.log(message[1], "%s", message[2])
+        elif kind == "ready":
+            if self._ready is not None and not self._ready.done():
+                self._ready.set_result(message[1])
+        elif kind == "exit":
+            self.exit_code = message[1]
+            if self._exited is not None and not self._exited.done():
+                self._exited.set_result(message[1])
+
+    def _snapshot(self, raw: tuple[Any, ...]) -> dict[str, Any]:
+        t, desired, positions, velocities, error, command, holding, goal = raw
+        cmd: JointCommand = command
+        return {
+            "time_ns": t,
+            "joint_names": list(self.joint_names),
+            "desired": {
+                "positions": _vector(desired[0]),
+                "velocities": _vector(desired[1]),
+                "accelerations": _vector(desired[2]),
+                "effort": _vector(desired[3]),
+            },
+            "actual": {"positions": _vector(positions), "velocities": _vector(velocities)},
+            "error": {
+                "positions": _vector(error[0]),
+                "velocities": _vector(error[1]),
+                "accelerations": _vector(error[2]),
+            },
+            "command": {
+                name: _vector(getattr(cmd, name))
+                for name in ("positions", "velocities", "accelerations", "effort")
+                if getattr(cmd, name) is not None
+            },
+            "holding": holding,
+            "active_goal": goal,
+        }
+
+    def _fail_waiting(self, reason: str) -> None:
+        for future in self._waiting.values():
+            if not future.done():
+                future.set_exception(ControllerStateError(reason))
+        self._waiting.clear()
+
+    # -- Backend interface --------------------------------------------------------------------
+
+    def set_listener(self, listener: Listener) -> None:
+        """Where goal events and state snapshots go."""
+        self._listener = listener
+
+    def now_ns(self) -> int:
+        """The daemon's clock (CLOCK_MONOTONIC, shared by both processes)."""
+        return time.monotonic_ns()
+
+    def hello(self) -> dict[str, Any]:
+        """Static facts for a new client."""
+        return {
+            "joint_names": list(self.joint_names),
+            "update_rate": self.config.update_rate,
+            "state_publish_rate": self.config.state_publish_rate,
+            "action_monitor_rate": self.config.action_monitor_rate,
+            "now_ns": self.now_ns(),
+        }
+
+    def config_dict(self) -> dict[str, Any]:
+        """The controller configuration in its plain form, plus hardware and daemon sections."""
+        return {
+            "controller": config_to_dict(self.config),
+            "hardware": [
+                {"name": h.name, "kind": h.kind, "joints": list(h.joints)}
+                for h in self.robot.hardware
+            ],
+        }
+
+    def status(self) -> dict[str, Any]:
+        """The loop's statistics and hardware status (refreshed at 2 Hz); the active goal is
+        tracked from commits and results, so it is current."""
+        status = dict(self._status, alive=self.alive)
+        if "controller" in status:
+            status["controller"] = dict(status["controller"], active_goal=self._active_goal)
+        return status
+
+    def query_state(self, time_ns: int) -> TrajectorySample:
+        """Desired state at ``time_ns`` from the replica reference.
+
+        Raises:
+            ControllerStateError: the loop has not reported a reference yet.
+        """
+        if self._ref is None:
+            raise ControllerStateError("the controller is not active yet")
+        return self._ref.sample(time_ns)
+
+    async def send_goal(
+        self,
+        traj: JointTrajectory,
+        path_tolerance: Sequence[JointTolerance] = (),
+        goal_tolerance: Sequence[JointTolerance] = (),
+        goal_time_tolerance: float = 0.0,
+    ) -> int:
+        """Plan and commit an action goal.
+
+        Raises:
+            GoalRejected: invalid goal, or the loop kept refusing the plan.
+        """
+        result = await self._plan_and_commit(
+            lambda ref, ver, now, valid_from: self._planner.plan_goal(
+                ref,
+                ver,
+                now,
+                traj,
+                path_tolerance,
+                goal_tolerance,
+                goal_time_tolerance,
+                valid_from,
+            )
+        )
+        assert result is not None
+        return int(result)
+
+    async def send_trajectory(self, traj: JointTrajectory) -> None:
+        """Plan and commit a topic trajectory; an empty one stops.
+
+        Raises:
+            GoalRejected: invalid trajectory, or not active.
+        """
+        if not traj.points:
+            await self._request("stop", {})
+            return
+        await self._plan_and_commit(
+            lambda ref, ver, now, valid_from: self._planner.plan_trajectory(
+                ref, ver, now, traj, valid_from
+            )
+        )
+
+    async def cancel_goal(self, goal_id: int) -> bool:
+        """Cancel the executing goal ``goal_id``; False if it is not executing."""
+        return bool(await self._request("cancel", {"goal_id": goal_id}))
+
+    async def rearm(self) -> bool:
+        """Leave a hardware fault: re-open the devices, clear their latched faults
+        (``recover``) and hold the measured position.
+
+        Raises:
+            HardwareError: re-arming failed (the controller stays stopped).
+
+        Returns:
+            False if there was nothing to re-arm (no fault, the controller is running).
+        """
+        return bool(await self._request("rearm", {}))
+
+    async def sim(self, component: str, freeze: bool | None, fault: str | None = None) -> None:
+        """Freeze or release a simulated component's feedback; returns once the loop did.
+
+        Raises:
+            ConfigurationError: no component of that name.
+            HardwareError: the component is not simulated hardware.
+        """
+        await self._request("sim", {"component": component, "freeze": freeze, "fault": fault})
+
+    # -- internals ----------------------------------------------------------------------------
+
+    def _send(self, message: tuple[Any, ...]) -> None:
+        if self._conn is None or not self.alive:
+            raise GoalRejected("the control loop is not running")
+        from .loop import send_framed
+
+        send_framed(self._conn, message)
+
+    async def _request(self, op: str, args: dict[str, Any]) -> Any:
+        request_id = next(self._ids)
+        future = asyncio.get_running_loop().create_future()
+        self._waiting[request_id] = future
+        self._send(("request", request_id, op, args))
+        try:
+            _, _, ok, value = await asyncio.wait_for(future, REQUEST_TIMEOUT_S)
+        except TimeoutError:
+            self._waiting.pop(request_id, None)
+            raise HardwareError(f"the control loop did not answer {op!r} within 5 s") from None
+        if not ok:
+            kind, message = value
+            raise _LOOP_ERRORS.get(kind, HardwareError)(message)
+        return value
+
+    async def _plan_and_commit(self, make: Any) -> int | None:
+        aio = asyncio.get_running_loop()
+        margin = self._margin_ns
+        for _attempt in range(ATTEMPTS):
+            if self._ref is None:
+                raise GoalRejected("the controller is not active yet")
+            ref, version = self._ref, self._version
+            begin = self.now_ns()
+            planned = begin + margin
+            # The loop may commit as soon as the plan arrives, at a cycle whose deadline can lie
+            # up to a period before now: keep the current reference from there.
+            valid_from = begin - 2 * self._period_ns
+            plan: Plan = await aio.run_in_executor(
+                self._executor, make, ref, version, planned, valid_from
+            )
+            took = self.now_ns() - begin
+            if self.now_ns() + self._margin_ns // 2 > planned:
+                margin = 2 * margin + took  # fitting took longer than the margin: plan later
+                continue
+            plan_id = next(self._ids)
+            self._plans[plan_id] = plan
+            future = aio.create_future()
+            self._waiting[plan_id] = future
+            self._send(("commit", plan_id, plan))
+            reply = await asyncio.wait_for(future, REQUEST_TIMEOUT_S)
+            if reply[0] == "committed":
+                return reply[2]  # type: ignore[no-any-return]
+            reason = reply[2]
+            if reason.startswith("not active"):
+                raise GoalRejected(f"the controller is {reason}")
+            margin = 2 * margin + took
+            log.debug("plan %d was stale (%s); planning again", plan_id, reason)
+        raise GoalRejected(
+            f"the control loop kept refusing the plan ({ATTEMPTS} attempts); the reference "
+            "changes too often or planning is too slow for this goal's size"
+        )

@@ -1,0 +1,271 @@
+"""One client connection of the socket server, and the settings that bound them all.
+
+:class:`ServerSettings` is where and how the server listens (the robot file's ``daemon``
+fields); :class:`Connection` is one client: its streams, its bounded outgoing queue (droppable
+``state`` / ``feedback``, never-dropped replies and results up to a hard cap), its subscription
+and its counters.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import collections
+import ipaddress
+import os
+import socket
+import struct
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field, fields
+from typing import Any
+
+from ..api.protocol import (
+    DEFAULT_MAX_MESSAGE_BYTES,
+)
+from ..errors import (
+    ConfigurationError,
+)
+
+__all__ = ["Connection", "ServerSettings", "TcpEndpoint", "peer_label"]
+
+
+@dataclass(frozen=True)
+class TcpEndpoint:
+    """The optional loopback TCP endpoint (the robot file's ``daemon.tcp``).
+
+    Attributes:
+        host: a loopback address (``127.0.0.1``, ``::1`` or ``localhost``).
+        port: TCP port (0: any free port, see ``Server.tcp_address``).
+        token: every TCP client must first send ``{"op": "auth", "token": ...}`` with it.
+    """
+
+    host: str = "127.0.0.1"
+    port: int = 0
+    token: str = field(default="", repr=False)
+
+
+@dataclass(frozen=True)
+class ServerSettings:
+    """Where and how the server listens (field names as in the robot file's ``daemon``).
+
+    Attributes:
+        socket: the unix socket file (``None``: TCP only); its parent directory is created if
+            missing.
+        socket_mode: permission bits of the socket file (who may connect).
+        tcp: the optional loopback TCP endpoint.
+        max_clients: simultaneous connections (unix and TCP together); more get ``busy``.
+        max_message_bytes: longest request line accepted.
+        client_queue_size: queued outgoing messages per client above which ``state`` and
+            ``feedback`` events are dropped for that client.
+        client_queue_hard_cap: queued messages at which a client is disconnected as too slow.
+        close_timeout_s: how long a closing connection may take to read its last messages.
+        auth_timeout_s: how long a TCP connection may take to authenticate (a connection
+            without the token must not hold a client slot).
+    """
+
+    socket: str | os.PathLike[str] | None = None
+    socket_mode: int = 0o660
+    tcp: TcpEndpoint | None = None
+    max_clients: int = 16
+    max_message_bytes: int = DEFAULT_MAX_MESSAGE_BYTES
+    client_queue_size: int = 256
+    client_queue_hard_cap: int = 4096
+    close_timeout_s: float = 1.0
+    auth_timeout_s: float = 10.0
+
+    @classmethod
+    def coerce(cls, settings: object) -> ServerSettings:
+        """Settings from a ``ServerSettings``, a mapping of its fields, or any object with
+        attributes of those names, such as ``RobotConfig.daemon`` (missing ones take the
+        defaults; other attributes are ignored). ``tcp`` may likewise be a mapping or an
+        object with ``host``, ``port`` and ``token``.
+
+        Raises:
+            ConfigurationError: an unknown key in a mapping, or invalid values (see ``check``).
+        """
+        if isinstance(settings, ServerSettings):
+            out = settings
+        else:
+            names = [f.name for f in fields(cls)]
+            values = _pick(settings, names, "")
+            tcp = values.get("tcp")
+            if tcp is not None and not isinstance(tcp, TcpEndpoint):
+                values["tcp"] = TcpEndpoint(**_pick(tcp, ["host", "port", "token"], "tcp."))
+            out = cls(**values)
+        out.check()
+        return out
+
+    def check(self) -> None:
+        """Validate the values.
+
+        Raises:
+            ConfigurationError: no endpoint, a non-loopback TCP host, TCP without a token,
+                or a value out of range; names the setting.
+        """
+        if self.socket is None and self.tcp is None:
+            raise ConfigurationError("no endpoint: set socket and/or tcp")
+        mode = self.socket_mode
+        if isinstance(mode, bool) or not isinstance(mode, int) or not 0 <= mode <= 0o777:
+            raise ConfigurationError("expected permission bits 0..0o777", "socket_mode", mode)
+        if self.tcp is not None:
+            _check_loopback(self.tcp.host)
+            if not isinstance(self.tcp.token, str) or not self.tcp.token:
+                raise ConfigurationError(
+                    "TCP needs a token: clients authenticate with it in their first request",
+                    "tcp.token",
+                )
+            port = self.tcp.port
+            if isinstance(port, bool) or not isinstance(port, int) or not 0 <= port <= 65535:
+                raise ConfigurationError("expected a port 0..65535", "tcp.port", port)
+        for name in ("max_clients", "max_message_bytes", "client_queue_size"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ConfigurationError("expected an integer >= 1", name, value)
+        if self.client_queue_hard_cap < self.client_queue_size:
+            raise ConfigurationError(
+                f"must be >= client_queue_size ({self.client_queue_size})",
+                "client_queue_hard_cap",
+                self.client_queue_hard_cap,
+            )
+        for name in ("close_timeout_s", "auth_timeout_s"):
+            if not getattr(self, name) > 0:
+                raise ConfigurationError("expected seconds > 0", name, getattr(self, name))
+
+
+def _pick(source: object, names: Sequence[str], prefix: str) -> dict[str, Any]:
+    if isinstance(source, Mapping):
+        for key in source:
+            if key not in names:
+                raise ConfigurationError(
+                    f"unknown server setting (known: {', '.join(names)})", f"{prefix}{key}"
+                )
+        return {k: source[k] for k in names if k in source}
+    return {k: getattr(source, k) for k in names if hasattr(source, k)}
+
+
+def _check_loopback(host: str) -> None:
+    if host == "localhost":
+        return
+    try:
+        address = ipaddress.ip_address(host)
+    except ValueError:
+        raise ConfigurationError(
+            "expected a loopback IP address such as 127.0.0.1 or ::1 (or 'localhost')",
+            "tcp.host",
+            host,
+        ) from None
+    if not address.is_loopback:
+        raise ConfigurationError(
+            f"{host} is not a loopback address; the TCP endpoint is for local tools only "
+            "(reach it from elsewhere through an SSH tunnel)",
+            "tcp.host",
+            host,
+        )
+
+
+class Connection:
+    """One client: its streams, outgoing queue, subscription and drop counters."""
+
+    def __init__(
+        self,
+        number: int,
+        kind: str,
+        peer: str,
+        reader: asyncio.StreamReader,
+        writer: asyncio.StreamWriter,
+        settings: ServerSettings,
+    ) -> None:
+        self.number = number
+        self.kind = kind
+        self.peer = peer
+        self.reader = reader
+        self.writer = writer
+        self.queue: collections.deque[bytes] = collections.deque()
+        self.queue_size = settings.client_queue_size
+        self.hard_cap = settings.client_queue_hard_cap
+        self.wake = asyncio.Event()
+        self.authenticated = kind == "unix"
+        self.subscribed = False
+        self.closing = False  # reading stopped: flush the queue, then close
+        self.gone = False  # the transport is closed: nothing can be sent any more
+        self.close_reason = "closed by the client"
+        self.requests = 0
+        self.dropped_state = 0
+        self.dropped_feedback = 0
+        self.dropped_since_state = 0
+        self.goals: set[int] = set()
+        self.too_slow = False
+
+    @property
+    def label(self) -> str:
+        return f"client {self.number} ({self.peer})"
+
+    @property
+    def dropped_total(self) -> int:
+        return self.dropped_state + self.dropped_feedback
+
+    def send(self, data: bytes) -> bool:
+        """Queue a message that must not be dropped; False if it cannot be sent.
+
+        A client whose queue reaches the hard cap is disconnected here.
+        """
+        if self.gone:
+            return False
+        if len(self.queue) >= self.hard_cap:
+            self.too_slow = True
+            self.abort(
+                f"not reading: {len(self.queue)} messages queued (client_queue_hard_cap); "
+                "disconnected"
+            )
+            return False
+        self.queue.append(data)
+        self.wake.set()
+        return True
+
+    def offer(self, data: bytes) -> bool:
+        """Queue a droppable message (state, feedback) unless the queue is full."""
+        if self.gone or len(self.queue) >= self.queue_size:
+            return False
+        self.queue.append(data)
+        self.wake.set()
+        return True
+
+    def abort(self, reason: str) -> None:
+        """Close at once, dropping whatever is queued."""
+        if not self.gone:
+            self.gone = True
+            self.close_reason = reason
+            self.queue.clear()
+            self.writer.transport.abort()
+        self.closing = True
+        self.wake.set()
+
+    def stats(self) -> dict[str, Any]:
+        return {
+            "client": self.number,
+            "transport": self.kind,
+            "peer": self.peer,
+            "authenticated": self.authenticated,
+            "subscribed": self.subscribed,
+            "requests": self.requests,
+            "queued": len(self.queue),
+            "dropped_state": self.dropped_state,
+            "dropped_feedback": self.dropped_feedback,
+            "goals": sorted(self.goals),
+        }
+
+
+def peer_label(kind: str, writer: asyncio.StreamWriter) -> str:
+    sock = writer.get_extra_info("socket")
+    if kind == "tcp":
+        address = writer.get_extra_info("peername")
+        return f"tcp {address[0]}:{address[1]}" if address else "tcp"
+    peercred = getattr(socket, "SO_PEERCRED", None)
+    if sock is not None and peercred is not None:
+        try:
+            pid, uid, gid = struct.unpack(
+                "3i", sock.getsockopt(socket.SOL_SOCKET, peercred, struct.calcsize("3i"))
+            )
+            return f"unix pid {pid} uid {uid}"
+        except OSError:
+            pass
+    return "unix"

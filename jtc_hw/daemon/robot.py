@@ -1,0 +1,440 @@
+"""One YAML file configures a robot: the controller, its hardware and the daemon.
+
+The controller's part is read by :func:`jtc_hw.controller.config_io.load_config` (either
+layout); this module adds two top-level sections that ``load_config`` skips::
+
+    hardware:                 # optional; default: one mirror component with every joint
+      - name: arm             # unique
+        kind: mirror          # a registry kind (see jtc_hw.hardware.available_hardware)
+        joints: [joint1, joint2]
+        params: {lag_s: 0.0}  # kind-specific, checked by the kind's PARAMS when created
+    daemon:                   # optional, every key optional
+      socket: /run/jtc-hw/jtc-hw.sock
+      socket_mode: 0o660
+      tcp: {host: 127.0.0.1, port: 0, token: "at least sixteen characters"}
+      max_clients: 16
+      max_message_bytes: 4194304
+      realtime: {priority: 0, lock_memory: false, cpu_affinity: []}
+      log_level: info
+
+The keys, types, defaults and ranges of both sections live in the schema tables below
+(:data:`HARDWARE_KEYS`, :data:`DAEMON_PARAMETERS`, :data:`TCP_PARAMETERS`,
+:data:`REALTIME_PARAMETERS`); errors name the dotted path (``hardware[1].joints``,
+``daemon.tcp.host``). Component parameters are checked when the hardware is created
+(:func:`create_hardware_set`): checking them earlier would import optional driver SDKs.
+"""
+
+from __future__ import annotations
+
+import ipaddress
+import os
+import re
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from types import MappingProxyType
+from typing import Any, Final
+
+from ..api.paths import SOCKET_NAME, default_socket_path
+from ..controller.config import ControllerConfig
+from ..controller.config_io import load_config
+from ..controller.parsing import describe, did_you_mean, read_source
+from ..errors import ConfigurationError
+from ..hardware import (
+    HardwareSet,
+    HardwareSpec,
+    ParamKind,
+    ParamSpec,
+    check_hardware_kind,
+    create_hardware,
+    param_table,
+    validate_params,
+)
+
+__all__ = [
+    "DAEMON_PARAMETERS",
+    "DEFAULT_HARDWARE_NAME",
+    "HARDWARE_KEYS",
+    "LOG_LEVELS",
+    "REALTIME_PARAMETERS",
+    "SOCKET_NAME",
+    "TCP_PARAMETERS",
+    "DaemonSettings",
+    "RealtimeSettings",
+    "RobotConfig",
+    "TcpSettings",
+    "create_hardware_set",
+    "default_socket_path",
+    "load_robot",
+]
+
+DEFAULT_HARDWARE_NAME: Final = "mirror"
+"""Name of the mirror component used when the ``hardware`` section is absent."""
+LOG_LEVELS: Final = ("debug", "info", "warning", "error")
+MIN_TOKEN_LENGTH: Final = 16
+MAX_SOCKET_PATH_BYTES: Final = 107
+"""``sun_path`` holds 108 bytes including the terminating NUL."""
+
+_OCTAL_MODE = re.compile(r"(?:0o|0)?([0-7]{1,4})")
+
+
+def _parse_socket_mode(value: Any, path: str) -> int:
+    """An int (YAML ``0660`` is already 432) or an octal string: ``"0660"``, ``"0o660"``."""
+    if isinstance(value, str):
+        match = _OCTAL_MODE.fullmatch(value.strip())
+        if match is None:
+            raise ConfigurationError(
+                f"expected an octal file mode such as \"0660\", got {value!r}", path, value
+            )
+        mode = int(match.group(1), 8)
+    elif isinstance(value, int) and not isinstance(value, bool):
+        mode = value
+    else:
+        raise ConfigurationError(
+            f"expected a file mode (an integer, or an octal string such as \"0660\"), got "
+            f"{describe(value)}",
+            path,
+            value,
+        )
+    if not 0 <= mode <= 0o777:
+        raise ConfigurationError(
+            f"{value!r} is not a permission mode (0 to 0o777); write it in octal: 0660 or "
+            "\"0660\"",
+            path,
+            value,
+        )
+    if mode & 0o600 != 0o600:
+        raise ConfigurationError(
+            f"{oct(mode)} does not give the owner read and write permission (0o600): the "
+            "daemon's own user could not connect",
+            path,
+            value,
+        )
+    return mode
+
+
+# --------------------------------------------------------------------------------------------
+# Schema
+# --------------------------------------------------------------------------------------------
+
+HARDWARE_KEYS: Final[Mapping[str, ParamSpec]] = param_table(
+    ParamSpec("name", ParamKind.STRING, "", "unique component name", required=True),
+    ParamSpec("kind", ParamKind.STRING, "", "hardware kind, from the registry", required=True),
+    ParamSpec("joints", ParamKind.STRINGS, (), "the controller joints this component serves",
+              required=True, unique=True, non_empty=True),
+    ParamSpec("params", ParamKind.SECTION, MappingProxyType({}),
+              "kind-specific parameters", nullable=True),
+)
+"""Keys of one ``hardware[]`` entry."""
+
+TCP_PARAMETERS: Final[Mapping[str, ParamSpec]] = param_table(
+    ParamSpec("host", ParamKind.STRING, "127.0.0.1", "loopback address to listen on"),
+    ParamSpec("port", ParamKind.INT, 0, "TCP port (0: any free port)", minimum=0,
+              maximum=65535),
+    ParamSpec("token", ParamKind.STRING, "",
+              f"shared secret clients must present (at least {MIN_TOKEN_LENGTH} characters)",
+              required=True),
+)
+"""``daemon.tcp.*``."""
+
+REALTIME_PARAMETERS: Final[Mapping[str, ParamSpec]] = param_table(
+    ParamSpec("priority", ParamKind.INT, 0,
+              "SCHED_FIFO priority of the loop (0: normal scheduling)", minimum=0, maximum=99),
+    ParamSpec("lock_memory", ParamKind.BOOL, False, "mlockall the loop's memory"),
+    ParamSpec("cpu_affinity", ParamKind.INTS, (), "CPUs the loop may run on (empty: any)",
+              minimum=0, unique=True),
+)
+"""``daemon.realtime.*``."""
+
+DAEMON_PARAMETERS: Final[Mapping[str, ParamSpec]] = param_table(
+    ParamSpec("socket", ParamKind.STRING, None,
+              "Unix socket path (default: $RUNTIME_DIRECTORY, $XDG_RUNTIME_DIR or /tmp)",
+              nullable=True),
+    ParamSpec("socket_mode", ParamKind.INT, 0o660, "permissions of the socket file",
+              coerce=_parse_socket_mode),
+    ParamSpec("tcp", ParamKind.SECTION, None, "optional TCP endpoint on a loopback address",
+              nullable=True, fields=TCP_PARAMETERS),
+    ParamSpec("max_clients", ParamKind.INT, 16, "simultaneous client connections", minimum=1),
+    ParamSpec("max_message_bytes", ParamKind.INT, 4_194_304, "largest accepted message",
+              minimum=1024),
+    ParamSpec("realtime", ParamKind.SECTION, MappingProxyType({}),
+              "scheduling of the control loop", nullable=True, fields=REALTIME_PARAMETERS),
+    ParamSpec("log_level", ParamKind.STRING, "info", "logging threshold", choices=LOG_LEVELS),
+)
+"""``daemon.*``."""
+
+
+# --------------------------------------------------------------------------------------------
+# Result types
+# --------------------------------------------------------------------------------------------
+
+
+def _is_loopback(host: str) -> bool:
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+@dataclass(frozen=True)
+class TcpSettings:
+    """``daemon.tcp``: a TCP endpoint next to the Unix socket.
+
+    Raises:
+        ConfigurationError: ``host`` is not a loopback address, ``port`` is out of range, or
+            ``token`` is shorter than 16 characters (at construction).
+    """
+
+    host: str = "127.0.0.1"
+    port: int = 0
+    token: str = field(default="", repr=False)
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.host, str) or not _is_loopback(self.host):
+            raise ConfigurationError(
+                f"{self.host!r} is not a loopback address (127.0.0.0/8, ::1 or localhost): the "
+                "endpoint is protected by a token only, without encryption; reach it from "
+                "another machine through an SSH tunnel",
+                "daemon.tcp.host",
+                self.host,
+            )
+        if not isinstance(self.port, int) or not 0 <= self.port <= 65535:
+            raise ConfigurationError(
+                f"must be between 0 and 65535, got {self.port!r}", "daemon.tcp.port", self.port
+            )
+        if not isinstance(self.token, str) or len(self.token) < MIN_TOKEN_LENGTH:
+            raise ConfigurationError(
+                f"must be at least {MIN_TOKEN_LENGTH} characters long, got "
+                f"{len(self.token) if isinstance(self.token, str) else describe(self.token)}"
+                "; generate one with: python -c 'import secrets; print(secrets.token_hex(16))'",
+                "daemon.tcp.token",
+                None,  # never echo a secret
+            )
+
+
+@dataclass(frozen=True)
+class RealtimeSettings:
+    """``daemon.realtime``: scheduling of the control loop's process.
+
+    Attributes:
+        priority: SCHED_FIFO priority 1..99, or 0 for normal scheduling.
+        lock_memory: lock the process's memory (``mlockall``).
+        cpu_affinity: CPUs the loop may run on; empty: any.
+    """
+
+    priority: int = 0
+    lock_memory: bool = False
+    cpu_affinity: tuple[int, ...] = ()
+
+
+
+
+@dataclass(frozen=True)
+class DaemonSettings:
+    """``daemon``: how the daemon serves clients and runs its loop.
+
+    Attributes:
+        socket: absolute path of the Unix socket.
+        socket_mode: permission bits of the socket file.
+        tcp: the optional TCP endpoint.
+        max_clients: simultaneous connections.
+        max_message_bytes: largest accepted message.
+        realtime: scheduling of the loop.
+        log_level: one of :data:`LOG_LEVELS`.
+
+    Raises:
+        ConfigurationError: the socket path is relative, empty or too long (at construction).
+    """
+
+    socket: str = field(default_factory=default_socket_path)
+    socket_mode: int = 0o660
+    tcp: TcpSettings | None = None
+    max_clients: int = 16
+    max_message_bytes: int = 4_194_304
+    realtime: RealtimeSettings = field(default_factory=RealtimeSettings)
+    log_level: str = "info"
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.socket, str) or not os.path.isabs(self.socket):
+            raise ConfigurationError(
+                f"expected an absolute path, got {describe(self.socket)}",
+                "daemon.socket",
+                self.socket,
+            )
+        size = len(os.fsencode(self.socket))
+        if size > MAX_SOCKET_PATH_BYTES:
+            raise ConfigurationError(
+                f"is {size} bytes long; a Unix socket path holds at most "
+                f"{MAX_SOCKET_PATH_BYTES}: choose a shorter directory",
+                "daemon.socket",
+                self.socket,
+            )
+
+
+@dataclass(frozen=True)
+class RobotConfig:
+    """A whole robot: controller, hardware components and daemon settings (see module doc).
+
+    Attributes:
+        controller: the validated controller configuration.
+        hardware: one spec per component, with the controller's interfaces; together their
+            joints are the controller's joints, each exactly once.
+        daemon: the daemon's settings, defaults filled in.
+        source_path: absolute path of the file read, or ``None`` for a mapping.
+    """
+
+    controller: ControllerConfig
+    hardware: tuple[HardwareSpec, ...]
+    daemon: DaemonSettings
+    source_path: str | None = None
+
+
+# --------------------------------------------------------------------------------------------
+# Loading
+# --------------------------------------------------------------------------------------------
+
+
+def _parse_hardware(raw: Any, controller: ControllerConfig) -> tuple[HardwareSpec, ...]:
+    joints = controller.joints
+    interfaces = (controller.command_interfaces, controller.state_interfaces)
+    if raw is None:
+        return (HardwareSpec(DEFAULT_HARDWARE_NAME, "mirror", joints, *interfaces, {}, "hardware"),)
+    if not isinstance(raw, (list, tuple)):
+        raise ConfigurationError(
+            f"expected a list of components (each with name, kind, joints, params), got "
+            f"{describe(raw)}",
+            "hardware",
+            raw,
+        )
+    if not raw:
+        raise ConfigurationError(
+            "lists no component; list at least one, or remove the key for the default "
+            "mirror of every joint",
+            "hardware",
+            raw,
+        )
+    specs: list[HardwareSpec] = []
+    names: dict[str, str] = {}
+    owners: dict[str, tuple[str, str]] = {}
+    for index, entry in enumerate(raw):
+        path = f"hardware[{index}]"
+        values = validate_params(HARDWARE_KEYS, entry, path, owner=f"component {index}")
+        name = values["name"]
+        if not name.strip():
+            raise ConfigurationError("expected a non-empty name", f"{path}.name", name)
+        if name in names:
+            raise ConfigurationError(
+                f"{name!r} is already the name of {names[name]}; component names must be unique",
+                f"{path}.name",
+                name,
+            )
+        names[name] = path
+        check_hardware_kind(values["kind"], f"{path}.kind")
+        for joint in values["joints"]:
+            if joint not in joints:
+                raise ConfigurationError(
+                    f"{joint!r} is not a controller joint (joints: {', '.join(joints)})"
+                    f"{did_you_mean(joint, joints)}",
+                    f"{path}.joints",
+                    joint,
+                )
+            if joint in owners:
+                other, other_path = owners[joint]
+                raise ConfigurationError(
+                    f"{joint!r} is already provided by {other!r} ({other_path}); each joint "
+                    "belongs to exactly one component",
+                    f"{path}.joints",
+                    joint,
+                )
+            owners[joint] = (name, path)
+        specs.append(
+            HardwareSpec(name, values["kind"], values["joints"], *interfaces, values["params"],
+                         path)
+        )
+    missing = [j for j in joints if j not in owners]
+    if missing:
+        plural = "s" if len(missing) > 1 else ""
+        raise ConfigurationError(
+            f"controller joint{plural} {', '.join(repr(j) for j in missing)} not provided by "
+            "any component; add each to the joints of one component",
+            "hardware",
+            missing[0],
+        )
+    return tuple(specs)
+
+
+def _parse_daemon(raw: Any, base_dir: str) -> DaemonSettings:
+    values = validate_params(DAEMON_PARAMETERS, raw, "daemon")
+    socket = values["socket"]
+    if socket is None:
+        socket = default_socket_path()
+    elif not socket.strip():
+        raise ConfigurationError(
+            "is empty; give a path, or remove the key for the default", "daemon.socket", socket
+        )
+    else:
+        socket = os.path.normpath(os.path.join(base_dir, os.path.expanduser(socket)))
+    tcp = values["tcp"]
+    realtime = values["realtime"]
+    return DaemonSettings(
+        socket=socket,
+        socket_mode=values["socket_mode"],
+        tcp=None if tcp is None else TcpSettings(**tcp),
+        max_clients=values["max_clients"],
+        max_message_bytes=values["max_message_bytes"],
+        realtime=RealtimeSettings(**realtime),
+        log_level=values["log_level"],
+    )
+
+
+def load_robot(
+    source: str | os.PathLike[str] | Mapping[str, Any], controller_name: str | None = None
+) -> RobotConfig:
+    """Read, check and freeze a robot configuration.
+
+    Args:
+        source: path of a YAML file, or an already parsed mapping: a controller configuration
+            in either layout :func:`~jtc_hw.controller.config_io.load_config` reads, plus optional
+            top-level ``hardware`` and ``daemon`` sections (see the module docstring).
+        controller_name: which controller section to use when there are several.
+
+    Returns:
+        The configuration. Without a ``hardware`` section: one ``mirror`` component named
+        ``mirror`` serving every joint. A relative ``daemon.socket`` is taken relative to the
+        file's directory (the current directory for a mapping).
+
+    Raises:
+        ConfigurationError: anything :func:`~jtc_hw.controller.config_io.load_config` rejects; a
+            ``hardware`` entry with an unknown or missing key, an unknown kind (the message
+            lists the kinds), a joint that is not the controller's or is given twice, a
+            controller joint no component provides; a ``daemon`` key that is unknown, of the
+            wrong type or out of range, a TCP host that is not a loopback address, a token
+            shorter than 16 characters. The message names the dotted key path.
+        TypeError: ``source`` is neither a path nor a mapping.
+    """
+    data = read_source(source)
+    controller = load_config(data, controller_name)
+    if isinstance(source, Mapping):
+        source_path = None
+        base_dir = os.getcwd()
+    else:
+        source_path = os.path.abspath(os.fspath(source))
+        base_dir = os.path.dirname(source_path)
+    hardware = _parse_hardware(data.get("hardware"), controller)
+    daemon = _parse_daemon(data.get("daemon"), base_dir)
+    return RobotConfig(controller, hardware, daemon, source_path)
+
+
+def create_hardware_set(robot: RobotConfig) -> HardwareSet:
+    """Create every component of ``robot`` (UNCONFIGURED) and join them.
+
+    Raises:
+        ConfigurationError: a component's kind cannot be loaded (e.g. a missing optional
+            dependency: the message names the ``pip install``) or its parameters are invalid
+            (path ``hardware[<i>].params.<key>``).
+        HardwareError: a driver's constructor failed otherwise.
+    """
+    components = [create_hardware(spec) for spec in robot.hardware]
+    return HardwareSet(components, robot.controller.joints)
+

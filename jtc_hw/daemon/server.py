@@ -1,0 +1,860 @@
+"""The daemon's socket server: asyncio, one task pair per client, the wire format of ``protocol``.
+
+Theory of operation
+-------------------
+The server owns sockets and nothing else. It decodes requests with ``protocol.Decoder``, calls
+the ``Backend`` (which runs the control loop elsewhere, in another process) and writes replies
+and events with ``protocol.encode``. It never waits on the control loop while holding anything
+another client needs: backend coroutines (``send_goal``, ``cancel_goal``, ``send_trajectory``)
+are awaited by the requesting client's own task, and the synchronous backend methods must
+return at once (they read replicas and caches; see ``Backend``).
+
+Per client, a reader task handles requests one after another (so replies come back in request
+order) and a writer task drains a bounded outgoing queue:
+
+- ``state`` and ``feedback`` events are dropped while the queue holds ``client_queue_size``
+  messages; the loss is counted per client, reported in the next ``state`` event's ``dropped``
+  and in ``get_status``;
+- replies and goal ``result`` events are never dropped; a client so slow that its queue reaches
+  ``client_queue_hard_cap`` messages is disconnected (and logged).
+
+Goal routing: a goal's events go to the connection that sent it. ``Backend.send_goal`` returns
+the id and the server registers the route before it awaits anything else, so no event can
+overtake the registration through this server's own scheduling. A backend may still deliver a
+goal's events *before* the ``send_goal`` coroutine resumes (e.g. it resolves the id's future and
+then, in the same callback, dispatches a batch of events that includes the goal's first
+feedback): events for a goal id without a route are held (bounded) and delivered right after
+the ``accepted`` reply once the route exists.
+
+A client that disconnects while its goal runs does not stop the goal (as with a ROS action
+client that vanishes): the goal runs on to its result, which is logged and discarded.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import collections
+import hmac
+import logging
+import os
+import socket
+import stat
+from collections.abc import Mapping, Sequence
+from functools import partial
+from pathlib import Path
+from typing import Any, Protocol
+
+from .. import __version__
+from ..api.protocol import (
+    BAD_REQUEST,
+    BUSY,
+    GOAL_REJECTED,
+    HARDWARE,
+    INTERNAL,
+    NOT_ACTIVE,
+    NOT_FOUND,
+    PROTOCOL_VERSION,
+    UNAUTHORIZED,
+    Auth,
+    CancelGoal,
+    Decoder,
+    GetConfig,
+    GetStatus,
+    Hello,
+    QueryState,
+    Rearm,
+    Request,
+    RequestError,
+    SendGoal,
+    SendTrajectory,
+    Sim,
+    SubscribeState,
+    UnsubscribeState,
+    encode,
+    error_reply,
+    feedback_event,
+    reply,
+    result_event,
+    sample_to_json,
+)
+from ..controller.goals import GoalFeedback, GoalResult
+from ..controller.tolerances import JointTolerance
+from ..controller.trajectory import JointTrajectory, TrajectorySample
+from ..errors import (
+    ConfigurationError,
+    ControllerStateError,
+    GoalRejected,
+    HardwareError,
+    JtcHwError,
+)
+from .connection import Connection, ServerSettings, TcpEndpoint, peer_label
+
+__all__ = [
+    "Backend",
+    "BackendListener",
+    "Server",
+    "ServerSettings",
+    "TcpEndpoint",
+]
+
+log = logging.getLogger("jtc_hw.server")
+
+EARLY_GOALS = 64
+"""Goal ids whose events are held while their route is not registered yet."""
+EARLY_EVENTS = 256
+"""Feedback events held per such goal (results are always held)."""
+FINISHED_GOALS = 256
+"""Recently finished goal ids remembered, so that a straggling event is ignored, not held."""
+_READ_CHUNK = 65536
+_WRITE_BATCH = 65536
+_RESERVED_STATE_KEYS = frozenset({"event", "dropped", "dropped_total"})
+
+
+class BackendListener(Protocol):
+    """What the backend reports to (the ``Server`` is one)."""
+
+    def on_goal_event(self, event: GoalResult | GoalFeedback) -> None:
+        """A goal's feedback or result; called in the asyncio loop's thread.
+
+        Raises:
+            Nothing.
+        """
+
+    def on_state(self, snapshot: dict[str, Any]) -> None:
+        """A JSON-able controller state snapshot, at ``state_publish_rate``; loop thread.
+
+        Raises:
+            Nothing.
+        """
+
+
+class Backend(Protocol):
+    """The control loop's host, as the server sees it.
+
+    The synchronous methods are called from the asyncio loop and must return at once (no
+    waiting on the control loop): answer from replicas and caches. The coroutines may wait on
+    the control loop; only the requesting client waits for them.
+    """
+
+    joint_names: tuple[str, ...]
+
+    def now_ns(self) -> int:
+        """The daemon's monotonic clock, in nanoseconds.
+
+        Raises:
+            Nothing expected: an exception becomes an ``internal`` error reply.
+        """
+        ...
+
+    def hello(self) -> dict[str, Any]:
+        """Facts for a new client (``update_rate``, ``state_publish_rate``, ...).
+
+        Raises:
+            Nothing expected: an exception becomes an ``internal`` error reply.
+        """
+        ...
+
+    def config_dict(self) -> dict[str, Any]:
+        """The configuration in effect, JSON-able.
+
+        Raises:
+            Nothing expected: an exception becomes an ``internal`` error reply.
+        """
+        ...
+
+    def status(self) -> dict[str, Any]:
+        """Loop statistics, hardware and controller status, JSON-able.
+
+        Raises:
+            Nothing expected: an exception becomes an ``internal`` error reply.
+        """
+        ...
+
+    async def send_goal(
+        self,
+        traj: JointTrajectory,
+        path_tolerance: Sequence[JointTolerance],
+        goal_tolerance: Sequence[JointTolerance],
+        goal_time_tolerance: float,
+    ) -> int:
+        """Accept an action goal and return its id.
+
+        Raises:
+            GoalRejected: why it was refused, with the FollowJointTrajectory error code.
+        """
+        ...
+
+    async def cancel_goal(self, goal_id: int) -> bool:
+        """Request cancellation; False if ``goal_id`` is not executing.
+
+        Raises:
+            HardwareError: the control loop did not answer (an ``internal`` error reply).
+        """
+        ...
+
+    async def send_trajectory(self, traj: JointTrajectory) -> None:
+        """A topic trajectory (no points: stop).
+
+        Raises:
+            GoalRejected: why it was refused.
+        """
+        ...
+
+    def query_state(self, time_ns: int) -> TrajectorySample:
+        """The desired state at ``time_ns``.
+
+        Raises:
+            ControllerStateError: the controller is not active.
+        """
+        ...
+
+    async def sim(self, component: str, freeze: bool | None, fault: str | None = None) -> None:
+        """Freeze or release a simulated component's feedback (``None``: unchanged), or
+        inject a latched read fault (applied by the loop).
+
+        Raises:
+            ConfigurationError: no such simulated component.
+            HardwareError: the hardware could not do it.
+        """
+        ...
+
+    async def rearm(self) -> bool:
+        """Leave a hardware fault: clear the devices' latched faults and hold the position.
+
+        Returns:
+            False if there was nothing to re-arm (the controller is running, no fault).
+
+        Raises:
+            HardwareError: re-arming failed (the controller stays stopped).
+        """
+        ...
+
+    def set_listener(self, listener: BackendListener) -> None:
+        """Where goal events and state snapshots go from now on.
+
+        Raises:
+            Nothing.
+        """
+        ...
+
+
+class Server:
+    """The socket API in front of a ``Backend``; also the backend's ``BackendListener``.
+
+    Example::
+
+        server = Server(backend, ServerSettings(socket="/run/jtc-hw/jtc-hw.sock"))
+        await server.start()
+        ...
+        await server.close()
+
+    Args:
+        backend: the control loop's host.
+        settings: a ``ServerSettings``, a mapping of its fields, or an object with attributes
+            of those names.
+
+    Raises:
+        ConfigurationError: invalid settings.
+    """
+
+    def __init__(self, backend: Backend, settings: object) -> None:
+        self.backend = backend
+        self.settings = ServerSettings.coerce(settings)
+        self._servers: list[asyncio.Server] = []
+        self._conns: dict[int, Connection] = {}
+        self._tasks: dict[int, asyncio.Task[None]] = {}
+        self._routes: dict[int, Connection] = {}
+        self._early: collections.OrderedDict[int, list[GoalResult | GoalFeedback]] = (
+            collections.OrderedDict()
+        )
+        self._finished: collections.OrderedDict[int, None] = collections.OrderedDict()
+        self._number = 0
+        self._refused_busy = 0
+        self._results_discarded = 0
+        self._socket_identity: tuple[int, int] | None = None
+        self._started = False
+        self._closed = False
+        self._tcp_address: tuple[str, int] | None = None
+        self._token = b"" if self.settings.tcp is None else self.settings.tcp.token.encode()
+
+    # -- lifecycle ----------------------------------------------------------------------------
+
+    @property
+    def path(self) -> Path | None:
+        """The unix socket file, if one is configured."""
+        p = self.settings.socket
+        return None if p is None else Path(p)
+
+    @property
+    def tcp_address(self) -> tuple[str, int] | None:
+        """The bound TCP ``(host, port)`` once started (the real port when 0 was asked)."""
+        return self._tcp_address
+
+    async def start(self) -> None:
+        """Register as the backend's listener and start listening.
+
+        Raises:
+            ConfigurationError: the socket path is in use by a live daemon, is not a socket,
+                or cannot be bound (names the path and what to check).
+            OSError: the TCP address cannot be bound.
+            ControllerStateError: already started.
+        """
+        if self._started:
+            raise ControllerStateError("the server is already started")
+        self._started = True
+        self.backend.set_listener(self)
+        try:
+            if self.path is not None:
+                sock = self._bind_unix(self.path)
+                self._servers.append(
+                    await asyncio.start_unix_server(partial(self._accept, "unix"), sock=sock)
+                )
+                log.info("listening on %s (mode %03o)", self.path, self.settings.socket_mode)
+            endpoint = self.settings.tcp
+            if endpoint is not None:
+                # "localhost" could bind ::1 and 127.0.0.1 on two different free ports.
+                host = "127.0.0.1" if endpoint.host == "localhost" else endpoint.host
+                tcp = await asyncio.start_server(partial(self._accept, "tcp"), host, endpoint.port)
+                self._servers.append(tcp)
+                name = tcp.sockets[0].getsockname()
+                self._tcp_address = (name[0], name[1])
+                log.info("listening on tcp %s:%d (token required)", name[0], name[1])
+        except BaseException:
+            await self.close()
+            raise
+
+    def _bind_unix(self, path: Path) -> socket.socket:
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise ConfigurationError(
+                f"cannot create the socket's directory {path.parent}: {exc.strerror}",
+                "socket",
+            ) from None
+        self._remove_stale(path)
+        sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        try:
+            sock.bind(str(path))
+            # Nobody can connect before listen(), which start_unix_server calls: no window.
+            os.chmod(path, self.settings.socket_mode)
+            st = os.stat(path)
+            self._socket_identity = (st.st_dev, st.st_ino)
+        except OSError as exc:
+            sock.close()
+            raise ConfigurationError(
+                f"cannot bind the unix socket {path}: {exc.strerror or exc}", "socket"
+            ) from None
+        return sock
+
+    @staticmethod
+    def _remove_stale(path: Path) -> None:
+        try:
+            st = os.lstat(path)
+        except FileNotFoundError:
+            return
+        if not stat.S_ISSOCK(st.st_mode):
+            raise ConfigurationError(
+                f"{path} exists and is not a socket; refusing to replace it (remove it, or "
+                "choose another socket path)",
+                "socket",
+            )
+        probe = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        probe.settimeout(1.0)
+        try:
+            probe.connect(str(path))
+        except (ConnectionRefusedError, FileNotFoundError):
+            log.info("replacing stale socket %s (no daemon listening)", path)
+            try:
+                os.unlink(path)
+            except FileNotFoundError:
+                pass
+            return
+        except OSError as exc:
+            raise ConfigurationError(
+                f"cannot tell whether a daemon listens on {path} ({exc}); stop it or remove "
+                "the file",
+                "socket",
+            ) from None
+        finally:
+            probe.close()
+        raise ConfigurationError(
+            f"another daemon is listening on {path}; stop it first or choose another socket",
+            "socket",
+        )
+
+    async def close(self) -> None:
+        """Stop listening, give each client up to ``close_timeout_s`` to read what is queued,
+        disconnect them, and remove the socket file (if it is still ours). Idempotent.
+
+        Raises:
+            Nothing: errors while closing are logged.
+        """
+        if self._closed:
+            return
+        self._closed = True
+        for srv in self._servers:
+            srv.close()
+        tasks = list(self._tasks.values())
+        for conn in self._conns.values():
+            conn.close_reason = "server closing"
+        for task in tasks:
+            task.cancel()
+        if tasks:
+            await asyncio.gather(*tasks, return_exceptions=True)
+        for srv in self._servers:
+            await srv.wait_closed()
+        self._servers.clear()
+        self._remove_socket_file()
+        self._routes.clear()
+        self._early.clear()
+        self._finished.clear()
+
+    def _remove_socket_file(self) -> None:
+        path, identity = self.path, self._socket_identity
+        if path is None or identity is None:
+            return
+        self._socket_identity = None
+        try:
+            st = os.stat(path)
+            if (st.st_dev, st.st_ino) == identity:
+                os.unlink(path)
+            else:
+                log.warning("%s was replaced by someone else; leaving it", path)
+        except FileNotFoundError:
+            pass
+        except OSError as exc:
+            log.warning("cannot remove %s: %s", path, exc)
+
+    async def __aenter__(self) -> Server:
+        await self.start()
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        await self.close()
+
+    # -- connections --------------------------------------------------------------------------
+
+    async def _accept(
+        self, kind: str, reader: asyncio.StreamReader, writer: asyncio.StreamWriter
+    ) -> None:
+        self._number += 1
+        number = self._number
+        peer = peer_label(kind, writer)
+        if self._closed:
+            writer.transport.abort()
+            return
+        if len(self._conns) >= self.settings.max_clients:
+            self._refused_busy += 1
+            log.warning(
+                "client %d (%s) refused: %d clients connected (max_clients)",
+                number,
+                peer,
+                len(self._conns),
+            )
+            await self._refuse(writer)
+            return
+        conn = Connection(number, kind, peer, reader, writer, self.settings)
+        task = asyncio.current_task()
+        assert task is not None
+        self._conns[number] = conn
+        self._tasks[number] = task
+        log.info("%s connected", conn.label)
+        writer_task = asyncio.create_task(self._write_loop(conn))
+        try:
+            await self._read_loop(conn)
+        except asyncio.CancelledError:
+            pass  # the server is closing; this is the connection's top-level task
+        except OSError as exc:
+            conn.close_reason = f"connection error: {exc}"
+        finally:
+            await self._finish(conn, writer_task)
+
+    async def _refuse(self, writer: asyncio.StreamWriter) -> None:
+        message = (
+            f"the daemon already serves {self.settings.max_clients} clients (max_clients); "
+            "try again later"
+        )
+        writer.write(encode(error_reply(None, BUSY, message)))
+        try:
+            await asyncio.wait_for(writer.drain(), self.settings.close_timeout_s)
+            writer.close()
+            await asyncio.wait_for(writer.wait_closed(), self.settings.close_timeout_s)
+        except (OSError, TimeoutError):
+            writer.transport.abort()
+
+    async def _finish(self, conn: Connection, writer_task: asyncio.Task[None]) -> None:
+        conn.closing = True
+        conn.wake.set()
+        try:
+            await asyncio.wait_for(writer_task, self.settings.close_timeout_s)
+        except TimeoutError:
+            conn.abort(f"{conn.close_reason}; did not read its last messages in time")
+        except asyncio.CancelledError:
+            writer_task.cancel()
+            conn.abort(conn.close_reason)
+        if not conn.gone:
+            conn.gone = True
+            conn.writer.close()
+            try:
+                await asyncio.wait_for(conn.writer.wait_closed(), self.settings.close_timeout_s)
+            except (OSError, TimeoutError, asyncio.CancelledError):
+                conn.writer.transport.abort()
+        self._conns.pop(conn.number, None)
+        self._tasks.pop(conn.number, None)
+        running = sorted(conn.goals)
+        extra = ""
+        if running:
+            extra = (
+                f"; goal(s) {', '.join(map(str, running))} still running: they run on to "
+                "their results, which will be discarded"
+            )
+        level = logging.WARNING if conn.too_slow else logging.INFO
+        log.log(
+            level,
+            "%s disconnected: %s (%d requests, %d state and %d feedback messages dropped)%s",
+            conn.label,
+            conn.close_reason,
+            conn.requests,
+            conn.dropped_state,
+            conn.dropped_feedback,
+            extra,
+        )
+
+    async def _read_loop(self, conn: Connection) -> None:
+        decoder = Decoder(self.settings.max_message_bytes)
+        while not conn.closing:
+            try:
+                if conn.authenticated:
+                    data = await conn.reader.read(_READ_CHUNK)
+                else:
+                    data = await asyncio.wait_for(
+                        conn.reader.read(_READ_CHUNK), self.settings.auth_timeout_s
+                    )
+            except TimeoutError:  # before OSError, of which it is a subclass
+                message = (
+                    f"no auth request within {self.settings.auth_timeout_s:g} s; closing the "
+                    "connection"
+                )
+                self._reject(conn, None, RequestError(UNAUTHORIZED, message))
+                conn.close_reason = "unauthorized (no auth request in time)"
+                return
+            except OSError as exc:
+                conn.close_reason = f"connection error: {exc}"
+                return
+            for item in decoder.feed(data) if data else decoder.end():
+                await self._handle(conn, item)
+                if conn.closing:
+                    return
+            if not data:
+                return
+
+    async def _write_loop(self, conn: Connection) -> None:
+        writer = conn.writer
+        try:
+            while True:
+                if not conn.queue:
+                    if conn.closing or conn.gone:
+                        return
+                    conn.wake.clear()
+                    await conn.wake.wait()
+                    continue
+                batch: list[bytes] = []
+                size = 0
+                while conn.queue and size < _WRITE_BATCH:
+                    data = conn.queue.popleft()
+                    batch.append(data)
+                    size += len(data)
+                writer.write(b"".join(batch))
+                await writer.drain()
+        except OSError as exc:
+            if not conn.gone:
+                conn.close_reason = f"connection lost while writing: {exc}"
+                conn.gone = True
+                conn.queue.clear()
+                conn.closing = True
+                writer.transport.abort()
+
+    # -- requests -----------------------------------------------------------------------------
+
+    async def _handle(self, conn: Connection, item: Request | RequestError) -> None:
+        conn.requests += 1
+        if not conn.authenticated:
+            self._authenticate(conn, item)
+            return
+        if isinstance(item, RequestError):
+            self._reject(conn, None, item)
+            return
+        try:
+            answer = await self._dispatch(conn, item)
+            data = None if answer is None else encode(answer)
+        except RequestError as exc:
+            self._reject(conn, item, exc)
+        except GoalRejected as exc:
+            self._reject(
+                conn, item, RequestError(GOAL_REJECTED, exc.reason, item.id, exc.error_code)
+            )
+        except ControllerStateError as exc:
+            self._reject(conn, item, RequestError(NOT_ACTIVE, str(exc), item.id))
+        except ConfigurationError as exc:
+            self._reject(conn, item, RequestError(BAD_REQUEST, str(exc), item.id))
+        except HardwareError as exc:
+            self._reject(conn, item, RequestError(HARDWARE, str(exc), item.id))
+        except JtcHwError as exc:
+            self._reject(conn, item, RequestError(INTERNAL, str(exc), item.id))
+        except Exception as exc:
+            log.exception("%s: %s failed", conn.label, item.op)
+            message = f"internal error: {type(exc).__name__}: {exc}"
+            self._reject(conn, item, RequestError(INTERNAL, message, item.id), logged=True)
+        else:
+            if data is not None:
+                conn.send(data)
+
+    def _authenticate(self, conn: Connection, item: Request | RequestError) -> None:
+        if isinstance(item, Auth) and self._token_ok(item.token):
+            conn.authenticated = True
+            log.info("%s authenticated", conn.label)
+            conn.send(encode(reply(item.id, authenticated=True)))
+            return
+        if isinstance(item, Auth):
+            message = "wrong token; closing the connection"
+        else:
+            message = (
+                'the first request on a TCP connection must be {"op": "auth", "token": ...}; '
+                "closing the connection"
+            )
+        rid = item.request_id if isinstance(item, RequestError) else item.id
+        self._reject(
+            conn,
+            item if not isinstance(item, RequestError) else None,
+            RequestError(UNAUTHORIZED, message, rid),
+        )
+        conn.close_reason = "unauthorized"
+        conn.closing = True
+        conn.wake.set()
+
+    def _token_ok(self, token: str) -> bool:
+        return bool(self._token) and hmac.compare_digest(token.encode("utf-8"), self._token)
+
+    def _reject(
+        self,
+        conn: Connection,
+        request: Request | None,
+        error: RequestError,
+        logged: bool = False,
+    ) -> None:
+        rid = error.request_id if error.request_id is not None or request is None else request.id
+        if not logged:
+            op = request.op if request is not None else "request"
+            log.info(
+                "%s: rejected %s (id %r): %s: %s", conn.label, op, rid, error.code, error.message
+            )
+        conn.send(encode(error_reply(rid, error.code, error.message, error.error_code)))
+
+    async def _dispatch(self, conn: Connection, req: Request) -> dict[str, Any] | None:
+        backend = self.backend
+        match req:
+            case Hello():
+                if req.protocol_version is not None and req.protocol_version != PROTOCOL_VERSION:
+                    raise RequestError(
+                        BAD_REQUEST,
+                        f"protocol_version: this daemon speaks version {PROTOCOL_VERSION}; "
+                        f"the client asked for {req.protocol_version}",
+                        req.id,
+                    )
+                ours = {
+                    "protocol_version": PROTOCOL_VERSION,
+                    "server_version": __version__,
+                    "joint_names": list(backend.joint_names),
+                    "now_ns": backend.now_ns(),
+                    "max_message_bytes": self.settings.max_message_bytes,
+                }
+                return self._merge(req.id, backend.hello(), ours)
+            case Auth():
+                if conn.kind == "tcp" and not self._token_ok(req.token):
+                    self._authenticate(conn, req)
+                    return None
+                return reply(req.id, authenticated=True)
+            case SendGoal():
+                traj = req.trajectory.to_joint_trajectory(backend.now_ns())
+                goal_id = int(
+                    await backend.send_goal(
+                        traj, req.path_tolerance, req.goal_tolerance, req.goal_time_tolerance
+                    )
+                )
+                # Nothing may be awaited from here on: the route must exist before this task
+                # yields, so that every later event of the goal finds it (module docstring).
+                self._routes[goal_id] = conn
+                conn.goals.add(goal_id)
+                if conn.gone:
+                    log.info(
+                        "%s left before goal %d was accepted; it runs on to its result, "
+                        "which will be discarded",
+                        conn.label,
+                        goal_id,
+                    )
+                log.info("%s: goal %d accepted", conn.label, goal_id)
+                conn.send(encode(reply(req.id, goal_id=goal_id, accepted=True)))
+                for event in self._early.pop(goal_id, ()):
+                    self._route(conn, event)
+                return None
+            case CancelGoal():
+                if not await backend.cancel_goal(req.goal_id):
+                    raise RequestError(
+                        NOT_FOUND,
+                        f"goal {req.goal_id} is not executing (unknown, already finished or "
+                        "already being canceled); nothing to cancel",
+                        req.id,
+                    )
+                return reply(req.id, goal_id=req.goal_id, canceling=True)
+            case SendTrajectory():
+                traj = req.trajectory.to_joint_trajectory(backend.now_ns())
+                await backend.send_trajectory(traj)
+                return reply(req.id, stopping=not traj.points)
+            case QueryState():
+                t = req.resolve(backend.now_ns())
+                sample = backend.query_state(t)
+                return reply(
+                    req.id,
+                    time_ns=t,
+                    joint_names=list(backend.joint_names),
+                    **sample_to_json(sample),
+                )
+            case SubscribeState():
+                conn.subscribed = True
+                return reply(req.id, subscribed=True)
+            case UnsubscribeState():
+                conn.subscribed = False
+                return reply(req.id, subscribed=False)
+            case GetConfig():
+                return reply(req.id, config=backend.config_dict())
+            case GetStatus():
+                return self._merge(req.id, backend.status(), {"server": self.stats(conn)})
+            case Sim():
+                await backend.sim(req.component, req.freeze, req.fault)
+                if req.fault is not None:
+                    return reply(req.id, component=req.component, fault=req.fault)
+                return reply(req.id, component=req.component, frozen=req.freeze)
+            case Rearm():
+                done = await backend.rearm()
+                if not done:
+                    return reply(req.id, rearmed=False, message="nothing to re-arm: no fault")
+                return reply(req.id, rearmed=True)
+        raise AssertionError(f"unhandled request {req!r}")  # pragma: no cover
+
+    @staticmethod
+    def _merge(
+        request_id: object, theirs: Mapping[str, Any], ours: Mapping[str, Any]
+    ) -> dict[str, Any]:
+        out: dict[str, Any] = {"id": request_id, "ok": True}
+        out.update((k, v) for k, v in theirs.items() if k not in ("id", "ok"))
+        out.update(ours)
+        return out
+
+    def stats(self, conn: Connection | None = None) -> dict[str, Any]:
+        """The server's part of ``get_status``.
+
+        Raises:
+            Nothing.
+        """
+        return {
+            "version": __version__,
+            "protocol_version": PROTOCOL_VERSION,
+            "max_clients": self.settings.max_clients,
+            "clients": [c.stats() for c in self._conns.values()],
+            "you": None if conn is None else conn.number,
+            "connections_total": self._number,
+            "refused_busy": self._refused_busy,
+            "goals_routed": sorted(self._routes),
+            "results_discarded": self._results_discarded,
+        }
+
+    # -- BackendListener ----------------------------------------------------------------------
+
+    def on_goal_event(self, event: GoalResult | GoalFeedback) -> None:
+        """Route a goal's event to the client that sent the goal.
+
+        Raises:
+            Nothing: a result whose client has gone is logged and discarded.
+        """
+        if self._closed:
+            return
+        conn = self._routes.get(event.goal_id)
+        if conn is None:
+            if event.goal_id in self._finished:
+                log.debug("ignoring a late event of finished goal %d", event.goal_id)
+                return
+            self._hold(event)
+            return
+        self._route(conn, event)
+
+    def _route(self, conn: Connection, event: GoalResult | GoalFeedback) -> None:
+        if isinstance(event, GoalResult):
+            self._routes.pop(event.goal_id, None)
+            conn.goals.discard(event.goal_id)
+            self._finished[event.goal_id] = None
+            if len(self._finished) > FINISHED_GOALS:
+                self._finished.popitem(last=False)
+            if not conn.send(encode(result_event(event))):
+                self._results_discarded += 1
+                log.info(
+                    "goal %d %s (%d: %s) after %s disconnected; result discarded",
+                    event.goal_id,
+                    event.status.value,
+                    int(event.error_code),
+                    event.error_string,
+                    conn.label,
+                )
+            return
+        if conn.gone:
+            return
+        try:
+            data = encode(feedback_event(event, self.backend.joint_names))
+        except (TypeError, IndexError):
+            log.exception("cannot encode feedback of goal %d; skipped", event.goal_id)
+            return
+        if not conn.offer(data):
+            conn.dropped_feedback += 1
+            conn.dropped_since_state += 1
+
+    def _hold(self, event: GoalResult | GoalFeedback) -> None:
+        events = self._early.get(event.goal_id)
+        if events is None:
+            if len(self._early) >= EARLY_GOALS:
+                goal_id, lost = self._early.popitem(last=False)
+                log.warning(
+                    "discarded %d event(s) of goal %d: no client ever claimed the goal",
+                    len(lost),
+                    goal_id,
+                )
+            events = self._early[event.goal_id] = []
+        if isinstance(event, GoalResult) or len(events) < EARLY_EVENTS:
+            events.append(event)
+
+    def on_state(self, snapshot: dict[str, Any]) -> None:
+        """Send a state snapshot to every subscribed client whose queue has room.
+
+        Raises:
+            Nothing: a snapshot that cannot be encoded is logged and skipped.
+        """
+        if self._closed:
+            return
+        subscribers = [c for c in self._conns.values() if c.subscribed and not c.gone]
+        if not subscribers:
+            return
+        body = {k: v for k, v in snapshot.items() if k not in _RESERVED_STATE_KEYS}
+        try:
+            head = encode({"event": "state", **body})[:-2]  # without the closing "}\n"
+        except TypeError:
+            # Never raise into the backend's dispatch: say what is wrong and skip this one.
+            log.exception("cannot encode a state snapshot; skipped")
+            return
+        for conn in subscribers:
+            tail = b',"dropped":%d,"dropped_total":%d}\n' % (
+                conn.dropped_since_state,
+                conn.dropped_total,
+            )
+            if conn.offer(head + tail):
+                conn.dropped_since_state = 0
+            else:
+                conn.dropped_state += 1
+                conn.dropped_since_state += 1

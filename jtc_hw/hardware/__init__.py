@@ -1,0 +1,62 @@
+"""The hardware contract: what every driver implements, and how kinds are found and combined.
+
+- :mod:`.interface`: :class:`HardwareInterface`, the ros2_control lifecycle every component
+  follows, with the policy (transition guard, parameter validation, error wrapping) in the base
+  class and the I/O in the driver's underscore primitives.
+- :mod:`.params`: the parameter schema engine (:class:`ParamSpec`, :func:`validate_params`).
+- :mod:`.components`: :class:`HardwareSet`, several components forming the controller's joints.
+- :mod:`.registry`: kinds by name (built-in, the ``jtc_hw.hardware`` entry-point group,
+  :func:`register_hardware`), created lazily.
+- :mod:`.mirror`: simulated joints (imported on use, through the registry).
+- :mod:`.timing`: timer slack, for anything that paces a bus (drivers, emulators, the loop).
+
+Drivers import what they need from here: ``from jtc_hw.hardware import HardwareInterface``.
+"""
+
+from ..controller.joints import JointCommand, JointState
+from .components import HardwareSet
+from .interface import (
+    COMMON_PARAMS,
+    JOINT_MAPPING_PARAMS,
+    TRANSITIONS,
+    HardwareInterface,
+    LifecycleState,
+    SafeAction,
+)
+from .params import ParamKind, ParamSpec, param_table, validate_params
+from .registry import (
+    BUILTIN_HARDWARE,
+    ENTRY_POINT_GROUP,
+    HardwareSpec,
+    available_hardware,
+    check_hardware_kind,
+    create_hardware,
+    hardware_class,
+    register_hardware,
+    unregister_hardware,
+)
+
+__all__ = [
+    "BUILTIN_HARDWARE",
+    "COMMON_PARAMS",
+    "ENTRY_POINT_GROUP",
+    "JOINT_MAPPING_PARAMS",
+    "TRANSITIONS",
+    "HardwareInterface",
+    "HardwareSet",
+    "HardwareSpec",
+    "JointCommand",
+    "JointState",
+    "LifecycleState",
+    "ParamKind",
+    "ParamSpec",
+    "SafeAction",
+    "available_hardware",
+    "check_hardware_kind",
+    "create_hardware",
+    "hardware_class",
+    "param_table",
+    "register_hardware",
+    "unregister_hardware",
+    "validate_params",
+]

@@ -1,0 +1,603 @@
+"""The hardware contract: the lifecycle every component follows, and its base class.
+
+Theory of operation
+-------------------
+A :class:`HardwareInterface` is one component (a bus, a motor group, a simulator) serving some
+joints in SI units. It follows ros2_control's ``SystemInterface`` lifecycle::
+
+    UNCONFIGURED --configure()--> INACTIVE --activate()--> ACTIVE
+    UNCONFIGURED <--cleanup()---- INACTIVE <--deactivate()- ACTIVE
+    any state --shutdown()--> FINALIZED
+
+``read`` is allowed while INACTIVE or ACTIVE (the daemon shows positions of a disarmed robot),
+``write`` only while ACTIVE. The base class owns the policy, as python-can's ``BusABC`` does:
+the transition guard (:data:`TRANSITIONS`, one table), parameter validation against the kind's
+:attr:`HardwareInterface.PARAMS` schema, wrapping of foreign exceptions in
+:class:`~jtc_hw.errors.HardwareError` naming the component, fault bookkeeping and counters.
+Drivers implement the underscore primitives (``_read``, ``_write`` and, if they need them,
+``_configure``, ``_activate``, ``_deactivate``, ``_cleanup``).
+
+A failed ``configure``/``activate`` leaves the state unchanged. A failed ``deactivate`` or
+``cleanup`` still leaves the state it aims at: the component stops accepting writes (the safe
+side for us) and the error reports that the device may not have performed its safe action.
+"""
+
+from __future__ import annotations
+
+import logging
+from abc import ABC, abstractmethod
+from collections import deque
+from collections.abc import Callable, Mapping, Sequence
+from enum import Enum
+from types import MappingProxyType
+from typing import Any, ClassVar, Final
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ..controller.config import COMMAND_INTERFACE_TYPES, STATE_INTERFACE_TYPES
+from ..controller.joints import JointCommand, JointState
+from ..controller.parsing import describe, did_you_mean
+from ..errors import ConfigurationError, ControllerStateError, HardwareError, JtcHwError
+from .params import ParamKind, ParamSpec, _coerce, param_table, validate_params
+
+__all__ = [
+    "COMMON_PARAMS",
+    "HardwareInterface",
+    "JOINT_MAPPING_PARAMS",
+    "LifecycleState",
+    "SafeAction",
+    "TRANSITIONS",
+]
+
+_log = logging.getLogger("jtc_hw.hardware")
+
+F64 = NDArray[np.float64]
+
+# --------------------------------------------------------------------------------------------
+# Lifecycle
+# --------------------------------------------------------------------------------------------
+
+
+class LifecycleState(Enum):
+    """Lifecycle state of a hardware component (ros2_control's primary states)."""
+
+    UNCONFIGURED = "unconfigured"
+    INACTIVE = "inactive"
+    ACTIVE = "active"
+    FINALIZED = "finalized"
+
+
+class SafeAction(Enum):
+    """What ``deactivate`` leaves the joints doing (the ``safe_action`` parameter)."""
+
+    HOLD = "hold"
+    """Keep torque on and hold the last position."""
+    TORQUE_OFF = "torque_off"
+    """Switch the drives off; the joints are free (and hold no command any more)."""
+
+
+_U, _I, _A, _F = (
+    LifecycleState.UNCONFIGURED,
+    LifecycleState.INACTIVE,
+    LifecycleState.ACTIVE,
+    LifecycleState.FINALIZED,
+)
+
+TRANSITIONS: Final[Mapping[tuple[LifecycleState, str], LifecycleState]] = MappingProxyType({
+    (_U, "configure"): _I,
+    (_I, "activate"): _A,
+    (_A, "deactivate"): _I,
+    (_I, "cleanup"): _U,
+})
+"""The lifecycle transitions: (state, method) -> state left on success."""
+
+_ALLOWED: Final[Mapping[str, frozenset[LifecycleState]]] = MappingProxyType({
+    **{method: frozenset({state}) for (state, method) in TRANSITIONS},
+    "read": frozenset({_I, _A}),
+    "write": frozenset({_A}),
+    "recover": frozenset({_I}),
+})
+
+
+def _steps_to(state: LifecycleState, targets: frozenset[LifecycleState]) -> list[str] | None:
+    """Shortest list of transition methods leading from ``state`` into ``targets``."""
+    queue: deque[tuple[LifecycleState, list[str]]] = deque([(state, [])])
+    seen = {state}
+    while queue:
+        current, steps = queue.popleft()
+        if current in targets:
+            return steps
+        for (source, method), target in TRANSITIONS.items():
+            if source is current and target not in seen:
+                seen.add(target)
+                queue.append((target, [*steps, method]))
+    return None
+
+
+def _lifecycle_error(owner: str, method: str, state: LifecycleState) -> ControllerStateError:
+    steps = _steps_to(state, _ALLOWED[method])
+    if not steps:
+        hint = "it was shut down; create a new instance"
+    else:
+        hint = "call " + " and ".join(f"{step}()" for step in steps) + " first"
+    return ControllerStateError(f"{owner}: cannot call {method}() while {state.value}; {hint}")
+
+
+
+COMMON_PARAMS: Final[Mapping[str, ParamSpec]] = param_table(
+    ParamSpec("safe_action", ParamKind.STRING, SafeAction.HOLD.value,
+              "what deactivate() leaves the joints doing: hold the position, or torque off",
+              choices=tuple(a.value for a in SafeAction)),
+)
+"""Parameters every hardware kind accepts (merged with the kind's ``PARAMS``)."""
+
+JOINT_MAPPING_PARAMS: Final[tuple[ParamSpec, ...]] = (
+    ParamSpec("offset", ParamKind.FLOAT, 0.0,
+              "per joint: joint position at motor zero, rad "
+              "(joint = direction * motor / gear_ratio + offset)", per_joint=True),
+    ParamSpec("direction", ParamKind.INT, 1,
+              "per joint: 1 or -1, the joint's sense against the motor's",
+              choices=(1, -1), per_joint=True),
+    ParamSpec("gear_ratio", ParamKind.FLOAT, 1.0,
+              "per joint: motor turns per joint turn (external gearing)",
+              minimum=1e-9, per_joint=True),
+)
+"""How a motor's position maps to its joint's, for drivers to include in their ``PARAMS``
+(``param_table(*JOINT_MAPPING_PARAMS, ...)``): one convention for every kind."""
+
+
+# --------------------------------------------------------------------------------------------
+# The contract
+# --------------------------------------------------------------------------------------------
+
+
+def _check_joint_names(value: Any, path: str) -> tuple[str, ...]:
+    spec = ParamSpec(path, ParamKind.STRINGS, (), "the joints of the component",
+                     unique=True, non_empty=True)
+    names: tuple[str, ...] = _coerce(spec, value, path, ())
+    return names
+
+
+def _check_interfaces(
+    value: Any, path: str, supported: Sequence[str], owner: str
+) -> tuple[str, ...]:
+    spec = ParamSpec(path, ParamKind.STRINGS, (), f"{path.replace('_', ' ')}",
+                     unique=True, non_empty=True)
+    names: tuple[str, ...] = _coerce(spec, value, path, ())
+    for name in names:
+        if name not in supported:
+            raise ConfigurationError(
+                f"{owner} does not support the {name!r} interface; it supports "
+                f"[{', '.join(supported)}]{did_you_mean(name, supported)}",
+                path,
+                name,
+            )
+    return names
+
+
+class HardwareInterface(ABC):
+    """A hardware component serving some joints, with the ros2_control lifecycle.
+
+    Subclasses declare :attr:`kind` and :attr:`PARAMS` and implement ``_read`` and ``_write``
+    (plus ``_configure``, ``_activate``, ``_deactivate``, ``_cleanup`` if they need them). The
+    public methods guard the lifecycle, wrap foreign exceptions and count; see the module
+    docstring for the state machine.
+
+    Args:
+        name: component name, unique within a robot (used in every message).
+        joints: the component's joints, in the order its arrays use.
+        command_interfaces: the controller's command interfaces (all joints take them).
+        state_interfaces: the controller's state interfaces; must include ``position``.
+        params: kind-specific parameters, checked against ``COMMON_PARAMS`` + ``PARAMS``.
+
+    Raises:
+        ConfigurationError: bad name, joints, interfaces (or one the kind does not support),
+            or parameters; the path is ``name``, ``joints``, ``command_interfaces``,
+            ``state_interfaces`` or ``params.<key>``.
+        TypeError: the subclass does not declare ``kind``.
+    """
+
+    kind: ClassVar[str]
+    """Registry name of the hardware kind (e.g. ``"mirror"``)."""
+
+    PARAMS: ClassVar[Mapping[str, ParamSpec]] = MappingProxyType({})
+    """Kind-specific parameter schema (see :func:`param_table`)."""
+
+    COMMAND_INTERFACES: ClassVar[tuple[str, ...]] = COMMAND_INTERFACE_TYPES
+    """Command interfaces the kind can serve."""
+
+    STATE_INTERFACES: ClassVar[tuple[str, ...]] = STATE_INTERFACE_TYPES
+    """State interfaces the kind can serve."""
+
+    def __init__(
+        self,
+        name: str,
+        joints: Sequence[str],
+        command_interfaces: Sequence[str],
+        state_interfaces: Sequence[str],
+        params: Mapping[str, Any],
+    ) -> None:
+        kind = getattr(type(self), "kind", None)
+        if not isinstance(kind, str) or not kind:
+            raise TypeError(f"{type(self).__name__} must declare a non-empty 'kind' class variable")
+        if not isinstance(name, str) or not name.strip():
+            raise ConfigurationError(
+                f"expected a non-empty component name, got {describe(name)}", "name", name
+            )
+        self.name: str = name
+        owner = self._owner()
+        self.joints: tuple[str, ...] = _check_joint_names(joints, "joints")
+        self.command_interfaces: tuple[str, ...] = _check_interfaces(
+            command_interfaces, "command_interfaces", type(self).COMMAND_INTERFACES, owner
+        )
+        self.state_interfaces: tuple[str, ...] = _check_interfaces(
+            state_interfaces, "state_interfaces", type(self).STATE_INTERFACES, owner
+        )
+        if "position" not in self.state_interfaces:
+            raise ConfigurationError(
+                f"{owner}: the state interfaces must include 'position', got "
+                f"[{', '.join(self.state_interfaces)}]",
+                "state_interfaces",
+                self.state_interfaces,
+            )
+        self.params: Mapping[str, Any] = validate_params(
+            self.schema(), params, "params", joints=self.joints, owner=owner
+        )
+        self.safe_action: SafeAction = SafeAction(self.params["safe_action"])
+        self._state = LifecycleState.UNCONFIGURED
+        self._shape = (len(self.joints),)
+        self._velocity_state = "velocity" in self.state_interfaces
+        self._acceleration_state = "acceleration" in self.state_interfaces
+        self._last_fault: str | None = None
+        self._reads = 0
+        self._writes = 0
+        self._read_errors = 0
+        self._write_errors = 0
+        self._activations = 0
+
+    @classmethod
+    def schema(cls) -> Mapping[str, ParamSpec]:
+        """The full parameter schema of the kind: ``COMMON_PARAMS`` then ``PARAMS``."""
+        return MappingProxyType({**COMMON_PARAMS, **cls.PARAMS})
+
+    @property
+    def state(self) -> LifecycleState:
+        """The current lifecycle state."""
+        return self._state
+
+    @property
+    def last_fault(self) -> str | None:
+        """Message of the last error raised by this component, if any."""
+        return self._last_fault
+
+    def __repr__(self) -> str:
+        return (
+            f"<{type(self).__name__} {self.name!r} ({self.kind}) {self._state.value} "
+            f"joints=[{', '.join(self.joints)}]>"
+        )
+
+    # -- public lifecycle ---------------------------------------------------------------------
+
+    def configure(self) -> None:
+        """Open the device and check it (e.g. ping every motor).
+
+        Leaves INACTIVE on success; stays UNCONFIGURED if it fails.
+
+        Raises:
+            ControllerStateError: not UNCONFIGURED.
+            HardwareError: the device could not be configured.
+        """
+        self._guard("configure")
+        self._call("configure", self._configure)
+        self._state = LifecycleState.INACTIVE
+
+    def activate(self, now_ns: int) -> JointCommand:
+        """Enable the drives so that writes take effect.
+
+        Args:
+            now_ns: the loop's time, integer nanoseconds.
+
+        Returns:
+            The command values the hardware holds (for the controller's
+            ``set_last_command_interface_value_as_state_on_activation``): an array for each
+            configured command interface, ``NaN`` where the hardware holds none; ``None`` for
+            interfaces not configured.
+
+        Leaves ACTIVE on success; stays INACTIVE if it fails.
+
+        Raises:
+            ControllerStateError: not INACTIVE.
+            HardwareError: the drives could not be enabled, or the driver returned arrays of
+                the wrong size.
+        """
+        self._guard("activate")
+        held = self._call("activate", self._activate, now_ns)
+        try:
+            command = self._held_command(held)
+        except HardwareError as exc:
+            self._last_fault = str(exc)
+            try:
+                self._deactivate(now_ns, self.safe_action)
+            except Exception as rollback:  # noqa: BLE001 - reported as a note
+                exc.add_note(f"undoing the activation failed too: {rollback!r}")
+            raise
+        self._state = LifecycleState.ACTIVE
+        self._activations += 1
+        return command
+
+    def read(self, now_ns: int) -> JointState:
+        """Read the joints' state: one bus transaction.
+
+        Args:
+            now_ns: the loop's time, integer nanoseconds.
+
+        Returns:
+            The state in this component's joint order, with velocities / accelerations when
+            those state interfaces are configured.
+
+        Leaves the state unchanged (INACTIVE or ACTIVE); an error does not change it either:
+        the caller decides (typically ``deactivate``).
+
+        Raises:
+            ControllerStateError: not INACTIVE or ACTIVE.
+            HardwareError: the device did not answer (``CommunicationError``), reported a
+                fault (``MotorFault``), or the driver returned arrays of the wrong size.
+        """
+        state = self._state
+        if state is not LifecycleState.ACTIVE and state is not LifecycleState.INACTIVE:
+            raise _lifecycle_error(self._owner(), "read", state)
+        try:
+            result = self._read(now_ns)
+        except JtcHwError as exc:
+            self._read_errors += 1
+            self._last_fault = str(exc)
+            raise
+        except Exception as exc:
+            self._read_errors += 1
+            raise self._wrapped("read", exc) from exc
+        if (
+            result.positions.shape != self._shape
+            or (self._velocity_state and (
+                result.velocities is None or result.velocities.shape != self._shape))
+            or (self._acceleration_state and (
+                result.accelerations is None or result.accelerations.shape != self._shape))
+        ):
+            self._read_errors += 1
+            error = HardwareError(
+                f"{self._owner()}: read() returned a state that does not match its "
+                f"{len(self.joints)} joints and state interfaces "
+                f"[{', '.join(self.state_interfaces)}]; this is a driver bug"
+            )
+            self._last_fault = str(error)
+            raise error
+        self._reads += 1
+        return result
+
+    def write(self, now_ns: int, command: JointCommand) -> None:
+        """Write the commands: one bus transaction.
+
+        ``NaN`` entries mean "do not write that joint's interface": the device keeps the
+        value it holds.
+
+        Args:
+            now_ns: the loop's time, integer nanoseconds.
+            command: arrays in this component's joint order, one per configured interface.
+
+        Leaves ACTIVE (an error does not change the state; the caller decides).
+
+        Raises:
+            ControllerStateError: not ACTIVE.
+            HardwareError: the device did not accept the command.
+        """
+        state = self._state
+        if state is not LifecycleState.ACTIVE:
+            raise _lifecycle_error(self._owner(), "write", state)
+        try:
+            self._write(now_ns, command)
+        except JtcHwError as exc:
+            self._write_errors += 1
+            self._last_fault = str(exc)
+            raise
+        except Exception as exc:
+            self._write_errors += 1
+            raise self._wrapped("write", exc) from exc
+        self._writes += 1
+
+    def deactivate(self, now_ns: int) -> None:
+        """Stop taking commands and perform the ``safe_action`` (hold, or torque off).
+
+        Leaves INACTIVE, even if the safe action fails: no further writes are accepted, and
+        the error tells the caller the device may not be in its safe state.
+
+        Raises:
+            ControllerStateError: not ACTIVE.
+            HardwareError: the safe action could not be performed.
+        """
+        self._guard("deactivate")
+        try:
+            self._call("deactivate", self._deactivate, now_ns, self.safe_action)
+        finally:
+            self._state = LifecycleState.INACTIVE
+
+    def recover(self) -> None:
+        """Clear the device's latched faults: reboot a faulted servo, reset a drive's fault.
+
+        The daemon calls it on a client's explicit re-arm request, after ``configure`` and
+        before ``activate`` (which seeds the command from the measured position, so re-arming
+        never jumps). Devices that latch nothing do nothing.
+
+        Leaves INACTIVE (also when it fails: the caller keeps the controller stopped).
+
+        Raises:
+            ControllerStateError: not INACTIVE.
+            HardwareError: the fault could not be cleared (the message names the motor and
+                what to check).
+        """
+        self._guard("recover")
+        self._call("recover", self._recover)
+        self._last_fault = None
+
+    def cleanup(self) -> None:
+        """Release the device (close the port / bus).
+
+        Leaves UNCONFIGURED, even if releasing fails.
+
+        Raises:
+            ControllerStateError: not INACTIVE.
+            HardwareError: releasing failed.
+        """
+        self._guard("cleanup")
+        try:
+            self._call("cleanup", self._cleanup)
+        finally:
+            self._state = LifecycleState.UNCONFIGURED
+
+    def shutdown(self, now_ns: int) -> None:
+        """Whatever the state, deactivate and clean up as needed; final.
+
+        Leaves FINALIZED (every later call except ``shutdown`` and ``status`` raises). Calling
+        it again does nothing.
+
+        Raises:
+            HardwareError: deactivating or cleaning up failed (both are attempted; the first
+                error is raised, the other attached as a note).
+        """
+        errors: list[HardwareError] = []
+        if self._state is LifecycleState.ACTIVE:
+            try:
+                self.deactivate(now_ns)
+            except HardwareError as exc:
+                errors.append(exc)
+        if self._state is LifecycleState.INACTIVE:
+            try:
+                self.cleanup()
+            except HardwareError as exc:
+                errors.append(exc)
+        self._state = LifecycleState.FINALIZED
+        _raise_first(errors)
+
+    def status(self) -> dict[str, Any]:
+        """A JSON-able summary for clients and logs.
+
+        Returns:
+            ``name``, ``kind``, ``state``, ``joints``, ``command_interfaces``,
+            ``state_interfaces``, ``safe_action``, ``last_fault`` (message or ``None``),
+            ``counters`` (reads, writes, read_errors, write_errors, activations) and
+            ``details`` (whatever the driver reports, see ``_details``).
+        """
+        return {
+            "name": self.name,
+            "kind": self.kind,
+            "state": self._state.value,
+            "joints": list(self.joints),
+            "command_interfaces": list(self.command_interfaces),
+            "state_interfaces": list(self.state_interfaces),
+            "safe_action": self.safe_action.value,
+            "last_fault": self._last_fault,
+            "counters": {
+                "reads": self._reads,
+                "writes": self._writes,
+                "read_errors": self._read_errors,
+                "write_errors": self._write_errors,
+                "activations": self._activations,
+            },
+            "details": dict(self._details()),
+        }
+
+    def nan_command(self) -> JointCommand:
+        """A command holding ``NaN`` for every configured interface (``None`` for the others)."""
+        n = len(self.joints)
+        fields = [
+            np.full(n, np.nan) if iface in self.command_interfaces else None
+            for iface in COMMAND_INTERFACE_TYPES
+        ]
+        return JointCommand(*fields)
+
+    # -- primitives ---------------------------------------------------------------------------
+
+    def _configure(self) -> None:  # noqa: B027 - optional primitive, no-op by default
+        """Open and check the device. Default: nothing to do."""
+
+    def _activate(self, now_ns: int) -> JointCommand:
+        """Enable the drives; return the held command values. Default: ``nan_command()``."""
+        return self.nan_command()
+
+    @abstractmethod
+    def _read(self, now_ns: int) -> JointState:
+        """Return the state of ``self.joints`` (one bus transaction)."""
+
+    @abstractmethod
+    def _write(self, now_ns: int, command: JointCommand) -> None:
+        """Write the non-NaN entries of ``command`` (one bus transaction)."""
+
+    def _deactivate(self, now_ns: int, action: SafeAction) -> None:  # noqa: B027
+        """Perform ``action`` (hold the position, or torque off). Default: nothing to do."""
+
+    def _recover(self) -> None:  # noqa: B027 - optional primitive, no-op by default
+        """Clear latched device faults (reboot, fault reset). Default: nothing to do."""
+
+    def _cleanup(self) -> None:  # noqa: B027 - optional primitive, no-op by default
+        """Release the device. Default: nothing to do."""
+
+    def _details(self) -> Mapping[str, Any]:
+        """Driver-specific JSON-able status entries (bus statistics, temperatures, ...)."""
+        return {}
+
+    # -- helpers ------------------------------------------------------------------------------
+
+    def _owner(self) -> str:
+        return f"{self.kind} hardware {self.name!r}"
+
+    def _guard(self, method: str) -> None:
+        if self._state not in _ALLOWED[method]:
+            raise _lifecycle_error(self._owner(), method, self._state)
+
+    def _wrapped(self, method: str, exc: BaseException) -> HardwareError:
+        error = HardwareError(f"{self._owner()}: {method} failed: {type(exc).__name__}: {exc}")
+        self._last_fault = str(error)
+        return error
+
+    def _call(self, method: str, function: Callable[..., Any], *args: Any) -> Any:
+        try:
+            return function(*args)
+        except JtcHwError as exc:
+            self._last_fault = str(exc)
+            raise
+        except Exception as exc:
+            raise self._wrapped(method, exc) from exc
+
+    def _held_command(self, held: Any) -> JointCommand:
+        if not isinstance(held, JointCommand):
+            raise HardwareError(
+                f"{self._owner()}: activate() must return a JointCommand, got "
+                f"{type(held).__name__}; this is a driver bug"
+            )
+        fields: list[F64 | None] = []
+        for iface, values in zip(
+            COMMAND_INTERFACE_TYPES,
+            (held.positions, held.velocities, held.accelerations, held.effort),
+            strict=True,
+        ):
+            if iface not in self.command_interfaces:
+                fields.append(None)
+            elif values is None:
+                fields.append(np.full(self._shape, np.nan))
+            elif values.shape != self._shape:
+                raise HardwareError(
+                    f"{self._owner()}: activate() returned {values.size} {iface} values for "
+                    f"{len(self.joints)} joints; this is a driver bug"
+                )
+            else:
+                fields.append(values)
+        return JointCommand(*fields)
+
+
+def _raise_first(errors: Sequence[BaseException]) -> None:
+    """Raise the first error, the others attached as notes."""
+    if not errors:
+        return
+    first = errors[0]
+    for other in errors[1:]:
+        first.add_note(f"also: {type(other).__name__}: {other}")
+    raise first

@@ -1,0 +1,251 @@
+"""The Python client against the real server (in a thread with its own asyncio loop) and the
+stand-in backend of test_server."""
+
+from __future__ import annotations
+
+import asyncio
+import threading
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any, TypeVar
+
+import pytest
+from helpers.fake_backend import TOKEN, FakeBackend
+
+from jtc_hw import GoalRejected, JointTolerance, JointTrajectory, TrajectoryPoint
+from jtc_hw.api.client import Client, ClientConnectionError, GoalHandle
+from jtc_hw.api.protocol import RequestError
+from jtc_hw.daemon.server import Server, ServerSettings, TcpEndpoint
+from jtc_hw.errors import ProtocolError
+
+pytestmark = pytest.mark.usefixtures("no_leaks")  # threads, sockets, resources
+
+S = 1_000_000_000
+T = TypeVar("T")
+
+
+class ServerThread:
+    """The server on its own asyncio loop in a thread, as the daemon runs it."""
+
+    def __init__(self, settings: ServerSettings, backend: FakeBackend | None = None) -> None:
+        self.backend = backend or FakeBackend()
+        self.loop = asyncio.new_event_loop()
+        self.thread = threading.Thread(target=self.loop.run_forever, name="test-server")
+        self.thread.start()
+        self.server = Server(self.backend, settings)
+        self._await(self.server.start())
+
+    def _await(self, coro: Any) -> Any:
+        return asyncio.run_coroutine_threadsafe(coro, self.loop).result(10)
+
+    def call(self, fn: Callable[..., T], *args: Any) -> T:
+        """Run ``fn`` in the server's loop thread (where the backend delivers events)."""
+
+        async def wrapper() -> T:
+            return fn(*args)
+
+        result: T = self._await(wrapper())
+        return result
+
+    def close(self) -> None:
+        self._await(self.server.close())
+        self.loop.call_soon_threadsafe(self.loop.stop)
+        self.thread.join(10)
+        self.loop.close()
+
+
+@pytest.fixture
+def sock(tmp_path: Path) -> Path:
+    return tmp_path / "d.sock"
+
+
+@pytest.fixture
+def daemon(sock: Path) -> Iterator[ServerThread]:
+    srv = ServerThread(ServerSettings(socket=sock))
+    yield srv
+    srv.close()
+
+
+@pytest.fixture
+def client(daemon: ServerThread, sock: Path) -> Iterator[Client]:
+    with Client.connect(sock, timeout_s=5.0) as c:
+        yield c
+
+
+def trajectory(positions: tuple[float, float] = (0.5, -0.5), t: float = 1.0) -> JointTrajectory:
+    return JointTrajectory(["j1", "j2"], [TrajectoryPoint(t, list(positions))])
+
+
+def test_connect_hello_and_close(daemon: ServerThread, sock: Path) -> None:
+    with Client.connect(sock) as client:
+        assert client.info["protocol_version"] == 1
+        assert client.joint_names == ["j1", "j2"]
+        hello = client.hello()
+        assert hello["now_ns"] == daemon.backend.t and hello["update_rate"] == 100.0
+    with pytest.raises(ClientConnectionError, match="client was closed"):
+        client.hello()
+    client.close()  # idempotent
+
+
+def test_goal_feedback_and_result(daemon: ServerThread, client: Client) -> None:
+    seen: list[dict[str, Any]] = []
+    goal = client.send_goal(
+        trajectory(),
+        goal_tolerance=[JointTolerance("j1", position=0.01), {"name": "j2", "position": 0.01}],
+        on_feedback=seen.append,
+    )
+    assert isinstance(goal, GoalHandle) and not goal.done and goal.result is None
+    daemon.call(daemon.backend.step, 1.5)
+    result = goal.wait(timeout_s=5.0)
+    assert result["status"] == "succeeded" and result["error_code"] == 0
+    assert goal.done and goal.result == result
+    feedback = list(goal.feedback(timeout_s=5.0))  # ends with the result
+    assert feedback and all(f["goal_id"] == goal.goal_id for f in feedback)
+    assert seen == feedback
+    assert feedback[-1]["time_from_start"] > feedback[0]["time_from_start"]
+
+
+def test_a_failing_feedback_callback_is_logged_not_fatal(
+    daemon: ServerThread, client: Client, caplog: pytest.LogCaptureFixture
+) -> None:
+    def broken(message: dict[str, Any]) -> None:
+        raise RuntimeError("oops")
+
+    goal = client.send_goal(trajectory(), on_feedback=broken)
+    daemon.call(daemon.backend.step, 1.5)
+    assert goal.wait(5.0)["status"] == "succeeded"
+    assert client.hello()["ok"]
+    assert f"goal {goal.goal_id}: the feedback callback failed" in caplog.text
+
+
+def test_goal_from_a_dict_with_start_in(daemon: ServerThread, client: Client) -> None:
+    wire = {
+        "joint_names": ["j1", "j2"],
+        "points": [{"time_from_start": 0.5, "positions": [0.1, 0.1]}],
+    }
+    goal = client.send_goal(wire, start_in=0.5, goal_time_tolerance=1.0)
+    state = client.query_state(in_s=0.4)
+    assert state["positions"] == [0.0, 0.0]  # not started yet
+    daemon.call(daemon.backend.step, 1.5)
+    assert goal.wait(5.0)["status"] == "succeeded"
+    with pytest.raises(ValueError, match="start_time_ns or start_in"):
+        client.send_goal(wire | {"start_time_ns": 5}, start_in=1.0)
+
+
+def test_rejection_raises_goal_rejected_with_code(client: Client) -> None:
+    with pytest.raises(GoalRejected) as info:
+        client.send_goal(JointTrajectory(["j1", "elbow"], [TrajectoryPoint(1.0, [0.0, 0.0])]))
+    assert info.value.error_code == -2 and "elbow" in str(info.value)
+    with pytest.raises(RequestError) as bad:
+        client.send_goal({"joint_names": ["j1", "j2"], "points": [{"positions": [0, 0]}]})
+    assert bad.value.code == "bad_request" and isinstance(bad.value, ProtocolError)
+    assert "trajectory.points[0]: missing required field 'time_from_start'" in str(bad.value)
+
+
+def test_cancel(daemon: ServerThread, client: Client) -> None:
+    goal = client.send_goal(trajectory(t=5.0))
+    assert goal.cancel()["canceling"] is True
+    daemon.call(daemon.backend.step, 0.05)
+    assert goal.wait(5.0)["status"] == "canceled"
+    with pytest.raises(RequestError) as info:
+        client.cancel(goal.goal_id)
+    assert info.value.code == "not_found"
+
+
+def test_wait_times_out_explicitly(daemon: ServerThread, client: Client) -> None:
+    goal = client.send_goal(trajectory(t=5.0))
+    with pytest.raises(TimeoutError, match=f"goal {goal.goal_id}: no result within 0.05 s"):
+        goal.wait(timeout_s=0.05)
+    with pytest.raises(TimeoutError):
+        next(iter(goal.feedback(timeout_s=0.05)))
+
+
+def test_query_state(daemon: ServerThread, client: Client) -> None:
+    client.send_goal(trajectory((1.0, 2.0)))
+    t = daemon.backend.t
+    assert client.query_state(time_ns=t + 2 * S)["positions"] == [1.0, 2.0]
+    assert client.query_state(in_s=0.5)["time_ns"] == t + S // 2
+    with pytest.raises(ValueError):
+        client.query_state(in_s=1.0, time_ns=5)
+    daemon.call(daemon.backend.ctrl.deactivate, daemon.backend.t)
+    with pytest.raises(RequestError) as info:
+        client.query_state(in_s=0.0)
+    assert info.value.code == "not_active"
+
+
+def test_subscribe_state(daemon: ServerThread, client: Client) -> None:
+    with client.subscribe_state(timeout_s=5.0) as states:
+        for seq in range(3):
+            daemon.call(daemon.backend.publish_state, seq)
+        assert [next(states)["seq"] for _ in range(3)] == [0, 1, 2]
+        with pytest.raises(TimeoutError):
+            states.get(timeout_s=0.05)
+        me = client.get_status()["server"]
+        assert me["clients"][0]["subscribed"] is True
+    assert client.get_status()["server"]["clients"][0]["subscribed"] is False
+    assert list(states) == []  # a closed subscription iterates no more
+
+
+def test_status_config_sim_and_topic(daemon: ServerThread, client: Client) -> None:
+    assert client.get_status()["loop"] == {"cycles": 0}
+    assert client.get_config()["controller"]["joints"] == ["j1", "j2"]
+    assert client.sim("mirror", True)["frozen"] is True and daemon.backend.mirror.frozen
+    with pytest.raises(RequestError) as info:
+        client.sim("arm", True)
+    assert info.value.code == "bad_request" and "'arm'" in str(info.value)
+    assert client.send_trajectory(trajectory(), start_in=0.1)["stopping"] is False
+    assert client.stop()["stopping"] is True
+
+
+def test_tcp_with_token(tmp_path: Path) -> None:
+    srv = ServerThread(ServerSettings(socket=None, tcp=TcpEndpoint("127.0.0.1", 0, TOKEN)))
+    try:
+        address = srv.server.tcp_address
+        assert address is not None
+        with Client.connect(tcp=address, token=TOKEN) as client:
+            assert client.joint_names == ["j1", "j2"]
+        with pytest.raises(RequestError) as info:
+            Client.connect(tcp=address, token="wrong")
+        assert info.value.code == "unauthorized"
+        with pytest.raises(ValueError, match="token"):
+            Client.connect(tcp=address)
+    finally:
+        srv.close()
+
+
+def test_busy_and_missing_daemon(sock: Path, tmp_path: Path) -> None:
+    srv = ServerThread(ServerSettings(socket=sock, max_clients=1))
+    try:
+        with Client.connect(sock):
+            with pytest.raises(ClientConnectionError) as info:
+                Client.connect(sock)
+            assert info.value.code == "busy" and "max_clients" in str(info.value)
+    finally:
+        srv.close()
+    with pytest.raises(ClientConnectionError, match="is the daemon running"):
+        Client.connect(tmp_path / "nobody.sock")
+
+
+def test_default_path_from_environment(
+    daemon: ServerThread, sock: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setenv("JTC_HW_SOCKET", str(sock))
+    with Client.connect() as client:
+        assert client.label == str(sock)
+
+
+def test_server_closing_fails_waiters(sock: Path) -> None:
+    srv = ServerThread(ServerSettings(socket=sock))
+    client = Client.connect(sock)
+    try:
+        goal = client.send_goal(trajectory(t=5.0))
+        with client.subscribe_state() as states:
+            srv.close()
+            with pytest.raises(ClientConnectionError, match="closed the connection"):
+                goal.wait(timeout_s=5.0)
+            with pytest.raises(ClientConnectionError):
+                states.get()
+        with pytest.raises(ClientConnectionError):
+            client.hello()
+    finally:
+        client.close()

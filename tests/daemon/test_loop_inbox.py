@@ -1,0 +1,84 @@
+"""The loop process's inbox: framed messages read without blocking, a bounded amount at a time."""
+
+from __future__ import annotations
+
+import multiprocessing
+from collections.abc import Iterator
+
+import numpy as np
+import pytest
+
+from jtc_hw.daemon.loop import _Inbox, send_framed
+
+
+@pytest.fixture
+def pipe() -> Iterator[tuple[object, object]]:
+    a, b = multiprocessing.Pipe(duplex=True)
+    try:
+        yield a, b
+    finally:
+        a.close()
+        b.close()
+
+
+def _drain(inbox: _Inbox, count: int, max_pumps: int = 100_000) -> list[object]:
+    out: list[object] = []
+    for _ in range(max_pumps):
+        inbox.pump()
+        while (message := inbox.pop()) is not None:
+            out.append(message)
+        if len(out) >= count:
+            return out
+    raise AssertionError(f"only {len(out)} of {count} messages after {max_pumps} pumps")
+
+
+@pytest.mark.parametrize("budget", [1, 7, 4096, 1 << 20])
+def test_messages_arrive_whole_and_in_order_whatever_the_budget(
+    pipe: tuple[object, object], budget: int
+) -> None:
+    sender, receiver = pipe
+    big = np.arange(50_000, dtype=np.float64)  # 400 kB out of band (a separate frame)
+    messages = [
+        ("request", 1, "stop", {}),
+        ("commit", 2, {"arrays": [big, np.zeros(0), np.ones((3, 4))], "name": "x" * 20_000}),
+        ("request", 3, "cancel", {"goal_id": 7}),
+    ]
+    inbox = _Inbox(receiver, budget)  # type: ignore[arg-type]
+    try:
+        # Small budgets need many pumps: send from a thread so a full socket cannot block us.
+        import threading
+
+        def send_all() -> None:
+            for message in messages:
+                send_framed(sender, message)  # type: ignore[arg-type]
+
+        thread = threading.Thread(target=send_all)
+        thread.start()
+        got = _drain(inbox, len(messages), max_pumps=5_000_000)
+        thread.join(timeout=10)
+        assert not thread.is_alive()
+    finally:
+        inbox.close()
+    assert [m[0] for m in got] == ["request", "commit", "request"]  # type: ignore[index]
+    payload = got[1][2]  # type: ignore[index]
+    np.testing.assert_array_equal(payload["arrays"][0], big)
+    assert payload["arrays"][1].size == 0 and payload["arrays"][2].shape == (3, 4)
+    assert payload["name"] == "x" * 20_000
+    assert got[2] == messages[2]
+
+
+def test_pump_never_blocks_and_sees_the_end(pipe: tuple[object, object]) -> None:
+    sender, receiver = pipe
+    inbox = _Inbox(receiver, 1 << 16)  # type: ignore[arg-type]
+    try:
+        inbox.pump()  # nothing sent: returns at once
+        assert inbox.pop() is None and not inbox.closed
+        send_framed(sender, ("request", 1, "shutdown", {}))  # type: ignore[arg-type]
+        sender.close()  # type: ignore[attr-defined]
+        got = _drain(inbox, 1)
+        assert got == [("request", 1, "shutdown", {})]
+        for _ in range(10):
+            inbox.pump()
+        assert inbox.closed and inbox.waiting == 0
+    finally:
+        inbox.close()

@@ -1,0 +1,736 @@
+"""The socket server over real unix/TCP sockets, with a stand-in backend hosting the controller.
+
+``FakeBackend`` is not a protocol mock: it is a small controller host (the real
+``JointTrajectoryController`` over ideal mirrored joints, on a simulated clock the test steps),
+implementing the ``Backend`` interface that the daemon's loop backend implements for real.
+Tests wait on messages and log records with timeouts, never on sleeps.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import logging
+import os
+import socket
+import stat
+from collections.abc import AsyncIterator, Coroutine, Iterator, Sequence
+from pathlib import Path
+from types import SimpleNamespace
+from typing import Any, TypeVar
+
+import pytest
+from helpers.fake_backend import TOKEN, FakeBackend
+
+from jtc_hw import GoalResult
+from jtc_hw.daemon.server import Server, ServerSettings, TcpEndpoint
+from jtc_hw.errors import ConfigurationError
+
+pytestmark = pytest.mark.usefixtures("no_leaks")  # threads, sockets, resources
+
+S = 1_000_000_000
+T = TypeVar("T")
+
+
+# -- leak check ---------------------------------------------------------------------------------
+
+
+
+
+
+
+# -- the stand-in backend -----------------------------------------------------------------------
+
+
+
+
+# -- helpers ------------------------------------------------------------------------------------
+
+
+def run(coro: Coroutine[Any, Any, T], timeout_s: float = 15.0) -> T:
+    return asyncio.run(asyncio.wait_for(coro, timeout_s))
+
+
+def goal_msg(positions: Sequence[float] = (0.5, -0.5), t: float = 1.0, **extra: Any) -> Any:
+    traj = {
+        "joint_names": ["j1", "j2"],
+        "points": [{"time_from_start": t, "positions": list(positions)}],
+    }
+    traj.update(extra)
+    return traj
+
+
+class Peer:
+    """A raw client on a real socket: JSON lines out, JSON lines in."""
+
+    def __init__(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        self.reader = reader
+        self.writer = writer
+        self.inbox: list[dict[str, Any]] = []  # events received while waiting for replies
+        self._ids = 0
+
+    @classmethod
+    async def unix(cls, path: Path, limit: int = 1 << 24) -> Peer:
+        """``limit``: the stream stops reading from the socket at twice this many unread
+        bytes (a client that does not read)."""
+        reader, writer = await asyncio.open_unix_connection(str(path), limit=limit)
+        return cls(reader, writer)
+
+    @classmethod
+    async def tcp(cls, address: tuple[str, int]) -> Peer:
+        reader, writer = await asyncio.open_connection(*address, limit=1 << 24)
+        return cls(reader, writer)
+
+    async def send(self, message: Any) -> None:
+        data = message if isinstance(message, bytes) else json.dumps(message).encode() + b"\n"
+        self.writer.write(data)
+        await self.writer.drain()
+
+    async def recv(self, timeout_s: float = 5.0) -> dict[str, Any]:
+        line = await asyncio.wait_for(self.reader.readline(), timeout_s)
+        assert line, "the server closed the connection"
+        assert line.endswith(b"\n")
+        message: dict[str, Any] = json.loads(line)
+        return message
+
+    async def request(self, op: str, **fields: Any) -> dict[str, Any]:
+        self._ids += 1
+        await self.send({"id": self._ids, "op": op, **fields})
+        return await self.reply(self._ids)
+
+    async def reply(self, request_id: Any) -> dict[str, Any]:
+        while True:
+            message = await self.recv()
+            if "event" in message:
+                self.inbox.append(message)
+            else:
+                assert message["id"] == request_id, message
+                return message
+
+    async def event(self, name: str, timeout_s: float = 5.0) -> dict[str, Any]:
+        for i, message in enumerate(self.inbox):
+            if message["event"] == name:
+                return self.inbox.pop(i)
+        while True:
+            message = await self.recv(timeout_s)
+            if message.get("event") == name:
+                return message
+            self.inbox.append(message)
+
+    async def eof(self, timeout_s: float = 5.0) -> bytes:
+        """Everything until the server closes the connection."""
+        return await asyncio.wait_for(self.reader.read(), timeout_s)
+
+    async def close(self) -> None:
+        self.writer.close()
+        with contextlib.suppress(OSError):
+            await self.writer.wait_closed()
+
+
+class LogWatch(logging.Handler):
+    """Collects ``jtc_hw.daemon.server`` records; tests await a record containing a fragment."""
+
+    def __init__(self) -> None:
+        super().__init__(logging.DEBUG)
+        self.messages: list[str] = []
+        self._waiting: list[tuple[str, asyncio.Future[str]]] = []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        message = record.getMessage()
+        self.messages.append(message)
+        for fragment, future in self._waiting:
+            if fragment in message and not future.done():
+                future.set_result(message)
+
+    async def wait_for(self, fragment: str, timeout_s: float = 5.0) -> str:
+        for message in self.messages:
+            if fragment in message:
+                return message
+        future: asyncio.Future[str] = asyncio.get_running_loop().create_future()
+        self._waiting.append((fragment, future))
+        try:
+            return await asyncio.wait_for(future, timeout_s)
+        finally:
+            self._waiting.remove((fragment, future))
+
+    def count(self, fragment: str) -> int:
+        return sum(fragment in m for m in self.messages)
+
+
+@pytest.fixture
+def logs() -> Iterator[LogWatch]:
+    watch = LogWatch()
+    logger = logging.getLogger("jtc_hw.server")
+    old_level = logger.level
+    logger.addHandler(watch)
+    logger.setLevel(logging.DEBUG)
+    yield watch
+    logger.removeHandler(watch)
+    logger.setLevel(old_level)
+
+
+@contextlib.asynccontextmanager
+async def serving(
+    path: Path, backend: FakeBackend | None = None, **settings: Any
+) -> AsyncIterator[tuple[Server, FakeBackend]]:
+    backend = backend or FakeBackend()
+    server = Server(backend, ServerSettings(socket=path, **settings))
+    await server.start()
+    try:
+        yield server, backend
+    finally:
+        await server.close()
+
+
+@pytest.fixture
+def sock(tmp_path: Path) -> Path:
+    return tmp_path / "d.sock"
+
+
+# -- tests --------------------------------------------------------------------------------------
+
+
+def test_hello(sock: Path) -> None:
+    async def main() -> None:
+        async with serving(sock) as (_, backend):
+            peer = await Peer.unix(sock)
+            await peer.send({"id": "h", "op": "hello", "protocol_version": 1})
+            hello = await peer.recv()
+            assert hello["id"] == "h" and hello["ok"] is True
+            assert hello["protocol_version"] == 1 and hello["server_version"] == "0.1.0"
+            assert hello["joint_names"] == ["j1", "j2"] and hello["update_rate"] == 100.0
+            assert hello["now_ns"] == backend.t and hello["max_message_bytes"] == 4 << 20
+            wrong = await peer.request("hello", protocol_version=2)
+            assert wrong["error"]["code"] == "bad_request"
+            assert "speaks version 1" in wrong["error"]["message"]
+            await peer.close()
+
+    run(main())
+
+
+def test_goal_events_go_to_the_sender_only(sock: Path) -> None:
+    async def main() -> None:
+        async with serving(sock) as (server, backend):
+            a, b, c = [await Peer.unix(sock) for _ in range(3)]
+            accepted = await b.request(
+                "send_goal",
+                trajectory=goal_msg(),
+                goal_tolerance=[{"name": "j1", "position": 0.01}],
+            )
+            assert accepted["ok"] and accepted["accepted"] is True
+            goal_id = accepted["goal_id"]
+            backend.step(0.3)
+            feedback = await b.event("feedback")
+            assert feedback["goal_id"] == goal_id and feedback["joint_names"] == ["j1", "j2"]
+            assert set(feedback["desired"]) == {
+                "positions",
+                "velocities",
+                "accelerations",
+                "effort",
+            }
+            assert set(feedback["error"]) == {"positions", "velocities", "accelerations"}
+            assert 0.0 <= feedback["time_from_start"] <= 0.3
+            backend.step(1.5)
+            result = await b.event("result")
+            assert result == {
+                "event": "result",
+                "goal_id": goal_id,
+                "status": "succeeded",
+                "error_code": 0,
+                "error_string": result["error_string"],
+                "time_ns": result["time_ns"],
+            }
+            # Exactly one result: nothing else for this goal arrives before a later reply.
+            await b.request("get_status")
+            assert not [m for m in b.inbox if m["event"] == "result"]
+            # The other clients got nothing at all.
+            for other in (a, c):
+                assert (await other.request("get_status"))["ok"]
+                assert other.inbox == []
+            # A goal from c preempts b's: b gets its canceled result, c the new goal's events.
+            second = (await b.request("send_goal", trajectory=goal_msg(t=5.0)))["goal_id"]
+            third = (await c.request("send_goal", trajectory=goal_msg((0, 0))))["goal_id"]
+            backend.step(0.05)
+            preempted = await b.event("result")
+            assert preempted["goal_id"] == second and preempted["status"] == "canceled"
+            assert (await c.event("feedback"))["goal_id"] == third
+            backend.step(2.0)
+            assert (await c.event("result"))["status"] == "succeeded"
+            assert server.stats()["goals_routed"] == []
+            for peer in (a, b, c):
+                await peer.close()
+
+    run(main())
+
+
+def test_goal_rejections_carry_reason_and_error_code(sock: Path, logs: LogWatch) -> None:
+    async def main() -> None:
+        async with serving(sock) as (_, backend):
+            peer = await Peer.unix(sock)
+            cases = [
+                (goal_msg() | {"joint_names": ["j1", "elbow"]}, -2, "elbow"),
+                (goal_msg(start_time_ns=1), -3, "in the past"),
+                (
+                    goal_msg() | {"points": [{"time_from_start": 1, "positions": [1.0]}]},
+                    -1,
+                    "point #0",
+                ),
+            ]
+            for trajectory, code, fragment in cases:
+                rejected = await peer.request("send_goal", trajectory=trajectory)
+                assert rejected["ok"] is False
+                error = rejected["error"]
+                assert error["code"] == "goal_rejected" and error["error_code"] == code
+                assert fragment in error["message"], error["message"]
+            bad_tolerance = await peer.request(
+                "send_goal", trajectory=goal_msg(), path_tolerance=[{"name": "j9", "position": 1}]
+            )
+            assert bad_tolerance["error"]["error_code"] == -2
+            assert "path_tolerance: joint 'j9'" in bad_tolerance["error"]["message"]
+            topic = await peer.request("send_trajectory", trajectory=goal_msg(start_time_ns=1))
+            assert topic["error"]["code"] == "goal_rejected"
+            assert topic["error"]["error_code"] == -3
+            assert backend.ctrl.holding  # nothing changed
+            await peer.close()
+
+    run(main())
+    assert logs.count("rejected send_goal (id ") == 4
+    assert logs.count("rejected send_trajectory") == 1
+    assert any("goal_rejected: " in m and "elbow" in m for m in logs.messages)
+
+
+def test_cancel(sock: Path) -> None:
+    async def main() -> None:
+        async with serving(sock) as (_, backend):
+            owner, other = await Peer.unix(sock), await Peer.unix(sock)
+            goal_id = (await owner.request("send_goal", trajectory=goal_msg(t=5.0)))["goal_id"]
+            backend.step(0.1)
+            canceled = await other.request("cancel_goal", goal_id=goal_id)  # any client may
+            assert canceled == {"id": 1, "ok": True, "goal_id": goal_id, "canceling": True}
+            backend.step(0.05)
+            result = await owner.event("result")
+            assert result["status"] == "canceled" and result["goal_id"] == goal_id
+            again = await owner.request("cancel_goal", goal_id=goal_id)
+            assert again["error"]["code"] == "not_found"
+            assert f"goal {goal_id} is not executing" in again["error"]["message"]
+            assert other.inbox == []
+            await owner.close()
+            await other.close()
+
+    run(main())
+
+
+def test_query_state_and_not_active(sock: Path) -> None:
+    async def main() -> None:
+        async with serving(sock) as (_, backend):
+            peer = await Peer.unix(sock)
+            await peer.request("send_goal", trajectory=goal_msg((1.0, 2.0), t=1.0))
+            at_end = await peer.request("query_state", time_ns=backend.t + 2 * S)
+            assert at_end["positions"] == [1.0, 2.0] and at_end["time_ns"] == backend.t + 2 * S
+            assert at_end["joint_names"] == ["j1", "j2"] and at_end["velocities"] == [0.0, 0.0]
+            ahead = await peer.request("query_state", **{"in": 0.5})
+            assert ahead["time_ns"] == backend.t + S // 2
+            assert 0.0 < ahead["positions"][0] < 1.0 and set(ahead) >= {"accelerations", "effort"}
+            backend.ctrl.deactivate(backend.t)
+            inactive = await peer.request("query_state", **{"in": 0})
+            assert inactive["error"]["code"] == "not_active"
+            assert "not active" in inactive["error"]["message"]
+            await peer.close()
+
+    run(main())
+
+
+def test_topic_trajectory_preempts_goal_and_empty_one_stops(sock: Path) -> None:
+    async def main() -> None:
+        async with serving(sock) as (_, backend):
+            owner, topic = await Peer.unix(sock), await Peer.unix(sock)
+            goal_id = (await owner.request("send_goal", trajectory=goal_msg(t=5.0)))["goal_id"]
+            sent = await topic.request("send_trajectory", trajectory=goal_msg((0.2, 0.2), t=3.0))
+            assert sent == {"id": 1, "ok": True, "stopping": False}
+            backend.step(0.05)
+            result = await owner.event("result")
+            assert result["goal_id"] == goal_id and result["status"] == "canceled"
+            assert not backend.ctrl.holding
+            stop = await topic.request(
+                "send_trajectory", trajectory={"joint_names": [], "points": []}
+            )
+            assert stop["stopping"] is True
+            backend.step(0.02)
+            assert backend.ctrl.holding
+            assert topic.inbox == []
+            await owner.close()
+            await topic.close()
+
+    run(main())
+
+
+def test_subscribe_with_a_client_that_does_not_read(sock: Path) -> None:
+    async def main() -> None:
+        async with serving(sock, client_queue_size=8) as (_, backend):
+            slow, fast = await Peer.unix(sock, limit=32_768), await Peer.unix(sock)
+            assert (await slow.request("subscribe_state"))["subscribed"] is True
+            await fast.request("subscribe_state")
+            goal_id = (await fast.request("send_goal", trajectory=goal_msg(t=1.0)))["goal_id"]
+            # ~3 MB of state for the slow client, which reads nothing: its socket buffers fill,
+            # then its queue, then its state messages are dropped.
+            for seq in range(150):
+                backend.publish_state(seq, pad=20_000)
+                state = await fast.event("state")
+                assert state["seq"] == seq and state["dropped"] == 0
+                backend.step(0.01)
+            backend.step(1.0)
+            result = await fast.event("result")  # results still reach the other client
+            assert result["goal_id"] == goal_id and result["status"] == "succeeded"
+            status = await fast.request("get_status")
+            by_client = {c["client"]: c for c in status["server"]["clients"]}
+            me = status["server"]["you"]
+            slow_stats = next(c for n, c in by_client.items() if n != me)
+            assert slow_stats["subscribed"] and slow_stats["dropped_state"] > 0
+            assert by_client[me]["dropped_state"] == 0
+            # The slow client now reads: its backlog, then a state that reports the loss.
+            assert (await slow.request("get_status"))["ok"]
+            backlog = [m for m in slow.inbox if m["event"] == "state"]
+            assert len(backlog) == len(slow.inbox)
+            slow.inbox.clear()
+            backend.publish_state(999)
+            last = await slow.event("state")
+            assert last["seq"] == 999
+            received = backlog + [last]
+            assert len(received) + last["dropped_total"] == 151
+            assert sum(m["dropped"] for m in received) == last["dropped_total"]
+            assert last["dropped_total"] == slow_stats["dropped_state"]
+            assert (await fast.event("state"))["seq"] == 999
+            await slow.request("unsubscribe_state")
+            backend.publish_state(1000)
+            assert (await fast.event("state"))["seq"] == 1000
+            assert (await slow.request("get_status"))["ok"] and slow.inbox == []
+            await slow.close()
+            await fast.close()
+
+    run(main(), timeout_s=30)
+
+
+def test_a_client_too_slow_for_its_replies_is_disconnected(sock: Path, logs: LogWatch) -> None:
+    async def main() -> None:
+        backend = FakeBackend()
+        backend.config_padding = 200_000
+        async with serving(sock, backend, client_queue_size=2, client_queue_hard_cap=4):
+            peer, other = await Peer.unix(sock, limit=32_768), await Peer.unix(sock)
+            for i in range(40):  # 8 MB of replies nobody reads
+                await peer.send({"id": i, "op": "get_config"})
+            message = await logs.wait_for("client_queue_hard_cap")
+            assert "not reading" in message
+            assert (await other.request("hello"))["ok"]  # the server is fine
+            await peer.eof()
+            await peer.close()
+            await other.close()
+
+    run(main())
+
+
+def test_max_clients(sock: Path, logs: LogWatch) -> None:
+    async def main() -> None:
+        async with serving(sock, max_clients=2) as (server, _):
+            a, b = await Peer.unix(sock), await Peer.unix(sock)
+            assert (await a.request("hello"))["ok"] and (await b.request("hello"))["ok"]
+            extra = await Peer.unix(sock)
+            busy = await extra.recv()
+            assert busy["id"] is None and busy["ok"] is False
+            assert busy["error"]["code"] == "busy"
+            assert "2 clients (max_clients)" in busy["error"]["message"]
+            assert await extra.eof() == b""
+            await extra.close()
+            await a.close()
+            await logs.wait_for("client 1 (unix pid")  # open line
+            await logs.wait_for("disconnected: closed by the client")
+            c = await Peer.unix(sock)  # a slot is free again
+            assert (await c.request("hello"))["ok"]
+            assert server.stats()["refused_busy"] == 1
+            await b.close()
+            await c.close()
+
+    run(main())
+    assert logs.count("refused: 2 clients connected (max_clients)") == 1
+
+
+def test_oversize_message_keeps_the_connection(sock: Path) -> None:
+    async def main() -> None:
+        async with serving(sock, max_message_bytes=300):
+            peer = await Peer.unix(sock)
+            big = {"id": 1, "op": "send_goal", "trajectory": goal_msg(), "pad": "x" * 5000}
+            await peer.send(json.dumps(big).encode() + b'\n{"id": 2, "op": "hello"}\n')
+            too_large = await peer.recv()
+            assert too_large["ok"] is False and too_large["id"] is None
+            assert too_large["error"]["code"] == "too_large"
+            assert "300 bytes" in too_large["error"]["message"]
+            assert (await peer.recv())["id"] == 2
+            assert (await peer.request("get_status"))["ok"]
+            await peer.close()
+
+    run(main())
+
+
+def test_malformed_json_unknown_op_and_bad_fields(sock: Path, logs: LogWatch) -> None:
+    async def main() -> None:
+        async with serving(sock):
+            peer = await Peer.unix(sock)
+            await peer.send(b'{"id": 1, "op": "hello"\n')
+            bad = await peer.recv()
+            assert bad["error"]["code"] == "bad_json"
+            assert bad["error"]["message"].startswith("line 1, column 24: malformed JSON")
+            await peer.send(b'{"id": 2, "op": "hello", "x": NaN}\n')
+            assert "NaN" in (await peer.recv())["error"]["message"]
+            unknown = await peer.request("subscribe")
+            assert unknown["error"]["code"] == "unknown_op"
+            assert "did you mean 'subscribe_state'" in unknown["error"]["message"]
+            traj = goal_msg()
+            traj["points"][0]["positions"] = [0.1, "x"]
+            wrong = await peer.request("send_goal", trajectory=traj)
+            assert wrong["error"] == {
+                "code": "bad_request",
+                "message": "trajectory.points[0].positions[1]: expected a number, got a "
+                'string ("x")',
+            }
+            sim = await peer.request("sim", component="arm", freeze=True)
+            assert sim["error"]["code"] == "bad_request" and "'arm'" in sim["error"]["message"]
+            assert (await peer.request("hello"))["ok"]  # still connected
+            await peer.close()
+
+    run(main())
+    assert logs.count("rejected") == 5
+
+
+def test_one_shot_client_half_closes_and_still_gets_its_reply(sock: Path) -> None:
+    """As ``echo '{...}' | socat - UNIX-CONNECT:...``: the last line may lack its newline."""
+
+    async def main() -> None:
+        async with serving(sock):
+            peer = await Peer.unix(sock)
+            await peer.send(b'{"id": 1, "op": "hello"}\n{"id": 2, "op": "query_state", "in": 0}')
+            peer.writer.write_eof()
+            lines = (await peer.eof()).splitlines()
+            assert [json.loads(x)["id"] for x in lines] == [1, 2]
+            assert json.loads(lines[1])["positions"] == [0.0, 0.0]
+            await peer.close()
+
+    run(main())
+
+
+def test_internal_error_is_reported_and_logged(sock: Path, logs: LogWatch) -> None:
+    async def main() -> None:
+        async with serving(sock) as (_, backend):
+            peer = await Peer.unix(sock)
+            backend.status_error = RuntimeError("boom")
+            failed = await peer.request("get_status")
+            assert failed["error"] == {
+                "code": "internal",
+                "message": "internal error: RuntimeError: boom",
+            }
+            backend.status_error = None
+            backend.extra_config = object()  # not JSON-able
+            unencodable = await peer.request("get_config")
+            assert unencodable["error"]["code"] == "internal"
+            assert "cannot encode a object" in unencodable["error"]["message"]
+            backend.extra_config = None
+            assert (await peer.request("get_status"))["ok"]
+            await peer.request("subscribe_state")
+            assert backend.listener is not None
+            backend.listener.on_state({"bad": object()})  # logged and skipped, never raised
+            backend.publish_state(seq=5)
+            assert (await peer.event("state"))["seq"] == 5
+            await peer.close()
+
+    run(main())
+    assert any("get_status failed" in m for m in logs.messages)
+    assert any("cannot encode a state snapshot" in m for m in logs.messages)
+
+
+def test_status_config_and_sim(sock: Path) -> None:
+    async def main() -> None:
+        async with serving(sock) as (_, backend):
+            peer = await Peer.unix(sock)
+            status = await peer.request("get_status")
+            assert status["loop"] == {"cycles": 0} and status["hardware"] == {"mirror": "ok"}
+            assert status["server"]["you"] == 1 and status["server"]["max_clients"] == 16
+            config = await peer.request("get_config")
+            assert config["config"]["controller"]["joints"] == ["j1", "j2"]
+            frozen = await peer.request("sim", component="mirror", freeze=True)
+            assert frozen == {"id": 3, "ok": True, "component": "mirror", "frozen": True}
+            assert backend.mirror.frozen
+            await peer.close()
+
+    run(main())
+
+
+def test_client_vanishing_mid_goal(sock: Path, logs: LogWatch) -> None:
+    async def main() -> None:
+        async with serving(sock) as (server, backend):
+            owner, other = await Peer.unix(sock), await Peer.unix(sock)
+            goal_id = (await owner.request("send_goal", trajectory=goal_msg(t=1.0)))["goal_id"]
+            await owner.close()
+            message = await logs.wait_for("client 1 (unix")
+            message = await logs.wait_for("disconnected: closed by the client")
+            assert f"goal(s) {goal_id} still running" in message
+            delivered = backend.step(2.0)  # the goal runs on; the backend still delivers
+            assert any(isinstance(e, GoalResult) for e in delivered)
+            await logs.wait_for(f"goal {goal_id} succeeded")
+            assert server.stats()["results_discarded"] == 1
+            assert (await other.request("hello"))["ok"] and other.inbox == []
+            await other.close()
+
+    run(main())
+    assert any("result discarded" in m for m in logs.messages)
+
+
+def test_events_arriving_before_send_goal_returns_are_delivered_after_the_reply(
+    sock: Path,
+) -> None:
+    async def main() -> None:
+        backend = FakeBackend()
+        backend.early_feedback = True
+        async with serving(sock, backend):
+            peer = await Peer.unix(sock)
+            await peer.send({"id": 1, "op": "send_goal", "trajectory": goal_msg()})
+            accepted = await peer.recv()
+            assert accepted["accepted"] is True
+            early = await peer.recv()
+            assert early["event"] == "feedback" and early["goal_id"] == accepted["goal_id"]
+            backend.step(1.5)
+            assert (await peer.event("result"))["goal_id"] == accepted["goal_id"]
+            await peer.close()
+
+    run(main())
+
+
+def test_unix_socket_file_mode_directory_and_removal(tmp_path: Path) -> None:
+    path = tmp_path / "run" / "sub" / "d.sock"
+
+    async def main() -> None:
+        async with serving(path):
+            st = os.stat(path)
+            assert stat.S_ISSOCK(st.st_mode) and stat.S_IMODE(st.st_mode) == 0o660
+            peer = await Peer.unix(path)
+            assert (await peer.request("hello"))["ok"]
+            await peer.close()
+        assert not path.exists()
+        async with serving(path, socket_mode=0o600):
+            assert stat.S_IMODE(os.stat(path).st_mode) == 0o600
+
+    run(main())
+
+
+def test_stale_socket_is_replaced(sock: Path, logs: LogWatch) -> None:
+    dead = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    dead.bind(str(sock))  # a daemon that died without removing its socket
+    dead.close()
+    assert stat.S_ISSOCK(os.stat(sock).st_mode)
+
+    async def main() -> None:
+        async with serving(sock):
+            peer = await Peer.unix(sock)
+            assert (await peer.request("hello"))["ok"]
+            await peer.close()
+
+    run(main())
+    assert any("replacing stale socket" in m for m in logs.messages)
+
+
+def test_live_socket_or_other_file_is_refused(sock: Path) -> None:
+    async def main() -> None:
+        async with serving(sock):
+            second = Server(FakeBackend(), ServerSettings(socket=sock))
+            with pytest.raises(ConfigurationError, match="another daemon is listening on"):
+                await second.start()
+            await second.close()
+            assert sock.exists()  # the live daemon's socket is untouched
+        other = sock.with_name("plain")
+        other.write_text("not a socket")
+        third = Server(FakeBackend(), ServerSettings(socket=other))
+        with pytest.raises(ConfigurationError, match="is not a socket"):
+            await third.start()
+        assert other.read_text() == "not a socket"
+
+    run(main())
+
+
+def test_tcp_with_token(tmp_path: Path, logs: LogWatch) -> None:
+    async def main() -> None:
+        settings = ServerSettings(socket=None, tcp=TcpEndpoint("127.0.0.1", 0, TOKEN))
+        server = Server(FakeBackend(), settings)
+        async with server:
+            address = server.tcp_address
+            assert address is not None and address[0] == "127.0.0.1" and address[1] > 0
+            good = await Peer.tcp(address)
+            assert (await good.request("auth", token=TOKEN))["authenticated"] is True
+            assert (await good.request("hello"))["joint_names"] == ["j1", "j2"]
+            bad = await Peer.tcp(address)
+            refused = await bad.request("auth", token="guess")
+            assert refused["error"] == {
+                "code": "unauthorized",
+                "message": "wrong token; closing the connection",
+            }
+            assert await bad.eof() == b""
+            skipped = await Peer.tcp(address)
+            no_auth = await skipped.request("hello")
+            assert no_auth["error"]["code"] == "unauthorized"
+            assert '{"op": "auth", "token": ...}' in no_auth["error"]["message"]
+            assert await skipped.eof() == b""
+            garbage = await Peer.tcp(address)
+            await garbage.send(b"{{{\n")
+            assert (await garbage.recv())["error"]["code"] == "unauthorized"
+            assert await garbage.eof() == b""
+            for peer in (good, bad, skipped, garbage):
+                await peer.close()
+
+    run(main())
+    assert not any(TOKEN in m or "guess" in m for m in logs.messages)
+
+
+def test_tcp_client_that_never_authenticates_is_closed(logs: LogWatch) -> None:
+    async def main() -> None:
+        settings = ServerSettings(
+            socket=None, tcp=TcpEndpoint("127.0.0.1", 0, TOKEN), auth_timeout_s=0.2
+        )
+        async with Server(FakeBackend(), settings) as server:
+            assert server.tcp_address is not None
+            idle = await Peer.tcp(server.tcp_address)
+            refused = await idle.recv()
+            assert refused["error"]["code"] == "unauthorized"
+            assert "no auth request within 0.2 s" in refused["error"]["message"]
+            assert await idle.eof() == b""
+            await idle.close()
+
+    run(main())
+    assert any("unauthorized (no auth request in time)" in m for m in logs.messages)
+
+
+@pytest.mark.parametrize("host", ["0.0.0.0", "192.168.1.5", "::", "example.com"])
+def test_non_loopback_tcp_host_is_refused(host: str) -> None:
+    with pytest.raises(ConfigurationError, match="tcp.host"):
+        Server(FakeBackend(), ServerSettings(socket=None, tcp=TcpEndpoint(host, 0, TOKEN)))
+
+
+def test_settings_validation_and_coercion(sock: Path) -> None:
+    with pytest.raises(ConfigurationError, match="needs a token"):
+        ServerSettings.coerce({"tcp": {"host": "127.0.0.1", "port": 0}})
+    with pytest.raises(ConfigurationError, match="no endpoint"):
+        ServerSettings.coerce({})
+    with pytest.raises(ConfigurationError, match="unknown server setting"):
+        ServerSettings.coerce({"socket": str(sock), "max_client": 3})
+    with pytest.raises(ConfigurationError, match="max_clients"):
+        ServerSettings.coerce({"socket": str(sock), "max_clients": 0})
+    # An object shaped like the robot file's daemon section (extra attributes ignored).
+    daemon = SimpleNamespace(
+        socket=str(sock),
+        socket_mode=0o640,
+        max_clients=3,
+        max_message_bytes=1000,
+        tcp=SimpleNamespace(host="::1", port=0, token=TOKEN),
+        realtime=None,
+        log_level="info",
+    )
+    settings = ServerSettings.coerce(daemon)
+    assert settings.socket == str(sock) and settings.socket_mode == 0o640
+    assert settings.tcp == TcpEndpoint("::1", 0, TOKEN) and settings.max_clients == 3
+    assert Server(FakeBackend(), daemon).path == sock

@@ -1,0 +1,147 @@
+"""The shipped systemd unit (config/jtc-hw.service): required settings, and systemd's own check."""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+UNIT = Path(__file__).resolve().parents[2] / "config" / "jtc-hw.service"
+
+
+def parse_unit(text: str) -> dict[str, dict[str, list[str]]]:
+    """Section -> key -> values (a key may repeat), ignoring comments, as systemd reads it."""
+    sections: dict[str, dict[str, list[str]]] = {}
+    current: dict[str, list[str]] | None = None
+    for raw in text.splitlines():
+        line = raw.strip()
+        if not line or line.startswith(("#", ";")):
+            continue
+        if line.startswith("[") and line.endswith("]"):
+            current = sections.setdefault(line[1:-1], {})
+            continue
+        assert current is not None, f"assignment outside a section: {line!r}"
+        key, sep, value = line.partition("=")
+        assert sep, f"not an assignment: {line!r}"
+        current.setdefault(key.strip(), []).append(value.strip())
+    return sections
+
+
+@pytest.fixture(scope="module")
+def unit() -> dict[str, dict[str, list[str]]]:
+    return parse_unit(UNIT.read_text(encoding="utf-8"))
+
+
+REQUIRED_SERVICE = {
+    "Type": "notify",
+    "NotifyAccess": "main",
+    "ExecStart": "/usr/local/bin/jtc-hw run /etc/jtc-hw/robot.yaml",
+    "WatchdogSec": "2",
+    "Restart": "on-failure",
+    "RestartSec": "2",
+    "TimeoutStopSec": "10",
+    "KillSignal": "SIGTERM",
+    "RuntimeDirectory": "jtc-hw",
+    "RuntimeDirectoryMode": "0750",
+    "SupplementaryGroups": "dialout",
+    "NoNewPrivileges": "yes",
+    "ProtectSystem": "strict",
+    "ProtectHome": "read-only",
+    "PrivateTmp": "yes",
+    "ProtectKernelTunables": "yes",
+    "ProtectControlGroups": "yes",
+    "RestrictAddressFamilies": "AF_UNIX AF_INET AF_INET6 AF_CAN AF_NETLINK",
+    "LockPersonality": "yes",
+    "LimitRTPRIO": "90",
+    "LimitMEMLOCK": "infinity",
+    "AmbientCapabilities": "CAP_SYS_NICE CAP_IPC_LOCK",
+}
+
+
+@pytest.mark.parametrize(("key", "value"), sorted(REQUIRED_SERVICE.items()))
+def test_required_service_setting(
+    unit: dict[str, dict[str, list[str]]], key: str, value: str
+) -> None:
+    assert unit["Service"].get(key) == [value]
+
+
+def test_install_section(unit: dict[str, dict[str, list[str]]]) -> None:
+    assert unit["Install"] == {"WantedBy": ["multi-user.target"]}
+
+
+@pytest.mark.parametrize(
+    "key",
+    [
+        "RestrictRealtime",  # forbids SCHED_FIFO
+        "PrivateDevices",  # hides serial ports
+        "DeviceAllow",  # closes the device policy
+        "DevicePolicy",
+        "ProtectClock",  # implies DeviceAllow=char-rtc r, closing the device policy
+        "PrivateNetwork",  # SocketCAN lives in the host namespace
+        "MemoryDenyWriteExecute",
+    ],
+)
+def test_nothing_that_breaks_devices_or_realtime(
+    unit: dict[str, dict[str, list[str]]], key: str
+) -> None:
+    assert key not in unit["Service"]
+
+
+def test_user_and_group_guidance_is_commented_out() -> None:
+    lines = UNIT.read_text(encoding="utf-8").splitlines()
+    assert "#User=jtc-hw" in lines
+    assert "#Group=jtc-hw" in lines
+    assert any("dialout" in line and line.startswith("#") for line in lines)
+    assert any("pip install" in line and line.startswith("#") for line in lines)
+
+
+def test_ambient_capabilities_stay_within_the_bounding_set(
+    unit: dict[str, dict[str, list[str]]],
+) -> None:
+    ambient = set(unit["Service"]["AmbientCapabilities"][0].split())
+    bounding = set(unit["Service"]["CapabilityBoundingSet"][0].split())
+    assert ambient <= bounding
+
+
+def test_rtprio_limit_allows_the_documented_priority(
+    unit: dict[str, dict[str, list[str]]],
+) -> None:
+    assert 1 <= int(unit["Service"]["LimitRTPRIO"][0]) <= 99
+
+
+def verify(path: Path) -> tuple[int, str]:
+    tool = shutil.which("systemd-analyze")
+    if tool is None:
+        pytest.skip("systemd-analyze is not installed")
+    proc = subprocess.run(
+        [tool, "verify", str(path)], capture_output=True, text=True, timeout=120, check=False
+    )
+    return proc.returncode, proc.stdout + proc.stderr
+
+
+def runnable_copy(tmp_path: Path, extra: str = "") -> Path:
+    """The unit with ExecStart pointing at an executable that exists here (the test's python)."""
+    text = UNIT.read_text(encoding="utf-8")
+    lines = [
+        f"ExecStart={sys.executable} -c pass" if line.startswith("ExecStart=") else line
+        for line in text.splitlines()
+    ]
+    path = tmp_path / "jtc-hw.service"
+    path.write_text("\n".join(lines) + "\n" + extra, encoding="utf-8")
+    return path
+
+
+def test_systemd_analyze_verify_is_clean(tmp_path: Path) -> None:
+    rc, output = verify(runnable_copy(tmp_path))
+    assert rc == 0, output
+    # Parse problems are only warnings (exit 0) naming the file: there must be none.
+    assert [line for line in output.splitlines() if "jtc-hw.service" in line] == [], output
+
+
+def test_verify_would_catch_a_bad_key(tmp_path: Path) -> None:
+    # Guards the check above: a typo in the unit does show up in verify's output.
+    _rc, output = verify(runnable_copy(tmp_path, extra="[Service]\nWatchdogSecc=2\n"))
+    assert "WatchdogSecc" in output

@@ -1,0 +1,151 @@
+"""End to end across processes: the daemon (``python -m jtc_hw run``) drives CiA 402 drives
+emulated in this test process, over python-can's stock ``socketcand`` interface.
+
+This process runs the socketcand server (``jtc_hw.drivers.can.socketcand``) bridging TCP to a
+python-can virtual channel, and the emulated drives on that channel; the daemon subprocess
+connects with ``interface: socketcand``. Waits are on messages with deadlines; nothing sleeps.
+"""
+
+from __future__ import annotations
+
+import uuid
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import can
+import pytest
+import yaml
+from helpers.daemon import WAIT_S, DaemonProcess, connect, next_state, settle
+
+from jtc_hw.api.client import Client
+
+from conftest import make_robot_config
+
+socketcand = pytest.importorskip(
+    "jtc_hw.drivers.can.socketcand", reason="the socketcand server (CAN-MIT) is not available"
+)
+
+from jtc_hw.drivers.can.cia402_emulator import Cia402DriveEmulator  # noqa: E402
+
+pytestmark = pytest.mark.usefixtures("no_leaks")  # threads, sockets, resources
+
+JOINTS = ["shoulder", "elbow"]
+NODES = [3, 7]
+GOAL_TOL = 0.01
+MS = 1_000_000
+
+
+def robot_yaml(socket_path: Path, port: int) -> dict[str, Any]:
+    """Two joints at 250 Hz on CiA 402 drives reached through socketcand."""
+    hardware = [{
+        "name": "arm",
+        "kind": "can-cia402",
+        "joints": JOINTS,
+        "params": {
+            "buses": {"can0": {"interface": "socketcand", "channel": "can0",
+                               "host": "127.0.0.1", "port": port,
+                               "receive_timeout": 0.002, "setup_timeout": 0.5}},
+            "node_id": NODES,
+            "feedback_timeout_s": 0.25,
+        },
+    }]
+    return make_robot_config(socket_path, JOINTS, hardware, update_rate=250, goal_time=1.0,
+                             path_tolerance=0.1, goal_tolerance=GOAL_TOL)
+
+
+class Drives:
+    """The socketcand server and the emulated drives of one test."""
+
+    def __init__(self) -> None:
+        virtual = f"cia402-e2e-{uuid.uuid4().hex[:8]}"
+        self.bus = can.Bus(interface="virtual", channel=virtual)
+        self.drives = {n: Cia402DriveEmulator(self.bus, n, initial_position=0.1 * (i + 1))
+                       for i, n in enumerate(NODES)}
+        self.server = socketcand.SocketcandServer(port=0, channels={"can0": virtual})
+
+    def start(self) -> None:
+        for d in self.drives.values():
+            d.start()
+        self.server.start()
+
+    def stop(self) -> None:
+        try:
+            self.server.stop()
+        finally:
+            for d in self.drives.values():
+                d.stop()
+            self.bus.shutdown()
+
+
+@pytest.fixture
+def drives() -> Iterator[Drives]:
+    d = Drives()
+    try:
+        d.start()
+        yield d
+    finally:
+        d.stop()
+
+
+@pytest.fixture
+def daemon(tmp_path: Path, drives: Drives) -> Iterator[DaemonProcess]:
+    d = DaemonProcess(tmp_path / "d")
+    d.config_path.write_text(
+        yaml.safe_dump(robot_yaml(d.socket, drives.server.port), sort_keys=False)
+    )
+    d.start()
+    try:
+        d.wait_ready()
+        yield d
+    finally:
+        code = d.shutdown()
+        print(d.log())
+    assert code == 0, d.log()
+
+
+def traj(positions: list[float], t: float) -> dict[str, Any]:
+    return {
+        "joint_names": JOINTS,
+        "points": [{"time_from_start": t, "positions": positions, "velocities": [0.0, 0.0]}],
+    }
+
+
+def test_goal_succeeds_and_a_drive_fault_aborts_naming_the_drive(
+    daemon: DaemonProcess, drives: Drives
+) -> None:
+    with connect(daemon) as client, client.subscribe_state() as sub:
+        p0 = next_state(sub, lambda s: s["active_goal"] is None)["actual"]["positions"]
+        assert p0 == pytest.approx([0.1, 0.2], abs=1e-3)
+        target = [0.4, -0.1]
+        result = client.send_goal(traj(target, 0.8)).wait(timeout_s=WAIT_S)
+        assert result["status"] == "succeeded", result
+        state = settle(sub, result["time_ns"] + 100 * MS)
+        assert state["actual"]["positions"] == pytest.approx(target, abs=GOAL_TOL)
+        assert drives.drives[3].motor.position == pytest.approx(target[0], abs=GOAL_TOL)
+
+        goal = client.send_goal(traj([0.1, 0.2], 2.0))
+        for feedback in goal.feedback(timeout_s=WAIT_S):
+            if feedback["time_from_start"] >= 0.3:
+                break
+        drives.drives[7].inject_fault(0x4310)
+        result = goal.wait(timeout_s=WAIT_S)
+        assert result["status"] == "aborted", result
+        reason = result["error_string"]
+        assert "node 7" in reason and "'elbow'" in reason and "0x4310" in reason, reason
+        status = client.get_status()
+        assert "0x4310" in status["controller"]["fault"]
+
+        if not hasattr(Client, "rearm"):
+            pytest.skip("Client.rearm is not available in this version")
+        assert client.rearm()["rearmed"] is True
+        # No jump: the faulted drive (coasting, torque off) is enabled where it stands.
+        jump = drives.drives[7].enable_jump_counts
+        assert jump is not None and abs(jump) < 0.002 * 131072 / (2 * 3.141592653589793)
+        after = settle(sub, client.hello()["now_ns"] + 40 * MS)
+        assert after["holding"] is True
+        assert after["desired"]["positions"] == pytest.approx(
+            after["actual"]["positions"], abs=0.01
+        )
+        back = client.send_goal(traj([0.1, 0.2], 1.0)).wait(timeout_s=WAIT_S)
+        assert back["status"] == "succeeded", back

@@ -1,0 +1,148 @@
+"""``FakeBackend``: a small controller host implementing the server's ``Backend`` interface.
+
+It is not a protocol mock: it runs the real ``JointTrajectoryController`` over ideal mirrored
+joints, on a simulated clock the test steps, and implements what the daemon's loop backend
+implements for real. Used by the server and client tests.
+"""
+
+from __future__ import annotations
+
+import asyncio
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+
+from jtc_hw import GoalFeedback, GoalResult, JointTrajectoryController, TrajectorySample
+from jtc_hw.controller.config_io import config_to_dict
+from jtc_hw.controller.tolerances import JointTolerance
+from jtc_hw.controller.trajectory import JointTrajectory
+from jtc_hw.daemon.server import BackendListener
+from jtc_hw.errors import ConfigurationError
+
+from conftest import Mirror, S, make_config
+
+TOKEN = "0123456789abcdef-token"
+
+
+class FakeBackend:
+    """A controller host on a simulated clock; ``step`` runs control cycles and publishes."""
+
+    def __init__(self, joints: Sequence[str] = ("j1", "j2")) -> None:
+        self.config = make_config(joints, update_rate=100.0)
+        self.joint_names = tuple(self.config.joints)
+        self.ctrl = JointTrajectoryController(self.config)
+        self.mirror = Mirror([0.0] * len(joints))
+        self.t = 10 * S
+        self.period = S // 100
+        self.ctrl.activate(self.t, self.mirror.state())
+        self.listener: BackendListener | None = None
+        self.cycles = 0
+        self.early_feedback = False  # deliver a goal's first event before send_goal returns
+        self.status_error: Exception | None = None
+        self.config_padding = 0
+        self.extra_config: Any = None
+
+    def now_ns(self) -> int:
+        return self.t
+
+    def hello(self) -> dict[str, Any]:
+        return {"update_rate": 100.0, "state_publish_rate": 50.0, "action_monitor_rate": 20.0}
+
+    def config_dict(self) -> dict[str, Any]:
+        return {
+            "controller": config_to_dict(self.config),
+            "padding": "x" * self.config_padding,
+            "extra": self.extra_config,
+        }
+
+    def status(self) -> dict[str, Any]:
+        if self.status_error is not None:
+            raise self.status_error
+        return {
+            "loop": {"cycles": self.cycles},
+            "hardware": {"mirror": "frozen" if self.mirror.frozen else "ok"},
+            "controller": {"holding": self.ctrl.holding, "active_goal": self.ctrl.active_goal},
+        }
+
+    async def send_goal(
+        self,
+        traj: JointTrajectory,
+        path_tolerance: Sequence[JointTolerance],
+        goal_tolerance: Sequence[JointTolerance],
+        goal_time_tolerance: float,
+    ) -> int:
+        await asyncio.sleep(0)  # the real backend waits for the loop process here
+        goal_id = self.ctrl.send_goal(
+            self.t, traj, path_tolerance, goal_tolerance, goal_time_tolerance
+        )
+        if not self.early_feedback:
+            return goal_id
+        # The id's future is resolved and, in the same callback, the goal's first events are
+        # dispatched: they reach the server before its send_goal coroutine resumes.
+        reply: asyncio.Future[int] = asyncio.get_running_loop().create_future()
+
+        def deliver() -> None:
+            reply.set_result(goal_id)
+            z = np.zeros(len(self.joint_names))
+            assert self.listener is not None
+            self.listener.on_goal_event(
+                GoalFeedback(
+                    goal_id, self.t, 0.0, TrajectorySample(z, z, z, z), z, z, np.zeros((3, len(z)))
+                )
+            )
+
+        asyncio.get_running_loop().call_soon(deliver)
+        return await reply
+
+    async def cancel_goal(self, goal_id: int) -> bool:
+        return self.ctrl.cancel_goal(goal_id)
+
+    async def send_trajectory(self, traj: JointTrajectory) -> None:
+        self.ctrl.send_trajectory(self.t, traj)
+
+    def query_state(self, time_ns: int) -> TrajectorySample:
+        return self.ctrl.query_state(time_ns)
+
+    async def rearm(self) -> bool:
+        return False
+
+    async def sim(self, component: str, freeze: bool | None, fault: str | None = None) -> None:
+        if component != "mirror":
+            raise ConfigurationError(f"no simulated component '{component}' (have: mirror)")
+        self.mirror.frozen = freeze
+
+    def set_listener(self, listener: BackendListener) -> None:
+        self.listener = listener
+
+    def step(self, seconds: float) -> list[GoalResult | GoalFeedback]:
+        """Run control cycles for ``seconds`` of simulated time, delivering goal events."""
+        delivered: list[GoalResult | GoalFeedback] = []
+        for _ in range(round(seconds * S / self.period)):
+            out = self.ctrl.update(self.t, self.period, self.mirror.state())
+            self.mirror.apply(out.command, self.period / S)
+            self.t += self.period
+            self.cycles += 1
+            for event in out.events:
+                if isinstance(event, (GoalResult, GoalFeedback)) and self.listener is not None:
+                    self.listener.on_goal_event(event)
+                    delivered.append(event)
+        return delivered
+
+    def publish_state(self, seq: int = 0, pad: int = 0) -> None:
+        sample = self.ctrl.query_state(self.t)
+        assert self.listener is not None
+        self.listener.on_state(
+            {
+                "time_ns": self.t,
+                "seq": seq,
+                "joint_names": list(self.joint_names),
+                "desired": {"positions": sample.positions, "velocities": sample.velocities},
+                "actual": {"positions": self.mirror.p, "velocities": self.mirror.v},
+                "error": {"positions": sample.positions - self.mirror.p},
+                "command": {"positions": sample.positions},
+                "holding": self.ctrl.holding,
+                "active_goal": self.ctrl.active_goal,
+                "pad": "p" * pad,
+            }
+        )

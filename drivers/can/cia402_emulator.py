@@ -47,7 +47,7 @@ from canopen.sdo.exceptions import SdoAbortedError
 from ..motor_model import Motor, MotorParams
 from . import cia402_codec as c4
 from .bus import CAN_ERR_BUSOFF, wire_time_s
-from .emulator import PushSink, WakeEarly
+from .emulation import PushSink, WakeEarly, attach_sink
 
 __all__ = ["DEFAULT_EDS", "Cia402DriveEmulator", "NmtState"]
 
@@ -110,8 +110,6 @@ class _Hub:
             if hub is None:
                 hub = cls(drive.bus, drive.pace_bitrate)
                 if push:
-                    from .socketcand import attach_sink
-
                     try:
                         attach_sink(drive.bus, PushSink(hub._on_pushed))
                     except (AttributeError, ValueError) as exc:

@@ -43,13 +43,12 @@ from __future__ import annotations
 import argparse
 import heapq
 import math
-import queue
 import signal
 import sys
 import threading
 import time
 import uuid
-from collections.abc import Callable, Iterable, Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -59,6 +58,7 @@ from jtc_hw.hardware.timing import reduce_timer_slack
 
 from ..motor_model import Motor, MotorParams
 from .bus import CAN_ERR_BUSOFF, wire_time_s
+from .emulation import PushSink, WakeEarly, attach_sink
 from .frames import (
     MODEL_PRESETS,
     MitCommand,
@@ -69,49 +69,9 @@ from .frames import (
     special_command,
 )
 
-__all__ = ["MitBusEmulator", "WakeEarly", "build_parser", "main", "parse_ids"]
+__all__ = ["MitBusEmulator", "build_parser", "main", "parse_ids"]
 
 _IDLE_POLL_S = 0.05  # how often an idle emulator thread looks at its stop flag
-class WakeEarly:
-    """When a paced emulator thread should wake before a frame's due time, learnt.
-
-    Timed waits of a thread in a process with other Python threads wake late (30-130 us on
-    the development machine: timer, scheduler, a virtual CPU leaving idle, the interpreter
-    lock), which would add to every cycle a driver measures against the emulator. The
-    thread wakes :attr:`early_s` before the due time and spins the rest. ``early_s`` follows
-    a high quantile of the observed lateness of the timed waits (faster up than down) plus
-    a small margin, bounded by :attr:`MAX_EARLY_S`, so the spin is usually a few tens of
-    microseconds and the frame leaves at its modelled time (a wake later than that releases
-    it late by the difference). Emulators only: the driver never spins.
-    """
-
-    MARGIN_S = 10e-6
-    MAX_EARLY_S = 200e-6
-
-    def __init__(self) -> None:
-        self.lateness_s = 50e-6
-
-    @property
-    def early_s(self) -> float:
-        """How long before a due time to end the timed wait."""
-        return min(self.lateness_s + self.MARGIN_S, self.MAX_EARLY_S)
-
-    def observe(self, planned: float, woke: float) -> None:
-        """A timed wait meant to end at ``planned`` (monotonic) ended at ``woke``."""
-        late = woke - planned
-        if late < 0.0:
-            return  # ended by an event, not by its timeout: says nothing
-        # Up a quarter of the way, down a 32nd: tracks a high quantile of the lateness, not
-        # its rare outliers (a release that late is late; one that early spins longer).
-        step = 4.0 if late > self.lateness_s else 32.0
-        self.lateness_s = min(self.lateness_s + (late - self.lateness_s) / step,
-                              self.MAX_EARLY_S)
-
-    @staticmethod
-    def spin_until(due: float) -> None:
-        """Spin to ``due`` (callers only do so within :attr:`early_s` of it)."""
-        while time.monotonic() < due:
-            pass
 
 
 @dataclass
@@ -223,8 +183,6 @@ class MitBusEmulator:
         if not thread and not push:
             raise ValueError("an emulator without a thread needs push mode")
         if push and not self._push:
-            from .socketcand import attach_sink
-
             try:
                 attach_sink(self.bus, PushSink(self._on_frame))
             except (AttributeError, ValueError) as exc:
@@ -500,34 +458,6 @@ class MitBusEmulator:
                            data=encode_reply(state, self.limits))
 
 
-class PushSink:
-    """Stands in for an emulator bus's receive queue in push mode: frames other peers send
-    are handed to ``handle`` at once, in their thread (MIT motors and CiA 402 drives alike).
-
-    Args:
-        handle: called with each frame sent on the channel by another peer.
-    """
-
-    def __init__(self, handle: Callable[[can.Message], object]) -> None:
-        self.handle = handle
-
-    def put(self, msg: can.Message, block: bool = True, timeout: float | None = None) -> None:
-        self.handle(msg)
-
-    def put_nowait(self, msg: can.Message) -> None:
-        self.handle(msg)
-
-    def get(self, block: bool = True, timeout: float | None = None) -> can.Message:
-        raise queue.Empty
-
-    def get_nowait(self) -> can.Message:
-        raise queue.Empty
-
-    def empty(self) -> bool:
-        return True
-
-    def qsize(self) -> int:
-        return 0
 
 
 # --------------------------------------------------------------------------------------------

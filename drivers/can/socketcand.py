@@ -58,14 +58,16 @@ import sys
 import threading
 import time
 from collections.abc import Mapping, Sequence
-from typing import Any, Protocol
+from typing import Any
 
 import can
 
 from jtc_hw.hardware.timing import reduce_timer_slack
 
+from .emulation import Timer, WakeEarly, attach_sink
+
 __all__ = [
-    "FORWARD_AFTER_S", "SocketcandServer", "Timer", "attach_sink", "format_frame", "parse_send",
+    "FORWARD_AFTER_S", "SocketcandServer", "format_frame", "parse_send",
 ]
 
 _log = logging.getLogger(__name__)
@@ -310,32 +312,8 @@ def _kernel_stamp(ancillary: list[tuple[int, int, bytes]]) -> float:
     return time.time()
 
 
-class Timer(Protocol):
-    """Frames due at set times, released by a one-thread :class:`SocketcandServer`."""
-
-    def next_due(self) -> float | None:
-        """The monotonic time the next frame is due (``None``: nothing pending)."""
-
-    def release_due(self, now: float) -> None:
-        """Send every frame due at or before ``now``."""
 
 
-def attach_sink(bus: can.BusABC, sink: Any) -> None:
-    """Replace a python-can virtual bus's receive queue by ``sink`` (an object with
-    ``put(msg, block, timeout)``), in the channel's list of receivers too, so that frames
-    other peers send reach the sink in their thread and the bus's own frames still skip it.
-    Nothing may ``recv`` from that bus afterwards.
-
-    Raises:
-        AttributeError, ValueError: python-can's virtual bus is not laid out as expected.
-    """
-    from can.interfaces import virtual
-
-    with virtual.channels_lock:
-        receivers = bus.channel  # type: ignore[attr-defined]
-        index = receivers.index(bus.queue)  # type: ignore[attr-defined]
-        receivers[index] = sink
-        bus.queue = sink  # type: ignore[attr-defined]
 
 
 class SocketcandServer:
@@ -448,7 +426,6 @@ class SocketcandServer:
     def _serve(self) -> None:
         """One-thread mode: accept, read every client and release the timers' due frames
         in this thread (see the class docstring)."""
-        from .emulator import WakeEarly  # (emulator imports this module lazily, too)
 
         assert self._listener is not None
         reduce_timer_slack()  # frames are due at exact times; the slack is per thread

@@ -1,0 +1,121 @@
+"""What the CAN emulators and the socketcand server share: pacing and push delivery.
+
+- :class:`WakeEarly`: when a paced emulator thread wakes before a frame's due time.
+- :class:`PushSink` and :func:`attach_sink`: frames other peers send on a python-can virtual
+  channel are handed to an emulator at once, in the sender's thread, instead of queued.
+- :class:`Timer`: frames due at set times, released by a one-thread socketcand server.
+
+The MIT-mode emulator, the CiA 402 emulator and the socketcand server all import this module
+and none imports another's, so there is no import circle among them.
+"""
+
+from __future__ import annotations
+
+import queue
+import time
+from collections.abc import Callable
+from typing import Any, Protocol
+
+import can
+
+__all__ = ["PushSink", "Timer", "WakeEarly", "attach_sink"]
+
+
+class WakeEarly:
+    """When a paced emulator thread should wake before a frame's due time, learnt.
+
+    Timed waits of a thread in a process with other Python threads wake late (30-130 us on
+    the development machine: timer, scheduler, a virtual CPU leaving idle, the interpreter
+    lock), which would add to every cycle a driver measures against the emulator. The
+    thread wakes :attr:`early_s` before the due time and spins the rest. ``early_s`` follows
+    a high quantile of the observed lateness of the timed waits (faster up than down) plus
+    a small margin, bounded by :attr:`MAX_EARLY_S`, so the spin is usually a few tens of
+    microseconds and the frame leaves at its modelled time (a wake later than that releases
+    it late by the difference). Emulators only: the driver never spins.
+    """
+
+    MARGIN_S = 10e-6
+    MAX_EARLY_S = 200e-6
+
+    def __init__(self) -> None:
+        self.lateness_s = 50e-6
+
+    @property
+    def early_s(self) -> float:
+        """How long before a due time to end the timed wait."""
+        return min(self.lateness_s + self.MARGIN_S, self.MAX_EARLY_S)
+
+    def observe(self, planned: float, woke: float) -> None:
+        """A timed wait meant to end at ``planned`` (monotonic) ended at ``woke``."""
+        late = woke - planned
+        if late < 0.0:
+            return  # ended by an event, not by its timeout: says nothing
+        # Up a quarter of the way, down a 32nd: tracks a high quantile of the lateness, not
+        # its rare outliers (a release that late is late; one that early spins longer).
+        step = 4.0 if late > self.lateness_s else 32.0
+        self.lateness_s = min(self.lateness_s + (late - self.lateness_s) / step,
+                              self.MAX_EARLY_S)
+
+    @staticmethod
+    def spin_until(due: float) -> None:
+        """Spin to ``due`` (callers only do so within :attr:`early_s` of it)."""
+        while time.monotonic() < due:
+            pass
+
+
+class PushSink:
+    """Stands in for an emulator bus's receive queue in push mode: frames other peers send
+    are handed to ``handle`` at once, in their thread (MIT motors and CiA 402 drives alike).
+
+    Args:
+        handle: called with each frame sent on the channel by another peer.
+    """
+
+    def __init__(self, handle: Callable[[can.Message], object]) -> None:
+        self.handle = handle
+
+    def put(self, msg: can.Message, block: bool = True, timeout: float | None = None) -> None:
+        self.handle(msg)
+
+    def put_nowait(self, msg: can.Message) -> None:
+        self.handle(msg)
+
+    def get(self, block: bool = True, timeout: float | None = None) -> can.Message:
+        raise queue.Empty
+
+    def get_nowait(self) -> can.Message:
+        raise queue.Empty
+
+    def empty(self) -> bool:
+        return True
+
+    def qsize(self) -> int:
+        return 0
+
+
+class Timer(Protocol):
+    """Frames due at set times, released by a one-thread :class:`SocketcandServer`."""
+
+    def next_due(self) -> float | None:
+        """The monotonic time the next frame is due (``None``: nothing pending)."""
+
+    def release_due(self, now: float) -> None:
+        """Send every frame due at or before ``now``."""
+
+
+def attach_sink(bus: can.BusABC, sink: Any) -> None:
+    """Replace a python-can virtual bus's receive queue by ``sink`` (an object with
+    ``put(msg, block, timeout)``), in the channel's list of receivers too, so that frames
+    other peers send reach the sink in their thread and the bus's own frames still skip it.
+    Nothing may ``recv`` from that bus afterwards.
+
+    Raises:
+        AttributeError, ValueError: python-can's virtual bus is not laid out as expected.
+    """
+    from can.interfaces import virtual
+
+    with virtual.channels_lock:
+        receivers = bus.channel  # type: ignore[attr-defined]
+        index = receivers.index(bus.queue)  # type: ignore[attr-defined]
+        receivers[index] = sink
+        bus.queue = sink  # type: ignore[attr-defined]

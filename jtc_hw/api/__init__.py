@@ -18,6 +18,7 @@ __all__ = [
     "Client",
     "ClientConnectionError",
     "GoalHandle",
+    "RequestError",
     "StateSubscription",
     "default_socket_path",
 ]

@@ -32,17 +32,9 @@ from typing import Any
 from ..controller.tolerances import JointTolerance
 from ..controller.trajectory import JointTrajectory
 from ..errors import GoalRejected, ProtocolError
+from .framing import BUSY, GOAL_REJECTED, PROTOCOL_VERSION, MessageDecoder, RequestError, encode
 from .paths import default_socket_path as daemon_default
-from .protocol import (
-    BUSY,
-    GOAL_REJECTED,
-    PROTOCOL_VERSION,
-    MessageDecoder,
-    RequestError,
-    encode,
-    tolerances_to_json,
-    trajectory_to_json,
-)
+from .protocol import tolerances_to_json, trajectory_to_json
 
 log = logging.getLogger("jtc_hw.client")
 

@@ -18,9 +18,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, fields
 from typing import Any
 
-from ..api.protocol import (
-    DEFAULT_MAX_MESSAGE_BYTES,
-)
+from ..api.framing import DEFAULT_MAX_MESSAGE_BYTES
 from ..errors import (
     ConfigurationError,
 )

@@ -4,7 +4,7 @@ Theory of operation
 -------------------
 The server owns sockets and nothing else. It decodes requests with ``protocol.Decoder``, calls
 the ``Backend`` (which runs the control loop elsewhere, in another process) and writes replies
-and events with ``protocol.encode``. It never waits on the control loop while holding anything
+and events with ``framing.encode``. It never waits on the control loop while holding anything
 another client needs: backend coroutines (``send_goal``, ``cancel_goal``, ``send_trajectory``)
 are awaited by the requesting client's own task, and the synchronous backend methods must
 return at once (they read replicas and caches; see ``Backend``).
@@ -45,7 +45,7 @@ from pathlib import Path
 from typing import Any, Protocol
 
 from .. import __version__
-from ..api.protocol import (
+from ..api.framing import (
     BAD_REQUEST,
     BUSY,
     GOAL_REJECTED,
@@ -55,6 +55,12 @@ from ..api.protocol import (
     NOT_FOUND,
     PROTOCOL_VERSION,
     UNAUTHORIZED,
+    RequestError,
+    encode,
+    error_reply,
+    reply,
+)
+from ..api.protocol import (
     Auth,
     CancelGoal,
     Decoder,
@@ -64,16 +70,12 @@ from ..api.protocol import (
     QueryState,
     Rearm,
     Request,
-    RequestError,
     SendGoal,
     SendTrajectory,
     Sim,
     SubscribeState,
     UnsubscribeState,
-    encode,
-    error_reply,
     feedback_event,
-    reply,
     result_event,
     sample_to_json,
 )

@@ -14,7 +14,7 @@ from helpers.fake_backend import TOKEN, FakeBackend
 
 from jtc_hw import GoalRejected, JointTolerance, JointTrajectory, TrajectoryPoint
 from jtc_hw.api.client import Client, ClientConnectionError, GoalHandle
-from jtc_hw.api.protocol import RequestError
+from jtc_hw.api.framing import RequestError
 from jtc_hw.daemon.server import Server, ServerSettings, TcpEndpoint
 from jtc_hw.errors import ProtocolError
 

@@ -12,34 +12,36 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from jtc_hw import ErrorCode, GoalFeedback, GoalResult, GoalStatus, JointTolerance, TrajectorySample
-from jtc_hw.api.protocol import (
+from jtc_hw.api.framing import (
     BAD_JSON,
     BAD_REQUEST,
     ERROR_CODES,
-    OPS,
     TOO_LARGE,
     UNKNOWN_OP,
+    MessageDecoder,
+    RequestError,
+    encode,
+    error_reply,
+    reply,
+)
+from jtc_hw.api.protocol import (
+    OPS,
     Auth,
     CancelGoal,
     Decoder,
     GetConfig,
     GetStatus,
     Hello,
-    MessageDecoder,
     QueryState,
     Rearm,
-    RequestError,
     SendGoal,
     SendTrajectory,
     Sim,
     SubscribeState,
     UnsubscribeState,
-    encode,
-    error_reply,
     feedback_event,
     parse_request,
     parse_trajectory,
-    reply,
     result_event,
     tolerances_to_json,
     trajectory_to_json,

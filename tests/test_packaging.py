@@ -1,0 +1,24 @@
+"""A wheel holds every subpackage: ``pyproject.toml`` lists packages explicitly.
+
+An editable install finds a subpackage missing from the list anyway (it maps the folder), so
+only a real ``pip install .`` would show the gap, on a user's machine. This compares the list
+with the folders that hold an ``__init__.py``.
+"""
+
+from __future__ import annotations
+
+import tomllib
+
+from conftest import ROOT
+
+
+def test_every_subpackage_is_listed_for_the_wheel() -> None:
+    setuptools = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]
+    listed = set(setuptools["packages"])
+    sources = {"jtc_hw": ROOT / "jtc_hw", "jtc_hw.drivers": ROOT / "drivers"}
+    found = set()
+    for name, folder in sources.items():
+        for init in folder.rglob("__init__.py"):
+            relative = init.parent.relative_to(folder).parts
+            found.add(".".join((name, *relative)))
+    assert found == listed, f"missing from pyproject: {found - listed}; stale: {listed - found}"

@@ -40,6 +40,7 @@ from ..controller.config_io import load_config
 from ..controller.parsing import describe, did_you_mean, read_source
 from ..errors import ConfigurationError
 from ..hardware import (
+    MIN_WATCHDOG_PERIODS,
     HardwareSet,
     HardwareSpec,
     ParamKind,
@@ -432,9 +433,21 @@ def create_hardware_set(robot: RobotConfig) -> HardwareSet:
     Raises:
         ConfigurationError: a component's kind cannot be loaded (e.g. a missing optional
             dependency: the message names the ``pip install``) or its parameters are invalid
-            (path ``hardware[<i>].params.<key>``).
+            (path ``hardware[<i>].params.<key>``), including a ``watchdog_s`` shorter than
+            three loop periods.
         HardwareError: a driver's constructor failed otherwise.
     """
     components = [create_hardware(spec) for spec in robot.hardware]
+    period_s = 1.0 / robot.controller.update_rate
+    for index, component in enumerate(components):
+        watchdog_s = component.params.get("watchdog_s")
+        if watchdog_s is not None and watchdog_s < MIN_WATCHDOG_PERIODS * period_s - 1e-12:
+            raise ConfigurationError(
+                f"{watchdog_s * 1e3:g} ms is shorter than {MIN_WATCHDOG_PERIODS} loop periods "
+                f"({MIN_WATCHDOG_PERIODS * period_s * 1e3:g} ms at {robot.controller.update_rate:g}"
+                " Hz): one late cycle would stop the motors; raise watchdog_s or update_rate",
+                f"hardware[{index}].params.watchdog_s",
+                watchdog_s,
+            )
     return HardwareSet(components, robot.controller.joints)
 

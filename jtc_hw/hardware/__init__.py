@@ -17,8 +17,13 @@ from ..controller.joints import JointCommand, JointState
 from .components import HardwareSet
 from .interface import (
     COMMON_PARAMS,
+    DEFAULT_WATCHDOG_S,
     JOINT_MAPPING_PARAMS,
+    MIN_WATCHDOG_PERIODS,
+    NO_DEVICE_WATCHDOG,
     TRANSITIONS,
+    WATCHDOG_PARAM,
+    DeviceWatchdog,
     HardwareInterface,
     LifecycleState,
     SafeAction,
@@ -39,9 +44,14 @@ from .registry import (
 __all__ = [
     "BUILTIN_HARDWARE",
     "COMMON_PARAMS",
+    "DEFAULT_WATCHDOG_S",
     "ENTRY_POINT_GROUP",
     "JOINT_MAPPING_PARAMS",
+    "MIN_WATCHDOG_PERIODS",
+    "NO_DEVICE_WATCHDOG",
     "TRANSITIONS",
+    "WATCHDOG_PARAM",
+    "DeviceWatchdog",
     "HardwareInterface",
     "HardwareSet",
     "HardwareSpec",

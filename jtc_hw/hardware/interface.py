@@ -28,6 +28,7 @@ import logging
 from abc import ABC, abstractmethod
 from collections import deque
 from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
 from enum import Enum
 from types import MappingProxyType
 from typing import Any, ClassVar, Final
@@ -43,6 +44,11 @@ from .params import ParamKind, ParamSpec, _coerce, param_table, validate_params
 
 __all__ = [
     "COMMON_PARAMS",
+    "DEFAULT_WATCHDOG_S",
+    "MIN_WATCHDOG_PERIODS",
+    "NO_DEVICE_WATCHDOG",
+    "WATCHDOG_PARAM",
+    "DeviceWatchdog",
     "HardwareInterface",
     "JOINT_MAPPING_PARAMS",
     "LifecycleState",
@@ -145,6 +151,48 @@ JOINT_MAPPING_PARAMS: Final[tuple[ParamSpec, ...]] = (
 )
 """How a motor's position maps to its joint's, for drivers to include in their ``PARAMS``
 (``param_table(*JOINT_MAPPING_PARAMS, ...)``): one convention for every kind."""
+
+DEFAULT_WATCHDOG_S: Final = 0.1
+"""Default device-side watchdog time, s."""
+
+MIN_WATCHDOG_PERIODS: Final = 3
+"""A watchdog must allow at least this many loop periods (one late cycle must not trip it)."""
+
+WATCHDOG_PARAM: Final = ParamSpec(
+    "watchdog_s", ParamKind.FLOAT, DEFAULT_WATCHDOG_S,
+    "device-side watchdog, s: with no command for this long the motors stop by themselves "
+    "(armed on activate, disarmed on a clean deactivate); at least 3 loop periods",
+    minimum=0.001,
+)
+"""The ``watchdog_s`` row, for drivers whose devices have a watchdog to include in their
+``PARAMS``; the robot file checks it against the loop period (:data:`MIN_WATCHDOG_PERIODS`)."""
+
+
+@dataclass(frozen=True)
+class DeviceWatchdog:
+    """What stops a component's motors when the daemon stops commanding them.
+
+    Attributes:
+        timeout_s: the device-side timeout armed on activate; ``None``: (some of) the devices
+            have none and keep their last command if the daemon dies.
+        mechanism: one line for ``jtc-hw check`` and ``docs/safety.md``: what it is and what
+            the device does on expiry (e.g. "Dynamixel Bus Watchdog 100 ms: servos stop").
+        unprotected: joints whose motors have no watchdog (mixed models on one component).
+    """
+
+    timeout_s: float | None
+    mechanism: str
+    unprotected: tuple[str, ...] = ()
+
+    @property
+    def complete(self) -> bool:
+        """Every motor of the component stops by itself."""
+        return self.timeout_s is not None and not self.unprotected
+
+
+NO_DEVICE_WATCHDOG: Final = DeviceWatchdog(
+    None, "no device-side watchdog: motors keep their last command if the daemon dies"
+)
 
 
 # --------------------------------------------------------------------------------------------
@@ -504,6 +552,25 @@ class HardwareInterface(ABC):
             },
             "details": dict(self._details()),
         }
+
+    def device_watchdog(self) -> DeviceWatchdog:
+        """What stops this component's motors if the daemon cannot command them.
+
+        Drivers whose devices have a watchdog arm it on activate, disarm it on a clean
+        deactivate, and describe it here (no I/O: ``jtc-hw check`` calls it on an unconfigured
+        component). Default: :data:`NO_DEVICE_WATCHDOG`.
+        """
+        return NO_DEVICE_WATCHDOG
+
+    def devices(self) -> tuple[str, ...]:
+        """The devices this component drives, as lock names: the daemon takes an exclusive
+        lock on each before ``configure`` so that a second daemon never touches them.
+
+        One string per device, the same for every configuration that reaches it: a serial
+        port's resolved path (``/dev/ttyUSB0``), ``can:<interface>:<channel>`` (socketcand:
+        ``can:socketcand:<host>:<port>:<channel>``). No I/O. Default: none (simulated).
+        """
+        return ()
 
     def nan_command(self) -> JointCommand:
         """A command holding ``NaN`` for every configured interface (``None`` for the others)."""

@@ -376,3 +376,37 @@ def test_file_errors(tmp_path: Path) -> None:
     assert "found duplicate key 'joints'" in str(error_of(duplicate))
     with pytest.raises(TypeError):
         load_robot(3)  # type: ignore[arg-type]
+
+
+def test_watchdog_shorter_than_three_loop_periods_is_refused(tmp_path: Path) -> None:
+    from jtc_hw.daemon.robot import create_hardware_set
+    from jtc_hw.hardware import WATCHDOG_PARAM, HardwareInterface, param_table, register_hardware
+    from jtc_hw.hardware.registry import unregister_hardware
+
+    class Watched(HardwareInterface):
+        kind = "watched-test"
+        PARAMS = param_table(WATCHDOG_PARAM)
+
+        def _read(self, now_ns: int) -> Any:
+            raise NotImplementedError
+
+        def _write(self, now_ns: int, command: Any) -> None:
+            raise NotImplementedError
+
+    register_hardware("watched-test", Watched)
+    try:
+        def robot(watchdog_s: float) -> Any:
+            return load_robot({
+                "joints": ["j1"], "command_interfaces": ["position"],
+                "state_interfaces": ["position"], "update_rate": 100.0,
+                "hardware": [{"name": "w", "kind": "watched-test", "joints": ["j1"],
+                              "params": {"watchdog_s": watchdog_s}}],
+            })
+
+        assert create_hardware_set(robot(0.03)).components[0].params["watchdog_s"] == 0.03
+        with pytest.raises(ConfigurationError) as caught:
+            create_hardware_set(robot(0.029))
+        assert caught.value.path == "hardware[0].params.watchdog_s"
+        assert "shorter than 3 loop periods (30 ms at 100 Hz)" in str(caught.value)
+    finally:
+        unregister_hardware("watched-test")

@@ -162,6 +162,13 @@ class BusSettings:
             where = f"{self.channel} at {self.host}:{self.port}"
         return f"bus {self.name!r} ({self.interface} {where} @ {self.bitrate // 1000} kbit/s)"
 
+    def lock_name(self) -> str:
+        """The device lock name (``HardwareInterface.devices``): ``can:<interface>:<channel>``,
+        for socketcand ``can:socketcand:<host>:<port>:<channel>``."""
+        if self.interface == "socketcand":
+            return f"can:socketcand:{self.host}:{self.port}:{self.channel}"
+        return f"can:{self.interface}:{self.channel}"
+
 
 def _coerce_buses(value: Any, path: str) -> Mapping[str, BusSettings]:
     if not isinstance(value, Mapping) or not value:

@@ -22,3 +22,12 @@ def test_every_subpackage_is_listed_for_the_wheel() -> None:
             relative = init.parent.relative_to(folder).parts
             found.add(".".join((name, *relative)))
     assert found == listed, f"missing from pyproject: {found - listed}; stale: {listed - found}"
+
+
+def test_every_public_name_of_the_packages_imports() -> None:
+    import importlib
+
+    for package in ("jtc_hw", "jtc_hw.controller", "jtc_hw.hardware", "jtc_hw.api"):
+        module = importlib.import_module(package)
+        missing = [name for name in module.__all__ if not hasattr(module, name)]
+        assert not missing, f"{package}.__all__ names what it does not define: {missing}"

@@ -13,6 +13,7 @@ from .client import (
     StateSubscription,
     default_socket_path,
 )
+from .framing import RequestError
 
 __all__ = [
     "Client",

@@ -115,6 +115,8 @@ from types import TracebackType
 from ..motor_model import Motor, MotorParams
 from .control_table import (
     BAUD_RATES,
+    BUS_WATCHDOG_FIRMWARE,
+    BUS_WATCHDOG_UNIT_S,
     HardwareError,
     Model,
     OperatingMode,
@@ -137,8 +139,7 @@ from .packets import (
     wire_time_s,
 )
 
-__all__ = ["WATCHDOG_FIRMWARE", "DynamixelEmulator", "WatchdogTrip", "build_parser", "main",
-           "parse_ids"]
+__all__ = ["DynamixelEmulator", "WatchdogTrip", "build_parser", "main", "parse_ids"]
 
 _TWO_PI = 2.0 * math.pi
 #: Physics advance period while the bus is idle, s.
@@ -176,11 +177,6 @@ _PRESENT_NAMES = (
     "present_input_voltage",
     "present_temperature",
 )
-#: Bus Watchdog (98) exists from this firmware version on (e-Manual: "available from firmware
-#: v38"); older servos answer a write to it with the access error (address not defined).
-WATCHDOG_FIRMWARE = 38
-#: Bus Watchdog unit, s (register value 1..127: 20 ms .. 2.54 s).
-WATCHDOG_UNIT_S = 0.02
 #: While a tripped servo brakes, physics runs in slices this long so that the moment it comes
 #: to rest is recorded to within one slice (the motor model's own sub-step), s.
 _BRAKE_SLICE_S = 0.0005
@@ -410,12 +406,12 @@ class _Servo:
 
     @property
     def has_watchdog(self) -> bool:
-        return self.get("firmware_version") >= WATCHDOG_FIRMWARE
+        return self.get("firmware_version") >= BUS_WATCHDOG_FIRMWARE
 
     def watchdog_timeout_s(self) -> float | None:
         """The armed Bus Watchdog time, s (``None``: off, tripped, or no watchdog)."""
         value = self.get("bus_watchdog")
-        return value * WATCHDOG_UNIT_S if value > 0 else None
+        return value * BUS_WATCHDOG_UNIT_S if value > 0 else None
 
     def heard(self, now: float) -> None:
         """An instruction packet for this servo (its id or broadcast) arrived at ``now``."""
@@ -736,7 +732,7 @@ class DynamixelEmulator:
         return_delay_us: initial Return Delay Time, us (default: the model's, 500 us).
         reboot_time_s: how long a servo stays silent after REBOOT.
         firmware_version: the Firmware Version every servo reports (default: the model's);
-            below :data:`WATCHDOG_FIRMWARE` the servos have no Bus Watchdog.
+            below :data:`BUS_WATCHDOG_FIRMWARE` the servos have no Bus Watchdog.
 
     Raises:
         ValueError: bad ids, baud rate or firmware version.
@@ -955,7 +951,7 @@ class DynamixelEmulator:
 
     def set_firmware_version(self, servo_id: int, version: int) -> None:
         """Servo ``servo_id`` reports Firmware Version ``version`` (below
-        :data:`WATCHDOG_FIRMWARE`: no Bus Watchdog, and a write to it gets the access error).
+        :data:`BUS_WATCHDOG_FIRMWARE`: no Bus Watchdog, and a write to it gets the access error).
 
         Raises:
             KeyError: unknown servo.
@@ -1440,7 +1436,7 @@ def build_parser() -> argparse.ArgumentParser:
         type=int,
         default=None,
         help=f"Firmware Version the servos report (default: the model's; below "
-        f"{WATCHDOG_FIRMWARE}: no Bus Watchdog)",
+        f"{BUS_WATCHDOG_FIRMWARE}: no Bus Watchdog)",
     )
     p.add_argument(
         "--return-delay-us",

@@ -66,6 +66,9 @@ def make_hw(emulator: DynamixelEmulator) -> Iterator[Callable[..., DynamixelHard
             # Generous: the emulator shares this process (and the GIL) with the test.
             "timeout_ms": 30.0,
             "latency_timer_warn": False,
+            # Long: a loaded machine pausing this process must not trip the servos' watchdog
+            # (test_dynamixel_watchdog.py tests it).
+            "watchdog_s": 1.0,
         }
         base.update(params)
         hw = DynamixelHardware("arm", joints, command_interfaces, ("position", "velocity"), base)

@@ -35,9 +35,10 @@ every operating mode, once the torque is on: ``ceil(watchdog_s / 20 ms)`` (1..12
 ``watchdog_s`` is at most 2.54 s). A daemon that stops commanding (killed, hung) then leaves
 servos that brake to a stop by themselves. A clean ``deactivate`` disarms it (writes 0) after
 the safe action; a servo found tripped is left tripped. A trip seen while active (the register
-reads -1 after a silence longer than half the watchdog time, or a goal write answered with the
-Data Range Error) is a :class:`~jtc_hw.errors.MotorFault` "bus watchdog expired ...; rearm to
-resume" and takes the normal fault path; activation refuses such a servo until ``recover``
+reads -1 when checked after a bus silence longer than half the watchdog time, before a cycle's
+read or write; or a goal write answered with the Data Range Error) is a
+:class:`~jtc_hw.errors.MotorFault` "bus watchdog expired ...; rearm to resume" and takes the
+normal fault path; activation refuses such a servo until ``recover``
 clears it (writes 0, then at once a goal that keeps the servo still: the e-Manual does not say
 whether a cleared servo resumes its old goal). A trip found at ``configure`` that this instance
 never armed is a previous daemon's: ``activate`` clears it the same way, with a warning, so a
@@ -644,8 +645,9 @@ class DynamixelHardware(HardwareInterface):
             # stops commanding (killed, hung) leaves servos that stop by themselves.
             for servo_id in self.ids:
                 self._write_register(servo_id, "bus_watchdog", self._watchdog_units)
-            self._armed = True
             self._verify_enabled(goals)
+            self._require_bus().take_silence_s()  # silences before now were not armed ones
+            self._armed = True
         except HardwareError as exc:
             # Leave nothing enabled half way: the safe action, and the watchdogs disarmed.
             try:
@@ -789,12 +791,21 @@ class DynamixelHardware(HardwareInterface):
         assert last is not None
         raise self._comm_error(last, "reading the present state", attempts) from last
 
-    def _read(self, now_ns: int) -> JointState:
-        if (self._armed and time.monotonic() - self._require_bus().last_broadcast_s
-                > 0.5 * self.watchdog_timeout_s):
-            # The bus was silent for long enough that the servos may have stopped on their
-            # watchdog (a stalled loop): the Sync Writes they now refuse would go unnoticed.
+    def _check_silence(self) -> None:
+        """Before a cycle's transaction: after a bus silence longer than half the watchdog time
+        since the previous call (a stalled loop, wherever in its cycle it stalled), check
+        whether the servos stopped on their watchdog; the Sync Writes they then refuse would
+        otherwise go unnoticed.
+
+        Raises:
+            MotorFault: a servo's Bus Watchdog expired.
+            CommunicationError: a servo did not answer.
+        """
+        if self._armed and self._require_bus().take_silence_s() > 0.5 * self.watchdog_timeout_s:
             self._check_watchdogs()
+
+    def _read(self, now_ns: int) -> JointState:
+        self._check_silence()
         result = self._sync_read_present()
         for servo_id, error in result.errors.items():
             if error & ERROR_ALERT:
@@ -831,6 +842,7 @@ class DynamixelHardware(HardwareInterface):
         else:
             goals = dict(zip(self.ids, counts.astype(np.int64).tolist(), strict=True))
         if goals:
+            self._check_silence()
             self._sync_write_goal(self._goal_name, goals)
 
     def _sync_write_goal(self, name: str, values: Mapping[int, int]) -> None:

@@ -23,6 +23,7 @@ from helpers.daemon import MS, WAIT_S, DaemonProcess, connect, next_state, settl
 
 from jtc_hw import GoalRejected
 from jtc_hw.api.client import Client
+from jtc_hw.api.framing import RequestError
 from jtc_hw.drivers.dynamixel.control_table import HardwareError
 from jtc_hw.drivers.dynamixel.emulator import DynamixelEmulator
 
@@ -152,6 +153,70 @@ def test_fault_mid_goal_aborts_then_rearm_holds_without_a_jump(
             [before[i] for i in IDS], abs=0.02)
         back = client.send_goal(traj(p0, 1.5)).wait(timeout_s=WAIT_S)
         assert back["status"] == "succeeded", back
+
+
+def test_a_stalled_loop_trips_the_watchdog_then_a_rearm_holds_where_the_servos_stopped(
+    position_daemon: DxlDaemon, emulator: DynamixelEmulator
+) -> None:
+    """The loop stopped (SIGSTOP) mid-goal for longer than the watchdog: the servos stop by
+    themselves; resumed, the driver sees the expiry and the goal aborts with it; a rearm then
+    holds where the servos stopped."""
+    with connect(position_daemon) as client, client.subscribe_state() as sub:
+        p0 = next_state(sub, lambda s: s["active_goal"] is None)["actual"]["positions"]
+        goal = client.send_goal(traj([p - 0.3 for p in p0], 2.0))
+        for feedback in goal.feedback(timeout_s=WAIT_S):
+            if feedback["time_from_start"] >= 0.3:
+                break
+        loop = loop_process(position_daemon.pid)
+        since = time.monotonic()
+        os.kill(loop, signal.SIGSTOP)
+        try:
+            trips = emulator.wait_watchdog_stopped(IDS, timeout_s=WAIT_S, since_s=since)
+        finally:
+            os.kill(loop, signal.SIGCONT)
+        result = goal.wait(timeout_s=WAIT_S)
+        assert result["status"] == "aborted", result
+        assert result["error_string"].endswith(
+            "servo 1 (joint 'joint1'): bus watchdog expired (no command for 1000 ms); "
+            "rearm to resume"), result
+        with pytest.raises(GoalRejected):
+            client.send_goal(traj(p0, 1.0))
+        stopped = [trips[i].stopped_position_rad or math.nan for i in IDS]
+        assert client.rearm(timeout_s=WAIT_S)["rearmed"] is True
+        after = settle(sub, client.hello()["now_ns"] + 50 * MS)
+        assert after["holding"] is True
+        assert after["desired"]["positions"] == pytest.approx(
+            after["actual"]["positions"], abs=0.01)
+        assert [emulator.positions()[i] for i in IDS] == pytest.approx(stopped, abs=0.01)
+        back = client.send_goal(traj(p0, 1.5)).wait(timeout_s=WAIT_S)
+        assert back["status"] == "succeeded", back
+
+
+def test_a_rearm_whose_servo_does_not_stay_enabled_fails_in_one_line(
+    position_daemon: DxlDaemon, emulator: DynamixelEmulator
+) -> None:
+    """Truthful rearm: servo 3 faults again the moment its torque comes back on (a shorted
+    winding); the rearm says so in one line naming it, and the next one (after the cause is
+    gone) holds."""
+    with connect(position_daemon) as client, client.subscribe_state() as sub:
+        next_state(sub, lambda s: s["active_goal"] is None)
+        emulator.raise_hardware_error(3, HardwareError.OVERLOAD)
+        deadline = time.monotonic() + WAIT_S
+        while client.get_status()["controller"]["fault"] is None:  # no goal: no event to wait on
+            assert time.monotonic() < deadline, "the overload was not reported"
+            time.sleep(0.01)
+        emulator.fail_next_torque_on(3, HardwareError.ELECTRICAL_SHOCK)
+        with pytest.raises(RequestError) as info:
+            client.rearm(timeout_s=WAIT_S)
+        message = str(info.value)
+        assert "servo 3 (joint 'joint3')" in message and "electrical shock" in message
+        assert "\n" not in message and "Traceback" not in message
+        controller = client.get_status()["controller"]
+        assert controller["active"] is False and "servo 3" in controller["fault"]
+        assert client.rearm(timeout_s=WAIT_S)["rearmed"] is True
+        after = settle(sub, client.hello()["now_ns"] + 50 * MS)
+        assert after["holding"] is True
+        assert [emulator.register(i, "torque_enable") for i in IDS] == [1] * 6
 
 
 @pytest.mark.parametrize(

@@ -211,6 +211,26 @@ def test_silence_stops_moving_servos_and_the_driver_reports_the_expiry(
     read_until(hw, lambda p: bool(np.all(p - again > 0.03)))
 
 
+@pytest.mark.parametrize("stalled_before", ["write", "read after other traffic"])
+def test_a_stall_anywhere_in_the_cycle_is_caught_by_the_next_transaction(
+    make_hw: Callable[..., DynamixelHardware], emulator: DynamixelEmulator, stalled_before: str
+) -> None:
+    hw = make_hw(("velocity",), watchdog_s=0.04)
+    hw.configure()
+    hw.activate(now_ns())
+    hw.read(now_ns())
+    emulator.wait_watchdog_stopped(IDS, timeout_s=WAIT_S)  # the loop "stalls" here
+    with pytest.raises(MotorFault, match="bus watchdog expired"):
+        if stalled_before == "write":
+            hw.write(now_ns(), JointCommand(velocities=[0.1, 0.1, 0.1]))
+        else:
+            # A broadcast went out after the stall (say the stalled cycle's write, which the
+            # tripped servos refused without a reply): the silence is still seen.
+            assert hw.bus is not None
+            hw.bus.sync_read(IDS, PRESENT_POSITION, 4)
+            hw.read(now_ns())
+
+
 def test_rearm_after_expiry_in_position_mode_holds_where_the_servo_stopped(
     make_hw: Callable[..., DynamixelHardware], emulator: DynamixelEmulator
 ) -> None:

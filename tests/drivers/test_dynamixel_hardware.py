@@ -506,6 +506,7 @@ def test_the_shipped_configurations_load() -> None:
         (component,) = create_hardware_set(robot).components
         assert isinstance(component, DynamixelHardware)
         assert component.ids == (1, 2, 3, 4, 5, 6)
+        assert component.watchdog_timeout_s == pytest.approx(0.1)
 
 
 def test_a_refused_write_names_the_servo_and_cause(emulator: DynamixelEmulator) -> None:

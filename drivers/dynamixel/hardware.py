@@ -38,9 +38,9 @@ the safe action; a servo found tripped is left tripped. A trip seen while active
 reads -1 when checked after a bus silence longer than half the watchdog time, before a cycle's
 read or write; or a goal write answered with the Data Range Error) is a
 :class:`~jtc_hw.errors.MotorFault` "bus watchdog expired ...; rearm to resume" and takes the
-normal fault path; activation refuses such a servo until ``recover``
-clears it (writes 0, then at once a goal that keeps the servo still: the e-Manual does not say
-whether a cleared servo resumes its old goal). A trip found at ``configure`` that this instance
+normal fault path; activation refuses such a servo until ``recover`` clears it (writes 0, then
+at once a goal that keeps the servo still: the e-Manual does not say whether a cleared servo
+resumes its old goal). A trip found at ``configure`` that this instance
 never armed is a previous daemon's: ``activate`` clears it the same way, with a warning, so a
 daemon started after a crash can run. Servos with firmware older than v38 have no Bus Watchdog
 and are refused at ``configure`` (the message says how to update the firmware).
@@ -125,12 +125,9 @@ _PRESENT_DTYPE: Final = np.dtype([("current", "<i2"), ("velocity", "<i4"), ("pos
 _GAINS: Final = (
     "position_p_gain", "position_i_gain", "position_d_gain", "velocity_p_gain", "velocity_i_gain"
 )
-_TORQUE_ENABLE: Final = 64
-_HARDWARE_ERROR_STATUS: Final = 70
 _BUS_WATCHDOG: Final = 98
-_PRESENT_POSITION: Final = 132
-#: Activation reads back Torque Enable .. Present Position in one Sync Read (64..135).
-_ENABLED_BLOCK: Final = (_TORQUE_ENABLE, _PRESENT_POSITION + 4)
+#: Activation reads back Torque Enable (64) .. Present Position (132..135) in one Sync Read.
+_ENABLED_BLOCK: Final = (64, 136)
 #: Position modes: after activation the servo's goal must be this close to where it is, ticks
 #: (a tick or two of motion between reading the position and switching the torque on; a goal
 #: the servo refused would be wherever the last session left it).
@@ -857,10 +854,15 @@ class DynamixelHardware(HardwareInterface):
         errors: list[Exception] = []
         # Which servos have tripped: they stopped by themselves and refuse goals, so the hold
         # leaves them alone, and they stay tripped (a rearm clears them, see _clear_trip).
+        values: dict[int, int] | None
         try:
-            tripped = {i for i, value in self._watchdog_values().items() if value < 0}
-        except HardwareError:
-            tripped = set(self._tripped)  # the writes below will report the broken bus
+            values = self._watchdog_values()
+        except HardwareError as exc:
+            values = None  # the writes below report the broken bus
+            _log.warning("%s: %s; the Bus Watchdogs stay armed (a servo not commanded stops "
+                         "by itself)", self._owner(), exc)
+        tripped = ({i for i, value in values.items() if value < 0} if values is not None
+                   else set(self._tripped))
         if self._armed:
             self._tripped |= tripped
         skip = tripped | set(self._latched)
@@ -905,9 +907,11 @@ class DynamixelHardware(HardwareInterface):
         # Disarmed after the safe action, not before: had the safe action failed or the
         # process died in between, a servo still armed stops by itself, while one disarmed
         # first would keep its last (moving) command. A tripped servo is not cleared here:
-        # clearing is the rearm's, together with a goal that keeps it still.
+        # clearing is the rearm's, together with a goal that keeps it still. Unread states
+        # (a broken bus) are not guessed at: disarming might clear a trip; left armed, a servo
+        # still holding stops and holds by itself, which is the same.
         for servo_id in self.ids:
-            if servo_id in tripped:
+            if values is None or servo_id in tripped:
                 continue
             try:
                 self._write_register(servo_id, "bus_watchdog", 0)

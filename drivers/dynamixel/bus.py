@@ -203,6 +203,11 @@ class _Port(_sdk.PortHandler):  # type: ignore[misc]
         self.allowance_ms = allowance_ms
         self.fd = -1
         self._rx = bytearray()
+        # When the last broadcast instruction (the group instructions of every cycle) was
+        # handed to the adapter, time.monotonic(): every servo's Bus Watchdog counts from it;
+        # and the longest interval between two of them since DynamixelBus.take_silence_s().
+        self.last_broadcast_s = -float("inf")
+        self.longest_gap_s = 0.0
 
     # The SDK's names are kept on this subclass only: they are what it calls.
     def getCurrentTime(self) -> float:  # noqa: N802 - SDK override
@@ -255,6 +260,10 @@ class _Port(_sdk.PortHandler):  # type: ignore[misc]
                 _, ready, _ = select.select([], [self.fd], [], 0.1)
                 if not ready:
                     break
+        if written and len(data) > 4 and data[4] == BROADCAST_ID:  # id byte, after the header
+            now = time.monotonic()
+            self.longest_gap_s = max(self.longest_gap_s, now - self.last_broadcast_s)
+            self.last_broadcast_s = now
         return written
 
     def drain(self, quiet_s: float) -> int:
@@ -340,6 +349,29 @@ class DynamixelBus:
     def is_open(self) -> bool:
         """Whether the port is open."""
         return self._open
+
+    @property
+    def last_broadcast_s(self) -> float:
+        """When the last broadcast instruction packet (a Sync Read / Sync Write, ...) went out,
+        ``time.monotonic()`` (``-inf``: none yet).
+
+        A broadcast packet reaches every servo, so this is the latest moment from which every
+        servo's Bus Watchdog is known to count.
+        """
+        last: float = self._port.last_broadcast_s
+        return last
+
+    def take_silence_s(self) -> float:
+        """The longest time without a broadcast instruction since the previous call (between
+        two of them, or from the last one until now), s; resets it.
+
+        A stall anywhere (between a cycle's read and its write as well) shows here at the
+        next call, even once packets flow again.
+        """
+        port = self._port
+        longest: float = max(port.longest_gap_s, time.monotonic() - port.last_broadcast_s)
+        port.longest_gap_s = 0.0
+        return longest
 
     def __repr__(self) -> str:
         state = "open" if self._open else "closed"

@@ -36,6 +36,9 @@ import numpy.typing as npt
 
 __all__ = [
     "BAUD_RATES",
+    "BUS_WATCHDOG_FIRMWARE",
+    "BUS_WATCHDOG_MAX",
+    "BUS_WATCHDOG_UNIT_S",
     "MODELS",
     "PRESENT_BLOCK",
     "PRESENT_BLOCK_ADDRESS",
@@ -86,6 +89,13 @@ BAUD_RATES: Mapping[int, int] = MappingProxyType(
         7: 4_500_000,
     }
 )
+
+#: Bus Watchdog (address 98): one count is 20 ms; 1..127 arm it (0.02 .. 2.54 s), 0 disarms it
+#: and clears its error, -1 is the error state the servo sets on expiry (e-Manual).
+BUS_WATCHDOG_UNIT_S = 0.02
+BUS_WATCHDOG_MAX = 127
+#: The Bus Watchdog exists from this firmware version on ("available from firmware v38").
+BUS_WATCHDOG_FIRMWARE = 38
 
 #: Registers read every cycle, one contiguous block (addresses 126..135). On XL430 the first
 #: entry is ``present_load`` (same address and size) instead of ``present_current``.
@@ -470,7 +480,7 @@ def _x_series_table(
         _r("feedforward_1st_gain", 90, 2, hi=16383),
         # 1..127 (20 ms units), 0 disables and clears a trip; the servo itself sets -1 when the
         # watchdog trips (not writable).
-        _r("bus_watchdog", 98, 1, signed=True, lo=0, hi=127, unit="20 ms"),
+        _r("bus_watchdog", 98, 1, signed=True, lo=0, hi=BUS_WATCHDOG_MAX, unit="20 ms"),
         _r("goal_pwm", 100, 2, signed=True, lo=-885, hi=885, unit="0.113 %"),
         _r(
             "goal_velocity",

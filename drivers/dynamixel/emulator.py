@@ -58,15 +58,38 @@ with Drive Mode bit 0 reversing the direction)::
 
 where ``direction`` is -1 with Drive Mode bit 0 set, else +1. The time-based profile (Drive Mode
 bit 2) and "torque on by goal update" (bit 3) are not emulated: profiles are always velocity
-based. Bus Watchdog: with torque on and no instruction packet on the bus for longer than its
-value * 20 ms, the servo stops (goals set to "stay here"), Bus Watchdog reads -1 and writes to the
-goal registers get the data range error until 0 is written to it.
-Enabling torque copies Present Position into Goal Position so that nothing jumps (emulator choice).
+based. Enabling torque copies Present Position into Goal Position so that nothing jumps
+(emulator choice).
+
+Bus Watchdog (address 98, 1 byte, firmware v38 and later), as the e-Manual describes it:
+
+- 0 disables it and clears its error; 1..127 arms it, in 20 ms units; -1 is its error state,
+  set by the servo (a host cannot write -1: data range error).
+- With Torque Enable 1, when the time since the last instruction packet the servo received is
+  larger than the set time, the servo stops: Profile Acceleration and Profile Velocity are
+  applied as 0, so in every operating mode the shaft brakes as hard as the motor can and then
+  holds still. Bus Watchdog then reads -1 and Goal PWM / Current / Velocity / Position become
+  read-only: a write gets the data range error until 0 is written to Bus Watchdog.
+- Counted packets: good-CRC instruction packets addressed to the servo's id or to the
+  broadcast id (so every Sync Write / Sync Read feeds the watchdog of every servo on the bus);
+  not packets for other ids, and nothing while the servo reboots. Expiry is measured on the
+  emulator's own clock (``time.monotonic``) and takes effect at its exact moment, however late
+  the emulator notices it.
+- Emulator choices where the e-Manual is silent: the goal registers keep their values; while
+  tripped only 0 may be written to Bus Watchdog; after the clear the servo keeps holding still
+  until a goal is written (clearing alone never restarts a motion); REBOOT resets it to 0.
+- Below firmware v38 the register does not exist: it reads 0 and a write gets the access error.
+
+Each trip is recorded as a :class:`WatchdogTrip` (last instruction, expiry, speed then, when and
+where the shaft came to rest): :meth:`~DynamixelEmulator.watchdog_trips` and
+:meth:`~DynamixelEmulator.wait_watchdog_stopped`; the command line prints one JSON line per trip.
 
 Faults for tests (all thread-safe): :meth:`~DynamixelEmulator.drop_replies`,
 :meth:`~DynamixelEmulator.delay_replies`, :meth:`~DynamixelEmulator.corrupt_crc`,
 :meth:`~DynamixelEmulator.set_silent`, :meth:`~DynamixelEmulator.raise_hardware_error` (latched
-until REBOOT: alert bit in every status, torque off, torque cannot be enabled).
+until REBOOT: alert bit in every status, torque off, torque cannot be enabled),
+:meth:`~DynamixelEmulator.fail_next_torque_on` (a fault found on energising the motor) and
+:meth:`~DynamixelEmulator.set_firmware_version`.
 """
 
 from __future__ import annotations
@@ -76,6 +99,7 @@ import contextlib
 import ctypes
 import dataclasses
 import errno
+import json
 import math
 import os
 import select
@@ -85,12 +109,14 @@ import sys
 import threading
 import time
 import tty
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from types import TracebackType
 
 from ..motor_model import Motor, MotorParams
 from .control_table import (
     BAUD_RATES,
+    BUS_WATCHDOG_FIRMWARE,
+    BUS_WATCHDOG_UNIT_S,
     HardwareError,
     Model,
     OperatingMode,
@@ -113,7 +139,7 @@ from .packets import (
     wire_time_s,
 )
 
-__all__ = ["DynamixelEmulator", "build_parser", "main", "parse_ids"]
+__all__ = ["DynamixelEmulator", "WatchdogTrip", "build_parser", "main", "parse_ids"]
 
 _TWO_PI = 2.0 * math.pi
 #: Physics advance period while the bus is idle, s.
@@ -151,8 +177,42 @@ _PRESENT_NAMES = (
     "present_input_voltage",
     "present_temperature",
 )
+#: While a tripped servo brakes, physics runs in slices this long so that the moment it comes
+#: to rest is recorded to within one slice (the motor model's own sub-step), s.
+_BRAKE_SLICE_S = 0.0005
 _STRUCT_CODES = {(1, False): "B", (1, True): "b", (2, False): "H", (2, True): "h",
                  (4, False): "I", (4, True): "i"}
+
+
+@dataclasses.dataclass(frozen=True)
+class WatchdogTrip:
+    """One expiry of a servo's Bus Watchdog, as the emulator recorded it.
+
+    Times are ``time.monotonic()`` of the emulator's process (Linux: ``CLOCK_MONOTONIC``, the
+    same clock in every process of the machine, so a benchmark can subtract the moment it
+    killed the host from ``stopped_s``).
+
+    Attributes:
+        servo_id: the servo.
+        timeout_s: the armed time (Bus Watchdog value * 20 ms).
+        last_instruction_s: the last instruction packet the servo received (addressed to it, or
+            broadcast) before the expiry.
+        expired_s: ``last_instruction_s + timeout_s``: when the servo started to stop.
+        speed_at_expiry_rad_s: how fast the shaft turned then, rad/s (absolute value).
+        position_at_expiry_rad: shaft position then, rad.
+        stopped_s: when the shaft came to rest (Present Velocity reads 0), or ``None`` while it
+            is still braking.
+        stopped_position_rad: shaft position at rest, rad (``None`` while braking).
+    """
+
+    servo_id: int
+    timeout_s: float
+    last_instruction_s: float
+    expired_s: float
+    speed_at_expiry_rad_s: float
+    position_at_expiry_rad: float
+    stopped_s: float | None = None
+    stopped_position_rad: float | None = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -242,7 +302,14 @@ def _layout(model: Model) -> _Layout:
 class _Servo:
     """One emulated servo: its control table, motor and injected faults."""
 
-    def __init__(self, model: Model, servo_id: int, position: float, baud_value: int) -> None:
+    def __init__(
+        self,
+        model: Model,
+        servo_id: int,
+        position: float,
+        baud_value: int,
+        notify: Callable[[], None] = lambda: None,
+    ) -> None:
         self.model = model
         self.table = model.defaults()
         self._layout = _layout(model)
@@ -270,7 +337,15 @@ class _Servo:
         self.last_instruction = self.epoch
         self.registered: tuple[int, bytes] | None = None
         self.rebooting_until = 0.0
+        # Bus Watchdog: after a trip the servo holds still until, the register cleared, a goal
+        # is written (see _Servo.step); every trip is recorded, and ``notify`` (the emulator's
+        # condition, called under its lock) wakes whoever waits for one.
+        self.halted = False
+        self.hold_rad: float | None = None  # where a tripped servo came to rest
+        self.trips: list[WatchdogTrip] = []
+        self.notify = notify
         # faults
+        self.torque_on_fault = 0  # hardware error bits latched by the next torque on
         self.drop = 0
         self.delay_s = 0.0
         self.corrupt = 0
@@ -329,18 +404,43 @@ class _Servo:
         raw = self.direction * (self.get("goal_position") - self.get("homing_offset"))
         return self.model.ticks_to_rad(raw)
 
+    @property
+    def has_watchdog(self) -> bool:
+        return self.get("firmware_version") >= BUS_WATCHDOG_FIRMWARE
+
+    def watchdog_timeout_s(self) -> float | None:
+        """The armed Bus Watchdog time, s (``None``: off, tripped, or no watchdog)."""
+        value = self.get("bus_watchdog")
+        return value * BUS_WATCHDOG_UNIT_S if value > 0 else None
+
+    def heard(self, now: float) -> None:
+        """An instruction packet for this servo (its id or broadcast) arrived at ``now``."""
+        self.last_instruction = now
+
     def step(self, now: float) -> None:
+        """Advance to ``now``; trips the Bus Watchdog at the exact moment it expires."""
+        if now <= self.last_step:
+            return
+        timeout = self.watchdog_timeout_s()
+        # The e-Manual: with torque on, an interval *larger* than the set time stops the servo.
+        if timeout is not None and self.torque_on and now - self.last_instruction > timeout:
+            expiry = max(self.last_instruction + timeout, self.last_step)
+            self._advance(expiry)
+            self.trip_watchdog(expiry, timeout)
+        self._advance(now)
+
+    def _advance(self, now: float) -> None:
         dt = now - self.last_step
         if dt <= 0.0:
             return
-        self.last_step = now
+        start, self.last_step = self.last_step, now
         self.stale = True
         m, motor = self.model, self.motor
-        watchdog = self.get("bus_watchdog")
-        if self.torque_on and watchdog > 0 and now - self.last_instruction > watchdog * 0.02:
-            self.trip_watchdog()
         if not self.torque_on or self.get("hardware_error_status"):
             motor.coast(dt)
+            return
+        if self.halted:
+            self._brake(start, now)
             return
         mode = self.get("operating_mode")
         d = self.direction
@@ -375,13 +475,64 @@ class _Servo:
         else:
             motor.coast(dt)
 
-    def trip_watchdog(self) -> None:
-        """Stop where the shaft is and latch the bus watchdog error (Bus Watchdog = -1)."""
-        self.set("bus_watchdog", -1)
-        for name in ("goal_velocity", "goal_current", "goal_pwm"):
-            self.set(name, 0)
-        self.set("goal_position", self.present_ticks())
+    def _at_rest(self) -> bool:
+        """Present Velocity reads 0 (below half a count)."""
+        return abs(self.motor.velocity) < 0.5 * self.model.velocity_unit_rad_s
+
+    def _brake(self, start: float, end: float) -> None:
+        """After a trip, in every operating mode: stop with Profile Velocity and Profile
+        Acceleration applied as 0 (the e-Manual), i.e. as hard as the motor's torque allows,
+        then hold that position.
+
+        Until the shaft is at rest the physics runs in short slices, so that the recorded
+        ``stopped_s`` is exact to a slice however rarely the emulator is stepped.
+        """
+        motor, params = self.motor, self.params
+        if motor.params is not params:
+            motor.params = params
+        t = start
+        while self.hold_rad is None and t < end:
+            h = min(_BRAKE_SLICE_S, end - t)
+            # The torque that would stop the shaft within this slice, within the motor's limit.
+            brake = motor.velocity * params.inertia / h
+            motor.step_torque(h, -max(-params.torque_limit, min(params.torque_limit, brake)))
+            t += h
+            if self._at_rest():
+                self._stopped(t)
+        if t < end and self.hold_rad is not None:
+            motor.step_position(end - t, self.hold_rad)
+
+    def _stopped(self, at: float) -> None:
+        self.hold_rad = self.motor.position
         self.motor.reset_reference()
+        self.trips[-1] = dataclasses.replace(
+            self.trips[-1], stopped_s=at, stopped_position_rad=self.motor.position
+        )
+        self.notify()
+
+    def trip_watchdog(self, at: float, timeout_s: float) -> None:
+        """The Bus Watchdog expired at ``at``: Bus Watchdog = -1, goals read-only, stop.
+
+        The goal registers keep their values (the e-Manual makes them read-only; it does not
+        say they change). Where the e-Manual is silent the emulator takes the safe side: the
+        servo holds still until, the register cleared with 0, a goal is written (clearing alone
+        never restarts a motion).
+        """
+        self.set("bus_watchdog", -1)
+        self.halted = True
+        self.hold_rad = None
+        self.trips.append(WatchdogTrip(
+            servo_id=self.id,
+            timeout_s=timeout_s,
+            last_instruction_s=self.last_instruction,
+            expired_s=at,
+            speed_at_expiry_rad_s=abs(self.motor.velocity),
+            position_at_expiry_rad=self.motor.position,
+        ))
+        if self._at_rest():
+            self._stopped(at)
+        else:
+            self.notify()
 
     def refresh(self) -> None:
         """Bring the present registers up to date if a step or a write made them stale."""
@@ -448,6 +599,8 @@ class _Servo:
         for reg, value in covered:
             if not reg.writable or (reg.eeprom and self.torque_on):
                 return ErrorNumber.ACCESS
+            if reg.name == "bus_watchdog" and not self.has_watchdog:
+                return ErrorNumber.ACCESS  # not defined before firmware v38
             if not reg.minimum <= value <= reg.maximum:
                 return ErrorNumber.DATA_RANGE
         if "operating_mode" in pending:
@@ -456,8 +609,14 @@ class _Servo:
                     return ErrorNumber.DATA_RANGE
             except ValueError:
                 return ErrorNumber.DATA_RANGE
-        if self.get("bus_watchdog") < 0 and any(name.startswith("goal_") for name in pending):
-            return ErrorNumber.DATA_RANGE  # goals are read-only after a watchdog trip
+        if self.get("bus_watchdog") < 0:
+            # After a trip the goals are read-only (the e-Manual: Data Range Error) until 0 is
+            # written to Bus Watchdog; the emulator refuses any other value meanwhile, so that
+            # the reset rule is one rule: clear with 0, then arm again.
+            if any(name.startswith("goal_") for name in pending):
+                return ErrorNumber.DATA_RANGE
+            if pending.get("bus_watchdog", 0) != 0:
+                return ErrorNumber.DATA_RANGE
         if pending.get("torque_enable") == 1 and self.get("hardware_error_status"):
             return ErrorNumber.RESULT_FAIL
 
@@ -496,6 +655,20 @@ class _Servo:
         if self.torque_on and not was_on:
             self.motor.reset_reference()
             self.set("goal_position", self.present_ticks())
+            if self.torque_on_fault:
+                # An injected fault found on energising the motor: latched, torque off again.
+                self.set("hardware_error_status", self.torque_on_fault)
+                self.set("torque_enable", 0)
+                self.torque_on_fault = 0
+        if (
+            self.halted
+            and not isinstance(regs, int)
+            and self.get("bus_watchdog") >= 0
+            and any(reg.name.startswith("goal_") for reg in regs)
+        ):
+            self.halted = False  # a new goal after the clear: the servo obeys again
+            self.hold_rad = None
+            self.motor.reset_reference()
 
     def write(self, address: int, data: bytes) -> int:
         error = self.check_write(address, data)
@@ -509,10 +682,20 @@ class _Servo:
         self.table[64:] = defaults[64:]
         self._values.clear()
         self.registered = None
+        self.halted = False
+        self.hold_rad = None
         self.motor.reset_reference()
         self.epoch = now
         self.rebooting_until = now + reboot_time_s
         self.sync_present()
+
+
+def _set_firmware(s: _Servo, version: int) -> None:
+    if not 0 <= version <= 255:
+        raise ValueError(f"firmware version must be in 0..255, got {version}")
+    s.set("firmware_version", version)
+    if not s.has_watchdog:
+        s.set("bus_watchdog", 0)
 
 
 def _precise_timers() -> None:
@@ -548,9 +731,11 @@ class DynamixelEmulator:
         initial_positions: id -> shaft position, rad (default pi: tick 2048, mid-range).
         return_delay_us: initial Return Delay Time, us (default: the model's, 500 us).
         reboot_time_s: how long a servo stays silent after REBOOT.
+        firmware_version: the Firmware Version every servo reports (default: the model's);
+            below :data:`BUS_WATCHDOG_FIRMWARE` the servos have no Bus Watchdog.
 
     Raises:
-        ValueError: bad ids or baud rate.
+        ValueError: bad ids, baud rate or firmware version.
         KeyError: unknown model (``UnknownModelError``).
     """
 
@@ -565,6 +750,7 @@ class DynamixelEmulator:
         initial_positions: Mapping[int, float] | None = None,
         return_delay_us: float | None = None,
         reboot_time_s: float = 0.05,
+        firmware_version: int | None = None,
     ) -> None:
         ids = list(ids)
         if not ids or any(not 0 <= i <= 252 for i in ids) or len(set(ids)) != len(ids):
@@ -579,12 +765,22 @@ class DynamixelEmulator:
         self.reboot_time_s = reboot_time_s
         self._link = link
         positions = dict(initial_positions or {})
-        self._servos = [_Servo(self.model, i, positions.get(i, math.pi), values[baud]) for i in ids]
+        self._lock = threading.Lock()
+        # Signalled (under the lock) when a servo's Bus Watchdog trips or the servo comes to
+        # rest after a trip: wait_watchdog_stopped() blocks on it.
+        self._changed = threading.Condition(self._lock)
+        self._servos = [
+            _Servo(self.model, i, positions.get(i, math.pi), values[baud],
+                   self._changed.notify_all)
+            for i in ids
+        ]
         if return_delay_us is not None:
             value = max(0, min(254, round(return_delay_us / 2.0)))
             for s in self._servos:
                 s.set("return_delay_time", value)
-        self._lock = threading.Lock()
+        if firmware_version is not None:
+            for s in self._servos:
+                _set_firmware(s, firmware_version)
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._master = -1
@@ -753,6 +949,93 @@ class DynamixelEmulator:
             s.set("hardware_error_status", s.get("hardware_error_status") | int(bits))
             s.set("torque_enable", 0)
 
+    def set_firmware_version(self, servo_id: int, version: int) -> None:
+        """Servo ``servo_id`` reports Firmware Version ``version`` (below
+        :data:`BUS_WATCHDOG_FIRMWARE`: no Bus Watchdog, and a write to it gets the access error).
+
+        Raises:
+            KeyError: unknown servo.
+            ValueError: ``version`` outside 0..255.
+        """
+        with self._lock:
+            _set_firmware(self._servo(servo_id), version)
+
+    def fail_next_torque_on(self, servo_id: int, bits: HardwareError) -> None:
+        """The next time servo ``servo_id``'s torque is switched on, it finds hardware error
+        ``bits`` at once (e.g. a shorted winding: electrical shock): the write is acknowledged
+        (with the alert bit), then the error is latched and the torque is off again.
+
+        Raises:
+            KeyError: unknown servo.
+        """
+        with self._lock:
+            self._servo(servo_id).torque_on_fault = int(bits)
+
+    # -- Bus Watchdog records -------------------------------------------------------------------
+
+    def watchdog_trips(self, since_s: float = -math.inf) -> list[WatchdogTrip]:
+        """Every Bus Watchdog expiry at or after ``since_s`` (``time.monotonic()``), in order.
+
+        The record survives clearing the register and rebooting; a trip still braking has
+        ``stopped_s`` ``None``.
+        """
+        with self._lock:
+            now = time.monotonic()
+            for s in self._servos:
+                s.step(now)  # an expiry due by now is recorded even if nothing stepped yet
+            trips = [t for s in self._servos for t in s.trips if t.expired_s >= since_s]
+        return sorted(trips, key=lambda t: (t.expired_s, t.servo_id))
+
+    def wait_watchdog_stopped(
+        self, ids: Iterable[int], timeout_s: float, since_s: float = -math.inf
+    ) -> dict[int, WatchdogTrip]:
+        """Block until each servo of ``ids`` has a trip at or after ``since_s`` that ended at
+        rest; its first such trip per servo.
+
+        This is what a benchmark of "daemon failure -> servos stopped" reads: take
+        ``since_s`` and the failure moment from ``time.monotonic()``, then ``stopped_s`` minus
+        the failure moment per servo.
+
+        Raises:
+            KeyError: unknown servo.
+            TimeoutError: not every servo stopped within ``timeout_s`` (the message names them).
+        """
+        wanted = list(ids)
+        deadline = time.monotonic() + timeout_s
+        with self._lock:
+            servos = [self._servo(i) for i in wanted]
+            while True:
+                now = time.monotonic()
+                found: dict[int, WatchdogTrip] = {}
+                for s in servos:
+                    s.step(now)
+                    trip = next((t for t in s.trips
+                                 if t.expired_s >= since_s and t.stopped_s is not None), None)
+                    if trip is not None:
+                        found[s.id] = trip
+                if len(found) == len(servos):
+                    return found
+                remaining = deadline - now
+                if remaining <= 0.0:
+                    missing = [i for i in wanted if i not in found]
+                    raise TimeoutError(
+                        f"servos {missing} did not stop on their Bus Watchdog within "
+                        f"{timeout_s:g} s (trips: {[t for s in servos for t in s.trips]})"
+                    )
+                # The serving thread steps the servos at least every _IDLE_STEP_S and notifies
+                # on every trip and stop; the bounded wait also steps them itself.
+                self._changed.wait(min(remaining, 10 * _IDLE_STEP_S))
+
+    def last_instruction_s(self, servo_id: int) -> float:
+        """When servo ``servo_id`` last received an instruction packet (its id or broadcast,
+        good CRC, awake), ``time.monotonic()``.
+
+        Raises:
+            KeyError: unknown servo.
+        """
+        with self._lock:
+            return self._servo(servo_id).last_instruction
+
     def stats(self) -> dict[str, int]:
         """Counters: packets served, replies sent, CRC errors and junk bytes seen, ..."""
         with self._lock:
@@ -821,10 +1104,18 @@ class DynamixelEmulator:
         there (or from when the bus is free, if later).
         """
         with self._lock:
+            instruction = packet.crc_ok and not packet.is_status
             for s in self._servos:
                 s.step(arrival)
-                if packet.crc_ok and not packet.is_status:
-                    s.last_instruction = arrival
+                # The Bus Watchdog counts the instruction packets a servo receives: those
+                # addressed to it and broadcast ones (every group instruction is broadcast, so
+                # a Sync Write feeds the watchdog of every servo on the bus, as on real ones).
+                if (
+                    instruction
+                    and (packet.id == s.id or packet.id == BROADCAST_ID)
+                    and s.rebooting_until <= arrival
+                ):
+                    s.heard(arrival)
             self._last_step = arrival
             replies, fast = self._dispatch(packet, arrival)
             if replies or fast:
@@ -1141,6 +1432,13 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--link", default=None, help="also create this symlink to the pty")
     p.add_argument(
+        "--firmware",
+        type=int,
+        default=None,
+        help=f"Firmware Version the servos report (default: the model's; below "
+        f"{BUS_WATCHDOG_FIRMWARE}: no Bus Watchdog)",
+    )
+    p.add_argument(
         "--return-delay-us",
         type=float,
         default=None,
@@ -1162,6 +1460,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             pace=args.pace,
             link=args.link,
             return_delay_us=args.return_delay_us,
+            firmware_version=args.firmware,
         )
     except (ValueError, KeyError) as exc:
         print(f"jtc-hw emulate dynamixel: {exc}", file=sys.stderr)
@@ -1182,13 +1481,22 @@ def main(argv: Sequence[str] | None = None) -> int:
                 flush=True,
             )
             last: dict[str, int] = {}
-            while not stop.wait(1.0):
+            reported: set[tuple[int, float]] = set()
+            while not stop.wait(0.2):
                 stats = emulator.stats()
                 if stats != last:
                     print(
                         " ".join(f"{k}={v}" for k, v in stats.items()), file=sys.stderr, flush=True
                     )
                     last = stats
+                # One JSON line per Bus Watchdog trip once the servo is at rest, for a tool in
+                # another process (times: CLOCK_MONOTONIC, shared by the machine's processes).
+                for trip in emulator.watchdog_trips():
+                    key = (trip.servo_id, trip.expired_s)
+                    if trip.stopped_s is not None and key not in reported:
+                        reported.add(key)
+                        print("watchdog " + json.dumps(dataclasses.asdict(trip)),
+                              file=sys.stderr, flush=True)
     except OSError as exc:
         print(f"jtc-hw emulate dynamixel: {exc}", file=sys.stderr)
         return 2

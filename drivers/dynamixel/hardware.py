@@ -30,6 +30,26 @@ Commands are clamped to the servo's limits (position limits, Velocity Limit, Cur
 back at configure) before they are sent: a Sync Write has no reply, so a value the servo would
 refuse must never be sent.
 
+**Bus Watchdog** (register 98; see docs/dynamixel.md). ``activate`` arms it on every servo, in
+every operating mode, once the torque is on: ``ceil(watchdog_s / 20 ms)`` (1..127, so
+``watchdog_s`` is at most 2.54 s). A daemon that stops commanding (killed, hung) then leaves
+servos that brake to a stop by themselves. A clean ``deactivate`` disarms it (writes 0) after
+the safe action; a servo found tripped is left tripped. A trip seen while active (the register
+reads -1 when checked after a bus silence longer than half the watchdog time, before a cycle's
+read or write; or a goal write answered with the Data Range Error) is a
+:class:`~jtc_hw.errors.MotorFault` "bus watchdog expired ...; rearm to resume" and takes the
+normal fault path; activation refuses such a servo until ``recover`` clears it (writes 0, then
+at once a goal that keeps the servo still: the e-Manual does not say whether a cleared servo
+resumes its old goal). A trip found at ``configure`` that this instance
+never armed is a previous daemon's: ``activate`` clears it the same way, with a warning, so a
+daemon started after a crash can run. Servos with firmware older than v38 have no Bus Watchdog
+and are refused at ``configure`` (the message says how to update the firmware).
+
+**Truthful activation.** After the torque is on and the watchdog armed, one Sync Read of
+Torque Enable .. Present Position proves each servo enabled and obeying (no hardware error,
+torque 1, watchdog armed, the goal the one just written); otherwise activation is undone and
+fails with one line naming the servo and what to check. A rearm that succeeds is holding.
+
 **Faults.** A failed Sync Read is retried up to ``max_retries`` times within the cycle; then a
 :class:`~jtc_hw.errors.CommunicationError` names the servo (id and joint) and the cause. A status
 packet with the alert bit makes the driver read that servo's Hardware Error Status and raise
@@ -44,6 +64,7 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 import time
 from collections.abc import Mapping, Sequence
 from typing import Any, ClassVar, Final
@@ -55,6 +76,8 @@ from jtc_hw.controller.config import STATE_INTERFACE_TYPES
 from jtc_hw.errors import CommunicationError, ConfigurationError, HardwareError, MotorFault
 from jtc_hw.hardware import (
     JOINT_MAPPING_PARAMS,
+    WATCHDOG_PARAM,
+    DeviceWatchdog,
     HardwareInterface,
     JointCommand,
     JointState,
@@ -73,6 +96,9 @@ from .bus import (
 )
 from .control_table import (
     BAUD_RATES,
+    BUS_WATCHDOG_FIRMWARE,
+    BUS_WATCHDOG_MAX,
+    BUS_WATCHDOG_UNIT_S,
     PRESENT_BLOCK_ADDRESS,
     PRESENT_BLOCK_SIZE,
     Model,
@@ -99,6 +125,17 @@ _PRESENT_DTYPE: Final = np.dtype([("current", "<i2"), ("velocity", "<i4"), ("pos
 _GAINS: Final = (
     "position_p_gain", "position_i_gain", "position_d_gain", "velocity_p_gain", "velocity_i_gain"
 )
+_BUS_WATCHDOG: Final = 98
+#: Activation reads back Torque Enable (64) .. Present Position (132..135) in one Sync Read.
+_ENABLED_BLOCK: Final = (64, 136)
+#: Position modes: after activation the servo's goal must be this close to where it is, ticks
+#: (a tick or two of motion between reading the position and switching the torque on; a goal
+#: the servo refused would be wherever the last session left it).
+_GOAL_SEED_TOLERANCE_TICKS: Final = 20
+_DATA_RANGE_ERROR: Final = 4  # status packet error number: Data Range Error
+_POSITION_FAMILY: Final = (
+    OperatingMode.POSITION, OperatingMode.EXTENDED_POSITION, OperatingMode.CURRENT_BASED_POSITION
+)
 
 
 def _coerce_baud(value: Any, path: str) -> int:
@@ -113,7 +150,8 @@ def _coerce_baud(value: Any, path: str) -> int:
 
 
 def _hardware_error_text(flags: int) -> str:
-    names = [flag.name.lower() for flag in ServoHardwareError if flags & flag and flag.name]
+    names = [flag.name.lower().replace("_", " ")
+             for flag in ServoHardwareError if flags & flag and flag.name]
     return ", ".join(names) if names else f"unknown hardware error 0x{flags:02x}"
 
 
@@ -177,6 +215,7 @@ class DynamixelHardware(HardwareInterface):
                   minimum=0.01, maximum=30.0),
         ParamSpec("latency_timer_warn", ParamKind.BOOL, True,
                   "warn when the USB serial adapter's latency timer is above 1 ms"),
+        WATCHDOG_PARAM,
     )
 
     def __init__(
@@ -235,6 +274,20 @@ class DynamixelHardware(HardwareInterface):
                     "command_interfaces", self._interface,
                 )
 
+        # Bus Watchdog value armed on activate: the configured time rounded up to 20 ms steps.
+        units = max(1, math.ceil(p["watchdog_s"] / BUS_WATCHDOG_UNIT_S - 1e-9))
+        if units > BUS_WATCHDOG_MAX:
+            raise ConfigurationError(
+                f"watchdog_s {p['watchdog_s']:g} s does not fit the servos' Bus Watchdog "
+                f"(1..{BUS_WATCHDOG_MAX} x 20 ms: at most "
+                f"{BUS_WATCHDOG_MAX * BUS_WATCHDOG_UNIT_S:g} s); lower params.watchdog_s",
+                "params.watchdog_s",
+                p["watchdog_s"],
+            )
+        self._watchdog_units: int = units
+        self.watchdog_timeout_s: float = units * BUS_WATCHDOG_UNIT_S
+        """The Bus Watchdog time armed on activate, s (``watchdog_s`` rounded up to 20 ms)."""
+
         self._direction = np.array(p["direction"], dtype=np.float64)
         self._gear = np.array(p["gear_ratio"], dtype=np.float64)
         self._offset = np.array(p["offset"], dtype=np.float64)
@@ -285,6 +338,12 @@ class DynamixelHardware(HardwareInterface):
         self._velocities: F64 = np.zeros(n)
         self._efforts: F64 = np.zeros(n)
         self._latched: dict[int, int] = {}  # servo id -> hardware error flags
+        # Bus Watchdog: armed while active; servos this instance saw trip (activation refuses
+        # them until recover(), as a latched error); servos found tripped at configure that this
+        # instance never armed (a previous daemon's): activate clears those, with a warning.
+        self._armed = False
+        self._tripped: set[int] = set()
+        self._leftover_trips: set[int] = set()
         self._last_fault_by_servo: dict[int, str] = {}
         self._retries = 0
         self._joint_of = dict(zip(self.ids, self.joints, strict=True))
@@ -373,6 +432,32 @@ class DynamixelHardware(HardwareInterface):
             "reboot it"
         )
 
+    def _watchdog_fault(self, servo_id: int) -> MotorFault:
+        self._tripped.add(servo_id)
+        self._last_fault_by_servo[servo_id] = "bus watchdog expired"
+        return MotorFault(
+            f"{self._servo(servo_id)}: bus watchdog expired (no command for "
+            f"{self.watchdog_timeout_s * 1000:.0f} ms); rearm to resume"
+        )
+
+    # -- the hardware contract's descriptions ---------------------------------------------------
+
+    def device_watchdog(self) -> DeviceWatchdog:
+        """The servos' Bus Watchdog (every servo has one: older firmware is refused at
+        configure)."""
+        ms = self.watchdog_timeout_s * 1000
+        return DeviceWatchdog(
+            self.watchdog_timeout_s,
+            f"Dynamixel Bus Watchdog {ms:.0f} ms (register 98, firmware v{BUS_WATCHDOG_FIRMWARE}"
+            "+): with no instruction packet for that long each servo brakes to a stop and holds; "
+            "goals are refused until a rearm",
+        )
+
+    def devices(self) -> tuple[str, ...]:
+        """The serial port, resolved (``/dev/serial/by-id/...`` and ``/dev/ttyUSB0`` are one
+        device)."""
+        return (os.path.realpath(self.params["port"]),)
+
     # -- lifecycle primitives -------------------------------------------------------------------
 
     def _configure(self) -> None:
@@ -386,12 +471,17 @@ class DynamixelHardware(HardwareInterface):
         try:
             for i, servo_id in enumerate(self.ids):
                 self._check_model(i, servo_id)
+                self._check_firmware(servo_id)
             self._latched = {}
+            self._leftover_trips = set()
             for i, servo_id in enumerate(self.ids):
                 flags = self._read_register(servo_id, "hardware_error_status")
                 if flags:
                     self._latched[servo_id] = flags
                     self._last_fault_by_servo[servo_id] = _hardware_error_text(flags)
+                if (self._read_register(servo_id, "bus_watchdog") < 0
+                        and servo_id not in self._tripped):
+                    self._leftover_trips.add(servo_id)
                 self._setup_servo(i)
         except BaseException:
             bus.close()
@@ -416,6 +506,18 @@ class DynamixelHardware(HardwareInterface):
                 expected.name,
             )
 
+    def _check_firmware(self, servo_id: int) -> None:
+        """Refuse a servo without a Bus Watchdog: it would keep its last command (turning, in
+        velocity mode) if the daemon stopped. Updating the firmware is free and quick; running
+        some joints unprotected is not a choice this driver makes silently."""
+        firmware = self._read_register(servo_id, "firmware_version")
+        if firmware < BUS_WATCHDOG_FIRMWARE:
+            raise HardwareError(
+                f"{self._servo(servo_id)}: firmware v{firmware} has no Bus Watchdog (needs "
+                f"v{BUS_WATCHDOG_FIRMWARE} or later), so it would keep moving if the daemon "
+                "stopped; update its firmware with the Firmware Update of DYNAMIXEL Wizard 2.0"
+            )
+
     def _read_register(self, servo_id: int, name: str) -> int:
         bus = self._require_bus()
         reg = self.models[self._index_of[servo_id]].register(name)
@@ -434,6 +536,10 @@ class DynamixelHardware(HardwareInterface):
         except ServoCommunicationError as exc:
             raise self._comm_error(exc, f"writing {name} = {value}") from exc
         except ServoStatusError as exc:
+            if (name.startswith("goal_") and exc.error & ~ERROR_ALERT == _DATA_RANGE_ERROR
+                    and self._read_register(servo_id, "bus_watchdog") < 0):
+                # A tripped Bus Watchdog makes the goals read-only (Data Range Error).
+                raise self._watchdog_fault(servo_id) from exc
             raise HardwareError(f"{self._servo(servo_id)}: writing {name} = {value}: {exc}") \
                 from exc
 
@@ -493,6 +599,19 @@ class DynamixelHardware(HardwareInterface):
     def _activate(self, now_ns: int) -> JointCommand:
         for servo_id, flags in self._latched.items():
             raise self._motor_fault(servo_id, flags)
+        for servo_id in self.ids:
+            if servo_id in self._tripped:
+                raise self._watchdog_fault(servo_id)  # seen while active: only a rearm clears it
+        for i, servo_id in enumerate(self.ids):
+            if servo_id in self._leftover_trips:
+                # Tripped before this instance armed it: a previous daemon stopped commanding
+                # the servo, which then stopped by itself. Starting again is the clearing.
+                self._clear_trip(i)
+                self._leftover_trips.discard(servo_id)
+                _log.warning(
+                    "%s: its Bus Watchdog had expired before this activation (the previous "
+                    "session stopped commanding it, so it stopped); cleared", self._servo(servo_id)
+                )
         state = self._read(now_ns)  # also raises MotorFault on an alert bit
         n = self._n
         held_positions = np.full(n, np.nan)
@@ -503,26 +622,154 @@ class DynamixelHardware(HardwareInterface):
                 # deactivate(HOLD) may have left a current-mode servo holding in position mode.
                 self._write_register(servo_id, "torque_enable", 0)
                 self._write_register(servo_id, "operating_mode", int(self.mode))
+        goals: dict[int, int]
         if self._interface == "position":
             ticks = self._present_ticks
-            self._sync_write_goal("goal_position", {
-                servo_id: int(ticks[i]) for i, servo_id in enumerate(self.ids)})
+            goals = {servo_id: int(ticks[i]) for i, servo_id in enumerate(self.ids)}
             # The held command is exactly where the servo is (whole ticks): no jump.
             held_positions = state.positions.copy()
         elif self._interface == "velocity":
-            self._sync_write_goal("goal_velocity", dict.fromkeys(self.ids, 0))
+            goals = dict.fromkeys(self.ids, 0)
             held_velocities = np.zeros(n)
         else:
-            self._sync_write_goal("goal_current", dict.fromkeys(self.ids, 0))
+            goals = dict.fromkeys(self.ids, 0)
             held_effort = np.zeros(n)
-        for servo_id in self.ids:
-            self._write_register(servo_id, "torque_enable", 1)
+        self._sync_write_goal(self._goal_name, goals)
+        try:
+            for servo_id in self.ids:
+                self._write_register(servo_id, "torque_enable", 1)
+            # Armed in every operating mode once the torque is on: from now on, a daemon that
+            # stops commanding (killed, hung) leaves servos that stop by themselves.
+            for servo_id in self.ids:
+                self._write_register(servo_id, "bus_watchdog", self._watchdog_units)
+            self._verify_enabled(goals)
+            self._require_bus().take_silence_s()  # silences before now were not armed ones
+            self._armed = True
+        except HardwareError as exc:
+            # Leave nothing enabled half way: the safe action, and the watchdogs disarmed.
+            try:
+                self._deactivate(now_ns, self.safe_action)
+            except HardwareError as rollback:
+                exc.add_note(f"undoing the activation failed too: {rollback}")
+            raise
         return JointCommand(
             held_positions if self._interface == "position" else None,
             held_velocities if self._interface == "velocity" else None,
             None,
             held_effort if self._interface == "effort" else None,
         )
+
+    def _verify_enabled(self, goals: Mapping[int, int]) -> None:
+        """Prove that every servo is enabled and obeys, from what it reports (one Sync Read of
+        Torque Enable .. Present Position): no hardware error, Torque Enable 1, Bus Watchdog
+        armed with our value, and its goal the one just written (position modes: where the
+        servo is), not one it refused. A truthful activation, so that a rearm that reports
+        holding is holding.
+
+        Raises:
+            MotorFault: a servo reports a hardware error (latched: a rearm reboots it).
+            HardwareError: one line naming the servo and what to check.
+            CommunicationError: a servo did not answer.
+        """
+        bus = self._require_bus()
+        start, end = _ENABLED_BLOCK
+        try:
+            result = bus.sync_read(self.ids, start, end - start)
+        except ServoCommunicationError as exc:
+            raise self._comm_error(exc, "reading back the enabled state") from exc
+        for i, servo_id in enumerate(self.ids):
+            block = result.data[servo_id]
+            model = self.models[i]
+
+            def value(name: str, block: bytes = block, model: Model = model) -> int:
+                reg = model.register(name)
+                return reg.decode(block[reg.address - start : reg.end - start])
+
+            flags = value("hardware_error_status")
+            if flags:
+                raise self._motor_fault(servo_id, flags)
+            who = self._servo(servo_id)
+            torque = value("torque_enable")
+            if torque != 1:
+                raise HardwareError(
+                    f"{who}: Torque Enable reads {torque} right after it was switched on; "
+                    "check the servo's supply voltage and cable, and that no other program "
+                    "uses the bus"
+                )
+            armed = value("bus_watchdog")
+            if armed != self._watchdog_units:
+                raise HardwareError(
+                    f"{who}: Bus Watchdog reads {armed}, not the {self._watchdog_units} "
+                    f"({self.watchdog_timeout_s * 1000:.0f} ms) just armed; check that no other "
+                    "program uses the bus"
+                )
+            goal = value(self._goal_name)
+            label = self._goal_name.replace("_", " ").title()
+            if self.mode in _POSITION_FAMILY:
+                present = value("present_position")
+                if abs(goal - present) > _GOAL_SEED_TOLERANCE_TICKS:
+                    raise HardwareError(
+                        f"{who}: {label} reads {goal} but the servo is at {present} ticks: it "
+                        "refused the goal just written and would move; check that no other "
+                        "program uses the bus"
+                    )
+            elif goal != goals[servo_id]:
+                raise HardwareError(
+                    f"{who}: {label} reads {goal}, not the {goals[servo_id]} just written: it "
+                    "refused the goal; check that no other program uses the bus"
+                )
+
+    def _watchdog_values(self) -> dict[int, int]:
+        """Every servo's Bus Watchdog register (one Sync Read of one byte; -1: tripped).
+
+        Raises:
+            CommunicationError: a servo did not answer.
+        """
+        bus = self._require_bus()
+        try:
+            result = bus.sync_read(self.ids, _BUS_WATCHDOG, 1)
+        except ServoCommunicationError as exc:
+            raise self._comm_error(exc, "reading the Bus Watchdog") from exc
+        return {i: int.from_bytes(result.data[i], "little", signed=True) for i in self.ids}
+
+    def _check_watchdogs(self) -> None:
+        """Raise the watchdog fault of the first tripped servo, if any.
+
+        Raises:
+            MotorFault: a servo's Bus Watchdog expired.
+            CommunicationError: a servo did not answer.
+        """
+        for servo_id, value in self._watchdog_values().items():
+            if value < 0:
+                raise self._watchdog_fault(servo_id)
+
+    def _clear_trip(self, i: int) -> None:
+        """Clear servo ``i``'s tripped Bus Watchdog (write 0), then at once give it a goal that
+        keeps it where it is: the e-Manual does not say whether a cleared servo resumes the
+        goal it held before the trip (a velocity, say), so it is never left with that one.
+
+        Raises:
+            HardwareError: a write was refused; CommunicationError: no answer.
+        """
+        servo_id = self.ids[i]
+        mode = self._read_register(servo_id, "operating_mode")
+        present = self._read_register(servo_id, "present_position")
+        if mode == OperatingMode.POSITION:
+            low = self._read_register(servo_id, "min_position_limit")
+            high = self._read_register(servo_id, "max_position_limit")
+            present = min(max(present, low), high)
+        self._write_register(servo_id, "bus_watchdog", 0)
+        if mode in _POSITION_FAMILY:
+            self._write_register(servo_id, "goal_position", present)
+        elif mode == OperatingMode.VELOCITY:
+            self._write_register(servo_id, "goal_velocity", 0)
+        elif mode == OperatingMode.CURRENT and self.models[i].has_register("goal_current"):
+            self._write_register(servo_id, "goal_current", 0)
+        elif mode == OperatingMode.PWM:
+            self._write_register(servo_id, "goal_pwm", 0)
+        self._tripped.discard(servo_id)
+        self._leftover_trips.discard(servo_id)
+        self._last_fault_by_servo.pop(servo_id, None)
 
     def _sync_read_present(self) -> SyncReadResult:
         bus = self._require_bus()
@@ -541,7 +788,21 @@ class DynamixelHardware(HardwareInterface):
         assert last is not None
         raise self._comm_error(last, "reading the present state", attempts) from last
 
+    def _check_silence(self) -> None:
+        """Before a cycle's transaction: after a bus silence longer than half the watchdog time
+        since the previous call (a stalled loop, wherever in its cycle it stalled), check
+        whether the servos stopped on their watchdog; the Sync Writes they then refuse would
+        otherwise go unnoticed.
+
+        Raises:
+            MotorFault: a servo's Bus Watchdog expired.
+            CommunicationError: a servo did not answer.
+        """
+        if self._armed and self._require_bus().take_silence_s() > 0.5 * self.watchdog_timeout_s:
+            self._check_watchdogs()
+
     def _read(self, now_ns: int) -> JointState:
+        self._check_silence()
         result = self._sync_read_present()
         for servo_id, error in result.errors.items():
             if error & ERROR_ALERT:
@@ -578,6 +839,7 @@ class DynamixelHardware(HardwareInterface):
         else:
             goals = dict(zip(self.ids, counts.astype(np.int64).tolist(), strict=True))
         if goals:
+            self._check_silence()
             self._sync_write_goal(self._goal_name, goals)
 
     def _sync_write_goal(self, name: str, values: Mapping[int, int]) -> None:
@@ -590,6 +852,20 @@ class DynamixelHardware(HardwareInterface):
 
     def _deactivate(self, now_ns: int, action: SafeAction) -> None:
         errors: list[Exception] = []
+        # Which servos have tripped: they stopped by themselves and refuse goals, so the hold
+        # leaves them alone, and they stay tripped (a rearm clears them, see _clear_trip).
+        values: dict[int, int] | None
+        try:
+            values = self._watchdog_values()
+        except HardwareError as exc:
+            values = None  # the writes below report the broken bus
+            _log.warning("%s: %s; the Bus Watchdogs stay armed (a servo not commanded stops "
+                         "by itself)", self._owner(), exc)
+        tripped = ({i for i, value in values.items() if value < 0} if values is not None
+                   else set(self._tripped))
+        if self._armed:
+            self._tripped |= tripped
+        skip = tripped | set(self._latched)
         if action is SafeAction.TORQUE_OFF:
             for servo_id in self.ids:
                 try:
@@ -598,7 +874,8 @@ class DynamixelHardware(HardwareInterface):
                     errors.append(exc)
         elif self._interface == "velocity":
             try:
-                self._sync_write_goal("goal_velocity", dict.fromkeys(self.ids, 0))
+                self._sync_write_goal("goal_velocity", {
+                    servo_id: 0 for servo_id in self.ids if servo_id not in skip})
             except HardwareError as exc:
                 errors.append(exc)
         elif self._interface == "effort":
@@ -606,7 +883,7 @@ class DynamixelHardware(HardwareInterface):
             # activation switches back (a few ms with the torque off).
             for servo_id in self.ids:
                 try:
-                    if servo_id in self._latched:
+                    if servo_id in skip:
                         continue
                     present = self._read_register(servo_id, "present_position")
                     self._write_register(servo_id, "torque_enable", 0)
@@ -623,10 +900,24 @@ class DynamixelHardware(HardwareInterface):
                 ticks = self._present_ticks
                 self._sync_write_goal("goal_position", {
                     servo_id: int(np.clip(ticks[i], self._cmd_lo[i], self._cmd_hi[i]))
-                    for i, servo_id in enumerate(self.ids) if servo_id not in self._latched
+                    for i, servo_id in enumerate(self.ids) if servo_id not in skip
                 })
             except HardwareError as exc:
                 errors.append(exc)
+        # Disarmed after the safe action, not before: had the safe action failed or the
+        # process died in between, a servo still armed stops by itself, while one disarmed
+        # first would keep its last (moving) command. A tripped servo is not cleared here:
+        # clearing is the rearm's, together with a goal that keeps it still. Unread states
+        # (a broken bus) are not guessed at: disarming might clear a trip; left armed, a servo
+        # still holding stops and holds by itself, which is the same.
+        for servo_id in self.ids:
+            if values is None or servo_id in tripped:
+                continue
+            try:
+                self._write_register(servo_id, "bus_watchdog", 0)
+            except HardwareError as exc:
+                errors.append(exc)
+        self._armed = False
         if errors:
             first = errors[0]
             for other in errors[1:]:
@@ -650,9 +941,18 @@ class DynamixelHardware(HardwareInterface):
                 raise self._motor_fault(servo_id, remaining)
             del self._latched[servo_id]
             self._last_fault_by_servo.pop(servo_id, None)
-            self._setup_servo(i)
+            self._setup_servo(i)  # the reboot reset the RAM area, Bus Watchdog included
             _log.info("%s: rebooted, hardware error %s cleared", self._servo(servo_id),
                       _hardware_error_text(flags))
+        # Tripped watchdogs: cleared (with a goal that keeps the servo still) so that goals are
+        # accepted again; activate() then arms them anew.
+        values = self._watchdog_values()
+        for i, servo_id in enumerate(self.ids):
+            if values[servo_id] < 0:
+                self._clear_trip(i)
+                _log.info("%s: bus watchdog error cleared", self._servo(servo_id))
+        self._tripped.clear()
+        self._leftover_trips.clear()
 
     def _wait_for(self, servo_id: int, timeout_s: float) -> None:
         """Ping until the rebooted servo answers, at most ``timeout_s`` (each ping is itself
@@ -684,6 +984,8 @@ class DynamixelHardware(HardwareInterface):
             "bus": bus.stats.as_dict() if bus is not None else None,
             "latency_timer_ms": bus.latency_timer if bus is not None else None,
             "retries": self._retries,
+            "watchdog_ms": round(self.watchdog_timeout_s * 1000),
+            "watchdog_armed": self._armed,
             "servos": {
                 str(servo_id): {
                     "joint": joint,
@@ -691,6 +993,8 @@ class DynamixelHardware(HardwareInterface):
                     "hardware_error": (_hardware_error_text(self._latched[servo_id])
                                        if servo_id in self._latched else None),
                     "last_fault": self._last_fault_by_servo.get(servo_id),
+                    "watchdog_expired": (servo_id in self._tripped
+                                         or servo_id in self._leftover_trips),
                     "effort": (float(self._efforts[i]) if self._positions is not None
                                and model.current_unit_a else None),
                 }

@@ -7,7 +7,11 @@ the real client. Waits are on messages with deadlines; nothing asserts a duratio
 
 from __future__ import annotations
 
+import contextlib
 import math
+import os
+import signal
+import subprocess
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -19,6 +23,7 @@ from helpers.daemon import MS, WAIT_S, DaemonProcess, connect, next_state, settl
 
 from jtc_hw import GoalRejected
 from jtc_hw.api.client import Client
+from jtc_hw.api.framing import RequestError
 from jtc_hw.drivers.dynamixel.control_table import HardwareError
 from jtc_hw.drivers.dynamixel.emulator import DynamixelEmulator
 
@@ -34,7 +39,7 @@ GOAL_TOL = 0.02
 
 
 def robot(socket_path: Path, device: str, interface: str = "position",
-          gains: dict[str, Any] | None = None) -> dict[str, Any]:
+          gains: dict[str, Any] | None = None, watchdog_s: float = 1.0) -> dict[str, Any]:
     params: dict[str, Any] = {
         "port": device,
         "baud_rate": 4_000_000,
@@ -44,6 +49,9 @@ def robot(socket_path: Path, device: str, interface: str = "position",
         "timeout_ms": 30.0,  # the emulator shares the test process
         "max_retries": 1,
         "latency_timer_warn": False,
+        # Long unless a test is about it: a loaded machine pausing the daemon must not trip
+        # the servos' Bus Watchdog (the default 0.1 s is for real arms).
+        "watchdog_s": watchdog_s,
     }
     hardware = [{"name": "arm", "kind": "dynamixel", "joints": JOINTS, "params": params}]
     return make_robot_config(
@@ -147,6 +155,70 @@ def test_fault_mid_goal_aborts_then_rearm_holds_without_a_jump(
         assert back["status"] == "succeeded", back
 
 
+def test_a_stalled_loop_trips_the_watchdog_then_a_rearm_holds_where_the_servos_stopped(
+    position_daemon: DxlDaemon, emulator: DynamixelEmulator
+) -> None:
+    """The loop stopped (SIGSTOP) mid-goal for longer than the watchdog: the servos stop by
+    themselves; resumed, the driver sees the expiry and the goal aborts with it; a rearm then
+    holds where the servos stopped."""
+    with connect(position_daemon) as client, client.subscribe_state() as sub:
+        p0 = next_state(sub, lambda s: s["active_goal"] is None)["actual"]["positions"]
+        goal = client.send_goal(traj([p - 0.3 for p in p0], 2.0))
+        for feedback in goal.feedback(timeout_s=WAIT_S):
+            if feedback["time_from_start"] >= 0.3:
+                break
+        loop = loop_process(position_daemon.pid)
+        since = time.monotonic()
+        os.kill(loop, signal.SIGSTOP)
+        try:
+            trips = emulator.wait_watchdog_stopped(IDS, timeout_s=WAIT_S, since_s=since)
+        finally:
+            os.kill(loop, signal.SIGCONT)
+        result = goal.wait(timeout_s=WAIT_S)
+        assert result["status"] == "aborted", result
+        assert result["error_string"].endswith(
+            "servo 1 (joint 'joint1'): bus watchdog expired (no command for 1000 ms); "
+            "rearm to resume"), result
+        with pytest.raises(GoalRejected):
+            client.send_goal(traj(p0, 1.0))
+        stopped = [trips[i].stopped_position_rad or math.nan for i in IDS]
+        assert client.rearm(timeout_s=WAIT_S)["rearmed"] is True
+        after = settle(sub, client.hello()["now_ns"] + 50 * MS)
+        assert after["holding"] is True
+        assert after["desired"]["positions"] == pytest.approx(
+            after["actual"]["positions"], abs=0.01)
+        assert [emulator.positions()[i] for i in IDS] == pytest.approx(stopped, abs=0.01)
+        back = client.send_goal(traj(p0, 1.5)).wait(timeout_s=WAIT_S)
+        assert back["status"] == "succeeded", back
+
+
+def test_a_rearm_whose_servo_does_not_stay_enabled_fails_in_one_line(
+    position_daemon: DxlDaemon, emulator: DynamixelEmulator
+) -> None:
+    """Truthful rearm: servo 3 faults again the moment its torque comes back on (a shorted
+    winding); the rearm says so in one line naming it, and the next one (after the cause is
+    gone) holds."""
+    with connect(position_daemon) as client, client.subscribe_state() as sub:
+        next_state(sub, lambda s: s["active_goal"] is None)
+        emulator.raise_hardware_error(3, HardwareError.OVERLOAD)
+        deadline = time.monotonic() + WAIT_S
+        while client.get_status()["controller"]["fault"] is None:  # no goal: no event to wait on
+            assert time.monotonic() < deadline, "the overload was not reported"
+            time.sleep(0.01)
+        emulator.fail_next_torque_on(3, HardwareError.ELECTRICAL_SHOCK)
+        with pytest.raises(RequestError) as info:
+            client.rearm(timeout_s=WAIT_S)
+        message = str(info.value)
+        assert "servo 3 (joint 'joint3')" in message and "electrical shock" in message
+        assert "\n" not in message and "Traceback" not in message
+        controller = client.get_status()["controller"]
+        assert controller["active"] is False and "servo 3" in controller["fault"]
+        assert client.rearm(timeout_s=WAIT_S)["rearmed"] is True
+        after = settle(sub, client.hello()["now_ns"] + 50 * MS)
+        assert after["holding"] is True
+        assert [emulator.register(i, "torque_enable") for i in IDS] == [1] * 6
+
+
 @pytest.mark.parametrize(
     ("interface", "gains"),
     [
@@ -169,3 +241,106 @@ def test_velocity_and_current_mode_goals_succeed(
         assert code == 0, d.log()
         assert result["status"] == "succeeded", (result, d.log())
         assert state["actual"]["positions"] == pytest.approx(target, abs=GOAL_TOL)
+
+
+# -- fail-safe: the loop process dies -------------------------------------------------------------
+
+
+def _children(pid: int) -> list[int]:
+    """Live child processes of ``pid`` (from /proc: the daemon's loop and helper processes)."""
+    found = []
+    for entry in os.listdir("/proc"):
+        if not entry.isdigit():
+            continue
+        try:
+            stat = Path(f"/proc/{entry}/stat").read_text()
+        except OSError:
+            continue
+        fields = stat[stat.rfind(")") + 2 :].split()  # state ppid ...
+        if int(fields[1]) == pid and fields[0] != "Z":
+            found.append(int(entry))
+    return found
+
+
+def loop_process(daemon_pid: int) -> int:
+    """The pid of the daemon's control-loop process ("jtc-hw-loop", a multiprocessing spawn
+    child: its command line runs ``spawn_main``; the resource tracker's does not)."""
+    for pid in _children(daemon_pid):
+        try:
+            cmdline = Path(f"/proc/{pid}/cmdline").read_bytes()
+        except OSError:
+            continue
+        if b"spawn_main" in cmdline:
+            return pid
+    raise AssertionError(f"no control-loop process among the children of {daemon_pid}")
+
+
+def wait_gone(pid: int, timeout_s: float = WAIT_S) -> None:
+    """Until ``pid`` is dead (gone, or a zombie its parent has not reaped)."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        try:
+            stat = Path(f"/proc/{pid}/stat").read_text()
+        except OSError:
+            return
+        if stat[stat.rfind(")") + 2 :].split()[0] == "Z":
+            return
+        assert time.monotonic() < deadline, f"process {pid} still alive after SIGKILL"
+        time.sleep(0.005)  # polling /proc for another process's end
+
+
+def _stop_whatever_is_left(d: DaemonProcess) -> None:
+    """End the daemon however it copes with its loop's death (not what this test checks)."""
+    assert d.proc is not None
+    if d.proc.poll() is None:
+        d.proc.send_signal(signal.SIGTERM)
+        try:
+            d.proc.wait(timeout=STOP_WAIT_S)
+        except subprocess.TimeoutExpired:
+            pass
+    with contextlib.suppress(ProcessLookupError):
+        os.killpg(d.pid, signal.SIGKILL)
+    d.proc.wait(timeout=STOP_WAIT_S)
+
+
+STOP_WAIT_S = 10.0
+
+
+def test_sigkill_of_the_loop_in_velocity_mode_stops_the_servos_on_their_watchdog(
+    tmp_path: Path,
+) -> None:
+    """Issue 10: the loop killed mid-goal, nothing commands the servos any more; they stop by
+    themselves when their Bus Watchdog (armed by the driver, default 0.1 s) expires."""
+    with DynamixelEmulator(IDS, initial_positions=START) as emu:
+        d = DxlDaemon(tmp_path / "kill", lambda sock: robot(
+            sock, emu.device_path, "velocity", {"p": 5.0, "ff_velocity_scale": 1.0},
+            watchdog_s=0.1))
+        d.start()
+        try:
+            d.wait_ready()
+            with connect(d) as client, client.subscribe_state() as sub:
+                p0 = next_state(sub, lambda s: s["active_goal"] is None)["actual"]["positions"]
+                goal = client.send_goal(traj([p + 1.0 for p in p0], 4.0))
+                for feedback in goal.feedback(timeout_s=WAIT_S):
+                    if feedback["time_from_start"] >= 0.5:
+                        break
+                assert emu.watchdog_trips() == [], "a servo tripped while the loop was running"
+                assert all(emu.register(i, "present_velocity") != 0 for i in IDS)
+                loop = loop_process(d.pid)
+                os.kill(loop, signal.SIGKILL)
+                wait_gone(loop)
+                dead = time.monotonic()
+                trips = emu.wait_watchdog_stopped(IDS, timeout_s=WAIT_S)
+        finally:
+            _stop_whatever_is_left(d)
+        for servo_id, trip in trips.items():
+            # The last packet came from the loop before it died; the servo counted the
+            # configured 0.1 s from it, was still turning, and stopped.
+            assert trip.last_instruction_s <= dead, servo_id
+            assert trip.timeout_s == pytest.approx(0.1), servo_id
+            assert trip.expired_s == pytest.approx(trip.last_instruction_s + 0.1, abs=1e-9)
+            assert trip.speed_at_expiry_rad_s > 0.05, servo_id
+            assert emu.register(servo_id, "present_velocity") == 0, servo_id
+            assert emu.register(servo_id, "bus_watchdog") == -1, servo_id
+            assert emu.positions()[servo_id] == pytest.approx(trip.stopped_position_rad,
+                                                              abs=0.01)

@@ -7,8 +7,10 @@ PortHandler attribute); the tests raise it (see ``sdk_timing``).
 
 from __future__ import annotations
 
+import json
 import math
 import os
+import select
 import signal
 import subprocess
 import sys
@@ -23,7 +25,7 @@ from dynamixel_sdk import port_handler
 
 from jtc_hw.drivers.dynamixel.control_table import MODELS, HardwareError
 from jtc_hw.drivers.dynamixel.emulator import DynamixelEmulator, parse_ids
-from jtc_hw.drivers.dynamixel.packets import ALERT_BIT, ErrorNumber
+from jtc_hw.drivers.dynamixel.packets import ALERT_BIT, ErrorNumber, Instruction, encode_instruction
 
 XM = MODELS["XM430-W350"]
 ADDR = {name: XM.register(name).address for name in XM.registers}
@@ -386,18 +388,213 @@ def test_homing_offset_and_clear_multi_turn() -> None:
             b.port.closePort()
 
 
-def test_bus_watchdog_stops_the_servo(bus: Bus) -> None:
-    assert bus.write(1, "operating_mode", 1) == (sdk.COMM_SUCCESS, 0)
-    assert bus.write(1, "torque_enable", 1) == (sdk.COMM_SUCCESS, 0)
-    assert bus.write(1, "goal_velocity", 100) == (sdk.COMM_SUCCESS, 0)
+# -- Bus Watchdog (address 98; e-Manual semantics, see the emulator's module docstring) -------
+
+GOALS = ("goal_pwm", "goal_current", "goal_velocity", "goal_position")
+
+
+def _set_moving(bus: Bus, dxl_id: int, mode: int) -> None:
+    """Torque on in ``mode`` with a goal that makes the shaft turn; wait until it does."""
+    assert bus.write(dxl_id, "operating_mode", mode) == (sdk.COMM_SUCCESS, 0)
+    assert bus.write(dxl_id, "torque_enable", 1) == (sdk.COMM_SUCCESS, 0)
+    goal = {0: ("goal_current", 200), 1: ("goal_velocity", 200), 3: ("goal_position", 4000),
+            16: ("goal_pwm", 400)}[mode]
+    if mode == 3:
+        assert bus.write(dxl_id, "profile_velocity", 100) == (sdk.COMM_SUCCESS, 0)
+    assert bus.write(dxl_id, *goal) == (sdk.COMM_SUCCESS, 0)
+    wait_for(lambda: abs(bus.emu.register(dxl_id, "present_velocity")) > 20)
+
+
+@pytest.mark.parametrize("mode", [1, 3, 0, 16], ids=["velocity", "position", "current", "pwm"])
+def test_bus_watchdog_expiry_stops_the_servo_in_every_mode(bus: Bus, mode: int) -> None:
+    _set_moving(bus, 1, mode)
+    goals_before = [bus.read(1, name)[0] for name in GOALS]
+    since = time.monotonic()
+    assert bus.write(1, "bus_watchdog", 2) == (sdk.COMM_SUCCESS, 0)  # 40 ms
+    # Silence on the bus: reading the emulator in-process sends no packet.
+    trip = bus.emu.wait_watchdog_stopped([1], timeout_s=5.0, since_s=since)[1]
+    assert trip.timeout_s == pytest.approx(0.04)
+    assert trip.expired_s == pytest.approx(trip.last_instruction_s + 0.04, abs=1e-9)
+    assert trip.speed_at_expiry_rad_s > 0.3  # it was turning when the watchdog expired
+    assert trip.stopped_s is not None and trip.stopped_s >= trip.expired_s
+    assert trip.stopped_position_rad is not None
+    assert bus.read(1, "bus_watchdog") == (-1, sdk.COMM_SUCCESS, 0)
+    assert bus.read(1, "present_velocity")[0] == 0
+    assert bus.read(1, "torque_enable")[0] == 1  # stopped and holding, not limp
+    # The goals keep their values; they are read-only now.
+    assert [bus.read(1, name)[0] for name in GOALS] == goals_before
+    assert [t.servo_id for t in bus.emu.watchdog_trips(since)] == [1]
+
+
+def test_tripped_goals_answer_range_error_until_cleared_with_zero(bus: Bus) -> None:
+    _set_moving(bus, 1, 1)
+    since = time.monotonic()
     assert bus.write(1, "bus_watchdog", 1) == (sdk.COMM_SUCCESS, 0)  # 20 ms
-    # Silence on the bus (reading the emulator in-process sends nothing).
-    wait_for(lambda: bus.emu.register(1, "bus_watchdog") == -1)
-    assert bus.emu.register(1, "goal_velocity") == 0
-    assert bus.write(1, "goal_velocity", 50)[1] == ErrorNumber.DATA_RANGE
+    bus.emu.wait_watchdog_stopped([1], timeout_s=5.0, since_s=since)
+    for name in GOALS:
+        before = bus.read(1, name)[0]
+        assert bus.write(1, name, 10)[1] == ErrorNumber.DATA_RANGE, name
+        assert bus.read(1, name)[0] == before, name
+    # A Sync Write has no reply to carry the error: the value simply stays.
+    writer = sdk.GroupSyncWrite(bus.port, bus.ph, ADDR["goal_velocity"], 4)
+    assert writer.addParam(1, list((77).to_bytes(4, "little")))
+    assert writer.txPacket() == sdk.COMM_SUCCESS
+    assert bus.read(1, "goal_velocity")[0] == 200
+    # Only 0 clears it (-1 is out of range; re-arming needs the clear first).
+    assert bus.write(1, "bus_watchdog", 5)[1] == ErrorNumber.DATA_RANGE
+    assert bus.write(1, "bus_watchdog", -1)[1] == ErrorNumber.DATA_RANGE
+    assert bus.read(1, "bus_watchdog")[0] == -1
     assert bus.write(1, "bus_watchdog", 0) == (sdk.COMM_SUCCESS, 0)
-    assert bus.write(1, "goal_velocity", 50) == (sdk.COMM_SUCCESS, 0)
-    assert bus.write(1, "bus_watchdog", -1 & 0xFF)[1] == ErrorNumber.DATA_RANGE
+    assert bus.read(1, "bus_watchdog")[0] == 0
+    # Cleared, the servo still holds still although Goal Velocity says 200: it only moves on
+    # a new goal. Servo 2, given the same goal now, is the clock: once it has turned a while,
+    # servo 1 has had as long to start.
+    held = bus.emu.positions()[1]
+    _set_moving(bus, 2, 1)
+    assert bus.emu.positions()[1] == pytest.approx(held, abs=1e-3)
+    assert bus.write(1, "goal_velocity", 150) == (sdk.COMM_SUCCESS, 0)
+    wait_for(lambda: bus.emu.register(1, "present_velocity") > 100)
+
+
+def test_bus_watchdog_rearms_after_the_clear(bus: Bus) -> None:
+    _set_moving(bus, 1, 1)
+    since = time.monotonic()
+    assert bus.write(1, "bus_watchdog", 1) == (sdk.COMM_SUCCESS, 0)
+    first = bus.emu.wait_watchdog_stopped([1], timeout_s=5.0, since_s=since)[1]
+    assert bus.write(1, "bus_watchdog", 0) == (sdk.COMM_SUCCESS, 0)
+    assert bus.write(1, "goal_velocity", -150) == (sdk.COMM_SUCCESS, 0)
+    wait_for(lambda: bus.emu.register(1, "present_velocity") < -100)
+    assert bus.write(1, "bus_watchdog", 3) == (sdk.COMM_SUCCESS, 0)  # 60 ms
+    second = bus.emu.wait_watchdog_stopped([1], timeout_s=5.0, since_s=first.stopped_s or 0.0)[1]
+    assert second.expired_s > first.expired_s and second.timeout_s == pytest.approx(0.06)
+    assert [t.expired_s for t in bus.emu.watchdog_trips(since)] == [first.expired_s,
+                                                                   second.expired_s]
+
+
+def test_bus_watchdog_watches_only_with_torque_on(bus: Bus) -> None:
+    # Servo 2 armed with its torque off; servo 1, armed after it and turning, is the clock:
+    # once servo 1 has tripped, servo 2 has been silent for longer.
+    assert bus.write(2, "bus_watchdog", 1) == (sdk.COMM_SUCCESS, 0)
+    _set_moving(bus, 1, 1)
+    since = time.monotonic()
+    assert bus.write(1, "bus_watchdog", 1) == (sdk.COMM_SUCCESS, 0)
+    bus.emu.wait_watchdog_stopped([1], timeout_s=5.0, since_s=since)
+    assert bus.emu.register(2, "bus_watchdog") == 1
+    assert [t.servo_id for t in bus.emu.watchdog_trips()] == [1]
+
+
+def test_which_packets_feed_the_bus_watchdog(bus: Bus) -> None:
+    emu = bus.emu
+    assert bus.ph.ping(bus.port, 1)[1] == sdk.COMM_SUCCESS
+    heard = emu.last_instruction_s(1)
+    # Unicast to another servo: not for servo 1.
+    assert bus.ph.ping(bus.port, 2)[1] == sdk.COMM_SUCCESS
+    assert emu.last_instruction_s(1) == heard
+    # A bad CRC addressed to servo 1: not an instruction it accepts.
+    packet = bytearray(encode_instruction(1, Instruction.PING))
+    packet[-1] ^= 0xFF
+    bus.port.clearPort()
+    bus.port.writePort(list(packet))
+    bus.port.setPacketTimeout(11)
+    status, result = bus.ph.rxPacket(bus.port, False)  # the servo's "CRC error" status
+    assert result == sdk.COMM_SUCCESS and status[8] == ErrorNumber.CRC
+    assert emu.last_instruction_s(1) == heard
+    # Broadcast: a Sync Read that asks servo 2 only still reaches servo 1.
+    reader = sdk.GroupSyncRead(bus.port, bus.ph, ADDR["present_position"], 4)
+    assert reader.addParam(2)
+    assert reader.txRxPacket() == sdk.COMM_SUCCESS
+    after_sync = emu.last_instruction_s(1)
+    assert after_sync > heard
+    # And to servo 1 itself.
+    assert bus.ph.ping(bus.port, 1)[1] == sdk.COMM_SUCCESS
+    assert emu.last_instruction_s(1) > after_sync
+
+
+def test_reboot_resets_the_bus_watchdog(bus: Bus) -> None:
+    _set_moving(bus, 1, 1)
+    since = time.monotonic()
+    assert bus.write(1, "bus_watchdog", 1) == (sdk.COMM_SUCCESS, 0)
+    bus.emu.wait_watchdog_stopped([1], timeout_s=5.0, since_s=since)
+    assert bus.ph.reboot(bus.port, 1)[0] == sdk.COMM_SUCCESS
+    wait_for(lambda: bus.ph.ping(bus.port, 1)[1] == sdk.COMM_SUCCESS)
+    assert bus.read(1, "bus_watchdog") == (0, sdk.COMM_SUCCESS, 0)
+    assert bus.read(1, "torque_enable")[0] == 0
+    assert bus.write(1, "goal_velocity", 10) == (sdk.COMM_SUCCESS, 0)
+    assert len(bus.emu.watchdog_trips(since)) == 1  # the record outlives the reboot
+
+
+def test_firmware_before_v38_has_no_bus_watchdog(bus: Bus) -> None:
+    bus.emu.set_firmware_version(2, 37)
+    assert bus.read(2, "firmware_version")[0] == 37
+    assert bus.write(2, "bus_watchdog", 1)[1] == ErrorNumber.ACCESS
+    assert bus.read(2, "bus_watchdog")[0] == 0
+    # Servo 2 keeps turning on its last command while servo 1 (v48) stops on its watchdog.
+    _set_moving(bus, 2, 1)
+    _set_moving(bus, 1, 1)
+    since = time.monotonic()
+    assert bus.write(1, "bus_watchdog", 1) == (sdk.COMM_SUCCESS, 0)
+    bus.emu.wait_watchdog_stopped([1], timeout_s=5.0, since_s=since)
+    assert bus.emu.register(2, "present_velocity") > 100
+    assert [t.servo_id for t in bus.emu.watchdog_trips()] == [1]
+
+
+def test_fail_next_torque_on_latches_the_error_after_acknowledging(bus: Bus) -> None:
+    bus.emu.fail_next_torque_on(3, HardwareError.ELECTRICAL_SHOCK)
+    result, error = bus.write(3, "torque_enable", 1)
+    assert result == sdk.COMM_SUCCESS and error == ALERT_BIT  # accepted, then the fault
+    assert bus.read(3, "torque_enable")[0] == 0
+    assert bus.read(3, "hardware_error_status")[0] == HardwareError.ELECTRICAL_SHOCK
+
+
+def _stderr_line(proc: subprocess.Popen[bytes], prefix: str, timeout_s: float = 10.0) -> str:
+    """The first line of ``proc``'s stderr starting with ``prefix``, waiting at most
+    ``timeout_s`` (read unbuffered from the descriptor, so select() sees every byte)."""
+    assert proc.stderr is not None
+    fd = proc.stderr.fileno()
+    deadline = time.monotonic() + timeout_s
+    pending = b""
+    while True:
+        *lines, pending = pending.split(b"\n")
+        for line in lines:
+            if line.startswith(prefix.encode()):
+                return line.decode()
+        remaining = deadline - time.monotonic()
+        if remaining <= 0:
+            pytest.fail(f"no stderr line starting with {prefix!r} within {timeout_s} s")
+        ready, _, _ = select.select([fd], [], [], remaining)
+        if ready:
+            chunk = os.read(fd, 4096)
+            if not chunk:
+                pytest.fail(f"the process exited without a line starting with {prefix!r}")
+            pending += chunk
+
+
+def test_cli_reports_watchdog_trips_as_json_lines() -> None:
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "jtc_hw.drivers.dynamixel.emulator", "--ids", "1",
+         "--baud", "4000000"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+    )
+    try:
+        assert proc.stdout is not None
+        device = proc.stdout.readline().decode().strip()
+        port = sdk.PortHandler(device)
+        ph = sdk.PacketHandler(2.0)
+        try:
+            assert port.openPort() and port.setBaudRate(4_000_000)
+            assert ph.write1ByteTxRx(port, 1, ADDR["operating_mode"], 1) == (sdk.COMM_SUCCESS, 0)
+            assert ph.write1ByteTxRx(port, 1, ADDR["torque_enable"], 1) == (sdk.COMM_SUCCESS, 0)
+            assert ph.write4ByteTxRx(port, 1, ADDR["goal_velocity"], 100) == (sdk.COMM_SUCCESS, 0)
+            assert ph.write1ByteTxRx(port, 1, ADDR["bus_watchdog"], 1) == (sdk.COMM_SUCCESS, 0)
+        finally:
+            port.closePort()
+        record = json.loads(_stderr_line(proc, "watchdog ")[len("watchdog "):])
+        assert record["servo_id"] == 1 and record["timeout_s"] == pytest.approx(0.02)
+        assert record["stopped_s"] >= record["expired_s"] > record["last_instruction_s"]
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        proc.communicate(timeout=10)
 
 
 def test_current_and_current_based_position_modes(bus: Bus) -> None:

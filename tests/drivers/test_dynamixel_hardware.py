@@ -66,6 +66,9 @@ def make_hw(emulator: DynamixelEmulator) -> Iterator[Callable[..., DynamixelHard
             # Generous: the emulator shares this process (and the GIL) with the test.
             "timeout_ms": 30.0,
             "latency_timer_warn": False,
+            # Long: a loaded machine pausing this process must not trip the servos' watchdog
+            # (test_dynamixel_watchdog.py tests it).
+            "watchdog_s": 1.0,
         }
         base.update(params)
         hw = DynamixelHardware("arm", joints, command_interfaces, ("position", "velocity"), base)
@@ -503,6 +506,7 @@ def test_the_shipped_configurations_load() -> None:
         (component,) = create_hardware_set(robot).components
         assert isinstance(component, DynamixelHardware)
         assert component.ids == (1, 2, 3, 4, 5, 6)
+        assert component.watchdog_timeout_s == pytest.approx(0.1)
 
 
 def test_a_refused_write_names_the_servo_and_cause(emulator: DynamixelEmulator) -> None:

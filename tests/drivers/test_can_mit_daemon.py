@@ -161,8 +161,11 @@ def _fault_mid_goal(
     return goal.wait(timeout_s=WAIT_S), p0
 
 
-def _rearm_without_jump(world: CanWorld, client: Any, healthy: int = 1) -> None:
-    """Re-arm; the ``healthy`` motor (holding through the fault) keeps its set-point."""
+def _rearm_without_jump(world: CanWorld, client: Any, healthy: int = 1,
+                        kept: bool = True) -> None:
+    """Re-arm; the ``healthy`` motor (holding through the fault) keeps its set-point, or,
+    with ``kept=False`` (its bus failed as a whole: its state is unknown), is re-seeded where
+    it is."""
     if not hasattr(Client, "rearm"):
         pytest.skip("jtc_hw.api.client.Client has no rearm() yet")
     before = world.emulator.last_command(healthy)
@@ -176,8 +179,8 @@ def _rearm_without_jump(world: CanWorld, client: Any, healthy: int = 1) -> None:
     assert after["desired"]["positions"] == pytest.approx(
         after["actual"]["positions"], abs=GOAL_TOL)
     assert world.emulator.enabled(healthy)
-    assert world.emulator.last_command(healthy).position == pytest.approx(
-        before.position, abs=1e-3)
+    where = world.emulator.position(healthy) if not kept else before.position
+    assert world.emulator.last_command(healthy).position == pytest.approx(where, abs=1e-3)
     back = client.send_goal(traj(after["actual"]["positions"], 0.5)).wait(timeout_s=WAIT_S)
     assert back["status"] == "succeeded", back
 
@@ -204,7 +207,7 @@ def test_bus_off_aborts_and_rearm_reopens_the_bus(world: CanWorld) -> None:
         assert "bus-off" in result["error_string"]
         assert details(client)["buses"]["can0"]["state"] == "bus-off"
         world.emulator.clear_bus_off()
-        _rearm_without_jump(world, client)
+        _rearm_without_jump(world, client, kept=False)
         assert details(client)["buses"]["can0"]["state"] == "active"
 
 

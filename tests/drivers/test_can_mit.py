@@ -643,3 +643,15 @@ def test_the_python_can_traceback_never_reaches_a_message() -> None:
             proc.kill()
         proc.wait(timeout=WAIT_S)
         proc.stdout.close()
+
+
+def test_the_shipped_configurations_load() -> None:
+    from jtc_hw.daemon.robot import create_hardware_set, load_robot
+
+    for name, timeout_s in (("can-mit-leg.yaml", None), ("can-mit-leg-emulated.yaml", None),
+                            ("can-mit-dm-emulated.yaml", 0.1)):
+        (component,) = create_hardware_set(load_robot(ROOT / "config" / name)).components
+        assert isinstance(component, MitHardware)
+        watchdog = component.device_watchdog()
+        assert watchdog.timeout_s == timeout_s, name
+        assert watchdog.complete == (timeout_s is not None), name

@@ -11,8 +11,26 @@ frame addressed to one of its motors with a state reply, as the firmware does:
   (``Motor.step_pd`` in motor mode, ``Motor.coast`` otherwise), then the new set-point is
   taken;
 * ``FC`` enters motor mode (the PD starts from the set-point kp = kd = t = 0, i.e. free
-  until the first set-point), ``FD`` exits it (coasts), ``FE`` makes the current position
-  zero, ``FB`` clears a Damiao error.
+  until the first set-point; a motor already in motor mode keeps its set-point: the
+  mini-cheetah firmware only restarts its current loop), ``FD`` exits it (coasts), ``FE``
+  makes the current position zero, ``FB`` clears a Damiao error (not one whose cause lasts).
+  Out of motor mode a set-point is answered but not taken, as the firmware does.
+
+Device-side timeout, per model. A Damiao motor (``"damiao"`` reply format) speaks the
+register protocol on id ``0x7FF`` (:mod:`~jtc_hw.drivers.can.frames`): reads of the
+registers kept here, writes of ``TIMEOUT`` (register 9, RAM; answered with an echo). With a
+timeout set, an enabled motor that receives no frame addressed to it (a set-point, a special
+command or a register request) for that long disables itself (torque off: it coasts) and
+reports state code ``0xD`` (communication lost) until ``FB`` clears it; ``FC`` is refused
+meanwhile. The expiry takes effect at its exact modelled instant (last frame + timeout)
+whenever the motor is next looked at (a frame, an inspection, :meth:`MitBusEmulator.
+check_timeouts`), is recorded (:meth:`MitBusEmulator.timeout_expiries`,
+:meth:`MitBusEmulator.wait_timeout_expiries`) and reported to ``on_event``. AK motors have no
+timeout settable over CAN (the mini-cheetah firmware's "CAN Timeout" is set from its serial
+setup menu, 0 = none by default): they keep executing their last set-point forever.
+:meth:`MitBusEmulator.power_cycle` (and restarting ``jtc-hw emulate can``) brings motors back
+out of motor mode, with no set-point and their registers as stored in flash
+(``stored_timeout_s``; a timeout the host wrote in RAM is gone).
 
 Wire-time pacing (``pace=True``): the emulator models the bus as one serial wire at
 ``bitrate``. A command occupies the wire from when it was sent (its python-can timestamp, not
@@ -30,6 +48,10 @@ replies, the drive temperature and a Damiao error code (``"damiao"`` reply forma
 
 ``main(argv)`` runs emulators in a process, behind a socketcand server (default) so that other
 processes reach them with python-can's stock ``socketcand`` interface, until SIGINT/SIGTERM.
+With ``--events`` it prints, after its connect line, one JSON line per motor event
+(``{"event": "enabled"|"disabled"|"timeout", "channel": ..., "id": ..., "t": ...}``, ``t`` on
+the system-wide monotonic clock, so another process can compare it with its own times), and
+looks for expired timeouts every 5 ms.
 With ``--one-thread`` the emulators start no threads (``start(push=True, thread=False)``; CiA
 402 drives ``start(push=True)``): the server's single thread reads every client, the frames
 reach the emulators in it, and it releases every bus's due replies (each emulator keeps its
@@ -42,15 +64,16 @@ from __future__ import annotations
 
 import argparse
 import heapq
+import json
 import math
 import signal
 import sys
 import threading
 import time
 import uuid
-from collections.abc import Iterable, Mapping, Sequence
-from dataclasses import dataclass
-from typing import Any
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any, NamedTuple
 
 import can
 
@@ -60,26 +83,50 @@ from ..motor_model import Motor, MotorParams
 from .bus import CAN_ERR_BUSOFF, wire_time_s
 from .emulation import PushSink, WakeEarly, attach_sink
 from .frames import (
+    DAMIAO_TIMEOUT_RID,
+    DAMIAO_TIMEOUT_UNIT_S,
     MODEL_PRESETS,
+    REGISTER_ID,
+    REGISTER_READ,
+    REGISTER_STORE,
+    REGISTER_WRITE,
     MitCommand,
     MitLimits,
     MitReply,
+    RegisterFrame,
     decode_command,
+    decode_register_frame,
+    encode_register_frame,
     encode_reply,
     special_command,
+    timeout_register_value,
 )
 
-__all__ = ["MitBusEmulator", "build_parser", "main", "parse_ids"]
+__all__ = ["EmulatorEvent", "MitBusEmulator", "build_parser", "main", "parse_ids"]
 
 _IDLE_POLL_S = 0.05  # how often an idle emulator thread looks at its stop flag
+_EVENTS_POLL_S = 0.005  # `--events`: how often the process looks for expired timeouts
+COMMUNICATION_LOST = 0xD  # Damiao state code of an expired CAN timeout
+_FREE = MitCommand(0.0, 0.0, 0.0, 0.0, 0.0)
+
+
+class EmulatorEvent(NamedTuple):
+    """A change of a motor's state: ``kind`` is ``"enabled"``, ``"disabled"`` or
+    ``"timeout"`` (its CAN timeout expired: it disabled itself); ``t`` is when, on the
+    monotonic clock (the modelled instant, not when it was noticed)."""
+
+    kind: str
+    motor_id: int
+    t: float
 
 
 @dataclass
 class _MotorSlot:
+    motor_id: int
     motor: Motor
     limits: MitLimits
     enabled: bool = False
-    command: MitCommand = MitCommand(0.0, 0.0, 0.0, 0.0, 0.0)
+    command: MitCommand = _FREE
     t: float | None = None
     zero: float = 0.0
     silent: bool = False
@@ -88,8 +135,15 @@ class _MotorSlot:
     temperature: float = 30.0
     rotor_temperature: float = 30.0
     error_code: int = 0
+    persistent_error: bool = False
     commands: int = 0
     replies: int = 0
+    # Damiao: registers in RAM, their stored (flash) values, the CAN timeout they set.
+    registers: dict[int, int | float] = field(default_factory=dict)
+    flash: dict[int, int | float] = field(default_factory=dict)
+    timeout_s: float = 0.0
+    last_rx: float | None = None
+    expiries: list[float] = field(default_factory=list)
 
 
 class MitBusEmulator:
@@ -106,9 +160,15 @@ class MitBusEmulator:
         motor_params: physics of every motor (default: torque / velocity limits from the
             model's ranges).
         initial_positions: ``{id: rad}``.
+        stored_timeout_s: Damiao: the CAN timeout stored in the motors' flash, which they
+            power up with (0: none; the host sets its own in RAM).
+        on_event: called with every :class:`EmulatorEvent` (a motor enabled, disabled, or
+            its CAN timeout expired), outside the emulator's lock, in the thread that caused
+            it or noticed it (:meth:`check_timeouts`).
 
     Raises:
-        ValueError: unknown model, or an id the reply format cannot carry.
+        ValueError: unknown model, an id the reply format cannot carry, or a stored timeout
+            for a model without one.
     """
 
     def __init__(
@@ -123,6 +183,8 @@ class MitBusEmulator:
         pace: bool = False,
         motor_params: MotorParams | None = None,
         initial_positions: Mapping[int, float] | None = None,
+        stored_timeout_s: float = 0.0,
+        on_event: Callable[[EmulatorEvent], None] | None = None,
     ) -> None:
         if limits is None:
             if model not in MODEL_PRESETS:
@@ -139,12 +201,25 @@ class MitBusEmulator:
             torque_limit=limits.t_max, velocity_limit=limits.v_max, max_step_s=0.0005
         )
         initial = dict(initial_positions or {})
+        # Only Damiao firmware has a CAN timeout settable over CAN (register 9); an AK
+        # motor's (mini-cheetah firmware) is set from its serial setup menu, not modelled.
+        self.has_timeout = limits.reply == "damiao"
+        if stored_timeout_s and not self.has_timeout:
+            raise ValueError("only Damiao motors have a CAN timeout register")
+        stored = timeout_register_value(stored_timeout_s)
         self._slots: dict[int, _MotorSlot] = {}
         for motor_id in ids:
             top = 0xFF if limits.reply == "ak" else 0x0F
             if not 1 <= motor_id <= min(top, 0x7FF):
                 raise ValueError(f"motor id {motor_id} out of range 1..{top} for this model")
-            self._slots[motor_id] = _MotorSlot(Motor(params, initial.get(motor_id, 0.0)), limits)
+            slot = _MotorSlot(motor_id, Motor(params, initial.get(motor_id, 0.0)), limits)
+            if self.has_timeout:
+                slot.flash = {7: master_id, 8: motor_id, DAMIAO_TIMEOUT_RID: stored,
+                              10: 1, 21: limits.p_max, 22: limits.v_max, 23: limits.t_max}
+                self._load_flash(slot)
+            self._slots[motor_id] = slot
+        self._on_event = on_event
+        self._events: list[EmulatorEvent] = []  # to emit once the lock is released
         self._lock = threading.Lock()
         self._wake = threading.Condition(self._lock)  # push mode: a new earliest due reply
         self._push = False
@@ -231,12 +306,18 @@ class MitBusEmulator:
         with self._lock:
             slot = self._slots[motor_id]
             self._advance(slot, time.monotonic())
-            return slot.motor.position - slot.zero
+            position = slot.motor.position - slot.zero
+        self._emit()
+        return position
 
     def enabled(self, motor_id: int) -> bool:
-        """Whether the motor is in motor mode."""
+        """Whether the motor is in motor mode (its CAN timeout evaluated to now)."""
         with self._lock:
-            return self._slots[motor_id].enabled
+            slot = self._slots[motor_id]
+            self._advance(slot, time.monotonic())
+            enabled = slot.enabled
+        self._emit()
+        return enabled
 
     def last_command(self, motor_id: int) -> MitCommand:
         """The last set-point the motor decoded."""
@@ -255,6 +336,73 @@ class MitBusEmulator:
             slot.motor.position = position + slot.zero
             slot.motor.velocity = 0.0
             slot.motor.reset_reference()
+
+    def error_code(self, motor_id: int) -> int:
+        """The motor's latched Damiao error code (0: none), timeouts evaluated to now."""
+        self.check_timeouts()
+        with self._lock:
+            return self._slots[motor_id].error_code
+
+    def timeout_s(self, motor_id: int) -> float:
+        """The CAN timeout the motor runs with (its ``TIMEOUT`` register), s; 0: none."""
+        with self._lock:
+            return self._slots[motor_id].timeout_s
+
+    def check_timeouts(self, now: float | None = None) -> None:
+        """Bring every motor to ``now`` (default: the monotonic clock): a CAN timeout that
+        has expired meanwhile takes effect, at its exact modelled instant, and is reported
+        to ``on_event``. Expiry needs no frame to notice it: any inspection calls this."""
+        when = time.monotonic() if now is None else now
+        with self._lock:
+            for slot in self._slots.values():
+                self._advance(slot, when)
+        self._emit()
+
+    def timeout_expiries(self) -> list[tuple[int, float]]:
+        """Every CAN timeout expiry so far, ``(motor id, monotonic time)``, oldest first.
+
+        The time is the modelled instant the motor disabled itself: its last frame's arrival
+        plus its timeout (timeouts are first brought up to date, :meth:`check_timeouts`).
+        """
+        self.check_timeouts()
+        with self._lock:
+            return sorted(((motor_id, t) for motor_id, slot in self._slots.items()
+                           for t in slot.expiries), key=lambda item: item[1])
+
+    def wait_timeout_expiries(
+        self, ids: Iterable[int] | None = None, since: float = 0.0, timeout_s: float = 5.0
+    ) -> dict[int, float]:
+        """Wait until each motor of ``ids`` (default: all) has disabled itself on its CAN
+        timeout at or after ``since`` (monotonic); the first such instant per motor.
+
+        The wait sleeps until the earliest modelled expiry, then looks again (a frame may
+        have pushed it back): what a benchmark of "daemon failure -> motors stopped" needs,
+        ``since`` being the failure's time.
+
+        Raises:
+            TimeoutError: not every motor's timeout expired within ``timeout_s``.
+        """
+        wanted = set(self._slots if ids is None else ids)
+        end = time.monotonic() + timeout_s
+        while True:
+            found: dict[int, float] = {}
+            for motor_id, t in self.timeout_expiries():
+                if motor_id in wanted and t >= since and motor_id not in found:
+                    found[motor_id] = t
+            now = time.monotonic()
+            if len(found) == len(wanted):
+                return found
+            if now >= end:
+                missing = sorted(wanted - set(found))
+                raise TimeoutError(f"the CAN timeout of motors {missing} did not expire "
+                                   f"within {timeout_s} s")
+            with self._lock:
+                deadlines = [d for motor_id in wanted - set(found)
+                             if (d := self._deadline(self._slots[motor_id])) is not None]
+            # Until the earliest modelled expiry (a little after, so it has passed), or
+            # another look soon if none is armed (a frame may still arm one).
+            wake = min(deadlines, default=now + _IDLE_POLL_S) + 1e-4
+            time.sleep(max(0.0, min(wake, end) - now))
 
     # -- fault injection ----------------------------------------------------------------------
 
@@ -278,16 +426,44 @@ class MitBusEmulator:
         with self._lock:
             self._slots[motor_id].temperature = degc
 
-    def set_error(self, motor_id: int, code: int) -> None:
+    def set_error(self, motor_id: int, code: int, persistent: bool = False) -> None:
         """Raise a Damiao error code (8..14): the drive switches off and reports it; an AK
-        motor, whose reply has no fault field, goes silent instead (0 clears either)."""
+        motor, whose reply has no fault field, goes silent instead (0 clears either).
+
+        Args:
+            motor_id: the motor.
+            code: the error code; 0 clears it (and ends a persistent one).
+            persistent: the cause lasts (e.g. a supply below the under-voltage limit): ``FB``
+                does not clear it, so the motor refuses to enable until ``set_error(id, 0)``.
+        """
         with self._lock:
             slot = self._slots[motor_id]
+            self._advance(slot, time.monotonic())
             slot.error_code = code
+            slot.persistent_error = persistent and code >= 8
             if code >= 8:
-                slot.enabled = False
+                self._set_enabled(slot, False, time.monotonic())
             if self.limits.reply == "ak":
                 slot.silent = code >= 8
+        self._emit()
+
+    def power_cycle(self, motor_id: int | None = None) -> None:
+        """Switch the motor (default: every motor) off and on again: it comes back out of
+        motor mode, with no set-point, no latched error (a persistent cause stays) and its
+        registers as stored in flash (a CAN timeout set in RAM is gone); its position and
+        zero (stored) are kept."""
+        now = time.monotonic()
+        with self._lock:
+            for key in self._slots if motor_id is None else (motor_id,):
+                slot = self._slots[key]
+                self._advance(slot, now)
+                self._set_enabled(slot, False, now)
+                slot.command = _FREE
+                if not slot.persistent_error:
+                    slot.error_code = 0
+                self._load_flash(slot)
+                slot.last_rx = None
+        self._emit()
 
     def bus_off(self) -> None:
         """Send a bus-off error frame and go silent until :meth:`clear_bus_off`."""
@@ -379,61 +555,160 @@ class MitBusEmulator:
             self._send(reply)
 
     def _advance(self, slot: _MotorSlot, now: float) -> None:
+        """Run the motor's physics up to ``now``; an expired CAN timeout takes effect at its
+        modelled instant (PD until then, coasting after). Under the lock."""
         if slot.t is not None and now > slot.t:
-            dt = now - slot.t
+            deadline = self._deadline(slot)
+            if deadline is not None and deadline < now:
+                self._step(slot, max(deadline, slot.t))
+                slot.expiries.append(deadline)
+                slot.error_code = COMMUNICATION_LOST
+                self._events.append(EmulatorEvent("timeout", slot.motor_id, deadline))
+                self._set_enabled(slot, False, deadline)
+            self._step(slot, now)
+        elif slot.t is None:
+            slot.t = now
+        # (A frame stamped earlier than the physics already ran is applied now: time does not
+        # run backwards, nothing is integrated twice.)
+
+    def _step(self, slot: _MotorSlot, until: float) -> None:
+        assert slot.t is not None
+        dt = until - slot.t
+        if dt > 0.0:
             c = slot.command
             if slot.enabled:
                 slot.motor.step_pd(dt, c.position + slot.zero, c.velocity, c.kp, c.kd, c.torque)
             else:
                 slot.motor.coast(dt)
-        slot.t = now
+            slot.t = until
+
+    @staticmethod
+    def _deadline(slot: _MotorSlot) -> float | None:
+        """When the motor's CAN timeout expires if no frame comes (``None``: not armed)."""
+        if slot.enabled and slot.timeout_s > 0.0 and slot.last_rx is not None:
+            return slot.last_rx + slot.timeout_s
+        return None
+
+    def _set_enabled(self, slot: _MotorSlot, enabled: bool, t: float) -> None:
+        if slot.enabled != enabled:
+            slot.enabled = enabled
+            kind = "enabled" if enabled else "disabled"
+            self._events.append(EmulatorEvent(kind, slot.motor_id, t))
+
+    def _emit(self) -> None:
+        """Hand the pending events to ``on_event``, outside the lock."""
+        if not self._events:
+            return
+        with self._lock:
+            events, self._events = self._events, []
+        if self._on_event is not None:
+            for event in events:
+                self._on_event(event)
+
+    @staticmethod
+    def _load_flash(slot: _MotorSlot) -> None:
+        slot.registers = dict(slot.flash)
+        counts = int(slot.registers.get(DAMIAO_TIMEOUT_RID, 0))
+        slot.timeout_s = counts * DAMIAO_TIMEOUT_UNIT_S
 
     def _handle(self, msg: can.Message, now: float) -> None:
         if msg.is_error_frame or msg.is_extended_id or msg.is_remote_frame:
             return
         self.frames_received += 1
         with self._lock:
-            slot = self._slots.get(msg.arbitration_id)
-            if slot is None or len(msg.data) != 8:
-                return
-            self._advance(slot, now)
-            slot.commands += 1
-            kind = special_command(msg.data)
-            if kind == "enter":
-                if slot.error_code < 8:
-                    slot.enabled = True
-                    slot.command = MitCommand(slot.motor.position - slot.zero, 0.0, 0.0, 0.0, 0.0)
-            elif kind == "exit":
-                slot.enabled = False
-            elif kind == "zero":
-                slot.zero = slot.motor.position
-            elif kind == "clear_error":
-                slot.error_code = 0
-            else:
-                slot.command = decode_command(msg.data, self.limits)
-            if self._bus_off or slot.silent:
-                return
-            if slot.drop > 0:
-                slot.drop -= 1
-                return
-            reply = self._reply(msg.arbitration_id, slot)
-            due = now
-            if self.pace:
-                start = max(now, self._wire_free)
-                self._wire_free = start + wire_time_s((msg, reply), self.bitrate)
-                due = self._wire_free
-            due += slot.delay_s
-            slot.replies += 1
-            if due <= now:
-                immediate = True
-            else:
-                immediate = False
-                self._seq += 1
-                heapq.heappush(self._due, (due, self._seq, reply))
-                if self._push and self._due[0][1] == self._seq:
-                    self._wake.notify()  # the release thread waits for a later one
-        if immediate:
+            reply = self._answer(msg, now)
+        self._emit()
+        if reply is not None:
             self._send(reply)
+
+    def _answer(self, msg: can.Message, now: float) -> can.Message | None:
+        """Apply one frame; the reply to send now (``None``: none, or queued). Under the lock."""
+        if len(msg.data) != 8:
+            return None
+        if msg.arbitration_id == REGISTER_ID and self.has_timeout:
+            motor_id = msg.data[0] | (msg.data[1] << 8)
+            slot = self._slots.get(motor_id)
+            if slot is None:
+                return None
+            self._advance(slot, now)
+            slot.last_rx = now
+            slot.commands += 1
+            data = self._register(slot, msg.data)
+        else:
+            motor_id = msg.arbitration_id
+            slot = self._slots.get(motor_id)
+            if slot is None:
+                return None
+            self._advance(slot, now)
+            slot.last_rx = now
+            slot.commands += 1
+            self._command(slot, msg.data, now)
+            data = self._state(motor_id, slot)
+        if data is None or self._bus_off or slot.silent:
+            return None
+        if slot.drop > 0:
+            slot.drop -= 1
+            return None
+        reply = can.Message(arbitration_id=self.master_id, is_extended_id=False, data=data)
+        due = now
+        if self.pace:
+            start = max(now, self._wire_free)
+            self._wire_free = start + wire_time_s((msg, reply), self.bitrate)
+            due = self._wire_free
+        due += slot.delay_s
+        slot.replies += 1
+        if due <= now:
+            return reply
+        self._seq += 1
+        heapq.heappush(self._due, (due, self._seq, reply))
+        if self._push and self._due[0][1] == self._seq:
+            self._wake.notify()  # the release thread waits for a later one
+        return None
+
+    def _command(self, slot: _MotorSlot, data: bytes | bytearray, now: float) -> None:
+        """A frame on the motor's own id, as the mini-cheetah firmware handles it."""
+        kind = special_command(data)
+        if kind == "enter":
+            # Re-entering while enabled only restarts the current loop: the set-point
+            # stays. From rest the motor starts free (kp = kd = t = 0) until a set-point.
+            if slot.error_code < 8 and not slot.enabled:
+                slot.command = MitCommand(slot.motor.position - slot.zero, 0.0, 0.0, 0.0, 0.0)
+                self._set_enabled(slot, True, now)
+        elif kind == "exit":
+            self._set_enabled(slot, False, now)
+        elif kind == "zero":
+            slot.zero = slot.motor.position
+        elif kind == "clear_error":
+            if not slot.persistent_error:
+                slot.error_code = 0
+        elif slot.enabled:
+            slot.command = decode_command(data, self.limits)
+        # A set-point out of motor mode is answered but not taken (the firmware unpacks
+        # commands in motor mode only).
+
+    def _register(self, slot: _MotorSlot, data: bytes | bytearray) -> bytes | None:
+        """A Damiao register request: the reply's bytes, or ``None`` (not answered).
+
+        Modelled: reads of the registers the emulator keeps (MST_ID, ESC_ID, TIMEOUT,
+        CTRL_MODE, PMAX, VMAX, TMAX), writes of TIMEOUT (echoed; in RAM) and store (to
+        flash, while disabled, unanswered). Other requests are not answered.
+        """
+        try:
+            frame = decode_register_frame(data)
+        except ValueError:
+            return None
+        if frame.command == REGISTER_READ and frame.rid in slot.registers:
+            value = slot.registers[frame.rid]
+            return encode_register_frame(RegisterFrame(frame.motor_id, REGISTER_READ,
+                                                       frame.rid, value))
+        if frame.command == REGISTER_WRITE and frame.rid == DAMIAO_TIMEOUT_RID:
+            assert isinstance(frame.value, int)
+            slot.registers[frame.rid] = frame.value
+            slot.timeout_s = frame.value * DAMIAO_TIMEOUT_UNIT_S
+            return encode_register_frame(frame)
+        if frame.command == REGISTER_STORE and not slot.enabled:
+            slot.flash = dict(slot.registers)
+        return None
 
     def _send(self, reply: can.Message) -> None:
         try:
@@ -443,7 +718,7 @@ class MitBusEmulator:
         else:
             self.replies_sent += 1
 
-    def _reply(self, motor_id: int, slot: _MotorSlot) -> can.Message:
+    def _state(self, motor_id: int, slot: _MotorSlot) -> bytes:
         m = slot.motor
         state = MitReply(
             motor_id,
@@ -454,10 +729,7 @@ class MitBusEmulator:
             temperature=round(slot.temperature),
             rotor_temperature=round(slot.rotor_temperature),
         )
-        return can.Message(arbitration_id=self.master_id, is_extended_id=False,
-                           data=encode_reply(state, self.limits))
-
-
+        return encode_reply(state, self.limits)
 
 
 # --------------------------------------------------------------------------------------------
@@ -512,6 +784,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "replies, from one thread (no threads of the emulators' own)")
     parser.add_argument("--master-id", type=lambda s: int(s, 0), default=0,
                         help="MIT reply arbitration id")
+    parser.add_argument("--events", action="store_true",
+                        help="MIT: after the connect line, print one JSON line per motor "
+                        "event: {\"event\": \"enabled\"|\"disabled\"|\"timeout\", "
+                        "\"channel\": ..., \"id\": ..., \"t\": monotonic s}")
     return parser
 
 
@@ -527,6 +803,19 @@ def _pairs(
     if len(id_texts) != len(channels):
         raise ValueError("give one --ids per --channel (or a single --ids to split evenly)")
     return [(ch, parse_ids(t)) for ch, t in zip(channels, id_texts, strict=True)]
+
+
+def _event_printer(
+    channel: str, ready: threading.Event, lock: threading.Lock
+) -> Callable[[EmulatorEvent], None]:
+    def on_event(event: EmulatorEvent) -> None:
+        ready.wait()
+        line = json.dumps({"event": event.kind, "channel": channel, "id": event.motor_id,
+                           "t": event.t})
+        with lock:  # one line at a time, from whichever thread noticed the event
+            print(line, flush=True)
+
+    return on_event
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -565,13 +854,18 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     signal.signal(signal.SIGINT, on_signal)
     signal.signal(signal.SIGTERM, on_signal)
+    events = args.events and args.protocol == "mit"
+    ready = threading.Event()  # events wait for the connect line, which comes first
+    print_lock = threading.Lock()
     try:
         for ch, ids in pairs:
             if args.protocol == "mit":
                 bus = can.Bus(interface="virtual", channel=virtual[ch])
                 buses.append(bus)
-                emulators.append(MitBusEmulator(bus, ids, args.model, bitrate=args.bitrate,
-                                                pace=args.pace, master_id=args.master_id))
+                emulators.append(MitBusEmulator(
+                    bus, ids, args.model, bitrate=args.bitrate, pace=args.pace,
+                    master_id=args.master_id,
+                    on_event=_event_printer(ch, ready, print_lock) if events else None))
             else:
                 # One bus object per channel: its drives share one receive thread and one
                 # modelled wire, as drives on one cable do.
@@ -607,7 +901,15 @@ def main(argv: Sequence[str] | None = None) -> int:
                   f"channel={','.join(virtual)}", flush=True)
         else:
             print(f"interface=virtual channel={','.join(virtual)}", flush=True)
-        stop.wait()
+        ready.set()
+        if events:
+            # An expired CAN timeout needs no frame to happen: look for them regularly (the
+            # events carry the modelled instant, not when they were noticed).
+            while not stop.wait(_EVENTS_POLL_S):
+                for emulator in emulators:
+                    emulator.check_timeouts()
+        else:
+            stop.wait()
     finally:
         if server is not None:
             server.stop()

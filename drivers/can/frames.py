@@ -38,13 +38,31 @@ Special commands (8 bytes, ``FF FF FF FF FF FF FF xx``): ``FC`` enter motor mode
 exit motor mode (torque off), ``FE`` set the current position as zero, ``FB`` clear the
 error (Damiao). Motors answer special commands with a state reply too.
 
+Damiao register protocol (Damiao motors only; AK motors have none over CAN). Requests go on
+arbitration id ``0x7FF``, 8 bytes; the motor answers on its ``MST_ID`` (``master_id``) with
+the same layout::
+
+    byte 0        1        2        3    4..7
+         id[7:0]  id[15:8] command  rid  value (little-endian uint32 or IEEE float32)
+
+``command`` is ``0x33`` read (value bytes ignored; the reply carries the value), ``0x55``
+write (the reply echoes the value written), ``0xAA`` store every register to flash (rid
+``0x01``; only while disabled). A write takes effect at once but only in RAM: a power cycle
+restores the stored (flash) values. :data:`DAMIAO_REGISTERS` lists the registers, their type
+and whether they are writable. Register 9 (``TIMEOUT``, uint32, units of 50 us, 0 = off) is
+the CAN communication timeout: an enabled motor that receives no frame for that long
+disables itself (torque off) and reports state code ``0xD`` (communication lost) until the
+error is cleared (``FB``). A register reply shares the state reply's arbitration id; it is
+told apart by context (the host expects it after a request of its own).
+
 Facts from the CubeMars AK-series manual (MIT mode section), the mini-cheetah motor-controller
-firmware's CAN description and Damiao's DM-J4310 manual; no code was copied.
+firmware's CAN description and Damiao's DM-J4310 manual and register table; no code was copied.
 """
 
 from __future__ import annotations
 
 import math
+import struct
 from collections.abc import Mapping
 from dataclasses import dataclass
 from types import MappingProxyType
@@ -52,24 +70,36 @@ from typing import Final
 
 __all__ = [
     "CLEAR_ERROR",
+    "DAMIAO_REGISTERS",
     "DAMIAO_STATES",
+    "DAMIAO_TIMEOUT_RID",
+    "DAMIAO_TIMEOUT_UNIT_S",
     "ENTER_MOTOR_MODE",
     "EXIT_MOTOR_MODE",
     "MODEL_PRESETS",
+    "REGISTER_ID",
+    "REGISTER_READ",
+    "REGISTER_STORE",
+    "REGISTER_WRITE",
     "REPLY_FORMATS",
     "SET_ZERO",
     "SPECIAL_COMMANDS",
+    "DamiaoRegister",
     "MitCommand",
     "MitLimits",
     "MitReply",
+    "RegisterFrame",
     "decode_command",
+    "decode_register_frame",
     "decode_reply",
     "encode_command",
+    "encode_register_frame",
     "encode_reply",
     "float_to_uint",
     "quantum",
     "reply_motor_id",
     "special_command",
+    "timeout_register_value",
     "uint_to_float",
 ]
 
@@ -318,3 +348,135 @@ def decode_reply(data: bytes | bytearray, limits: MitLimits) -> MitReply:
         return MitReply(data[0], position, velocity, torque)
     return MitReply(data[0] & 0x0F, position, velocity, torque,
                     error_code=data[0] >> 4, temperature=data[6], rotor_temperature=data[7])
+
+
+# --------------------------------------------------------------------------------------------
+# Damiao register protocol
+# --------------------------------------------------------------------------------------------
+
+REGISTER_ID: Final = 0x7FF
+"""Arbitration id of Damiao register requests (read / write / store)."""
+REGISTER_READ: Final = 0x33
+REGISTER_WRITE: Final = 0x55
+REGISTER_STORE: Final = 0xAA
+_REGISTER_COMMANDS: Final = (REGISTER_READ, REGISTER_WRITE, REGISTER_STORE)
+
+DAMIAO_TIMEOUT_RID: Final = 9
+"""The CAN timeout register (``TIMEOUT``): uint32, units of :data:`DAMIAO_TIMEOUT_UNIT_S`."""
+DAMIAO_TIMEOUT_UNIT_S: Final = 50e-6
+"""One count of the CAN timeout register, s (0 counts: no timeout)."""
+
+
+@dataclass(frozen=True)
+class DamiaoRegister:
+    """One Damiao register: id, name, value type (``"u32"`` or ``"f32"``), writable."""
+
+    rid: int
+    name: str
+    kind: str
+    writable: bool
+
+
+def _registers(*rows: tuple[int, str, str, bool]) -> Mapping[int, DamiaoRegister]:
+    return MappingProxyType({rid: DamiaoRegister(rid, name, kind, rw)
+                             for rid, name, kind, rw in rows})
+
+
+DAMIAO_REGISTERS: Final[Mapping[int, DamiaoRegister]] = _registers(
+    (0, "UV_Value", "f32", True), (1, "KT_Value", "f32", True), (2, "OT_Value", "f32", True),
+    (3, "OC_Value", "f32", True), (4, "ACC", "f32", True), (5, "DEC", "f32", True),
+    (6, "MAX_SPD", "f32", True), (7, "MST_ID", "u32", True), (8, "ESC_ID", "u32", True),
+    (9, "TIMEOUT", "u32", True), (10, "CTRL_MODE", "u32", True),
+    (11, "Damp", "f32", False), (12, "Inertia", "f32", False), (13, "hw_ver", "u32", False),
+    (14, "sw_ver", "u32", False), (15, "SN", "u32", False), (16, "NPP", "u32", False),
+    (17, "Rs", "f32", False), (18, "Ls", "f32", False), (19, "Flux", "f32", False),
+    (20, "Gr", "f32", False), (21, "PMAX", "f32", True), (22, "VMAX", "f32", True),
+    (23, "TMAX", "f32", True), (24, "I_BW", "f32", True), (25, "KP_ASR", "f32", True),
+    (26, "KI_ASR", "f32", True), (27, "KP_APR", "f32", True), (28, "KI_APR", "f32", True),
+    (29, "OV_Value", "f32", True), (30, "GREF", "f32", True), (31, "Deta", "f32", True),
+    (32, "V_BW", "f32", True), (33, "IQ_c1", "f32", True), (34, "VL_c1", "f32", True),
+    (35, "can_br", "u32", True), (36, "sub_ver", "u32", False),
+    (50, "u_off", "f32", False), (51, "v_off", "f32", False), (52, "k1", "f32", False),
+    (53, "k2", "f32", False), (54, "m_off", "f32", False), (55, "dir", "f32", False),
+    (80, "p_m", "f32", False), (81, "xout", "f32", False),
+)
+"""The Damiao register table (id -> name, type, writable), from the manufacturer's list."""
+
+
+@dataclass(frozen=True)
+class RegisterFrame:
+    """A Damiao register request or reply (the two share one layout).
+
+    Attributes:
+        motor_id: the motor's CAN id (``ESC_ID``), bytes 0..1.
+        command: :data:`REGISTER_READ`, :data:`REGISTER_WRITE` or :data:`REGISTER_STORE`.
+        rid: the register id (store: ``0x01``).
+        value: the value bytes 4..7 decoded per the register's type (an unknown register as
+            uint32); 0 in a read request or a store.
+    """
+
+    motor_id: int
+    command: int
+    rid: int
+    value: int | float = 0
+
+
+def _register_kind(rid: int) -> str:
+    known = DAMIAO_REGISTERS.get(rid)
+    return known.kind if known is not None else "u32"
+
+
+def encode_register_frame(frame: RegisterFrame) -> bytes:
+    """The 8 bytes of a register request or reply.
+
+    Raises:
+        ValueError: a motor id beyond 0x7FF, an unknown command, a rid beyond a byte, or a
+            value that does not fit the register's type (uint32: 0..2**32-1; float32: finite).
+    """
+    if not 0 <= frame.motor_id <= 0x7FF:
+        raise ValueError(f"motor id {frame.motor_id} out of range 0..0x7FF")
+    if frame.command not in _REGISTER_COMMANDS:
+        raise ValueError(f"register command must be 0x33, 0x55 or 0xAA, got {frame.command:#x}")
+    if not 0 <= frame.rid <= 0xFF:
+        raise ValueError(f"register id {frame.rid} does not fit a byte")
+    if _register_kind(frame.rid) == "f32":
+        value = float(frame.value)
+        if not math.isfinite(value):
+            raise ValueError(f"register {frame.rid} takes a finite float, got {value!r}")
+        body = struct.pack("<f", value)
+    else:
+        if not (isinstance(frame.value, int) and 0 <= frame.value <= 0xFFFF_FFFF):
+            raise ValueError(f"register {frame.rid} takes a uint32, got {frame.value!r}")
+        body = struct.pack("<I", frame.value)
+    return bytes((frame.motor_id & 0xFF, frame.motor_id >> 8, frame.command, frame.rid)) + body
+
+
+def decode_register_frame(data: bytes | bytearray) -> RegisterFrame:
+    """Decode a register request or reply.
+
+    Raises:
+        ValueError: not 8 bytes, or byte 2 is not a register command.
+    """
+    if len(data) != 8:
+        raise ValueError(f"a register frame has 8 bytes, got {len(data)}")
+    if data[2] not in _REGISTER_COMMANDS:
+        raise ValueError(f"byte 2 ({data[2]:#04x}) is not a register command (0x33/0x55/0xAA)")
+    rid = data[3]
+    raw = bytes(data[4:8])
+    value: int | float = (struct.unpack("<f", raw)[0] if _register_kind(rid) == "f32"
+                          else struct.unpack("<I", raw)[0])
+    return RegisterFrame(data[0] | (data[1] << 8), data[2], rid, value)
+
+
+def timeout_register_value(timeout_s: float) -> int:
+    """The ``TIMEOUT`` register value for ``timeout_s`` (rounded to 50 us; 0: no timeout).
+
+    Raises:
+        ValueError: negative, not finite, or beyond the register's range.
+    """
+    if not (math.isfinite(timeout_s) and timeout_s >= 0.0):
+        raise ValueError(f"timeout must be finite and >= 0 s, got {timeout_s!r}")
+    counts = round(timeout_s / DAMIAO_TIMEOUT_UNIT_S)
+    if counts > 0xFFFF_FFFF:
+        raise ValueError(f"timeout {timeout_s} s is beyond the register's range")
+    return counts

@@ -45,13 +45,33 @@ model's MIT ranges by the codec.
 Lifecycle: ``configure`` opens the buses and pings every motor (MIT has no read-only request:
 a motor this instance left holding, e.g. across a re-arm, gets its held set-point and keeps
 holding; any other motor, e.g. after the daemon restarted, gets ``exit motor mode``, the
-conservative choice for a motor in an unknown state); ``activate`` enters motor mode and
-seeds the set-point from the measured position (no jump; motors still holding keep their
-set-point); ``deactivate`` holds (set-point = last commanded position, v = t_ff = 0, the
-configured gains; effort-driven joints hold where they are) or exits motor mode (torque off);
-``recover`` (re-arm) resets the bus health after the reopen of ``configure``, clears
-Damiao errors (``FB``) and marks the motors that faulted for re-entering motor mode; motors
-still holding keep their set-point through the re-arm (no sag, no re-entry).
+conservative choice for a motor in an unknown state). ``activate`` arms the device-side
+timeout (below), sends "enter motor mode" to every motor and checks each reply (a Damiao
+reply must say "enabled"; an AK reply, which has no state, proves the motor is powered and
+heard it), then seeds the set-point from the measured position (no jump) -- except for
+motors that were holding without a fault, which keep their set-point (entering motor mode
+again does not change it) -- and sends the set-points. ``deactivate`` holds (set-point = last
+commanded position, v = t_ff = 0, the configured gains; effort-driven joints hold where they
+are) or exits motor mode (torque off). ``recover`` (re-arm) resets the bus health after the
+reopen of ``configure`` and clears Damiao errors (``FB``); motors that faulted -- every motor
+of a bus that failed as a whole (send / receive failure, bus-off, every reply missing) --
+are re-seeded by the ``activate`` that follows, which proves every motor enabled or fails
+naming the first that is not (one line).
+
+Device-side timeout (the ``watchdog_s`` parameter). A Damiao motor has a CAN timeout
+(register 9, units of 50 us): ``activate`` writes ``watchdog_s`` into it (RAM, checked by the
+echo) before enabling, so an enabled motor that hears nothing for that long -- the daemon or
+its loop died, the bus was cut -- disables itself (torque off, state ``0xD``). A ``hold``
+deactivate writes 0 (off) after the hold set-point, because the daemon stops commanding then
+and "hold" must outlast it; if that cannot be confirmed the deactivate fails, saying the motor
+will go limp. ``activate`` clears a ``0xD`` left by an expired timeout (it is the timeout's
+own latch, not a drive fault). AK motors have no timeout settable over CAN (the firmware's is
+set from its setup tool and off by default): they keep their last command if the daemon dies;
+:meth:`MitHardware.device_watchdog` lists their joints as unprotected.
+
+Every error message is one line naming the motor (or bus) and what to check: text from
+python-can (whose socketcand client puts a whole traceback into its errors) is cut to its
+first line.
 """
 
 from __future__ import annotations
@@ -70,6 +90,8 @@ from numpy.typing import NDArray
 from jtc_hw.errors import CommunicationError, ConfigurationError, HardwareError, MotorFault
 from jtc_hw.hardware import (
     JOINT_MAPPING_PARAMS,
+    WATCHDOG_PARAM,
+    DeviceWatchdog,
     HardwareInterface,
     JointCommand,
     JointState,
@@ -95,15 +117,22 @@ from .bus import (
 from .frames import (
     CLEAR_ERROR,
     DAMIAO_STATES,
+    DAMIAO_TIMEOUT_RID,
     ENTER_MOTOR_MODE,
     EXIT_MOTOR_MODE,
     MODEL_PRESETS,
+    REGISTER_ID,
+    REGISTER_WRITE,
     SET_ZERO,
     MitCommand,
     MitLimits,
+    RegisterFrame,
+    decode_register_frame,
     decode_reply,
     encode_command,
+    encode_register_frame,
     reply_motor_id,
+    timeout_register_value,
 )
 
 __all__ = ["MitHardware"]
@@ -111,6 +140,17 @@ __all__ = ["MitHardware"]
 _log = logging.getLogger(__name__)
 F64 = NDArray[np.float64]
 NS_PER_S = 1_000_000_000
+ENABLED = 1  # Damiao state code of an enabled motor
+COMMUNICATION_LOST = 0xD  # Damiao state code of an expired CAN timeout
+
+
+def _brief(exc: BaseException) -> str:
+    """An exception's text as one line: python-can's socketcand client appends a whole
+    traceback to its errors ("Failed to receive: ...  Traceback (most recent call last): ..."),
+    and a client must never see one."""
+    text = str(exc).split("Traceback (most recent call last)", 1)[0]
+    lines = [line.strip() for line in text.splitlines() if line.strip()]
+    return lines[0] if lines else type(exc).__name__
 
 
 @dataclass
@@ -140,7 +180,8 @@ class MitHardware(HardwareInterface):
 
     Raises:
         ConfigurationError: invalid parameters (unknown model or bus, duplicate motor id on a
-            bus, an id the model's reply cannot carry, a zero direction).
+            bus, an id the model's reply cannot carry, a zero direction, a ``watchdog_s``
+            beyond the Damiao timeout register's range).
     """
 
     kind: ClassVar[str] = "can-mit"
@@ -186,6 +227,8 @@ class MitHardware(HardwareInterface):
         ParamSpec("max_temperature_c", ParamKind.FLOAT, 80.0,
                   "per joint: drive temperature (Damiao replies) above which it is a fault, "
                   "degC", per_joint=True, minimum=0.0, maximum=200.0),
+        # Applies to the models with a CAN timeout (Damiao); AK motors have none over CAN.
+        WATCHDOG_PARAM,
     )
 
     def __init__(
@@ -245,6 +288,16 @@ class MitHardware(HardwareInterface):
         self._timeout_ns = np.array([round(t * NS_PER_S) for t in p["feedback_timeout"]],
                                     dtype=np.int64)
         self._damiao = any(lim.reply == "damiao" for lim in self._limits)
+        # Motors with a device-side timeout: Damiao's CAN timeout register.
+        self._has_timeout = np.array([lim.reply == "damiao" for lim in self._limits],
+                                     dtype=bool)
+        self._watchdog_s: float = p["watchdog_s"]
+        try:
+            self._timeout_counts = timeout_register_value(self._watchdog_s)
+        except ValueError as exc:
+            raise ConfigurationError(f"{self._owner()}: watchdog_s: {exc}", "params.watchdog_s",
+                                     self._watchdog_s) from exc
+        self._armed = np.zeros(n, dtype=bool)
         self._max_temp = np.array(p["max_temperature_c"], dtype=np.float64)
         ci = self.command_interfaces
         self._cmd_position = "position" in ci
@@ -283,6 +336,27 @@ class MitHardware(HardwareInterface):
         which = set(self.joints if joints is None else joints)
         self._exchange(lambda i: SET_ZERO if self.joints[i] in which else None, setup=True)
 
+    def device_watchdog(self) -> DeviceWatchdog:
+        """What stops the motors if the daemon cannot command them (no I/O).
+
+        Damiao motors: their CAN timeout, armed on activate at ``watchdog_s``. AK motors have
+        none settable over CAN: their joints are listed as unprotected.
+        """
+        unprotected = tuple(j for i, j in enumerate(self.joints) if not self._has_timeout[i])
+        if len(unprotected) == len(self.joints):
+            return DeviceWatchdog(
+                None, "no device-side watchdog: motors keep their last command if the daemon "
+                "dies (AK firmware's CAN timeout is set only from its setup tool)", unprotected)
+        mechanism = (f"Damiao CAN timeout (register 9) {self._watchdog_s * 1e3:g} ms: motors "
+                     "disable themselves (torque off) when no frame comes")
+        if unprotected:
+            mechanism += "; AK motors have none and keep their last command"
+        return DeviceWatchdog(self._watchdog_s, mechanism, unprotected)
+
+    def devices(self) -> tuple[str, ...]:
+        """The buses this component drives, as lock names (``BusSettings.lock_name``)."""
+        return tuple(link.settings.lock_name() for link in self._links.values())
+
     # -- primitives ---------------------------------------------------------------------------
 
     def _configure(self) -> None:
@@ -292,7 +366,7 @@ class MitHardware(HardwareInterface):
                 link.bus = open_settings(link.settings)
                 opened.append(link)
                 link.health.state = "active"
-                link.health.stale_flushed += flush(link.bus)
+                self._flush(link)
                 link.latest.clear()
                 link.pending.clear()
             self._exchange(self._ping_frame, setup=True)
@@ -313,8 +387,10 @@ class MitHardware(HardwareInterface):
         damiao = [i for i in range(len(self.joints)) if self._limits[i].reply == "damiao"]
         if damiao:
             self._exchange(lambda i: CLEAR_ERROR if i in damiao else None, setup=True)
-        # A motor that faulted may have left motor mode without saying so (an AK reply has no
-        # state): it gets "enter motor mode" again; the others keep holding undisturbed.
+        # A motor that faulted -- or whose bus failed as a whole: it may have been power
+        # cycled -- is re-seeded from where it is by the activation that follows (which
+        # sends every motor "enter motor mode" and checks its reply); the others keep
+        # holding their set-point undisturbed.
         for i, joint in enumerate(self.joints):
             if joint in self._faults:
                 self._motor_mode[i] = False
@@ -322,17 +398,26 @@ class MitHardware(HardwareInterface):
 
     def _activate(self, now_ns: int) -> JointCommand:
         for link in self._links.values():
-            assert link.bus is not None
-            link.health.stale_flushed += flush(link.bus)
-        # Motors already holding (a re-arm after a hold) keep their set-point: re-entering
-        # motor mode could reset it, and re-seeding from the measured position would let a
-        # loaded joint sag by its PD error. A Damiao reply says whether it is really enabled.
+            self._flush(link)
+        # Motors already holding (a re-arm after a hold) keep their set-point: re-seeding from
+        # the measured position would let a loaded joint sag by its PD error. A Damiao reply
+        # says whether it is really enabled.
         holding = self._motor_mode & np.array(
-            [code is None or code == 1 for code in self._state_code], dtype=bool)
+            [code is None or code == ENABLED for code in self._state_code], dtype=bool)
         entering = ~holding
         try:
-            self._exchange(
-                lambda i: self._setpoint(i) if holding[i] else ENTER_MOTOR_MODE, setup=True)
+            # The timeout first: from the moment a motor is enabled, it stops by itself if
+            # the daemon goes away.
+            self._write_timeouts(self._has_timeout, self._timeout_counts)
+            lost = [i for i, code in enumerate(self._state_code) if code == COMMUNICATION_LOST]
+            if lost:
+                # An expired timeout (the daemon, its loop or the bus went away): the
+                # timeout's own latch, not a drive fault; it blocks "enter motor mode".
+                self._exchange(lambda i: CLEAR_ERROR if i in lost else None, setup=True)
+            # Every motor, holding or not: only its reply proves it is powered and enabled
+            # (entering again keeps the set-point of a motor in motor mode).
+            self._exchange(lambda i: ENTER_MOTOR_MODE, setup=True)
+            self._check_enabled()
             self._check_faults(time.monotonic_ns())
             self._motor_mode[:] = True
             # Seed the others: hold where the motor is.
@@ -346,21 +431,54 @@ class MitHardware(HardwareInterface):
             else:
                 self._held_kp[:], self._held_kd[:] = 0.0, self._effort_kd
             self._exchange(self._setpoint, setup=True)
+            self._check_faults(time.monotonic_ns())
         except BaseException:
-            # Do not leave motors that this activation enabled in motor mode with no
-            # set-point (free, or worse): switch them off again, best effort.
-            self._motor_mode[entering] = False
-            try:
-                self._send_all(lambda i: EXIT_MOTOR_MODE if entering[i] else None)
-                self._collect(setup=True)
-            except Exception as exc:  # noqa: BLE001 - the original error matters more
-                _log.warning("%s: switching motors off after a failed activation: %s",
-                             self._owner(), exc)
+            self._undo_activation(entering)
             raise
         held = self.nan_command()
         if held.positions is not None:
             held.positions[:] = self._sign * self._held_p / self._gear + self._offset
         return held
+
+    def _undo_activation(self, entering: NDArray[np.bool_]) -> None:
+        """After a failed activation, best effort: the motors it enabled switch off again
+        (not left in motor mode with no set-point, free or worse); the ones that were holding
+        keep holding, their timeout off again (nobody commands them until the next re-arm)."""
+        self._motor_mode[entering] = False
+        try:
+            self._send_all(lambda i: EXIT_MOTOR_MODE if entering[i] else None)
+            self._collect(setup=True)
+        except Exception as exc:  # noqa: BLE001 - the original error matters more
+            _log.warning("%s: switching motors off after a failed activation: %s",
+                         self._owner(), _brief(exc))
+        try:
+            self._write_timeouts(self._has_timeout & ~entering & self._armed, 0)
+        except Exception as exc:  # noqa: BLE001 - the original error matters more
+            _log.warning("%s: switching the CAN timeout off after a failed activation: %s",
+                         self._owner(), _brief(exc))
+
+    def _check_enabled(self) -> None:
+        """After "enter motor mode": a Damiao reply must say "enabled" (an AK reply has no
+        state: that it came proves the motor is powered and heard the command).
+
+        Raises:
+            MotorFault: a motor is not enabled; one line naming it and what to check.
+        """
+        for i, joint in enumerate(self.joints):
+            code = self._state_code[i]
+            if self._limits[i].reply != "damiao" or code == ENABLED:
+                continue
+            where = self._where(i)
+            if code is not None and code >= 8:
+                message = (f"{self._owner()}: {where} did not enable: it reports "
+                           f"{DAMIAO_STATES.get(code, f'error code {code:#x}')}; check supply, "
+                           "load and cooling, then re-arm (clears the error)")
+            else:
+                message = (f"{self._owner()}: {where} did not enable (it reports "
+                           f"{DAMIAO_STATES.get(code or 0, 'disabled')}); check that it is in "
+                           "MIT mode (register 10 = 1) and powered, then re-arm")
+            self._faults[joint] = message
+            raise MotorFault(message)
 
     def _read(self, now_ns: int) -> JointState:
         if not self._written:
@@ -393,7 +511,7 @@ class MitHardware(HardwareInterface):
     def _deactivate(self, now_ns: int, action: SafeAction) -> None:
         for link in self._links.values():
             if link.bus is not None:
-                link.health.stale_flushed += flush(link.bus)
+                self._flush(link)
         if action is SafeAction.TORQUE_OFF:
             self._motor_mode[:] = False
             frame = self._ping_frame
@@ -407,6 +525,11 @@ class MitHardware(HardwareInterface):
         self._written = False
         self._send_all(frame)
         self._collect(setup=False)
+        if action is SafeAction.HOLD and self._armed.any():
+            # The daemon stops commanding now: with the timeout on, the motors would let go
+            # after watchdog_s; "hold" must outlast the daemon's stop or fault state.
+            self._write_timeouts(self._armed.copy(), 0, what="keep holding: it disables "
+                                 "itself (limp) when the timeout expires")
 
     def _cleanup(self) -> None:
         for link in self._links.values():
@@ -424,6 +547,7 @@ class MitHardware(HardwareInterface):
                 "id": self._ids[i],
                 "bus": self._bus_of[i],
                 "motor_mode": bool(self._motor_mode[i]),
+                "timeout_s": self._watchdog_s if self._armed[i] else None,
                 "feedback_age_s": age,
                 "missed_replies": self._missed[i],
                 "temperature_c": self._temperature[i],
@@ -437,6 +561,9 @@ class MitHardware(HardwareInterface):
 
     # -- helpers ------------------------------------------------------------------------------
 
+    def _where(self, i: int) -> str:
+        return f"motor {self._ids[i]} (joint {self.joints[i]!r}) on bus {self._bus_of[i]!r}"
+
     def _joint_positions(self) -> F64:
         result: F64 = self._sign * self._p / self._gear + self._offset
         return result
@@ -447,6 +574,28 @@ class MitHardware(HardwareInterface):
                        float(self._held_kd[i]), float(self._held_t[i])),
             self._limits[i],
         )
+
+    def _bus_fault(self, link: _Link, message: str) -> CommunicationError:
+        """A failure of a bus as a whole: every motor on it is in an unknown state (it may
+        have lost power, or missed commands); each is marked faulted, so that the re-arm
+        re-seeds it. Returns the error to raise."""
+        for i in link.joints:
+            self._faults[self.joints[i]] = message
+        return CommunicationError(message)
+
+    def _flush(self, link: _Link) -> None:
+        """Drop the stale frames of ``link`` (its bus is open).
+
+        Raises:
+            CommunicationError: the interface failed (the bus is marked faulted).
+        """
+        assert link.bus is not None
+        try:
+            link.health.stale_flushed += flush(link.bus)
+        except (can.CanError, OSError) as exc:
+            raise self._bus_fault(link, f"{self._owner()}: receiving on "
+                                  f"{link.settings.describe()} failed: {_brief(exc)}; check "
+                                  "the interface and its connection") from exc
 
     def _send_all(self, frame_of: Any) -> None:
         """Send one frame per motor on every bus (all buses before any collecting).
@@ -475,10 +624,12 @@ class MitHardware(HardwareInterface):
                 msg = can.Message(arbitration_id=motor_id, is_extended_id=False, data=data)
                 try:
                     ok = send(bus, msg, link.health)
-                except can.CanError as exc:
-                    raise CommunicationError(
-                        f"{self._owner()}: sending to motor {motor_id} (joint "
-                        f"{self.joints[i]!r}) on {link.settings.describe()} failed: {exc}"
+                except (can.CanError, OSError) as exc:
+                    # The interface (or the connection to it) failed: the whole bus is gone.
+                    raise self._bus_fault(
+                        link, f"{self._owner()}: sending to motor {motor_id} (joint "
+                        f"{self.joints[i]!r}) on {link.settings.describe()} failed: "
+                        f"{_brief(exc)}; check the interface and its connection"
                     ) from exc
                 if ok:
                     link.pending.add(motor_id)
@@ -495,9 +646,10 @@ class MitHardware(HardwareInterface):
                     result = collect_until(bus, link.latest, link.pending, deadline, link.key)
                 else:
                     result = drain_latest(bus, link.latest, link.key)
-            except can.CanError as exc:
-                raise CommunicationError(
-                    f"{self._owner()}: receiving on {link.settings.describe()} failed: {exc}"
+            except (can.CanError, OSError) as exc:
+                raise self._bus_fault(
+                    link, f"{self._owner()}: receiving on {link.settings.describe()} failed: "
+                    f"{_brief(exc)}; check the interface and its connection"
                 ) from exc
             stamp = time.monotonic_ns()
             link.health.rx_frames += result.stored
@@ -514,7 +666,10 @@ class MitHardware(HardwareInterface):
                 self._temperature[i] = reply.temperature
                 self._state_code[i] = reply.error_code
             link.latest.clear()
-            link.health.check(bus, self._owner())
+            try:
+                link.health.check(bus, self._owner())
+            except CommunicationError as exc:
+                raise self._bus_fault(link, str(exc)) from exc
 
     def _exchange(self, frame_of: Any, setup: bool) -> None:
         """Send, collect, and require an answer from every motor that was sent a frame."""
@@ -525,39 +680,107 @@ class MitHardware(HardwareInterface):
         silent = [i for i in range(len(self.joints))
                   if frame_of(i) is not None and self._rx_ns[i] == before[i]]
         if silent:
-            raise CommunicationError(
-                f"{self._owner()}: no answer from "
-                + ", ".join(f"motor {self._ids[i]} (joint {self.joints[i]!r}) on "
-                            f"{self._links[self._bus_of[i]].settings.describe()}"
-                            for i in silent)
-                + "; check its power, CAN id, bitrate, wiring and termination"
-            )
+            raise self._silent(silent, "; check its power, CAN id, bitrate, wiring and "
+                               "termination")
+
+    def _silent(self, silent: Sequence[int], hint: str) -> CommunicationError:
+        """The error for motors that did not answer (marked faulted)."""
+        message = (f"{self._owner()}: no answer from "
+                   + ", ".join(f"motor {self._ids[i]} (joint {self.joints[i]!r}) on "
+                               f"{self._links[self._bus_of[i]].settings.describe()}"
+                               for i in silent) + hint)
+        for i in silent:
+            self._faults[self.joints[i]] = message
+        return CommunicationError(message)
+
+    def _write_timeouts(
+        self, which: NDArray[np.bool_], counts: int,
+        what: str = "stop by itself if the daemon goes away",
+    ) -> None:
+        """Write the Damiao CAN timeout register of the motors in ``which`` and wait for
+        every echo (register requests go to ``0x7FF``; the echo comes on the reply id).
+
+        Raises:
+            CommunicationError: a motor did not confirm the value (named, with ``what`` the
+                motor cannot then do), or the bus failed.
+        """
+        if not which.any():
+            return
+        for link in self._links.values():
+            if link.bus is None:
+                raise CommunicationError(f"{self._owner()}: {link.settings.describe()} is "
+                                         "not open; configure first")
+        confirmed: set[int] = set()
+        for link in self._links.values():
+            bus = link.bus
+            assert bus is not None
+            want = {link.ids[k] for k, i in enumerate(link.joints) if which[i]}
+            if not want:
+                continue
+
+            def echo(msg: can.Message, link: _Link = link) -> int | None:
+                if msg.arbitration_id not in link.reply_ids or len(msg.data) != 8:
+                    return None
+                try:
+                    frame = decode_register_frame(msg.data)
+                except ValueError:
+                    return None  # a state reply
+                if (frame.command, frame.rid, frame.value) != (
+                        REGISTER_WRITE, DAMIAO_TIMEOUT_RID, counts):
+                    return None
+                return frame.motor_id if frame.motor_id in link.index_of else None
+
+            try:
+                for motor_id in sorted(want):
+                    data = encode_register_frame(
+                        RegisterFrame(motor_id, REGISTER_WRITE, DAMIAO_TIMEOUT_RID, counts))
+                    send(bus, can.Message(arbitration_id=REGISTER_ID, is_extended_id=False,
+                                          data=data), link.health)
+                latest: dict[int, can.Message] = {}
+                pending = set(want)
+                collect_until(bus, latest, pending, time.monotonic()
+                              + link.settings.setup_timeout, echo)
+            except (can.CanError, OSError) as exc:
+                raise self._bus_fault(
+                    link, f"{self._owner()}: setting the CAN timeout on "
+                    f"{link.settings.describe()} failed: {_brief(exc)}; check the interface "
+                    "and its connection") from exc
+            confirmed.update(link.index_of[m] for m in latest)
+        for i in confirmed:
+            self._armed[i] = counts > 0  # unconfirmed: unknown, left as it was
+        missing = [int(i) for i in np.flatnonzero(which) if i not in confirmed]
+        if missing:
+            value = f"{counts * 50e-3:g} ms" if counts else "0 (off)"
+            raise self._silent(missing, f" to setting its CAN timeout (register 9) to {value}: "
+                               f"it cannot {what}; check its power and wiring")
 
     def _check_faults(self, now_ns: int) -> None:
         stale = (self._rx_ns == 0) | (now_ns - self._rx_ns > self._timeout_ns)
         if not (self._damiao or stale.any()):
             return  # the usual cycle: one vector comparison
+        first: HardwareError | None = None
+        # Every motor's fault is recorded (the re-arm re-seeds each); the first is raised.
         for i, joint in enumerate(self.joints):
             code = self._state_code[i]
-            where = (f"motor {self._ids[i]} (joint {joint!r}) on bus "
-                     f"{self._bus_of[i]!r}")
+            where = self._where(i)
+            error: HardwareError | None = None
             if code is not None and code >= 8:
-                message = (f"{self._owner()}: {where} reports "
-                           f"{DAMIAO_STATES.get(code, f'error code {code:#x}')}; check supply, "
-                           "load and cooling, then re-arm (clears the error)")
-                self._faults[joint] = message
-                raise MotorFault(message)
-            temp = self._temperature[i]
-            if temp is not None and temp > self._max_temp[i]:
-                message = (f"{self._owner()}: {where} is at {temp} degC, above "
-                           f"max_temperature_c {self._max_temp[i]:g}; let it cool, then re-arm")
-                self._faults[joint] = message
-                raise MotorFault(message)
-            if stale[i]:
+                error = MotorFault(
+                    f"{self._owner()}: {where} reports "
+                    f"{DAMIAO_STATES.get(code, f'error code {code:#x}')}; check supply, "
+                    "load and cooling, then re-arm (clears the error)")
+            elif (temp := self._temperature[i]) is not None and temp > self._max_temp[i]:
+                error = MotorFault(
+                    f"{self._owner()}: {where} is at {temp} degC, above max_temperature_c "
+                    f"{self._max_temp[i]:g}; let it cool, then re-arm")
+            elif stale[i]:
                 age = now_ns - int(self._rx_ns[i])
-                message = (f"{self._owner()}: no feedback from {where} for "
-                           f"{age / 1e6:.0f} ms (feedback_timeout "
-                           f"{self._timeout_ns[i] / 1e6:g} ms); check its power, CAN id and "
-                           "wiring")
-                self._faults[joint] = message
-                raise CommunicationError(message)
+                error = CommunicationError(
+                    f"{self._owner()}: no feedback from {where} for {age / 1e6:.0f} ms "
+                    f"(feedback_timeout {self._timeout_ns[i] / 1e6:g} ms); check its power, "
+                    "CAN id and wiring")
+            if error is not None:
+                self._faults[joint] = str(error)
+                first = first or error
+        if first is not None:
+            raise first

@@ -16,21 +16,29 @@ from hypothesis import strategies as st
 from jtc_hw.drivers.can.bus import wire_bits, wire_time_s
 from jtc_hw.drivers.can.emulator import MitBusEmulator
 from jtc_hw.drivers.can.frames import (
+    DAMIAO_REGISTERS,
     ENTER_MOTOR_MODE,
     EXIT_MOTOR_MODE,
     MODEL_PRESETS,
+    REGISTER_READ,
+    REGISTER_STORE,
+    REGISTER_WRITE,
     SET_ZERO,
     MitCommand,
     MitLimits,
     MitReply,
+    RegisterFrame,
     decode_command,
+    decode_register_frame,
     decode_reply,
     encode_command,
+    encode_register_frame,
     encode_reply,
     float_to_uint,
     quantum,
     reply_motor_id,
     special_command,
+    timeout_register_value,
     uint_to_float,
 )
 
@@ -147,6 +155,64 @@ def test_damiao_reply_bytes() -> None:
         decode_reply(h("03 80 00 80 08 00"), DM)
 
 
+# -- Damiao register protocol --------------------------------------------------------------------
+
+
+def test_register_requests_bytes() -> None:
+    # id low, id high, command, rid, value little-endian.
+    read = encode_register_frame(RegisterFrame(1, REGISTER_READ, 9))
+    assert read == h("01 00 33 09 00 00 00 00")
+    # TIMEOUT (uint32, 50 us units): 100 ms = 2000 = 0x7D0.
+    write = encode_register_frame(RegisterFrame(1, REGISTER_WRITE, 9, 2000))
+    assert write == h("01 00 55 09 D0 07 00 00")
+    # PMAX (float32): 12.5 = 0x41480000; an id above one byte spans bytes 0..1.
+    pmax = encode_register_frame(RegisterFrame(0x102, REGISTER_WRITE, 21, 12.5))
+    assert pmax == h("02 01 55 15 00 00 48 41")
+    store = encode_register_frame(RegisterFrame(3, REGISTER_STORE, 1))
+    assert store == h("03 00 AA 01 00 00 00 00")
+
+
+def test_register_replies_decode_per_type() -> None:
+    assert decode_register_frame(h("01 00 33 07 11 00 00 00")) == RegisterFrame(1, 0x33, 7, 0x11)
+    assert decode_register_frame(h("01 00 55 09 D0 07 00 00")).value == 2000
+    f = decode_register_frame(h("02 01 33 15 00 00 48 41"))
+    assert (f.motor_id, f.rid, f.value) == (0x102, 21, 12.5)
+    assert DAMIAO_REGISTERS[9].name == "TIMEOUT" and DAMIAO_REGISTERS[9].kind == "u32"
+    assert DAMIAO_REGISTERS[9].writable and not DAMIAO_REGISTERS[80].writable
+    for frame in (RegisterFrame(5, REGISTER_WRITE, 9, 0xFFFF_FFFF),
+                  RegisterFrame(5, REGISTER_WRITE, 23, -7.25),
+                  RegisterFrame(0x7FF, REGISTER_READ, 80)):
+        assert decode_register_frame(encode_register_frame(frame)) == frame
+
+
+def test_register_frame_errors() -> None:
+    with pytest.raises(ValueError, match="8 bytes"):
+        decode_register_frame(h("01 00 33 09 00 00 00"))
+    with pytest.raises(ValueError, match="not a register command"):
+        decode_register_frame(h("01 00 34 09 00 00 00 00"))
+    with pytest.raises(ValueError, match="uint32"):
+        encode_register_frame(RegisterFrame(1, REGISTER_WRITE, 9, 2**32))
+    with pytest.raises(ValueError, match="uint32"):
+        encode_register_frame(RegisterFrame(1, REGISTER_WRITE, 9, 0.5))
+    with pytest.raises(ValueError, match="finite float"):
+        encode_register_frame(RegisterFrame(1, REGISTER_WRITE, 21, math.nan))
+    with pytest.raises(ValueError, match="0..0x7FF"):
+        encode_register_frame(RegisterFrame(0x800, REGISTER_READ, 9))
+    with pytest.raises(ValueError, match="0x33, 0x55 or 0xAA"):
+        encode_register_frame(RegisterFrame(1, 0x11, 9))
+
+
+def test_timeout_register_value() -> None:
+    assert timeout_register_value(0.1) == 2000
+    assert timeout_register_value(0.0) == 0
+    assert timeout_register_value(74e-6) == 1  # rounded to the 50 us step
+    assert timeout_register_value(0.0015) == 30
+    with pytest.raises(ValueError, match=">= 0"):
+        timeout_register_value(-0.1)
+    with pytest.raises(ValueError, match="range"):
+        timeout_register_value(1e6)
+
+
 # -- wire bits -----------------------------------------------------------------------------------
 
 
@@ -212,6 +278,7 @@ def test_emulator_decodes_what_the_codec_encodes(
     rig: tuple[can.BusABC, MitBusEmulator], p: float, v: float, kp: float, kd: float, t: float
 ) -> None:
     host, emulator = rig
+    _exchange(host, ENTER_MOTOR_MODE)  # out of motor mode a set-point is answered, not taken
     _exchange(host, encode_command(MitCommand(p, v, kp, kd, t), AK80))
     got = emulator.last_command(5)
     q = quantum(AK80)

@@ -8,6 +8,9 @@ replies, so the test is paced by the emulator's answers, not by sleeps.
 from __future__ import annotations
 
 import math
+import signal
+import subprocess
+import sys
 import time
 import uuid
 from collections.abc import Iterator
@@ -16,6 +19,7 @@ from typing import Any
 import can
 import numpy as np
 import pytest
+from helpers.daemon import WAIT_S, daemon_env
 
 from jtc_hw.controller.joints import JointCommand
 from jtc_hw.drivers.can.bus import open_bus
@@ -24,6 +28,8 @@ from jtc_hw.drivers.can.frames import MODEL_PRESETS, MitReply, encode_reply, qua
 from jtc_hw.drivers.can.mit import MitHardware
 from jtc_hw.errors import CommunicationError, ConfigurationError, HardwareError, MotorFault
 from jtc_hw.hardware import HardwareSpec, create_hardware
+
+from conftest import ROOT
 
 pytestmark = pytest.mark.usefixtures("no_leaks")  # threads, sockets, resources
 
@@ -62,6 +68,7 @@ class Rig:
         params.setdefault("ids", IDS)
         # Generous: a loaded test machine may stall this process for tens of ms.
         params.setdefault("feedback_timeout", 0.5)
+        params.setdefault("watchdog_s", 1.0)  # Damiao motors' CAN timeout, idem
         params.setdefault("buses", {
             name: {"interface": "virtual", "channel": ch, "receive_timeout": 0.05}
             for name, ch in self.channels.items()
@@ -292,6 +299,70 @@ def test_silent_motor_is_a_communication_fault_then_rearm(rig: Rig) -> None:
     assert hw.status()["details"]["motors"]["j3"]["fault"] is None
 
 
+def test_rearm_after_a_bus_loss_and_power_cycle_enables_every_motor(rig: Rig) -> None:
+    # The issue's case, in process: every motor goes quiet (the bus is lost), then comes back
+    # power-cycled (out of motor mode, no set-point); the joints sagged meanwhile.
+    emulator = rig.emulate("can0", IDS)
+    hw = rig.make(feedback_timeout=0.05)
+    hw.configure()
+    hw.activate(now())
+    for motor_id in IDS:
+        emulator.set_silent(motor_id)
+    error = run_until_fault(hw)
+    assert isinstance(error, CommunicationError) and "\n" not in str(error)
+    hw.deactivate(now())  # hold: nobody answers
+    faults = {j: m["fault"] for j, m in hw.status()["details"]["motors"].items()}
+    assert all(faults.values()), faults  # every motor is listed, not only the first
+    emulator.power_cycle()
+    sagged = [0.2, -0.1, 0.3, 0.0, 0.15, -0.25]
+    for motor_id, p in zip(IDS, sagged):
+        emulator.set_silent(motor_id, False)
+        emulator.set_position(motor_id, p)
+    held = rearm(hw)
+    assert all(emulator.enabled(i) for i in IDS)  # really enabled, not just believed
+    np.testing.assert_allclose(held, sagged, atol=2 * Q)  # re-seeded where they are
+    for motor_id, p in zip(IDS, sagged):
+        assert emulator.last_command(motor_id).position == pytest.approx(p, abs=2 * Q)
+    assert track(hw, np.array(sagged) + 0.1, ramp_s=0.1, settle_s=0.3) < 0.01
+
+
+def test_rearm_fails_in_one_line_naming_a_motor_that_does_not_answer(rig: Rig) -> None:
+    emulator = rig.emulate("can0", IDS)
+    hw = rig.make(feedback_timeout=0.05)
+    hw.configure()
+    hw.activate(now())
+    emulator.set_silent(4)
+    assert isinstance(run_until_fault(hw), CommunicationError)
+    hw.deactivate(now())
+    hw.cleanup()
+    emulator.power_cycle()
+    with pytest.raises(CommunicationError) as caught:
+        hw.configure()
+    message = str(caught.value)
+    assert "\n" not in message and "motor 4 (joint 'j4')" in message
+    assert "check its power" in message
+
+
+def test_damiao_rearm_fails_in_one_line_naming_a_motor_that_does_not_enable(rig: Rig) -> None:
+    emulator = rig.emulate("can0", [1, 2, 3], "DM4310", master_id=0x11)
+    hw = rig.make(joints=["a", "b", "c"], ids=[1, 2, 3], model="DM4310", master_id=0x11)
+    hw.configure()
+    hw.activate(now())
+    emulator.set_error(2, 0x9, persistent=True)  # the supply stays too low
+    assert isinstance(run_until_fault(hw), MotorFault)
+    hw.deactivate(now())
+    with pytest.raises(MotorFault) as caught:
+        rearm(hw)
+    message = str(caught.value)
+    assert "\n" not in message
+    assert "motor 2 (joint 'b') on bus 'can0' did not enable: it reports under-voltage" in message
+    assert hw.state.value == "inactive"
+    assert hw.status()["details"]["motors"]["b"]["fault"] == message
+    emulator.set_error(2, 0)  # supply restored
+    rearm(hw)
+    assert all(emulator.enabled(i) for i in (1, 2, 3))
+
+
 def test_rearm_after_hold_keeps_the_healthy_motors_set_points(rig: Rig) -> None:
     emulator = rig.emulate("can0", IDS)
     hw = rig.make(feedback_timeout=0.02)
@@ -307,8 +378,9 @@ def test_rearm_after_hold_keeps_the_healthy_motors_set_points(rig: Rig) -> None:
     enters = emulator.commands(2)
     emulator.set_silent(3, False)
     held = rearm(hw)
-    # Motor 2 held through the fault: same set-point, no "enter motor mode" (which could reset
-    # it), and the controller is handed the held set-point, not the sagging measured position.
+    # Motor 2 held through the fault: same set-point ("enter motor mode", which proves it is
+    # enabled, keeps the set-point of a motor in motor mode), and the controller is handed
+    # the held set-point, not the sagging measured position.
     assert emulator.last_command(2).position == pytest.approx(before.position, abs=1e-9)
     assert held[1] == pytest.approx(0.2, abs=Q)
     assert emulator.commands(2) > enters and emulator.enabled(2)
@@ -425,3 +497,161 @@ def test_set_zero(rig: Rig) -> None:
         hw.set_zero()
 
 
+
+
+# -- device-side timeout (Damiao CAN timeout) -----------------------------------------------------
+
+
+def test_devices_and_device_watchdog_per_model(rig: Rig) -> None:
+    rig.emulate("can0", [1, 2])
+    rig.emulate("can1", [1, 2], "DM4310", master_id=0x11)
+    ak = rig.make(joints=["a", "b"], ids=[1, 2], bus=["can0"] * 2)
+    # Only the buses its motors are on (can1 is declared, unused: not driven, not locked).
+    assert ak.devices() == ("can:virtual:" + rig.channels["can0"],)
+    watchdog = ak.device_watchdog()
+    assert watchdog.timeout_s is None and watchdog.unprotected == ("a", "b")
+    assert "no device-side watchdog: motors keep their last command if the daemon dies" in (
+        watchdog.mechanism)
+    dm = rig.make(joints=["a", "b"], ids=[1, 2], bus=["can1"] * 2, model="DM4310",
+                  watchdog_s=0.05)
+    watchdog = dm.device_watchdog()
+    assert watchdog.complete and watchdog.timeout_s == 0.05
+    assert "50 ms" in watchdog.mechanism and "disable" in watchdog.mechanism
+    mixed = rig.make(joints=["a", "b", "c", "d"], ids=[1, 2, 1, 2],
+                     bus=["can0", "can0", "can1", "can1"],
+                     model=["AK80-9", "AK80-9", "DM4310", "DM4310"], master_id=[0, 0, 0x11, 0x11])
+    assert mixed.devices() == ("can:virtual:" + rig.channels["can0"],
+                               "can:virtual:" + rig.channels["can1"])
+    watchdog = mixed.device_watchdog()
+    assert watchdog.timeout_s == 1.0 and watchdog.unprotected == ("a", "b")
+    assert not watchdog.complete and "AK motors have none" in watchdog.mechanism
+
+
+def test_damiao_timeout_is_armed_on_activate_and_off_after_a_hold(rig: Rig) -> None:
+    emulator = rig.emulate("can0", [1, 2], "DM4310", master_id=0x11)
+    hw = rig.make(joints=["a", "b"], ids=[1, 2], model="DM4310", master_id=0x11,
+                  watchdog_s=0.25)
+    hw.configure()
+    assert emulator.timeout_s(1) == 0.0  # nothing written while configuring
+    hw.activate(now())
+    assert emulator.timeout_s(1) == pytest.approx(0.25) == emulator.timeout_s(2)
+    assert hw.status()["details"]["motors"]["a"]["timeout_s"] == 0.25
+    hw.deactivate(now())  # hold
+    assert emulator.timeout_s(1) == 0.0 == emulator.timeout_s(2)
+    assert emulator.enabled(1) and emulator.enabled(2)  # holding, and will go on holding
+    emulator.check_timeouts(time.monotonic() + 10.0)
+    assert emulator.timeout_expiries() == [] and emulator.enabled(1)
+    assert hw.status()["details"]["motors"]["a"]["timeout_s"] is None
+    rearm(hw)
+    assert emulator.timeout_s(1) == pytest.approx(0.25)  # armed again
+
+
+def test_damiao_motors_stop_by_themselves_when_nobody_commands_them(rig: Rig) -> None:
+    emulator = rig.emulate("can0", [1, 2], "DM4310", master_id=0x11)
+    hw = rig.make(joints=["a", "b"], ids=[1, 2], model="DM4310", master_id=0x11,
+                  watchdog_s=0.05)
+    hw.configure()
+    hw.activate(now())
+    hw.write(now(), JointCommand(positions=[0.1, 0.1]))
+    hw.read(now())
+    since = time.monotonic()  # the driver goes quiet (its process hangs or dies)
+    expired = emulator.wait_timeout_expiries(since=since - 0.05, timeout_s=WAIT_S)
+    assert set(expired) == {1, 2}
+    assert not emulator.enabled(1) and not emulator.enabled(2)
+    with pytest.raises(MotorFault, match="communication lost") as caught:
+        hw.read(now())  # the next read sees it
+    assert "\n" not in str(caught.value)
+    hw.deactivate(now())
+    rearm(hw)  # FB clears 0xD, FC enables, the timeout is armed again
+    assert emulator.enabled(1) and emulator.enabled(2)
+
+
+def test_a_restart_after_an_expired_timeout_enables_the_motors(rig: Rig) -> None:
+    # A new daemon after the old one died: no re-arm, the motors report 0xD (the timeout's
+    # own latch); activate clears it rather than refusing to start.
+    emulator = rig.emulate("can0", [1], "DM4310", master_id=0x11)
+    old = rig.make(joints=["a"], ids=[1], model="DM4310", master_id=0x11, watchdog_s=0.05)
+    old.configure()
+    old.activate(now())
+    emulator.wait_timeout_expiries(timeout_s=WAIT_S)
+    new = MitHardware("leg2", ["a"], ("position",), ("position", "velocity"),
+                      {**old.params, "buses": {"can0": {
+                          "interface": "virtual", "channel": rig.channels["can0"],
+                          "receive_timeout": 0.05}}})
+    rig.hardware.append(new)
+    new.configure()
+    new.activate(now())
+    assert emulator.enabled(1) and emulator.error_code(1) == 0
+
+
+def test_a_motor_that_does_not_confirm_its_timeout_fails_activation(rig: Rig) -> None:
+    emulator = rig.emulate("can0", [1, 2], "DM4310", master_id=0x11)
+    hw = rig.make(joints=["a", "b"], ids=[1, 2], model="DM4310", master_id=0x11)
+    hw.configure()
+    emulator.set_silent(2)
+    with pytest.raises(CommunicationError) as caught:
+        hw.activate(now())
+    message = str(caught.value)
+    assert "\n" not in message
+    assert "no answer from motor 2 (joint 'b')" in message
+    assert "CAN timeout (register 9) to 1000 ms: it cannot stop by itself" in message
+    assert not emulator.enabled(1)  # nothing was enabled
+
+
+def test_the_python_can_traceback_never_reaches_a_message() -> None:
+    # The real socketcand client against an emulator process killed mid-run (SIGKILL: its
+    # sockets are reset): python-can raises errors whose text carries a whole traceback;
+    # every message the driver makes stays one line, and every motor is marked faulted.
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "jtc_hw.drivers.can.emulator", "--ids", "1-3",
+         "--socketcand-port", "0"],
+        stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, stdin=subprocess.DEVNULL, text=True,
+        cwd=ROOT, env=daemon_env(),
+    )
+    assert proc.stdout is not None
+    try:
+        fields = dict(kv.split("=", 1) for kv in proc.stdout.readline().split())
+        hw = MitHardware("leg", ["a", "b", "c"], ["position"], ["position", "velocity"], {
+            "buses": {"can0": {"interface": "socketcand", "host": "127.0.0.1",
+                               "port": int(fields["port"]), "channel": "can0",
+                               "receive_timeout": 0.05}},
+            "ids": [1, 2, 3], "feedback_timeout": 0.2,
+        })
+        try:
+            hw.configure()
+            hw.activate(now())
+            # Frames the process never reads when it dies: the kernel resets the connection.
+            proc.send_signal(signal.SIGSTOP)
+            hw.write(now(), JointCommand(positions=[0.0, 0.0, 0.0]))
+            proc.kill()
+            proc.wait(timeout=WAIT_S)
+            with pytest.raises(CommunicationError, match="Connection reset") as caught:
+                hw.read(now())
+            messages = [str(caught.value)] + [str(run_until_fault(hw)) for _ in range(3)]
+            try:
+                hw.deactivate(now())
+            except HardwareError as exc:
+                messages.append(str(exc))
+            messages.append(str(hw.status()["last_fault"]))
+            assert all("\n" not in m and "Traceback" not in m for m in messages), messages
+            faults = hw.status()["details"]["motors"]
+            assert all(faults[j]["fault"] for j in ("a", "b", "c")), faults
+        finally:
+            hw.shutdown(now())
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        proc.wait(timeout=WAIT_S)
+        proc.stdout.close()
+
+
+def test_the_shipped_configurations_load() -> None:
+    from jtc_hw.daemon.robot import create_hardware_set, load_robot
+
+    for name, timeout_s in (("can-mit-leg.yaml", None), ("can-mit-leg-emulated.yaml", None),
+                            ("can-mit-dm-emulated.yaml", 0.1)):
+        (component,) = create_hardware_set(load_robot(ROOT / "config" / name)).components
+        assert isinstance(component, MitHardware)
+        watchdog = component.device_watchdog()
+        assert watchdog.timeout_s == timeout_s, name
+        assert watchdog.complete == (timeout_s is not None), name

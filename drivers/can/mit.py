@@ -98,6 +98,7 @@ from jtc_hw.hardware import (
     ParamKind,
     ParamSpec,
     SafeAction,
+    one_line,
     param_table,
 )
 
@@ -143,14 +144,6 @@ NS_PER_S = 1_000_000_000
 ENABLED = 1  # Damiao state code of an enabled motor
 COMMUNICATION_LOST = 0xD  # Damiao state code of an expired CAN timeout
 
-
-def _brief(exc: BaseException) -> str:
-    """An exception's text as one line: python-can's socketcand client appends a whole
-    traceback to its errors ("Failed to receive: ...  Traceback (most recent call last): ..."),
-    and a client must never see one."""
-    text = str(exc).split("Traceback (most recent call last)", 1)[0]
-    lines = [line.strip() for line in text.splitlines() if line.strip()]
-    return lines[0] if lines else type(exc).__name__
 
 
 @dataclass
@@ -450,12 +443,12 @@ class MitHardware(HardwareInterface):
             self._collect(setup=True)
         except Exception as exc:  # noqa: BLE001 - the original error matters more
             _log.warning("%s: switching motors off after a failed activation: %s",
-                         self._owner(), _brief(exc))
+                         self._owner(), one_line(exc))
         try:
             self._write_timeouts(self._has_timeout & ~entering & self._armed, 0)
         except Exception as exc:  # noqa: BLE001 - the original error matters more
             _log.warning("%s: switching the CAN timeout off after a failed activation: %s",
-                         self._owner(), _brief(exc))
+                         self._owner(), one_line(exc))
 
     def _check_enabled(self) -> None:
         """After "enter motor mode": a Damiao reply must say "enabled" (an AK reply has no
@@ -594,7 +587,7 @@ class MitHardware(HardwareInterface):
             link.health.stale_flushed += flush(link.bus)
         except (can.CanError, OSError) as exc:
             raise self._bus_fault(link, f"{self._owner()}: receiving on "
-                                  f"{link.settings.describe()} failed: {_brief(exc)}; check "
+                                  f"{link.settings.describe()} failed: {one_line(exc)}; check "
                                   "the interface and its connection") from exc
 
     def _send_all(self, frame_of: Any) -> None:
@@ -629,7 +622,7 @@ class MitHardware(HardwareInterface):
                     raise self._bus_fault(
                         link, f"{self._owner()}: sending to motor {motor_id} (joint "
                         f"{self.joints[i]!r}) on {link.settings.describe()} failed: "
-                        f"{_brief(exc)}; check the interface and its connection"
+                        f"{one_line(exc)}; check the interface and its connection"
                     ) from exc
                 if ok:
                     link.pending.add(motor_id)
@@ -649,7 +642,7 @@ class MitHardware(HardwareInterface):
             except (can.CanError, OSError) as exc:
                 raise self._bus_fault(
                     link, f"{self._owner()}: receiving on {link.settings.describe()} failed: "
-                    f"{_brief(exc)}; check the interface and its connection"
+                    f"{one_line(exc)}; check the interface and its connection"
                 ) from exc
             stamp = time.monotonic_ns()
             link.health.rx_frames += result.stored
@@ -743,7 +736,7 @@ class MitHardware(HardwareInterface):
             except (can.CanError, OSError) as exc:
                 raise self._bus_fault(
                     link, f"{self._owner()}: setting the CAN timeout on "
-                    f"{link.settings.describe()} failed: {_brief(exc)}; check the interface "
+                    f"{link.settings.describe()} failed: {one_line(exc)}; check the interface "
                     "and its connection") from exc
             confirmed.update(link.index_of[m] for m in latest)
         for i in confirmed:

@@ -27,6 +27,7 @@ from .interface import (
     HardwareInterface,
     LifecycleState,
     SafeAction,
+    one_line,
 )
 from .params import ParamKind, ParamSpec, param_table, validate_params
 from .registry import (
@@ -65,6 +66,7 @@ __all__ = [
     "check_hardware_kind",
     "create_hardware",
     "hardware_class",
+    "one_line",
     "param_table",
     "register_hardware",
     "unregister_hardware",

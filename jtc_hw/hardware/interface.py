@@ -53,6 +53,7 @@ __all__ = [
     "JOINT_MAPPING_PARAMS",
     "LifecycleState",
     "SafeAction",
+    "one_line",
     "TRANSITIONS",
 ]
 
@@ -166,6 +167,18 @@ WATCHDOG_PARAM: Final = ParamSpec(
 )
 """The ``watchdog_s`` row, for drivers whose devices have a watchdog to include in their
 ``PARAMS``; the robot file checks it against the loop period (:data:`MIN_WATCHDOG_PERIODS`)."""
+
+
+def one_line(exc: BaseException) -> str:
+    """An exception's text as one line, for messages a client sees.
+
+    Libraries' messages may span lines; python-can's socketcand client even appends a whole
+    traceback to its errors ("Failed to receive: ... Traceback (most recent call last): ...").
+    The first non-empty line before any traceback is kept (the type name if there is none).
+    """
+    text = str(exc).split("Traceback (most recent call last)", 1)[0]
+    lines = [line.strip() for line in text.splitlines() if line.strip()]
+    return lines[0] if lines else type(exc).__name__
 
 
 @dataclass(frozen=True)
@@ -621,7 +634,9 @@ class HardwareInterface(ABC):
             raise _lifecycle_error(self._owner(), method, self._state)
 
     def _wrapped(self, method: str, exc: BaseException) -> HardwareError:
-        error = HardwareError(f"{self._owner()}: {method} failed: {type(exc).__name__}: {exc}")
+        error = HardwareError(
+            f"{self._owner()}: {method} failed: {type(exc).__name__}: {one_line(exc)}"
+        )
         self._last_fault = str(error)
         return error
 

@@ -946,3 +946,12 @@ def test_integer_choices_and_the_shared_joint_mapping_rows() -> None:
         validate_params(schema, {"direction": [1, 0]}, "params", joints=joints)
     with pytest.raises(ConfigurationError, match=r"params\.direction\.a: must be 1 or -1, got 2"):
         validate_params(schema, {"direction": {"a": 2}}, "params", joints=joints)
+
+
+def test_a_foreign_error_is_wrapped_in_one_line_without_a_traceback() -> None:
+    from jtc_hw.hardware import one_line
+
+    text = "Failed to receive: reset\nTraceback (most recent call last):\n  File x\nOSError: y"
+    assert one_line(OSError(text)) == "Failed to receive: reset"
+    assert one_line(OSError("\n  \n")) == "OSError"
+    assert one_line(ValueError("first\nsecond")) == "first"

@@ -52,6 +52,8 @@ class Rig:
             "counts_per_revolution": CPR,
             "feedback_timeout_s": 0.3,
             "boot_timeout_s": 2.0,
+            # Long: these tests pause between cycles; the watchdog's own tests shorten it.
+            "watchdog_s": 1.0,
             **params,
         }
         self.hw: Cia402Hardware | None = None

@@ -26,7 +26,25 @@ its stuffed bit time (:func:`~jtc_hw.drivers.can.bus.wire_time_s`), and answers 
 no earlier than the bus would have carried them. Fault injection: :meth:`inject_fault`
 (latched drive fault, e.g. 0x4310 over-temperature, cleared by a fault reset),
 :meth:`set_silent`, :meth:`drop_tpdos`, :meth:`set_tpdo_delay`, :meth:`refuse_enable`,
-:meth:`refuse_mode`, :meth:`inject_bus_off` (an error frame, then silence).
+:meth:`refuse_mode`, :meth:`lose_enable` (an enable input that opens once enabled),
+:meth:`inject_bus_off` (an error frame, then silence).
+
+Losing the master (CiA 301 heartbeat, CiA 402 abort connection): each used 0x1016 entry
+watches one producer from its first heartbeat after the entry was written (a boot-up of the
+producer restarts that); with no heartbeat for the consumer time the drive sends EMCY 0x8130
+(error register 0x11, the lost node id in byte 3), monitoring stops until the next heartbeat,
+and 0x6007 applies: quick stop (from Operation Enabled: the 0x605A ramp, 0x6085 or 0x6084 or
+the torque limit, then Switch On Disabled or, 0x605A 5..8, holding in Quick Stop Active),
+fault (Fault Reaction Active with the 0x605E ramp, then Fault), Disable Voltage (coasting,
+Switch On Disabled) or nothing. 0x1017 makes the drive produce its own heartbeat. A stop the
+drive performs by itself runs without SYNCs: the hub also does time-driven work (consumer
+deadlines, own heartbeat, a stop in progress stepped every millisecond), in its thread or, in
+push mode, through ``next_due`` / ``release_due``. Each heartbeat event is recorded
+(:class:`WatchdogTrip`: last heartbeat, detection and stop times on ``time.monotonic()``,
+reaction, states), see :attr:`~Cia402DriveEmulator.watchdog_trips` and
+:meth:`~Cia402DriveEmulator.wait_watchdog_stop`. Not modelled: 0x1029 (the drive stays in its
+NMT state after a heartbeat event), life guarding, abort connection on entering NMT Stopped
+(a bus-off silences the heartbeat, so the consumer reacts after its time).
 """
 
 from __future__ import annotations

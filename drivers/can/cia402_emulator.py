@@ -173,6 +173,7 @@ class _Hub:
         self._seq = itertools.count()
         self._send_lock = threading.Lock()
         self._wake: float | None = None  # when a drive has time-driven work (see _tick)
+        self._wake_lock = threading.Lock()  # drives may ask from another thread (injection)
         self._stop = threading.Event()
         self._thread = threading.Thread(
             target=self._run, name=f"cia402-emulator-{bus.channel_info}", daemon=True
@@ -270,18 +271,19 @@ class _Hub:
     def wake_at(self, when: float) -> None:
         """A drive has time-driven work at ``when`` (monotonic): a heartbeat consumer's
         deadline, its own heartbeat, a stop it performs by itself."""
-        wake = self._wake
-        if wake is None or when < wake:
-            self._wake = when
+        with self._wake_lock:
+            wake = self._wake
+            if wake is None or when < wake:
+                self._wake = when
 
     def _tick(self, now: float) -> None:
         """Run the drives' time-driven work that is due, and note when the next is."""
-        wake: float | None = None
+        with self._wake_lock:
+            self._wake = None  # what the drives ask for from here on is merged in
         for node_id in sorted(self.drives):
             when = self.drives[node_id]._on_time(now)
-            if when is not None and (wake is None or when < wake):
-                wake = when
-        self._wake = wake
+            if when is not None:
+                self.wake_at(when)
 
     # -- reception ------------------------------------------------------------------------------
 
@@ -674,6 +676,8 @@ class Cia402DriveEmulator:
         self._layout_cache = None
         self._send(c4.bootup_cob_id(self.node_id), b"\x00", force=True)
         self.nmt_state = NmtState.PRE_OPERATIONAL
+        if self._producer_s > 0.0:  # its heartbeats follow the boot-up
+            self._set_producer(round(self._producer_s * 1000.0), time.monotonic())
 
     def _on_nmt(self, command: int) -> None:
         with self._lock:

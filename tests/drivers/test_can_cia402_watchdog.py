@@ -160,6 +160,21 @@ def test_the_drive_produces_its_own_heartbeat(master: Master) -> None:
     assert min(gaps) >= 0.02 - 2e-3, gaps  # never faster than the producer time
 
 
+def test_a_stored_producer_time_starts_the_heartbeat_after_the_boot_up(tmp_path: Path) -> None:
+    eds = tmp_path / "beating.eds"
+    text = DEFAULT_EDS.read_text()
+    start = text.index("[1017]")
+    end = text.index("\n\n", start)
+    eds.write_text(text[:start] + text[start:end].replace("DefaultValue=0", "DefaultValue=20")
+                   + text[end:])
+    m = Master(eds)  # waits for the boot-up
+    try:
+        beat = next_frame(m.listener, 0x703)
+        assert bytes(beat.data) == bytes((NmtState.PRE_OPERATIONAL,))
+    finally:
+        m.close()
+
+
 # -- the driver: arming, producing, disarming ------------------------------------------------------
 
 

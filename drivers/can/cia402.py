@@ -726,16 +726,22 @@ class Cia402Hardware(HardwareInterface):
             if b.bus is None or b.health.state == "bus-off":
                 failures.extend(f"{d.who()} is on a bus that is off" for d in b.drives)
                 continue
-            with self._sdo_session(b) as nodes:
-                for d in b.drives:
-                    if d.rx1_at == 0.0 or now - d.rx1_at > self._feedback_timeout_s:
-                        failures.append(f"{d.who()} is not answering")
-                        continue
-                    self._send_heartbeat(b)
-                    try:
-                        self._write_consumer(d, nodes[d.node_id], 0)
-                    except (SdoAbortedError, SdoCommunicationError) as exc:
-                        failures.append(f"{d.who()} did not confirm ({exc})")
+            done: set[int] = set()
+            try:
+                with self._sdo_session(b) as nodes:
+                    for d in b.drives:
+                        if d.rx1_at == 0.0 or now - d.rx1_at > self._feedback_timeout_s:
+                            failures.append(f"{d.who()} is not answering")
+                        else:
+                            self._send_heartbeat(b)
+                            try:
+                                self._write_consumer(d, nodes[d.node_id], 0)
+                            except (SdoAbortedError, SdoCommunicationError) as exc:
+                                failures.append(f"{d.who()} did not confirm ({exc})")
+                        done.add(d.node_id)
+            except (HardwareError, can.CanError, OSError) as exc:
+                failures.extend(f"{d.who()}: {b.settings.describe()} failed ({exc})"
+                                for d in b.drives if d.node_id not in done)
         self._armed = self._feeding = False
         self._disarm_failures = failures
         for failure in failures:

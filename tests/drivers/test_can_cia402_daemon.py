@@ -23,6 +23,7 @@ import yaml
 from helpers.daemon import WAIT_S, DaemonProcess, connect, next_state, settle
 
 from jtc_hw.api.client import Client
+from jtc_hw.api.framing import RequestError
 
 from conftest import make_robot_config
 
@@ -154,6 +155,33 @@ def test_goal_succeeds_and_a_drive_fault_aborts_naming_the_drive(
         assert after["desired"]["positions"] == pytest.approx(
             after["actual"]["positions"], abs=0.01
         )
+        back = client.send_goal(traj([0.1, 0.2], 1.0)).wait(timeout_s=WAIT_S)
+        assert back["status"] == "succeeded", back
+
+
+def test_rearm_is_refused_in_one_line_while_a_drive_cannot_stay_enabled(
+    daemon: DaemonProcess, drives: Drives
+) -> None:
+    with connect(daemon) as client:
+        goal = client.send_goal(traj([0.3, 0.0], 1.0))
+        for feedback in goal.feedback(timeout_s=WAIT_S):
+            if feedback["time_from_start"] >= 0.2:
+                break
+        drives.drives[7].inject_fault(0x4310)
+        assert goal.wait(timeout_s=WAIT_S)["status"] == "aborted"
+        # Its enable input now opens right after each enabling (0x5441): the re-arm must not
+        # report holding.
+        drives.drives[7].lose_enable(1)
+        with pytest.raises(RequestError) as refused:
+            client.rearm()
+        message = str(refused.value)
+        assert "node 7" in message and "'elbow'" in message and "0x5441" in message, message
+        assert "\n" not in message and "Traceback" not in message, message
+        assert "node 7" in client.get_status()["controller"]["fault"]
+        drives.drives[7].lose_enable(None)
+        assert client.rearm()["rearmed"] is True
+        for d in drives.drives.values():
+            assert d.state is State.OPERATION_ENABLED
         back = client.send_goal(traj([0.1, 0.2], 1.0)).wait(timeout_s=WAIT_S)
         assert back["status"] == "succeeded", back
 

@@ -1090,6 +1090,7 @@ class Cia402DriveEmulator:
                 if lose[1] is None:
                     self.state = c4.State.SWITCH_ON_DISABLED
                     self._stopping = _Stop(c4.Ramp.COAST, None)
+                    self._start_autonomous(now)
                 else:
                     self._begin_fault_reaction(lose[1], now)
                     self._emcy_pending = c4.encode_emcy(self.error_code, self.error_register)

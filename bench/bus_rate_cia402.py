@@ -89,6 +89,9 @@ def _run(
             "bus": [name for name, ids in layout.items() for _ in ids],
             "node_id": [n for ids in layout.values() for n in ids],
             "feedback_timeout_s": 1.0,
+            # The drives' heartbeat watchdog: long, as the feedback timeout, so that a stall of
+            # this (not real-time) process on a busy machine does not stop them mid-run.
+            "watchdog_s": 1.0,
         }
         hw = Cia402Hardware("bench", joints, ["position"], ["position", "velocity"], params)
         try:

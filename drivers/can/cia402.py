@@ -9,15 +9,18 @@ device type (profile 402), the PDO mapping written with canopen's PDO API (RPDO1
 controlword + target position / velocity, TPDO1 statusword + position actual + torque actual,
 TPDO2 velocity actual + error code + modes of operation display, all of transmission type 1:
 synchronous), the mode of operation (0x6060 = 8 CSP or 9 CSV, checked in 0x6061: a refused
-mode switch is an error), then NMT *start*. The Notifier is then stopped: in cyclic operation
-the driver owns the bus receive (``bus.py``'s non-blocking drain), so the control-loop process
-has no second Python thread competing for the interpreter lock.
+mode switch is an error), the abort connection option code (0x6007, ``watchdog_reaction``)
+and a heartbeat consumer entry (0x1016) claimed for the daemon's node id, then NMT *start*.
+The Notifier is then stopped: in cyclic operation the driver owns the bus receive (``bus.py``'s
+non-blocking drain), so the control-loop process has no second Python thread competing for
+the interpreter lock.
 
 The cycle (layouts and state machine from :mod:`~jtc_hw.drivers.can.cia402_codec`):
 
 * ``write``: late frames (answers to the previous SYNC that came after its read) are taken
-  and counted, then per bus every drive's RPDO1 (controlword, target) and one SYNC; buses
-  are independent wires, so they all transmit at once (their frames interleaved).
+  and counted, then per bus every drive's RPDO1 (controlword, target), one SYNC and, every
+  ``watchdog_s / 4``, the daemon's heartbeat; buses are independent wires, so they all
+  transmit at once (their frames interleaved).
 * ``read``: if no SYNC is outstanding (the first read, reads while inactive) one is sent; then
   per bus the TPDOs answering it are collected, bounded by the bus's ``receive_timeout``;
   the newest frame per TPDO is kept. A drive with no answer for ``feedback_timeout_s`` is a
@@ -34,6 +37,18 @@ faulted drive and checks that it left Fault. Safe actions: ``hold`` leaves the d
 Operation Enabled holding the last target (CSV: target velocity 0); ``torque_off`` sends
 Disable Voltage and checks Switch On Disabled.
 
+Heartbeat watchdog: ``activate`` first arms every drive's consumer entry (the daemon's
+``master_node_id``, ``watchdog_s`` in ms; SDO, with a Notifier for that moment only), so
+that whatever it enables stops by itself unless the daemon goes on commanding it: the cycle
+produces the heartbeat, a failed activation stops producing it. After the walk to Operation
+Enabled one more exchange must show every drive enabled, powered (statusword bit 4), in its
+mode and without a heartbeat event, else activation fails with one line naming the drive:
+the daemon never reports holding what is not. ``deactivate`` performs the safe action, then
+disarms (entry time 0, a heartbeat before each SDO request), so a clean stop does not trip
+the drives; if the safe action fails it leaves them armed and stops feeding them. An EMCY
+0x8130 from a drive (it lost the heartbeat: a stalled loop) is a fault naming it while active,
+even before its statusword shows the stop.
+
 Units (per joint; formula symmetric for commands)::
 
     joint = direction * (2*pi * counts / counts_per_revolution) / gear_ratio + offset
@@ -45,8 +60,10 @@ from __future__ import annotations
 
 import logging
 import math
+import struct
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 from itertools import zip_longest
 from pathlib import Path
@@ -62,6 +79,8 @@ from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
 from jtc_hw.errors import CommunicationError, ConfigurationError, HardwareError, MotorFault
 from jtc_hw.hardware import (
     JOINT_MAPPING_PARAMS,
+    WATCHDOG_PARAM,
+    DeviceWatchdog,
     HardwareInterface,
     JointCommand,
     JointState,
@@ -81,7 +100,20 @@ _log = logging.getLogger(__name__)
 
 _PROFILE_402 = 402
 _NOTIFIER_CYCLE_S = 0.02
+_SDO_NOTIFIER_CYCLE_S = 0.005  # SDO sessions of activate / deactivate: stop them sooner
 _FAULTY = (c4.State.FAULT, c4.State.FAULT_REACTION_ACTIVE)
+_HEARTBEATS_PER_WATCHDOG = 4
+"""The master's heartbeat goes out every watchdog_s / 4 (see ``Cia402Hardware``)."""
+_REACTIONS = {
+    "quick_stop": c4.AbortConnection.QUICK_STOP,
+    "fault": c4.AbortConnection.FAULT,
+    "disable_voltage": c4.AbortConnection.DISABLE_VOLTAGE,
+}
+_REACTION_TEXT = {
+    c4.AbortConnection.QUICK_STOP: "quick stop (0x605A, decelerating with 0x6085)",
+    c4.AbortConnection.FAULT: "fault reaction (0x605E), then Fault",
+    c4.AbortConnection.DISABLE_VOLTAGE: "Disable Voltage (power stage off at once: it coasts)",
+}
 
 
 @dataclass
@@ -113,6 +145,8 @@ class _Drive:
     late: int = 0
     missed: int = 0
     last_emcy: int | None = None
+    heartbeat_lost: bool = False
+    consumer_sub: int = 0
     controlword: int = 0
     target: int = 0
 
@@ -143,6 +177,10 @@ class _Bus:
     sync_outstanding: bool = False
     syncs: int = 0
     opened_at: float = 0.0
+    network: canopen.Network | None = None
+    nodes: dict[int, canopen.RemoteNode] = field(default_factory=dict)
+    next_beat: float = 0.0
+    beats: int = 0
 
     def __post_init__(self) -> None:
         for d in self.drives:
@@ -153,6 +191,28 @@ class _Bus:
     def key(self, msg: can.Message) -> int | None:
         cob = int(msg.arbitration_id)
         return cob if cob in self.keys else None
+
+
+def _watchdog_ms(watchdog_s: float) -> int:
+    """``watchdog_s`` as the consumer heartbeat time of 0x1016 (whole ms, 16 bits).
+
+    Raises:
+        ConfigurationError: not a whole number of milliseconds, or above 65.535 s.
+    """
+    ms = round(watchdog_s * 1000.0)
+    if abs(ms - watchdog_s * 1000.0) > 1e-6:
+        raise ConfigurationError(
+            f"{watchdog_s:g} s is not a whole number of milliseconds, and the drives count "
+            f"their consumer heartbeat time (0x1016) in ms; use {max(ms, 1) / 1000:g}",
+            "params.watchdog_s", watchdog_s,
+        )
+    if ms > 0xFFFF:
+        raise ConfigurationError(
+            f"{watchdog_s:g} s is longer than the 65.535 s a drive's consumer heartbeat time "
+            "(0x1016, 16 bits of ms) can hold",
+            "params.watchdog_s", watchdog_s,
+        )
+    return ms
 
 
 def _tuned(settings: canbus.BusSettings) -> canbus.BusSettings:
@@ -168,11 +228,22 @@ class Cia402Hardware(HardwareInterface):
     """CiA 402 drives over CANopen in cyclic synchronous position or velocity mode.
 
     The mode follows the command interface: ``position`` -> CSP (8), ``velocity`` -> CSV (9).
-    See the module docstring for the cycle and the state machine handling.
+    See the module docstring for the cycle, the state machine handling and the heartbeat
+    watchdog.
+
+    The master's heartbeat goes out every ``watchdog_s / 4``: a drive then trips between
+    ``3/4 * watchdog_s`` (minus a cycle) and ``watchdog_s`` after the daemon's last cycle, so
+    a loop that is late by up to half the watchdog time never trips it, and the heartbeat
+    costs one 1-byte frame per quarter watchdog time (at 0.1 s and 1 Mbit/s, 0.2 % of the
+    bus), not one per cycle. A shorter producer time would tolerate longer stalls for more
+    bus load; ``watchdog_s`` of at least 3 loop periods (checked by the robot file) keeps a
+    heartbeat in at least every third cycle.
 
     Raises:
-        ConfigurationError: invalid parameters, duplicate node ids on a bus, or both
-            ``position`` and ``velocity`` command interfaces.
+        ConfigurationError: invalid parameters, duplicate node ids on a bus, a
+            ``master_node_id`` that a drive on some bus uses, a ``watchdog_s`` that is not a
+            whole number of milliseconds (or above 65.535 s), or both ``position`` and
+            ``velocity`` command interfaces.
     """
 
     kind: ClassVar[str] = "can-cia402"
@@ -208,6 +279,15 @@ class Cia402Hardware(HardwareInterface):
                   minimum=0.001, maximum=10.0),
         ParamSpec("eds", ParamKind.STRING, "",
                   "EDS file of the drives (empty: the shipped jtc_hw_drive.eds)"),
+        WATCHDOG_PARAM,
+        ParamSpec("master_node_id", ParamKind.INT, 127,
+                  "node id of the daemon's heartbeat (COB-ID 0x700 + id), which each drive's "
+                  "consumer (0x1016) watches; no drive on a bus may use it",
+                  minimum=1, maximum=127),
+        ParamSpec("watchdog_reaction", ParamKind.STRING, "quick_stop",
+                  "what a drive does when the daemon's heartbeat stops (0x6007): quick_stop "
+                  "(0x605A / 0x6085), fault (0x605E, then Fault) or disable_voltage (coast)",
+                  choices=tuple(_REACTIONS)),
     )
 
     def __init__(
@@ -268,6 +348,22 @@ class Cia402Hardware(HardwareInterface):
         self._boot_timeout_s: float = p["boot_timeout_s"]
         self._transition_timeout_s: float = p["transition_timeout_s"]
         self._last_fault_by_node: dict[int, str] = {}
+        self._watchdog_ms = _watchdog_ms(p["watchdog_s"])
+        self._heartbeat_period_s = self._watchdog_ms / 1000.0 / _HEARTBEATS_PER_WATCHDOG
+        self._master_id: int = p["master_node_id"]
+        for d in drives:
+            if d.node_id == self._master_id:
+                raise ConfigurationError(
+                    f"master_node_id {self._master_id} is also the node id of joint "
+                    f"{d.joint!r} on bus {d.bus!r}: its drive's heartbeats and the daemon's "
+                    f"would share COB-ID 0x{c4.bootup_cob_id(self._master_id):03X}; choose an "
+                    "id no drive uses",
+                    "params.master_node_id", self._master_id,
+                )
+        self._reaction = _REACTIONS[p["watchdog_reaction"]]
+        self._armed = False  # the drives' consumers watch our heartbeat (0x1016 written)
+        self._feeding = False  # we produce it (active, or activating / deactivating)
+        self._disarm_failures: list[str] = []
 
     # -- lifecycle primitives ---------------------------------------------------------------------
 
@@ -286,11 +382,14 @@ class Cia402Hardware(HardwareInterface):
             d.statusword = d.state = None
             d.rx1_at = d.rx2_at = 0.0
             d.fresh = False
+            d.last_emcy = None
+            d.heartbeat_lost = False
 
     def _configure_bus(self, b: _Bus) -> None:
         assert b.bus is not None
         network = canopen.Network(b.bus)
         nodes = {d.node_id: network.add_node(d.node_id, self._eds) for d in b.drives}
+        b.network, b.nodes = network, nodes  # for the SDO sessions of activate / deactivate
         booted: dict[int, bool] = {}
 
         def on_heartbeat(node_id: int) -> Any:
@@ -358,6 +457,14 @@ class Cia402Hardware(HardwareInterface):
             what = f"setting the mode of operation 0x6060 to {int(self.mode)} ({self.mode.name})"
             node.sdo[c4.MODES_OF_OPERATION].raw = int(self.mode)
             shown = int(node.sdo[c4.MODES_OF_OPERATION_DISPLAY].raw)
+            # By index, not through the EDS: a drive's EDS need not list these objects.
+            what = (f"setting the abort connection option code 0x6007 to {int(self._reaction)} "
+                    f"({self._reaction.name.lower()})")
+            node.sdo.download(c4.ABORT_CONNECTION_OPTION, 0, struct.pack("<h", self._reaction))
+            what = "reading its consumer heartbeat time entries 0x1016"
+            d.consumer_sub = self._consumer_entry(d, node)
+            what = f"writing its consumer heartbeat time 0x1016:{d.consumer_sub}"
+            self._write_consumer(d, node, 0)  # claimed, not watching yet: activate arms it
         except (SdoAbortedError, SdoCommunicationError) as exc:
             raise self._sdo_error(d, what, exc) from exc
         d.mode_display = shown
@@ -368,6 +475,34 @@ class Cia402Hardware(HardwareInterface):
                 "that the drive supports cyclic synchronous modes (0x6502) and is not "
                 "being commanded by another master"
             )
+
+    def _consumer_entry(self, d: _Drive, node: canopen.RemoteNode) -> int:
+        """The 0x1016 sub-index to use: the one already watching the master's node id, else
+        the first unused one (CiA 301 refuses two entries for one node id).
+
+        Raises:
+            HardwareError: every entry watches another node.
+        """
+        count = int.from_bytes(node.sdo.upload(c4.CONSUMER_HEARTBEAT_TIME, 0), "little")
+        free = 0
+        for sub in range(1, count + 1):
+            value = int.from_bytes(node.sdo.upload(c4.CONSUMER_HEARTBEAT_TIME, sub), "little")
+            entry = c4.decode_consumer_entry(value)
+            if entry is None:
+                free = free or sub
+            elif entry[0] == self._master_id:
+                return sub
+        if not free:
+            raise HardwareError(
+                f"{self._owner()}: {d.who()} has no free consumer heartbeat entry in 0x1016 "
+                f"({count} entries, each watching another node) for the daemon's heartbeat "
+                f"(node {self._master_id}); free one with the drive's configuration tool"
+            )
+        return free
+
+    def _write_consumer(self, d: _Drive, node: canopen.RemoteNode, time_ms: int) -> None:
+        value = c4.encode_consumer_entry(self._master_id, time_ms)
+        node.sdo.download(c4.CONSUMER_HEARTBEAT_TIME, d.consumer_sub, struct.pack("<I", value))
 
     @staticmethod
     def _map(pdo: Any, cob_id: int, layout: c4.PdoLayout | None) -> None:
@@ -385,14 +520,25 @@ class Cia402Hardware(HardwareInterface):
     def _activate(self, now_ns: int) -> JointCommand:
         for b in self._buses.values():
             self._flush(b)
-        self._exchange(send_rpdo=False)
         for d in self._drives:
-            if d.state in _FAULTY:
-                raise self._fault(d, "cannot enable a drive in fault; re-arm to fault-reset it")
-            d.target = d.position_counts if self._csp else 0
-            if d.state is c4.State.OPERATION_ENABLED:
-                d.controlword = c4.encode_controlword(c4.Command.ENABLE_OPERATION)
-        self._walk_to_enabled()
+            d.heartbeat_lost = False
+        # Armed first: whatever this activation leaves enabled stops by itself if the daemon
+        # does not go on commanding it (a failed activation stops feeding the heartbeat).
+        self._arm()
+        try:
+            self._exchange(send_rpdo=False)  # with the first heartbeat: monitoring starts
+            for d in self._drives:
+                if d.state in _FAULTY:
+                    raise self._fault(
+                        d, "cannot enable a drive in fault; re-arm to fault-reset it")
+                d.target = d.position_counts if self._csp else 0
+                if d.state is c4.State.OPERATION_ENABLED:
+                    d.controlword = c4.encode_controlword(c4.Command.ENABLE_OPERATION)
+            self._walk_to_enabled()
+            self._confirm_enabled()
+        except BaseException:
+            self._feeding = False
+            raise
         held = np.array(
             [d.scale.position(d.target) for d in self._drives] if self._csp
             else [0.0] * len(self._drives), dtype=np.float64,
@@ -449,7 +595,48 @@ class Cia402Hardware(HardwareInterface):
                     "check enable inputs (STO), DC link voltage and the drive's own errors"
                 )
 
+    def _confirm_enabled(self) -> None:
+        """One more exchange (with a heartbeat) after enabling: every drive must answer it in
+        Operation Enabled, powered (statusword bit 4, voltage enabled), in the configured mode
+        and without a heartbeat event: what the daemon reports as holding is true.
+
+        Raises:
+            CommunicationError: a drive did not answer.
+            MotorFault: a drive is in fault or lost the heartbeat.
+            HardwareError: a drive left Operation Enabled, has no power or changed mode.
+        """
+        self._exchange(send_rpdo=True)
+        for d in self._drives:
+            if d.heartbeat_lost:
+                raise self._heartbeat_fault(d)
+            if d.state in _FAULTY:
+                raise self._fault(d, "went to fault right after it was enabled")
+            problem = ""
+            if d.state is not c4.State.OPERATION_ENABLED:
+                problem = (f"is {d.describe_state()} right after it was enabled, not operation "
+                           "enabled; check its enable inputs (STO) and the drive's own errors")
+            elif d.statusword is not None and not d.statusword & c4.SW_VOLTAGE_ENABLED:
+                problem = (f"reports operation enabled without voltage enabled (statusword "
+                           f"0x{d.statusword:04X}, bit 4): check its power stage supply")
+            elif d.mode_display != int(self.mode):
+                problem = (f"displays mode {d.mode_display} in 0x6061 right after it was "
+                           f"enabled, not {int(self.mode)} ({self.mode.name})")
+            if problem:
+                message = f"{self._owner()}: activation not confirmed: {d.who()} {problem}"
+                self._last_fault_by_node[d.node_id] = message
+                raise HardwareError(message)
+
     def _deactivate(self, now_ns: int, action: SafeAction) -> None:
+        try:
+            self._safe_action(action)
+        except BaseException:
+            # The safe action may not have happened: the watchdog stays armed, and with no
+            # more heartbeats the drives stop by themselves.
+            self._feeding = False
+            raise
+        self._disarm()
+
+    def _safe_action(self, action: SafeAction) -> None:
         if action is SafeAction.HOLD:
             if self._csp:
                 for b in self._buses.values():
@@ -480,7 +667,107 @@ class Cia402Hardware(HardwareInterface):
         for b in self._buses.values():
             self._flush(b)
 
+    # -- the heartbeat watchdog --------------------------------------------------------------------
+
+    @contextmanager
+    def _sdo_session(self, b: _Bus) -> Iterator[dict[int, canopen.RemoteNode]]:
+        """canopen's SDO clients of ``b``'s drives, fed by a Notifier thread for the session
+        only (in cyclic operation the driver receives frames itself, with no second thread)."""
+        bus, network = self._bus_of(b), b.network
+        if network is None:
+            raise CommunicationError(f"{self._owner()}: {b.settings.describe()} is not set up")
+        for node in b.nodes.values():
+            network.subscribe(node.sdo.tx_cobid, node.sdo.on_response)
+        notifier = can.Notifier(bus, [MessageListener(network)], timeout=_SDO_NOTIFIER_CYCLE_S)
+        try:
+            yield b.nodes
+        finally:
+            notifier.stop(timeout=2.0)
+            network.subscribers.clear()
+            self._flush(b)  # answers to nothing of ours from the session: not cycle feedback
+
+    def _send_heartbeat(self, b: _Bus) -> None:
+        self._send(b, can.Message(arbitration_id=c4.bootup_cob_id(self._master_id),
+                                  is_extended_id=False,
+                                  data=c4.encode_heartbeat(c4.NmtState.OPERATIONAL)))
+        b.next_beat = time.monotonic() + self._heartbeat_period_s
+        b.beats += 1
+
+    def _arm(self) -> None:
+        """Every drive's consumer entry: the daemon's node id, ``watchdog_s``. Monitoring
+        starts with the next heartbeat, which the next exchange sends.
+
+        Raises:
+            HardwareError: a drive refused the entry or did not answer.
+        """
+        for b in self._buses.values():
+            with self._sdo_session(b) as nodes:
+                for d in b.drives:
+                    try:
+                        self._write_consumer(d, nodes[d.node_id], self._watchdog_ms)
+                    except (SdoAbortedError, SdoCommunicationError) as exc:
+                        raise self._sdo_error(
+                            d, f"arming its heartbeat consumer 0x1016:{d.consumer_sub}", exc
+                        ) from exc
+        self._armed = self._feeding = True
+        for b in self._buses.values():
+            b.next_beat = 0.0  # due at once
+
+    def _disarm(self) -> None:
+        """Every drive's consumer entry back to time 0, a heartbeat before each SDO request so
+        that the drives not yet disarmed keep theirs. A drive that stopped answering, or does
+        not confirm, stays armed and stops by itself: logged, not raised (it is the safe side)."""
+        if not self._armed:
+            self._feeding = False
+            return
+        failures: list[str] = []
+        now = time.monotonic()
+        for b in self._buses.values():
+            if b.bus is None or b.health.state == "bus-off":
+                failures.extend(f"{d.who()} is on a bus that is off" for d in b.drives)
+                continue
+            done: set[int] = set()
+            try:
+                with self._sdo_session(b) as nodes:
+                    for d in b.drives:
+                        if d.rx1_at == 0.0 or now - d.rx1_at > self._feedback_timeout_s:
+                            failures.append(f"{d.who()} is not answering")
+                        else:
+                            self._send_heartbeat(b)
+                            try:
+                                self._write_consumer(d, nodes[d.node_id], 0)
+                            except (SdoAbortedError, SdoCommunicationError) as exc:
+                                failures.append(f"{d.who()} did not confirm ({exc})")
+                        done.add(d.node_id)
+            except (HardwareError, can.CanError, OSError) as exc:
+                failures.extend(f"{d.who()}: {b.settings.describe()} failed ({exc})"
+                                for d in b.drives if d.node_id not in done)
+        self._armed = self._feeding = False
+        self._disarm_failures = failures
+        for failure in failures:
+            _log.warning(
+                "%s: disarming the heartbeat watchdog failed: %s; it stops by itself within "
+                "%d ms (0x6007: %s)", self._owner(), failure, self._watchdog_ms,
+                _REACTION_TEXT[self._reaction],
+            )
+
+    def device_watchdog(self) -> DeviceWatchdog:
+        """Each drive's heartbeat consumer (see the class docstring); no I/O."""
+        return DeviceWatchdog(
+            self._watchdog_ms / 1000.0,
+            f"CiA 402 heartbeat consumer 0x1016 on every drive, {self._watchdog_ms} ms, fed "
+            f"by the daemon (node {self._master_id}, every "
+            f"{self._heartbeat_period_s * 1e3:g} ms): on loss each drive sends EMCY 0x8130 "
+            f"and applies 0x6007 = {int(self._reaction)}, {_REACTION_TEXT[self._reaction]}",
+        )
+
+    def devices(self) -> tuple[str, ...]:
+        """The buses the drives are on (``BusSettings.lock_name``); no I/O."""
+        return tuple(dict.fromkeys(b.settings.lock_name() for b in self._buses.values()))
+
     def _recover(self) -> None:
+        for d in self._drives:
+            d.heartbeat_lost = False
         self._exchange(send_rpdo=False)
         faulted = [d for d in self._drives if d.state in _FAULTY]
         if not faulted:
@@ -508,8 +795,12 @@ class Cia402Hardware(HardwareInterface):
             self._last_fault_by_node.pop(d.node_id, None)
 
     def _cleanup(self) -> None:
+        # Armed drives (a failed activation or safe action) stay armed: with no heartbeat they
+        # stop by themselves.
+        self._armed = self._feeding = False
         for b in self._buses.values():
             bus, b.bus = b.bus, None
+            b.network, b.nodes = None, {}
             canbus.close_bus(bus)
             b.sync_outstanding = False
 
@@ -540,6 +831,10 @@ class Cia402Hardware(HardwareInterface):
         return JointState(positions, velocities)
 
     def _check(self, d: _Drive, now: float, active: bool) -> None:
+        if active and d.heartbeat_lost:
+            # First: the drive may still answer (or even show Operation Enabled again, were
+            # its quick stop left by our next Enable Operation), but it did stop by itself.
+            raise self._heartbeat_fault(d)
         age = now - d.rx1_at if d.rx1_at else math.inf
         if age > self._feedback_timeout_s:
             raise self._comm_lost(d, age)
@@ -591,12 +886,14 @@ class Cia402Hardware(HardwareInterface):
             ) from exc
 
     def _send_cycle(self, buses: Sequence[_Bus], *, send_rpdo: bool) -> None:
-        """Every drive's RPDO1 (optionally) then one SYNC, on each of ``buses``.
+        """Every drive's RPDO1 (optionally), one SYNC and, when due, the daemon's heartbeat,
+        on each of ``buses``.
 
         The buses' frames are interleaved: each wire starts carrying its first frame at once
         instead of after the other buses' frames were handed over.
         """
         queues: list[list[can.Message]] = []
+        now = time.monotonic()
         for b in buses:
             frames: list[can.Message] = []
             for d in b.drives:
@@ -609,6 +906,15 @@ class Cia402Hardware(HardwareInterface):
             frames.append(
                 can.Message(arbitration_id=c4.SYNC_COB_ID, is_extended_id=False, data=b"")
             )
+            if self._feeding and now >= b.next_beat:
+                # After the SYNC: the set-points and the sampling instant are not delayed;
+                # at worst the drives' answers wait for this one frame.
+                frames.append(can.Message(
+                    arbitration_id=c4.bootup_cob_id(self._master_id), is_extended_id=False,
+                    data=c4.encode_heartbeat(c4.NmtState.OPERATIONAL),
+                ))
+                b.next_beat = now + self._heartbeat_period_s
+                b.beats += 1
             queues.append(frames)
             b.syncs += 1
         for row in zip_longest(*queues):
@@ -650,6 +956,8 @@ class Cia402Hardware(HardwareInterface):
                     d.rx2_at = now
                 elif len(data) >= 2:
                     d.last_emcy = int.from_bytes(data[:2], "little")
+                    if d.last_emcy == c4.EMCY_HEARTBEAT:
+                        d.heartbeat_lost = True
             except Exception as exc:  # noqa: BLE001 - a garbled frame is a protocol fault
                 raise CommunicationError(
                     f"{self._owner()}: {d.who()} sent a frame the configured mapping cannot "
@@ -723,6 +1031,13 @@ class Cia402Hardware(HardwareInterface):
         self._last_fault_by_node[d.node_id] = message
         return CommunicationError(message)
 
+    def _heartbeat_fault(self, d: _Drive) -> MotorFault:
+        return self._fault(
+            d, f"lost the daemon's heartbeat (none for {self._watchdog_ms} ms, watchdog_s) and "
+            f"stopped by itself with 0x6007 {_REACTION_TEXT[self._reaction]}: the control loop "
+            "stalled or its frames did not reach the drive; re-arm when it runs again",
+        )
+
     def _fault(self, d: _Drive, what: str) -> MotorFault:
         code = d.error_code or d.last_emcy or 0
         message = (
@@ -738,7 +1053,16 @@ class Cia402Hardware(HardwareInterface):
         now = time.monotonic()
         return {
             "mode": self.mode.name.lower(),
-            "buses": {name: {**b.health.as_dict(), "syncs": b.syncs}
+            "watchdog": {
+                "timeout_s": self._watchdog_ms / 1000.0,
+                "heartbeat_period_s": self._heartbeat_period_s,
+                "master_node_id": self._master_id,
+                "reaction": self._reaction.name.lower(),
+                "armed": self._armed,
+                "feeding": self._feeding,
+                "disarm_failures": list(self._disarm_failures),
+            },
+            "buses": {name: {**b.health.as_dict(), "syncs": b.syncs, "heartbeats": b.beats}
                       for name, b in self._buses.items()},
             "drives": {
                 d.joint: {
@@ -749,6 +1073,8 @@ class Cia402Hardware(HardwareInterface):
                     "error_code": f"0x{d.error_code:04X}",
                     "error": c4.describe_error(d.error_code),
                     "last_emcy": None if d.last_emcy is None else f"0x{d.last_emcy:04X}",
+                    "heartbeat_lost": d.heartbeat_lost,
+                    "consumer_entry": f"0x1016:{d.consumer_sub}" if d.consumer_sub else None,
                     "mode_display": d.mode_display,
                     "torque_permille": d.torque_permille,
                     "feedback_age_s": None if d.rx1_at == 0.0 else round(now - d.rx1_at, 6),

@@ -29,6 +29,15 @@ TPDO2      0x280+n   velocity actual 0x606C (32), error code 0x603F (16),
 All PDOs use transmission type 1 (synchronous): an RPDO takes effect at the next SYNC
 (COB-ID 0x080, no data) and the drive sends its TPDOs in answer to every SYNC.
 
+The master's watchdog is CiA 301's heartbeat: the producer sends COB-ID 0x700 + its node id
+with one byte, its NMT state (:func:`encode_heartbeat`), every producer time (0x1017); a
+consumer entry (0x1016 sub-index 1..n, :func:`encode_consumer_entry`: node id in bits 16-23,
+time in ms in bits 0-15) makes a drive watch that node from its first heartbeat on. When no
+heartbeat came for the consumer time, the drive signals a heartbeat event (EMCY
+:data:`EMCY_HEARTBEAT` 0x8130, :func:`encode_emcy`) and applies 0x6007, the abort connection
+option code (:class:`AbortConnection`): a quick stop (0x605A, :func:`quick_stop_reaction`,
+decelerating with 0x6085), a fault (0x605E, :func:`fault_reaction`) or Disable Voltage.
+
 Units: positions are drive counts (``counts_per_revolution`` per motor turn), velocities
 counts/s (or rpm, see :class:`JointScale`). The joint conversion, symmetric for commands, is::
 
@@ -55,13 +64,19 @@ DEFAULT_EDS: Final = Path(str(resources.files("jtc_hw.drivers.can").joinpath("jt
 """The EDS of the emulated drive, shipped with the package (the driver's default)."""
 
 __all__ = [
+    "ABORT_CONNECTION_OPTION",
+    "CONSUMER_HEARTBEAT_TIME",
     "CONTROLWORD",
     "CONTROLWORD_VALUES",
     "DEFAULT_EDS",
     "DEVICE_TYPE",
     "DRIVE_TRANSITIONS",
+    "EMCY_HEARTBEAT",
     "ERROR_CODE",
     "ERROR_DESCRIPTIONS",
+    "ERROR_REGISTER",
+    "FAULT_REACTION_OPTION",
+    "HEARTBEAT_BASE",
     "MODES_OF_OPERATION",
     "MODES_OF_OPERATION_DISPLAY",
     "NMT_ENTER_PRE_OPERATIONAL",
@@ -72,6 +87,10 @@ __all__ = [
     "OBJECTS",
     "PATH_TO_OPERATION_ENABLED",
     "POSITION_ACTUAL",
+    "PRODUCER_HEARTBEAT_TIME",
+    "PROFILE_DECELERATION",
+    "QUICK_STOP_DECELERATION",
+    "QUICK_STOP_OPTION",
     "RPDO_CSP",
     "RPDO_CSV",
     "STATUSWORD",
@@ -83,24 +102,35 @@ __all__ = [
     "TPDO_FEEDBACK",
     "TPDO_STATUS",
     "VELOCITY_ACTUAL",
+    "AbortConnection",
     "Command",
     "JointScale",
     "Mode",
+    "NmtState",
     "PdoEntry",
     "PdoLayout",
+    "Ramp",
     "State",
     "bootup_cob_id",
+    "decode_consumer_entry",
     "decode_controlword",
+    "decode_emcy",
+    "decode_heartbeat",
     "decode_mapping",
     "decode_nmt",
     "decode_statusword",
     "describe_error",
     "emcy_cob_id",
+    "encode_consumer_entry",
     "encode_controlword",
+    "encode_emcy",
+    "encode_heartbeat",
     "encode_mapping",
     "encode_nmt",
     "encode_statusword",
     "expected_after",
+    "fault_reaction",
+    "quick_stop_reaction",
     "rpdo_cob_id",
     "tpdo_cob_id",
 ]
@@ -108,15 +138,23 @@ __all__ = [
 # -- object dictionary indices ------------------------------------------------------------------
 
 DEVICE_TYPE: Final = 0x1000
+ERROR_REGISTER: Final = 0x1001
+CONSUMER_HEARTBEAT_TIME: Final = 0x1016
+PRODUCER_HEARTBEAT_TIME: Final = 0x1017
+ABORT_CONNECTION_OPTION: Final = 0x6007
 ERROR_CODE: Final = 0x603F
 CONTROLWORD: Final = 0x6040
 STATUSWORD: Final = 0x6041
+QUICK_STOP_OPTION: Final = 0x605A
+FAULT_REACTION_OPTION: Final = 0x605E
 MODES_OF_OPERATION: Final = 0x6060
 MODES_OF_OPERATION_DISPLAY: Final = 0x6061
 POSITION_ACTUAL: Final = 0x6064
 VELOCITY_ACTUAL: Final = 0x606C
 TORQUE_ACTUAL: Final = 0x6077
 TARGET_POSITION: Final = 0x607A
+PROFILE_DECELERATION: Final = 0x6084
+QUICK_STOP_DECELERATION: Final = 0x6085
 TARGET_VELOCITY: Final = 0x60FF
 
 OBJECTS: Final[Mapping[int, tuple[int, bool]]] = MappingProxyType({
@@ -215,6 +253,63 @@ def decode_nmt(data: bytes) -> tuple[int, int]:
     if len(data) != 2:
         raise ProtocolError(f"NMT command must be 2 bytes, got {bytes(data).hex()}")
     return data[0], data[1]
+
+
+# -- heartbeat (CiA 301 NMT error control) ------------------------------------------------------
+
+HEARTBEAT_BASE: Final = 0x700
+"""Heartbeat / boot-up COB-IDs are 0x700 + the producer's node id."""
+
+
+class NmtState:
+    """NMT states, as a heartbeat's one data byte carries them (bit 7, the node-guarding
+    toggle bit, is 0 in a heartbeat)."""
+
+    INITIALISING = 0x00  # the boot-up message
+    STOPPED = 0x04
+    OPERATIONAL = 0x05
+    PRE_OPERATIONAL = 0x7F
+
+
+def encode_heartbeat(state: int) -> bytes:
+    """Payload of a heartbeat frame reporting NMT ``state`` (one byte).
+
+    Raises:
+        ValueError: not a 7-bit state.
+    """
+    if not 0 <= state <= 0x7F:
+        raise ValueError(f"NMT state must be 0..127, got {state!r}")
+    return bytes((state,))
+
+
+def decode_heartbeat(cob_id: int, data: bytes) -> tuple[int, int] | None:
+    """(producer node id, NMT state) of a heartbeat or boot-up frame; None for other frames."""
+    node_id = cob_id - HEARTBEAT_BASE
+    if not 1 <= node_id <= 127 or len(data) != 1:
+        return None
+    return node_id, data[0] & 0x7F
+
+
+def encode_consumer_entry(node_id: int, time_ms: int) -> int:
+    """A consumer heartbeat time entry (0x1016 sub-index 1..n, UNSIGNED32): the producer's
+    node id in bits 16-23, the time in ms in bits 0-15 (0: the entry is not used).
+
+    Raises:
+        ValueError: node id outside 1..127 or time outside 0..65535 ms.
+    """
+    _check_node(node_id)
+    if not 0 <= time_ms <= 0xFFFF:
+        raise ValueError(f"consumer heartbeat time must be 0..65535 ms, got {time_ms!r}")
+    return (node_id << 16) | time_ms
+
+
+def decode_consumer_entry(value: int) -> tuple[int, int] | None:
+    """(producer node id, time in ms) of a 0x1016 entry; None if the entry is not used
+    (time 0, node id 0 or above 127, as CiA 301 says)."""
+    node_id, time_ms = (value >> 16) & 0xFF, value & 0xFFFF
+    if time_ms == 0 or not 1 <= node_id <= 127:
+        return None
+    return node_id, time_ms
 
 
 # -- the state machine ------------------------------------------------------------------------
@@ -419,7 +514,7 @@ ERROR_DESCRIPTIONS: Final[Mapping[int, str]] = MappingProxyType({
     0x4310: "excess temperature drive",
     0x5441: "enable input off",
     0x7305: "incremental sensor fault",
-    0x8130: "life guard / heartbeat error",
+    0x8130: "life guard / heartbeat error (the drive lost the master's heartbeat)",
     0x8611: "following error",
     0x8700: "sync controller error (SYNC lost)",
 })
@@ -439,6 +534,96 @@ _ERROR_CLASSES: Final[Mapping[int, str]] = MappingProxyType({
     0xF: "additional functions",
     0xFF: "device specific",
 })
+
+
+EMCY_HEARTBEAT: Final = 0x8130
+"""Error code of a heartbeat event (a consumer's producer fell silent): "life guard error or
+heartbeat error", in 0x603F and the EMCY message."""
+
+ERROR_REGISTER_GENERIC: Final = 0x01
+ERROR_REGISTER_COMMUNICATION: Final = 0x10
+
+
+def encode_emcy(code: int, register: int, info: bytes = b"") -> bytes:
+    """An EMCY payload: error code (16 bits), error register 0x1001 (8 bits), up to 5 bytes of
+    manufacturer-specific information, zero-padded to 8 bytes.
+
+    Raises:
+        ValueError: more than 5 bytes of information.
+    """
+    if len(info) > 5:
+        raise ValueError(f"EMCY information is at most 5 bytes, got {len(info)}")
+    return struct.pack("<HB", code & 0xFFFF, register & 0xFF) + bytes(info).ljust(5, b"\0")
+
+
+def decode_emcy(data: bytes) -> tuple[int, int]:
+    """(error code, error register) of an EMCY payload (code 0x0000: error reset).
+
+    Raises:
+        ProtocolError: shorter than 3 bytes.
+    """
+    if len(data) < 3:
+        raise ProtocolError(f"EMCY message must have at least 3 bytes, got {bytes(data).hex()}")
+    code, register = struct.unpack_from("<HB", data)
+    return int(code), int(register)
+
+
+# -- reactions: abort connection, quick stop, fault reaction ------------------------------------
+
+
+class AbortConnection(IntEnum):
+    """0x6007 abort connection option code: what a drive does when it loses its master
+    (heartbeat or life-guarding event, bus-off, NMT stopped / reset)."""
+
+    NO_ACTION = 0
+    FAULT = 1  # "fault signal": Fault Reaction Active (0x605E), then Fault
+    DISABLE_VOLTAGE = 2  # the Disable Voltage command: Switch On Disabled, power stage off
+    QUICK_STOP = 3  # the Quick Stop command: Quick Stop Active (0x605A)
+
+
+class Ramp(Enum):
+    """How a drive brings the motor to rest in a quick stop or fault reaction."""
+
+    COAST = "disable drive function (coast, power stage off)"
+    SLOW_DOWN = "slow down ramp (0x6084 profile deceleration)"
+    QUICK_STOP = "quick stop ramp (0x6085 quick stop deceleration)"
+    CURRENT_LIMIT = "current limit"
+    VOLTAGE_LIMIT = "voltage limit"
+
+
+_QUICK_STOP_RAMPS: Final = (
+    Ramp.COAST, Ramp.SLOW_DOWN, Ramp.QUICK_STOP, Ramp.CURRENT_LIMIT, Ramp.VOLTAGE_LIMIT,
+    Ramp.SLOW_DOWN, Ramp.QUICK_STOP, Ramp.CURRENT_LIMIT, Ramp.VOLTAGE_LIMIT,
+)
+
+
+def quick_stop_reaction(option: int) -> tuple[Ramp, bool]:
+    """(ramp, stays in Quick Stop Active) of 0x605A quick stop option code ``option``.
+
+    0: disable drive function; 1-4: slow down on the slow down ramp / quick stop ramp /
+    current limit / voltage limit, then Switch On Disabled; 5-8: the same ramps, then stay in
+    Quick Stop Active holding the position (the only codes from which Enable Operation
+    returns to Operation Enabled, transition 16).
+
+    Raises:
+        ValueError: reserved or manufacturer-specific code (not 0..8).
+    """
+    if not 0 <= option <= 8:
+        raise ValueError(f"quick stop option code 0x605A must be 0..8, got {option!r}")
+    return _QUICK_STOP_RAMPS[option], option >= 5
+
+
+def fault_reaction(option: int) -> Ramp:
+    """The ramp of 0x605E fault reaction option code ``option`` (0: disable drive function,
+    1: slow down ramp, 2: quick stop ramp, 3: current limit, 4: voltage limit); the drive
+    then enters Fault (power stage off).
+
+    Raises:
+        ValueError: reserved or manufacturer-specific code (not 0..4).
+    """
+    if not 0 <= option <= 4:
+        raise ValueError(f"fault reaction option code 0x605E must be 0..4, got {option!r}")
+    return _QUICK_STOP_RAMPS[option]
 
 
 def describe_error(code: int) -> str:

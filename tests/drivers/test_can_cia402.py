@@ -52,6 +52,8 @@ class Rig:
             "counts_per_revolution": CPR,
             "feedback_timeout_s": 0.3,
             "boot_timeout_s": 2.0,
+            # Long: these tests pause between cycles; the watchdog's own tests shorten it.
+            "watchdog_s": 1.0,
             **params,
         }
         self.hw: Cia402Hardware | None = None
@@ -259,7 +261,8 @@ def test_drive_fault_names_the_drive_and_rearm_does_not_jump(rig: Rig) -> None:
     assert "node 7" in str(exc) and "'elbow'" in str(exc) and "0x4310" in str(exc)
     hw.deactivate(time.monotonic_ns())  # hold: the healthy drive stays enabled
     assert rig.drives[3].state is State.OPERATION_ENABLED
-    assert rig.drives[7].state is State.FAULT
+    # Fault Reaction Active (stopping the motor as 0x605E says), then Fault.
+    assert rig.drives[7].wait_state(State.FAULT, BOUND_S)
     details = hw.status()["details"]["drives"]["elbow"]
     assert details["error_code"] == "0x4310"
     assert details["last_emcy"] == "0x4310"  # the drive's emergency message

@@ -188,6 +188,61 @@ def test_cob_ids_and_nmt() -> None:
         c4.decode_nmt(b"\x01")
 
 
+# -- heartbeat, EMCY, reactions --------------------------------------------------------------------
+
+
+def test_heartbeat_frames() -> None:
+    # A master at node 127 reporting operational: COB-ID 0x77F, one byte 0x05.
+    assert c4.bootup_cob_id(127) == 0x77F
+    assert c4.encode_heartbeat(c4.NmtState.OPERATIONAL) == b"\x05"
+    assert c4.decode_heartbeat(0x77F, b"\x05") == (127, 5)
+    assert c4.decode_heartbeat(0x703, b"\x00") == (3, 0)  # a boot-up message
+    assert c4.decode_heartbeat(0x700, b"\x05") is None  # node id 0 does not exist
+    assert c4.decode_heartbeat(0x705, b"\x05\x00") is None  # not one byte
+    assert c4.decode_heartbeat(0x185, b"\x05") is None
+    with pytest.raises(ValueError):
+        c4.encode_heartbeat(0x80)
+
+
+def test_consumer_heartbeat_entry_layout() -> None:
+    # CiA 301 0x1016 sub-index 1..n: node id in bits 16-23, time in ms in bits 0-15.
+    assert c4.encode_consumer_entry(127, 100) == 0x007F0064
+    assert c4.decode_consumer_entry(0x007F0064) == (127, 100)
+    assert c4.decode_consumer_entry(0x007F0000) is None  # time 0: not used
+    assert c4.decode_consumer_entry(0x00000064) is None  # node id 0: not used
+    assert c4.decode_consumer_entry(0x00800064) is None  # node id above 127: not used
+    with pytest.raises(ValueError):
+        c4.encode_consumer_entry(127, 0x10000)
+    with pytest.raises(ValueError):
+        c4.encode_consumer_entry(0, 100)
+
+
+def test_emcy_payload() -> None:
+    data = c4.encode_emcy(c4.EMCY_HEARTBEAT, 0x11, b"\x7f")
+    assert data == bytes.fromhex("3081117f00000000")
+    assert c4.decode_emcy(data) == (0x8130, 0x11)
+    with pytest.raises(ProtocolError):
+        c4.decode_emcy(b"\x30\x81")
+    with pytest.raises(ValueError):
+        c4.encode_emcy(0x8130, 0x11, bytes(6))
+
+
+def test_reaction_option_codes() -> None:
+    assert [int(a) for a in c4.AbortConnection] == [0, 1, 2, 3]
+    assert c4.quick_stop_reaction(0) == (c4.Ramp.COAST, False)
+    assert c4.quick_stop_reaction(2) == (c4.Ramp.QUICK_STOP, False)
+    assert c4.quick_stop_reaction(5) == (c4.Ramp.SLOW_DOWN, True)
+    assert c4.quick_stop_reaction(6) == (c4.Ramp.QUICK_STOP, True)
+    assert c4.quick_stop_reaction(7) == (c4.Ramp.CURRENT_LIMIT, True)
+    assert c4.fault_reaction(0) is c4.Ramp.COAST
+    assert c4.fault_reaction(2) is c4.Ramp.QUICK_STOP
+    for bad in (-1, 9):
+        with pytest.raises(ValueError, match="0x605A"):
+            c4.quick_stop_reaction(bad)
+    with pytest.raises(ValueError, match="0x605E"):
+        c4.fault_reaction(5)
+
+
 def test_describe_error() -> None:
     assert c4.describe_error(0x4310) == "0x4310 excess temperature drive"
     assert c4.describe_error(0x4999) == "0x4999 temperature error"

@@ -3,11 +3,15 @@ emulated in this test process, over python-can's stock ``socketcand`` interface.
 
 This process runs the socketcand server (``jtc_hw.drivers.can.socketcand``) bridging TCP to a
 python-can virtual channel, and the emulated drives on that channel; the daemon subprocess
-connects with ``interface: socketcand``. Waits are on messages with deadlines; nothing sleeps.
+connects with ``interface: socketcand``. Waits are on messages, or on the emulated drives'
+record, with deadlines; nothing sleeps.
 """
 
 from __future__ import annotations
 
+import os
+import signal
+import time
 import uuid
 from collections.abc import Iterator
 from pathlib import Path
@@ -19,6 +23,7 @@ import yaml
 from helpers.daemon import WAIT_S, DaemonProcess, connect, next_state, settle
 
 from jtc_hw.api.client import Client
+from jtc_hw.api.framing import RequestError
 
 from conftest import make_robot_config
 
@@ -26,6 +31,7 @@ socketcand = pytest.importorskip(
     "jtc_hw.drivers.can.socketcand", reason="the socketcand server (CAN-MIT) is not available"
 )
 
+from jtc_hw.drivers.can.cia402_codec import AbortConnection, State  # noqa: E402
 from jtc_hw.drivers.can.cia402_emulator import Cia402DriveEmulator  # noqa: E402
 
 pytestmark = pytest.mark.usefixtures("no_leaks")  # threads, sockets, resources
@@ -48,6 +54,8 @@ def robot_yaml(socket_path: Path, port: int) -> dict[str, Any]:
                                "receive_timeout": 0.002, "setup_timeout": 0.5}},
             "node_id": NODES,
             "feedback_timeout_s": 0.25,
+            # Longer than the default 0.1 s: the drives are emulated in this busy test process.
+            "watchdog_s": 0.3,
         },
     }]
     return make_robot_config(socket_path, JOINTS, hardware, update_rate=250, goal_time=1.0,
@@ -149,3 +157,95 @@ def test_goal_succeeds_and_a_drive_fault_aborts_naming_the_drive(
         )
         back = client.send_goal(traj([0.1, 0.2], 1.0)).wait(timeout_s=WAIT_S)
         assert back["status"] == "succeeded", back
+
+
+def test_rearm_is_refused_in_one_line_while_a_drive_cannot_stay_enabled(
+    daemon: DaemonProcess, drives: Drives
+) -> None:
+    with connect(daemon) as client:
+        goal = client.send_goal(traj([0.3, 0.0], 1.0))
+        for feedback in goal.feedback(timeout_s=WAIT_S):
+            if feedback["time_from_start"] >= 0.2:
+                break
+        drives.drives[7].inject_fault(0x4310)
+        assert goal.wait(timeout_s=WAIT_S)["status"] == "aborted"
+        # Its enable input now opens right after each enabling (0x5441): the re-arm must not
+        # report holding.
+        drives.drives[7].lose_enable(1)
+        with pytest.raises(RequestError) as refused:
+            client.rearm()
+        message = str(refused.value)
+        assert "node 7" in message and "'elbow'" in message and "0x5441" in message, message
+        assert "\n" not in message and "Traceback" not in message, message
+        assert "node 7" in client.get_status()["controller"]["fault"]
+        drives.drives[7].lose_enable(None)
+        assert client.rearm()["rearmed"] is True
+        for d in drives.drives.values():
+            assert d.state is State.OPERATION_ENABLED
+        back = client.send_goal(traj([0.1, 0.2], 1.0)).wait(timeout_s=WAIT_S)
+        assert back["status"] == "succeeded", back
+
+
+def loop_process(daemon: DaemonProcess) -> int:
+    """The pid of the daemon's control-loop process (its child named ``jtc-hw-loop``, or the
+    one multiprocessing spawned; the other child is multiprocessing's resource tracker)."""
+    spawned = []
+    for entry in os.listdir("/proc"):
+        if not entry.isdigit():
+            continue
+        try:
+            stat = Path(f"/proc/{entry}/stat").read_text()
+            cmdline = Path(f"/proc/{entry}/cmdline").read_bytes()
+        except OSError:
+            continue
+        if int(stat[stat.rfind(")") + 2 :].split()[1]) != daemon.pid:
+            continue
+        if stat[stat.find("(") + 1 : stat.rfind(")")] == "jtc-hw-loop":
+            return int(entry)
+        if b"spawn_main" in cmdline:
+            spawned.append(int(entry))
+    assert len(spawned) == 1, f"expected one control-loop process, found {spawned}"
+    return spawned[0]
+
+
+@pytest.fixture
+def daemon_to_kill(tmp_path: Path, drives: Drives) -> Iterator[DaemonProcess]:
+    """The daemon, without the clean-exit check: its loop process will be killed."""
+    d = DaemonProcess(tmp_path / "d")
+    d.config_path.write_text(
+        yaml.safe_dump(robot_yaml(d.socket, drives.server.port), sort_keys=False)
+    )
+    d.start()
+    try:
+        d.wait_ready()
+        yield d
+    finally:
+        d.shutdown()  # its exit status is the API process's business (not tested here)
+        print(d.log())
+
+
+def test_killing_the_loop_process_quick_stops_the_drives(
+    daemon_to_kill: DaemonProcess, drives: Drives
+) -> None:
+    with connect(daemon_to_kill) as client:
+        goal = client.send_goal(traj([0.8, -0.6], 1.5))
+        for feedback in goal.feedback(timeout_s=WAIT_S):
+            if feedback["time_from_start"] >= 0.5:
+                break
+        for d in drives.drives.values():
+            assert d.state is State.OPERATION_ENABLED
+            assert d.heartbeat_consumers == {1: (127, 0.3, True)}  # watching the daemon
+            assert d.watchdog_trips == []
+        os.kill(loop_process(daemon_to_kill), signal.SIGKILL)
+        killed_at = time.monotonic()
+        for node, d in drives.drives.items():
+            trip = d.wait_watchdog_stop(WAIT_S)
+            assert trip is not None, f"drive {node} did not stop by itself"
+            assert trip.producer == 127 and trip.reaction is AbortConnection.QUICK_STOP
+            assert trip.state_before is State.OPERATION_ENABLED
+            # Caused by the kill (not an earlier stall): detected after it, a consumer time
+            # after the last heartbeat the drive received.
+            assert trip.detected_at >= killed_at, (trip, killed_at)
+            assert trip.detected_at - trip.last_heartbeat_at >= 0.3 - 1e-3, trip
+            assert trip.state_after is State.SWITCH_ON_DISABLED  # 0x605A 2: ramp, then off
+            assert d.state is State.SWITCH_ON_DISABLED

@@ -111,11 +111,23 @@ def test_crlf_and_blank_lines() -> None:
     assert Decoder().feed(b'\n  \r\n{"op":"hello"}\r\n\n') == [Hello()]
 
 
-def test_last_line_without_newline_at_end_of_input() -> None:
+def test_last_line_without_newline_at_end_of_input_is_never_parsed() -> None:
     decoder = Decoder()
-    assert decoder.feed(b'{"op": "hello", "id": 9}') == []
-    assert decoder.end() == [Hello(id=9)]
+    assert decoder.feed(b'{"op": "hello", "id": 1}\n{"op": "hello", "id": 9}') == [Hello(id=1)]
+    (refused,) = decoder.end()
+    assert isinstance(refused, RequestError) and refused.code == BAD_JSON
+    assert refused.request_id is None  # not even the id is read from a cut-off message
+    assert refused.message == (
+        "line 2: the connection ended before this message's newline; it was not executed "
+        "(end every message with \\n)"
+    )
     assert decoder.end() == []
+    blank = Decoder()
+    assert blank.feed(b'{"op": "hello"}\n \r') == [Hello()]
+    assert blank.end() == []  # only blanks after the last newline: nothing was cut off
+    long = Decoder(10)
+    assert [i.code for i in long.feed(b"x" * 20) if isinstance(i, RequestError)] == [TOO_LARGE]
+    assert long.end() == []  # the over-long line was reported already
 
 
 def test_oversize_line_then_valid_line_same_chunk() -> None:
@@ -533,6 +545,7 @@ def test_error_codes_are_the_documented_set() -> None:
         "not_found",
         "busy",
         "unauthorized",
+        "idle",
         "hardware",
         "internal",
     }

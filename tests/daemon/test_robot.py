@@ -228,7 +228,9 @@ def test_default_socket_path_order() -> None:
     assert default_socket_path({"XDG_RUNTIME_DIR": "/run/user/1000"}) == (
         "/run/user/1000/jtc-hw.sock"
     )
-    assert default_socket_path({}) == f"/tmp/jtc-hw-{os.getuid()}.sock"
+    assert default_socket_path({}, uid=0) == "/run/jtc-hw/jtc-hw.sock"
+    assert default_socket_path({}, uid=1000) == "/tmp/jtc-hw-1000/jtc-hw.sock"
+    assert default_socket_path({}) == default_socket_path({}, uid=os.geteuid())
 
 
 def test_default_socket_path_reads_the_environment(monkeypatch: pytest.MonkeyPatch) -> None:

@@ -23,6 +23,7 @@ from helpers.fake_backend import TOKEN, FakeBackend
 from helpers.peers import LogWatch, Peer, goal_msg, run, watch_server_log
 
 from jtc_hw import GoalResult
+from jtc_hw.api.paths import default_socket_path
 from jtc_hw.daemon.server import Server, ServerSettings, TcpEndpoint
 from jtc_hw.errors import ConfigurationError
 
@@ -506,12 +507,44 @@ def test_unix_socket_file_mode_directory_and_removal(tmp_path: Path) -> None:
         async with serving(path):
             st = os.stat(path)
             assert stat.S_ISSOCK(st.st_mode) and stat.S_IMODE(st.st_mode) == 0o660
+            # Created directories: only the daemon's user writes them (nobody else can swap
+            # the socket); the group that socket_mode lets connect may enter.
+            for directory in (path.parent, path.parent.parent):
+                assert stat.S_IMODE(os.stat(directory).st_mode) == 0o710
             peer = await Peer.unix(path)
             assert (await peer.request("hello"))["ok"]
             await peer.close()
         assert not path.exists()
         async with serving(path, socket_mode=0o600):
             assert stat.S_IMODE(os.stat(path).st_mode) == 0o600
+
+    run(main())
+
+
+@pytest.mark.skipif(os.geteuid() != 0, reason="makes a directory of another user: needs root")
+def test_a_default_socket_directory_of_another_user_is_refused(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    runtime = tmp_path / "xdg"
+    runtime.mkdir(0o700)
+    os.chown(runtime, 65534, -1)
+    monkeypatch.delenv("RUNTIME_DIRECTORY", raising=False)
+    monkeypatch.setenv("XDG_RUNTIME_DIR", str(runtime))
+
+    async def main() -> None:
+        server = Server(FakeBackend(), ServerSettings(socket=default_socket_path()))
+        with pytest.raises(ConfigurationError) as info:
+            await server.start()
+        assert str(info.value) == (
+            f"socket: refusing the default socket directory: {runtime} belongs to uid 65534, "
+            "not to uid 0 or root: another user may have created it to put a socket of theirs "
+            "in the daemon's place. Remove it (as root) and start again, or set daemon.socket "
+            "to a path in a directory only this daemon's user can write"
+        )
+        assert not (runtime / "jtc-hw.sock").exists()
+        # Another path in it, configured explicitly, is the operator's choice.
+        async with serving(runtime / "named.sock"):
+            assert (runtime / "named.sock").exists()
 
     run(main())
 

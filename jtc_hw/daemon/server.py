@@ -28,6 +28,14 @@ the ``accepted`` reply once the route exists.
 
 A client that disconnects while its goal runs does not stop the goal (as with a ROS action
 client that vanishes): the goal runs on to its result, which is logged and discarded.
+
+Admission (a stop always gets through): the unix socket and TCP have separate limits
+(``max_clients``, ``tcp.max_clients``); ``RESERVED_UNIX_CLIENTS`` more unix connections are
+admitted for peers whose ``SO_PEERCRED`` uid is the daemon's or root's. A connection over its
+limit is served by ``_serve_over_limit``: one ``stop`` (after ``auth`` on TCP) within
+``OVER_LIMIT_DEADLINE_S``, else ``busy``; then it is closed. Admitted connections are closed by
+their deadlines: a TCP connection that has not authenticated ``auth_timeout_s`` after opening,
+and a connection idle (no request, no subscription, no goal running) for ``idle_timeout_s``.
 """
 
 from __future__ import annotations
@@ -622,6 +630,10 @@ class Server:
                         '"token": ...}; closing the connection'
                     )
                     out.append(error_reply(rid, UNAUTHORIZED, message))
+                    return out
+                if isinstance(item, RequestError):
+                    # Say what is wrong with it (e.g. a stop without its newline is not run).
+                    out.append(self._error(conn, None, item))
                     return out
                 if isinstance(item, Stop):
                     self._stops_over_limit += 1

@@ -241,13 +241,21 @@ def test_a_stop_gets_through_when_every_slot_is_taken(
             backend.step(0.02)
             result = await holders[0].event("result")
             assert result["goal_id"] == goal["goal_id"] and result["status"] == "canceled"
+            # A stop cut off before its newline is not executed, over the limit either.
+            cut = await Peer.unix(path)
+            await cut.send(b'{"id": 1, "op": "stop"}')
+            cut.writer.write_eof()
+            refused_cut = await cut.recv()
+            assert refused_cut["error"]["code"] == "bad_json"
+            assert "it was not executed" in refused_cut["error"]["message"]
+            assert await cut.eof() == b""
             # Only the first request counts: a stop after another request is not served.
             late = await Peer.unix(path)
             await late.send(b'{"id": 1, "op": "get_status"}\n{"id": 2, "op": "stop"}\n')
             assert (await late.recv())["error"]["code"] == "busy"
             assert await late.eof() == b""
             assert server.stats()["stops_over_limit"] == 1
-            for peer in (*holders, *silent, refused, operator, late):
+            for peer in (*holders, *silent, refused, operator, cut, late):
                 await peer.close()
 
     run(main())
@@ -269,6 +277,10 @@ def test_tcp_has_its_own_limit_and_a_short_authentication_deadline(logs: LogWatc
             refused = await no_auth.request("stop")
             assert refused["error"]["code"] == "unauthorized"
             assert await no_auth.eof() == b""
+            garbage = await Peer.tcp(server.tcp_address)
+            await garbage.send(b"{{{\n")
+            assert (await garbage.recv())["error"]["code"] == "unauthorized"
+            assert await garbage.eof() == b""
             busy = await Peer.tcp(server.tcp_address)
             assert (await busy.request("auth", token=TOKEN))["ok"]
             assert (await busy.request("hello"))["error"]["code"] == "busy"
@@ -295,7 +307,7 @@ def test_tcp_has_its_own_limit_and_a_short_authentication_deadline(logs: LogWatc
             good = await Peer.tcp(server.tcp_address)  # the slots are free again
             assert (await good.request("auth", token=TOKEN))["ok"]
             assert (await good.request("hello"))["ok"]
-            for peer in (*squatters, over, no_auth, busy, good):
+            for peer in (*squatters, over, no_auth, garbage, busy, good):
                 await peer.close()
             assert backend.stops == 1
 

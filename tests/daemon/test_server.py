@@ -392,6 +392,38 @@ def test_one_shot_client_half_closes_and_still_gets_its_reply(sock: Path) -> Non
     run(main())
 
 
+def test_edge_inputs_are_answered_and_never_executed(sock: Path) -> None:
+    async def main() -> None:
+        async with serving(sock) as (_, backend):
+            peer = await Peer.unix(sock)
+            # A lone surrogate: answered (the text escaped), the connection kept, not run.
+            await peer.send(b'{"id": 1, "op": "sim", "component": "mirror", "freeze": true, '
+                            b'"fault": "servo \\ud800"}\n')
+            refused = await peer.reply(1)
+            assert refused["error"]["code"] == "bad_request"
+            assert 'fault "servo \\ud800" holds a lone UTF-16 surrogate' in (
+                refused["error"]["message"]
+            )
+            assert not backend.mirror.frozen
+            await peer.send(b'{"id": "\\udc00", "op": "send_goal", "trajectory": '
+                            + json.dumps(goal_msg()).encode() + b"}\n")
+            assert (await peer.reply(None))["error"]["code"] == "bad_request"
+            assert backend.ctrl.active_goal is None
+            assert (await peer.request("get_status"))["ok"]  # nothing poisoned
+            # The end of the clock, and absurd values: refused, naming the point.
+            late = await peer.request("send_goal", trajectory=goal_msg(start_time_ns=2**63 - 1))
+            assert late["error"]["code"] == "bad_request"
+            assert "after the end of the daemon clock's range" in late["error"]["message"]
+            huge = await peer.request("send_goal", trajectory=goal_msg(positions=(0.0, 1e308)))
+            assert huge["error"]["message"].startswith(
+                "trajectory.points[0].positions[1] (joint 'j2'): 1e+308 is out of range"
+            )
+            assert backend.ctrl.active_goal is None
+            await peer.close()
+
+    run(main())
+
+
 def test_a_last_message_without_its_newline_is_never_executed(sock: Path) -> None:
     """It may be cut off (a client that died mid-write): a stop, a goal, anything."""
 

@@ -249,6 +249,24 @@ def test_busy_and_missing_daemon(sock: Path, tmp_path: Path) -> None:
         Client.connect(tmp_path / "nobody.sock")
 
 
+def test_an_idle_connection_closed_by_the_daemon_says_why(sock: Path) -> None:
+    srv = ServerThread(ServerSettings(socket=sock, idle_timeout_s=0.2))
+    try:
+        client = Client.connect(sock)
+        try:
+            client._reader.join(10.0)  # the reader ends when the daemon closes the connection
+            assert not client._reader.is_alive()
+            with pytest.raises(ClientConnectionError) as info:
+                client.hello()
+            assert "(idle: no request for 0.2 s, no subscription and no goal running" in str(
+                info.value
+            )
+        finally:
+            client.close()
+    finally:
+        srv.close()
+
+
 def test_default_path_from_environment(
     daemon: ServerThread, sock: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:

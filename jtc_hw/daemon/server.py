@@ -591,7 +591,8 @@ class Server:
                 conn.label,
                 self._over_limit[kind],
             )
-            await self._write_and_close(writer, [error_reply(None, BUSY, self._busy_message(kind))])
+            busy = error_reply(None, BUSY, self._busy_message(kind))
+            await self._write_and_close(writer, [encode(busy)])
             return
         log.info("%s is over the limit: serving only a stop request", conn.label)
         self._over_limit[kind] += 1
@@ -601,17 +602,18 @@ class Server:
             self._over_limit[kind] -= 1
         await self._write_and_close(writer, answer)
 
-    async def _over_limit_request(self, conn: Connection) -> list[dict[str, Any]]:
+    async def _over_limit_request(self, conn: Connection) -> list[bytes]:
+        """The messages to send before closing (an ``auth`` reply is written at once)."""
         deadline = time.monotonic() + OVER_LIMIT_DEADLINE_S
         decoder = Decoder(_OVER_LIMIT_MAX_BYTES)
-        out: list[dict[str, Any]] = []
+        out: list[bytes] = []
         while True:
             try:
                 data = await asyncio.wait_for(
                     conn.reader.read(_READ_CHUNK), max(0.0, deadline - time.monotonic())
                 )
             except TimeoutError:
-                out.append(error_reply(None, BUSY, self._busy_message(conn.kind)))
+                out.append(encode(error_reply(None, BUSY, self._busy_message(conn.kind))))
                 return out
             except OSError:
                 return out
@@ -629,11 +631,11 @@ class Server:
                         else 'the first request on a TCP connection must be {"op": "auth", '
                         '"token": ...}; closing the connection'
                     )
-                    out.append(error_reply(rid, UNAUTHORIZED, message))
+                    out.append(encode(error_reply(rid, UNAUTHORIZED, message)))
                     return out
                 if isinstance(item, RequestError):
                     # Say what is wrong with it (e.g. a stop without its newline is not run).
-                    out.append(self._error(conn, None, item))
+                    out.append(encode(self._error(conn, None, item)))
                     return out
                 if isinstance(item, Stop):
                     self._stops_over_limit += 1
@@ -642,15 +644,13 @@ class Server:
                     assert answer is not None  # only send_goal sends its own reply
                     out.append(answer)
                     return out
-                out.append(error_reply(rid, BUSY, self._busy_message(conn.kind)))
+                out.append(encode(error_reply(rid, BUSY, self._busy_message(conn.kind))))
                 return out
             if not data:
                 return out
 
-    async def _write_and_close(
-        self, writer: asyncio.StreamWriter, messages: Sequence[dict[str, Any]]
-    ) -> None:
-        writer.write(b"".join(encode(m) for m in messages))
+    async def _write_and_close(self, writer: asyncio.StreamWriter, messages: list[bytes]) -> None:
+        writer.write(b"".join(messages))
         try:
             await asyncio.wait_for(writer.drain(), self.settings.close_timeout_s)
             writer.close()
@@ -793,16 +793,14 @@ class Server:
             return
         answer = await self._answer(conn, item)
         if answer is not None:
-            conn.send(encode(answer))
+            conn.send(answer)
 
-    async def _answer(self, conn: Connection, item: Request) -> dict[str, Any] | None:
-        """Execute a request: its reply (success or error), or ``None`` when ``_dispatch``
-        has sent it already. Never raises: a failure is an error reply, logged."""
+    async def _answer(self, conn: Connection, item: Request) -> bytes | None:
+        """Execute a request: its encoded reply (success or error), or ``None`` when
+        ``_dispatch`` has sent it already. Never raises: a failure is an error reply, logged."""
         try:
             answer = await self._dispatch(conn, item)
-            if answer is not None:
-                encode(answer)  # a reply that cannot be encoded is an internal error
-            return answer
+            return None if answer is None else encode(answer)
         except RequestError as exc:
             error = exc
         except GoalRejected as exc:
@@ -818,8 +816,9 @@ class Server:
         except Exception as exc:
             log.exception("%s: %s failed", conn.label, item.op)
             message = f"internal error: {type(exc).__name__}: {exc}"
-            return self._error(conn, item, RequestError(INTERNAL, message, item.id), logged=True)
-        return self._error(conn, item, error)
+            error = RequestError(INTERNAL, message, item.id)
+            return encode(self._error(conn, item, error, logged=True))
+        return encode(self._error(conn, item, error))
 
     def _authenticate(self, conn: Connection, item: Request | RequestError) -> None:
         if isinstance(item, Auth) and self._token_ok(item.token):

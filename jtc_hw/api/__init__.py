@@ -7,14 +7,17 @@
 """
 
 from .client import (
+    UNTRUSTED,
     Client,
     ClientConnectionError,
     GoalHandle,
     StateSubscription,
     default_socket_path,
 )
+from .framing import RequestError
 
 __all__ = [
+    "UNTRUSTED",
     "Client",
     "ClientConnectionError",
     "GoalHandle",

@@ -35,11 +35,14 @@ Drive robot joints with ROS 2 joint_trajectory_controller semantics, without ROS
   jtc-hw run robot.yaml        run the daemon (under systemd: see config/jtc-hw.service)
   jtc-hw send goal.yaml        send a trajectory to a running daemon and watch it
   jtc-hw state --watch         live table of the controller state
+  jtc-hw stop                  stop any motion and hold (gets through a daemon with every
+                               client slot taken)
   jtc-hw rearm                 leave a hardware fault, holding where the joints are
   jtc-hw emulate dynamixel     emulated servos on a pseudo-terminal (no robot needed)
 
 Client commands find the daemon's socket from --socket, else --config's daemon.socket,
-else $JTC_HW_SOCKET, else the default path (see 'jtc-hw check' for a config's path).
+else $JTC_HW_SOCKET, else the default path (see 'jtc-hw check' for a config's path). A socket
+at the default path is used only if it and the process behind it belong to you or root.
 """
 
 
@@ -64,12 +67,15 @@ def load_goal_file(path: str) -> dict[str, Any]:
         raise ConfigurationError(f"cannot read the trajectory file: {exc.strerror}", path) from exc
     if p.suffix.lower() == ".csv":
         return {"trajectory": _csv_trajectory(text, path)}
-    try:
-        data = json.loads(text) if p.suffix.lower() == ".json" else yaml.safe_load(text)
-    except (ValueError, yaml.YAMLError) as exc:
-        raise ConfigurationError(
-            f"not valid {p.suffix[1:].upper() or 'YAML'}: {exc}", path
-        ) from exc
+    if p.suffix.lower() == ".json":
+        try:
+            data = json.loads(text)
+        except ValueError as exc:
+            raise ConfigurationError(f"not valid JSON: {exc}", path) from exc
+    else:
+        from .controller.parsing import load_yaml
+
+        data = load_yaml(text, path)  # strict, alias expansion bounded
     if not isinstance(data, dict):
         raise ConfigurationError("expected a mapping with joint_names and points", path)
     if "trajectory" in data:
@@ -124,24 +130,34 @@ def _csv_trajectory(text: str, path: str) -> dict[str, Any]:
 # -- helpers ----------------------------------------------------------------------------------
 
 
-def _socket(args: argparse.Namespace) -> str:
+def _socket(args: argparse.Namespace) -> tuple[str, bool]:
+    """The daemon's socket, and whether it was named (not found by the default rule)."""
+    from .api.client import default_socket_path
+    from .api.paths import default_socket_path as default_rule
+
     if getattr(args, "socket", None):
-        return str(args.socket)
+        return str(args.socket), True
     if getattr(args, "config", None):
         from .daemon.robot import load_robot
 
-        return load_robot(args.config).daemon.socket
-    from .api.client import default_socket_path
+        path = load_robot(args.config).daemon.socket
+        return path, path != default_rule()
+    return default_socket_path(), bool(os.environ.get("JTC_HW_SOCKET"))
 
-    return default_socket_path()
 
+def _connect(args: argparse.Namespace, hello: bool = True) -> Any:
+    from .api.client import UNTRUSTED, Client, ClientConnectionError
 
-def _connect(args: argparse.Namespace) -> Any:
-    from .api.client import Client
-
-    path = _socket(args)
+    path, named = _socket(args)
     try:
-        return Client.connect(path, timeout_s=args.timeout)
+        return Client.connect(path, timeout_s=args.timeout, hello=hello, check_owner=not named)
+    except ClientConnectionError as exc:
+        if exc.code == UNTRUSTED:
+            raise _NoDaemon(str(exc)) from exc
+        raise _NoDaemon(
+            f"cannot reach a jtc-hw daemon at {path}: {exc}. Is it running "
+            "('jtc-hw run CONFIG', or 'systemctl status jtc-hw')? Use --socket to point at it."
+        ) from exc
     except (OSError, JtcHwError) as exc:
         raise _NoDaemon(
             f"cannot reach a jtc-hw daemon at {path}: {exc}. Is it running "
@@ -196,15 +212,24 @@ class Progress:
 # -- commands ---------------------------------------------------------------------------------
 
 
+def _print_warnings(warnings: Sequence[str], stream: Any = None) -> None:
+    # Under systemd, stderr goes to the journal: "<4>" gives the line warning priority.
+    prefix = "<4>" if os.environ.get("JOURNAL_STREAM") and stream is sys.stderr else ""
+    for warning in warnings:
+        print(f"{prefix}warning: {warning}", file=stream or sys.stdout)
+
+
 def cmd_run(args: argparse.Namespace) -> int:
+    from .daemon.robot import load_robot, security_warnings
     from .daemon.service import run
 
+    _print_warnings(security_warnings(load_robot(args.config_file, args.controller)), sys.stderr)
     return run(args.config_file, args.controller)
 
 
 def cmd_check(args: argparse.Namespace) -> int:
     from .controller.config_io import explain
-    from .daemon.robot import load_robot
+    from .daemon.robot import load_robot, security_warnings
 
     robot = load_robot(args.config_file, args.controller)
     c = robot.controller
@@ -229,13 +254,16 @@ def cmd_check(args: argparse.Namespace) -> int:
         print(f"  hardware        {h.name}: {h.kind}, joints {', '.join(h.joints)}")
     d = robot.daemon
     print(f"  socket          {d.socket} (mode {d.socket_mode:o})")
+    tcp = f"; tcp {d.tcp.host}:{d.tcp.port} max {d.tcp.max_clients}" if d.tcp else ""
+    idle = f"{d.idle_timeout_s:g} s" if d.idle_timeout_s else "never"
+    print(f"  clients         unix max {d.max_clients} (+2 for its user and root){tcp}; "
+          f"idle timeout {idle}")
     rt = d.realtime
     print(
         f"  realtime        priority {rt.priority or 'normal'}, lock_memory {rt.lock_memory}, "
         f"cpu_affinity {list(rt.cpu_affinity) or 'any'}"
     )
-    for warning in explain(c):
-        print(f"warning: {warning}")
+    _print_warnings([*explain(c), *security_warnings(robot)])
     return EXIT_OK
 
 
@@ -345,6 +373,18 @@ def cmd_query(args: argparse.Namespace) -> int:
             values = reply.get(key) or reply.get("desired", {}).get(key)
             print(f"  {key:<13} {_fmt(values)}")
         print(f"  joints        {' '.join(f'{n:>9}' for n in names)}")
+        return EXIT_OK
+
+
+def cmd_stop(args: argparse.Namespace) -> int:
+    # No hello: "stop" must be the first request to be served by a daemon whose client slots
+    # are all taken.
+    with _connect(args, hello=False) as client:
+        reply = client.stop(timeout_s=args.timeout)
+        if not reply.get("stopped"):
+            print(reply.get("message") or "nothing to stop")
+            return EXIT_OK
+        print("stopped: holding the measured position (an active goal ends canceled)")
         return EXIT_OK
 
 
@@ -731,6 +771,19 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("t", type=float, metavar="T")
     client_options(p)
     p.set_defaults(func=cmd_query)
+
+    p = sub.add_parser(
+        "stop",
+        help="stop any motion and hold where the joints are",
+        description=(
+            "Stop any motion: the executing goal ends canceled (its client gets the result), "
+            "a topic trajectory stops, and the controller holds the measured position. The "
+            "daemon serves a stop even when every client slot is taken (a connection over the "
+            "limit may send one stop). A stopped or faulted robot: nothing to do, exit 0."
+        ),
+    )
+    client_options(p)
+    p.set_defaults(func=cmd_stop)
 
     p = sub.add_parser(
         "rearm",

@@ -7,6 +7,7 @@
 """
 
 from .client import (
+    UNTRUSTED,
     Client,
     ClientConnectionError,
     GoalHandle,
@@ -16,6 +17,7 @@ from .client import (
 from .framing import RequestError
 
 __all__ = [
+    "UNTRUSTED",
     "Client",
     "ClientConnectionError",
     "GoalHandle",

@@ -24,6 +24,7 @@ import itertools
 import logging
 import os
 import socket
+import struct
 import threading
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from types import TracebackType
@@ -34,6 +35,7 @@ from ..controller.trajectory import JointTrajectory
 from ..errors import GoalRejected, ProtocolError
 from .framing import BUSY, GOAL_REJECTED, PROTOCOL_VERSION, MessageDecoder, RequestError, encode
 from .paths import default_socket_path as daemon_default
+from .paths import socket_problem, trusted_uid
 from .protocol import tolerances_to_json, trajectory_to_json
 
 log = logging.getLogger("jtc_hw.client")
@@ -347,6 +349,8 @@ class Client:
         tcp: tuple[str, int] | None = None,
         token: str | None = None,
         timeout_s: float = DEFAULT_TIMEOUT_S,
+        hello: bool = True,
+        check_owner: bool | None = None,
     ) -> Client:
         """Connect, authenticate (TCP), and say ``hello``.
 
@@ -356,11 +360,21 @@ class Client:
             tcp: ``(host, port)`` of the daemon's loopback TCP endpoint.
             token: the TCP token.
             timeout_s: for connecting and the default for every request.
+            hello: say ``hello`` (and fill ``info``); without it the first request is the
+                caller's, e.g. a ``stop`` that must get through a daemon with every client
+                slot taken (it is served over the limit; ``hello`` would get ``busy``).
+            check_owner: before trusting the unix socket, check that the file and the process
+                listening on it (``SO_PEERCRED``) belong to this user or root, and that its
+                directory is theirs alone. Default: when the path is the default one (no
+                ``path``, no ``$JTC_HW_SOCKET``): that path is guessable, so another local
+                user could have put a socket there first. A path named explicitly is trusted
+                as named (e.g. a daemon of another user whose group may use it).
 
         Raises:
             ValueError: both ``path`` and ``tcp``, or ``tcp`` without ``token``.
             ClientConnectionError: nobody listens, the daemon is busy (``code`` ``busy``),
-                or the connection dropped.
+                the socket failed the owner check (``code`` ``untrusted``; the message says
+                why and what to do), or the connection dropped.
             RequestError: the daemon refused the token (``unauthorized``) or the ``hello``.
             ProtocolError: the daemon speaks another protocol version.
             TimeoutError: no answer within ``timeout_s``.
@@ -377,6 +391,10 @@ class Client:
         else:
             where = os.fspath(path) if path is not None else default_socket_path()
             family, address, label = socket.AF_UNIX, where, str(where)
+            if check_owner is None:
+                check_owner = path is None and not os.environ.get("JTC_HW_SOCKET")
+            if check_owner:
+                _refuse_untrusted(where, socket_problem(where))
         sock = socket.socket(family, socket.SOCK_STREAM)
         try:
             sock.settimeout(timeout_s)
@@ -388,14 +406,21 @@ class Client:
             raise ClientConnectionError(
                 f"cannot connect to the daemon at {label}: {exc.strerror or exc}{hint}"
             ) from None
+        if family == socket.AF_UNIX and check_owner:
+            try:
+                _refuse_untrusted(str(address), _peer_problem(sock))
+            except BaseException:
+                sock.close()
+                raise
         client = cls(sock, timeout_s, label)
         try:
             if tcp is not None:
                 assert token is not None
                 client._request("auth", {"token": token}, timeout_s)
-            client.info = client._request(
-                "hello", {"protocol_version": PROTOCOL_VERSION}, timeout_s
-            )
+            if hello:
+                client.info = client._request(
+                    "hello", {"protocol_version": PROTOCOL_VERSION}, timeout_s
+                )
         except RequestError as exc:
             client.close()
             if exc.code == BUSY:  # sent before any request: a refusal of the connection
@@ -499,14 +524,21 @@ class Client:
         )
 
     def stop(self, timeout_s: float | None = None) -> dict[str, Any]:
-        """Hold the current position (an empty topic trajectory); cancels an active goal.
+        """End any motion and hold the measured position: the active goal ends ``canceled``,
+        a topic trajectory stops. The daemon serves it even when every client slot is taken
+        (connect with ``hello=False`` and make it the first request).
+
+        Returns:
+            The reply: ``stopped`` is False (with a ``message``) when there was nothing to
+            stop, the controller not being active (e.g. stopped by a hardware fault).
 
         Raises:
-            GoalRejected: the controller is not active.
+            RequestError: ``hardware``: the daemon could not reach its control loop;
+                ``busy``: not served (it was not the first request over the limit).
             TimeoutError: no reply within the timeout.
             ClientConnectionError: the connection is lost.
         """
-        return self.send_trajectory({"joint_names": [], "points": []}, timeout_s=timeout_s)
+        return self._request("stop", {}, timeout_s)
 
     def query_state(
         self,
@@ -792,6 +824,40 @@ class Client:
             goal._connection_lost(error)
         for subscription in subscriptions:
             subscription._connection_lost(error)
+
+
+UNTRUSTED = "untrusted"
+"""``ClientConnectionError.code`` of a socket that failed the owner check."""
+
+
+def _refuse_untrusted(path: str, problem: str | None) -> None:
+    if problem is None:
+        return
+    raise ClientConnectionError(
+        f"refusing the daemon socket {path}: {problem}. If it is stale, remove it; if you "
+        "trust that daemon, name its socket explicitly (--socket PATH, or JTC_HW_SOCKET=PATH)",
+        UNTRUSTED,
+    )
+
+
+def _peer_problem(sock: socket.socket) -> str | None:
+    """Whether the process listening on ``sock`` is this user's or root's (``SO_PEERCRED``:
+    recorded by the kernel when it called ``listen``, it cannot be forged)."""
+    peercred = getattr(socket, "SO_PEERCRED", None)
+    if peercred is None:  # pragma: no cover - not Linux: the file owner check stands alone
+        return None
+    try:
+        pid, uid, _gid = struct.unpack(
+            "3i", sock.getsockopt(socket.SOL_SOCKET, peercred, struct.calcsize("3i"))
+        )
+    except OSError as exc:
+        return f"the listening process cannot be identified ({exc})"
+    if trusted_uid(uid):
+        return None
+    return (
+        f"the process listening on it (pid {pid}) runs as uid {uid}, not as uid "
+        f"{os.geteuid()} or root: it is not your daemon"
+    )
 
 
 def _error(message: dict[str, Any]) -> Exception:

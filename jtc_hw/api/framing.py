@@ -3,7 +3,8 @@
 Every message is one JSON object on one line, UTF-8, ending with ``\\n`` (a ``\\r`` before it is
 ignored, blank lines are skipped). :class:`MessageDecoder` turns whatever the socket gave into
 complete JSON objects, with the refusals the protocol adds to Python's ``json`` (``NaN`` tokens,
-duplicate keys, over-long lines reported once and skipped); :func:`encode` writes one message.
+duplicate keys, lone surrogate escapes, over-long lines reported once and skipped, a last line
+without its newline never decoded); :func:`encode` writes one message.
 The error codes and :class:`RequestError` live here because both directions use them; what a
 request means is :mod:`jtc_hw.api.protocol`.
 """
@@ -12,6 +13,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 from enum import Enum
 from typing import Any
 
@@ -21,7 +23,7 @@ from ..errors import ProtocolError
 
 __all__ = [
     "BAD_JSON", "BAD_REQUEST", "BUSY", "DEFAULT_MAX_MESSAGE_BYTES", "ERROR_CODES", "GOAL_REJECTED",
-    "HARDWARE", "INTERNAL", "NOT_ACTIVE", "NOT_FOUND", "PROTOCOL_VERSION", "TOO_LARGE",
+    "HARDWARE", "IDLE", "INTERNAL", "NOT_ACTIVE", "NOT_FOUND", "PROTOCOL_VERSION", "TOO_LARGE",
     "UNAUTHORIZED", "UNKNOWN_OP", "MessageDecoder", "RequestError", "RequestId", "encode",
     "error_reply", "reply",
 ]
@@ -43,6 +45,7 @@ NOT_ACTIVE = "not_active"
 NOT_FOUND = "not_found"
 BUSY = "busy"
 UNAUTHORIZED = "unauthorized"
+IDLE = "idle"
 HARDWARE = "hardware"
 INTERNAL = "internal"
 ERROR_CODES = (
@@ -55,6 +58,7 @@ ERROR_CODES = (
     NOT_FOUND,
     BUSY,
     UNAUTHORIZED,
+    IDLE,
     HARDWARE,
     INTERNAL,
 )
@@ -143,11 +147,18 @@ def _unique_keys(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
     return obj
 
 
+# A JSON ``\uD800``..``\uDFFF`` escape: the only way a surrogate code point reaches a decoded
+# string (raw UTF-8 cannot carry one; Python's codec refuses it). A pair is joined into one
+# character by ``json``; a lone one stays in the ``str`` and can never be written back as UTF-8.
+_SURROGATE_ESCAPE = re.compile(rb"\\u[dD][89abcdefABCDEF]")
+
+
 def _loads_line(line: bytes, lineno: int) -> Any:
     """Decode one message's JSON.
 
     Raises:
-        RequestError: ``bad_json``, with the connection line and the column.
+        RequestError: ``bad_json``, with the connection line and the column; ``bad_request``
+            for a string holding a lone surrogate (names its JSON path, the text escaped).
     """
     try:
         text = line.decode("utf-8")
@@ -156,7 +167,7 @@ def _loads_line(line: bytes, lineno: int) -> Any:
             BAD_JSON, f"line {lineno}: not valid UTF-8 at byte {exc.start + 1}"
         ) from None
     try:
-        return json.loads(text, parse_constant=_refuse_constant, object_pairs_hook=_unique_keys)
+        obj = json.loads(text, parse_constant=_refuse_constant, object_pairs_hook=_unique_keys)
     except json.JSONDecodeError as exc:
         raise RequestError(
             BAD_JSON, f"line {lineno}, column {exc.colno}: malformed JSON: {exc.msg}"
@@ -167,6 +178,72 @@ def _loads_line(line: bytes, lineno: int) -> Any:
         raise RequestError(BAD_JSON, f"line {lineno}: JSON nested too deeply") from None
     except ValueError as exc:  # e.g. an integer literal with more than 4300 digits
         raise RequestError(BAD_JSON, f"line {lineno}: {exc}") from None
+    if _SURROGATE_ESCAPE.search(line) is not None:
+        _refuse_unencodable(obj, lineno)
+    return obj
+
+
+def _unencodable(text: str) -> bool:
+    if text.isascii():
+        return False
+    try:
+        text.encode("utf-8")
+    except UnicodeEncodeError:
+        return True
+    return False
+
+
+def _escaped(text: str, limit: int = 40) -> str:
+    """``text`` as a JSON string literal with every non-ASCII character escaped (so that a
+    message quoting it can always be encoded), shortened to about ``limit`` characters."""
+    quoted = json.dumps(text)
+    return quoted if len(quoted) <= limit else quoted[: limit - 4] + '..."'
+
+
+def _refuse_unencodable(obj: Any, lineno: int) -> None:
+    """Raise for the first string (key or value) of ``obj`` that is not valid Unicode.
+
+    Iterative: ``obj`` may be nested as deeply as ``json`` allows.
+
+    Raises:
+        RequestError: ``bad_request`` naming the JSON path, with the request ``id`` when it is
+            itself usable.
+    """
+    rid: RequestId = None
+    if isinstance(obj, dict):
+        candidate = obj.get("id")
+        if (isinstance(candidate, int) and not isinstance(candidate, bool)) or (
+            isinstance(candidate, str) and not _unencodable(candidate)
+        ):
+            rid = candidate
+    stack: list[tuple[str, Any]] = [("", obj)]
+    while stack:
+        path, value = stack.pop()
+        bad: str | None
+        if isinstance(value, str):
+            bad, where = value, path or "the message"
+        elif isinstance(value, dict):
+            bad = next((key for key in value if _unencodable(key)), None)
+            where = f"{path}: the key" if path else "the key"
+            if bad is None:
+                items = list(value.items())
+                stack.extend(
+                    (f"{path}.{key}" if path else key, item) for key, item in reversed(items)
+                )
+                continue
+        elif isinstance(value, list):
+            stack.extend((f"{path}[{i}]", item) for i, item in reversed(list(enumerate(value))))
+            continue
+        else:
+            continue
+        if bad is not None and _unencodable(bad):
+            raise RequestError(
+                BAD_REQUEST,
+                f"line {lineno}: {where} {_escaped(bad)} holds a lone UTF-16 surrogate "
+                "(a \\uD800-\\uDFFF escape without its pair), which is not a character; "
+                "send valid Unicode text. The request was not executed",
+                rid,
+            )
 
 
 class _Lines:
@@ -210,14 +287,15 @@ class _Lines:
         self._scanned = len(buf)
         return out
 
-    def end(self) -> list[tuple[int, bytes | None]]:
-        """The last, unterminated line at end of input, if any."""
+    def end(self) -> int | None:
+        """Forget the input after the last newline; the line number of that unterminated
+        rest if it held anything but blanks (an over-long line was reported already)."""
         rest, self._buf, self._scanned = bytes(self._buf), bytearray(), 0
-        if self._discarding or not rest:
-            self._discarding = False
-            return []
+        discarding, self._discarding = self._discarding, False
+        if discarding or not rest.strip():
+            return None
         self.lineno += 1
-        return [self._line(rest)]
+        return self.lineno
 
     def _line(self, line: bytes) -> tuple[int, bytes | None]:
         if line.endswith(b"\r"):
@@ -252,12 +330,25 @@ class MessageDecoder:
         return self._decode(self._lines.feed(data))
 
     def end(self) -> list[dict[str, Any] | RequestError]:
-        """Call at end of input: decodes a last line that had no newline.
+        """Call at end of input. A last message without its newline is never decoded: it may
+        be cut off (the peer died mid-write), and a truncated request must not be executed.
+
+        Returns:
+            Nothing, or one ``bad_json`` error for the unterminated rest.
 
         Raises:
             Nothing: every problem is returned as a value.
         """
-        return self._decode(self._lines.end())
+        lineno = self._lines.end()
+        if lineno is None:
+            return []
+        return [
+            RequestError(
+                BAD_JSON,
+                f"line {lineno}: the connection ended before this message's newline; it was "
+                "not executed (end every message with \\n)",
+            )
+        ]
 
     def _decode(self, lines: list[tuple[int, bytes | None]]) -> list[dict[str, Any] | RequestError]:
         out: list[dict[str, Any] | RequestError] = []
@@ -319,12 +410,19 @@ def encode(obj: Any) -> bytes:
     Accepts dicts, lists, tuples, strings, numbers, booleans, ``None``, enums (their value),
     numpy arrays and scalars. A non-finite float (``NaN``, ``inf``) is written as ``null``: it
     means "no value" (e.g. a joint without a velocity reading), and JSON has no such numbers.
+    A lone surrogate in a string (not Unicode, cannot be UTF-8) is written as U+FFFD.
 
     Raises:
         TypeError: ``obj`` contains something else.
     """
     text = json.dumps(_jsonable(obj), allow_nan=False, ensure_ascii=False, separators=(",", ":"))
-    return text.encode("utf-8") + b"\n"
+    try:
+        return text.encode("utf-8") + b"\n"
+    except UnicodeEncodeError:
+        # A lone surrogate in a string that did not come off the wire (requests holding one
+        # are refused), e.g. a driver's error text: U+FFFD, so the message is still sent.
+        fixed = text.encode("utf-16", "surrogatepass").decode("utf-16", "replace")
+        return fixed.encode("utf-8") + b"\n"
 
 
 def reply(request_id: RequestId, **fields: Any) -> dict[str, Any]:

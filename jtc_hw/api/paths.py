@@ -1,24 +1,58 @@
-"""Where the daemon's socket is when nobody says: one rule for the daemon and its clients."""
+"""Where the daemon's socket is when nobody says, and whether a place for it can be trusted.
+
+One rule for the daemon and its clients. The default socket lives in a directory only the
+daemon's user (or root) can write, so that no other local user can put a socket there first
+and have clients talk to it ("squatting"): ``$RUNTIME_DIRECTORY`` (systemd's
+``RuntimeDirectory=``), ``$XDG_RUNTIME_DIR`` (the login session's, mode 0700), ``/run/jtc-hw``
+for root, else a private directory ``/tmp/jtc-hw-<uid>/`` that the daemon creates 0700 and
+that both sides check (owner, mode) before use. The checks here do not raise: they return what
+is wrong, and the daemon and the client each turn it into their own error.
+"""
 
 from __future__ import annotations
 
 import os
+import stat
 from collections.abc import Mapping
 from typing import Final
 
-__all__ = ["SOCKET_NAME", "default_socket_path"]
+__all__ = [
+    "ROOT_SOCKET_DIR",
+    "SOCKET_NAME",
+    "default_socket_path",
+    "directory_problem",
+    "private_fallback_dir",
+    "socket_problem",
+    "trusted_uid",
+]
 
 SOCKET_NAME: Final = "jtc-hw.sock"
+ROOT_SOCKET_DIR: Final = "/run/jtc-hw"
+"""The default directory of a daemon run by root without a runtime directory."""
 
 
-def default_socket_path(environ: Mapping[str, str] | None = None) -> str:
+def private_fallback_dir(uid: int | None = None) -> str:
+    """``/tmp/jtc-hw-<uid>``: the last resort, for a user without a runtime directory.
+
+    Raises:
+        Nothing.
+    """
+    return f"/tmp/jtc-hw-{os.geteuid() if uid is None else uid}"
+
+
+def default_socket_path(environ: Mapping[str, str] | None = None, uid: int | None = None) -> str:
     """Where the socket goes when ``daemon.socket`` is not given.
 
     ``$RUNTIME_DIRECTORY/jtc-hw.sock`` (systemd's ``RuntimeDirectory=``; the first one if it
-    lists several), else ``$XDG_RUNTIME_DIR/jtc-hw.sock``, else ``/tmp/jtc-hw-<uid>.sock``.
+    lists several), else ``$XDG_RUNTIME_DIR/jtc-hw.sock``, else ``/run/jtc-hw/jtc-hw.sock`` for
+    root, else ``/tmp/jtc-hw-<uid>/jtc-hw.sock``. No I/O.
 
     Args:
         environ: the environment to look in (default: ``os.environ``).
+        uid: whose default (default: this process's effective uid).
+
+    Raises:
+        Nothing.
     """
     env = os.environ if environ is None else environ
     runtime = env.get("RUNTIME_DIRECTORY", "").split(":")[0]
@@ -27,4 +61,81 @@ def default_socket_path(environ: Mapping[str, str] | None = None) -> str:
     xdg = env.get("XDG_RUNTIME_DIR", "")
     if xdg:
         return os.path.join(xdg, SOCKET_NAME)
-    return f"/tmp/jtc-hw-{os.getuid()}.sock"
+    uid = os.geteuid() if uid is None else uid
+    if uid == 0:
+        return os.path.join(ROOT_SOCKET_DIR, SOCKET_NAME)
+    return os.path.join(private_fallback_dir(uid), SOCKET_NAME)
+
+
+def trusted_uid(owner: int, uid: int | None = None) -> bool:
+    """Whether a file or peer of ``owner`` may be trusted by ``uid``: itself or root.
+
+    Raises:
+        Nothing.
+    """
+    return owner in (0, os.geteuid() if uid is None else uid)
+
+
+def directory_problem(directory: str, uid: int | None = None) -> str | None:
+    """What makes ``directory`` unfit to hold the daemon's socket for ``uid``, or ``None``.
+
+    Fit: a real directory (not a symbolic link) owned by ``uid`` or root that no one else can
+    write. Anyone who can write it can replace the socket with their own. A missing directory
+    is fit (the daemon creates it, 0700).
+
+    Raises:
+        Nothing: a directory that cannot be examined is reported as the problem.
+    """
+    uid = os.geteuid() if uid is None else uid
+    try:
+        st = os.lstat(directory)
+    except FileNotFoundError:
+        return None
+    except OSError as exc:
+        return f"{directory} cannot be examined: {exc.strerror or exc}"
+    if stat.S_ISLNK(st.st_mode):
+        return f"{directory} is a symbolic link, not a directory of its own"
+    if not stat.S_ISDIR(st.st_mode):
+        return f"{directory} is not a directory"
+    if not trusted_uid(st.st_uid, uid):
+        return (
+            f"{directory} belongs to uid {st.st_uid}, not to uid {uid} or root: another user "
+            "may have created it to put a socket of theirs in the daemon's place"
+        )
+    if st.st_mode & 0o022:
+        return (
+            f"{directory} has mode {stat.S_IMODE(st.st_mode):04o}: users other than its owner "
+            "can write it and so replace the daemon's socket (it must not be group- or "
+            "world-writable)"
+        )
+    return None
+
+
+def socket_problem(path: str, uid: int | None = None) -> str | None:
+    """What makes the socket file ``path`` untrustworthy for ``uid``, or ``None``.
+
+    The file must be a socket owned by ``uid`` or root (the daemon's socket, made by a daemon
+    of this user or by a system service), in a directory fit for it (:func:`directory_problem`).
+    A missing file is not a problem here (connecting will say nobody listens).
+
+    Raises:
+        Nothing.
+    """
+    uid = os.geteuid() if uid is None else uid
+    problem = directory_problem(os.path.dirname(path) or ".", uid)
+    if problem is not None:
+        return problem
+    try:
+        st = os.lstat(path)
+    except FileNotFoundError:
+        return None
+    except OSError as exc:
+        return f"{path} cannot be examined: {exc.strerror or exc}"
+    if not stat.S_ISSOCK(st.st_mode):
+        return f"{path} is not a socket"
+    if not trusted_uid(st.st_uid, uid):
+        return (
+            f"the socket {path} belongs to uid {st.st_uid}, not to uid {uid} or root: another "
+            "user may have created it to impersonate the daemon"
+        )
+    return None

@@ -61,8 +61,10 @@ __all__ = [
     "Rearm",
     "Request",
     "SendGoal",
+    "MAX_JOINT_VALUE",
     "SendTrajectory",
     "Sim",
+    "Stop",
     "SubscribeState",
     "UnsubscribeState",
     "WireTrajectory",
@@ -77,6 +79,11 @@ __all__ = [
 
 MAX_NS = 2**63 - 1
 """Largest time in nanoseconds the protocol carries (int64)."""
+
+MAX_JOINT_VALUE = 1e6
+"""Largest magnitude of a trajectory point's value (positions in rad or m, their derivatives,
+effort in N·m or N). No joint travels a thousand kilometres or a million radians; beyond this a
+value is a client's bug, and values near the float64 range overflow the polynomial fit."""
 
 _MAX_SECONDS = MAX_NS / NS_PER_S
 
@@ -103,7 +110,8 @@ class WireTrajectory:
         Neither start given: start time 0 ("when the controller receives it").
 
         Raises:
-            RequestError: ``start_in`` puts the start outside the daemon clock's range.
+            RequestError: ``start_in`` puts the start outside the daemon clock's range, or the
+                last point would be after the end of the clock's range (int64 nanoseconds).
         """
         if self.start_time_ns is not None:
             start = self.start_time_ns
@@ -117,6 +125,8 @@ class WireTrajectory:
                 )
         else:
             start = 0
+        # Start 0 means "now": the points are then timed from now.
+        _check_end(self.points, start or now_ns, "trajectory.points")
         return JointTrajectory(self.joint_names, self.points, start)
 
 
@@ -169,6 +179,17 @@ class SendTrajectory:
     op: ClassVar[str] = "send_trajectory"
     id: RequestId = None
     trajectory: WireTrajectory = field(default_factory=lambda: WireTrajectory((), ()))
+
+
+@dataclass(frozen=True)
+class Stop:
+    """``stop``: end any motion and hold (cancel the active goal, stop a topic trajectory).
+
+    Served even over the connection limit (see ``docs/protocol.md``).
+    """
+
+    op: ClassVar[str] = "stop"
+    id: RequestId = None
 
 
 @dataclass(frozen=True)
@@ -257,6 +278,7 @@ Request = (
     | SendGoal
     | CancelGoal
     | SendTrajectory
+    | Stop
     | QueryState
     | SubscribeState
     | UnsubscribeState
@@ -272,6 +294,7 @@ _OP_FIELDS: dict[str, tuple[str, ...]] = {
     "send_goal": ("trajectory", "path_tolerance", "goal_tolerance", "goal_time_tolerance"),
     "cancel_goal": ("goal_id",),
     "send_trajectory": ("trajectory",),
+    "stop": (),
     "query_state": ("time_ns", "in"),
     "subscribe_state": (),
     "unsubscribe_state": (),
@@ -390,12 +413,60 @@ def _seconds(value: Any, path: str, rid: RequestId) -> float:
     return seconds
 
 
-def _vector(value: Any, path: str, rid: RequestId) -> tuple[float, ...]:
+def _ns(seconds: float, path: str, rid: RequestId) -> int:
+    """``seconds`` in integer nanoseconds, which must fit an int64.
+
+    Raises:
+        RequestError: ``bad_request`` naming ``path``.
+    """
+    ns = seconds_to_ns(seconds)
+    if not -MAX_NS <= ns <= MAX_NS:
+        raise RequestError(
+            BAD_REQUEST,
+            f"{path}: {seconds!r} s is {ns} ns, beyond the protocol's int64 nanoseconds "
+            f"(at most {MAX_NS} ns in magnitude, about 292 years)",
+            rid,
+        )
+    return ns
+
+
+def _check_end(points: Sequence[TrajectoryPoint], start_ns: int, path: str) -> None:
+    """The last point's absolute time must fit the daemon clock (int64 nanoseconds).
+
+    Raises:
+        RequestError: ``bad_request`` naming the point.
+    """
+    if not points:
+        return
+    index = max(range(len(points)), key=lambda i: points[i].time_from_start_ns)
+    end = start_ns + points[index].time_from_start_ns
+    if end > MAX_NS:
+        raise RequestError(
+            BAD_REQUEST,
+            f"{path}[{index}].time_from_start: the point would be due at {end} ns "
+            f"(start {start_ns} ns + {points[index].time_from_start_ns} ns), after the end of "
+            f"the daemon clock's range ({MAX_NS} ns); start earlier or shorten the trajectory",
+        )
+
+
+def _vector(
+    value: Any, path: str, rid: RequestId, joint_names: Sequence[str] = ()
+) -> tuple[float, ...]:
     if not isinstance(value, list):
         raise RequestError(
             BAD_REQUEST, f"{path}: expected an array of numbers, got {_describe(value)}", rid
         )
-    return tuple(_number(v, f"{path}[{i}]", rid) for i, v in enumerate(value))
+    out = tuple(_number(v, f"{path}[{i}]", rid) for i, v in enumerate(value))
+    for i, v in enumerate(out):
+        if abs(v) > MAX_JOINT_VALUE:
+            joint = f" (joint '{joint_names[i]}')" if i < len(joint_names) else ""
+            raise RequestError(
+                BAD_REQUEST,
+                f"{path}[{i}]{joint}: {v!r} is out of range; a joint value must be at most "
+                f"{MAX_JOINT_VALUE:g} in magnitude (SI units: rad or m, per s, per s^2; N m or N)",
+                rid,
+            )
+    return out
 
 
 def parse_trajectory(
@@ -411,7 +482,8 @@ def parse_trajectory(
     names = tuple(f.string(f"joint_names[{i}]", n) for i, n in enumerate(names_raw))
     points_raw = f.array("points", f.required("points", "array of points; empty means stop"))
     points = tuple(
-        _parse_point(p, f"{path}.points[{i}]", request_id) for i, p in enumerate(points_raw)
+        _parse_point(p, f"{path}.points[{i}]", request_id, names)
+        for i, p in enumerate(points_raw)
     )
     start_time_ns: int | None = None
     start_in: float | None = None
@@ -422,24 +494,29 @@ def parse_trajectory(
         )
     if f.has("start_time_ns"):
         start_time_ns = f.integer("start_time_ns", f.obj["start_time_ns"], 0, MAX_NS)
+        try:
+            _check_end(points, start_time_ns, _join(path, "points"))
+        except RequestError as exc:
+            exc.request_id = request_id
+            raise
     if f.has("start_in"):
         start_in = _seconds(f.obj["start_in"], _join(path, "start_in"), request_id)
     return WireTrajectory(names, points, start_time_ns, start_in)
 
 
-def _parse_point(obj: Any, path: str, rid: RequestId) -> TrajectoryPoint:
+def _parse_point(
+    obj: Any, path: str, rid: RequestId, joint_names: Sequence[str]
+) -> TrajectoryPoint:
     f = _Fields(obj, path, path, _POINT_FIELDS, rid)
-    t = _seconds(
-        f.required("time_from_start", "seconds after the trajectory's start"),
-        _join(path, "time_from_start"),
-        rid,
-    )
+    where = _join(path, "time_from_start")
+    t = _seconds(f.required("time_from_start", "seconds after the trajectory's start"), where, rid)
+    t_ns = _ns(t, where, rid)
     values = {
-        name: _vector(f.obj[name], _join(path, name), rid) if f.has(name) else None
+        name: _vector(f.obj[name], _join(path, name), rid, joint_names) if f.has(name) else None
         for name in _POINT_FIELDS[1:]
     }
     return TrajectoryPoint(
-        time_from_start_ns=seconds_to_ns(t),
+        time_from_start_ns=t_ns,
         positions=values["positions"],
         velocities=values["velocities"],
         accelerations=values["accelerations"],
@@ -514,7 +591,8 @@ def parse_request(obj: Any) -> Request:
         )
         path_tol = _parse_tolerances(o.get("path_tolerance", []), "path_tolerance", rid)
         goal_tol = _parse_tolerances(o.get("goal_tolerance", []), "goal_tolerance", rid)
-        gtt = f.number("goal_time_tolerance", o.get("goal_time_tolerance", 0.0))
+        gtt = _seconds(o.get("goal_time_tolerance", 0.0), "goal_time_tolerance", rid)
+        _ns(gtt, "goal_time_tolerance", rid)
         return SendGoal(rid, traj, path_tol, goal_tol, gtt)
     if op == "cancel_goal":
         goal_id = f.integer("goal_id", f.required("goal_id", "the goal to cancel"), 0, MAX_NS)
@@ -543,6 +621,7 @@ def parse_request(obj: Any) -> Request:
             freeze = f.boolean("freeze", f.required("freeze", "true to freeze its feedback"))
         return Sim(rid, component, freeze, fault)
     simple: dict[str, type[Request]] = {
+        "stop": Stop,
         "subscribe_state": SubscribeState,
         "unsubscribe_state": UnsubscribeState,
         "get_config": GetConfig,
@@ -585,7 +664,8 @@ class Decoder:
         return [self._parse(item) for item in self._messages.feed(data)]
 
     def end(self) -> list[Request | RequestError]:
-        """Call at end of input: decodes a last request that had no newline.
+        """Call at end of input. A last request without its newline is never parsed nor
+        executed (it may be cut off): it comes back as one ``bad_json`` error.
 
         Raises:
             Nothing: every problem is returned as a value.

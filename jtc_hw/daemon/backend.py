@@ -361,6 +361,20 @@ class LoopBackend:
             )
         )
 
+    async def stop_motion(self) -> bool:
+        """End any motion and hold; False if the controller is not active (nothing to stop).
+
+        Raises:
+            HardwareError: the control loop is not running, or did not answer.
+        """
+        if not self.alive:
+            raise HardwareError("the control loop is not running; nothing commands the motors")
+        try:
+            await self._request("stop", {})
+        except GoalRejected:  # the loop's "not active": stopped after a fault, nothing moves
+            return False
+        return True
+
     async def cancel_goal(self, goal_id: int) -> bool:
         """Cancel the executing goal ``goal_id``; False if it is not executing."""
         return bool(await self._request("cancel", {"goal_id": goal_id}))

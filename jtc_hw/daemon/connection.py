@@ -2,8 +2,8 @@
 
 :class:`ServerSettings` is where and how the server listens (the robot file's ``daemon``
 fields); :class:`Connection` is one client: its streams, its bounded outgoing queue (droppable
-``state`` / ``feedback``, never-dropped replies and results up to a hard cap), its subscription
-and its counters.
+``state`` / ``feedback``, never-dropped replies and results up to a hard cap), its subscription,
+its deadlines (authentication, idleness) and its counters.
 """
 
 from __future__ import annotations
@@ -23,7 +23,26 @@ from ..errors import (
     ConfigurationError,
 )
 
-__all__ = ["Connection", "ServerSettings", "TcpEndpoint", "peer_label"]
+__all__ = [
+    "OVER_LIMIT_CLIENTS",
+    "OVER_LIMIT_DEADLINE_S",
+    "RESERVED_UNIX_CLIENTS",
+    "Connection",
+    "ServerSettings",
+    "TcpEndpoint",
+    "is_privileged",
+    "peer_identity",
+]
+
+RESERVED_UNIX_CLIENTS = 2
+"""Unix connections allowed beyond ``max_clients`` to peers whose uid (``SO_PEERCRED``) is the
+daemon's or root's: the operator gets in when other users' clients hold every slot."""
+OVER_LIMIT_CLIENTS = 4
+"""Connections over a transport's limit that are each given ``OVER_LIMIT_DEADLINE_S`` to send a
+``stop`` (per transport); more are refused at once."""
+OVER_LIMIT_DEADLINE_S = 2.0
+"""How long a connection over the limit may take to send its ``stop`` (and, on TCP, its ``auth``
+first) before it gets ``busy``."""
 
 
 @dataclass(frozen=True)
@@ -34,11 +53,14 @@ class TcpEndpoint:
         host: a loopback address (``127.0.0.1``, ``::1`` or ``localhost``).
         port: TCP port (0: any free port, see ``Server.tcp_address``).
         token: every TCP client must first send ``{"op": "auth", "token": ...}`` with it.
+        max_clients: simultaneous TCP connections, authenticated or not (the unix socket has
+            its own limit); more get ``busy`` unless their request is ``stop``.
     """
 
     host: str = "127.0.0.1"
     port: int = 0
     token: str = field(default="", repr=False)
+    max_clients: int = 8
 
 
 @dataclass(frozen=True)
@@ -49,15 +71,19 @@ class ServerSettings:
         socket: the unix socket file (``None``: TCP only); its parent directory is created if
             missing.
         socket_mode: permission bits of the socket file (who may connect).
-        tcp: the optional loopback TCP endpoint.
-        max_clients: simultaneous connections (unix and TCP together); more get ``busy``.
+        tcp: the optional loopback TCP endpoint (with its own ``max_clients``).
+        max_clients: simultaneous unix socket connections; ``RESERVED_UNIX_CLIENTS`` more are
+            allowed to the daemon's user and root. More get ``busy``, unless their request is
+            ``stop``.
         max_message_bytes: longest request line accepted.
         client_queue_size: queued outgoing messages per client above which ``state`` and
             ``feedback`` events are dropped for that client.
         client_queue_hard_cap: queued messages at which a client is disconnected as too slow.
         close_timeout_s: how long a closing connection may take to read its last messages.
-        auth_timeout_s: how long a TCP connection may take to authenticate (a connection
-            without the token must not hold a client slot).
+        auth_timeout_s: how long a TCP connection may take, from its opening, to
+            authenticate (a connection without the token must not hold a client slot).
+        idle_timeout_s: a connection without a request for this long, with no subscription
+            and no goal running, is closed (``idle``); 0: never.
     """
 
     socket: str | os.PathLike[str] | None = None
@@ -68,7 +94,8 @@ class ServerSettings:
     client_queue_size: int = 256
     client_queue_hard_cap: int = 4096
     close_timeout_s: float = 1.0
-    auth_timeout_s: float = 10.0
+    auth_timeout_s: float = 2.0
+    idle_timeout_s: float = 300.0
 
     @classmethod
     def coerce(cls, settings: object) -> ServerSettings:
@@ -87,7 +114,9 @@ class ServerSettings:
             values = _pick(settings, names, "")
             tcp = values.get("tcp")
             if tcp is not None and not isinstance(tcp, TcpEndpoint):
-                values["tcp"] = TcpEndpoint(**_pick(tcp, ["host", "port", "token"], "tcp."))
+                values["tcp"] = TcpEndpoint(
+                    **_pick(tcp, ["host", "port", "token", "max_clients"], "tcp.")
+                )
             out = cls(**values)
         out.check()
         return out
@@ -114,6 +143,9 @@ class ServerSettings:
             port = self.tcp.port
             if isinstance(port, bool) or not isinstance(port, int) or not 0 <= port <= 65535:
                 raise ConfigurationError("expected a port 0..65535", "tcp.port", port)
+            limit = self.tcp.max_clients
+            if isinstance(limit, bool) or not isinstance(limit, int) or limit < 1:
+                raise ConfigurationError("expected an integer >= 1", "tcp.max_clients", limit)
         for name in ("max_clients", "max_message_bytes", "client_queue_size"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
@@ -124,9 +156,13 @@ class ServerSettings:
                 "client_queue_hard_cap",
                 self.client_queue_hard_cap,
             )
-        for name in ("close_timeout_s", "auth_timeout_s"):
-            if not getattr(self, name) > 0:
-                raise ConfigurationError("expected seconds > 0", name, getattr(self, name))
+        for name in ("close_timeout_s", "auth_timeout_s", "idle_timeout_s"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float)):
+                raise ConfigurationError("expected a number of seconds", name, value)
+            if not (value > 0 or (value == 0 and name == "idle_timeout_s")):
+                what = "seconds >= 0 (0: never)" if name == "idle_timeout_s" else "seconds > 0"
+                raise ConfigurationError(f"expected {what}", name, value)
 
 
 def _pick(source: object, names: Sequence[str], prefix: str) -> dict[str, Any]:
@@ -171,10 +207,16 @@ class Connection:
         reader: asyncio.StreamReader,
         writer: asyncio.StreamWriter,
         settings: ServerSettings,
+        uid: int | None = None,
+        now: float = 0.0,
     ) -> None:
         self.number = number
         self.kind = kind
         self.peer = peer
+        self.uid = uid
+        self.reserved = False  # admitted to one of the slots reserved for the daemon's user
+        self.auth_deadline = now + settings.auth_timeout_s
+        self.last_activity = now  # the last request, or the end of the last goal
         self.reader = reader
         self.writer = writer
         self.queue: collections.deque[bytes] = collections.deque()
@@ -200,6 +242,11 @@ class Connection:
     @property
     def dropped_total(self) -> int:
         return self.dropped_state + self.dropped_feedback
+
+    @property
+    def engaged(self) -> bool:
+        """Waiting for something of the daemon (state events, a goal's result): not idle."""
+        return self.subscribed or bool(self.goals)
 
     def send(self, data: bytes) -> bool:
         """Queue a message that must not be dropped; False if it cannot be sent.
@@ -243,6 +290,7 @@ class Connection:
             "transport": self.kind,
             "peer": self.peer,
             "authenticated": self.authenticated,
+            "reserved_slot": self.reserved,
             "subscribed": self.subscribed,
             "requests": self.requests,
             "queued": len(self.queue),
@@ -252,18 +300,33 @@ class Connection:
         }
 
 
-def peer_label(kind: str, writer: asyncio.StreamWriter) -> str:
+def peer_identity(kind: str, writer: asyncio.StreamWriter) -> tuple[str, int | None]:
+    """A label for the log and, on the unix socket, the peer's uid (``SO_PEERCRED``: the
+    kernel's record of who connected, which the peer cannot forge).
+
+    Raises:
+        Nothing: an unknown peer is labelled by its transport, its uid ``None``.
+    """
     sock = writer.get_extra_info("socket")
     if kind == "tcp":
         address = writer.get_extra_info("peername")
-        return f"tcp {address[0]}:{address[1]}" if address else "tcp"
+        return (f"tcp {address[0]}:{address[1]}" if address else "tcp"), None
     peercred = getattr(socket, "SO_PEERCRED", None)
     if sock is not None and peercred is not None:
         try:
-            pid, uid, gid = struct.unpack(
+            pid, uid, _gid = struct.unpack(
                 "3i", sock.getsockopt(socket.SOL_SOCKET, peercred, struct.calcsize("3i"))
             )
-            return f"unix pid {pid} uid {uid}"
+            return f"unix pid {pid} uid {uid}", uid
         except OSError:
             pass
-    return "unix"
+    return "unix", None
+
+
+def is_privileged(uid: int | None) -> bool:
+    """The daemon's own user or root (may use the reserved unix slots).
+
+    Raises:
+        Nothing.
+    """
+    return uid is not None and (uid == 0 or uid == os.geteuid())

@@ -11,8 +11,9 @@ layout); this module adds two top-level sections that ``load_config`` skips::
     daemon:                   # optional, every key optional
       socket: /run/jtc-hw/jtc-hw.sock
       socket_mode: 0o660
-      tcp: {host: 127.0.0.1, port: 0, token: "at least sixteen characters"}
+      tcp: {host: 127.0.0.1, port: 0, token: "at least sixteen characters", max_clients: 8}
       max_clients: 16
+      idle_timeout_s: 300
       max_message_bytes: 4194304
       realtime: {priority: 0, lock_memory: false, cpu_affinity: []}
       log_level: info
@@ -29,6 +30,7 @@ from __future__ import annotations
 import ipaddress
 import os
 import re
+import stat
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from types import MappingProxyType
@@ -66,6 +68,7 @@ __all__ = [
     "create_hardware_set",
     "default_socket_path",
     "load_robot",
+    "security_warnings",
 ]
 
 DEFAULT_HARDWARE_NAME: Final = "mirror"
@@ -134,6 +137,9 @@ TCP_PARAMETERS: Final[Mapping[str, ParamSpec]] = param_table(
     ParamSpec("token", ParamKind.STRING, "",
               f"shared secret clients must present (at least {MIN_TOKEN_LENGTH} characters)",
               required=True),
+    ParamSpec("max_clients", ParamKind.INT, 8,
+              "simultaneous TCP connections, authenticated or not (the unix socket has its own)",
+              minimum=1),
 )
 """``daemon.tcp.*``."""
 
@@ -154,7 +160,12 @@ DAEMON_PARAMETERS: Final[Mapping[str, ParamSpec]] = param_table(
               coerce=_parse_socket_mode),
     ParamSpec("tcp", ParamKind.SECTION, None, "optional TCP endpoint on a loopback address",
               nullable=True, fields=TCP_PARAMETERS),
-    ParamSpec("max_clients", ParamKind.INT, 16, "simultaneous client connections", minimum=1),
+    ParamSpec("max_clients", ParamKind.INT, 16,
+              "simultaneous unix socket connections (2 more for the daemon's user and root)",
+              minimum=1),
+    ParamSpec("idle_timeout_s", ParamKind.FLOAT, 300.0,
+              "close a connection without a request, subscription or running goal for this "
+              "long (0: never)", minimum=0.0),
     ParamSpec("max_message_bytes", ParamKind.INT, 4_194_304, "largest accepted message",
               minimum=1024),
     ParamSpec("realtime", ParamKind.SECTION, MappingProxyType({}),
@@ -190,6 +201,7 @@ class TcpSettings:
     host: str = "127.0.0.1"
     port: int = 0
     token: str = field(default="", repr=False)
+    max_clients: int = 8
 
     def __post_init__(self) -> None:
         if not isinstance(self.host, str) or not _is_loopback(self.host):
@@ -203,6 +215,14 @@ class TcpSettings:
         if not isinstance(self.port, int) or not 0 <= self.port <= 65535:
             raise ConfigurationError(
                 f"must be between 0 and 65535, got {self.port!r}", "daemon.tcp.port", self.port
+            )
+        if isinstance(self.max_clients, bool) or not isinstance(self.max_clients, int) or (
+            self.max_clients < 1
+        ):
+            raise ConfigurationError(
+                f"must be an integer >= 1, got {self.max_clients!r}",
+                "daemon.tcp.max_clients",
+                self.max_clients,
             )
         if not isinstance(self.token, str) or len(self.token) < MIN_TOKEN_LENGTH:
             raise ConfigurationError(
@@ -239,7 +259,9 @@ class DaemonSettings:
         socket: absolute path of the Unix socket.
         socket_mode: permission bits of the socket file.
         tcp: the optional TCP endpoint.
-        max_clients: simultaneous connections.
+        max_clients: simultaneous unix socket connections (and 2 more for the daemon's user
+            and root).
+        idle_timeout_s: close a connection idle for this long (0: never).
         max_message_bytes: largest accepted message.
         realtime: scheduling of the loop.
         log_level: one of :data:`LOG_LEVELS`.
@@ -252,6 +274,7 @@ class DaemonSettings:
     socket_mode: int = 0o660
     tcp: TcpSettings | None = None
     max_clients: int = 16
+    idle_timeout_s: float = 300.0
     max_message_bytes: int = 4_194_304
     realtime: RealtimeSettings = field(default_factory=RealtimeSettings)
     log_level: str = "info"
@@ -383,6 +406,7 @@ def _parse_daemon(raw: Any, base_dir: str) -> DaemonSettings:
         socket_mode=values["socket_mode"],
         tcp=None if tcp is None else TcpSettings(**tcp),
         max_clients=values["max_clients"],
+        idle_timeout_s=values["idle_timeout_s"],
         max_message_bytes=values["max_message_bytes"],
         realtime=RealtimeSettings(**realtime),
         log_level=values["log_level"],
@@ -425,6 +449,32 @@ def load_robot(
     hardware = _parse_hardware(data.get("hardware"), controller)
     daemon = _parse_daemon(data.get("daemon"), base_dir)
     return RobotConfig(controller, hardware, daemon, source_path)
+
+
+def security_warnings(robot: RobotConfig) -> list[str]:
+    """What in ``robot``'s file is exposed to other users (``jtc-hw check`` and ``run`` print
+    it): a TCP token in a file that group or others may read.
+
+    Raises:
+        Nothing: a file that cannot be examined gives no warning.
+    """
+    path = robot.source_path
+    if robot.daemon.tcp is None or path is None:
+        return []
+    try:
+        mode = stat.S_IMODE(os.stat(path).st_mode)
+    except OSError:
+        return []
+    if not mode & 0o044:
+        return []
+    who = " and ".join(
+        name for bit, name in ((0o040, "its group"), (0o004, "every user")) if mode & bit
+    )
+    return [
+        f"{path} holds the TCP token (daemon.tcp.token) and is readable by {who} (mode "
+        f"{mode:04o}): whoever reads it can command the robot over TCP. Make it private: "
+        f"chmod 600 {path} (owned by the daemon's user)"
+    ]
 
 
 def create_hardware_set(robot: RobotConfig) -> HardwareSet:

@@ -28,6 +28,14 @@ the ``accepted`` reply once the route exists.
 
 A client that disconnects while its goal runs does not stop the goal (as with a ROS action
 client that vanishes): the goal runs on to its result, which is logged and discarded.
+
+Admission (a stop always gets through): the unix socket and TCP have separate limits
+(``max_clients``, ``tcp.max_clients``); ``RESERVED_UNIX_CLIENTS`` more unix connections are
+admitted for peers whose ``SO_PEERCRED`` uid is the daemon's or root's. A connection over its
+limit is served by ``_serve_over_limit``: one ``stop`` (after ``auth`` on TCP) within
+``OVER_LIMIT_DEADLINE_S``, else ``busy``; then it is closed. Admitted connections are closed by
+their deadlines: a TCP connection that has not authenticated ``auth_timeout_s`` after opening,
+and a connection idle (no request, no subscription, no goal running) for ``idle_timeout_s``.
 """
 
 from __future__ import annotations
@@ -39,6 +47,7 @@ import logging
 import os
 import socket
 import stat
+import time
 from collections.abc import Mapping, Sequence
 from functools import partial
 from pathlib import Path
@@ -50,6 +59,7 @@ from ..api.framing import (
     BUSY,
     GOAL_REJECTED,
     HARDWARE,
+    IDLE,
     INTERNAL,
     NOT_ACTIVE,
     NOT_FOUND,
@@ -60,6 +70,7 @@ from ..api.framing import (
     error_reply,
     reply,
 )
+from ..api.paths import default_socket_path, directory_problem
 from ..api.protocol import (
     Auth,
     CancelGoal,
@@ -73,6 +84,7 @@ from ..api.protocol import (
     SendGoal,
     SendTrajectory,
     Sim,
+    Stop,
     SubscribeState,
     UnsubscribeState,
     feedback_event,
@@ -89,7 +101,16 @@ from ..errors import (
     HardwareError,
     JtcHwError,
 )
-from .connection import Connection, ServerSettings, TcpEndpoint, peer_label
+from .connection import (
+    OVER_LIMIT_CLIENTS,
+    OVER_LIMIT_DEADLINE_S,
+    RESERVED_UNIX_CLIENTS,
+    Connection,
+    ServerSettings,
+    TcpEndpoint,
+    is_privileged,
+    peer_identity,
+)
 
 __all__ = [
     "Backend",
@@ -108,6 +129,8 @@ EARLY_EVENTS = 256
 FINISHED_GOALS = 256
 """Recently finished goal ids remembered, so that a straggling event is ignored, not held."""
 _READ_CHUNK = 65536
+_OVER_LIMIT_MAX_BYTES = 4096
+"""Longest request read from a connection over the limit (``auth`` and ``stop`` are short)."""
 _WRITE_BATCH = 65536
 _RESERVED_STATE_KEYS = frozenset({"event", "dropped", "dropped_total"})
 
@@ -220,6 +243,19 @@ class Backend(Protocol):
         """
         ...
 
+    async def stop_motion(self) -> bool:
+        """End any motion and hold the measured position: cancel the active goal (its result
+        is ``canceled``) or stop a topic trajectory. Must not wait on anything but the loop.
+
+        Returns:
+            False if there was nothing to stop (the controller is not active: stopped after a
+            fault, or not started).
+
+        Raises:
+            HardwareError: the request could not reach the control loop.
+        """
+        ...
+
     async def rearm(self) -> bool:
         """Leave a hardware fault: clear the devices' latched faults and hold the position.
 
@@ -272,6 +308,8 @@ class Server:
         self._finished: collections.OrderedDict[int, None] = collections.OrderedDict()
         self._number = 0
         self._refused_busy = 0
+        self._over_limit = {"unix": 0, "tcp": 0}  # connections over the limit, being served
+        self._stops_over_limit = 0
         self._results_discarded = 0
         self._socket_identity: tuple[int, int] | None = None
         self._started = False
@@ -325,14 +363,49 @@ class Server:
             await self.close()
             raise
 
-    def _bind_unix(self, path: Path) -> socket.socket:
+    def _directory_mode(self) -> int:
+        """Mode of a socket directory the daemon creates: only its user may write it (nobody
+        else can replace the socket), and whoever ``socket_mode`` lets connect may enter it."""
+        mode = 0o700
+        if self.settings.socket_mode & 0o070:
+            mode |= 0o010
+        if self.settings.socket_mode & 0o007:
+            mode |= 0o001
+        return mode
+
+    def _make_directory(self, directory: Path) -> None:
+        missing: list[Path] = []
+        for d in (directory, *directory.parents):
+            if os.path.lexists(d):
+                break
+            missing.append(d)
+        mode = self._directory_mode()
         try:
-            path.parent.mkdir(parents=True, exist_ok=True)
+            for d in reversed(missing):
+                try:
+                    os.mkdir(d, mode)
+                except FileExistsError:
+                    continue  # made meanwhile by someone else: examined below
+                os.chmod(d, mode)  # mkdir's mode is reduced by the umask
+                log.info("created the socket's directory %s (mode %04o)", d, mode)
         except OSError as exc:
             raise ConfigurationError(
-                f"cannot create the socket's directory {path.parent}: {exc.strerror}",
+                f"cannot create the socket's directory {directory}: {exc.strerror or exc}",
                 "socket",
             ) from None
+
+    def _bind_unix(self, path: Path) -> socket.socket:
+        self._make_directory(path.parent)
+        if os.path.normpath(path) == os.path.normpath(default_socket_path()):
+            # The default place: check that no other user could have prepared it for us.
+            problem = directory_problem(str(path.parent))
+            if problem is not None:
+                raise ConfigurationError(
+                    f"refusing the default socket directory: {problem}. Remove it (as root) "
+                    "and start again, or set daemon.socket to a path in a directory only this "
+                    "daemon's user can write",
+                    "socket",
+                )
         self._remove_stale(path)
         sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
         try:
@@ -441,26 +514,28 @@ class Server:
     ) -> None:
         self._number += 1
         number = self._number
-        peer = peer_label(kind, writer)
+        peer, uid = peer_identity(kind, writer)
         if self._closed:
             writer.transport.abort()
             return
-        if len(self._conns) >= self.settings.max_clients:
-            self._refused_busy += 1
-            log.warning(
-                "client %d (%s) refused: %d clients connected (max_clients)",
-                number,
-                peer,
-                len(self._conns),
-            )
-            await self._refuse(writer)
-            return
-        conn = Connection(number, kind, peer, reader, writer, self.settings)
+        now = time.monotonic()
+        conn = Connection(number, kind, peer, reader, writer, self.settings, uid, now)
         task = asyncio.current_task()
         assert task is not None
+        admitted = self._admit(conn)
+        if admitted is None:
+            self._tasks[number] = task
+            try:
+                await self._serve_over_limit(conn)
+            except asyncio.CancelledError:
+                writer.transport.abort()  # the server is closing
+            finally:
+                self._tasks.pop(number, None)
+            return
+        conn.reserved = admitted
         self._conns[number] = conn
         self._tasks[number] = task
-        log.info("%s connected", conn.label)
+        log.info("%s connected%s", conn.label, " (reserved slot)" if conn.reserved else "")
         writer_task = asyncio.create_task(self._write_loop(conn))
         try:
             await self._read_loop(conn)
@@ -471,12 +546,111 @@ class Server:
         finally:
             await self._finish(conn, writer_task)
 
-    async def _refuse(self, writer: asyncio.StreamWriter) -> None:
-        message = (
-            f"the daemon already serves {self.settings.max_clients} clients (max_clients); "
-            "try again later"
+    def _limit(self, kind: str) -> tuple[int, str]:
+        """A transport's connection limit and the setting that says so."""
+        if kind == "tcp":
+            assert self.settings.tcp is not None
+            return self.settings.tcp.max_clients, "tcp.max_clients"
+        return self.settings.max_clients, "max_clients"
+
+    def _admit(self, conn: Connection) -> bool | None:
+        """Whether ``conn`` gets a slot: ``False`` an ordinary one, ``True`` a reserved one,
+        ``None`` none (it is over its transport's limit)."""
+        count = sum(1 for c in self._conns.values() if c.kind == conn.kind)
+        limit, _ = self._limit(conn.kind)
+        if count < limit:
+            return False
+        if conn.kind == "unix" and is_privileged(conn.uid):
+            if count < limit + RESERVED_UNIX_CLIENTS:
+                return True
+        return None
+
+    def _busy_message(self, kind: str) -> str:
+        limit, setting = self._limit(kind)
+        first = "an auth request, then " if kind == "tcp" else ""
+        return (
+            f"the daemon already serves {limit} {kind} clients ({setting}); over the limit a "
+            f"connection may only send {first}a 'stop' request, within "
+            f"{OVER_LIMIT_DEADLINE_S:g} s of connecting; try again later"
         )
-        writer.write(encode(error_reply(None, BUSY, message)))
+
+    async def _serve_over_limit(self, conn: Connection) -> None:
+        """Serve a connection over its transport's limit: its first request (after ``auth``
+        on TCP), if it comes within ``OVER_LIMIT_DEADLINE_S`` and is ``stop``, is executed
+        and answered; anything else is answered ``busy``. Then the connection is closed.
+
+        A stop must get through when every slot is taken (by forgotten clients, or by
+        someone holding them on purpose); the deadline and ``OVER_LIMIT_CLIENTS`` bound what
+        the connections over the limit can hold in turn.
+        """
+        self._refused_busy += 1
+        kind, writer = conn.kind, conn.writer
+        if self._over_limit[kind] >= OVER_LIMIT_CLIENTS:
+            log.warning(
+                "%s refused: over the limit (%d connections over it already being served)",
+                conn.label,
+                self._over_limit[kind],
+            )
+            busy = error_reply(None, BUSY, self._busy_message(kind))
+            await self._write_and_close(writer, [encode(busy)])
+            return
+        log.info("%s is over the limit: serving only a stop request", conn.label)
+        self._over_limit[kind] += 1
+        try:
+            answer = await self._over_limit_request(conn)
+        finally:
+            self._over_limit[kind] -= 1
+        await self._write_and_close(writer, answer)
+
+    async def _over_limit_request(self, conn: Connection) -> list[bytes]:
+        """The messages to send before closing (an ``auth`` reply is written at once)."""
+        deadline = time.monotonic() + OVER_LIMIT_DEADLINE_S
+        decoder = Decoder(_OVER_LIMIT_MAX_BYTES)
+        out: list[bytes] = []
+        while True:
+            try:
+                data = await asyncio.wait_for(
+                    conn.reader.read(_READ_CHUNK), max(0.0, deadline - time.monotonic())
+                )
+            except TimeoutError:
+                out.append(encode(error_reply(None, BUSY, self._busy_message(conn.kind))))
+                return out
+            except OSError:
+                return out
+            for item in decoder.feed(data) if data else decoder.end():
+                conn.requests += 1
+                rid = item.request_id if isinstance(item, RequestError) else item.id
+                if not conn.authenticated:
+                    if isinstance(item, Auth) and self._token_ok(item.token):
+                        conn.authenticated = True
+                        conn.writer.write(encode(reply(item.id, authenticated=True)))
+                        continue
+                    message = (
+                        "wrong token; closing the connection"
+                        if isinstance(item, Auth)
+                        else 'the first request on a TCP connection must be {"op": "auth", '
+                        '"token": ...}; closing the connection'
+                    )
+                    out.append(encode(error_reply(rid, UNAUTHORIZED, message)))
+                    return out
+                if isinstance(item, RequestError):
+                    # Say what is wrong with it (e.g. a stop without its newline is not run).
+                    out.append(encode(self._error(conn, None, item)))
+                    return out
+                if isinstance(item, Stop):
+                    self._stops_over_limit += 1
+                    log.info("%s: stop (over the limit)", conn.label)
+                    answer = await self._answer(conn, item)
+                    assert answer is not None  # only send_goal sends its own reply
+                    out.append(answer)
+                    return out
+                out.append(encode(error_reply(rid, BUSY, self._busy_message(conn.kind))))
+                return out
+            if not data:
+                return out
+
+    async def _write_and_close(self, writer: asyncio.StreamWriter, messages: list[bytes]) -> None:
+        writer.write(b"".join(messages))
         try:
             await asyncio.wait_for(writer.drain(), self.settings.close_timeout_s)
             writer.close()
@@ -522,24 +696,54 @@ class Server:
             extra,
         )
 
+    def _read_timeout(self, conn: Connection, now: float) -> float | None:
+        """How long the next read may wait before the connection's deadline is looked at."""
+        if not conn.authenticated:
+            return max(0.0, conn.auth_deadline - now)
+        idle = self.settings.idle_timeout_s
+        if not idle:
+            return None
+        if conn.engaged:
+            return float(idle)  # then look again: it may have become idle meanwhile
+        return max(0.0, conn.last_activity + idle - now)
+
+    def _timed_out(self, conn: Connection, now: float) -> bool:
+        """After a read timed out: whether the connection must close (and why, queued)."""
+        if not conn.authenticated:
+            message = (
+                f"no auth request within {self.settings.auth_timeout_s:g} s of connecting; "
+                "closing the connection"
+            )
+            self._reject(conn, None, RequestError(UNAUTHORIZED, message))
+            conn.close_reason = "unauthorized (no auth request in time)"
+            return True
+        idle = self.settings.idle_timeout_s
+        if conn.engaged:
+            conn.last_activity = now
+            return False
+        if not idle or now < conn.last_activity + idle:
+            return False
+        message = (
+            f"no request for {idle:g} s, no subscription and no goal running (idle_timeout_s); "
+            "closing the connection"
+        )
+        self._reject(conn, None, RequestError(IDLE, message))
+        conn.close_reason = f"idle for {idle:g} s (idle_timeout_s)"
+        return True
+
     async def _read_loop(self, conn: Connection) -> None:
         decoder = Decoder(self.settings.max_message_bytes)
         while not conn.closing:
+            timeout = self._read_timeout(conn, time.monotonic())
             try:
-                if conn.authenticated:
+                if timeout is None:
                     data = await conn.reader.read(_READ_CHUNK)
                 else:
-                    data = await asyncio.wait_for(
-                        conn.reader.read(_READ_CHUNK), self.settings.auth_timeout_s
-                    )
+                    data = await asyncio.wait_for(conn.reader.read(_READ_CHUNK), timeout)
             except TimeoutError:  # before OSError, of which it is a subclass
-                message = (
-                    f"no auth request within {self.settings.auth_timeout_s:g} s; closing the "
-                    "connection"
-                )
-                self._reject(conn, None, RequestError(UNAUTHORIZED, message))
-                conn.close_reason = "unauthorized (no auth request in time)"
-                return
+                if self._timed_out(conn, time.monotonic()):
+                    return
+                continue
             except OSError as exc:
                 conn.close_reason = f"connection error: {exc}"
                 return
@@ -580,36 +784,41 @@ class Server:
 
     async def _handle(self, conn: Connection, item: Request | RequestError) -> None:
         conn.requests += 1
+        conn.last_activity = time.monotonic()
         if not conn.authenticated:
             self._authenticate(conn, item)
             return
         if isinstance(item, RequestError):
             self._reject(conn, None, item)
             return
+        answer = await self._answer(conn, item)
+        if answer is not None:
+            conn.send(answer)
+
+    async def _answer(self, conn: Connection, item: Request) -> bytes | None:
+        """Execute a request: its encoded reply (success or error), or ``None`` when
+        ``_dispatch`` has sent it already. Never raises: a failure is an error reply, logged."""
         try:
             answer = await self._dispatch(conn, item)
-            data = None if answer is None else encode(answer)
+            return None if answer is None else encode(answer)
         except RequestError as exc:
-            self._reject(conn, item, exc)
+            error = exc
         except GoalRejected as exc:
-            self._reject(
-                conn, item, RequestError(GOAL_REJECTED, exc.reason, item.id, exc.error_code)
-            )
+            error = RequestError(GOAL_REJECTED, exc.reason, item.id, exc.error_code)
         except ControllerStateError as exc:
-            self._reject(conn, item, RequestError(NOT_ACTIVE, str(exc), item.id))
+            error = RequestError(NOT_ACTIVE, str(exc), item.id)
         except ConfigurationError as exc:
-            self._reject(conn, item, RequestError(BAD_REQUEST, str(exc), item.id))
+            error = RequestError(BAD_REQUEST, str(exc), item.id)
         except HardwareError as exc:
-            self._reject(conn, item, RequestError(HARDWARE, str(exc), item.id))
+            error = RequestError(HARDWARE, str(exc), item.id)
         except JtcHwError as exc:
-            self._reject(conn, item, RequestError(INTERNAL, str(exc), item.id))
+            error = RequestError(INTERNAL, str(exc), item.id)
         except Exception as exc:
             log.exception("%s: %s failed", conn.label, item.op)
             message = f"internal error: {type(exc).__name__}: {exc}"
-            self._reject(conn, item, RequestError(INTERNAL, message, item.id), logged=True)
-        else:
-            if data is not None:
-                conn.send(data)
+            error = RequestError(INTERNAL, message, item.id)
+            return encode(self._error(conn, item, error, logged=True))
+        return encode(self._error(conn, item, error))
 
     def _authenticate(self, conn: Connection, item: Request | RequestError) -> None:
         if isinstance(item, Auth) and self._token_ok(item.token):
@@ -644,13 +853,23 @@ class Server:
         error: RequestError,
         logged: bool = False,
     ) -> None:
+        conn.send(encode(self._error(conn, request, error, logged)))
+
+    @staticmethod
+    def _error(
+        conn: Connection,
+        request: Request | None,
+        error: RequestError,
+        logged: bool = False,
+    ) -> dict[str, Any]:
+        """The error reply, logged."""
         rid = error.request_id if error.request_id is not None or request is None else request.id
         if not logged:
             op = request.op if request is not None else "request"
             log.info(
                 "%s: rejected %s (id %r): %s: %s", conn.label, op, rid, error.code, error.message
             )
-        conn.send(encode(error_reply(rid, error.code, error.message, error.error_code)))
+        return error_reply(rid, error.code, error.message, error.error_code)
 
     async def _dispatch(self, conn: Connection, req: Request) -> dict[str, Any] | None:
         backend = self.backend
@@ -712,6 +931,15 @@ class Server:
                 traj = req.trajectory.to_joint_trajectory(backend.now_ns())
                 await backend.send_trajectory(traj)
                 return reply(req.id, stopping=not traj.points)
+            case Stop():
+                if not await backend.stop_motion():
+                    return reply(
+                        req.id,
+                        stopped=False,
+                        message="nothing to stop: the controller is not active (see "
+                        "get_status: controller.fault)",
+                    )
+                return reply(req.id, stopped=True)
             case QueryState():
                 t = req.resolve(backend.now_ns())
                 sample = backend.query_state(t)
@@ -762,10 +990,14 @@ class Server:
             "version": __version__,
             "protocol_version": PROTOCOL_VERSION,
             "max_clients": self.settings.max_clients,
+            "reserved_clients": RESERVED_UNIX_CLIENTS,
+            "tcp_max_clients": None if self.settings.tcp is None else self.settings.tcp.max_clients,
+            "idle_timeout_s": self.settings.idle_timeout_s,
             "clients": [c.stats() for c in self._conns.values()],
             "you": None if conn is None else conn.number,
             "connections_total": self._number,
             "refused_busy": self._refused_busy,
+            "stops_over_limit": self._stops_over_limit,
             "goals_routed": sorted(self._routes),
             "results_discarded": self._results_discarded,
         }
@@ -793,6 +1025,8 @@ class Server:
         if isinstance(event, GoalResult):
             self._routes.pop(event.goal_id, None)
             conn.goals.discard(event.goal_id)
+            if not conn.goals:  # the idle clock starts when the client's last goal ends
+                conn.last_activity = time.monotonic()
             self._finished[event.goal_id] = None
             if len(self._finished) > FINISHED_GOALS:
                 self._finished.popitem(last=False)

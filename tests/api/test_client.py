@@ -4,6 +4,10 @@ stand-in backend of test_server."""
 from __future__ import annotations
 
 import asyncio
+import os
+import shutil
+import socket
+import tempfile
 import threading
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -13,7 +17,7 @@ import pytest
 from helpers.fake_backend import TOKEN, FakeBackend
 
 from jtc_hw import GoalRejected, JointTolerance, JointTrajectory, TrajectoryPoint
-from jtc_hw.api.client import Client, ClientConnectionError, GoalHandle
+from jtc_hw.api.client import UNTRUSTED, Client, ClientConnectionError, GoalHandle
 from jtc_hw.api.framing import RequestError
 from jtc_hw.daemon.server import Server, ServerSettings, TcpEndpoint
 from jtc_hw.errors import ProtocolError
@@ -194,7 +198,20 @@ def test_status_config_sim_and_topic(daemon: ServerThread, client: Client) -> No
         client.sim("arm", True)
     assert info.value.code == "bad_request" and "'arm'" in str(info.value)
     assert client.send_trajectory(trajectory(), start_in=0.1)["stopping"] is False
-    assert client.stop()["stopping"] is True
+    assert client.send_trajectory({"joint_names": [], "points": []})["stopping"] is True
+
+
+def test_stop(daemon: ServerThread, client: Client) -> None:
+    goal = client.send_goal(trajectory(t=5.0))
+    assert daemon.call(lambda: daemon.backend.ctrl.active_goal) == goal.goal_id
+    stopped = client.stop()
+    assert stopped["ok"] is True and stopped["stopped"] is True and "message" not in stopped
+    daemon.call(daemon.backend.step, 0.02)
+    assert goal.wait(timeout_s=5.0)["status"] == "canceled"
+    assert client.stop()["stopped"] is True  # holding: stopping again is harmless
+    daemon.call(lambda: daemon.backend.ctrl.deactivate(daemon.backend.t, "test"))
+    nothing = client.stop()
+    assert nothing["stopped"] is False and "not active" in nothing["message"]
 
 
 def test_tcp_with_token(tmp_path: Path) -> None:
@@ -216,14 +233,38 @@ def test_tcp_with_token(tmp_path: Path) -> None:
 def test_busy_and_missing_daemon(sock: Path, tmp_path: Path) -> None:
     srv = ServerThread(ServerSettings(socket=sock, max_clients=1))
     try:
-        with Client.connect(sock):
+        # One slot and the two reserved for the daemon's user, which this test runs as.
+        with Client.connect(sock), Client.connect(sock), Client.connect(sock):
             with pytest.raises(ClientConnectionError) as info:
                 Client.connect(sock)
             assert info.value.code == "busy" and "max_clients" in str(info.value)
+            # Over the limit, a stop sent first still gets through.
+            with Client.connect(sock, hello=False) as operator:
+                assert operator.stop()["stopped"] is True
+                with pytest.raises(ClientConnectionError):  # served, then closed
+                    operator.hello()
     finally:
         srv.close()
     with pytest.raises(ClientConnectionError, match="is the daemon running"):
         Client.connect(tmp_path / "nobody.sock")
+
+
+def test_an_idle_connection_closed_by_the_daemon_says_why(sock: Path) -> None:
+    srv = ServerThread(ServerSettings(socket=sock, idle_timeout_s=0.2))
+    try:
+        client = Client.connect(sock)
+        try:
+            client._reader.join(10.0)  # the reader ends when the daemon closes the connection
+            assert not client._reader.is_alive()
+            with pytest.raises(ClientConnectionError) as info:
+                client.hello()
+            assert "(idle: no request for 0.2 s, no subscription and no goal running" in str(
+                info.value
+            )
+        finally:
+            client.close()
+    finally:
+        srv.close()
 
 
 def test_default_path_from_environment(
@@ -249,3 +290,105 @@ def test_server_closing_fails_waiters(sock: Path) -> None:
             client.hello()
     finally:
         client.close()
+
+
+# -- the default socket path cannot be squatted --------------------------------------------------
+
+NOBODY = 65534
+as_root = pytest.mark.skipif(
+    os.geteuid() != 0, reason="makes files and processes of another user: needs root"
+)
+
+
+@pytest.fixture
+def runtime_dir(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
+    """The default socket's directory for this test (``$XDG_RUNTIME_DIR``), 0700."""
+    directory = tmp_path / "xdg"
+    directory.mkdir(0o700)
+    monkeypatch.delenv("RUNTIME_DIRECTORY", raising=False)
+    monkeypatch.delenv("JTC_HW_SOCKET", raising=False)
+    monkeypatch.setenv("XDG_RUNTIME_DIR", str(directory))
+    return directory
+
+
+def test_the_default_socket_is_used_when_it_is_ours(runtime_dir: Path) -> None:
+    srv = ServerThread(ServerSettings(socket=runtime_dir / "jtc-hw.sock"))
+    try:
+        with Client.connect() as client:
+            assert client.label == str(runtime_dir / "jtc-hw.sock")
+            assert client.joint_names == ["j1", "j2"]
+    finally:
+        srv.close()
+
+
+@as_root
+def test_a_squatted_default_socket_is_refused(runtime_dir: Path) -> None:
+    """Another user's socket at the default path: the client says why it will not use it."""
+    path = runtime_dir / "jtc-hw.sock"
+    srv = ServerThread(ServerSettings(socket=path))
+    try:
+        os.chown(path, NOBODY, -1)
+        with pytest.raises(ClientConnectionError) as info:
+            Client.connect()
+        assert info.value.code == UNTRUSTED
+        assert str(info.value) == (
+            f"refusing the daemon socket {path}: the socket {path} belongs to uid {NOBODY}, "
+            "not to uid 0 or root: another user may have created it to impersonate the daemon. "
+            "If it is stale, remove it; if you trust that daemon, name its socket explicitly "
+            "(--socket PATH, or JTC_HW_SOCKET=PATH)"
+        )
+        with Client.connect(path) as named:  # named explicitly: trusted as named
+            assert named.joint_names == ["j1", "j2"]
+        os.chown(path, 0, -1)
+        os.chown(runtime_dir, NOBODY, -1)  # their directory: they could swap the socket
+        with pytest.raises(ClientConnectionError, match=f"{runtime_dir} belongs to uid"):
+            Client.connect()
+    finally:
+        os.chown(runtime_dir, 0, -1)
+        srv.close()
+
+
+@as_root
+def test_a_default_socket_served_by_another_user_is_refused(
+    runtime_dir: Path, tmp_path: Path
+) -> None:
+    """The file looks right (ours), but the process listening on it is not: SO_PEERCRED."""
+    shared = Path(tempfile.mkdtemp(prefix="jtc-hw-client-"))  # pytest's tmp_path is private
+    shared.chmod(0o711)
+    theirs = shared / "theirs"
+    theirs.mkdir()
+    os.chown(theirs, NOBODY, -1)
+    ready, release = socket.socketpair()
+    pid = os.fork()
+    if pid == 0:  # pragma: no cover - the child, as another user; never returns
+        status = 1
+        try:
+            ready.close()
+            os.setgroups([])
+            os.setgid(NOBODY)
+            os.setuid(NOBODY)
+            listener = socket.socket(socket.AF_UNIX)
+            listener.bind(str(theirs / "s"))
+            listener.listen()
+            release.sendall(b"!")
+            release.recv(1)  # until the test is done
+            status = 0
+        finally:
+            os._exit(status)
+    release.close()
+    try:
+        assert ready.recv(1) == b"!", "the other user's listener did not start"
+        path = runtime_dir / "jtc-hw.sock"
+        os.rename(theirs / "s", path)
+        os.chown(path, 0, -1)
+        with pytest.raises(ClientConnectionError) as info:
+            Client.connect()
+        assert info.value.code == UNTRUSTED
+        assert f"runs as uid {NOBODY}, not as uid 0 or root: it is not your daemon" in str(
+            info.value
+        )
+    finally:
+        ready.close()
+        _, status = os.waitpid(pid, 0)
+        shutil.rmtree(shared)
+    assert os.waitstatus_to_exitcode(status) == 0

@@ -37,6 +37,7 @@ from jtc_hw.api.protocol import (
     SendGoal,
     SendTrajectory,
     Sim,
+    Stop,
     SubscribeState,
     UnsubscribeState,
     feedback_event,
@@ -111,11 +112,23 @@ def test_crlf_and_blank_lines() -> None:
     assert Decoder().feed(b'\n  \r\n{"op":"hello"}\r\n\n') == [Hello()]
 
 
-def test_last_line_without_newline_at_end_of_input() -> None:
+def test_last_line_without_newline_at_end_of_input_is_never_parsed() -> None:
     decoder = Decoder()
-    assert decoder.feed(b'{"op": "hello", "id": 9}') == []
-    assert decoder.end() == [Hello(id=9)]
+    assert decoder.feed(b'{"op": "hello", "id": 1}\n{"op": "hello", "id": 9}') == [Hello(id=1)]
+    (refused,) = decoder.end()
+    assert isinstance(refused, RequestError) and refused.code == BAD_JSON
+    assert refused.request_id is None  # not even the id is read from a cut-off message
+    assert refused.message == (
+        "line 2: the connection ended before this message's newline; it was not executed "
+        "(end every message with \\n)"
+    )
     assert decoder.end() == []
+    blank = Decoder()
+    assert blank.feed(b'{"op": "hello"}\n \r') == [Hello()]
+    assert blank.end() == []  # only blanks after the last newline: nothing was cut off
+    long = Decoder(10)
+    assert [i.code for i in long.feed(b"x" * 20) if isinstance(i, RequestError)] == [TOO_LARGE]
+    assert long.end() == []  # the over-long line was reported already
 
 
 def test_oversize_line_then_valid_line_same_chunk() -> None:
@@ -342,6 +355,95 @@ def test_start_fields() -> None:
     error(line(goal(start_in=1e300)), BAD_REQUEST, "trajectory.start_in", "out of range")
 
 
+def test_times_must_fit_int64_nanoseconds() -> None:
+    """2**63 - 1 ns is the end of the daemon clock; nothing may be due after it."""
+    end = 2**63 - 1
+    refused = error(
+        line(goal(start_time_ns=end)),
+        BAD_REQUEST,
+        "trajectory.points[0].time_from_start: the point would be due at "
+        f"{end + S} ns (start {end} ns + {S} ns), after the end of the daemon clock's range",
+    )
+    assert refused.request_id == 7
+    last = {"time_from_start": 2.0, "positions": [0.0, 0.0]}
+    error(
+        line(goal(start_time_ns=end - S, points=[last, {"time_from_start": 0.5}])),
+        BAD_REQUEST,
+        "trajectory.points[0].time_from_start",  # the latest point, wherever it is
+    )
+    fits = one(line(goal(start_time_ns=end - S)))
+    assert fits.trajectory.to_joint_trajectory(now_ns=5).start_time_ns == end - S
+    error(
+        line(goal(points=[{"time_from_start": 9223372036.854776}])),
+        BAD_REQUEST,
+        "trajectory.points[0].time_from_start: 9223372036.854776 s is 9223372036854775808 ns, "
+        "beyond the protocol's int64 nanoseconds",
+    )
+    # Relative to now: start 0 ("now") and start_in are resolved against the daemon clock.
+    near_end = one(line(goal(points=[{"time_from_start": 9223372030.0}])))
+    assert near_end.trajectory.to_joint_trajectory(now_ns=S).points[0]
+    with pytest.raises(RequestError, match=r"points\[0\].time_from_start: the point would be"):
+        near_end.trajectory.to_joint_trajectory(now_ns=10**10)
+    later = one(line(goal(start_in=9223372000.0)))
+    with pytest.raises(RequestError, match="after the end of the daemon clock's range"):
+        later.trajectory.to_joint_trajectory(now_ns=36 * S)  # starts in range, ends out
+    error(
+        line(goal() | {"goal_time_tolerance": 1e300}),
+        BAD_REQUEST,
+        "goal_time_tolerance: 1e+300 s is out of range",
+    )
+
+
+@pytest.mark.parametrize("field", ["positions", "velocities", "accelerations", "effort"])
+def test_absurd_joint_values_are_refused_naming_point_and_joint(field: str) -> None:
+    points = [
+        {"time_from_start": 1.0, "positions": [0.0, 0.0]},
+        {"time_from_start": 2.0, "positions": [0.0, 0.0], field: [1e6, -1e308]},
+    ]
+    error(
+        line(goal(points=points)),
+        BAD_REQUEST,
+        f"trajectory.points[1].{field}[1] (joint 'j2'): -1e+308 is out of range; a joint value "
+        "must be at most 1e+06 in magnitude",
+    )
+    points[1][field] = [1e6, -1e6]  # the bound itself is accepted
+    assert isinstance(one(line(goal(points=points))), SendGoal)
+    points[1][field] = [1e6, 0.0, 2e6]  # more values than joints: named by index only
+    error(line(goal(points=points)), BAD_REQUEST, f"points[1].{field}[2]: 2000000.0 is out")
+
+
+@pytest.mark.parametrize(
+    ("text", "path"),
+    [
+        (b'{"id": 4, "op": "hello", "x": "\\ud800"}', "x"),  # an unknown field, still refused
+        (b'{"id": 4, "op": "send_goal", "trajectory": {"joint_names": ["j1", "j\\udc00"], '
+         b'"points": []}}', "trajectory.joint_names[1]"),
+        (b'{"id": 4, "op": "sim", "component": "mirror", "fault": "x\\ud800y"}', "fault"),
+        (b'{"id": 4, "op": "hello", "\\udfff": 1}', "the key"),
+        (b'{"id": 4, "op": "send_goal", "trajectory": {"\\ud800": 1}}', "trajectory: the key"),
+        (b'{"id": 4, "op": "\\ud800"}', "op"),
+    ],
+)
+def test_lone_surrogates_are_refused_with_an_encodable_reply(text: bytes, path: str) -> None:
+    refused = error(text + b"\n", BAD_REQUEST, f"line 1: {path} ", "lone UTF-16 surrogate",
+                    "not executed")
+    assert refused.request_id == 4
+    data = encode(refused.reply())  # the reply can be sent: the text is quoted escaped
+    assert data.isascii() and json.loads(data)["error"]["code"] == BAD_REQUEST
+
+
+def test_a_lone_surrogate_in_the_id_gives_a_reply_without_id() -> None:
+    refused = error(b'{"id": "a\\ud800", "op": "hello"}\n', BAD_REQUEST, 'id "a\\ud800"')
+    assert refused.request_id is None
+    assert json.loads(encode(refused.reply()))["id"] is None
+
+
+def test_surrogate_pairs_are_characters() -> None:
+    assert one(b'{"id": "\\ud83d\\ude00", "op": "hello"}\n') == Hello(id="\U0001f600")
+    escaped_backslash = one(b'{"id": "\\\\ud800", "op": "hello"}\n')  # the text \ud800
+    assert escaped_backslash == Hello(id="\\ud800")
+
+
 def test_query_state_needs_exactly_one_time() -> None:
     error(line({"op": "query_state"}), BAD_REQUEST, "exactly one of 'time_ns'")
     error(line({"op": "query_state", "in": 1, "time_ns": 5}), BAD_REQUEST, "both were given")
@@ -414,6 +516,7 @@ def test_start_time_resolution() -> None:
             Sim(component="arm", freeze=False, fault="x"),
         ),
         ({"op": "rearm"}, Rearm()),
+        ({"op": "stop", "id": 3}, Stop(id=3)),
     ],
 )
 def test_every_simple_op(obj: dict[str, Any], expected: Any) -> None:
@@ -469,6 +572,12 @@ def test_encode_never_emits_non_finite_numbers() -> None:
         "e": [[1.0, None]],
         "f": [3, True],
     }
+
+
+def test_encode_writes_a_lone_surrogate_as_the_replacement_character() -> None:
+    assert encode({"m": "motor \ud800 silent", "ok": "\U0001f600"}) == (
+        '{"m":"motor \ufffd silent","ok":"\U0001f600"}\n'.encode()
+    )
 
 
 def test_encode_enums_unicode_and_refuses_unknown_types() -> None:
@@ -533,6 +642,7 @@ def test_error_codes_are_the_documented_set() -> None:
         "not_found",
         "busy",
         "unauthorized",
+        "idle",
         "hardware",
         "internal",
     }

@@ -228,7 +228,9 @@ def test_default_socket_path_order() -> None:
     assert default_socket_path({"XDG_RUNTIME_DIR": "/run/user/1000"}) == (
         "/run/user/1000/jtc-hw.sock"
     )
-    assert default_socket_path({}) == f"/tmp/jtc-hw-{os.getuid()}.sock"
+    assert default_socket_path({}, uid=0) == "/run/jtc-hw/jtc-hw.sock"
+    assert default_socket_path({}, uid=1000) == "/tmp/jtc-hw-1000/jtc-hw.sock"
+    assert default_socket_path({}) == default_socket_path({}, uid=os.geteuid())
 
 
 def test_default_socket_path_reads_the_environment(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -240,8 +242,9 @@ def test_all_daemon_settings(tmp_path: Path) -> None:
     daemon = load_robot(robot(daemon={
         "socket": "/run/jtc/arm.sock",
         "socket_mode": "0600",
-        "tcp": {"host": "::1", "port": 8765, "token": TOKEN},
+        "tcp": {"host": "::1", "port": 8765, "token": TOKEN, "max_clients": 2},
         "max_clients": 4,
+        "idle_timeout_s": 60,
         "max_message_bytes": 65536,
         "realtime": {"priority": 80, "lock_memory": True, "cpu_affinity": [2, 3]},
         "log_level": "debug",
@@ -249,15 +252,17 @@ def test_all_daemon_settings(tmp_path: Path) -> None:
     assert daemon == DaemonSettings(
         socket="/run/jtc/arm.sock",
         socket_mode=0o600,
-        tcp=TcpSettings("::1", 8765, TOKEN),
+        tcp=TcpSettings("::1", 8765, TOKEN, max_clients=2),
         max_clients=4,
+        idle_timeout_s=60.0,
         max_message_bytes=65536,
         realtime=RealtimeSettings(80, True, (2, 3)),
         log_level="debug",
     )
     assert TOKEN not in repr(daemon)
     tcp = load_robot(robot(daemon={"tcp": {"token": TOKEN}})).daemon.tcp
-    assert tcp == TcpSettings("127.0.0.1", 0, TOKEN)
+    assert tcp == TcpSettings("127.0.0.1", 0, TOKEN, max_clients=8)
+    assert load_robot(robot(daemon={"idle_timeout_s": 0})).daemon.idle_timeout_s == 0  # never
     assert load_robot(robot(daemon={"tcp": {"host": "localhost", "token": TOKEN}})).daemon.tcp
 
 
@@ -328,6 +333,10 @@ def test_relative_socket_of_a_mapping_is_relative_to_the_cwd(
         ({"max_clients": 0}, "daemon.max_clients", "must be >= 1, got 0"),
         ({"max_clients": "16"}, "daemon.max_clients", "expected an integer, got '16' (str)"),
         ({"max_message_bytes": 100}, "daemon.max_message_bytes", "must be >= 1024, got 100"),
+        ({"idle_timeout_s": -1}, "daemon.idle_timeout_s", "must be >= 0, got -1"),
+        ({"idle_timeout_s": "5m"}, "daemon.idle_timeout_s", "expected a number, got '5m'"),
+        ({"tcp": {"token": TOKEN, "max_clients": 0}}, "daemon.tcp.max_clients",
+         "must be >= 1, got 0"),
         ({"realtime": {"priority": 100}}, "daemon.realtime.priority",
          "must be between 0 and 99, got 100"),
         ({"realtime": {"priority": -1}}, "daemon.realtime.priority", "must be between 0 and 99"),
@@ -366,6 +375,83 @@ def test_settings_check_themselves_when_built_directly() -> None:
 # --------------------------------------------------------------------------------------------
 # Reading files
 # --------------------------------------------------------------------------------------------
+
+
+def test_the_daemon_settings_reach_the_server(tmp_path: Path) -> None:
+    from jtc_hw.daemon.server import ServerSettings
+
+    daemon = load_robot(robot(daemon={
+        "socket": str(tmp_path / "d.sock"), "max_clients": 3, "idle_timeout_s": 30,
+        "tcp": {"token": TOKEN, "max_clients": 5},
+    })).daemon
+    settings = ServerSettings.coerce(daemon)
+    assert (settings.max_clients, settings.idle_timeout_s) == (3, 30.0)
+    assert settings.tcp is not None and settings.tcp.max_clients == 5
+    assert settings.auth_timeout_s == 2.0
+
+
+BOMB = """\
+joints: [j1]
+command_interfaces: [position]
+state_interfaces: [position]
+hardware:
+  - name: arm
+    kind: mirror
+    joints: [j1]
+    params:
+      a: &a [x, x, x, x, x, x, x, x, x, x]
+      b: &b [*a, *a, *a, *a, *a, *a, *a, *a, *a, *a]
+      c: &c [*b, *b, *b, *b, *b, *b, *b, *b, *b, *b]
+      d: &d [*c, *c, *c, *c, *c, *c, *c, *c, *c, *c]
+      e: &e [*d, *d, *d, *d, *d, *d, *d, *d, *d, *d]
+      f: &f [*e, *e, *e, *e, *e, *e, *e, *e, *e, *e]
+      g: &g [*f, *f, *f, *f, *f, *f, *f, *f, *f, *f]
+"""
+
+
+def test_yaml_alias_expansion_is_bounded(tmp_path: Path) -> None:
+    bomb = tmp_path / "bomb.yaml"
+    bomb.write_text(BOMB)
+    error = error_of(bomb)
+    assert str(error) == (
+        f"configuration file {bomb}: its aliases (*name) expand it by 12,345,660 nodes, more "
+        "than the 1,000,000 allowed (an alias bomb?); write the repeated values out, or nest "
+        "fewer aliases"
+    )
+    recursive = tmp_path / "recursive.yaml"
+    recursive.write_text("joints: &j [j1, *j]\n")
+    assert "an anchor is used inside itself (line 1, column 9)" in str(error_of(recursive))
+    # Aliases within the bound are ordinary YAML.
+    fine = tmp_path / "fine.yaml"
+    fine.write_text(
+        "joints: &j [j1, j2]\ncommand_interfaces: [position]\nstate_interfaces: [position]\n"
+        "hardware: [{name: arm, kind: mirror, joints: *j}]\n"
+    )
+    assert load_robot(fine).hardware[0].joints == ("j1", "j2")
+
+
+def test_a_tcp_token_readable_by_others_gets_a_warning(tmp_path: Path) -> None:
+    from jtc_hw.daemon.robot import security_warnings
+
+    path = tmp_path / "robot.yaml"
+    path.write_text(
+        "joints: [j1]\ncommand_interfaces: [position]\nstate_interfaces: [position]\n"
+        f"daemon: {{tcp: {{token: {TOKEN}}}}}\n"
+    )
+    path.chmod(0o644)
+    (warning,) = security_warnings(load_robot(path))
+    assert warning == (
+        f"{path} holds the TCP token (daemon.tcp.token) and is readable by its group and "
+        "every user (mode 0644): whoever reads it can command the robot over TCP. Make it "
+        f"private: chmod 600 {path} (owned by the daemon's user)"
+    )
+    path.chmod(0o640)
+    assert "readable by its group (mode 0640)" in security_warnings(load_robot(path))[0]
+    path.chmod(0o600)
+    assert security_warnings(load_robot(path)) == []
+    path.write_text("joints: [j1]\ncommand_interfaces: [position]\nstate_interfaces: [position]\n")
+    path.chmod(0o644)
+    assert security_warnings(load_robot(path)) == []  # no token in it
 
 
 def test_file_errors(tmp_path: Path) -> None:

@@ -8,166 +8,34 @@ Tests wait on messages and log records with timeouts, never on sleeps.
 
 from __future__ import annotations
 
-import asyncio
 import contextlib
 import json
-import logging
 import os
 import socket
 import stat
-from collections.abc import AsyncIterator, Coroutine, Iterator, Sequence
+from collections.abc import AsyncIterator, Iterator
 from pathlib import Path
 from types import SimpleNamespace
-from typing import Any, TypeVar
+from typing import Any
 
 import pytest
 from helpers.fake_backend import TOKEN, FakeBackend
+from helpers.peers import LogWatch, Peer, goal_msg, run, watch_server_log
 
 from jtc_hw import GoalResult
+from jtc_hw.api.paths import default_socket_path
 from jtc_hw.daemon.server import Server, ServerSettings, TcpEndpoint
 from jtc_hw.errors import ConfigurationError
 
 pytestmark = pytest.mark.usefixtures("no_leaks")  # threads, sockets, resources
 
 S = 1_000_000_000
-T = TypeVar("T")
-
-
-# -- leak check ---------------------------------------------------------------------------------
-
-
-
-
-
-
-# -- the stand-in backend -----------------------------------------------------------------------
-
-
-
-
-# -- helpers ------------------------------------------------------------------------------------
-
-
-def run(coro: Coroutine[Any, Any, T], timeout_s: float = 15.0) -> T:
-    return asyncio.run(asyncio.wait_for(coro, timeout_s))
-
-
-def goal_msg(positions: Sequence[float] = (0.5, -0.5), t: float = 1.0, **extra: Any) -> Any:
-    traj = {
-        "joint_names": ["j1", "j2"],
-        "points": [{"time_from_start": t, "positions": list(positions)}],
-    }
-    traj.update(extra)
-    return traj
-
-
-class Peer:
-    """A raw client on a real socket: JSON lines out, JSON lines in."""
-
-    def __init__(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
-        self.reader = reader
-        self.writer = writer
-        self.inbox: list[dict[str, Any]] = []  # events received while waiting for replies
-        self._ids = 0
-
-    @classmethod
-    async def unix(cls, path: Path, limit: int = 1 << 24) -> Peer:
-        """``limit``: the stream stops reading from the socket at twice this many unread
-        bytes (a client that does not read)."""
-        reader, writer = await asyncio.open_unix_connection(str(path), limit=limit)
-        return cls(reader, writer)
-
-    @classmethod
-    async def tcp(cls, address: tuple[str, int]) -> Peer:
-        reader, writer = await asyncio.open_connection(*address, limit=1 << 24)
-        return cls(reader, writer)
-
-    async def send(self, message: Any) -> None:
-        data = message if isinstance(message, bytes) else json.dumps(message).encode() + b"\n"
-        self.writer.write(data)
-        await self.writer.drain()
-
-    async def recv(self, timeout_s: float = 5.0) -> dict[str, Any]:
-        line = await asyncio.wait_for(self.reader.readline(), timeout_s)
-        assert line, "the server closed the connection"
-        assert line.endswith(b"\n")
-        message: dict[str, Any] = json.loads(line)
-        return message
-
-    async def request(self, op: str, **fields: Any) -> dict[str, Any]:
-        self._ids += 1
-        await self.send({"id": self._ids, "op": op, **fields})
-        return await self.reply(self._ids)
-
-    async def reply(self, request_id: Any) -> dict[str, Any]:
-        while True:
-            message = await self.recv()
-            if "event" in message:
-                self.inbox.append(message)
-            else:
-                assert message["id"] == request_id, message
-                return message
-
-    async def event(self, name: str, timeout_s: float = 5.0) -> dict[str, Any]:
-        for i, message in enumerate(self.inbox):
-            if message["event"] == name:
-                return self.inbox.pop(i)
-        while True:
-            message = await self.recv(timeout_s)
-            if message.get("event") == name:
-                return message
-            self.inbox.append(message)
-
-    async def eof(self, timeout_s: float = 5.0) -> bytes:
-        """Everything until the server closes the connection."""
-        return await asyncio.wait_for(self.reader.read(), timeout_s)
-
-    async def close(self) -> None:
-        self.writer.close()
-        with contextlib.suppress(OSError):
-            await self.writer.wait_closed()
-
-
-class LogWatch(logging.Handler):
-    """Collects ``jtc_hw.daemon.server`` records; tests await a record containing a fragment."""
-
-    def __init__(self) -> None:
-        super().__init__(logging.DEBUG)
-        self.messages: list[str] = []
-        self._waiting: list[tuple[str, asyncio.Future[str]]] = []
-
-    def emit(self, record: logging.LogRecord) -> None:
-        message = record.getMessage()
-        self.messages.append(message)
-        for fragment, future in self._waiting:
-            if fragment in message and not future.done():
-                future.set_result(message)
-
-    async def wait_for(self, fragment: str, timeout_s: float = 5.0) -> str:
-        for message in self.messages:
-            if fragment in message:
-                return message
-        future: asyncio.Future[str] = asyncio.get_running_loop().create_future()
-        self._waiting.append((fragment, future))
-        try:
-            return await asyncio.wait_for(future, timeout_s)
-        finally:
-            self._waiting.remove((fragment, future))
-
-    def count(self, fragment: str) -> int:
-        return sum(fragment in m for m in self.messages)
 
 
 @pytest.fixture
 def logs() -> Iterator[LogWatch]:
-    watch = LogWatch()
-    logger = logging.getLogger("jtc_hw.server")
-    old_level = logger.level
-    logger.addHandler(watch)
-    logger.setLevel(logging.DEBUG)
-    yield watch
-    logger.removeHandler(watch)
-    logger.setLevel(old_level)
+    with watch_server_log() as watch:
+        yield watch
 
 
 @contextlib.asynccontextmanager
@@ -430,28 +298,35 @@ def test_a_client_too_slow_for_its_replies_is_disconnected(sock: Path, logs: Log
 
 
 def test_max_clients(sock: Path, logs: LogWatch) -> None:
+    """This test runs as the daemon's user: it gets the two reserved slots too (the limits
+    for other users are in test_server_limits)."""
+
     async def main() -> None:
         async with serving(sock, max_clients=2) as (server, _):
-            a, b = await Peer.unix(sock), await Peer.unix(sock)
-            assert (await a.request("hello"))["ok"] and (await b.request("hello"))["ok"]
+            peers = [await Peer.unix(sock) for _ in range(4)]
+            for peer in peers:
+                assert (await peer.request("hello"))["ok"]
+            stats = server.stats()
+            assert [c["reserved_slot"] for c in stats["clients"]] == [False, False, True, True]
             extra = await Peer.unix(sock)
-            busy = await extra.recv()
-            assert busy["id"] is None and busy["ok"] is False
+            busy = await extra.request("hello")
+            assert busy["id"] == 1 and busy["ok"] is False
             assert busy["error"]["code"] == "busy"
-            assert "2 clients (max_clients)" in busy["error"]["message"]
+            assert "2 unix clients (max_clients)" in busy["error"]["message"]
+            assert "only send a 'stop' request" in busy["error"]["message"]
             assert await extra.eof() == b""
             await extra.close()
-            await a.close()
+            await peers[0].close()
             await logs.wait_for("client 1 (unix pid")  # open line
             await logs.wait_for("disconnected: closed by the client")
             c = await Peer.unix(sock)  # a slot is free again
             assert (await c.request("hello"))["ok"]
             assert server.stats()["refused_busy"] == 1
-            await b.close()
-            await c.close()
+            for peer in (*peers[1:], c):
+                await peer.close()
 
     run(main())
-    assert logs.count("refused: 2 clients connected (max_clients)") == 1
+    assert logs.count("is over the limit: serving only a stop request") == 1
 
 
 def test_oversize_message_keeps_the_connection(sock: Path) -> None:
@@ -502,16 +377,70 @@ def test_malformed_json_unknown_op_and_bad_fields(sock: Path, logs: LogWatch) ->
 
 
 def test_one_shot_client_half_closes_and_still_gets_its_reply(sock: Path) -> None:
-    """As ``echo '{...}' | socat - UNIX-CONNECT:...``: the last line may lack its newline."""
+    """As ``echo '{...}' | socat - UNIX-CONNECT:...``: the client half-closes after writing."""
 
     async def main() -> None:
         async with serving(sock):
             peer = await Peer.unix(sock)
-            await peer.send(b'{"id": 1, "op": "hello"}\n{"id": 2, "op": "query_state", "in": 0}')
+            await peer.send(b'{"id": 1, "op": "hello"}\n{"id": 2, "op": "query_state", "in": 0}\n')
             peer.writer.write_eof()
             lines = (await peer.eof()).splitlines()
             assert [json.loads(x)["id"] for x in lines] == [1, 2]
             assert json.loads(lines[1])["positions"] == [0.0, 0.0]
+            await peer.close()
+
+    run(main())
+
+
+def test_edge_inputs_are_answered_and_never_executed(sock: Path) -> None:
+    async def main() -> None:
+        async with serving(sock) as (_, backend):
+            peer = await Peer.unix(sock)
+            # A lone surrogate: answered (the text escaped), the connection kept, not run.
+            await peer.send(b'{"id": 1, "op": "sim", "component": "mirror", "freeze": true, '
+                            b'"fault": "servo \\ud800"}\n')
+            refused = await peer.reply(1)
+            assert refused["error"]["code"] == "bad_request"
+            assert 'fault "servo \\ud800" holds a lone UTF-16 surrogate' in (
+                refused["error"]["message"]
+            )
+            assert not backend.mirror.frozen
+            await peer.send(b'{"id": "\\udc00", "op": "send_goal", "trajectory": '
+                            + json.dumps(goal_msg()).encode() + b"}\n")
+            assert (await peer.reply(None))["error"]["code"] == "bad_request"
+            assert backend.ctrl.active_goal is None
+            assert (await peer.request("get_status"))["ok"]  # nothing poisoned
+            # The end of the clock, and absurd values: refused, naming the point.
+            late = await peer.request("send_goal", trajectory=goal_msg(start_time_ns=2**63 - 1))
+            assert late["error"]["code"] == "bad_request"
+            assert "after the end of the daemon clock's range" in late["error"]["message"]
+            huge = await peer.request("send_goal", trajectory=goal_msg(positions=(0.0, 1e308)))
+            assert huge["error"]["message"].startswith(
+                "trajectory.points[0].positions[1] (joint 'j2'): 1e+308 is out of range"
+            )
+            assert backend.ctrl.active_goal is None
+            await peer.close()
+
+    run(main())
+
+
+def test_a_last_message_without_its_newline_is_never_executed(sock: Path) -> None:
+    """It may be cut off (a client that died mid-write): a stop, a goal, anything."""
+
+    async def main() -> None:
+        async with serving(sock) as (_, backend):
+            peer = await Peer.unix(sock)
+            goal = {"id": 2, "op": "send_goal", "trajectory": goal_msg()}
+            await peer.send(b'{"id": 1, "op": "hello"}\n' + json.dumps(goal).encode())
+            peer.writer.write_eof()
+            lines = (await peer.eof()).splitlines()
+            first, refused = (json.loads(x) for x in lines)
+            assert first["id"] == 1 and first["ok"]
+            assert refused["id"] is None and refused["error"]["code"] == "bad_json"
+            assert "ended before this message's newline; it was not executed" in (
+                refused["error"]["message"]
+            )
+            assert backend.ctrl.active_goal is None and backend.ctrl.holding
             await peer.close()
 
     run(main())
@@ -610,12 +539,44 @@ def test_unix_socket_file_mode_directory_and_removal(tmp_path: Path) -> None:
         async with serving(path):
             st = os.stat(path)
             assert stat.S_ISSOCK(st.st_mode) and stat.S_IMODE(st.st_mode) == 0o660
+            # Created directories: only the daemon's user writes them (nobody else can swap
+            # the socket); the group that socket_mode lets connect may enter.
+            for directory in (path.parent, path.parent.parent):
+                assert stat.S_IMODE(os.stat(directory).st_mode) == 0o710
             peer = await Peer.unix(path)
             assert (await peer.request("hello"))["ok"]
             await peer.close()
         assert not path.exists()
         async with serving(path, socket_mode=0o600):
             assert stat.S_IMODE(os.stat(path).st_mode) == 0o600
+
+    run(main())
+
+
+@pytest.mark.skipif(os.geteuid() != 0, reason="makes a directory of another user: needs root")
+def test_a_default_socket_directory_of_another_user_is_refused(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    runtime = tmp_path / "xdg"
+    runtime.mkdir(0o700)
+    os.chown(runtime, 65534, -1)
+    monkeypatch.delenv("RUNTIME_DIRECTORY", raising=False)
+    monkeypatch.setenv("XDG_RUNTIME_DIR", str(runtime))
+
+    async def main() -> None:
+        server = Server(FakeBackend(), ServerSettings(socket=default_socket_path()))
+        with pytest.raises(ConfigurationError) as info:
+            await server.start()
+        assert str(info.value) == (
+            f"socket: refusing the default socket directory: {runtime} belongs to uid 65534, "
+            "not to uid 0 or root: another user may have created it to put a socket of theirs "
+            "in the daemon's place. Remove it (as root) and start again, or set daemon.socket "
+            "to a path in a directory only this daemon's user can write"
+        )
+        assert not (runtime / "jtc-hw.sock").exists()
+        # Another path in it, configured explicitly, is the operator's choice.
+        async with serving(runtime / "named.sock"):
+            assert (runtime / "named.sock").exists()
 
     run(main())
 

@@ -42,6 +42,7 @@ class FakeBackend:
         self.status_error: Exception | None = None
         self.config_padding = 0
         self.extra_config: Any = None
+        self.stops = 0
 
     def now_ns(self) -> int:
         return self.t
@@ -100,6 +101,14 @@ class FakeBackend:
 
     async def send_trajectory(self, traj: JointTrajectory) -> None:
         self.ctrl.send_trajectory(self.t, traj)
+
+    async def stop_motion(self) -> bool:
+        await asyncio.sleep(0)  # the real backend waits for the loop process here
+        if not self.ctrl.active:
+            return False
+        self.ctrl.request_stop()
+        self.stops += 1
+        return True
 
     def query_state(self, time_ns: int) -> TrajectorySample:
         return self.ctrl.query_state(time_ns)

@@ -40,6 +40,7 @@ from ..errors import (
     HardwareError,
     JtcHwError,
 )
+from .pipe import Inbox, send_framed
 from .robot import RobotConfig
 
 log = logging.getLogger("jtc_hw.backend")
@@ -55,6 +56,8 @@ _LOOP_ERRORS: dict[str, type[JtcHwError]] = {
 }
 START_TIMEOUT_S = 30.0
 REQUEST_TIMEOUT_S = 5.0
+READ_BUDGET_BYTES = 1 << 20
+"""Bytes of the loop's messages read per wake-up of the event loop (more: it wakes again)."""
 
 
 class Listener(Protocol):
@@ -95,6 +98,7 @@ class LoopBackend:
         self._period_ns = round(1e9 / self.config.update_rate)
         self._margin_ns = max(5_000_000, 3 * self._period_ns)
         self._active_goal: int | None = None
+        self._inbox: Inbox | None = None
         self.last_heard_ns = 0
         self.info: dict[str, Any] = {}
         self.exit_code: int | None = None
@@ -123,6 +127,7 @@ class LoopBackend:
         )
         self._process.start()
         child.close()
+        self._inbox = Inbox(parent, READ_BUDGET_BYTES, framed=False)
         aio.add_reader(parent.fileno(), self._readable)
         waiters: set[asyncio.Future[Any]] = {self._ready, self._exited}
         done, _ = await asyncio.wait(
@@ -161,6 +166,9 @@ class LoopBackend:
                 asyncio.get_running_loop().remove_reader(self._conn.fileno())
             except (ValueError, OSError):
                 pass
+            if self._inbox is not None:
+                self._inbox.close()
+                self._inbox = None
             self._conn.close()
             self._conn = None
         self._executor.shutdown(wait=False)
@@ -178,11 +186,15 @@ class LoopBackend:
     # -- messages from the loop ---------------------------------------------------------------
 
     def _readable(self) -> None:
-        assert self._conn is not None
-        try:
-            while self._conn.poll():
-                self._dispatch(self._conn.recv())
-        except (EOFError, OSError):
+        # Never blocks: the loop may have written part of a message (its outbox resumes a
+        # partial write at its next cycle).
+        inbox = self._inbox
+        if inbox is None or self._conn is None:
+            return
+        inbox.pump()
+        while (message := inbox.pop()) is not None:
+            self._dispatch(message)
+        if inbox.closed:
             asyncio.get_running_loop().remove_reader(self._conn.fileno())
             if self._exited is not None and not self._exited.done():
                 self.exit_code = self.exit_code if self.exit_code is not None else 3
@@ -391,8 +403,6 @@ class LoopBackend:
     def _send(self, message: tuple[Any, ...]) -> None:
         if self._conn is None or not self.alive:
             raise GoalRejected("the control loop is not running")
-        from .loop import send_framed
-
         send_framed(self._conn, message)
 
     async def _request(self, op: str, args: dict[str, Any]) -> Any:

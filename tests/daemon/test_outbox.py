@@ -114,8 +114,8 @@ def test_the_api_side_inbox_reads_the_outbox_format(
         while len(got) < len(sent):
             outbox.flush()
             inbox.pump()
-            while (message := inbox.pop()) is not None:
-                got.append(message)
+            while (arrived := inbox.pop()) is not None:
+                got.append(arrived)
         assert got == sent
     finally:
         inbox.close()

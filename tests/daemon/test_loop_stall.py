@@ -24,8 +24,10 @@ from jtc_hw.controller.trajectory import JointTrajectory, TrajectoryPoint
 from jtc_hw.daemon.loop import ControlLoop
 from jtc_hw.daemon.pipe import Inbox, Outbox
 from jtc_hw.daemon.robot import load_robot
+from jtc_hw.errors import GoalRejected
 
-from conftest import make_robot_config
+from conftest import Rig as ControllerRig
+from conftest import make_config, make_robot_config
 
 pytestmark = pytest.mark.usefixtures("no_leaks")
 
@@ -185,3 +187,37 @@ def test_a_reader_that_only_lags_behind_droppable_messages_is_not_a_stall(rig: R
     assert rig.loop.api_stalls == 0
     assert rig.loop.ctrl.active_goal is not None
     assert rig.results() == []
+
+
+def test_controller_abort_as_the_loop_uses_it() -> None:
+    """``abort`` ends a goal ABORTED and holds the measured position; a topic trajectory just
+    stops; while holding, or inactive, nothing (or a refusal) happens."""
+    rig = ControllerRig(make_config(), [0.0, 0.0])
+    version = rig.ctrl.reference_version
+    rig.ctrl.abort("nobody reads")  # holding: nothing to abort
+    rig.step()
+    assert rig.ctrl.reference_version == version and rig.results() == []
+
+    goal_id = rig.ctrl.send_goal(rig.now, JointTrajectory(
+        ("j1", "j2"), [TrajectoryPoint(2.0, [1.0, 1.0])]))
+    rig.step(50)
+    rig.ctrl.abort("nobody reads")
+    rig.step()
+    (result,) = rig.results(goal_id)
+    assert (result.status, int(result.error_code), result.error_string) == (
+        GoalStatus.ABORTED, -1, "nobody reads")
+    assert rig.ctrl.holding
+    held = rig.ctrl.reference.sample(rig.now).positions
+    np.testing.assert_allclose(held, rig.mirror.p, atol=0.05)  # where the joints were
+    assert 0.0 < held[0] < 1.0
+
+    topic = JointTrajectory(("j1", "j2"), [TrajectoryPoint(2.0, [0.0, 0.0])])
+    rig.ctrl.send_trajectory(rig.now, topic)
+    rig.step(10)
+    rig.ctrl.abort("nobody reads")
+    rig.step()
+    assert rig.ctrl.holding and len(rig.results()) == 1  # a topic trajectory has no result
+
+    rig.ctrl.deactivate(rig.now)
+    with pytest.raises(GoalRejected):
+        rig.ctrl.abort("nobody reads")

@@ -101,6 +101,9 @@ def lock_file_name(name: str) -> str:
     A non-path name keeps its ``:``, which is escaped in paths; one without any ``:``, or
     starting with one, gets a leading ``:``, so that it can never equal a path's name nor
     another non-path name's.
+
+    Raises:
+        Nothing.
     """
     is_path = name.startswith("/")
     if is_path:
@@ -180,7 +183,11 @@ def _usable(directory: str) -> str | None:
 
 
 def socket_lock_path(socket_path: str) -> str:
-    """The lock file of a socket path: ``<socket>.lock``, next to it."""
+    """The lock file of a socket path: ``<socket>.lock``, next to it.
+
+    Raises:
+        Nothing.
+    """
     return socket_path + ".lock"
 
 

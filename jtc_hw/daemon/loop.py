@@ -23,7 +23,9 @@ waits for the API process. If the API process stops reading (stopped, swapped ou
 ``daemon.api_stall_s``, the loop ends the active goal ``ABORTED`` with that reason, holds the
 measured position, refuses new goals, keeps cycling and publishing into the outbox (``state``
 and ``status`` coalesced, everything else kept in order), and serves again once the API process
-has read the backlog.
+has read the backlog. Before it configures any hardware, the loop process locks every device
+its components drive (``HardwareInterface.devices()``, :mod:`.locks`): a second daemon on the
+same hardware stops there, having sent nothing.
 
 One cycle at deadline ``t``: drain requests -> ``hardware.read(t)`` -> ``controller.update`` ->
 ``hardware.write`` -> report events; a state snapshot at ``state_publish_rate``, statistics at
@@ -100,12 +102,20 @@ class ControlLoop:
     # -- messaging ----------------------------------------------------------------------------
 
     def send(self, *message: Any) -> None:
-        """Queue an ordered message (never dropped); written at the end of the cycle."""
+        """Queue an ordered message (never dropped); written at the end of the cycle.
+
+        Raises:
+            pickle.PicklingError: the message cannot be pickled (a programming error).
+        """
         self.outbox.put(message)
 
     def publish(self, *message: Any) -> None:
         """Queue a droppable message (``state``, the periodic ``status``): while the API
-        process lags, a newer one of the same kind replaces it."""
+        process lags, a newer one of the same kind replaces it.
+
+        Raises:
+            pickle.PicklingError: the message cannot be pickled (a programming error).
+        """
         self.outbox.put(message, key=message[0])
 
     def _report_reference(self) -> None:
@@ -298,7 +308,11 @@ class ControlLoop:
     def status(self) -> dict[str, Any]:
         """The loop's statistics (``outbox``: how its messages to the API process fare, see
         :meth:`Outbox.snapshot`; ``api_stalls``: goals ended because the API process stopped
-        reading; ``api_stalled``: it has not caught up since), hardware and controller."""
+        reading; ``api_stalled``: it has not caught up since), hardware and controller.
+
+        Raises:
+            Nothing: it only reads state.
+        """
         return {
             "loop": {
                 **self.stats.snapshot(),
@@ -318,7 +332,11 @@ class ControlLoop:
 
     def serve_outbox(self, now_ns: int) -> None:
         """Write the cycle's messages without blocking; end the active goal if the API process
-        has not taken an ordered message for ``api_stall_s`` (or the backlog overflows)."""
+        has not taken an ordered message for ``api_stall_s`` (or the backlog overflows).
+
+        Raises:
+            Nothing: an API process that has gone away stops the loop (``running``).
+        """
         outbox = self.outbox
         outbox.flush()
         if outbox.closed:

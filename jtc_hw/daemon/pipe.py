@@ -77,7 +77,11 @@ def recv_framed(conn: Connection) -> Any:
 
 
 def encode_message(message: Any) -> bytes:
-    """``message`` in ``multiprocessing``'s wire format (what ``Connection.send`` writes)."""
+    """``message`` in ``multiprocessing``'s wire format (what ``Connection.send`` writes).
+
+    Raises:
+        pickle.PicklingError: ``message`` cannot be pickled.
+    """
     payload = pickle.dumps(message, protocol=pickle.HIGHEST_PROTOCOL)
     size = len(payload)
     if size > 0x7FFFFFFF:
@@ -122,7 +126,11 @@ class Inbox:
         self._frame_size = 0  # buffers the framed message has (from its head)
 
     def close(self) -> None:
-        """Release the duplicated socket (the connection itself stays open)."""
+        """Release the duplicated socket (the connection itself stays open).
+
+        Raises:
+            Nothing.
+        """
         self._sock.close()
 
     def pump(self) -> None:
@@ -192,7 +200,11 @@ class Inbox:
         return len(self._queue)
 
     def pop(self) -> Any | None:
-        """The oldest completed message, or ``None``."""
+        """The oldest completed message, or ``None``.
+
+        Raises:
+            Nothing.
+        """
         try:
             return self._queue.popleft()
         except IndexError:
@@ -260,7 +272,11 @@ class Outbox:
         self._send_ns_total = 0
 
     def close(self) -> None:
-        """Release the duplicated socket (the connection itself stays open)."""
+        """Release the duplicated socket (the connection itself stays open).
+
+        Raises:
+            Nothing.
+        """
         self._sock.close()
 
     # -- queueing ----------------------------------------------------------------------------
@@ -314,7 +330,11 @@ class Outbox:
         return self.ordered_bytes > self.capacity_bytes
 
     def oldest_ns(self) -> int | None:
-        """When the oldest waiting ordered message was queued (``None``: none waits)."""
+        """When the oldest waiting ordered message was queued (``None``: none waits).
+
+        Raises:
+            Nothing.
+        """
         return self._ordered[0].queued_ns if self._ordered else None
 
     # -- writing -----------------------------------------------------------------------------
@@ -405,6 +425,9 @@ class Outbox:
 
         Returns:
             True if everything was written.
+
+        Raises:
+            Nothing: a failing socket sets :attr:`closed` (and returns False).
         """
         deadline = time.monotonic() + timeout_s
         poller = select.poll()
@@ -427,6 +450,9 @@ class Outbox:
         ``pending_bytes`` now, ``peak_bytes`` ever, ``capacity_bytes``; ``oldest_ms``, the age
         of the oldest waiting ordered message; ``send_us``: ``max`` of one flush since the
         previous snapshot, ``worst`` ever, ``mean`` over all flushes.
+
+        Raises:
+            Nothing.
         """
         window, self._send_ns_max = self._send_ns_max, 0
         if window > self._send_ns_worst:

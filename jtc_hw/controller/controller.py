@@ -459,6 +459,19 @@ class JointTrajectoryController:
         self._require_active_for_commands()
         self._request_stop(GoalTransition.PREEMPT, STOPPED_BY_TOPIC)
 
+    def abort(self, reason: str) -> None:
+        """Abort what is executing: from the next ``update``, hold the measured position; an
+        active goal ends ``ABORTED`` with ``reason`` (a topic trajectory just stops). For a
+        fault outside the controller and the hardware, where the controller stays active
+        (e.g. nobody reads the goal's feedback and result). Nothing happens while holding.
+
+        Raises:
+            GoalRejected: the controller is not active.
+        """
+        self._require_active_for_commands()
+        if self._execution is not None:
+            self._request_stop(GoalTransition.ABORT, reason)
+
     @property
     def reference_version(self) -> int:
         """Increments every time the reference changes (activation, commit, stop, abort)."""

@@ -10,6 +10,15 @@ the loop, which swaps it in at its next cycle if the reference has not changed m
 that cycle is not later than the planned time; otherwise it answers "stale" and we plan again
 against the newer reference with a larger margin. ``query_state`` is answered from the replica
 without involving the loop at all.
+
+The loop's messages are read without blocking (:class:`~.pipe.Inbox`), whatever the loop has
+written in part. The loop's death is a result, not a silence: when its process ends (its
+sentinel) without having been asked to stop, every goal it accepted and has not finished
+(tracked here from ``committed`` to its result) gets one ``ABORTED`` result "control loop
+died: <how>" through the listener, a goal being planned or committed is refused, the status
+reports the fault, new goals and requests are refused with that reason, and
+:meth:`LoopBackend.wait_exited` returns, so that the service exits non-zero (systemd restarts
+it). Meanwhile the device-side watchdogs stop the motors.
 """
 
 from __future__ import annotations
@@ -18,6 +27,7 @@ import asyncio
 import itertools
 import logging
 import multiprocessing
+import signal
 import time
 from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
@@ -29,7 +39,13 @@ import numpy as np
 from ..controller.config import ControllerConfig
 from ..controller.config_io import config_to_dict
 from ..controller.controller import Plan, Planner
-from ..controller.goals import GoalFeedback, GoalResult, TrajectoryStopped
+from ..controller.goals import (
+    ErrorCode,
+    GoalFeedback,
+    GoalResult,
+    GoalStatus,
+    TrajectoryStopped,
+)
 from ..controller.joints import JointCommand
 from ..controller.tolerances import JointTolerance
 from ..controller.trajectory import JointTrajectory, Trajectory, TrajectorySample
@@ -40,6 +56,7 @@ from ..errors import (
     HardwareError,
     JtcHwError,
 )
+from .pipe import Inbox, send_framed
 from .robot import RobotConfig
 
 log = logging.getLogger("jtc_hw.backend")
@@ -55,6 +72,10 @@ _LOOP_ERRORS: dict[str, type[JtcHwError]] = {
 }
 START_TIMEOUT_S = 30.0
 REQUEST_TIMEOUT_S = 5.0
+REAP_TIMEOUT_S = 5.0
+"""Bound on reaping the loop process once its sentinel says it ended (microseconds in practice)."""
+READ_BUDGET_BYTES = 1 << 20
+"""Bytes of the loop's messages read per wake-up of the event loop (more: it wakes again)."""
 
 
 class Listener(Protocol):
@@ -95,6 +116,12 @@ class LoopBackend:
         self._period_ns = round(1e9 / self.config.update_rate)
         self._margin_ns = max(5_000_000, 3 * self._period_ns)
         self._active_goal: int | None = None
+        self._open_goals: dict[int, None] = {}  # committed, no result yet (in commit order)
+        self._inbox: Inbox | None = None
+        self._stopping = False
+        self._last_error: str | None = None  # the loop's last error log line
+        self.death: str | None = None
+        """Why the loop process ended without being asked to ("control loop died: ...")."""
         self.last_heard_ns = 0
         self.info: dict[str, Any] = {}
         self.exit_code: int | None = None
@@ -123,7 +150,9 @@ class LoopBackend:
         )
         self._process.start()
         child.close()
+        self._inbox = Inbox(parent, READ_BUDGET_BYTES, framed=False)
         aio.add_reader(parent.fileno(), self._readable)
+        aio.add_reader(self._process.sentinel, self._process_ended)
         waiters: set[asyncio.Future[Any]] = {self._ready, self._exited}
         done, _ = await asyncio.wait(
             waiters, timeout=START_TIMEOUT_S, return_when=asyncio.FIRST_COMPLETED
@@ -131,16 +160,28 @@ class LoopBackend:
         if self._ready in done:
             self.info = self._ready.result()
             return self.info
+        if done:  # the loop exited; its last error says why (a busy device, a bad parameter)
+            raise HardwareError(self._last_error or "the control loop did not start (see the log "
+                                "above)")
         raise HardwareError(
-            "the control loop did not start (see the log above)"
-            if done
-            else f"the control loop did not become ready within {START_TIMEOUT_S:.0f} s"
+            f"the control loop did not become ready within {START_TIMEOUT_S:.0f} s"
         )
+
+    async def wait_exited(self) -> int:
+        """Until the loop process has ended (asked to or not); its exit status.
+
+        Raises:
+            ControllerStateError: the loop was never started.
+        """
+        if self._exited is None:
+            raise ControllerStateError("the control loop was never started")
+        return await asyncio.shield(self._exited)
 
     async def stop(self, reason: str) -> int:
         """Ask the loop to finish (goal result, hold, safe action) and wait for it to exit."""
         if self._process is None or self._exited is None:
             return 0
+        self._stopping = True
         if not self._exited.done():
             try:
                 await self._request("shutdown", {"reason": reason})
@@ -152,15 +193,26 @@ class LoopBackend:
                 log.error("the control loop did not stop within 10 s; terminating it")
                 self._process.terminate()
         await asyncio.get_running_loop().run_in_executor(None, self._process.join, 5.0)
+        if not self._exited.done():  # its sentinel was not seen (yet): settle the goals now
+            self._loop_ended(self._process.exitcode)
         self._close()
         return self.exit_code or 0
 
     def _close(self) -> None:
-        if self._conn is not None:
+        aio = asyncio.get_running_loop()
+        if self._process is not None:
             try:
-                asyncio.get_running_loop().remove_reader(self._conn.fileno())
+                aio.remove_reader(self._process.sentinel)
             except (ValueError, OSError):
                 pass
+        if self._conn is not None:
+            try:
+                aio.remove_reader(self._conn.fileno())
+            except (ValueError, OSError):
+                pass
+            if self._inbox is not None:
+                self._inbox.close()
+                self._inbox = None
             self._conn.close()
             self._conn = None
         self._executor.shutdown(wait=False)
@@ -178,16 +230,54 @@ class LoopBackend:
     # -- messages from the loop ---------------------------------------------------------------
 
     def _readable(self) -> None:
-        assert self._conn is not None
-        try:
-            while self._conn.poll():
-                self._dispatch(self._conn.recv())
-        except (EOFError, OSError):
+        inbox = self._inbox
+        if inbox is None or self._conn is None:
+            return
+        inbox.pump()
+        while (message := inbox.pop()) is not None:
+            self._dispatch(message)
+        if inbox.closed:
+            # The end of the pipe: the process is ending. Its sentinel says when it has.
             asyncio.get_running_loop().remove_reader(self._conn.fileno())
-            if self._exited is not None and not self._exited.done():
-                self.exit_code = self.exit_code if self.exit_code is not None else 3
-                self._exited.set_result(self.exit_code)
-            self._fail_waiting("the control loop exited")
+
+    def _process_ended(self) -> None:
+        """The loop process has exited: take what it wrote before, then settle every goal."""
+        aio = asyncio.get_running_loop()
+        assert self._process is not None
+        aio.remove_reader(self._process.sentinel)
+        # Its descriptors (the sentinel) close a moment before it can be reaped: with a
+        # timeout, join waits for that moment (blocking waitpid), where join(0) could miss it.
+        self._process.join(REAP_TIMEOUT_S)
+        code = self._process.exitcode
+        inbox = self._inbox
+        if inbox is not None and self._conn is not None and not inbox.closed:
+            # Nothing more can arrive: read to the end (at most the socket's buffer).
+            for _ in range(64):
+                self._readable()
+                if inbox.closed or self._inbox is None:
+                    break
+        self._loop_ended(code)
+
+    def _loop_ended(self, code: int | None) -> None:
+        asked = self._stopping and self.exit_code == 0
+        if self.exit_code is None or code not in (0, None):
+            self.exit_code = 3 if code is None else code
+        if not asked:
+            self.death = f"control loop died: {_describe_exit(code, self.exit_code)}"
+            if self._last_error and self.exit_code > 0:
+                self.death += f" ({self._last_error})"
+            if self._ready is not None and self._ready.done():
+                log.critical("%s; the device watchdogs stop the motors", self.death)
+        reason = self.death or "control loop exited"
+        # Exactly one result for every goal the loop accepted and did not finish.
+        now = self.now_ns()
+        for goal_id in list(self._open_goals):
+            self._finish_goal(GoalResult(goal_id, GoalStatus.ABORTED, ErrorCode.INVALID_GOAL,
+                                         reason, now))
+        self._active_goal = None
+        self._fail_waiting(reason)
+        if self._exited is not None and not self._exited.done():
+            self._exited.set_result(self.exit_code)
 
     def _dispatch(self, message: tuple[Any, ...]) -> None:
         self.last_heard_ns = time.monotonic_ns()
@@ -203,6 +293,8 @@ class LoopBackend:
             future = self._waiting.pop(message[1], None)
             if kind == "committed":
                 self._active_goal = message[2]
+                if message[2] is not None:
+                    self._open_goals[message[2]] = None
             if future is not None and not future.done():
                 future.set_result(message)
             if kind == "stale":
@@ -211,18 +303,10 @@ class LoopBackend:
             for event in message[1]:
                 if isinstance(event, TrajectoryStopped):
                     log.warning("topic trajectory stopped: %s", event.reason)
+                elif isinstance(event, GoalResult):
+                    self._finish_goal(event)
                 elif self._listener is not None:
                     self._listener.on_goal_event(event)
-                if isinstance(event, GoalResult):
-                    if event.goal_id == self._active_goal:
-                        self._active_goal = None
-                    log.info(
-                        "goal %d %s (%d): %s",
-                        event.goal_id,
-                        event.status.value,
-                        int(event.error_code),
-                        event.error_string,
-                    )
         elif kind == "state":
             if self._listener is not None:
                 self._listener.on_state(self._snapshot(message[1]))
@@ -230,13 +314,14 @@ class LoopBackend:
             self._status = message[1]
         elif kind == "log":
             log.log(message[1], "%s", message[2])
+            if message[1] >= logging.ERROR:
+                self._last_error = message[2]
         elif kind == "ready":
             if self._ready is not None and not self._ready.done():
                 self._ready.set_result(message[1])
         elif kind == "exit":
+            # The process is ending; its sentinel settles the goals (_process_ended).
             self.exit_code = message[1]
-            if self._exited is not None and not self._exited.done():
-                self._exited.set_result(message[1])
 
     def _snapshot(self, raw: tuple[Any, ...]) -> dict[str, Any]:
         t, desired, positions, velocities, error, command, holding, goal = raw
@@ -264,6 +349,21 @@ class LoopBackend:
             "holding": holding,
             "active_goal": goal,
         }
+
+    def _finish_goal(self, result: GoalResult) -> None:
+        self._open_goals.pop(result.goal_id, None)
+        if result.goal_id == self._active_goal:
+            self._active_goal = None
+        if self._listener is not None:
+            self._listener.on_goal_event(result)
+        log.log(
+            logging.ERROR if self.death else logging.INFO,
+            "goal %d %s (%d): %s",
+            result.goal_id,
+            result.status.value,
+            int(result.error_code),
+            result.error_string,
+        )
 
     def _fail_waiting(self, reason: str) -> None:
         for future in self._waiting.values():
@@ -303,10 +403,14 @@ class LoopBackend:
 
     def status(self) -> dict[str, Any]:
         """The loop's statistics and hardware status (refreshed at 2 Hz); the active goal is
-        tracked from commits and results, so it is current."""
-        status = dict(self._status, alive=self.alive)
-        if "controller" in status:
-            status["controller"] = dict(status["controller"], active_goal=self._active_goal)
+        tracked from commits and results, so it is current. ``alive``: the loop process runs;
+        ``loop_pid``: its pid; after its death, ``controller.fault`` says how it died."""
+        status = dict(self._status, alive=self.alive, loop_pid=self.info.get("pid"))
+        if "controller" in status or self.death:
+            controller = dict(status.get("controller", {}), active_goal=self._active_goal)
+            if self.death:
+                controller.update(active=False, holding=False, fault=self.death)
+            status["controller"] = controller
         return status
 
     def query_state(self, time_ns: int) -> TrajectorySample:
@@ -402,12 +506,24 @@ class LoopBackend:
 
     # -- internals ----------------------------------------------------------------------------
 
-    def _send(self, message: tuple[Any, ...]) -> None:
+    def _refusal(self) -> str | None:
+        """Why nothing can be sent to the loop now, or ``None``."""
+        if self.death:
+            return f"{self.death}; the daemon is exiting (its service manager restarts it)"
         if self._conn is None or not self.alive:
-            raise GoalRejected("the control loop is not running")
-        from .loop import send_framed
+            return "the control loop is not running"
+        return None
 
-        send_framed(self._conn, message)
+    def _send(self, message: tuple[Any, ...]) -> None:
+        reason = self._refusal()
+        if reason is not None:
+            raise ControllerStateError(reason)
+        assert self._conn is not None
+        try:
+            send_framed(self._conn, message)
+        except OSError:
+            # The loop is gone (its death is being reported by _process_ended).
+            raise ControllerStateError(self._refusal() or "the control loop exited") from None
 
     async def _request(self, op: str, args: dict[str, Any]) -> Any:
         request_id = next(self._ids)
@@ -428,6 +544,9 @@ class LoopBackend:
         aio = asyncio.get_running_loop()
         margin = self._margin_ns
         for _attempt in range(ATTEMPTS):
+            refused = self._refusal()
+            if refused is not None:
+                raise GoalRejected(refused)
             if self._ref is None:
                 raise GoalRejected("the controller is not active yet")
             ref, version = self._ref, self._version
@@ -447,8 +566,12 @@ class LoopBackend:
             self._plans[plan_id] = plan
             future = aio.create_future()
             self._waiting[plan_id] = future
-            self._send(("commit", plan_id, plan))
-            reply = await asyncio.wait_for(future, REQUEST_TIMEOUT_S)
+            try:
+                self._send(("commit", plan_id, plan))
+                reply = await asyncio.wait_for(future, REQUEST_TIMEOUT_S)
+            except ControllerStateError as exc:  # the loop died before it answered
+                self._waiting.pop(plan_id, None)
+                raise GoalRejected(str(exc)) from None
             if reply[0] == "committed":
                 return reply[2]  # type: ignore[no-any-return]
             reason = reply[2]
@@ -460,3 +583,13 @@ class LoopBackend:
             f"the control loop kept refusing the plan ({ATTEMPTS} attempts); the reference "
             "changes too often or planning is too slow for this goal's size"
         )
+
+
+def _describe_exit(code: int | None, status: int) -> str:
+    """How a process ended, from its ``exitcode`` (negative: the signal that killed it)."""
+    if code is not None and code < 0:
+        try:
+            return f"killed by {signal.Signals(-code).name}"
+        except ValueError:
+            return f"killed by signal {-code}"
+    return f"exit status {status}"

@@ -16,8 +16,16 @@ one duplex ``multiprocessing`` connection:
 Every change of the controller's reference is reported, in order, so the API process keeps an
 exact replica to plan against: a committed plan by its id (the API process made it), a hold by
 value (a constant trajectory, a few bytes). The loop process has a single thread: after each
-cycle it reads whatever has arrived, a bounded amount, without blocking (:class:`_Inbox`), and
-the next cycle pops the completed messages.
+cycle it reads whatever has arrived, a bounded amount, without blocking (:class:`~.pipe.Inbox`),
+and the next cycle pops the completed messages. What it sends goes through a
+:class:`~.pipe.Outbox`, written at the end of each cycle without ever blocking: the loop never
+waits for the API process. If the API process stops reading (stopped, swapped out, wedged) for
+``daemon.api_stall_s``, the loop ends the active goal ``ABORTED`` with that reason, holds the
+measured position, refuses new goals, keeps cycling and publishing into the outbox (``state``
+and ``status`` coalesced, everything else kept in order), and serves again once the API process
+has read the backlog. Before it configures any hardware, the loop process locks every device
+its components drive (``HardwareInterface.devices()``, :mod:`.locks`): a second daemon on the
+same hardware stops there, having sent nothing.
 
 One cycle at deadline ``t``: drain requests -> ``hardware.read(t)`` -> ``controller.update`` ->
 ``hardware.write`` -> report events; a state snapshot at ``state_publish_rate``, statistics at
@@ -32,9 +40,7 @@ import collections
 import gc
 import logging
 import os
-import pickle
 import signal
-import struct
 import sys
 import time
 from multiprocessing.connection import Connection
@@ -48,153 +54,30 @@ from ..controller.joints import JointCommand, JointState
 from ..errors import HardwareError, JtcHwError, StalePlan
 from ..hardware import HardwareSet, LifecycleState
 from .clock import Ticker
+from .locks import DeviceLock, lock_devices
 from .loopstats import LoopStats
+from .pipe import Inbox, Outbox
 from .robot import RobotConfig, create_hardware_set, load_robot
 
 log = logging.getLogger("jtc_hw.loop")
 
 STATUS_PERIOD_NS = 500_000_000
 GC_SLACK_NS = 300_000  # run a gen-0 collection only with this much time left before the deadline
-
-
-_FRAME = struct.Struct("<I")
-
-
-def send_framed(conn: Connection, message: tuple[Any, ...]) -> None:
-    """Send ``message`` with its arrays out of band (pickle protocol 5).
-
-    A 2,000-point plan carries megabytes of coefficients. Pickled in band, unpickling copies
-    them while holding the interpreter lock, which the loop thread then waits for. Out of band,
-    each array travels as its own frame that the receiving thread reads with the lock released
-    (``os.read``), and unpickling only wraps those bytes: no copy.
-    """
-    buffers: list[pickle.PickleBuffer] = []
-    head = pickle.dumps(message, protocol=5, buffer_callback=buffers.append)
-    conn.send_bytes(_FRAME.pack(len(buffers)) + head)
-    for buffer in buffers:
-        conn.send_bytes(buffer.raw())
-
-
-def recv_framed(conn: Connection) -> Any:
-    """Receive one message sent by ``send_framed``."""
-    head = conn.recv_bytes()
-    (count,) = _FRAME.unpack_from(head)
-    buffers = [conn.recv_bytes() for _ in range(count)]
-    return pickle.loads(memoryview(head)[_FRAME.size :], buffers=buffers)
-
-
-_HEADER = struct.Struct("!i")
-_LONG_HEADER = struct.Struct("!Q")
-
-
-class _Inbox:
-    """Messages from the API process, read by the loop thread itself, a bounded amount at a
-    time, without ever blocking.
-
-    A receiving thread would compete with the loop thread for the interpreter lock: measured,
-    a thread receiving a 2.4 MB plan stretched cycles by milliseconds (each time the loop
-    thread released the lock in a system call, the receiver took it for up to the switch
-    interval). Here the loop process has one thread. :meth:`pump` reads what has arrived, at
-    most ``budget`` bytes, straight into the buffer of the message being received
-    (``MSG_DONTWAIT``: the connection stays blocking for sends), and completes messages in
-    ``multiprocessing``'s wire format (a 4-byte length, or -1 and an 8-byte length) framed by
-    :func:`send_framed`. A 2,000-point plan then arrives over a few cycles, each paying a
-    bounded copy. The API process's send just waits meanwhile.
-    """
-
-    def __init__(self, conn: Connection, budget: int) -> None:
-        import socket
-
-        self._sock = socket.socket(fileno=os.dup(conn.fileno()))
-        self._budget = budget
-        self._queue: collections.deque[Any] = collections.deque()
-        self.closed = False
-        self._header = bytearray(_HEADER.size)
-        self._body: bytearray | None = None  # the message being received, once its size is known
-        self._view = memoryview(self._header)
-        self._filled = 0
-        self._long = False
-        self._frame: list[bytearray] = []  # [head, buffers...] of the framed message so far
-        self._frame_size = 0  # buffers the framed message has (from its head)
-
-    def close(self) -> None:
-        """Release the duplicated socket (the connection itself stays open)."""
-        self._sock.close()
-
-    def pump(self) -> None:
-        """Read what has arrived, at most ``budget`` bytes; never blocks."""
-        import socket
-
-        budget = self._budget
-        while budget > 0 and not self.closed:
-            want = min(len(self._view) - self._filled, budget)
-            try:
-                got = self._sock.recv_into(self._view[self._filled:], want, socket.MSG_DONTWAIT)
-            except (BlockingIOError, InterruptedError):
-                return
-            except OSError:
-                self.closed = True
-                return
-            if got == 0:
-                self.closed = True
-                return
-            budget -= got
-            self._filled += got
-            if self._filled == len(self._view):
-                self._advance()
-
-    def _advance(self) -> None:
-        if self._body is None:
-            if self._long:
-                (size,) = _LONG_HEADER.unpack(self._header)
-                self._long = False
-            else:
-                (size,) = _HEADER.unpack(self._header)
-                if size == -1:
-                    self._long = True
-                    self._expect(bytearray(_LONG_HEADER.size), header=True)
-                    return
-            self._body = bytearray(size)
-            self._expect(self._body)
-            if size:
-                return
-        body, self._body = self._body, None
-        self._expect(bytearray(_HEADER.size), header=True)
-        self._message(body)
-
-    def _expect(self, buffer: bytearray, header: bool = False) -> None:
-        if header:
-            self._header = buffer
-        self._view = memoryview(buffer)
-        self._filled = 0
-
-    def _message(self, body: bytearray) -> None:
-        if not self._frame:
-            (self._frame_size,) = _FRAME.unpack_from(body)
-        self._frame.append(body)
-        if len(self._frame) == self._frame_size + 1:
-            head, *buffers = self._frame
-            self._frame = []
-            self._queue.append(pickle.loads(memoryview(head)[_FRAME.size :], buffers=buffers))
-
-    @property
-    def waiting(self) -> int:
-        """Completed messages not popped yet."""
-        return len(self._queue)
-
-    def pop(self) -> Any | None:
-        try:
-            return self._queue.popleft()
-        except IndexError:
-            return None
+OUTBOX_CAPACITY_BYTES = 1 << 20
+"""Ordered bytes the loop keeps for a stalled API process before it ends the active goal
+(beyond what the socket buffers; about 200 kB on Linux). Each cycle queues a few hundred bytes
+of ordered messages at most (a goal's feedback at ``action_monitor_rate``), so ``api_stall_s``
+normally ends the goal long before this bound."""
+EXIT_DRAIN_S = 5.0
+"""How long the ending loop waits for the API process to take its last messages."""
 
 
 class ControlLoop:
     """Owns the hardware and the controller; one instance per loop process."""
 
-    def __init__(self, robot: RobotConfig, conn: Connection) -> None:
+    def __init__(self, robot: RobotConfig, outbox: Outbox) -> None:
         self.robot = robot
-        self.conn = conn
+        self.outbox = outbox
         self.config = robot.controller
         self.period_ns = round(1e9 / self.config.update_rate)
         self.ctrl = JointTrajectoryController(self.config)
@@ -211,14 +94,29 @@ class ControlLoop:
         self._last_state: JointState | None = None
         self._last_command: JointCommand | None = None
         self._shutdown_reason = "daemon stopping"
+        self.api_stall_ns = round(robot.daemon.api_stall_s * 1e9)
+        self.api_stalled = False
+        self.api_stalls = 0
+        self.locks: list[DeviceLock] = []
 
     # -- messaging ----------------------------------------------------------------------------
 
     def send(self, *message: Any) -> None:
-        try:
-            self.conn.send(message)
-        except (OSError, EOFError):
-            self.running = False  # the API process is gone: stop safely
+        """Queue an ordered message (never dropped); written at the end of the cycle.
+
+        Raises:
+            pickle.PicklingError: the message cannot be pickled (a programming error).
+        """
+        self.outbox.put(message)
+
+    def publish(self, *message: Any) -> None:
+        """Queue a droppable message (``state``, the periodic ``status``): while the API
+        process lags, a newer one of the same kind replaces it.
+
+        Raises:
+            pickle.PicklingError: the message cannot be pickled (a programming error).
+        """
+        self.outbox.put(message, key=message[0])
 
     def _report_reference(self) -> None:
         version = self.ctrl.reference_version
@@ -323,6 +221,15 @@ class ControlLoop:
         if self.fault is not None or not self.ctrl.active:
             self.send("stale", plan_id, f"not active: {self.fault or 'controller stopped'}")
             return
+        if self.api_stalled:
+            # Its feedback and result could not be delivered either.
+            self.send(
+                "stale",
+                plan_id,
+                "not active: the daemon's API process has not yet read the control loop's "
+                "backlog; retry once it has",
+            )
+            return
         try:
             goal_id = self.ctrl.commit(plan, now_ns)
         except StalePlan as exc:
@@ -364,7 +271,7 @@ class ControlLoop:
 
     # -- the cycle ----------------------------------------------------------------------------
 
-    def cycle(self, now_ns: int, period_ns: int, inbox: _Inbox) -> None:
+    def cycle(self, now_ns: int, period_ns: int, inbox: Inbox) -> None:
         """One read -> update -> write at deadline ``now_ns``."""
         message = inbox.pop()
         while message is not None:
@@ -384,7 +291,7 @@ class ControlLoop:
         self._send_events(out.events)
         if now_ns >= self._next_state_ns:
             self._next_state_ns = now_ns + self.state_every_ns
-            self.send(
+            self.publish(
                 "state",
                 (
                     now_ns,
@@ -399,8 +306,20 @@ class ControlLoop:
             )
 
     def status(self) -> dict[str, Any]:
+        """The loop's statistics (``outbox``: how its messages to the API process fare, see
+        :meth:`Outbox.snapshot`; ``api_stalls``: goals ended because the API process stopped
+        reading; ``api_stalled``: it has not caught up since), hardware and controller.
+
+        Raises:
+            Nothing: it only reads state.
+        """
         return {
-            "loop": self.stats.snapshot(),
+            "loop": {
+                **self.stats.snapshot(),
+                "outbox": self.outbox.snapshot(),
+                "api_stalls": self.api_stalls,
+                "api_stalled": self.api_stalled,
+            },
             "hardware": self.hardware.status(),
             "controller": {
                 "active": self.ctrl.active,
@@ -411,7 +330,42 @@ class ControlLoop:
             },
         }
 
-    def run(self, inbox: _Inbox) -> None:
+    def serve_outbox(self, now_ns: int) -> None:
+        """Write the cycle's messages without blocking; end the active goal if the API process
+        has not taken an ordered message for ``api_stall_s`` (or the backlog overflows).
+
+        Raises:
+            Nothing: an API process that has gone away stops the loop (``running``).
+        """
+        outbox = self.outbox
+        outbox.flush()
+        if outbox.closed:
+            log.warning("the API process went away: stopping the loop safely")
+            self._shutdown_reason = "daemon API process exited"
+            self.running = False
+            return
+        oldest = outbox.oldest_ns()
+        if oldest is None:
+            if self.api_stalled:
+                self.api_stalled = False
+                log.warning("the API process has read the backlog: serving goals again")
+            return
+        waited_ns = now_ns - oldest
+        if self.api_stalled or (waited_ns <= self.api_stall_ns and not outbox.overflow):
+            return
+        self.api_stalled = True
+        self.api_stalls += 1
+        reason = (
+            f"the daemon's API process has not read the control loop's messages for "
+            f"{waited_ns / 1e9:.2f} s (daemon.api_stall_s: {self.api_stall_ns / 1e9:g} s)"
+            + ("" if not outbox.overflow else f", {outbox.ordered_bytes} bytes waiting")
+            + ": holding position"
+        )
+        log.error("%s; goals are refused until it catches up", reason)
+        if self.ctrl.active and not self.ctrl.holding:
+            self.ctrl.abort(reason)  # the result waits in the outbox, in order
+
+    def run(self, inbox: Inbox) -> None:
         """Cycle until asked to stop or the API process disappears."""
         ticker = Ticker(self.period_ns)
         clock = time.monotonic_ns
@@ -428,7 +382,8 @@ class ControlLoop:
             self.stats.record(woke - deadline, done - woke, skipped)
             if deadline >= self._next_status_ns:
                 self._next_status_ns = deadline + STATUS_PERIOD_NS
-                self.send("status", self.status())
+                self.publish("status", self.status())
+            self.serve_outbox(deadline)
             inbox.pump()
             if inbox.closed and not inbox.waiting:  # what arrived before the end goes first
                 log.warning("the API process went away: stopping the loop safely")
@@ -482,15 +437,25 @@ def loop_main(source: str | dict[str, Any], controller_name: str | None, conn: C
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     for name, level in QUIET_LOGGERS.items():
         logging.getLogger(name).setLevel(level)
-    # The inbox thread takes the interpreter lock whenever the loop thread releases it (in any
-    # system call) and, receiving a large plan, keeps it for up to the switch interval, 5 ms by
-    # default: measured, that made a 1 kHz loop skip deadlines under client load. A short
-    # interval bounds that wait; it costs nothing while only one thread wants the lock.
+    # Any thread would take the interpreter lock whenever the loop thread releases it (in any
+    # system call) and keep it for up to the switch interval, 5 ms by default: measured, a
+    # receiving thread made a 1 kHz loop skip deadlines under client load. There is none now
+    # (the inbox is read by the loop thread); a short interval still bounds what a library's
+    # helper thread could cost, and costs nothing while only one thread wants the lock.
     sys.setswitchinterval(LOOP_SWITCH_INTERVAL_S)
+    outbox = Outbox(conn, OUTBOX_CAPACITY_BYTES)
     code = 0
+    loop: ControlLoop | None = None
     try:
         robot = load_robot(source, controller_name)
-        loop = ControlLoop(robot, conn)
+        loop = ControlLoop(robot, outbox)  # creates the components: no I/O yet
+        # One daemon per hardware: before anything is sent to a device. The owner recorded is
+        # the daemon (our parent), the process a user would stop.
+        loop.locks = lock_devices(
+            [name for component in loop.hardware.components for name in component.devices()],
+            config=robot.source_path or "configuration given as a mapping",
+            pid=os.getppid(),
+        )
         from ..hardware.timing import reduce_timer_slack
         from .realtime import apply_realtime, keep_freed_memory
 
@@ -511,24 +476,37 @@ def loop_main(source: str | dict[str, Any], controller_name: str | None, conn: C
                 "hardware": loop.hardware.status(),
             },
         )
-        inbox = _Inbox(conn, INBOX_BUDGET_PER_MS * max(1, loop.period_ns // 1_000_000))
+        outbox.drain(EXIT_DRAIN_S)  # not cycling yet: waiting is harmless
+        inbox = Inbox(conn, INBOX_BUDGET_PER_MS * max(1, loop.period_ns // 1_000_000))
         try:
             loop.run(inbox)
         finally:
             inbox.close()
     except JtcHwError as exc:
         log.error("%s", exc)
-        _send_quietly(conn, ("log", logging.ERROR, str(exc)))
+        outbox.put(("log", logging.ERROR, str(exc)))
         code = 2
     except Exception as exc:  # last resort: say what happened, never die silently
         log.exception("control loop crashed")
-        _send_quietly(conn, ("log", logging.CRITICAL, f"control loop crashed: {exc!r}"))
+        outbox.put(("log", logging.CRITICAL, f"control loop crashed: {exc!r}"))
         code = 3
-    _send_quietly(conn, ("exit", code))
+    finally:
+        if loop is not None and code:
+            _safe_action(loop)
+        if loop is not None:
+            for lock in loop.locks:
+                lock.release()
+    outbox.put(("exit", code))
+    if not outbox.drain(EXIT_DRAIN_S) and not outbox.closed:
+        log.error("the API process did not take the loop's last messages within %g s",
+                  EXIT_DRAIN_S)
+    outbox.close()
 
 
-def _send_quietly(conn: Connection, message: tuple[Any, ...]) -> None:
+def _safe_action(loop: ControlLoop) -> None:
+    """After a failure: the hardware's safe action and release, if it was still running (no
+    I/O for components never configured)."""
     try:
-        conn.send(message)
-    except (OSError, EOFError):
-        pass
+        loop.hardware.shutdown(time.monotonic_ns())
+    except Exception as exc:  # noqa: BLE001 - reported; the process ends anyway
+        log.error("the safe action after the crash failed: %s", exc)

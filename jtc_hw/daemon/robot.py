@@ -16,6 +16,7 @@ layout); this module adds two top-level sections that ``load_config`` skips::
       idle_timeout_s: 300
       max_message_bytes: 4194304
       realtime: {priority: 0, lock_memory: false, cpu_affinity: []}
+      api_stall_s: 0.5
       log_level: info
 
 The keys, types, defaults and ranges of both sections live in the schema tables below
@@ -55,6 +56,7 @@ from ..hardware import (
 
 __all__ = [
     "DAEMON_PARAMETERS",
+    "DEFAULT_API_STALL_S",
     "DEFAULT_HARDWARE_NAME",
     "HARDWARE_KEYS",
     "LOG_LEVELS",
@@ -75,6 +77,11 @@ DEFAULT_HARDWARE_NAME: Final = "mirror"
 """Name of the mirror component used when the ``hardware`` section is absent."""
 LOG_LEVELS: Final = ("debug", "info", "warning", "error")
 MIN_TOKEN_LENGTH: Final = 16
+DEFAULT_API_STALL_S: Final = 0.5
+"""Default ``daemon.api_stall_s``."""
+MIN_API_STALL_S: Final = 0.05
+"""Smallest ``daemon.api_stall_s``: the API process is a normally scheduled Python process; a
+garbage collection or a busy moment must not end goals."""
 MAX_SOCKET_PATH_BYTES: Final = 107
 """``sun_path`` holds 108 bytes including the terminating NUL."""
 
@@ -170,6 +177,9 @@ DAEMON_PARAMETERS: Final[Mapping[str, ParamSpec]] = param_table(
               minimum=1024),
     ParamSpec("realtime", ParamKind.SECTION, MappingProxyType({}),
               "scheduling of the control loop", nullable=True, fields=REALTIME_PARAMETERS),
+    ParamSpec("api_stall_s", ParamKind.FLOAT, DEFAULT_API_STALL_S,
+              "how long the control loop's messages may wait for the API process before the "
+              "loop ends the active goal ABORTED and holds, s", minimum=MIN_API_STALL_S),
     ParamSpec("log_level", ParamKind.STRING, "info", "logging threshold", choices=LOG_LEVELS),
 )
 """``daemon.*``."""
@@ -264,10 +274,13 @@ class DaemonSettings:
         idle_timeout_s: close a connection idle for this long (0: never).
         max_message_bytes: largest accepted message.
         realtime: scheduling of the loop.
+        api_stall_s: how long the loop's ordered messages (results, replies) may wait for the
+            API process to read them before the loop ends the active goal and holds.
         log_level: one of :data:`LOG_LEVELS`.
 
     Raises:
-        ConfigurationError: the socket path is relative, empty or too long (at construction).
+        ConfigurationError: the socket path is relative, empty or too long, or
+            ``api_stall_s`` is below :data:`MIN_API_STALL_S` (at construction).
     """
 
     socket: str = field(default_factory=default_socket_path)
@@ -277,6 +290,7 @@ class DaemonSettings:
     idle_timeout_s: float = 300.0
     max_message_bytes: int = 4_194_304
     realtime: RealtimeSettings = field(default_factory=RealtimeSettings)
+    api_stall_s: float = DEFAULT_API_STALL_S
     log_level: str = "info"
 
     def __post_init__(self) -> None:
@@ -293,6 +307,17 @@ class DaemonSettings:
                 f"{MAX_SOCKET_PATH_BYTES}: choose a shorter directory",
                 "daemon.socket",
                 self.socket,
+            )
+        stall = self.api_stall_s
+        if (
+            isinstance(stall, bool)
+            or not isinstance(stall, (int, float))
+            or not MIN_API_STALL_S <= stall < float("inf")
+        ):
+            raise ConfigurationError(
+                f"must be a number of seconds >= {MIN_API_STALL_S:g}, got {describe(stall)}",
+                "daemon.api_stall_s",
+                stall,
             )
 
 
@@ -409,6 +434,7 @@ def _parse_daemon(raw: Any, base_dir: str) -> DaemonSettings:
         idle_timeout_s=values["idle_timeout_s"],
         max_message_bytes=values["max_message_bytes"],
         realtime=RealtimeSettings(**realtime),
+        api_stall_s=values["api_stall_s"],
         log_level=values["log_level"],
     )
 

@@ -1,10 +1,14 @@
 """The daemon: wiring of the loop process, the socket server, systemd notification and signals.
 
-Start-up: load and check the configuration -> start the loop process (hardware configured and
-active, controller holding) -> open the socket -> ``READY=1``. While running, ``WATCHDOG=1`` is
-sent only while the loop process is alive and reporting. SIGTERM / SIGINT: ``STOPPING=1``, the
-loop gives the active goal its result, holds, applies the hardware's safe action and exits; then
-the socket is closed (its file removed) and the daemon exits 0.
+Start-up: load and check the configuration -> lock the socket path (``<socket>.lock``: a second
+daemon on the same socket stops here, before its loop process exists) -> start the loop process
+(which locks every device, then configures and activates the hardware; the controller holds) ->
+open the socket -> ``READY=1``. While running, ``WATCHDOG=1`` is sent only while the loop process
+is alive and reporting. SIGTERM / SIGINT: ``STOPPING=1``, the loop gives the active goal its
+result, holds, applies the hardware's safe action and exits; then the socket is closed (its file
+removed) and the daemon exits 0. If the loop process dies instead, every goal it had gets an
+``ABORTED`` result, clients get up to ``close_timeout_s`` to read it, and the daemon exits 1 so
+that its service manager restarts it.
 """
 
 from __future__ import annotations
@@ -16,7 +20,9 @@ import signal
 import sys
 from typing import Any
 
+from ..errors import JtcHwError
 from .backend import LoopBackend
+from .locks import DeviceLock, acquire, socket_lock_path
 from .robot import RobotConfig, load_robot
 from .sdnotify import Notifier
 
@@ -72,14 +78,45 @@ class Daemon:
             self._stop.set()
 
     async def run(self) -> int:
-        """Serve until a signal or a loop failure; returns the exit status."""
-        from .server import Server
-
+        """Serve until a signal or a loop failure; returns the exit status (0: stopped
+        cleanly; 1: the loop failed while serving; 2: could not start)."""
         aio = asyncio.get_running_loop()
         for sig in (signal.SIGTERM, signal.SIGINT):
             aio.add_signal_handler(
                 sig, self.request_stop, f"daemon stopping ({signal.Signals(sig).name})"
             )
+        try:
+            socket_lock = self._lock_socket()
+        except JtcHwError as exc:
+            log.error("cannot start: %s", exc)
+            return 2
+        try:
+            return await self._serve(aio)
+        finally:
+            socket_lock.release()
+
+    def _lock_socket(self) -> DeviceLock:
+        """One daemon per socket path, decided before the loop process (and its hardware)
+        exists: two daemons started together would otherwise both configure the hardware and
+        only then find the socket taken.
+
+        Raises:
+            DeviceBusy: another daemon holds it ("... is already served by pid N (config)").
+            HardwareError: the lock file cannot be created.
+        """
+        path = self.robot.daemon.socket
+        try:
+            os.makedirs(os.path.dirname(path), exist_ok=True)
+        except OSError as exc:
+            raise JtcHwError(
+                f"cannot create the socket's directory {os.path.dirname(path)}: {exc.strerror}"
+            ) from None
+        return acquire(path, socket_lock_path(path), config=self.robot.source_path,
+                       what="served")
+
+    async def _serve(self, aio: asyncio.AbstractEventLoop) -> int:
+        from .server import Server
+
         settings = self.robot.daemon
         try:
             await self.backend.start()
@@ -100,10 +137,12 @@ class Daemon:
         log.info("ready: %s", status)
         self.notifier.ready(status=status)
         watchdog = aio.create_task(self._watchdog())
+        death = aio.create_task(self._loop_death())
         try:
             await self._stop.wait()
         finally:
             watchdog.cancel()
+            death.cancel()
             self.notifier.stopping(status=self._reason)
             code = await self.backend.stop(self._reason)
             await server.close()
@@ -117,13 +156,35 @@ class Daemon:
         log.info("stopped cleanly")
         return 0
 
+    async def _loop_death(self) -> None:
+        """Exit (non-zero) as soon as the loop process ends without being asked to: the
+        backend has given every goal its result by then; the server's close lets clients
+        read it."""
+        await self.backend.wait_exited()
+        self._loop_ended()
+
+    def _loop_ended(self) -> None:
+        self.request_stop(
+            f"{self.backend.death or 'the control loop process exited'}; exiting so that the "
+            "service manager restarts the daemon",
+            failed=True,
+        )
+
     async def _watchdog(self) -> None:
         interval = self.notifier.watchdog_interval_s or 0.5
+        clock = asyncio.get_running_loop().time
+        previous = clock()
         while True:
             await asyncio.sleep(interval)
+            now = clock()
+            late_s, previous = now - previous - interval, now
             if not self.backend.alive:
-                self.request_stop("the control loop process exited", failed=True)
+                self._loop_ended()
                 return
+            if late_s > 1.0:
+                # This process did not run (stopped, starved): the loop's messages are waiting
+                # unread, so its silence says nothing yet. Judge at the next round.
+                continue
             silent_s = (self.backend.now_ns() - self.backend.last_heard_ns) / 1e9
             if silent_s < 2.0:
                 self.notifier.watchdog()

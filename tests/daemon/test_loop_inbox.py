@@ -1,4 +1,5 @@
-"""The loop process's inbox: framed messages read without blocking, a bounded amount at a time."""
+"""The loop process's inbox (jtc_hw.daemon.pipe.Inbox): framed messages read without blocking, a
+bounded amount at a time."""
 
 from __future__ import annotations
 
@@ -8,7 +9,8 @@ from collections.abc import Iterator
 import numpy as np
 import pytest
 
-from jtc_hw.daemon.loop import _Inbox, send_framed
+from jtc_hw.daemon.pipe import Inbox as _Inbox
+from jtc_hw.daemon.pipe import send_framed
 
 
 @pytest.fixture

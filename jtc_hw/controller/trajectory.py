@@ -686,6 +686,19 @@ class Trajectory:
         return self._end
 
     @property
+    def nbytes(self) -> int:
+        """Bytes of its arrays: what a copy of it (e.g. a plan sent to the loop) moves."""
+        arrays = (self._breaks, self._blocks, self._origins, self._kinds, self._final)
+        return sum(a.nbytes for a in arrays)
+
+    @staticmethod
+    def nbytes_for(segments: int, n_joints: int) -> int:
+        """``nbytes`` of a trajectory of ``segments`` segments for ``n_joints`` joints (a
+        command of ``m`` points gives about ``m + 1``, more when spliced into a partial one)."""
+        per_segment = 8 + n_joints * (4 * 6 * 8 + 8 + 1)  # breakpoint; block, origin, kind
+        return 8 + segments * per_segment + 4 * n_joints * 8  # last breakpoint, final state
+
+    @property
     def breakpoints_ns(self) -> tuple[int, ...]:
         """All breakpoints (segment boundaries), ascending."""
         return tuple(self._breaks.tolist())

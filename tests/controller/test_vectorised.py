@@ -405,3 +405,18 @@ def test_point_columns_are_the_points_they_stand_for() -> None:
         PointColumns([0, 1], positions=np.zeros((3, 2)))
     with pytest.raises(ValueError, match="without values"):
         PointColumns([0], present={"effort": np.array([True])})
+
+
+def test_nbytes_is_what_a_copy_moves_and_can_be_told_in_advance() -> None:
+    import pickle
+
+    cfg = config(3, False, False, False, "splines", True)
+    points = [TrajectoryPoint(0.1 * i, [i, -i, 0.5]) for i in range(1, 51)]
+    msg = JointTrajectory(JOINTS[:3], points)
+    traj = Trajectory.constant(0, np.zeros(3)).splice(0, prepare(cfg, msg))
+    segments = len(traj.breakpoints_ns) - 1
+    assert segments == 50 and traj.nbytes == Trajectory.nbytes_for(segments, 3)
+    buffers: list[pickle.PickleBuffer] = []
+    pickle.dumps(traj, protocol=5, buffer_callback=buffers.append)
+    assert sum(b.raw().nbytes for b in buffers) == traj.nbytes  # all of it out of band
+    assert Trajectory.constant(0, np.zeros(3)).nbytes == Trajectory.nbytes_for(0, 3)

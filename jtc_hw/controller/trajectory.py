@@ -387,7 +387,9 @@ class Trajectory:
     to the loop process -- moves them as whole buffers, whatever the number of segments.
     """
 
-    __slots__ = ("_breaks", "_blocks", "_origins", "_kinds", "_final", "_start", "_end", "n_joints")
+    __slots__ = (
+        "_breaks", "_blocks", "_origins", "_kinds", "_final", "_start", "_end", "_last", "n_joints"
+    )
 
     def __init__(
         self,
@@ -406,6 +408,11 @@ class Trajectory:
         self._final = final
         self._start = int(breaks_array[0])
         self._end = int(breaks_array[-1])
+        # The segment the last sample fell in, (start, end, index): the loop samples increasing
+        # times, mostly in the same segment, and comparing two ints is cheaper than a search.
+        # Replaced whole (one assignment), so threads sampling at once each read a consistent
+        # one; it changes no answer.
+        self._last = (0, 0, 0)
         self.n_joints = final.shape[1]
         for array in (breaks_array, blocks, origins, kinds, final):
             array.setflags(write=False)
@@ -711,9 +718,13 @@ class Trajectory:
         if t_ns >= self._end or not self._blocks.shape[0]:
             f = self._final
             return TrajectorySample(f[0], f[1], f[2], f[3])
-        i = int(self._breaks.searchsorted(t_ns, side="right")) - 1
-        if i < 0:
-            i, t_ns = 0, self._start
+        lo, hi, i = self._last
+        if not lo <= t_ns < hi:
+            i = int(self._breaks.searchsorted(t_ns, side="right")) - 1
+            if i < 0:
+                i, t_ns = 0, self._start
+            else:
+                self._last = (int(self._breaks[i]), int(self._breaks[i + 1]), i)
         tau = (t_ns - self._origins[i]) * 1e-9
         out = evaluate(self._blocks[i], tau)
         return TrajectorySample(out[0], out[1], out[2], out[3])

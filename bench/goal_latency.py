@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """Goal acceptance latency of the real daemon, and what a huge goal costs its control loop.
 
-Three measurements (any combination; the default is the first):
+Three measurements (the first by default, or when ``--sizes`` is given with the others):
 
 ``sizes``
     Starts ``python -m jtc_hw run`` on six simulated (mirror) joints (``jtc_hw.cli.demo_config``
@@ -36,7 +36,8 @@ Three measurements (any combination; the default is the first):
     functions of the API-process stages under ``cProfile``.
 
 Usage:  python bench/goal_latency.py [--points 2 200 2000 20000] [--runs N] [--rate HZ]
-            [--priority N] [--huge] [--huge-points N] [--breakdown] [--cprofile] [--json]
+            [--priority N] [--sizes] [--huge] [--huge-points N] [--breakdown] [--cprofile]
+            [--json]
 ``--json`` prints one JSON object per line instead of the tables; a ``sizes`` row holds
 ``{"points", "accept_ms_p50", "accept_ms_p99", ...}``.
 Target: 2,000 points accepted in <= 10 ms (median); a 75,000-point goal costs the loop at most
@@ -159,8 +160,8 @@ class _StampedSocket:
 def stamped_client(socket_path: str) -> tuple[Client, _StampedSocket]:
     """The real client, its socket wrapped to stamp the moment a request is sent."""
     client = Client.connect(socket_path, timeout_s=TIMEOUT_S)
-    stamped = _StampedSocket(client._sock)  # noqa: SLF001 (a bench's look inside)
-    client._sock = stamped  # type: ignore[assignment]  # noqa: SLF001
+    stamped = _StampedSocket(client._sock)  # the client's private socket: a bench looks inside
+    client._sock = stamped  # type: ignore[assignment]
     return client, stamped
 
 
@@ -353,7 +354,6 @@ def loop_side(plan_message: tuple[Any, ...], rate_hz: float) -> dict[str, float]
 
 def breakdown(points: int, args: argparse.Namespace) -> dict[str, Any]:
     from jtc_hw.cli import demo_config
-    from jtc_hw.daemon.loop import send_framed  # noqa: F401  (the loop's own framing)
 
     config = load_robot(demo_config("/nonexistent/bench.sock")).controller
     planner = Planner(config)

@@ -124,7 +124,14 @@ def children(pid: int) -> list[int]:
 class Daemon:
     """``python -m jtc_hw run`` on the demo arm at ``rate_hz``, in a temporary directory."""
 
-    def __init__(self, rate_hz: float, priority: int, cpu: int | None, lock_memory: bool) -> None:
+    def __init__(
+        self,
+        rate_hz: float,
+        priority: int,
+        cpu: int | None,
+        lock_memory: bool,
+        daemon_settings: dict[str, Any] | None = None,
+    ) -> None:
         self._tmp = tempfile.TemporaryDirectory(prefix="jtc-hw-jitter-")
         tmp = Path(self._tmp.name)
         self.socket = str(tmp / "jtc-hw.sock")
@@ -136,6 +143,7 @@ class Daemon:
             "lock_memory": lock_memory,
             "cpu_affinity": [] if cpu is None else [cpu],
         }
+        config["daemon"].update(daemon_settings or {})
         self.config = config
         config_path = tmp / "robot.yaml"
         config_path.write_text(yaml.safe_dump(config))

@@ -5,6 +5,9 @@ time origin); linear and cubic segments are quintics whose higher coefficients a
 keeps sampling one code path whatever the interpolation, and makes the knot values exact: at
 ``tau = 0`` the position is the stored coefficient itself.
 
+Every function works on ``m`` segments at once (a leading axis), so that fitting a goal is a
+few array operations whatever its number of points.
+
 Coefficient layout used throughout the package: ``(4, 6, n_joints)`` per segment, rows
 ``position, velocity, acceleration, effort``; column ``k`` multiplies ``tau**k``. The velocity and
 acceleration rows are the derivatives of the position row, precomputed so that one multiply-add
@@ -19,6 +22,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 F64 = NDArray[np.float64]
+I8 = NDArray[np.int8]
 
 
 class SegmentKind(IntEnum):
@@ -30,85 +34,119 @@ class SegmentKind(IntEnum):
     QUINTIC = 5
 
 
-def kind_for(has_velocity: bool, has_acceleration: bool) -> SegmentKind:
-    """Choose the spline by the fields *both* ends carry, as the reference prescribes.
+def kinds_for(has_velocity: NDArray[np.bool_], has_acceleration: NDArray[np.bool_]) -> I8:
+    """Per segment, the spline chosen by the fields *both* ends carry, as the reference
+    prescribes (arguments: per segment, whether both ends carry that field).
 
     Position only gives linear, position and velocity cubic, all three quintic. Acceleration
     without velocity cannot happen after integration (acceleration-only points get a velocity
     by Heun's method), so it falls back to linear.
     """
-    if not has_velocity:
-        return SegmentKind.LINEAR
-    return SegmentKind.QUINTIC if has_acceleration else SegmentKind.CUBIC
+    kinds: I8 = np.where(
+        has_velocity,
+        np.where(has_acceleration, SegmentKind.QUINTIC, SegmentKind.CUBIC),
+        SegmentKind.LINEAR,
+    ).astype(np.int8)
+    return kinds
 
 
-def position_coefficients(
-    kind: SegmentKind,
-    duration_s: float,
-    p0: F64,
-    v0: F64,
-    a0: F64,
-    p1: F64,
-    v1: F64,
-    a1: F64,
+def _power(durations_s: F64, exponent: int) -> F64:
+    """``durations_s ** exponent`` element by element with Python's float power (the C
+    library's ``pow``): numpy's vectorised power may differ in the last bit depending on the
+    CPU's instruction set, and a fitted trajectory must not depend on the machine."""
+    return np.array([d**exponent for d in durations_s.tolist()], dtype=np.float64)
+
+
+def _rows(mask: NDArray[np.bool_]) -> slice | NDArray[np.intp] | None:
+    """The rows where ``mask`` holds: a slice when it is all of them (a view, no copy)."""
+    if mask.all():
+        return slice(None)
+    rows = np.flatnonzero(mask)
+    return rows if rows.size else None
+
+
+_ORDERS = np.arange(1, 6, dtype=np.float64)[:, None]
+
+
+def segment_blocks(
+    kinds: I8,
+    durations_s: F64,
+    start: tuple[F64, F64, F64, F64],
+    end: tuple[F64, F64, F64, F64],
+    out: F64 | None = None,
 ) -> F64:
-    """Coefficients ``(6, n)`` of the position polynomial joining two knots.
+    """Blocks ``(m, 4, 6, n)`` of ``m`` segments, each joining two knots.
+
+    Row 0 of a block is the position polynomial of the segment's kind, rows 1 and 2 its
+    derivatives, row 3 the effort, linear from one knot to the next.
 
     Args:
-        kind: linear, cubic or quintic (HOLD gives a constant ``p0``).
-        duration_s: segment length in seconds; zero gives a constant ``p0`` (the segment is
-            never sampled, see ``Trajectory``).
-        p0, v0, a0: state at the start knot (ignored beyond what ``kind`` uses).
-        p1, v1, a1: state at the end knot.
+        kinds: ``(m,)`` linear, cubic or quintic per segment.
+        durations_s: ``(m,)`` segment lengths in seconds; zero gives a constant position and
+            effort (such a segment is never sampled, see ``Trajectory``).
+        start: ``(m, n)`` position, velocity, acceleration and effort at the start knots (the
+            derivatives are ignored beyond what the kind uses).
+        end: the same at the end knots.
+        out: where to write the blocks, all zeros (default: a new array).
 
     Returns:
-        Array ``c`` with ``p(tau) = sum(c[k] * tau**k)``.
+        The blocks; row 0 of block ``i`` is ``c`` with ``p(tau) = sum(c[k] * tau**k)``.
     """
-    c = np.zeros((6, p0.shape[0]))
-    c[0] = p0
-    if kind == SegmentKind.HOLD or duration_s <= 0.0:
-        return c
-    T = duration_s
-    h = p1 - p0
-    if kind == SegmentKind.LINEAR:
-        c[1] = h / T
-    elif kind == SegmentKind.CUBIC:
-        c[1] = v0
-        c[2] = (3.0 * h - (2.0 * v0 + v1) * T) / T**2
-        c[3] = (-2.0 * h + (v0 + v1) * T) / T**3
-    else:
-        c[1] = v0
-        c[2] = 0.5 * a0
-        c[3] = (20.0 * h - (8.0 * v1 + 12.0 * v0) * T - (3.0 * a0 - a1) * T**2) / (2.0 * T**3)
-        c[4] = (-30.0 * h + (14.0 * v1 + 16.0 * v0) * T + (3.0 * a0 - 2.0 * a1) * T**2) / (
-            2.0 * T**4
+    p0, v0, a0, e0 = start
+    p1, v1, a1, e1 = end
+    m, n = p0.shape
+    blocks = np.zeros((m, 4, 6, n)) if out is None else out
+    c = blocks[:, 0]  # the position coefficients, written in place
+    c[:, 0] = p0
+    moving = durations_s > 0.0
+    rows = _rows(moving & (kinds == SegmentKind.LINEAR))
+    if rows is not None:
+        T = durations_s[rows, None]
+        c[rows, 1] = (p1[rows] - p0[rows]) / T
+    rows = _rows(moving & (kinds == SegmentKind.CUBIC))
+    if rows is not None:
+        d = durations_s[rows]
+        T, T2, T3 = d[:, None], _power(d, 2)[:, None], _power(d, 3)[:, None]
+        h, v0r, v1r = p1[rows] - p0[rows], v0[rows], v1[rows]
+        c[rows, 1] = v0r
+        c[rows, 2] = (3.0 * h - (2.0 * v0r + v1r) * T) / T2
+        c[rows, 3] = (-2.0 * h + (v0r + v1r) * T) / T3
+    rows = _rows(moving & (kinds == SegmentKind.QUINTIC))
+    if rows is not None:
+        d = durations_s[rows]
+        T = d[:, None]
+        T2, T3, T4, T5 = (_power(d, e)[:, None] for e in (2, 3, 4, 5))
+        h, v0r, v1r, a0r, a1r = p1[rows] - p0[rows], v0[rows], v1[rows], a0[rows], a1[rows]
+        c[rows, 1] = v0r
+        c[rows, 2] = 0.5 * a0r
+        c[rows, 3] = (20.0 * h - (8.0 * v1r + 12.0 * v0r) * T - (3.0 * a0r - a1r) * T2) / (
+            2.0 * T3
         )
-        c[5] = (12.0 * h - 6.0 * (v1 + v0) * T + (a1 - a0) * T**2) / (2.0 * T**5)
-    return c
+        c[rows, 4] = (
+            -30.0 * h + (14.0 * v1r + 16.0 * v0r) * T + (3.0 * a0r - 2.0 * a1r) * T2
+        ) / (2.0 * T4)
+        c[rows, 5] = (12.0 * h - 6.0 * (v1r + v0r) * T + (a1r - a0r) * T2) / (2.0 * T5)
+    blocks[:, 1, :5] = c[:, 1:] * _ORDERS
+    blocks[:, 2, :4] = blocks[:, 1, 1:5] * _ORDERS[:4]
+    blocks[:, 3, 0] = e0
+    rows = _rows(moving)
+    if rows is not None:
+        blocks[rows, 3, 1] = (e1[rows] - e0[rows]) / durations_s[rows, None]
+    return blocks
 
 
-def segment_block(position: F64, effort0: F64, effort_slope: F64) -> F64:
-    """Stack a position polynomial with its derivatives and a linear effort into ``(4, 6, n)``."""
-    n = position.shape[1]
-    block = np.zeros((4, 6, n))
-    block[0] = position
-    k = np.arange(1, 6, dtype=np.float64)[:, None]
-    block[1, :5] = position[1:] * k
-    block[2, :4] = block[1, 1:5] * k[:4]
-    block[3, 0] = effort0
-    block[3, 1] = effort_slope
-    return block
-
-
-def constant_block(position: F64, velocity: F64, acceleration: F64, effort: F64) -> F64:
-    """A block that returns the given values unchanged at any ``tau`` (hold / method ``none``)."""
-    n = position.shape[0]
-    block = np.zeros((4, 6, n))
-    block[0, 0] = position
-    block[1, 0] = velocity
-    block[2, 0] = acceleration
-    block[3, 0] = effort
-    return block
+def constant_blocks(
+    position: F64, velocity: F64, acceleration: F64, effort: F64, out: F64 | None = None
+) -> F64:
+    """Blocks ``(m, 4, 6, n)`` that return the given ``(m, n)`` values unchanged at any ``tau``
+    (holds, method ``none``); ``out``: where to write them, all zeros (default: a new array)."""
+    m, n = position.shape
+    blocks = np.zeros((m, 4, 6, n)) if out is None else out
+    blocks[:, 0, 0] = position
+    blocks[:, 1, 0] = velocity
+    blocks[:, 2, 0] = acceleration
+    blocks[:, 3, 0] = effort
+    return blocks
 
 
 _EXPONENTS = np.arange(6, dtype=np.float64)[:, None]

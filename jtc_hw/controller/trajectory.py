@@ -27,10 +27,9 @@ cubic: velocity, quintic: acceleration).
 from __future__ import annotations
 
 import math
-from bisect import bisect_left, bisect_right
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any, NamedTuple
+from typing import Any, NamedTuple, overload
 
 import numpy as np
 from numpy.typing import NDArray
@@ -39,11 +38,10 @@ from ..errors import GoalRejected
 from .interpolation import (
     F64,
     SegmentKind,
-    constant_block,
+    constant_blocks,
     evaluate,
-    kind_for,
-    position_coefficients,
-    segment_block,
+    kinds_for,
+    segment_blocks,
 )
 
 NS_PER_S = 1_000_000_000
@@ -119,19 +117,124 @@ class TrajectoryPoint:
         return self.time_from_start_ns / NS_PER_S
 
 
+FIELDS = ("positions", "velocities", "accelerations", "effort")
+"""The value fields of a point, in message order."""
+
+
+class PointColumns(Sequence[TrajectoryPoint]):
+    """A trajectory's points as arrays, one row per point (what a parser of many points builds).
+
+    It is the sequence of ``TrajectoryPoint`` it stands for -- indexing builds a point on
+    demand, equality is the points' -- so it can be a ``JointTrajectory``'s ``points``; the
+    controller validates and fits the arrays as a whole, without a Python object per point.
+
+    Args:
+        times_ns: ``(m,)`` each point's ``time_from_start`` in integer nanoseconds.
+        positions, velocities, accelerations, effort: ``(m, k)`` arrays in the order of the
+            trajectory's ``joint_names``, or None where no point carries the field.
+        present: for fields given, ``(m,)`` bools saying which points carry them (default:
+            every point); the rows of the other points are not used.
+
+    Raises:
+        ValueError: the arrays' shapes do not agree.
+    """
+
+    __slots__ = ("times_ns", "_values", "_present")
+
+    def __init__(
+        self,
+        times_ns: Sequence[int] | NDArray[np.integer[Any]],
+        positions: NDArray[np.floating[Any]] | None = None,
+        velocities: NDArray[np.floating[Any]] | None = None,
+        accelerations: NDArray[np.floating[Any]] | None = None,
+        effort: NDArray[np.floating[Any]] | None = None,
+        present: dict[str, NDArray[np.bool_]] | None = None,
+    ) -> None:
+        times = np.array(times_ns, dtype=np.int64)
+        if times.ndim != 1:
+            raise ValueError(f"times_ns must be one-dimensional, got shape {times.shape}")
+        m = times.shape[0]
+        times.setflags(write=False)
+        self.times_ns: NDArray[np.int64] = times
+        self._values: dict[str, F64] = {}
+        self._present: dict[str, NDArray[np.bool_]] = {}
+        given = dict(zip(FIELDS, (positions, velocities, accelerations, effort), strict=True))
+        for name, values in given.items():
+            if values is None:
+                continue
+            array = np.array(values, dtype=np.float64)
+            if array.ndim != 2 or array.shape[0] != m:
+                raise ValueError(f"{name} must have shape ({m}, joints), got {array.shape}")
+            mask = np.ones(m, dtype=bool)
+            if present is not None and name in present:
+                mask = np.array(present[name], dtype=bool)
+                if mask.shape != (m,):
+                    raise ValueError(f"present[{name!r}] must have shape ({m},)")
+            array.setflags(write=False)
+            mask.setflags(write=False)
+            self._values[name] = array
+            self._present[name] = mask
+        unknown = set(present or ()) - set(self._values)
+        if unknown:
+            raise ValueError(f"present names fields without values: {sorted(unknown)}")
+
+    def values(self, name: str) -> tuple[F64, NDArray[np.bool_]] | None:
+        """A field's ``(m, k)`` values and ``(m,)`` presence, or None if no point carries it."""
+        if name not in self._values:
+            return None
+        return self._values[name], self._present[name]
+
+    def __len__(self) -> int:
+        return int(self.times_ns.shape[0])
+
+    def _point(self, i: int) -> TrajectoryPoint:
+        row = [
+            tuple(self._values[name][i].tolist())
+            if name in self._values and self._present[name][i]
+            else None
+            for name in FIELDS
+        ]
+        return TrajectoryPoint(None, *row, time_from_start_ns=int(self.times_ns[i]))
+
+    @overload
+    def __getitem__(self, index: int) -> TrajectoryPoint: ...
+
+    @overload
+    def __getitem__(self, index: slice) -> tuple[TrajectoryPoint, ...]: ...
+
+    def __getitem__(self, index: int | slice) -> TrajectoryPoint | tuple[TrajectoryPoint, ...]:
+        if isinstance(index, slice):
+            return tuple(self._point(i) for i in range(len(self))[index])
+        m = len(self)
+        if not -m <= index < m:
+            raise IndexError(f"point index {index} out of range for {m} point(s)")
+        return self._point(index % m)
+
+    def __eq__(self, other: object) -> bool:
+        if not isinstance(other, Sequence) or isinstance(other, str):
+            return NotImplemented
+        return len(self) == len(other) and all(a == b for a, b in zip(self, other, strict=True))
+
+    def __hash__(self) -> int:
+        return hash(tuple(self))
+
+    def __repr__(self) -> str:
+        return f"PointColumns({len(self)} point(s), fields {', '.join(self._values) or 'none'})"
+
+
 @dataclass(frozen=True, init=False)
 class JointTrajectory:
     """A trajectory command (``trajectory_msgs/JointTrajectory``).
 
     Args:
         joint_names: names of the joints the point values refer to, in that order.
-        points: the waypoints.
+        points: the waypoints (a ``PointColumns`` is kept as it is).
         start_time_ns: the header stamp, on the controller's clock, in nanoseconds; 0 means
             "start now" (when the controller receives it).
     """
 
     joint_names: tuple[str, ...]
-    points: tuple[TrajectoryPoint, ...]
+    points: tuple[TrajectoryPoint, ...] | PointColumns
     start_time_ns: int
 
     def __init__(
@@ -141,7 +244,9 @@ class JointTrajectory:
         start_time_ns: int = 0,
     ) -> None:
         object.__setattr__(self, "joint_names", tuple(joint_names))
-        object.__setattr__(self, "points", tuple(points))
+        if not isinstance(points, PointColumns):
+            points = tuple(points)
+        object.__setattr__(self, "points", points)
         object.__setattr__(self, "start_time_ns", int(start_time_ns))
 
 
@@ -149,20 +254,22 @@ class JointTrajectory:
 class PreparedTrajectory:
     """A validated trajectory in the controller's joint indexing (built by ``validation``).
 
-    Missing fields are ``NaN`` rows; ``has_*`` say which fields each point carries.
+    Arrays of one row per point: ``times_ns`` (int64, strictly increasing), the four fields
+    ``(m, k)`` with ``NaN`` rows where a point lacks the field, and ``has_*`` (bool) saying
+    which fields each point carries.
     """
 
     joint_indices: NDArray[np.intp]
     start_time_ns: int
-    times_ns: tuple[int, ...]
+    times_ns: NDArray[np.int64]
     positions: F64
     velocities: F64
     accelerations: F64
     effort: F64
-    has_positions: tuple[bool, ...]
-    has_velocities: tuple[bool, ...]
-    has_accelerations: tuple[bool, ...]
-    has_effort: tuple[bool, ...]
+    has_positions: NDArray[np.bool_]
+    has_velocities: NDArray[np.bool_]
+    has_accelerations: NDArray[np.bool_]
+    has_effort: NDArray[np.bool_]
 
 
 class TrajectorySample(NamedTuple):
@@ -194,18 +301,69 @@ def _wrap_offset(start: F64, first: F64) -> F64:
 
 
 class _Knots(NamedTuple):
+    times: NDArray[np.int64]  # (m + 1,): the splice time, then the kept points' times
     pos: F64  # (m + 1, k): row 0 is the bridge start
     vel: F64
     acc: F64
     eff: F64
-    has_v: list[bool]
-    has_a: list[bool]
+    has_v: NDArray[np.bool_]  # (m + 1,)
+    has_a: NDArray[np.bool_]
 
 
-class _Piece(NamedTuple):
-    block: F64  # (4, 6, n)
-    origin: NDArray[np.int64]  # (n,)
-    kind: NDArray[np.int8]  # (n,)
+class _Pieces(NamedTuple):
+    blocks: F64  # (s, 4, 6, n)
+    origins: NDArray[np.int64]  # (s, n)
+    kinds: NDArray[np.int8]  # (s, n)
+
+
+def _slice(pieces: _Pieces, start: int, stop: int) -> _Pieces:
+    """Segments ``[start, stop)`` of ``pieces``, as views."""
+    return _Pieces(pieces.blocks[start:stop], pieces.origins[start:stop], pieces.kinds[start:stop])
+
+
+def _reorder(knots: _Knots, cols: NDArray[np.intp], n: int) -> _Knots:
+    """``knots`` of a command naming every joint (``cols``, a permutation), in the controller's
+    joint order."""
+    if (cols == np.arange(n)).all():
+        return knots
+    values = []
+    for given in (knots.pos, knots.vel, knots.acc, knots.eff):
+        ordered = np.empty_like(given)
+        ordered[:, cols] = given
+        values.append(ordered)
+    return knots._replace(pos=values[0], vel=values[1], acc=values[2], eff=values[3])
+
+
+MAX_TIME_NS = 2**63 - 1
+"""The controller's clock range: times are int64 nanoseconds."""
+
+
+def _runs(mask: NDArray[np.bool_]) -> list[tuple[int, int]]:
+    """``[start, stop)`` of each run of consecutive True values of a 1-D mask."""
+    edges = np.diff(np.concatenate(([False], mask, [False])).astype(np.int8))
+    starts = np.flatnonzero(edges == 1).tolist()
+    return list(zip(starts, np.flatnonzero(edges == -1).tolist(), strict=True))
+
+
+def _integrate(values: F64, increments: F64, mask: NDArray[np.bool_]) -> None:
+    """``values[r] = values[r - 1] + increments[r]`` in place for every row ``r`` where ``mask``
+    is True, in row order (row 0 is never masked).
+
+    Each run of masked rows is one ``np.add.accumulate`` from the row before it: the same
+    additions, in the same order, as a loop over the rows, so the same result to the bit.
+    """
+    for start, stop in _runs(mask):
+        stacked = np.concatenate((values[start - 1 : start], increments[start:stop]))
+        values[start:stop] = np.add.accumulate(stacked, axis=0)[1:]
+
+
+def _seconds(durations_ns: NDArray[np.int64]) -> F64:
+    """Durations in seconds, each the correctly rounded quotient ``ns / 1e9`` (exact integers
+    below 2**53 ns, ~104 days, convert exactly; longer ones go through Python's ints)."""
+    if durations_ns.size and int(np.abs(durations_ns).max()) >= 2**53:
+        return np.array([d / NS_PER_S for d in durations_ns.tolist()], dtype=np.float64)
+    seconds: F64 = durations_ns / NS_PER_S
+    return seconds
 
 
 class Trajectory:
@@ -224,27 +382,39 @@ class Trajectory:
       velocity and acceleration ("after the last waypoint is reached, its position is held").
 
     A trajectory with no segments (``constant``) returns its state at every time.
+
+    Its state is a few numpy arrays (the breakpoints too), so that pickling it -- a plan sent
+    to the loop process -- moves them as whole buffers, whatever the number of segments.
     """
 
-    __slots__ = ("_breaks", "_blocks", "_origins", "_kinds", "_final", "n_joints")
+    __slots__ = (
+        "_breaks", "_blocks", "_origins", "_kinds", "_final", "_start", "_end", "_last", "n_joints"
+    )
 
     def __init__(
         self,
-        breaks: list[int],
+        breaks: Sequence[int] | NDArray[np.int64],
         blocks: F64,
         origins: NDArray[np.int64],
         kinds: NDArray[np.int8],
         final: F64,
     ) -> None:
-        self._breaks = breaks
+        breaks_array = np.array(breaks, dtype=np.int64)
+        self._breaks = breaks_array
         self._blocks = blocks
         self._origins = origins
         self._kinds = kinds
         final = np.array(final, dtype=np.float64)
-        final.setflags(write=False)
         self._final = final
+        self._start = int(breaks_array[0])
+        self._end = int(breaks_array[-1])
+        # The segment the last sample fell in, (start, end, index): the loop samples increasing
+        # times, mostly in the same segment, and comparing two ints is cheaper than a search.
+        # Replaced whole (one assignment), so threads sampling at once each read a consistent
+        # one; it changes no answer.
+        self._last = (0, 0, 0)
         self.n_joints = final.shape[1]
-        for array in (blocks, origins, kinds):
+        for array in (breaks_array, blocks, origins, kinds, final):
             array.setflags(write=False)
 
     # -- construction -------------------------------------------------------------------------
@@ -299,25 +469,33 @@ class Trajectory:
             The new reference; ``self`` is unchanged.
 
         Raises:
-            GoalRejected: every point of ``new`` lies before ``now_ns`` (``OLD_HEADER_TIMESTAMP``).
+            GoalRejected: every point of ``new`` lies before ``now_ns`` (``OLD_HEADER_TIMESTAMP``),
+                or the last one lies beyond the clock's range (``MAX_TIME_NS``).
         """
         start = new.start_time_ns if new.start_time_ns != 0 else now_ns
-        abs_times = [start + t for t in new.times_ns]
-        keep = bisect_left(abs_times, now_ns)
-        if keep == len(abs_times):
-            late = (now_ns - abs_times[-1]) / NS_PER_S
+        last = int(new.times_ns[-1])
+        if start + last > MAX_TIME_NS:
             raise GoalRejected(
-                f"all {len(abs_times)} point(s) lie in the past: the last one was due "
+                f"the last point is due at start time {start} ns + time_from_start "
+                f"{last / NS_PER_S:.6f} s, beyond the controller clock's range "
+                f"({MAX_TIME_NS} ns); send an earlier start time or shorter times"
+            )
+        abs_times = new.times_ns + start
+        keep = int(abs_times.searchsorted(now_ns, side="left"))
+        if keep == abs_times.shape[0]:
+            late = (now_ns - (start + last)) / NS_PER_S
+            raise GoalRejected(
+                f"all {abs_times.shape[0]} point(s) lie in the past: the last one was due "
                 f"{late:.6f} s before now (start time {start} ns + time_from_start "
-                f"{new.times_ns[-1] / NS_PER_S:.6f} s); send a later start time or 0 for 'now'",
+                f"{last / NS_PER_S:.6f} s); send a later start time or 0 for 'now'",
                 OLD_HEADER_TIMESTAMP,
             )
         splice_at = max(start, now_ns)
         cols = new.joint_indices
-        knot_times = [splice_at] + abs_times[keep:]
+        knot_times = np.concatenate((np.array([splice_at], dtype=np.int64), abs_times[keep:]))
         knots = self._new_knots(new, keep, self.sample(splice_at), cols, knot_times, wraparound)
         keep_from = now_ns if keep_from_ns is None else min(keep_from_ns, now_ns)
-        return self._combine(keep_from, splice_at, cols, knot_times, knots, interpolation_method)
+        return self._combine(keep_from, splice_at, cols, knots, interpolation_method)
 
     @staticmethod
     def _new_knots(
@@ -325,7 +503,7 @@ class Trajectory:
         keep: int,
         s0: TrajectorySample,
         cols: NDArray[np.intp],
-        knot_times: list[int],
+        knot_times: NDArray[np.int64],
         wraparound: NDArray[np.bool_] | None,
     ) -> _Knots:
         """Knot values for the new joints: row 0 is the bridge start, then the kept points.
@@ -333,7 +511,7 @@ class Trajectory:
         Fills positions (and velocities) of derivative-only points by Heun's method, starting
         from the bridge state, and applies the wraparound offset.
         """
-        m = len(knot_times) - 1
+        m = knot_times.shape[0] - 1
         k = cols.shape[0]
         pos = np.empty((m + 1, k))
         vel = np.zeros((m + 1, k))
@@ -343,173 +521,218 @@ class Trajectory:
         vel[0] = s0.velocities[cols]
         acc[0] = s0.accelerations[cols]
         eff[0] = s0.effort[cols]
-        has_v = [True]
-        has_a = [True]
+        hp = np.concatenate(([True], new.has_positions[keep:]))
+        hv = np.concatenate(([True], new.has_velocities[keep:]))
+        ha = np.concatenate(([True], new.has_accelerations[keep:]))
+        he = np.concatenate(([True], new.has_effort[keep:]))
         given = new.positions[keep:].copy()
         if wraparound is not None and new.has_positions[keep]:
             wrap = wraparound[cols]
             if wrap.any():
                 given += np.where(wrap, _wrap_offset(pos[0], given[0]), 0.0)
-        for row in range(1, m + 1):
-            src = keep + row - 1
-            hv, ha = new.has_velocities[src], new.has_accelerations[src]
-            if ha:
-                acc[row] = new.accelerations[src]
-            if hv:
-                vel[row] = new.velocities[src]
-            if new.has_effort[src]:
-                eff[row] = new.effort[src]
-            if new.has_positions[src]:
-                pos[row] = given[row - 1]
-            else:
-                # Heun's method: trapezoidal integration of acceleration, then of velocity.
-                dt = (knot_times[row] - knot_times[row - 1]) / NS_PER_S
-                if not hv:
-                    vel[row] = vel[row - 1] + (acc[row - 1] + acc[row]) * 0.5 * dt
-                    hv = True
-                pos[row] = pos[row - 1] + (vel[row - 1] + vel[row]) * 0.5 * dt
-            has_v.append(hv)
-            has_a.append(ha)
-        return _Knots(pos, vel, acc, eff, has_v, has_a)
+        rows = np.flatnonzero(ha[1:]) + 1
+        acc[rows] = new.accelerations[keep:][rows - 1]
+        rows = np.flatnonzero(hv[1:]) + 1
+        vel[rows] = new.velocities[keep:][rows - 1]
+        rows = np.flatnonzero(he[1:]) + 1
+        eff[rows] = new.effort[keep:][rows - 1]
+        rows = np.flatnonzero(hp[1:]) + 1
+        pos[rows] = given[rows - 1]
+        if not hp.all():
+            # Heun's method: trapezoidal integration of acceleration, then of velocity.
+            # Row r integrates over [knot r-1, knot r]; row 0 (the bridge start) never does.
+            dt = _seconds(np.diff(knot_times))[:, None]
+            vel_rows = ~hp & ~hv
+            if vel_rows.any():
+                increments = np.zeros_like(acc)
+                increments[1:] = (acc[:-1] + acc[1:]) * 0.5 * dt
+                _integrate(vel, increments, vel_rows)
+            increments = np.zeros_like(vel)
+            increments[1:] = (vel[:-1] + vel[1:]) * 0.5 * dt
+            _integrate(pos, increments, ~hp)
+            hv = hv | ~hp
+        return _Knots(knot_times, pos, vel, acc, eff, hv, ha)
 
     def _combine(
         self,
         now_ns: int,
         splice_at: int,
         cols: NDArray[np.intp],
-        knot_times: list[int],
         knots: _Knots,
         method: str,
     ) -> Trajectory:
         n = self.n_joints
         partial = cols.shape[0] != n
-        pos, eff = knots.pos, knots.eff
+        knot_times = knots.times
 
         # Breakpoints: the current trajectory from the segment holding `now` up to the splice,
         # the new knots, and (partial goals) the current trajectory's later breakpoints.
         old = self._breaks
-        first_old = max(bisect_right(old, now_ns) - 1, 0)
-        grid = {b for b in old[first_old:] if b < splice_at}
-        grid.update(knot_times)
+        first_old = max(int(old.searchsorted(now_ns, side="right")) - 1, 0)
+        parts = [old[first_old:][old[first_old:] < splice_at], knot_times]
         if partial:
-            grid.update(b for b in old if b > splice_at)
-        breaks = sorted(grid)
+            parts.append(old[old > splice_at])
+        breaks = np.unique(np.concatenate(parts))
 
-        segments = len(breaks) - 1
-        blocks = np.zeros((segments, 4, 6, n))
-        origins = np.zeros((segments, n), dtype=np.int64)
-        kinds = np.zeros((segments, n), dtype=np.int8)
-        others = np.setdiff1d(np.arange(n), cols) if partial else None
-        for i in range(segments):
-            t = breaks[i]
-            if breaks[i + 1] <= splice_at:
-                piece = self._piece_at(t)
-                blocks[i], origins[i], kinds[i] = piece
-                continue
-            new_piece = self._new_piece(t, knot_times, knots, method)
-            blocks[i][:, :, cols] = new_piece.block
-            origins[i][cols] = new_piece.origin
-            kinds[i][cols] = new_piece.kind
-            if others is not None:
-                piece = self._piece_at(t)
-                blocks[i][:, :, others] = piece.block[:, :, others]
-                origins[i][others] = piece.origin[others]
-                kinds[i][others] = piece.kind[others]
+        segments = breaks.shape[0] - 1
+        starts = breaks[:-1]
+        # Segments wholly before the splice keep this trajectory's polynomials; they come
+        # first. The rest carry the new command (and, partial goals, the other joints' old).
+        first_new = int(np.count_nonzero(breaks[1:] <= splice_at))
+        out = _Pieces(
+            np.zeros((segments, 4, 6, n)),
+            np.zeros((segments, n), dtype=np.int64),
+            np.zeros((segments, n), dtype=np.int8),
+        )
+        if first_new:
+            self._pieces_at(starts[:first_new], _slice(out, 0, first_new))
+        if first_new < segments:
+            t = starts[first_new:]
+            tail = _slice(out, first_new, segments)
+            if partial:
+                self._pieces_at(t, tail)
+                new_pieces = self._new_pieces(t, knots, method)
+                tail.blocks[..., cols] = new_pieces.blocks
+                tail.origins[:, cols] = new_pieces.origins
+                tail.kinds[:, cols] = new_pieces.kinds
+            else:  # every joint: fit in the controller's joint order, straight into place
+                self._new_pieces(t, _reorder(knots, cols, n), method, tail)
 
         # Past the end every joint holds its last position and effort (joints a partial command
         # does not name hold the current trajectory's last values).
         final = self._final.copy() if partial else np.zeros((4, n))
         final[1:3] = 0.0
-        final[0, cols] = pos[-1]
-        final[3, cols] = eff[-1]
-        return Trajectory(breaks, blocks, origins, kinds, final)
+        final[0, cols] = knots.pos[-1]
+        final[3, cols] = knots.eff[-1]
+        return Trajectory(breaks, out.blocks, out.origins, out.kinds, final)
 
     @staticmethod
-    def _new_piece(
-        t: int,
-        knot_times: list[int],
-        knots: _Knots,
-        method: str,
-    ) -> _Piece:
-        """The new joints' polynomial on the grid segment starting at ``t``."""
-        pos, vel, acc, eff, has_v, has_a = knots
+    def _new_pieces(
+        t: NDArray[np.int64], knots: _Knots, method: str, out: _Pieces | None = None
+    ) -> _Pieces:
+        """The new joints' polynomials on the grid segments starting at the times ``t``
+        (ascending), written to ``out`` (all zeros) or to new arrays."""
+        times, pos, vel, acc, eff = knots.times, knots.pos, knots.vel, knots.acc, knots.eff
+        m = times.shape[0] - 1
         k = pos.shape[1]
-        # Index of the knot row that starts the segment containing t. A zero-length bridge
+        if out is None:
+            out = _Pieces(
+                np.zeros((t.shape[0], 4, 6, k)),
+                np.zeros((t.shape[0], k), dtype=np.int64),
+                np.zeros((t.shape[0], k), dtype=np.int8),
+            )
+        blocks, origins, kinds = out
+        # Index of the knot row that starts the segment containing each t. A zero-length bridge
         # (first point due at the splice time) has two rows at the same time: take the later.
-        row = bisect_right(knot_times, t) - 1
-        if row >= len(knot_times) - 1:
-            block = constant_block(pos[-1], np.zeros(k), np.zeros(k), eff[-1])
-            return _Piece(block, np.full(k, t, dtype=np.int64), np.zeros(k, dtype=np.int8))
-        t0, t1 = knot_times[row], knot_times[row + 1]
-        origin = np.full(k, t0, dtype=np.int64)
+        row = times.searchsorted(t, side="right") - 1
+        inside = int(np.count_nonzero(row < m))  # the segments before the last knot come first
+        origins[inside:] = t[inside:, None]
+        if inside < t.shape[0]:  # past the last knot: hold its position and effort
+            blocks[inside:, 0, 0] = pos[-1]
+            blocks[inside:, 3, 0] = eff[-1]
+        if not inside:
+            return out
+        r = row[:inside]
+        origins[:inside] = times[r][:, None]
         if method == "none":
-            block = constant_block(pos[row], vel[row], acc[row], eff[row])
-            return _Piece(block, origin, np.full(k, SegmentKind.HOLD, dtype=np.int8))
-        kind = kind_for(has_v[row] and has_v[row + 1], has_a[row] and has_a[row + 1])
-        duration = (t1 - t0) / NS_PER_S
-        coeffs = position_coefficients(
-            kind, duration, pos[row], vel[row], acc[row], pos[row + 1], vel[row + 1], acc[row + 1]
+            constant_blocks(pos[r], vel[r], acc[r], eff[r], out=blocks[:inside])
+            kinds[:inside] = SegmentKind.HOLD
+            return out
+        # Fit each knot segment in use once (a partial goal's grid can split one in several).
+        split = bool((r[1:] == r[:-1]).any())
+        used, where = np.unique(r, return_inverse=True) if split else (r, r)
+        nxt = used + 1
+        segment_kinds = kinds_for(
+            knots.has_v[used] & knots.has_v[nxt], knots.has_a[used] & knots.has_a[nxt]
         )
-        slope = (eff[row + 1] - eff[row]) / duration
-        return _Piece(segment_block(coeffs, eff[row], slope), origin, np.full(k, kind, np.int8))
+        fitted = segment_blocks(
+            segment_kinds,
+            _seconds(times[nxt] - times[used]),
+            (pos[used], vel[used], acc[used], eff[used]),
+            (pos[nxt], vel[nxt], acc[nxt], eff[nxt]),
+            out=None if split else blocks[:inside],
+        )
+        if split:
+            blocks[:inside] = fitted[where]
+            kinds[:inside] = segment_kinds[where, None]
+        else:
+            kinds[:inside] = segment_kinds[:, None]
+        return out
 
-    def _piece_at(self, t: int) -> _Piece:
-        """This trajectory's polynomial in effect at ``t`` (a constant after the end)."""
-        n = self.n_joints
-        if not self._blocks.shape[0] or t >= self._breaks[-1]:
-            f = self._final
-            return _Piece(
-                constant_block(f[0], f[1], f[2], f[3]),
-                np.full(n, t, dtype=np.int64),
-                np.zeros(n, dtype=np.int8),
-            )
-        if t < self._breaks[0]:
-            s = self.sample(t)
-            return _Piece(
-                constant_block(s.positions, s.velocities, s.accelerations, s.effort),
-                np.full(n, t, dtype=np.int64),
-                np.zeros(n, dtype=np.int8),
-            )
-        i = bisect_right(self._breaks, t) - 1
-        return _Piece(self._blocks[i], self._origins[i], self._kinds[i])
+    def _pieces_at(self, t: NDArray[np.int64], out: _Pieces) -> None:
+        """This trajectory's polynomials in effect at the times ``t`` (constants after the end
+        and before the start), written to ``out`` (all zeros)."""
+        blocks, origins, kinds = out
+        origins[:] = t[:, None]
+        f = self._final
+        if not self._blocks.shape[0]:
+            blocks[:, :, 0] = f
+            return
+        after = t >= self._end
+        blocks[after, :, 0] = f
+        early = t < self._start
+        if early.any():
+            blocks[early, :, 0] = np.stack(self.sample(self._start))
+        inside = np.flatnonzero(~after & ~early)
+        if inside.size:
+            i = self._breaks.searchsorted(t[inside], side="right") - 1
+            blocks[inside] = self._blocks[i]
+            origins[inside] = self._origins[i]
+            kinds[inside] = self._kinds[i]
 
     # -- queries ------------------------------------------------------------------------------
 
     @property
     def start_ns(self) -> int:
         """First breakpoint."""
-        return self._breaks[0]
+        return self._start
 
     @property
     def end_ns(self) -> int:
         """Last breakpoint: from here on the last point is held."""
-        return self._breaks[-1]
+        return self._end
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes of its arrays: what a copy of it (e.g. a plan sent to the loop) moves."""
+        arrays = (self._breaks, self._blocks, self._origins, self._kinds, self._final)
+        return sum(a.nbytes for a in arrays)
+
+    @staticmethod
+    def nbytes_for(segments: int, n_joints: int) -> int:
+        """``nbytes`` of a trajectory of ``segments`` segments for ``n_joints`` joints (a
+        command of ``m`` points gives about ``m + 1``, more when spliced into a partial one)."""
+        per_segment = 8 + n_joints * (4 * 6 * 8 + 8 + 1)  # breakpoint; block, origin, kind
+        return 8 + segments * per_segment + 4 * n_joints * 8  # last breakpoint, final state
 
     @property
     def breakpoints_ns(self) -> tuple[int, ...]:
         """All breakpoints (segment boundaries), ascending."""
-        return tuple(self._breaks)
+        return tuple(self._breaks.tolist())
 
     def sample(self, t_ns: int) -> TrajectorySample:
         """Desired state at ``t_ns``; pure: the same time always gives the same answer.
 
         See the class docstring for the behaviour before the start, inside and past the end.
         """
-        breaks = self._breaks
-        if t_ns >= breaks[-1] or not self._blocks.shape[0]:
+        if t_ns >= self._end or not self._blocks.shape[0]:
             f = self._final
             return TrajectorySample(f[0], f[1], f[2], f[3])
-        i = bisect_right(breaks, t_ns) - 1
-        if i < 0:
-            i, t_ns = 0, breaks[0]
+        lo, hi, i = self._last
+        if not lo <= t_ns < hi:
+            i = int(self._breaks.searchsorted(t_ns, side="right")) - 1
+            if i < 0:
+                i, t_ns = 0, self._start
+            else:
+                self._last = (int(self._breaks[i]), int(self._breaks[i + 1]), i)
         tau = (t_ns - self._origins[i]) * 1e-9
         out = evaluate(self._blocks[i], tau)
         return TrajectorySample(out[0], out[1], out[2], out[3])
 
     def kinds_at(self, t_ns: int) -> NDArray[np.int8]:
         """Per joint, the ``SegmentKind`` in effect at ``t_ns`` (HOLD past the end)."""
-        if not self._blocks.shape[0] or t_ns >= self._breaks[-1]:
+        if not self._blocks.shape[0] or t_ns >= self._end:
             return np.zeros(self.n_joints, dtype=np.int8)
-        i = max(bisect_right(self._breaks, t_ns) - 1, 0)
+        i = max(int(self._breaks.searchsorted(t_ns, side="right")) - 1, 0)
         kinds: NDArray[np.int8] = self._kinds[i].copy()
         return kinds

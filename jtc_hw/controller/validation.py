@@ -10,21 +10,36 @@ from __future__ import annotations
 
 import math
 import numbers
+from collections.abc import Sequence
+from itertools import chain, repeat
+from operator import attrgetter, is_not
 from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
 from ..errors import GoalRejected
 from .config import ControllerConfig
-from .trajectory import JointTrajectory, PreparedTrajectory
+from .interpolation import F64
+from .trajectory import (
+    FIELDS,
+    MAX_TIME_NS,
+    JointTrajectory,
+    PointColumns,
+    PreparedTrajectory,
+    TrajectoryPoint,
+)
 
 INVALID_GOAL = -1
 INVALID_JOINTS = -2
-_FIELDS = ("positions", "velocities", "accelerations", "effort")
 
 
 def prepare(config: ControllerConfig, msg: Any) -> PreparedTrajectory:
     """Validate ``msg`` and return it in controller joint order.
+
+    The checks run on whole arrays (one numpy operation per check for all points); only when
+    one fails, or the points are irregular (mixed lengths, values that are not plain numbers),
+    are they walked one by one, to name the first offending point, field and value.
 
     Args:
         config: the controller configuration (joints, partial goals, integration, interfaces).
@@ -42,15 +57,130 @@ def prepare(config: ControllerConfig, msg: Any) -> PreparedTrajectory:
     if not msg.points:
         raise GoalRejected("empty trajectory: it has no points")
     joint_index = _joint_columns(config, msg)
-    k = len(msg.joint_names)
     if isinstance(msg.start_time_ns, bool) or msg.start_time_ns < 0:
         raise GoalRejected(
             f"start time {msg.start_time_ns} ns is negative; use 0 to start now or a time on "
             "the controller's clock"
         )
+    columns = _columns(msg.points, len(msg.joint_names))
+    if columns is not None:
+        prepared = _checked(config, joint_index, msg.start_time_ns, *columns)
+        if prepared is not None:
+            return prepared
+    return _prepare_points(config, msg, joint_index)
+
+
+_Columns = tuple[NDArray[np.int64], dict[str, tuple[F64, NDArray[np.bool_]]]]
+_PLAIN_NUMBERS = frozenset({float, int, np.float64})
+_TIME = attrgetter("time_from_start_ns")
+"""Value types converted to float64 exactly as the per-point path converts them."""
+
+
+def _columns(points: Sequence[TrajectoryPoint], k: int) -> _Columns | None:
+    """Times and, per field present anywhere, ``(m, k)`` values and ``(m,)`` presence; None when
+    the points do not make regular arrays of plain numbers (the per-point path says why)."""
+    fields: dict[str, tuple[F64, NDArray[np.bool_]]] = {}
+    if isinstance(points, PointColumns):
+        for name in FIELDS:
+            column = points.values(name)
+            if column is not None:
+                if column[0].shape[1] != k:
+                    return None
+                fields[name] = column
+        return points.times_ns, fields
+    m = len(points)
+    try:
+        times = np.fromiter(map(_TIME, points), dtype=np.int64, count=m)
+    except OverflowError:  # beyond the clock's range
+        return None
+    for name in FIELDS:
+        given_at: list[tuple[float, ...] | None] = list(map(attrgetter(name), points))
+        present = np.fromiter(map(is_not, given_at, repeat(None)), dtype=np.bool_, count=m)
+        if not present.any():
+            continue
+        rows = [v for v in given_at if v is not None]
+        if not _PLAIN_NUMBERS.issuperset(map(type, chain.from_iterable(rows))):
+            return None
+        try:
+            given: F64 = np.array(rows, dtype=np.float64)
+        except (ValueError, OverflowError):  # mixed lengths; an integer beyond float64
+            return None
+        if given.shape != (len(rows), k):
+            return None
+        values: F64 = np.full((m, k), np.nan)
+        values[present] = given
+        fields[name] = (values, present)
+    return times, fields
+
+
+def _checked(
+    config: ControllerConfig,
+    joint_index: NDArray[np.intp],
+    start_time_ns: int,
+    times: NDArray[np.int64],
+    fields: dict[str, tuple[F64, NDArray[np.bool_]]],
+) -> PreparedTrajectory | None:
+    """Every check of ``_prepare_points`` on whole arrays; None if any fails."""
+    m, k = times.shape[0], joint_index.shape[0]
+    if times[0] < 0 or (m > 1 and not bool((np.diff(times) > 0).all())):
+        return None
+    arrays: dict[str, F64] = {}
+    present: dict[str, NDArray[np.bool_]] = {}
+    for name in FIELDS:
+        if name not in fields:
+            arrays[name] = np.full((m, k), np.nan)
+            present[name] = np.zeros(m, dtype=bool)
+            continue
+        values, mask = fields[name]
+        if not np.isfinite(values[mask]).all():
+            return None
+        arrays[name] = np.where(mask[:, None], values, np.nan)
+        present[name] = mask
+    has_p, has_v, has_a, has_e = (present[name] for name in FIELDS)
+    if has_e.any() and ("effort" not in config.command_interfaces or not has_e.all()):
+        return None
+    if not (has_p | has_v | has_a).all() or (has_p & has_a & ~has_v).any():
+        return None
+    if not has_p.all() and (
+        config.interpolation_method == "none" or not config.allow_integration_in_goal_trajectories
+    ):
+        return None
+    if (
+        not config.allow_nonzero_velocity_at_trajectory_end
+        and has_v[-1]
+        and bool((arrays["velocities"][-1] != 0.0).any())
+    ):
+        return None
+    for name in FIELDS:
+        arrays[name].setflags(write=False)
+        present[name].setflags(write=False)
+    return PreparedTrajectory(
+        joint_indices=joint_index,
+        start_time_ns=int(start_time_ns),
+        times_ns=times,
+        positions=arrays["positions"],
+        velocities=arrays["velocities"],
+        accelerations=arrays["accelerations"],
+        effort=arrays["effort"],
+        has_positions=has_p,
+        has_velocities=has_v,
+        has_accelerations=has_a,
+        has_effort=has_e,
+    )
+
+
+def _prepare_points(
+    config: ControllerConfig, msg: JointTrajectory, joint_index: NDArray[np.intp]
+) -> PreparedTrajectory:
+    """Point by point: raises ``GoalRejected`` naming the first problem, in point order.
+
+    Raises:
+        GoalRejected: the first problem found.
+    """
+    k = len(msg.joint_names)
     m = len(msg.points)
-    arrays = {name: np.full((m, k), np.nan) for name in _FIELDS}
-    present: dict[str, list[bool]] = {name: [] for name in _FIELDS}
+    arrays = {name: np.full((m, k), np.nan) for name in FIELDS}
+    present: dict[str, list[bool]] = {name: [] for name in FIELDS}
     times: list[int] = []
     for i, point in enumerate(msg.points):
         t = point.time_from_start_ns
@@ -63,8 +193,13 @@ def prepare(config: ControllerConfig, msg: Any) -> PreparedTrajectory:
                 f"point #{i}: time_from_start {t / 1e9:.9f} s is not after point #{i - 1} "
                 f"({times[-1] / 1e9:.9f} s); times must be strictly increasing"
             )
+        if t > MAX_TIME_NS:
+            raise GoalRejected(
+                f"point #{i}: time_from_start {t / 1e9:.9f} s is beyond the controller clock's "
+                f"range ({MAX_TIME_NS} ns); give times of at most {MAX_TIME_NS / 1e9:.0f} s"
+            )
         times.append(t)
-        for name in _FIELDS:
+        for name in FIELDS:
             values = getattr(point, name)
             present[name].append(values is not None)
             if values is None:
@@ -102,22 +237,23 @@ def prepare(config: ControllerConfig, msg: Any) -> PreparedTrajectory:
                     f"{float(value)!r}, must be 0 because "
                     "allow_nonzero_velocity_at_trajectory_end is false"
                 )
+    flags = {name: np.array(present[name], dtype=bool) for name in FIELDS}
     return PreparedTrajectory(
         joint_indices=joint_index,
         start_time_ns=int(msg.start_time_ns),
-        times_ns=tuple(times),
+        times_ns=np.array(times, dtype=np.int64),
         positions=arrays["positions"],
         velocities=arrays["velocities"],
         accelerations=arrays["accelerations"],
         effort=arrays["effort"],
-        has_positions=tuple(present["positions"]),
-        has_velocities=tuple(present["velocities"]),
-        has_accelerations=tuple(present["accelerations"]),
-        has_effort=tuple(present["effort"]),
+        has_positions=flags["positions"],
+        has_velocities=flags["velocities"],
+        has_accelerations=flags["accelerations"],
+        has_effort=flags["effort"],
     )
 
 
-def _joint_columns(config: ControllerConfig, msg: JointTrajectory) -> np.ndarray[Any, Any]:
+def _joint_columns(config: ControllerConfig, msg: JointTrajectory) -> NDArray[np.intp]:
     names = msg.joint_names
     if not names:
         raise GoalRejected(

@@ -1,0 +1,523 @@
+#!/usr/bin/env python3
+"""Goal acceptance latency of the real daemon, and what a huge goal costs its control loop.
+
+Three measurements (the first by default, or when ``--sizes`` is given with the others):
+
+``sizes``
+    Starts ``python -m jtc_hw run`` on six simulated (mirror) joints (``jtc_hw.cli.demo_config``
+    at ``--rate``, socket in a temporary directory) and sends goals of 2, 200, 2,000 and 20,000
+    points (``--points``) with the real ``Client``: a smooth wave on all six joints, positions
+    and velocities at full float precision, points 1 ms apart, small enough (0.02 rad) that a
+    goal preempting the previous one never violates the path tolerance. Each goal is sent once
+    the previous one was accepted plus a short pause; ``--runs`` goals per size (after one
+    warm-up goal). ``accept`` is request sent (the client's ``sendall`` of the encoded request
+    starts) -> ``accepted`` reply returned to the caller: parsing, validation, fitting,
+    shipping the plan to the loop process and its commit. ``call`` is the whole ``send_goal``
+    call, with the client encoding the request. ``overruns`` are the deadlines the loop
+    skipped while the size was measured (its statistics, ``get_status()["loop"]``).
+
+``huge`` (``--huge``)
+    One goal of ``--huge-points`` (default 75,000) points on a fresh daemon at ``--rate``:
+    six joints, positions only, rounded to 3 decimals so that the request stays close to the
+    4 MiB message limit (``daemon.max_message_bytes`` is raised to fit it when it does not,
+    and the row says so). Reports the acceptance time, the deadlines the loop skipped from
+    sending the goal until its plan was released again (the goal is cancelled once accepted
+    plus 1 s), and the loop process's resident memory before, while executing and after the
+    goal ended.
+
+``breakdown`` (``--breakdown``)
+    In this process, no daemon: the same code the daemon runs, stage by stage, for one goal of
+    each ``--points`` size (best of several repetitions): client encoding, line framing and
+    JSON decoding, request parsing, validation (``prepare``), fitting and splicing (``splice``),
+    pickling the plan for the loop; and the loop side: the plan read through the loop's own
+    inbox (``jtc_hw.daemon.loop._Inbox``, with the budget of one cycle at ``--rate``) from a
+    pipe that another thread fills with ``send_framed``, its slowest ``pump`` (one cycle's
+    share) and how many cycles it takes, and releasing the plan. ``--cprofile`` adds the top
+    functions of the API-process stages under ``cProfile``.
+
+Usage:  python bench/goal_latency.py [--points 2 200 2000 20000] [--runs N] [--rate HZ]
+            [--priority N] [--sizes] [--huge] [--huge-points N] [--breakdown] [--cprofile]
+            [--json]
+``--json`` prints one JSON object per line instead of the tables; a ``sizes`` row holds
+``{"points", "accept_ms_p50", "accept_ms_p99", ...}``.
+Target: 2,000 points accepted in <= 10 ms (median); a 75,000-point goal costs the loop at most
+5 missed deadlines at 500 Hz.
+"""
+
+from __future__ import annotations
+
+import argparse
+import cProfile
+import io
+import json
+import math
+import multiprocessing
+import pickle
+import pstats
+import sys
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from loop_jitter import Daemon, next_loop_stats  # noqa: E402
+
+from jtc_hw.api.client import Client  # noqa: E402
+from jtc_hw.api.framing import DEFAULT_MAX_MESSAGE_BYTES, MessageDecoder, encode  # noqa: E402
+from jtc_hw.api.protocol import SendGoal, parse_request  # noqa: E402
+from jtc_hw.cli import DEMO_JOINTS  # noqa: E402
+from jtc_hw.controller.controller import Planner  # noqa: E402
+from jtc_hw.controller.trajectory import Trajectory  # noqa: E402
+from jtc_hw.controller.validation import prepare  # noqa: E402
+from jtc_hw.daemon.robot import load_robot  # noqa: E402
+
+SIZES = (2, 200, 2000, 20000)
+SPACING_S = 0.001
+AMPLITUDE = 0.02  # rad: a preempting goal's bridge stays well inside the path tolerance (0.1)
+PHASES = (0.0, 0.5)  # successive goals alternate between these (not the same goal twice)
+PAUSE_S = 0.05  # between an accepted goal and the next send
+HUGE_POINTS = 75000
+HUGE_EXECUTE_S = 1.0  # the huge goal runs this long before it is cancelled
+SETTLE_S = 1.5  # after a goal ended: the loop releases retired plans in spare cycles
+TIMEOUT_S = 60.0
+TARGET_POINTS = 2000
+TARGET_MS = 10.0
+TARGET_OVERRUNS = 5
+
+
+# -- goals ------------------------------------------------------------------------------------
+
+
+def wave_goal(points: int, phase: float = 0.0) -> dict[str, Any]:
+    """``points`` points 1 ms apart of q_j = A sin(w_j t + phase), with velocities, 6 joints."""
+    t = np.arange(1, points + 1) * SPACING_S
+    joints = np.arange(len(DEMO_JOINTS))
+    omega = 2 * math.pi * 0.5 * (1.0 + 0.1 * joints)
+    angle = omega * t[:, None] + phase
+    positions = AMPLITUDE * np.sin(angle)
+    velocities = AMPLITUDE * omega * np.cos(angle)
+    return {
+        "joint_names": list(DEMO_JOINTS),
+        "points": [
+            {"time_from_start": s, "positions": p, "velocities": v}
+            for s, p, v in zip(t.tolist(), positions.tolist(), velocities.tolist(), strict=True)
+        ],
+    }
+
+
+def compact_goal(points: int) -> dict[str, Any]:
+    """``points`` points 1 ms apart, positions only, rounded to 3 decimals (a short request)."""
+    t = np.round(np.arange(1, points + 1) * SPACING_S, 3)
+    joints = np.arange(len(DEMO_JOINTS))
+    omega = 2 * math.pi * 0.5 * (1.0 + 0.1 * joints)
+    positions = np.round(AMPLITUDE * 5 * np.sin(omega * t[:, None]), 3)
+    return {
+        "joint_names": list(DEMO_JOINTS),
+        "points": [
+            {"time_from_start": s, "positions": p}
+            for s, p in zip(t.tolist(), positions.tolist(), strict=True)
+        ],
+    }
+
+
+def message_limit(size: int) -> int:
+    """The daemon's message limit for requests of up to ``size`` bytes: the default (4 MiB)
+    when they fit, else just enough."""
+    return DEFAULT_MAX_MESSAGE_BYTES if size <= DEFAULT_MAX_MESSAGE_BYTES else size + (1 << 16)
+
+
+def request_bytes(goal: dict[str, Any]) -> int:
+    """Size of the ``send_goal`` request line the client sends for ``goal``."""
+    return len(encode({"id": 1, "op": "send_goal", "trajectory": goal}))
+
+
+# -- the client -------------------------------------------------------------------------------
+
+
+class _StampedSocket:
+    """The client's socket, remembering when the last ``sendall`` began (everything else is
+    passed through): the request is then encoded and leaves the client."""
+
+    def __init__(self, sock: Any) -> None:
+        self._sock = sock
+        self.sent_ns = 0
+
+    def sendall(self, data: bytes) -> None:
+        self.sent_ns = time.perf_counter_ns()
+        self._sock.sendall(data)
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._sock, name)
+
+
+def stamped_client(socket_path: str) -> tuple[Client, _StampedSocket]:
+    """The real client, its socket wrapped to stamp the moment a request is sent."""
+    client = Client.connect(socket_path, timeout_s=TIMEOUT_S)
+    stamped = _StampedSocket(client._sock)  # the client's private socket: a bench looks inside
+    client._sock = stamped  # type: ignore[assignment]
+    return client, stamped
+
+
+def timed_goal(client: Client, stamped: _StampedSocket, goal: dict[str, Any]) -> tuple[
+    float, float, Any
+]:
+    """Send ``goal``; (accept ms: sent -> accepted, call ms: the whole call, the handle)."""
+    begin = time.perf_counter_ns()
+    handle = client.send_goal(goal, timeout_s=TIMEOUT_S)
+    end = time.perf_counter_ns()
+    return (end - stamped.sent_ns) / 1e6, (end - begin) / 1e6, handle
+
+
+def percentile(values: list[float], p: float) -> float:
+    """Nearest-rank percentile."""
+    ordered = sorted(values)
+    return ordered[max(0, math.ceil(p / 100 * len(ordered)) - 1)]
+
+
+# -- sizes ------------------------------------------------------------------------------------
+
+
+def runs_for(points: int, runs: int | None) -> int:
+    if runs is not None:
+        return runs
+    return 100 if points <= 200 else 40 if points <= 2000 else 10
+
+
+def measure_sizes(args: argparse.Namespace, note: Callable[[str], None]) -> list[dict[str, Any]]:
+    rows = []
+    limit = message_limit(
+        max(request_bytes(wave_goal(p, phase)) for p in args.points for phase in PHASES)
+    )
+    if limit != DEFAULT_MAX_MESSAGE_BYTES:
+        note(f"daemon.max_message_bytes raised to {limit} for the largest request")
+    with Daemon(
+        args.rate, args.priority, None, False, daemon_settings={"max_message_bytes": limit}
+    ) as daemon:
+        daemon.connect().close()
+        client, stamped = stamped_client(daemon.socket)
+        try:
+            for points in args.points:
+                goals = [wave_goal(points, phase) for phase in PHASES]
+                runs = runs_for(points, args.runs)
+                note(f"{points} points: {runs} goals of {request_bytes(goals[0])} bytes")
+                timed_goal(client, stamped, goals[1])  # warm-up
+                before = next_loop_stats(client)
+                accept, call, rejected = [], [], 0
+                for i in range(runs):
+                    time.sleep(PAUSE_S)
+                    try:
+                        a, c, _ = timed_goal(client, stamped, goals[i % 2])
+                    except Exception as exc:  # report it, keep measuring
+                        note(f"  goal {i}: {type(exc).__name__}: {exc}")
+                        rejected += 1
+                        continue
+                    accept.append(a)
+                    call.append(c)
+                time.sleep(SETTLE_S)
+                after = next_loop_stats(client)
+                rows.append(
+                    {
+                        "kind": "sizes",
+                        "points": points,
+                        "rate_hz": args.rate,
+                        "runs": len(accept),
+                        "failed": rejected,
+                        "request_bytes": request_bytes(goals[0]),
+                        "max_message_bytes": limit,
+                        "accept_ms_p50": round(percentile(accept, 50), 2) if accept else None,
+                        "accept_ms_p99": round(percentile(accept, 99), 2) if accept else None,
+                        "accept_ms_max": round(max(accept), 2) if accept else None,
+                        "call_ms_p50": round(percentile(call, 50), 2) if call else None,
+                        "overruns": after["overruns"] - before["overruns"],
+                        "loop_cost_us_worst": after["cost_us"]["worst"],
+                    }
+                )
+        finally:
+            client.close()
+    return rows
+
+
+# -- huge -------------------------------------------------------------------------------------
+
+
+def rss_kib(pid: int) -> int:
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1])
+    raise RuntimeError(f"no VmRSS for process {pid}")
+
+
+def measure_huge(args: argparse.Namespace, note: Callable[[str], None]) -> dict[str, Any]:
+    goal = compact_goal(args.huge_points)
+    size = request_bytes(goal)
+    limit = message_limit(size)
+    note(f"huge: {args.huge_points} points, {size} bytes (message limit {limit})")
+    with Daemon(
+        args.rate, args.priority, None, False, daemon_settings={"max_message_bytes": limit}
+    ) as daemon:
+        daemon.connect().close()
+        client, stamped = stamped_client(daemon.socket)
+        try:
+            timed_goal(client, stamped, wave_goal(200))  # warm-up: every code path once
+            time.sleep(SETTLE_S)
+            before = next_loop_stats(client)
+            rss_before = rss_kib(daemon.loop_pid)
+            api_rss_before = rss_kib(daemon.pid)
+            accept, call, handle = timed_goal(client, stamped, goal)
+            time.sleep(HUGE_EXECUTE_S)
+            during = next_loop_stats(client)
+            rss_during = rss_kib(daemon.loop_pid)
+            handle.cancel(timeout_s=TIMEOUT_S)
+            result = handle.wait(TIMEOUT_S)
+            time.sleep(SETTLE_S)
+            after = next_loop_stats(client)
+            rss_after = rss_kib(daemon.loop_pid)
+            api_rss_after = rss_kib(daemon.pid)
+        finally:
+            client.close()
+    return {
+        "kind": "huge",
+        "points": args.huge_points,
+        "rate_hz": args.rate,
+        "request_bytes": size,
+        "max_message_bytes": limit,
+        "accept_ms": round(accept, 1),
+        "call_ms": round(call, 1),
+        "overruns_until_executing": during["overruns"] - before["overruns"],
+        "overruns": after["overruns"] - before["overruns"],
+        "loop_cost_us_worst": after["cost_us"]["worst"],
+        "loop_rss_mb_before": round(rss_before / 1024, 1),
+        "loop_rss_mb_during": round(rss_during / 1024, 1),
+        "loop_rss_mb_after": round(rss_after / 1024, 1),
+        "api_rss_mb_before": round(api_rss_before / 1024, 1),
+        "api_rss_mb_after": round(api_rss_after / 1024, 1),
+        "result": result.get("status"),
+    }
+
+
+# -- breakdown --------------------------------------------------------------------------------
+
+
+def best_ms(fn: Callable[[], Any], repeat: int) -> tuple[float, Any]:
+    """Best wall time of ``repeat`` calls, and the last call's value."""
+    best = math.inf
+    value = None
+    for _ in range(repeat):
+        t0 = time.perf_counter_ns()
+        value = fn()
+        best = min(best, (time.perf_counter_ns() - t0) / 1e6)
+    return best, value
+
+
+def loop_side(plan_message: tuple[Any, ...], rate_hz: float) -> dict[str, float]:
+    """The plan read through the loop's inbox, once a period, from a pipe that another thread
+    fills with ``send_framed`` (as the API process does).
+
+    Returns the slowest ``pump`` (one cycle's read, ms), how many cycles the plan took to
+    arrive, and the time to release the plan once received.
+    """
+    from jtc_hw.daemon.loop import INBOX_BUDGET_PER_MS, _Inbox, send_framed
+
+    period_ns = round(1e9 / rate_hz)
+    parent, child = multiprocessing.Pipe(duplex=True)
+    inbox = _Inbox(child, INBOX_BUDGET_PER_MS * max(1, period_ns // 1_000_000))
+    sender = threading.Thread(target=send_framed, args=(parent, plan_message), daemon=True)
+    worst, cycles = 0.0, 0
+    deadline = time.monotonic_ns()
+    sender.start()
+    try:
+        while not inbox.waiting:
+            deadline += period_ns
+            time.sleep(max(0.0, (deadline - time.monotonic_ns()) / 1e9))
+            t0 = time.perf_counter_ns()
+            inbox.pump()
+            worst = max(worst, (time.perf_counter_ns() - t0) / 1e6)
+            cycles += 1
+        received = inbox.pop()
+        sender.join()
+        t0 = time.perf_counter_ns()
+        del received
+        release = (time.perf_counter_ns() - t0) / 1e6
+    finally:
+        inbox.close()
+        parent.close()
+        child.close()
+    return {"pump_ms_max": worst, "cycles": cycles, "release_ms": release}
+
+
+def breakdown(points: int, args: argparse.Namespace) -> dict[str, Any]:
+    from jtc_hw.cli import demo_config
+
+    config = load_robot(demo_config("/nonexistent/bench.sock")).controller
+    planner = Planner(config)
+    goal = wave_goal(points)
+    message = {"id": 1, "op": "send_goal", "trajectory": goal}
+    repeat = 7 if points <= 2000 else 3
+    now = 10**12
+    reference = Trajectory.constant(now, np.zeros(len(DEMO_JOINTS)))
+    stages: dict[str, float] = {}
+    stages["client_encode_ms"], line = best_ms(lambda: encode(message), repeat)
+    limit = max(DEFAULT_MAX_MESSAGE_BYTES, len(line))  # as the bench's daemon is configured
+    stages["decode_ms"], decoded = best_ms(lambda: MessageDecoder(limit).feed(line)[0], repeat)
+    stages["parse_ms"], request = best_ms(lambda: parse_request(decoded), repeat)
+    assert isinstance(request, SendGoal)
+    trajectory = request.trajectory.to_joint_trajectory(now)
+    stages["prepare_ms"], prepared = best_ms(lambda: prepare(config, trajectory), repeat)
+    stages["splice_ms"], _ = best_ms(
+        lambda: reference.splice(now, prepared, config.interpolation_method, planner.wraparound),
+        repeat,
+    )
+    stages["plan_goal_ms"], plan = best_ms(
+        lambda: planner.plan_goal(reference, 1, now, trajectory), repeat
+    )
+    buffers: list[pickle.PickleBuffer] = []
+
+    def dump() -> bytes:
+        buffers.clear()
+        return pickle.dumps(("commit", 1, plan), protocol=5, buffer_callback=buffers.append)
+
+    stages["pickle_ms"], head = best_ms(dump, repeat)
+    plan_bytes = len(head) + sum(b.raw().nbytes for b in buffers)
+    raw = [b.raw() for b in buffers]
+    stages["unpickle_ms"], _ = best_ms(lambda: pickle.loads(head, buffers=raw), repeat)
+    loop = loop_side(("commit", 1, plan), args.rate)
+    row: dict[str, Any] = {
+        "kind": "breakdown",
+        "points": points,
+        "request_bytes": len(line),
+        "plan_bytes": plan_bytes,
+        "plan_inband_bytes": len(head),
+        **{k: round(v, 3) for k, v in stages.items()},
+        "api_total_ms": round(
+            stages["decode_ms"] + stages["parse_ms"] + stages["plan_goal_ms"]
+            + stages["pickle_ms"],
+            3,
+        ),
+        "loop_pump_ms_max": round(loop["pump_ms_max"], 3),
+        "loop_cycles_to_receive": loop["cycles"],
+        "loop_release_ms": round(loop["release_ms"], 3),
+    }
+    if args.cprofile:
+        profile = cProfile.Profile()
+        profile.enable()
+        for _ in range(repeat):
+            item = MessageDecoder(limit).feed(line)[0]
+            req = parse_request(item)
+            assert isinstance(req, SendGoal)
+            planner.plan_goal(reference, 1, now, req.trajectory.to_joint_trajectory(now))
+        profile.disable()
+        out = io.StringIO()
+        pstats.Stats(profile, stream=out).sort_stats("tottime").print_stats(14)
+        row["cprofile"] = out.getvalue()
+    return row
+
+
+# -- output -----------------------------------------------------------------------------------
+
+
+def print_tables(rows: list[dict[str, Any]]) -> None:
+    sizes = [r for r in rows if r["kind"] == "sizes"]
+    if sizes:
+        print(
+            f"goal acceptance, daemon on {len(DEMO_JOINTS)} mirror joints at "
+            f"{sizes[0]['rate_hz']:g} Hz; accept = request sent -> accepted reply, call = "
+            "the whole send_goal (client encoding too)"
+        )
+        print(
+            f"{'points':>7}  {'bytes':>9}  {'runs':>4}  {'accept p50':>10}  {'p99':>8}  "
+            f"{'max':>8}  {'call p50':>8}  {'overruns':>8}"
+        )
+        for r in sizes:
+            print(
+                f"{r['points']:>7}  {r['request_bytes']:>9}  {r['runs']:>4}  "
+                f"{r['accept_ms_p50']:>8.2f}ms  {r['accept_ms_p99']:>6.2f}ms  "
+                f"{r['accept_ms_max']:>6.2f}ms  {r['call_ms_p50']:>6.2f}ms  {r['overruns']:>8}"
+                + (f"  ({r['failed']} failed)" if r["failed"] else "")
+            )
+        target = [r for r in sizes if r["points"] == TARGET_POINTS]
+        if target:
+            ok = target[0]["accept_ms_p50"] <= TARGET_MS
+            print(
+                f"target ({TARGET_POINTS} points accepted in <= {TARGET_MS:g} ms median): "
+                f"{'MET' if ok else 'MISSED'}"
+            )
+    for r in rows:
+        if r["kind"] == "huge":
+            print(
+                f"huge goal: {r['points']} points ({r['request_bytes']} bytes, message limit "
+                f"{r['max_message_bytes']}) at {r['rate_hz']:g} Hz: accepted in "
+                f"{r['accept_ms']:.0f} ms (call {r['call_ms']:.0f} ms); loop overruns "
+                f"{r['overruns']} ({r['overruns_until_executing']} by 1 s into it), worst "
+                f"cycle {r['loop_cost_us_worst']:.0f} us; loop RSS {r['loop_rss_mb_before']} -> "
+                f"{r['loop_rss_mb_during']} -> {r['loop_rss_mb_after']} MB (before, running, "
+                f"after); API RSS {r['api_rss_mb_before']} -> {r['api_rss_mb_after']} MB; "
+                f"result {r['result']}"
+            )
+            ok = r["overruns"] <= TARGET_OVERRUNS and r["rate_hz"] == 500
+            print(
+                f"target (<= {TARGET_OVERRUNS} missed deadlines at 500 Hz): "
+                f"{'MET' if ok else 'MISSED' if r['rate_hz'] == 500 else 'not checked'}"
+            )
+    parts = [r for r in rows if r["kind"] == "breakdown"]
+    if parts:
+        print("breakdown, in process (best of several), ms:")
+        keys = [
+            "client_encode_ms", "decode_ms", "parse_ms", "prepare_ms", "splice_ms",
+            "plan_goal_ms", "pickle_ms", "unpickle_ms", "api_total_ms", "loop_pump_ms_max",
+            "loop_cycles_to_receive", "loop_release_ms", "request_bytes", "plan_bytes",
+            "plan_inband_bytes",
+        ]
+        print(f"{'stage':<24}" + "".join(f"{r['points']:>12}" for r in parts))
+        for key in keys:
+            print(f"{key:<24}" + "".join(f"{r[key]:>12}" for r in parts))
+        for r in parts:
+            if "cprofile" in r:
+                print(f"cProfile, {r['points']} points, API-process stages:\n{r['cprofile']}")
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--points", type=int, nargs="+", default=list(SIZES))
+    parser.add_argument("--runs", type=int, default=None, help="goals per size (default 10-100)")
+    parser.add_argument("--rate", type=float, default=500.0, help="update_rate, Hz (500)")
+    parser.add_argument("--priority", type=int, default=0, help="daemon.realtime.priority")
+    parser.add_argument("--huge", action="store_true", help="measure one huge goal")
+    parser.add_argument("--huge-points", type=int, default=HUGE_POINTS)
+    parser.add_argument("--breakdown", action="store_true", help="stages, in process")
+    parser.add_argument("--cprofile", action="store_true", help="with --breakdown")
+    parser.add_argument(
+        "--sizes", action="store_true", help="measure the sizes too (the default without "
+        "--huge or --breakdown)"
+    )
+    parser.add_argument("--json", action="store_true", help="one JSON object per line")
+    args = parser.parse_args(argv)
+    if any(p < 1 for p in args.points) or args.huge_points < 1:
+        parser.error("point counts must be >= 1")
+
+    def note(message: str) -> None:
+        print(message, file=sys.stderr, flush=True)
+
+    rows: list[dict[str, Any]] = []
+    if args.breakdown:
+        rows.extend(breakdown(points, args) for points in args.points)
+    if args.sizes or not (args.huge or args.breakdown):
+        rows.extend(measure_sizes(args, note))
+    if args.huge:
+        rows.append(measure_huge(args, note))
+    if args.json:
+        for row in rows:
+            print(json.dumps({k: v for k, v in row.items() if k != "cprofile"}))
+    else:
+        print_tables(rows)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

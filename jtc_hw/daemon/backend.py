@@ -29,7 +29,7 @@ import logging
 import multiprocessing
 import signal
 import time
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from multiprocessing.connection import Connection
 from typing import Any, Protocol
@@ -48,7 +48,12 @@ from ..controller.goals import (
 )
 from ..controller.joints import JointCommand
 from ..controller.tolerances import JointTolerance
-from ..controller.trajectory import JointTrajectory, Trajectory, TrajectorySample
+from ..controller.trajectory import (
+    JointTrajectory,
+    PointColumns,
+    Trajectory,
+    TrajectorySample,
+)
 from ..errors import (
     ConfigurationError,
     ControllerStateError,
@@ -57,7 +62,7 @@ from ..errors import (
     JtcHwError,
 )
 from .pipe import Inbox, send_framed
-from .robot import RobotConfig
+from .robot import RobotConfig, joint_position_limits
 
 log = logging.getLogger("jtc_hw.backend")
 
@@ -92,6 +97,54 @@ def _vector(a: Any) -> list[float | None] | None:
     return [float(x) if np.isfinite(x) else None for x in np.asarray(a, dtype=float)]
 
 
+def check_position_limits(
+    traj: JointTrajectory, limits: Mapping[str, tuple[float, float]]
+) -> None:
+    """Refuse a trajectory whose waypoint positions lie outside the hardware's
+    ``position_limits`` (the drivers would clamp the command there, and the goal would then
+    fail on its tolerances, or worse, press a joint into its end stop).
+
+    Only the waypoints are checked (the splines between them are issue 12's joint limits);
+    joints the controller does not know are left to the controller's own validation.
+
+    Raises:
+        GoalRejected: INVALID_GOAL naming the point, the joint, the position and the limits.
+    """
+    checked = [(k, name) for k, name in enumerate(traj.joint_names) if name in limits]
+    if not checked or not traj.points:
+        return
+    points = traj.points
+    if isinstance(points, PointColumns):
+        column = points.values("positions")
+        if column is None:
+            return
+        positions, present = column
+    else:
+        width = len(traj.joint_names)
+        rows = [p.positions if p.positions is not None and len(p.positions) == width else None
+                for p in points]
+        present = np.array([row is not None for row in rows], dtype=bool)
+        if not present.any():
+            return
+        positions = np.array([row if row is not None else (0.0,) * width for row in rows],
+                             dtype=np.float64)
+    columns = [k for k, _ in checked]
+    low = np.array([limits[name][0] for _, name in checked])
+    high = np.array([limits[name][1] for _, name in checked])
+    values = positions[:, columns]
+    bad = present[:, None] & ((values < low) | (values > high))
+    if not bad.any():
+        return
+    i, j = (int(x) for x in np.argwhere(bad)[0])
+    name = checked[j][1]
+    raise GoalRejected(
+        f"point {i}: joint '{name}' position {values[i, j]:g} rad is outside its "
+        f"position_limits [{low[j]:g}, {high[j]:g}] (hardware configuration); send a "
+        "trajectory within the limits",
+        int(ErrorCode.INVALID_GOAL),
+    )
+
+
 class LoopBackend:
     """Runs the loop process and serves the socket server's requests."""
 
@@ -101,6 +154,7 @@ class LoopBackend:
         self.joint_names = tuple(self.config.joints)
         self._source = source
         self._planner = Planner(self.config)
+        self._position_limits = joint_position_limits(robot)
         self._ref: Trajectory | None = None
         self._version = -1
         self._plans: dict[int, Plan] = {}
@@ -435,6 +489,7 @@ class LoopBackend:
         Raises:
             GoalRejected: invalid goal, or the loop kept refusing the plan.
         """
+        check_position_limits(traj, self._position_limits)
         result = await self._plan_and_commit(
             lambda ref, ver, now, valid_from: self._planner.plan_goal(
                 ref,
@@ -459,6 +514,7 @@ class LoopBackend:
         if not traj.points:
             await self._request("stop", {})
             return
+        check_position_limits(traj, self._position_limits)
         await self._plan_and_commit(
             lambda ref, ver, now, valid_from: self._planner.plan_trajectory(
                 ref, ver, now, traj, valid_from

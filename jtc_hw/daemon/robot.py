@@ -29,6 +29,7 @@ The keys, types, defaults and ranges of both sections live in the schema tables 
 from __future__ import annotations
 
 import ipaddress
+import math
 import os
 import re
 import stat
@@ -69,6 +70,7 @@ __all__ = [
     "TcpSettings",
     "create_hardware_set",
     "default_socket_path",
+    "joint_position_limits",
     "load_robot",
     "security_warnings",
 ]
@@ -527,3 +529,25 @@ def create_hardware_set(robot: RobotConfig) -> HardwareSet:
             )
     return HardwareSet(components, robot.controller.joints)
 
+
+def joint_position_limits(robot: RobotConfig) -> dict[str, tuple[float, float]]:
+    """Each joint's finite ``position_limits`` from its hardware component (no I/O).
+
+    The components are created (which validates their parameters) and dropped; joints whose
+    component has no ``position_limits`` parameter, or an unlimited one, are left out.
+
+    Raises:
+        ConfigurationError, HardwareError: as :func:`create_hardware_set`.
+    """
+    limits: dict[str, tuple[float, float]] = {}
+    for spec in robot.hardware:
+        component = create_hardware(spec)
+        ranges = component.params.get("position_limits")
+        if ranges is None:
+            continue
+        for joint, (low, high) in zip(component.joints, ranges, strict=True):
+            low = -math.inf if low is None else float(low)
+            high = math.inf if high is None else float(high)
+            if math.isfinite(low) or math.isfinite(high):
+                limits[joint] = (low, high)
+    return limits

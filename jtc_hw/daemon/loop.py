@@ -425,6 +425,10 @@ LOOP_SWITCH_INTERVAL_S = 0.0001
 """The loop process's interpreter switch interval (``sys.setswitchinterval``), s."""
 
 
+LOOP_PROCESS_NAME = "jtc-hw-loop"
+"""The loop process's name in ``ps``/``top``/``/proc/<pid>/comm``."""
+
+
 def loop_main(source: str | dict[str, Any], controller_name: str | None, conn: Connection) -> None:
     """Entry point of the loop process (``multiprocessing`` spawn target).
 
@@ -434,6 +438,9 @@ def loop_main(source: str | dict[str, Any], controller_name: str | None, conn: C
     # whole group must not kill the loop before the goal got its result and the robot holds.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    from .realtime import set_process_name
+
+    set_process_name(LOOP_PROCESS_NAME)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     for name, level in QUIET_LOGGERS.items():
         logging.getLogger(name).setLevel(level)

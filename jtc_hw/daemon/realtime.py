@@ -29,7 +29,7 @@ from collections.abc import Sequence
 
 from ..errors import ConfigurationError
 
-__all__ = ["apply_realtime"]
+__all__ = ["apply_realtime", "set_process_name"]
 
 _PATH = "daemon.realtime"
 
@@ -274,3 +274,19 @@ def keep_freed_memory() -> str:
     if not ok:
         return "allocator left unchanged (mallopt refused)"
     return "allocator keeps freed memory for reuse (no unmapping in the loop process)"
+
+
+_PR_SET_NAME = 15
+
+
+def set_process_name(name: str) -> None:
+    """Name the calling thread (the process's main thread: the process) as ``ps``, ``top`` and
+    ``/proc/<pid>/comm`` show it (Linux, at most 15 bytes; a no-op elsewhere or on failure).
+
+    The loop process is a ``multiprocessing`` child whose command line is the interpreter's;
+    its name is how an operator (or a test) tells it from the API process.
+    """
+    if not os.path.exists("/proc/self/comm"):
+        return
+    libc = ctypes.CDLL(None, use_errno=True)
+    libc.prctl(_PR_SET_NAME, ctypes.c_char_p(name.encode()[:15]), 0, 0, 0)

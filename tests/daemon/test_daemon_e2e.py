@@ -374,6 +374,16 @@ def test_cancel_gives_one_canceled_result(arm: DaemonProcess) -> None:
         assert again.value.code == "not_found"
 
 
+def test_the_loop_process_is_named_for_ps_and_top(arm: DaemonProcess) -> None:
+    """An operator (or a fault-injection tool) tells the loop process from the API process by
+    its name; both are the same interpreter on the command line."""
+    with connect(arm) as client:
+        loop_pid = client.get_status()["loop_pid"]
+    assert loop_pid != arm.pid
+    assert Path(f"/proc/{loop_pid}/comm").read_text().strip() == "jtc-hw-loop"
+    assert Path(f"/proc/{arm.pid}/comm").read_text().strip() != "jtc-hw-loop"
+
+
 # -- 5. state and query_state ------------------------------------------------------------------
 
 

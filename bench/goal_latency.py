@@ -30,7 +30,7 @@ Three measurements (the first by default, or when ``--sizes`` is given with the 
     each ``--points`` size (best of several repetitions): client encoding, line framing and
     JSON decoding, request parsing, validation (``prepare``), fitting and splicing (``splice``),
     pickling the plan for the loop; and the loop side: the plan read through the loop's own
-    inbox (``jtc_hw.daemon.loop._Inbox``, with the budget of one cycle at ``--rate``) from a
+    inbox (``jtc_hw.daemon.pipe.Inbox``, with the budget of one cycle at ``--rate``) from a
     pipe that another thread fills with ``send_framed``, its slowest ``pump`` (one cycle's
     share) and how many cycles it takes, and releasing the plan. ``--cprofile`` adds the top
     functions of the API-process stages under ``cProfile``.
@@ -323,11 +323,12 @@ def loop_side(plan_message: tuple[Any, ...], rate_hz: float) -> dict[str, float]
     Returns the slowest ``pump`` (one cycle's read, ms), how many cycles the plan took to
     arrive, and the time to release the plan once received.
     """
-    from jtc_hw.daemon.loop import INBOX_BUDGET_PER_MS, _Inbox, send_framed
+    from jtc_hw.daemon.loop import inbox_budget
+    from jtc_hw.daemon.pipe import Inbox, send_framed
 
     period_ns = round(1e9 / rate_hz)
     parent, child = multiprocessing.Pipe(duplex=True)
-    inbox = _Inbox(child, INBOX_BUDGET_PER_MS * max(1, period_ns // 1_000_000))
+    inbox = Inbox(child, inbox_budget(period_ns))
     sender = threading.Thread(target=send_framed, args=(parent, plan_message), daemon=True)
     worst, cycles = 0.0, 0
     deadline = time.monotonic_ns()

@@ -27,7 +27,9 @@ import asyncio
 import itertools
 import logging
 import multiprocessing
+import os
 import signal
+import socket
 import time
 from collections.abc import Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
@@ -81,6 +83,26 @@ REAP_TIMEOUT_S = 5.0
 """Bound on reaping the loop process once its sentinel says it ended (microseconds in practice)."""
 READ_BUDGET_BYTES = 1 << 20
 """Bytes of the loop's messages read per wake-up of the event loop (more: it wakes again)."""
+PLAN_SEND_BUFFER_BYTES = 4 << 20
+"""Socket send buffer asked for the pipe to the loop (the kernel caps it at ``wmem_max``)."""
+
+
+def _grow_send_buffer(conn: Connection) -> int:
+    """Ask for a larger send buffer on our end of the pipe to the loop; the one granted.
+
+    The loop reads whatever has arrived once a cycle: with the default buffer (~208 kB) that
+    is all a cycle gets of a plan, so a 2.4 MB plan takes a dozen cycles however large the
+    loop's budget.
+
+    Raises:
+        OSError: the socket refused the option (not expected for a Unix socket).
+    """
+    sock = socket.socket(fileno=os.dup(conn.fileno()))
+    try:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, PLAN_SEND_BUFFER_BYTES)
+        return int(sock.getsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF))
+    finally:
+        sock.close()
 
 
 class Listener(Protocol):
@@ -169,6 +191,8 @@ class LoopBackend:
         self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="jtc-hw-plan")
         self._period_ns = round(1e9 / self.config.update_rate)
         self._margin_ns = max(5_000_000, 3 * self._period_ns)
+        self._bytes_per_cycle = 1 << 18  # what the loop reads of a plan per cycle (start())
+        self._plan_ns_per_point = 2_000.0  # planning time per point, learnt from large plans
         self._active_goal: int | None = None
         self._open_goals: dict[int, None] = {}  # committed, no result yet (in commit order)
         self._inbox: Inbox | None = None
@@ -188,12 +212,13 @@ class LoopBackend:
         Raises:
             HardwareError: the loop process failed to start (its log says why).
         """
-        from .loop import loop_main
+        from .loop import inbox_budget, loop_main
 
         aio = asyncio.get_running_loop()
         ctx = multiprocessing.get_context("spawn")
         parent, child = ctx.Pipe(duplex=True)
         self._conn = parent
+        self._bytes_per_cycle = min(_grow_send_buffer(parent), inbox_budget(self._period_ns))
         self._ready = aio.create_future()
         self._exited = aio.create_future()
         self._process = ctx.Process(
@@ -500,7 +525,8 @@ class LoopBackend:
                 goal_tolerance,
                 goal_time_tolerance,
                 valid_from,
-            )
+            ),
+            len(traj.points),
         )
         assert result is not None
         return int(result)
@@ -518,7 +544,8 @@ class LoopBackend:
         await self._plan_and_commit(
             lambda ref, ver, now, valid_from: self._planner.plan_trajectory(
                 ref, ver, now, traj, valid_from
-            )
+            ),
+            len(traj.points),
         )
 
     async def stop_motion(self) -> bool:
@@ -596,9 +623,19 @@ class LoopBackend:
             raise _LOOP_ERRORS.get(kind, HardwareError)(message)
         return value
 
-    async def _plan_and_commit(self, make: Any) -> int | None:
+    def _transfer_ns(self, nbytes: int) -> int:
+        """How much longer than a small plan one of ``nbytes`` takes to reach the loop, which
+        reads a bounded amount of it per cycle (:class:`~.pipe.Inbox`); the base margin covers
+        the cycle a small plan waits for."""
+        return (-(-nbytes // self._bytes_per_cycle) - 1) * self._period_ns
+
+    async def _plan_and_commit(self, make: Any, points: int) -> int | None:
         aio = asyncio.get_running_loop()
-        margin = self._margin_ns
+        # Plan far enough ahead for the plan to reach the loop: a 2,000-point plan is 2.4 MB,
+        # several cycles of the loop's inbox budget.
+        expected = Trajectory.nbytes_for(points + 1, len(self.joint_names))
+        planning = round(2 * self._plan_ns_per_point * points)  # twice the usual: seldom late
+        margin = self._margin_ns + planning + self._transfer_ns(expected)
         for _attempt in range(ATTEMPTS):
             refused = self._refusal()
             if refused is not None:
@@ -615,8 +652,13 @@ class LoopBackend:
                 self._executor, make, ref, version, planned, valid_from
             )
             took = self.now_ns() - begin
-            if self.now_ns() + self._margin_ns // 2 > planned:
-                margin = 2 * margin + took  # fitting took longer than the margin: plan later
+            if points >= 100:  # fixed costs are noise by then
+                self._plan_ns_per_point += 0.25 * (took / points - self._plan_ns_per_point)
+            transfer = self._transfer_ns(plan.reference.nbytes)
+            if self.now_ns() + transfer + self._margin_ns // 2 > planned:
+                # Fitting and sending it take longer than the margin: plan later (without
+                # sending a plan the loop would refuse as late).
+                margin = max(2 * margin, took + transfer + self._margin_ns)
                 continue
             plan_id = next(self._ids)
             self._plans[plan_id] = plan

@@ -392,7 +392,7 @@ class ControlLoop:
             elif deadline + self.period_ns - clock() > GC_SLACK_NS:
                 if self._retired:
                     self._retired.popleft()
-                else:
+                elif not inbox.release():
                     gc.collect(0)
         self.shutdown(clock())
 
@@ -420,6 +420,11 @@ QUIET_LOGGERS = {
 
 INBOX_BUDGET_PER_MS = 256 * 1024
 """Bytes the loop reads from the API process per cycle, per millisecond of period."""
+
+
+def inbox_budget(period_ns: int) -> int:
+    """Bytes the loop reads from the API process per cycle, for a loop of ``period_ns``."""
+    return INBOX_BUDGET_PER_MS * max(1, period_ns // 1_000_000)
 
 LOOP_SWITCH_INTERVAL_S = 0.0001
 """The loop process's interpreter switch interval (``sys.setswitchinterval``), s."""
@@ -464,13 +469,14 @@ def loop_main(source: str | dict[str, Any], controller_name: str | None, conn: C
             pid=os.getppid(),
         )
         from ..hardware.timing import reduce_timer_slack
-        from .realtime import apply_realtime, keep_freed_memory
+        from .realtime import apply_realtime, disable_huge_pages, keep_freed_memory
 
         rt = robot.daemon.realtime
         for line in apply_realtime(rt.priority, rt.lock_memory, rt.cpu_affinity):
             loop.send("log", logging.INFO, line)
         loop.send("log", logging.INFO, reduce_timer_slack())
         loop.send("log", logging.INFO, keep_freed_memory())
+        loop.send("log", logging.INFO, disable_huge_pages())
         now = time.monotonic_ns()
         loop.start(now)
         loop._report_reference()  # before "ready": the API process plans against it at once
@@ -484,7 +490,7 @@ def loop_main(source: str | dict[str, Any], controller_name: str | None, conn: C
             },
         )
         outbox.drain(EXIT_DRAIN_S)  # not cycling yet: waiting is harmless
-        inbox = Inbox(conn, INBOX_BUDGET_PER_MS * max(1, loop.period_ns // 1_000_000))
+        inbox = Inbox(conn, inbox_budget(loop.period_ns))
         try:
             loop.run(inbox)
         finally:

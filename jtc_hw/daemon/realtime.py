@@ -290,3 +290,31 @@ def set_process_name(name: str) -> None:
         return
     libc = ctypes.CDLL(None, use_errno=True)
     libc.prctl(_PR_SET_NAME, ctypes.c_char_p(name.encode()[:15]), 0, 0, 0)
+
+
+_PR_SET_THP_DISABLE = 41
+
+
+def disable_huge_pages() -> str:
+    """Turn transparent huge pages off for this process (``prctl(PR_SET_THP_DISABLE)``).
+
+    numpy asks for huge pages for every array of 4 MB or more (``madvise(MADV_HUGEPAGE)``).
+    The first touch of each 2 MB page then zeroes it, and may first compact memory to find
+    one: measured, receiving a 75,000-point plan (90 MB) had single reads of 5-7 ms where
+    4 kB pages cost at most 0.8 ms. The loop process touches little memory; it does not need
+    the fewer TLB misses.
+
+    Returns:
+        A log line saying what was done.
+
+    Raises:
+        Nothing.
+    """
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        prctl = libc.prctl
+    except (OSError, AttributeError):
+        return "transparent huge pages left as they are (no prctl)"
+    if prctl(_PR_SET_THP_DISABLE, 1, 0, 0, 0) != 0:
+        return f"transparent huge pages left as they are (prctl: errno {ctypes.get_errno()})"
+    return "transparent huge pages off (no 2 MB page faults in the loop process)"

@@ -84,3 +84,53 @@ def test_pump_never_blocks_and_sees_the_end(pipe: tuple[object, object]) -> None
         assert inbox.closed and inbox.waiting == 0
     finally:
         inbox.close()
+
+
+def test_large_messages_get_memory_of_their_own_given_back_once_unused(
+    pipe: tuple[object, object], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import mmap
+    import threading
+
+    from jtc_hw.daemon import pipe as pipe_module
+
+    monkeypatch.setattr(pipe_module, "RETURNED_MESSAGE_BYTES", 1 << 16)
+    monkeypatch.setattr(pipe_module, "RELEASE_CHUNK_BYTES", 1 << 16)
+    sender, receiver = pipe
+    big = np.arange(100_000, dtype=np.float64)  # 800 kB: its own mapping, 13 chunks
+    inbox = _Inbox(receiver, 1 << 20)  # type: ignore[arg-type]
+    try:
+        thread = threading.Thread(target=send_framed, args=(sender, ("commit", 1, {"a": big})))
+        thread.start()
+        (message,) = _drain(inbox, 1)
+        thread.join(timeout=10)
+        (mapped,) = inbox._mapped
+        assert isinstance(mapped.mapping, mmap.mmap)
+        received = message[2]["a"]  # type: ignore[index]
+        np.testing.assert_array_equal(received, big)
+        del message
+        view = received[5:9]
+        del received
+        for _ in range(3):  # a view of it is alive: nothing is given back
+            assert not inbox.release()
+        np.testing.assert_array_equal(view, big[5:9])
+        del view
+        chunks = 0
+        while inbox.release():
+            chunks += 1
+        assert chunks == 13  # 800,000 bytes in 64 kB chunks, the last one unmapping it
+        assert mapped.mapping.closed and not inbox._mapped
+    finally:
+        inbox.close()
+
+
+def test_receive_buffers_by_size() -> None:
+    import mmap
+
+    from jtc_hw.daemon import pipe as pipe_module
+
+    assert isinstance(pipe_module._receive_buffer(100), bytearray)
+    assert isinstance(pipe_module._receive_buffer(pipe_module.LARGE_MESSAGE_BYTES), memoryview)
+    mapping = pipe_module._receive_buffer(pipe_module.RETURNED_MESSAGE_BYTES)
+    assert isinstance(mapping, mmap.mmap)
+    mapping.close()

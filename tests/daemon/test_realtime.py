@@ -233,3 +233,17 @@ def test_reduce_timer_slack_in_a_child() -> None:
         pytest.skip("no /proc/self/timerslack_ns on this system")
     assert line == "timer slack set to 1 ns (sleeps end on time)"
     assert slack == "1"
+
+
+def test_huge_pages_are_turned_off_for_the_process() -> None:
+    code = (
+        "from jtc_hw.daemon.realtime import disable_huge_pages\n"
+        "print(disable_huge_pages())\n"
+        "print(open('/proc/self/status').read())\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    line, status = out.stdout.split("\n", 1)
+    if "THP_enabled:" not in status:
+        pytest.skip("this kernel does not report THP_enabled in /proc/<pid>/status")
+    assert line.startswith("transparent huge pages off")
+    assert "THP_enabled:\t0" in status

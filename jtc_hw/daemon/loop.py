@@ -29,7 +29,10 @@ same hardware stops there, having sent nothing.
 
 One cycle at deadline ``t``: drain requests -> ``hardware.read(t)`` -> ``controller.update`` ->
 ``hardware.write`` -> report events; a state snapshot at ``state_publish_rate``, statistics at
-2 Hz. The controller's clock is the deadline grid itself (exact multiples of the period); how
+2 Hz. After it, in the time left before ``t + period``: write the outbox, read the inbox (a
+bounded amount) and handle what that completed at ``t`` (a plan committed, a request served
+and their answers written at once, rather than a period later), then free or collect in
+spare time. The controller's clock is the deadline grid itself (exact multiples of the period); how
 late the process woke is measured and published, never fed into the control law. Garbage
 collection is disabled in the loop and run explicitly (generation 0) when a cycle has slack.
 """
@@ -271,12 +274,23 @@ class ControlLoop:
 
     # -- the cycle ----------------------------------------------------------------------------
 
-    def cycle(self, now_ns: int, period_ns: int, inbox: Inbox) -> None:
-        """One read -> update -> write at deadline ``now_ns``."""
+    def handle_inbox(self, inbox: Inbox, now_ns: int) -> bool:
+        """Handle every completed message, in order, at deadline ``now_ns``.
+
+        Returns:
+            Whether there was any.
+        """
         message = inbox.pop()
+        if message is None:
+            return False
         while message is not None:
             self._handle(message, now_ns)
             message = inbox.pop()
+        return True
+
+    def cycle(self, now_ns: int, period_ns: int, inbox: Inbox) -> None:
+        """One read -> update -> write at deadline ``now_ns``."""
+        self.handle_inbox(inbox, now_ns)
         if self.fault is not None or not self.ctrl.active:
             return
         try:
@@ -365,6 +379,23 @@ class ControlLoop:
         if self.ctrl.active and not self.ctrl.holding:
             self.ctrl.abort(reason)  # the result waits in the outbox, in order
 
+    def after_cycle(self, deadline_ns: int, inbox: Inbox) -> None:
+        """After the cycle at ``deadline_ns``: write the outbox, read the inbox (its budget at
+        most) and handle what that completed at ``deadline_ns``, writing the answers at once.
+
+        Handling it now rather than at the next cycle commits a plan (or serves a stop) a
+        period earlier. Committing at a deadline whose sample was already taken changes
+        nothing the joints got: a plan keeps the reference it replaces from its
+        ``valid_from_ns`` up to its planned time.
+
+        Raises:
+            Nothing: see :meth:`serve_outbox` and :meth:`Inbox.pump`.
+        """
+        self.serve_outbox(deadline_ns)
+        inbox.pump()
+        if self.handle_inbox(inbox, deadline_ns):
+            self.serve_outbox(deadline_ns)  # "committed", the reply: now, not a period later
+
     def run(self, inbox: Inbox) -> None:
         """Cycle until asked to stop or the API process disappears."""
         ticker = Ticker(self.period_ns)
@@ -383,8 +414,7 @@ class ControlLoop:
             if deadline >= self._next_status_ns:
                 self._next_status_ns = deadline + STATUS_PERIOD_NS
                 self.publish("status", self.status())
-            self.serve_outbox(deadline)
-            inbox.pump()
+            self.after_cycle(deadline, inbox)
             if inbox.closed and not inbox.waiting:  # what arrived before the end goes first
                 log.warning("the API process went away: stopping the loop safely")
                 self._shutdown_reason = "daemon API process exited"

@@ -15,11 +15,18 @@ import json
 import math
 import re
 from enum import Enum
+from types import ModuleType
 from typing import Any
 
 import numpy as np
 
 from ..errors import ProtocolError
+
+_orjson: ModuleType | None
+try:
+    import orjson as _orjson
+except ImportError:  # optional: the standard library decodes everything, only slower
+    _orjson = None
 
 __all__ = [
     "BAD_JSON", "BAD_REQUEST", "BUSY", "DEFAULT_MAX_MESSAGE_BYTES", "ERROR_CODES", "GOAL_REJECTED",
@@ -153,13 +160,65 @@ def _unique_keys(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
 _SURROGATE_ESCAPE = re.compile(rb"\\u[dD][89abcdefABCDEF]")
 
 
+FAST_DECODE_BYTES = 16 << 10
+"""Lines from this size on are decoded by ``orjson`` when it is installed (see
+:func:`_fast_loads`); shorter ones cost the standard library little."""
+
+# Digits as "0", and what can stand right before an integer literal as "y" (JSON puts it after
+# a "-", ":", ",", "[" or whitespace). See _fast_loads.
+_INTEGER_STARTS = bytes.maketrans(b"0123456789-:,[ \t\r\n", b"0000000000yyyyyyyy")
+_LONG_INTEGER = b"y" + b"0" * 19  # an integer beyond int64 has at least 19 digits
+_UNUSABLE = object()
+
+
+def _fast_loads(line: bytes) -> Any:
+    """``line`` decoded by ``orjson``, or ``_UNUSABLE`` where its result could differ from
+    :func:`json.loads` with the protocol's refusals; then the standard library decodes it.
+
+    A 2,000-point goal (617 kB) takes 6.5 ms with the standard library, 2.4 ms here (1.1 ms of
+    it ``orjson`` itself, the rest the two checks below). ``orjson`` refuses on its own what the
+    protocol refuses: ``NaN``/``Infinity`` tokens, numbers that overflow a float64, lone
+    surrogates (escaped or not), invalid UTF-8 (the fallback then words the error as before).
+    It differs in two ways, both checked here:
+
+    - duplicate keys: it keeps the last. The text has one ``:`` per key plus those inside
+      strings; re-encoded, the value has one per key it kept plus the same ones inside strings
+      (a ``\\u003a`` escape would add one: such a line is left to the standard library). Equal
+      counts: no key was dropped.
+    - integer literals beyond 64 bits become floats (the standard library keeps them ints,
+      which the protocol then names exactly). Such a literal is a run of 19 or more digits
+      at the start or after a ``-``, ``:``, ``,``, ``[`` or whitespace: none may occur (a
+      float's integer part, a negative exponent or a string holding such a run are taken for
+      one too, and go to the standard library; a fraction's digits follow a ``.``).
+    """
+    assert _orjson is not None
+    if b"\\" in line and b"\\u003" in line:
+        return _UNUSABLE
+    starts = line.translate(_INTEGER_STARTS)
+    if _LONG_INTEGER in starts or starts.startswith(_LONG_INTEGER[1:]):
+        return _UNUSABLE
+    try:
+        obj = _orjson.loads(line)
+        again = _orjson.dumps(obj)
+    except (_orjson.JSONDecodeError, _orjson.JSONEncodeError):
+        return _UNUSABLE
+    if again.count(b":") != line.count(b":"):
+        return _UNUSABLE
+    return obj
+
+
 def _loads_line(line: bytes, lineno: int) -> Any:
-    """Decode one message's JSON.
+    """Decode one message's JSON (``orjson`` for long lines when it is installed and gives
+    what the standard library would: :func:`_fast_loads`).
 
     Raises:
         RequestError: ``bad_json``, with the connection line and the column; ``bad_request``
             for a string holding a lone surrogate (names its JSON path, the text escaped).
     """
+    if _orjson is not None and len(line) >= FAST_DECODE_BYTES:
+        fast = _fast_loads(line)
+        if fast is not _UNUSABLE:
+            return fast
     try:
         text = line.decode("utf-8")
     except UnicodeDecodeError as exc:

@@ -323,11 +323,13 @@ def loop_side(plan_message: tuple[Any, ...], rate_hz: float) -> dict[str, float]
     Returns the slowest ``pump`` (one cycle's read, ms), how many cycles the plan took to
     arrive, and the time to release the plan once received.
     """
-    from jtc_hw.daemon.loop import inbox_budget
+    from jtc_hw.daemon.backend import _grow_send_buffer
+    from jtc_hw.daemon.loop import INBOX_SPARE, inbox_budget
     from jtc_hw.daemon.pipe import Inbox, send_framed
 
     period_ns = round(1e9 / rate_hz)
     parent, child = multiprocessing.Pipe(duplex=True)
+    _grow_send_buffer(parent)  # as the API process does
     inbox = Inbox(child, inbox_budget(period_ns))
     sender = threading.Thread(target=send_framed, args=(parent, plan_message), daemon=True)
     worst, cycles = 0.0, 0
@@ -338,7 +340,7 @@ def loop_side(plan_message: tuple[Any, ...], rate_hz: float) -> dict[str, float]
             deadline += period_ns
             time.sleep(max(0.0, (deadline - time.monotonic_ns()) / 1e9))
             t0 = time.perf_counter_ns()
-            inbox.pump()
+            inbox.pump(deadline + round((1 - INBOX_SPARE) * period_ns))
             worst = max(worst, (time.perf_counter_ns() - t0) / 1e6)
             cycles += 1
         received = inbox.pop()

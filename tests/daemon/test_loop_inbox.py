@@ -134,3 +134,70 @@ def test_receive_buffers_by_size() -> None:
     mapping = pipe_module._receive_buffer(pipe_module.RETURNED_MESSAGE_BYTES)
     assert isinstance(mapping, mmap.mmap)
     mapping.close()
+
+
+def test_a_request_overtakes_the_rest_of_a_plan_and_nothing_blocks(
+    pipe: tuple[object, object],
+) -> None:
+    import socket
+
+    from jtc_hw.daemon.pipe import CHUNK_BYTES, PlanWriter
+
+    sender, receiver = pipe
+    with socket.socket(fileno=sender.fileno()) as sock:  # type: ignore[attr-defined]
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, 65536)
+        sock.detach()
+    big = np.arange(1_000_000, dtype=np.float64)  # 8 MB: 31 chunks, far beyond the socket
+    writer = PlanWriter(sender)  # type: ignore[arg-type]
+    inbox = _Inbox(receiver, 1 << 16)  # type: ignore[arg-type]
+    try:
+        writer.put(("commit", 1, {"a": big}), bulk=True)
+        assert not writer.flush() and writer.pending  # the socket is full: returns, no wait
+        writer.put(("request", 2, "stop", {}))
+        got: list[object] = []
+        for _ in range(100_000):
+            inbox.pump()
+            while (message := inbox.pop()) is not None:
+                got.append(message)
+            if len(got) == 2:
+                break
+            writer.flush()
+        assert [m[0] for m in got] == ["request", "commit"]  # type: ignore[index]
+        np.testing.assert_array_equal(got[1][2]["a"], big)  # type: ignore[index]
+        assert not writer.pending
+        assert big.nbytes > 2 * CHUNK_BYTES
+    finally:
+        inbox.close()
+        writer.close()
+
+
+def test_a_writer_whose_reader_is_gone_is_closed(pipe: tuple[object, object]) -> None:
+    from jtc_hw.daemon.pipe import PlanWriter
+
+    sender, receiver = pipe
+    receiver.close()  # type: ignore[attr-defined]
+    writer = PlanWriter(sender)  # type: ignore[arg-type]
+    try:
+        writer.put(("request", 1, "stop", {}))
+        assert not writer.flush()
+        assert writer.closed and not writer.pending
+        writer.put(("request", 2, "stop", {}))  # ignored once closed
+        assert not writer.pending
+    finally:
+        writer.close()
+
+
+def test_a_stream_that_makes_no_sense_closes_the_inbox(pipe: tuple[object, object]) -> None:
+    from jtc_hw.daemon.pipe import _RECORD, CHUNK
+
+    sender, receiver = pipe
+    inbox = _Inbox(receiver, 1 << 16)  # type: ignore[arg-type]
+    try:
+        import os
+
+        os.write(sender.fileno(), _RECORD.pack(CHUNK, 10) + b"x" * 10)  # type: ignore[attr-defined]
+        for _ in range(10):
+            inbox.pump()
+        assert inbox.closed and inbox.pop() is None
+    finally:
+        inbox.close()

@@ -27,7 +27,7 @@ import difflib
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from itertools import chain, repeat
+from itertools import chain, compress, repeat
 from operator import is_not, methodcaller
 from typing import Any, ClassVar
 
@@ -52,6 +52,7 @@ from .framing import (
     RequestError,
     RequestId,
     _describe,
+    gc_paused,
 )
 
 __all__ = [
@@ -495,10 +496,11 @@ def parse_trajectory(
     points_raw = f.array("points", f.required("points", "array of points; empty means stop"))
     points: Sequence[TrajectoryPoint] | None = _point_columns(points_raw)
     if points is None:  # irregular, or a problem to name: point by point
-        points = tuple(
-            _parse_point(p, f"{path}.points[{i}]", request_id, names)
-            for i, p in enumerate(points_raw)
-        )
+        with gc_paused(len(points_raw) >= _MANY_POINTS):  # an object or more per point
+            points = tuple(
+                _parse_point(p, f"{path}.points[{i}]", request_id, names)
+                for i, p in enumerate(points_raw)
+            )
     start_time_ns: int | None = None
     start_in: float | None = None
     if f.has("start_time_ns") and f.has("start_in"):
@@ -519,6 +521,7 @@ def parse_trajectory(
 
 
 _MISSING = object()
+_MANY_POINTS = 1000
 _NUMBERS = frozenset({float, int})
 _DICT_ONLY = frozenset({dict})
 _LIST_ONLY = frozenset({list})
@@ -538,7 +541,8 @@ def _point_columns(points: list[Any]) -> PointColumns | None:
     m = len(points)
     if not m or not _DICT_ONLY.issuperset(map(type, points)):
         return None
-    if not _POINT_FIELD_SET.issuperset(chain.from_iterable(points)):
+    keys = set(chain.from_iterable(points))
+    if not _POINT_FIELD_SET.issuperset(keys):
         return None
     seconds = list(map(methodcaller("get", "time_from_start", _MISSING), points))
     kinds = set(map(type, seconds))
@@ -563,23 +567,28 @@ def _point_columns(points: list[Any]) -> PointColumns | None:
     arrays: dict[str, NDArray[np.float64]] = {}
     present: dict[str, NDArray[np.bool_]] = {}
     for name in _POINT_FIELDS[1:]:
-        column = list(map(methodcaller("get", name, _MISSING), points))
-        given = [v for v in column if v is not _MISSING]
-        if not given:
+        if name not in keys:  # no point carries it
             continue
+        column = list(map(methodcaller("get", name, _MISSING), points))
+        mask = np.fromiter(map(is_not, column, repeat(_MISSING)), dtype=np.bool_, count=m)
+        given = column if mask.all() else list(compress(column, mask.tolist()))
         if not _LIST_ONLY.issuperset(map(type, given)):  # null, or not an array
+            return None
+        lengths = set(map(len, given))
+        if len(lengths) != 1:  # mixed lengths: for the controller to refuse, or a problem
+            return None
+        (k,) = lengths
+        if not k:  # empty arrays (absent fields)
             return None
         if not _NUMBERS.issuperset(map(type, chain.from_iterable(given))):
             return None
         try:
-            values = np.array(given, dtype=np.float64)
-        except (ValueError, OverflowError):  # mixed lengths; an integer beyond float64
+            flat = np.fromiter(chain.from_iterable(given), dtype=np.float64, count=len(given) * k)
+        except (ValueError, OverflowError):  # an integer beyond float64
             return None
-        if values.ndim != 2 or not values.shape[1]:
-            return None  # empty arrays (absent fields)
+        values = flat.reshape(len(given), k)
         if not (np.abs(values) <= MAX_JOINT_VALUE).all():
             return None  # out of range, or not finite (1e999): named point by point
-        mask = np.fromiter(map(is_not, column, repeat(_MISSING)), dtype=np.bool_, count=m)
         if len(given) == m:
             arrays[name] = values
         else:

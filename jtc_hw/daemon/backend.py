@@ -88,6 +88,12 @@ PIPE_READ_BYTES_PER_S = 1e9
 for planning far enough ahead of a large plan's arrival."""
 PLAN_SEND_BUFFER_BYTES = 4 << 20
 """Socket send buffer asked for the pipe to the loop (the kernel caps it at ``wmem_max``)."""
+TRIM_AFTER_BYTES = 16 << 20
+"""A plan or replaced reference this large makes the API process return freed memory to the
+system afterwards (``realtime.release_freed_memory``, in the planning thread)."""
+TRIM_DELAY_S = 0.5
+"""After a large plan is committed: time for the request's decoded objects to go first."""
+"""Socket send buffer asked for the pipe to the loop (the kernel caps it at ``wmem_max``)."""
 
 
 def _grow_send_buffer(conn: Connection) -> int:
@@ -201,6 +207,7 @@ class LoopBackend:
         self._inbox: Inbox | None = None
         self._writer: PlanWriter | None = None
         self._writing = False  # waiting for the pipe to be writable (add_writer)
+        self._trim: asyncio.TimerHandle | None = None  # a release of freed memory, scheduled
         self._stopping = False
         self._last_error: str | None = None  # the loop's last error log line
         self.death: str | None = None
@@ -316,6 +323,9 @@ class LoopBackend:
                 self._writer = None
             self._conn.close()
             self._conn = None
+        if self._trim is not None:
+            self._trim.cancel()
+            self._trim = None
         self._executor.shutdown(wait=False)
 
     @property
@@ -385,11 +395,15 @@ class LoopBackend:
         kind = message[0]
         if kind == "reference":
             _, version, trajectory, plan_id = message
+            replaced = self._ref
             if plan_id is not None:
                 self._ref = self._plans.pop(plan_id).reference
             else:
                 self._ref = trajectory
             self._version = version
+            if replaced is not None and replaced.nbytes >= TRIM_AFTER_BYTES:
+                del replaced
+                self._release_memory(0.0)
         elif kind in ("committed", "stale", "reply"):
             future = self._waiting.pop(message[1], None)
             if kind == "committed":
@@ -664,6 +678,24 @@ class LoopBackend:
             raise _LOOP_ERRORS.get(kind, HardwareError)(message)
         return value
 
+    def _release_memory(self, delay_s: float) -> None:
+        """Return freed memory to the system in ``delay_s``, in the planning thread (it walks
+        the heap: not in the event loop's thread); one pending release covers them all."""
+        if self._trim is not None:
+            return
+        from .realtime import release_freed_memory
+
+        aio = asyncio.get_running_loop()
+
+        def release() -> None:
+            self._trim = None
+            try:
+                aio.run_in_executor(self._executor, release_freed_memory)
+            except RuntimeError:  # the executor was shut down: the daemon is stopping
+                pass
+
+        self._trim = aio.call_later(delay_s, release)
+
     def _transfer_ns(self, nbytes: int) -> int:
         """How much longer than a small plan one of ``nbytes`` takes to reach the loop, which
         reads a bounded amount of it per cycle (:class:`~.pipe.Inbox`); the base margin covers
@@ -711,6 +743,8 @@ class LoopBackend:
             except ControllerStateError as exc:  # the loop died before it answered
                 self._waiting.pop(plan_id, None)
                 raise GoalRejected(str(exc)) from None
+            if plan.reference.nbytes >= TRIM_AFTER_BYTES:
+                self._release_memory(TRIM_DELAY_S)  # the fitting's temporaries, the request
             if reply[0] == "committed":
                 return reply[2]  # type: ignore[no-any-return]
             reason = reply[2]

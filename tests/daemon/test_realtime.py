@@ -247,3 +247,32 @@ def test_huge_pages_are_turned_off_for_the_process() -> None:
         pytest.skip("this kernel does not report THP_enabled in /proc/<pid>/status")
     assert line.startswith("transparent huge pages off")
     assert "THP_enabled:\t0" in status
+
+
+def test_release_freed_memory_returns_a_freed_heap_to_the_system() -> None:
+    code = (
+        "import ctypes\n"
+        "from jtc_hw.daemon.realtime import release_freed_memory\n"
+        "libc = ctypes.CDLL(None)\n"
+        "libc.malloc.restype = ctypes.c_void_p\n"
+        "libc.free.argtypes = [ctypes.c_void_p]\n"
+        "libc.mallopt(-1, 1 << 30)\n"  # M_TRIM_THRESHOLD: free() alone keeps the memory
+        "libc.mallopt(-3, 1 << 30)\n"  # M_MMAP_THRESHOLD: blocks come from the heap
+        "def rss():\n"
+        "    for line in open('/proc/self/status'):\n"
+        "        if line.startswith('VmRSS:'):\n"
+        "            return int(line.split()[1])\n"
+        "blocks = [libc.malloc(1 << 20) for _ in range(64)]\n"
+        "for b in blocks:\n"
+        "    ctypes.memset(b, 1, 1 << 20)\n"
+        "full = rss()\n"
+        "for b in blocks:\n"
+        "    libc.free(b)\n"
+        "kept = rss()\n"
+        "print(release_freed_memory(), full, kept, rss())\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    released, full, kept, after = out.stdout.split()
+    assert int(kept) > int(full) - 8 * 1024  # freed but kept by the allocator (kB)
+    assert released == "True"
+    assert int(after) < int(kept) - 48 * 1024  # most of the 64 MB went back

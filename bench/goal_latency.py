@@ -23,7 +23,9 @@ Three measurements (the first by default, or when ``--sizes`` is given with the 
     and the row says so). Reports the acceptance time, the deadlines the loop skipped from
     sending the goal until its plan was released again (the goal is cancelled once accepted
     plus 1 s), and the loop process's resident memory before, while executing and after the
-    goal ended.
+    goal ended. Meanwhile another client asks all the time: ``get_status`` (served by the API
+    process's event loop) and ``cancel`` of an unknown goal (a request to the control loop
+    and back); ``probe_*_ms_max`` is the longest either waited while the goal was accepted.
 
 ``breakdown`` (``--breakdown``)
     In this process, no daemon: the same code the daemon runs, stage by stage, for one goal of
@@ -70,7 +72,12 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from loop_jitter import Daemon, next_loop_stats  # noqa: E402
 
 from jtc_hw.api.client import Client  # noqa: E402
-from jtc_hw.api.framing import DEFAULT_MAX_MESSAGE_BYTES, MessageDecoder, encode  # noqa: E402
+from jtc_hw.api.framing import (  # noqa: E402
+    DEFAULT_MAX_MESSAGE_BYTES,
+    MessageDecoder,
+    RequestError,
+    encode,
+)
 from jtc_hw.api.protocol import SendGoal, parse_request  # noqa: E402
 from jtc_hw.cli import DEMO_JOINTS  # noqa: E402
 from jtc_hw.controller.controller import Planner  # noqa: E402
@@ -254,6 +261,44 @@ def rss_kib(pid: int) -> int:
     raise RuntimeError(f"no VmRSS for process {pid}")
 
 
+class Probe(threading.Thread):
+    """Another client, asking all the time while a goal is being accepted: ``get_status``
+    (answered by the API process's event loop alone) and ``cancel`` of a goal that does not
+    exist (a request that travels to the control loop and back). Records how long each took."""
+
+    def __init__(self, socket_path: str) -> None:
+        super().__init__(daemon=True)
+        self.client = Client.connect(socket_path, timeout_s=TIMEOUT_S)
+        self.stop = threading.Event()
+        self.status_ms: list[float] = []
+        self.loop_ms: list[float] = []
+
+    def run(self) -> None:
+        while not self.stop.is_set():
+            t0 = time.perf_counter_ns()
+            self.client.get_status()
+            t1 = time.perf_counter_ns()
+            try:
+                self.client.cancel(2**62)
+            except RequestError:  # not_found: it went to the loop and back
+                pass
+            t2 = time.perf_counter_ns()
+            self.status_ms.append((t1 - t0) / 1e6)
+            self.loop_ms.append((t2 - t1) / 1e6)
+            time.sleep(0.002)
+
+    def finish(self) -> dict[str, Any]:
+        self.stop.set()
+        self.join(TIMEOUT_S)
+        self.client.close()
+        return {
+            "probes": len(self.status_ms),
+            "probe_status_ms_max": round(max(self.status_ms, default=0.0), 1),
+            "probe_loop_ms_max": round(max(self.loop_ms, default=0.0), 1),
+            "probe_loop_ms_p50": round(percentile(self.loop_ms, 50), 1) if self.loop_ms else None,
+        }
+
+
 def measure_huge(args: argparse.Namespace, note: Callable[[str], None]) -> dict[str, Any]:
     goal = compact_goal(args.huge_points)
     size = request_bytes(goal)
@@ -270,7 +315,10 @@ def measure_huge(args: argparse.Namespace, note: Callable[[str], None]) -> dict[
             before = next_loop_stats(client)
             rss_before = rss_kib(daemon.loop_pid)
             api_rss_before = rss_kib(daemon.pid)
+            probe = Probe(daemon.socket)
+            probe.start()
             accept, call, handle = timed_goal(client, stamped, goal)
+            probed = probe.finish()
             time.sleep(HUGE_EXECUTE_S)
             during = next_loop_stats(client)
             rss_during = rss_kib(daemon.loop_pid)
@@ -299,6 +347,7 @@ def measure_huge(args: argparse.Namespace, note: Callable[[str], None]) -> dict[
         "api_rss_mb_before": round(api_rss_before / 1024, 1),
         "api_rss_mb_after": round(api_rss_after / 1024, 1),
         "result": result.get("status"),
+        **probed,
     }
 
 
@@ -461,7 +510,9 @@ def print_tables(rows: list[dict[str, Any]]) -> None:
                 f"cycle {r['loop_cost_us_worst']:.0f} us; loop RSS {r['loop_rss_mb_before']} -> "
                 f"{r['loop_rss_mb_during']} -> {r['loop_rss_mb_after']} MB (before, running, "
                 f"after); API RSS {r['api_rss_mb_before']} -> {r['api_rss_mb_after']} MB; "
-                f"result {r['result']}"
+                f"result {r['result']}; meanwhile another client's get_status waited at most "
+                f"{r['probe_status_ms_max']} ms, a request to the loop {r['probe_loop_ms_max']} "
+                f"ms ({r['probes']} of each)"
             )
             ok = r["overruns"] <= TARGET_OVERRUNS and r["rate_hz"] == 500
             print(

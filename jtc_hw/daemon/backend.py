@@ -12,10 +12,16 @@ against the newer reference with a larger margin. ``query_state`` is answered fr
 without involving the loop at all.
 
 The loop's messages are read without blocking (:class:`~.pipe.Inbox`), whatever the loop has
-written in part. The loop's death is a result, not a silence: when its process ends (its
-sentinel) without having been asked to stop, every goal it accepted and has not finished
-(tracked here from ``committed`` to its result) gets one ``ABORTED`` result "control loop
-died: <how>" through the listener, a goal being planned or committed is refused, the status
+written in part; plans and requests are written without blocking (:class:`~.pipe.PlanWriter`,
+the rest when the pipe is writable), a request before what is left of a plan, so the event
+loop never waits for the loop to read a plan of megabytes. A plan is made far enough ahead
+for its transfer (a bounded amount per cycle), and after a large one the freed heap is given
+back to the system (``malloc_trim``, in the planning thread).
+
+The loop's death is a result, not a silence: when its process ends (its sentinel) without
+having been asked to stop, every goal it accepted and has not finished (tracked here from
+``committed`` to its result) gets one ``ABORTED`` result "control loop died: <how>" through
+the listener, a goal being planned or committed is refused, the status
 reports the fault, new goals and requests are refused with that reason, and
 :meth:`LoopBackend.wait_exited` returns, so that the service exits non-zero (systemd restarts
 it). Meanwhile the device-side watchdogs stop the motors.

@@ -6,8 +6,8 @@ The loop runs in its own process so that API work (parsing, fitting a 2,000-poin
 serving clients) never shares an interpreter lock with it. It talks to the API process over
 one duplex ``multiprocessing`` connection:
 
-- in (framed by ``send_framed``, arrays out of band): ``("commit", plan_id, Plan)``,
-  ``("request", request_id, op, args)``;
+- in (records of ``pipe.PlanWriter``, a plan's arrays out of band in chunks):
+  ``("commit", plan_id, Plan)``, ``("request", request_id, op, args)``;
 - out: ``("ready", info)``, ``("reference", version, trajectory_or_None, plan_id_or_None)``,
   ``("committed", plan_id, goal_id)``, ``("stale", plan_id, reason)``, ``("events", [...])``,
   ``("state", snapshot)``, ``("status", dict)``, ``("reply", request_id, ok, value)``,

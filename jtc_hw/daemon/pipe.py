@@ -235,25 +235,25 @@ def encode_message(message: Any) -> bytes:
 _Buffer = bytearray | memoryview | mmap.mmap
 
 LARGE_MESSAGE_BYTES = 1 << 20
-"""Framed messages from this size on are received into a buffer that is not zero-filled."""
+"""A plan's array from this size on is received into memory that is not zero-filled."""
 
 RETURNED_MESSAGE_BYTES = 8 << 20
-"""Framed messages from this size on get memory of their own, returned to the system once
+"""A plan's array from this size on gets memory of its own, returned to the system once
 released (smaller ones reuse the heap, which the loop process keeps: ``keep_freed_memory``)."""
 
 RELEASE_CHUNK_BYTES = 2 << 20
-"""Memory of a large message returned to the system per :meth:`Inbox.release` (0.2-0.35 ms
+"""Memory of a large array returned to the system per :meth:`Inbox.release` (0.2-0.35 ms
 measured)."""
 
 
 def _receive_buffer(size: int) -> _Buffer:
-    """A buffer to receive a framed message of ``size`` bytes into.
+    """A buffer to receive one of a plan's arrays (``size`` bytes) into.
 
     ``bytearray(size)`` writes ``size`` zero bytes at once: 42 ms for the 90 MB plan of a
-    75,000-point goal, in one cycle (19 deadlines missed at 500 Hz). A large message gets an
-    uninitialised buffer instead: its pages are first touched by the reads, at most the
-    inbox's budget per pump. A very large one is an anonymous mapping of its own, so that the
-    memory goes back to the system after it (:meth:`Inbox.release`), a chunk at a time.
+    75,000-point goal, in one cycle (19 deadlines missed at 500 Hz). A large array gets an
+    uninitialised buffer instead: its pages are first touched by the reads, a bounded amount
+    per pump. A very large one is an anonymous mapping of its own, so that the memory goes
+    back to the system after it (:meth:`Inbox.release`), a chunk at a time.
     """
     if size >= RETURNED_MESSAGE_BYTES:
         # Private: MADV_DONTNEED then frees the pages at once (a shared anonymous mapping keeps
@@ -307,13 +307,14 @@ class Inbox:
     interpreter lock: measured, a thread receiving a 2.4 MB plan stretched cycles by
     milliseconds (each time the loop thread released the lock in a system call, the receiver
     took it for up to the switch interval). So the loop process has one thread, and
-    :meth:`pump` reads what has arrived, at most ``budget`` bytes, straight into the buffer of
-    the message being received (``MSG_DONTWAIT``: the connection stays blocking for sends), and
-    completes messages in ``multiprocessing``'s wire format. A 2,000-point plan then arrives
-    over a few cycles, each paying a bounded copy. In the API process it lets the event loop
-    read the loop's messages without waiting for the rest of one the loop wrote in part.
+    :meth:`pump` reads what has arrived, at most ``budget`` bytes (and not past a time it is
+    given), straight into the memory of what is being received (``MSG_DONTWAIT``: the
+    connection stays blocking for sends): a plan's arrays are read where they will stay, a
+    chunk record at a time. A 2,000-point plan then arrives over one or two cycles, each
+    paying a bounded copy. In the API process it lets the event loop read the loop's messages
+    (``multiprocessing``'s format) without waiting for the rest of one the loop wrote in part.
 
-    Framed messages of :data:`LARGE_MESSAGE_BYTES` or more are received into memory that is
+    A plan's arrays of :data:`LARGE_MESSAGE_BYTES` or more are received into memory that is
     not zero-filled first (the reads touch it, a budget at a time), and those of
     :data:`RETURNED_MESSAGE_BYTES` or more into a mapping of their own, which
     :meth:`release` hands back to the system once nothing unpickled from it is alive.

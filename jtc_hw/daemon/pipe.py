@@ -32,6 +32,7 @@ blocking sends.
 from __future__ import annotations
 
 import collections
+import ctypes
 import mmap
 import os
 import pickle
@@ -264,6 +265,16 @@ def _receive_buffer(size: int) -> _Buffer:
     return bytearray(size)
 
 
+def _munlock(address: int, length: int) -> None:
+    """``munlock`` a range of this process's memory (errors ignored: best effort)."""
+    try:
+        munlock = ctypes.CDLL(None, use_errno=True).munlock
+    except (OSError, AttributeError):
+        return
+    munlock.argtypes = [ctypes.c_void_p, ctypes.c_size_t]
+    munlock(address, length)
+
+
 class _Mapped:
     """A message buffer of its own mapping, to unmap once nothing uses it, a chunk at a time.
 
@@ -277,6 +288,7 @@ class _Mapped:
     def __init__(self, mapping: mmap.mmap) -> None:
         self.mapping = mapping
         self.array: NDArray[np.uint8] | None = np.frombuffer(mapping, dtype=np.uint8)
+        self.address = self.array.ctypes.data
         self.returned = 0  # bytes given back so far
 
     def unused(self) -> bool:
@@ -292,7 +304,16 @@ class _Mapped:
         size = len(self.mapping)
         if self.returned < size:
             length = min(limit, size - self.returned)
-            self.mapping.madvise(mmap.MADV_DONTNEED, self.returned, length)
+            try:
+                self.mapping.madvise(mmap.MADV_DONTNEED, self.returned, length)
+            except OSError:
+                # Locked pages (the loop process's lock_memory: mlockall) refuse it (EINVAL):
+                # unlock the chunk first, then they can go.
+                _munlock(self.address + self.returned, length)
+                try:
+                    self.mapping.madvise(mmap.MADV_DONTNEED, self.returned, length)
+                except OSError:
+                    pass  # left to the unmap at the end
             self.returned += length
             if self.returned < size:
                 return False

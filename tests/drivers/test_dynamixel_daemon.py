@@ -344,3 +344,69 @@ def test_sigkill_of_the_loop_in_velocity_mode_stops_the_servos_on_their_watchdog
             assert emu.register(servo_id, "bus_watchdog") == -1, servo_id
             assert emu.positions()[servo_id] == pytest.approx(trip.stopped_position_rad,
                                                               abs=0.01)
+
+
+def _moving_velocity_goal(emu: DynamixelEmulator, d: DxlDaemon, client: Client) -> None:
+    with client.subscribe_state() as sub:
+        p0 = next_state(sub, lambda s: s["active_goal"] is None)["actual"]["positions"]
+    goal = client.send_goal(traj([p + 1.0 for p in p0], 4.0))
+    for feedback in goal.feedback(timeout_s=WAIT_S):
+        if feedback["time_from_start"] >= 0.5:
+            break
+    assert all(emu.register(i, "present_velocity") != 0 for i in IDS)
+
+
+def test_sigkill_of_the_whole_daemon_stops_the_servos_on_their_watchdog(tmp_path: Path) -> None:
+    """docs/safety.md, SIGKILL: API process and loop killed at once (what systemd does after
+    TimeoutStopSec); nothing is left to command the servos, their watchdogs stop them."""
+    with DynamixelEmulator(IDS, initial_positions=START) as emu:
+        d = DxlDaemon(tmp_path / "killall", lambda sock: robot(
+            sock, emu.device_path, "velocity", {"p": 5.0, "ff_velocity_scale": 1.0},
+            watchdog_s=0.1))
+        d.start()
+        try:
+            d.wait_ready()
+            with connect(d) as client:
+                _moving_velocity_goal(emu, d, client)
+                loop = loop_process(d.pid)
+                os.killpg(d.pid, signal.SIGKILL)
+                wait_gone(loop)
+                dead = time.monotonic()
+                trips = emu.wait_watchdog_stopped(IDS, timeout_s=WAIT_S)
+        finally:
+            _stop_whatever_is_left(d)
+        assert set(trips) == set(IDS)
+        for servo_id, trip in trips.items():
+            assert trip.last_instruction_s <= dead, servo_id
+            assert emu.register(servo_id, "present_velocity") == 0, servo_id
+
+
+def test_sigkill_of_the_api_process_lets_the_loop_stop_the_servos_itself(
+    tmp_path: Path,
+) -> None:
+    """docs/safety.md, API death: the loop sees its pipe end, ends the goal, holds (the
+    component's safe action), disarms the watchdogs of a clean stop and exits; no trip."""
+    with DynamixelEmulator(IDS, initial_positions=START) as emu:
+        d = DxlDaemon(tmp_path / "api", lambda sock: robot(
+            sock, emu.device_path, "velocity", {"p": 5.0, "ff_velocity_scale": 1.0},
+            watchdog_s=0.1))
+        d.start()
+        try:
+            d.wait_ready()
+            with connect(d) as client:
+                _moving_velocity_goal(emu, d, client)
+                loop = loop_process(d.pid)
+                os.kill(d.pid, signal.SIGKILL)
+                wait_gone(loop)  # the loop process noticed and finished by itself
+        finally:
+            _stop_whatever_is_left(d)
+        for servo_id in IDS:
+            assert emu.register(servo_id, "bus_watchdog") == 0, servo_id  # disarmed cleanly
+            assert emu.register(servo_id, "goal_velocity") == 0, servo_id  # the hold
+            assert emu.register(servo_id, "torque_enable") == 1, servo_id
+        # The servos brake on their velocity profile to a stop (emulated time runs on).
+        deadline = time.monotonic() + WAIT_S
+        while any(emu.register(i, "present_velocity") != 0 for i in IDS):
+            assert time.monotonic() < deadline, "the servos did not come to rest"
+            time.sleep(0.01)  # watching the emulated motors decelerate
+        assert emu.watchdog_trips() == [], "the loop stopped the servos, not their watchdogs"

@@ -233,13 +233,13 @@ def can_cia402_rig() -> Iterator[Rig]:
 RIGS = {"dynamixel": dynamixel_rig, "can-mit": can_mit_rig, "can-cia402": can_cia402_rig}
 
 
-def moving_goal(client: Client) -> None:
+def moving_goal(client: Client, duration_s: float = 4.0) -> None:
     """A slow goal started, and half a second of it run (the motors are moving)."""
     with client.subscribe_state() as sub:
         state = sub.get(timeout_s=WAIT_S)
     start = state["actual"]["positions"]
     goal = client.send_goal({"joint_names": state["joint_names"], "points": [
-        {"time_from_start": 4.0, "positions": [p + 0.8 for p in start],
+        {"time_from_start": duration_s, "positions": [p + 0.8 for p in start],
          "velocities": [0.0] * len(start)}]})
     for feedback in goal.feedback(timeout_s=WAIT_S):
         if feedback["time_from_start"] >= 0.5:
@@ -269,20 +269,23 @@ def watchdog_run(hardware: str, failure: str) -> dict[str, Any]:
             "missed_deadlines": None, "watchdog_ms": WATCHDOG_S * 1e3}
 
 
-def api_stall_run(stall_s: float) -> dict[str, Any]:
+def api_stall_run(stall_s: float, priority: int) -> dict[str, Any]:
     joints = [f"joint{i}" for i in range(1, 7)]
     config = controller(joints, 1000, "position")
     config["hardware"] = [{"name": "arm", "kind": "mirror", "joints": joints,
                            "params": {"lag_s": 0.0}}]
+    config["daemon"] = {"realtime": {"priority": priority}}
     with tempfile.TemporaryDirectory(prefix="jtc-hw-failsafe-") as tmp:
         daemon = DaemonRun(config, Path(tmp))
         try:
             with daemon.connect() as client:
-                baseline0 = loop_counts(client)
-                time.sleep(stall_s)  # the same stretch without a stall: the machine's noise
+                # The same stretch with a goal and no stall: the machine's own noise.
+                moving_goal(client, duration_s=2 * stall_s + 4.0)
+                baseline0 = loop_counts(client, after=loop_counts(client))  # a fresh status
+                time.sleep(stall_s)
                 baseline1 = loop_counts(client, after=baseline0)
-                moving_goal(client)
-                before = loop_counts(client)
+                moving_goal(client, duration_s=2 * stall_s + 4.0)  # preempts: a fresh goal
+                before = loop_counts(client, after=loop_counts(client))
                 os.kill(daemon.process.pid, signal.SIGSTOP)
                 time.sleep(stall_s)  # the stall being measured
                 os.kill(daemon.process.pid, signal.SIGCONT)
@@ -333,6 +336,8 @@ def main(argv: list[str] | None = None) -> int:
                         default=[*FAILURES, "api_sigstop"])
     parser.add_argument("--runs", type=int, default=3, help="runs per row (median reported)")
     parser.add_argument("--stall-s", type=float, default=3.0, help="api_sigstop: stall length")
+    parser.add_argument("--priority", type=int, default=80,
+                        help="api_sigstop: the loop's SCHED_FIFO priority (0: normal)")
     parser.add_argument("--json", action="store_true", help="one JSON object per row")
     args = parser.parse_args(argv)
     rows: list[dict[str, Any]] = []
@@ -340,7 +345,7 @@ def main(argv: list[str] | None = None) -> int:
         for hardware in (args.hardware if failure != "api_sigstop" else ["mirror"]):
             for run in range(args.runs):
                 print(f"# {hardware} {failure} run {run + 1}/{args.runs}", file=sys.stderr)
-                rows.append(api_stall_run(args.stall_s) if failure == "api_sigstop"
+                rows.append(api_stall_run(args.stall_s, args.priority) if failure == "api_sigstop"
                             else watchdog_run(hardware, failure))
     summary = summarise(rows)
     if args.json:

@@ -310,7 +310,8 @@ def test_sigkill_of_the_loop_in_velocity_mode_stops_the_servos_on_their_watchdog
     tmp_path: Path,
 ) -> None:
     """Issue 10: the loop killed mid-goal, nothing commands the servos any more; they stop by
-    themselves when their Bus Watchdog (armed by the driver, default 0.1 s) expires."""
+    themselves when their Bus Watchdog (armed by the driver, default 0.1 s) expires, and the
+    client gets its goal's one result: ABORTED, naming the loop's death."""
     with DynamixelEmulator(IDS, initial_positions=START) as emu:
         d = DxlDaemon(tmp_path / "kill", lambda sock: robot(
             sock, emu.device_path, "velocity", {"p": 5.0, "ff_velocity_scale": 1.0},
@@ -331,8 +332,15 @@ def test_sigkill_of_the_loop_in_velocity_mode_stops_the_servos_on_their_watchdog
                 wait_gone(loop)
                 dead = time.monotonic()
                 trips = emu.wait_watchdog_stopped(IDS, timeout_s=WAIT_S)
+                result = goal.wait(timeout_s=WAIT_S)
+                assert d.proc is not None
+                assert d.proc.wait(timeout=WAIT_S) == 1, "the daemon exits non-zero"
+                results = client.received("result", goal.goal_id)
         finally:
             _stop_whatever_is_left(d)
+        assert result["status"] == "aborted"
+        assert result["error_string"].startswith("control loop died: killed by SIGKILL")
+        assert len(results) == 1
         for servo_id, trip in trips.items():
             # The last packet came from the loop before it died; the servo counted the
             # configured 0.1 s from it, was still turning, and stopped.

@@ -46,7 +46,9 @@ def robot(socket_path: Path, device: str, interface: str = "position",
         "ids": IDS,
         "model": "XM430-W350",
         "offset": -math.pi,
-        "timeout_ms": 30.0,  # the emulator shares the test process
+        # The emulator shares the test process: allow for its thread being starved on a loaded
+        # machine (a missed reply here is a fault that the next test would inherit).
+        "timeout_ms": 100.0,
         "max_retries": 1,
         "latency_timer_warn": False,
         # Long unless a test is about it: a loaded machine pausing the daemon must not trip
@@ -328,9 +330,9 @@ def test_sigkill_of_the_loop_in_velocity_mode_stops_the_servos_on_their_watchdog
                 assert emu.watchdog_trips() == [], "a servo tripped while the loop was running"
                 assert all(emu.register(i, "present_velocity") != 0 for i in IDS)
                 loop = loop_process(d.pid)
+                killed = time.monotonic()
                 os.kill(loop, signal.SIGKILL)
                 wait_gone(loop)
-                dead = time.monotonic()
                 trips = emu.wait_watchdog_stopped(IDS, timeout_s=WAIT_S)
                 result = goal.wait(timeout_s=WAIT_S)
                 assert d.proc is not None
@@ -342,9 +344,10 @@ def test_sigkill_of_the_loop_in_velocity_mode_stops_the_servos_on_their_watchdog
         assert result["error_string"].startswith("control loop died: killed by SIGKILL")
         assert len(results) == 1
         for servo_id, trip in trips.items():
-            # The last packet came from the loop before it died; the servo counted the
-            # configured 0.1 s from it, was still turning, and stopped.
-            assert trip.last_instruction_s <= dead, servo_id
+            # The last packet came from the loop before it died (the emulator may process it a
+            # little later on a loaded machine); the servo counted the configured 0.1 s from
+            # it, after the kill, was still turning, and stopped.
+            assert trip.expired_s > killed, servo_id
             assert trip.timeout_s == pytest.approx(0.1), servo_id
             assert trip.expired_s == pytest.approx(trip.last_instruction_s + 0.1, abs=1e-9)
             assert trip.speed_at_expiry_rad_s > 0.05, servo_id
@@ -377,15 +380,15 @@ def test_sigkill_of_the_whole_daemon_stops_the_servos_on_their_watchdog(tmp_path
             with connect(d) as client:
                 _moving_velocity_goal(emu, d, client)
                 loop = loop_process(d.pid)
+                killed = time.monotonic()
                 os.killpg(d.pid, signal.SIGKILL)
                 wait_gone(loop)
-                dead = time.monotonic()
                 trips = emu.wait_watchdog_stopped(IDS, timeout_s=WAIT_S)
         finally:
             _stop_whatever_is_left(d)
         assert set(trips) == set(IDS)
         for servo_id, trip in trips.items():
-            assert trip.last_instruction_s <= dead, servo_id
+            assert trip.expired_s > killed, servo_id  # not a trip while the daemon ran
             assert emu.register(servo_id, "present_velocity") == 0, servo_id
 
 

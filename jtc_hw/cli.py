@@ -229,9 +229,12 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 def cmd_check(args: argparse.Namespace) -> int:
     from .controller.config_io import explain
-    from .daemon.robot import load_robot, security_warnings
+    from .daemon.robot import create_hardware_set, load_robot, security_warnings
 
     robot = load_robot(args.config_file, args.controller)
+    # Creating the components checks their parameters as `run` will (no I/O: nothing is
+    # opened before configure) and tells what stops each one's motors if the daemon dies.
+    hardware = create_hardware_set(robot)
     c = robot.controller
     print(f"{args.config_file}: OK")
     print(f"  controller      {c.name}: {len(c.joints)} joints ({', '.join(c.joints)})")
@@ -250,8 +253,19 @@ def cmd_check(args: argparse.Namespace) -> int:
         f"                  goal_time {c.constraints.goal_time:g} s, "
         f"stopped_velocity_tolerance {c.constraints.stopped_velocity_tolerance:g}"
     )
-    for h in robot.hardware:
-        print(f"  hardware        {h.name}: {h.kind}, joints {', '.join(h.joints)}")
+    watchdog_warnings = []
+    for component in hardware.components:
+        print(f"  hardware        {component.name}: {component.kind}, "
+              f"joints {', '.join(component.joints)}")
+        watchdog = component.device_watchdog()
+        print(f"    watchdog      {watchdog.mechanism}")
+        if watchdog.timeout_s is None or watchdog.unprotected:
+            joints = watchdog.unprotected or component.joints
+            watchdog_warnings.append(
+                f"hardware '{component.name}': no device-side watchdog for joints "
+                f"{', '.join(joints)}: motors keep their last command if the daemon dies; "
+                "prefer position commands with low gains for them (docs/safety.md)"
+            )
     d = robot.daemon
     print(f"  socket          {d.socket} (mode {d.socket_mode:o})")
     tcp = f"; tcp {d.tcp.host}:{d.tcp.port} max {d.tcp.max_clients}" if d.tcp else ""
@@ -263,7 +277,7 @@ def cmd_check(args: argparse.Namespace) -> int:
         f"  realtime        priority {rt.priority or 'normal'}, lock_memory {rt.lock_memory}, "
         f"cpu_affinity {list(rt.cpu_affinity) or 'any'}"
     )
-    _print_warnings([*explain(c), *security_warnings(robot)])
+    _print_warnings([*explain(c), *security_warnings(robot), *watchdog_warnings])
     return EXIT_OK
 
 

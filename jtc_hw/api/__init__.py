@@ -2,7 +2,7 @@
 
 - :mod:`.protocol`: the requests, their checks and the error codes; :mod:`.framing`:
   newline-delimited JSON in and out (see ``docs/protocol.md``).
-- :mod:`.client`: :class:`Client`, :class:`GoalHandle`, :class:`StateSubscription`.
+- :mod:`.client`: :class:`Client`; :mod:`.handles`: :class:`GoalHandle`, :class:`StateSubscription`.
 - :mod:`.paths`: where the daemon's socket is by default.
 """
 

@@ -44,14 +44,11 @@ import asyncio
 import collections
 import hmac
 import logging
-import os
-import socket
-import stat
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 from functools import partial
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any
 
 from .. import __version__
 from ..api.framing import (
@@ -70,7 +67,6 @@ from ..api.framing import (
     error_reply,
     reply,
 )
-from ..api.paths import default_socket_path, directory_problem
 from ..api.protocol import (
     Auth,
     CancelGoal,
@@ -92,8 +88,6 @@ from ..api.protocol import (
     sample_to_json,
 )
 from ..controller.goals import GoalFeedback, GoalResult
-from ..controller.tolerances import JointTolerance
-from ..controller.trajectory import JointTrajectory, TrajectorySample
 from ..errors import (
     ConfigurationError,
     ControllerStateError,
@@ -101,6 +95,7 @@ from ..errors import (
     HardwareError,
     JtcHwError,
 )
+from .backend_api import Backend, BackendListener
 from .connection import (
     OVER_LIMIT_CLIENTS,
     OVER_LIMIT_DEADLINE_S,
@@ -111,6 +106,7 @@ from .connection import (
     is_privileged,
     peer_identity,
 )
+from .unix_socket import bind_unix, remove_socket_file
 
 __all__ = [
     "Backend",
@@ -133,147 +129,6 @@ _OVER_LIMIT_MAX_BYTES = 4096
 """Longest request read from a connection over the limit (``auth`` and ``stop`` are short)."""
 _WRITE_BATCH = 65536
 _RESERVED_STATE_KEYS = frozenset({"event", "dropped", "dropped_total"})
-
-
-class BackendListener(Protocol):
-    """What the backend reports to (the ``Server`` is one)."""
-
-    def on_goal_event(self, event: GoalResult | GoalFeedback) -> None:
-        """A goal's feedback or result; called in the asyncio loop's thread.
-
-        Raises:
-            Nothing.
-        """
-
-    def on_state(self, snapshot: dict[str, Any]) -> None:
-        """A JSON-able controller state snapshot, at ``state_publish_rate``; loop thread.
-
-        Raises:
-            Nothing.
-        """
-
-
-class Backend(Protocol):
-    """The control loop's host, as the server sees it.
-
-    The synchronous methods are called from the asyncio loop and must return at once (no
-    waiting on the control loop): answer from replicas and caches. The coroutines may wait on
-    the control loop; only the requesting client waits for them.
-    """
-
-    joint_names: tuple[str, ...]
-
-    def now_ns(self) -> int:
-        """The daemon's monotonic clock, in nanoseconds.
-
-        Raises:
-            Nothing expected: an exception becomes an ``internal`` error reply.
-        """
-        ...
-
-    def hello(self) -> dict[str, Any]:
-        """Facts for a new client (``update_rate``, ``state_publish_rate``, ...).
-
-        Raises:
-            Nothing expected: an exception becomes an ``internal`` error reply.
-        """
-        ...
-
-    def config_dict(self) -> dict[str, Any]:
-        """The configuration in effect, JSON-able.
-
-        Raises:
-            Nothing expected: an exception becomes an ``internal`` error reply.
-        """
-        ...
-
-    def status(self) -> dict[str, Any]:
-        """Loop statistics, hardware and controller status, JSON-able.
-
-        Raises:
-            Nothing expected: an exception becomes an ``internal`` error reply.
-        """
-        ...
-
-    async def send_goal(
-        self,
-        traj: JointTrajectory,
-        path_tolerance: Sequence[JointTolerance],
-        goal_tolerance: Sequence[JointTolerance],
-        goal_time_tolerance: float,
-    ) -> int:
-        """Accept an action goal and return its id.
-
-        Raises:
-            GoalRejected: why it was refused, with the FollowJointTrajectory error code.
-        """
-        ...
-
-    async def cancel_goal(self, goal_id: int) -> bool:
-        """Request cancellation; False if ``goal_id`` is not executing.
-
-        Raises:
-            HardwareError: the control loop did not answer (an ``internal`` error reply).
-        """
-        ...
-
-    async def send_trajectory(self, traj: JointTrajectory) -> None:
-        """A topic trajectory (no points: stop).
-
-        Raises:
-            GoalRejected: why it was refused.
-        """
-        ...
-
-    def query_state(self, time_ns: int) -> TrajectorySample:
-        """The desired state at ``time_ns``.
-
-        Raises:
-            ControllerStateError: the controller is not active.
-        """
-        ...
-
-    async def sim(self, component: str, freeze: bool | None, fault: str | None = None) -> None:
-        """Freeze or release a simulated component's feedback (``None``: unchanged), or
-        inject a latched read fault (applied by the loop).
-
-        Raises:
-            ConfigurationError: no such simulated component.
-            HardwareError: the hardware could not do it.
-        """
-        ...
-
-    async def stop_motion(self) -> bool:
-        """End any motion and hold the measured position: cancel the active goal (its result
-        is ``canceled``) or stop a topic trajectory. Must not wait on anything but the loop.
-
-        Returns:
-            False if there was nothing to stop (the controller is not active: stopped after a
-            fault, or not started).
-
-        Raises:
-            HardwareError: the request could not reach the control loop.
-        """
-        ...
-
-    async def rearm(self) -> bool:
-        """Leave a hardware fault: clear the devices' latched faults and hold the position.
-
-        Returns:
-            False if there was nothing to re-arm (the controller is running, no fault).
-
-        Raises:
-            HardwareError: re-arming failed (the controller stays stopped).
-        """
-        ...
-
-    def set_listener(self, listener: BackendListener) -> None:
-        """Where goal events and state snapshots go from now on.
-
-        Raises:
-            Nothing.
-        """
-        ...
 
 
 class Server:
@@ -345,7 +200,7 @@ class Server:
         self.backend.set_listener(self)
         try:
             if self.path is not None:
-                sock = self._bind_unix(self.path)
+                sock, self._socket_identity = bind_unix(self.path, self.settings.socket_mode)
                 self._servers.append(
                     await asyncio.start_unix_server(partial(self._accept, "unix"), sock=sock)
                 )
@@ -362,100 +217,6 @@ class Server:
         except BaseException:
             await self.close()
             raise
-
-    def _directory_mode(self) -> int:
-        """Mode of a socket directory the daemon creates: only its user may write it (nobody
-        else can replace the socket), and whoever ``socket_mode`` lets connect may enter it."""
-        mode = 0o700
-        if self.settings.socket_mode & 0o070:
-            mode |= 0o010
-        if self.settings.socket_mode & 0o007:
-            mode |= 0o001
-        return mode
-
-    def _make_directory(self, directory: Path) -> None:
-        missing: list[Path] = []
-        for d in (directory, *directory.parents):
-            if os.path.lexists(d):
-                break
-            missing.append(d)
-        mode = self._directory_mode()
-        try:
-            for d in reversed(missing):
-                try:
-                    os.mkdir(d, mode)
-                except FileExistsError:
-                    continue  # made meanwhile by someone else: examined below
-                os.chmod(d, mode)  # mkdir's mode is reduced by the umask
-                log.info("created the socket's directory %s (mode %04o)", d, mode)
-        except OSError as exc:
-            raise ConfigurationError(
-                f"cannot create the socket's directory {directory}: {exc.strerror or exc}",
-                "socket",
-            ) from None
-
-    def _bind_unix(self, path: Path) -> socket.socket:
-        self._make_directory(path.parent)
-        if os.path.normpath(path) == os.path.normpath(default_socket_path()):
-            # The default place: check that no other user could have prepared it for us.
-            problem = directory_problem(str(path.parent))
-            if problem is not None:
-                raise ConfigurationError(
-                    f"refusing the default socket directory: {problem}. Remove it (as root) "
-                    "and start again, or set daemon.socket to a path in a directory only this "
-                    "daemon's user can write",
-                    "socket",
-                )
-        self._remove_stale(path)
-        sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-        try:
-            sock.bind(str(path))
-            # Nobody can connect before listen(), which start_unix_server calls: no window.
-            os.chmod(path, self.settings.socket_mode)
-            st = os.stat(path)
-            self._socket_identity = (st.st_dev, st.st_ino)
-        except OSError as exc:
-            sock.close()
-            raise ConfigurationError(
-                f"cannot bind the unix socket {path}: {exc.strerror or exc}", "socket"
-            ) from None
-        return sock
-
-    @staticmethod
-    def _remove_stale(path: Path) -> None:
-        try:
-            st = os.lstat(path)
-        except FileNotFoundError:
-            return
-        if not stat.S_ISSOCK(st.st_mode):
-            raise ConfigurationError(
-                f"{path} exists and is not a socket; refusing to replace it (remove it, or "
-                "choose another socket path)",
-                "socket",
-            )
-        probe = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-        probe.settimeout(1.0)
-        try:
-            probe.connect(str(path))
-        except (ConnectionRefusedError, FileNotFoundError):
-            log.info("replacing stale socket %s (no daemon listening)", path)
-            try:
-                os.unlink(path)
-            except FileNotFoundError:
-                pass
-            return
-        except OSError as exc:
-            raise ConfigurationError(
-                f"cannot tell whether a daemon listens on {path} ({exc}); stop it or remove "
-                "the file",
-                "socket",
-            ) from None
-        finally:
-            probe.close()
-        raise ConfigurationError(
-            f"another daemon is listening on {path}; stop it first or choose another socket",
-            "socket",
-        )
 
     async def close(self) -> None:
         """Stop listening, give each client up to ``close_timeout_s`` to read what is queued,
@@ -479,26 +240,12 @@ class Server:
         for srv in self._servers:
             await srv.wait_closed()
         self._servers.clear()
-        self._remove_socket_file()
+        if self.path is not None and self._socket_identity is not None:
+            remove_socket_file(self.path, self._socket_identity)
+            self._socket_identity = None
         self._routes.clear()
         self._early.clear()
         self._finished.clear()
-
-    def _remove_socket_file(self) -> None:
-        path, identity = self.path, self._socket_identity
-        if path is None or identity is None:
-            return
-        self._socket_identity = None
-        try:
-            st = os.stat(path)
-            if (st.st_dev, st.st_ino) == identity:
-                os.unlink(path)
-            else:
-                log.warning("%s was replaced by someone else; leaving it", path)
-        except FileNotFoundError:
-            pass
-        except OSError as exc:
-            log.warning("cannot remove %s: %s", path, exc)
 
     async def __aenter__(self) -> Server:
         await self.start()

@@ -43,7 +43,7 @@ from numpy.typing import NDArray
 
 from ..controller.joints import JointCommand, JointState
 from ..errors import CommunicationError, ConfigurationError, HardwareError
-from .interface import HardwareInterface, SafeAction
+from .interface import DeviceWatchdog, HardwareInterface, SafeAction
 from .params import ParamKind, ParamSpec, param_table
 
 __all__ = ["MirrorHardware"]
@@ -130,6 +130,10 @@ class MirrorHardware(HardwareInterface):
     def frozen(self) -> bool:
         """Whether the feedback is frozen (see :meth:`set_frozen`)."""
         return self._frozen
+
+    def device_watchdog(self) -> DeviceWatchdog:
+        """Simulated joints live in the loop process: nothing moves once it is gone."""
+        return DeviceWatchdog(0.0, "simulated joints: nothing moves without the loop process")
 
     def set_frozen(self, frozen: bool) -> None:
         """Freeze (or unfreeze) the joints: every read returns the same state.

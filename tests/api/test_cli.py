@@ -108,3 +108,28 @@ def test_check_and_run_warn_of_a_token_others_can_read(
     assert main(["check", str(path)]) == EXIT_OK
     assert "TCP token" not in capsys.readouterr().out
     # (run prints the same warning to its log: tests/daemon/test_failsafe_e2e.py)
+
+
+def test_check_says_what_stops_each_components_motors(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    root = Path(__file__).resolve().parents[2] / "config"
+    assert main(["check", str(root / "dynamixel-arm-emulated.yaml")]) == EXIT_OK
+    out = capsys.readouterr().out
+    assert "watchdog      Dynamixel Bus Watchdog 100 ms" in out
+    assert "warning" not in out
+    assert main(["check", str(root / "can-mit-leg-emulated.yaml")]) == EXIT_OK
+    out = capsys.readouterr().out
+    assert "warning: hardware 'leg': no device-side watchdog for joints hip_roll," in out
+    assert "motors keep their last command if the daemon dies" in out
+
+
+def test_check_refuses_what_run_would_refuse_in_the_hardware_parameters(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    hardware = "hardware:\n  - {name: m, kind: mirror, joints: [j1], params: {lag_s: slow}}\n"
+    config = tmp_path / "bad.yaml"
+    config.write_text(CONFIG + "update_rate: 100\n" + hardware)
+    assert main(["check", str(config)]) == 2
+    err = capsys.readouterr().err
+    assert "hardware[0].params.lag_s" in err and "OK" not in err

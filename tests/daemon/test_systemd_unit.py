@@ -58,7 +58,17 @@ REQUIRED_SERVICE = {
     "LimitRTPRIO": "90",
     "LimitMEMLOCK": "infinity",
     "AmbientCapabilities": "CAP_SYS_NICE CAP_IPC_LOCK",
+    # the device locks' directory, shared by every user, writable under ProtectSystem=strict
+    "ExecStartPre": "+/usr/bin/install -d -m 1777 /run/lock/jtc-hw",
+    "ReadWritePaths": "-/run/lock/jtc-hw",
 }
+
+
+def test_the_unit_opens_the_directory_the_daemon_locks_devices_in() -> None:
+    from jtc_hw.daemon.locks import LOCK_DIR
+
+    assert REQUIRED_SERVICE["ReadWritePaths"] == f"-{LOCK_DIR}"
+    assert REQUIRED_SERVICE["ExecStartPre"].endswith(f" {LOCK_DIR}")
 
 
 @pytest.mark.parametrize(("key", "value"), sorted(REQUIRED_SERVICE.items()))

@@ -1,0 +1,375 @@
+"""How fast the emulated motors stop when the daemon fails, and what an API stall costs the loop.
+
+For each driver with a device-side watchdog (Dynamixel Bus Watchdog, Damiao CAN timeout on
+MIT-mode motors, the CiA 402 heartbeat consumer), a real daemon drives emulated motors (the
+emulators run in this process; the daemon reaches them through the pty / socketcand as it would
+reach real ones), a goal moves them, and then:
+
+- ``loop_sigkill``: ``kill -9`` of the control-loop process;
+- ``loop_sigstop``: the loop process stopped (``kill -STOP``): the loop stalls but lives;
+- ``daemon_sigkill``: ``kill -9`` of the daemon's whole process group (API and loop).
+
+``stop_ms`` is the time from the failure (taken just before the signal) to the motors being
+stopped, by the emulators' own records on the shared monotonic clock: Dynamixel, the servo at
+rest after its watchdog's brake; CiA 402, the drive at rest after its quick stop; Damiao, the
+timeout's expiry, when the motor disables itself (torque off: the device's documented reaction,
+it does not brake). ``missed_deadlines`` is null for these: the loop is dead or frozen.
+
+``api_sigstop`` (mirror hardware, 1 kHz): the API process is stopped for 3 s during a goal. The
+loop must not wait for it: ``missed_deadlines`` is the loop's overrun count during the stall,
+next to ``baseline_missed`` for the same length of time without one (the machine's own noise);
+``stop_ms`` is null (the loop keeps commanding; it aborts the goal after ``api_stall_s`` and
+holds).
+
+Usage::
+
+    python bench/failsafe.py                    # every driver and failure, 3 runs each
+    python bench/failsafe.py --runs 5 --json    # one JSON object per line
+    python bench/failsafe.py --hardware dynamixel --failure loop_sigkill
+
+Target (issue 10): ``stop_ms`` <= 150 with ``watchdog_s: 0.1`` for every driver that has a
+watchdog.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import math
+import os
+import signal
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+import uuid
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import can
+import yaml
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from jtc_hw.api.client import Client  # noqa: E402
+from jtc_hw.drivers.can.cia402_emulator import Cia402DriveEmulator  # noqa: E402
+from jtc_hw.drivers.can.emulator import MitBusEmulator  # noqa: E402
+from jtc_hw.drivers.can.socketcand import SocketcandServer  # noqa: E402
+from jtc_hw.drivers.dynamixel.emulator import DynamixelEmulator  # noqa: E402
+from jtc_hw.errors import JtcHwError  # noqa: E402
+
+WATCHDOG_S = 0.1
+TARGET_MS = 150.0
+START_TIMEOUT_S = 30.0
+WAIT_S = 10.0
+FAILURES = ("loop_sigkill", "loop_sigstop", "daemon_sigkill")
+HARDWARE = ("dynamixel", "can-mit", "can-cia402")
+
+
+def controller(joints: list[str], rate_hz: int, command: str,
+               gains: dict[str, float] | None = None) -> dict[str, Any]:
+    params: dict[str, Any] = {
+        "joints": joints,
+        "command_interfaces": [command],
+        "state_interfaces": ["position", "velocity"],
+        "state_publish_rate": 50.0,
+        "action_monitor_rate": 20.0,
+        "constraints": {"goal_time": 1.0, **{j: {"trajectory": 0.0, "goal": 0.05}
+                                             for j in joints}},
+    }
+    if gains is not None:
+        params["gains"] = {j: gains for j in joints}
+    return {
+        "controller_manager": {"ros__parameters": {"update_rate": rate_hz}},
+        "joint_trajectory_controller": {"ros__parameters": params},
+    }
+
+
+class DaemonRun:
+    """``python -m jtc_hw run`` on ``config`` in its own session, with its log in a file."""
+
+    def __init__(self, config: dict[str, Any], directory: Path) -> None:
+        self.socket = str(directory / "jtc-hw.sock")
+        config = dict(config, daemon={**config.get("daemon", {}), "socket": self.socket})
+        path = directory / "robot.yaml"
+        path.write_text(yaml.safe_dump(config, sort_keys=False))
+        self.log_path = directory / "daemon.log"
+        self._log = open(self.log_path, "w")  # noqa: SIM115 (closed in close())
+        env = dict(os.environ, PYTHONPATH=os.pathsep.join(
+            filter(None, [str(ROOT), os.environ.get("PYTHONPATH")])))
+        for key in ("NOTIFY_SOCKET", "WATCHDOG_USEC", "WATCHDOG_PID", "JOURNAL_STREAM"):
+            env.pop(key, None)
+        self.process = subprocess.Popen(
+            [sys.executable, "-m", "jtc_hw", "run", str(path)],
+            stdout=self._log, stderr=subprocess.STDOUT, env=env, start_new_session=True,
+        )
+
+    def connect(self) -> Client:
+        deadline = time.monotonic() + START_TIMEOUT_S
+        while True:
+            if self.process.poll() is not None:
+                raise RuntimeError(f"the daemon exited ({self.process.returncode}):\n"
+                                   f"{self.log_path.read_text()[-3000:]}")
+            try:
+                return Client.connect(self.socket, timeout_s=5.0)
+            except (OSError, JtcHwError):
+                if time.monotonic() > deadline:
+                    raise RuntimeError("the daemon did not answer") from None
+                time.sleep(0.05)  # polling for the socket of a starting daemon
+
+    def close(self) -> None:
+        if self.process.poll() is None:
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(self.process.pid, signal.SIGCONT)
+            self.process.send_signal(signal.SIGTERM)
+            try:
+                self.process.wait(timeout=20)
+            except subprocess.TimeoutExpired:
+                pass
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(self.process.pid, signal.SIGKILL)  # whatever is left of the group
+        self.process.wait()
+        self._log.close()
+
+
+# -- the emulated robots ------------------------------------------------------------------------
+# Each rig yields (config, stopped) where stopped(t_fail) waits for every motor to be stopped
+# by its own watchdog and returns the last one's stop time (monotonic s), or None.
+
+Rig = tuple[dict[str, Any], Callable[[float], float | None]]
+
+
+@contextlib.contextmanager
+def dynamixel_rig() -> Iterator[Rig]:
+    ids = [1, 2, 3, 4, 5, 6]
+    joints = [f"joint{i}" for i in ids]
+    with DynamixelEmulator(ids, initial_positions={i: math.pi for i in ids}) as emu:
+        config = controller(joints, 200, "velocity", {"p": 5.0, "ff_velocity_scale": 1.0})
+        config["hardware"] = [{"name": "arm", "kind": "dynamixel", "joints": joints, "params": {
+            "port": emu.device_path, "baud_rate": 4_000_000, "ids": ids,
+            "model": "XM430-W350", "offset": -math.pi, "timeout_ms": 30.0, "max_retries": 1,
+            "latency_timer_warn": False, "watchdog_s": WATCHDOG_S}}]
+
+        def stopped(t_fail: float) -> float | None:
+            trips = emu.wait_watchdog_stopped(ids, timeout_s=WAIT_S, since_s=t_fail)
+            times = [t.stopped_s for t in trips.values() if t.stopped_s is not None]
+            return max(times) if len(times) == len(ids) else None
+
+        yield config, stopped
+
+
+@contextlib.contextmanager
+def can_mit_rig() -> Iterator[Rig]:
+    ids = [1, 2, 3, 4, 5, 6]
+    joints = [f"joint{i}" for i in ids]
+    channel = f"failsafe-{uuid.uuid4().hex[:8]}"
+    bus = can.Bus(interface="virtual", channel=channel)
+    server = SocketcandServer(port=0, channels={"can0": channel})
+    emu = MitBusEmulator(bus, ids, "DM4310", master_id=0x11)
+    try:
+        emu.start()
+        server.start()
+        config = controller(joints, 250, "position")
+        config["hardware"] = [{"name": "leg", "kind": "can-mit", "joints": joints, "params": {
+            "buses": {"can0": {"interface": "socketcand", "host": "127.0.0.1",
+                               "port": server.port, "channel": "can0", "bitrate": 1_000_000,
+                               "receive_timeout": 0.001}},
+            "ids": ids, "model": "DM4310", "master_id": 0x11, "kp": 40.0, "kd": 1.0,
+            "feedback_timeout": 0.1, "watchdog_s": WATCHDOG_S}}]
+
+        def stopped(t_fail: float) -> float | None:
+            expired = emu.wait_timeout_expiries(since=t_fail, timeout_s=WAIT_S)
+            return max(expired.values()) if len(expired) == len(ids) else None
+
+        yield config, stopped
+    finally:
+        server.stop()
+        emu.stop()
+        bus.shutdown()
+
+
+@contextlib.contextmanager
+def can_cia402_rig() -> Iterator[Rig]:
+    nodes = [3, 7]
+    joints = ["shoulder", "elbow"]
+    channel = f"failsafe-{uuid.uuid4().hex[:8]}"
+    bus = can.Bus(interface="virtual", channel=channel)
+    drives = [Cia402DriveEmulator(bus, n, initial_position=0.1 * (i + 1))
+              for i, n in enumerate(nodes)]
+    server = SocketcandServer(port=0, channels={"can0": channel})
+    try:
+        for drive in drives:
+            drive.start()
+        server.start()
+        config = controller(joints, 250, "position")
+        config["hardware"] = [{"name": "arm", "kind": "can-cia402", "joints": joints, "params": {
+            "buses": {"can0": {"interface": "socketcand", "channel": "can0",
+                               "host": "127.0.0.1", "port": server.port,
+                               "receive_timeout": 0.002, "setup_timeout": 0.5}},
+            "node_id": nodes, "feedback_timeout_s": 0.25, "watchdog_s": WATCHDOG_S}}]
+        seen = [len(d.watchdog_trips) for d in drives]
+
+        def stopped(t_fail: float) -> float | None:
+            times = []
+            for drive, since in zip(drives, seen, strict=True):
+                trip = drive.wait_watchdog_stop(WAIT_S, since=since)
+                if trip is None or trip.stopped_at is None or trip.detected_at < t_fail:
+                    return None
+                times.append(trip.stopped_at)
+            return max(times)
+
+        yield config, stopped
+    finally:
+        server.stop()
+        for drive in drives:
+            drive.stop()
+        bus.shutdown()
+
+
+RIGS = {"dynamixel": dynamixel_rig, "can-mit": can_mit_rig, "can-cia402": can_cia402_rig}
+
+
+def moving_goal(client: Client, duration_s: float = 4.0) -> None:
+    """A slow goal started, and half a second of it run (the motors are moving)."""
+    with client.subscribe_state() as sub:
+        state = sub.get(timeout_s=WAIT_S)
+    start = state["actual"]["positions"]
+    goal = client.send_goal({"joint_names": state["joint_names"], "points": [
+        {"time_from_start": duration_s, "positions": [p + 0.8 for p in start],
+         "velocities": [0.0] * len(start)}]})
+    for feedback in goal.feedback(timeout_s=WAIT_S):
+        if feedback["time_from_start"] >= 0.5:
+            return
+
+
+def watchdog_run(hardware: str, failure: str) -> dict[str, Any]:
+    with tempfile.TemporaryDirectory(prefix="jtc-hw-failsafe-") as tmp, \
+            RIGS[hardware]() as (config, stopped):
+        daemon = DaemonRun(config, Path(tmp))
+        try:
+            with daemon.connect() as client:
+                loop_pid = int(client.get_status()["loop_pid"])
+                moving_goal(client)
+                t_fail = time.monotonic()
+                if failure == "loop_sigkill":
+                    os.kill(loop_pid, signal.SIGKILL)
+                elif failure == "loop_sigstop":
+                    os.kill(loop_pid, signal.SIGSTOP)
+                else:
+                    os.killpg(daemon.process.pid, signal.SIGKILL)
+                t_stop = stopped(t_fail)
+        finally:
+            daemon.close()
+    return {"hardware": hardware, "failure": failure,
+            "stop_ms": None if t_stop is None else round((t_stop - t_fail) * 1e3, 1),
+            "missed_deadlines": None, "watchdog_ms": WATCHDOG_S * 1e3}
+
+
+def api_stall_run(stall_s: float, priority: int) -> dict[str, Any]:
+    joints = [f"joint{i}" for i in range(1, 7)]
+    config = controller(joints, 1000, "position")
+    config["hardware"] = [{"name": "arm", "kind": "mirror", "joints": joints,
+                           "params": {"lag_s": 0.0}}]
+    config["daemon"] = {"realtime": {"priority": priority}}
+    with tempfile.TemporaryDirectory(prefix="jtc-hw-failsafe-") as tmp:
+        daemon = DaemonRun(config, Path(tmp))
+        try:
+            with daemon.connect() as client:
+                # The same stretch with a goal and no stall: the machine's own noise.
+                moving_goal(client, duration_s=2 * stall_s + 4.0)
+                baseline0 = loop_counts(client, after=loop_counts(client))  # a fresh status
+                time.sleep(stall_s)
+                baseline1 = loop_counts(client, after=baseline0)
+                moving_goal(client, duration_s=2 * stall_s + 4.0)  # preempts: a fresh goal
+                before = loop_counts(client, after=loop_counts(client))
+                os.kill(daemon.process.pid, signal.SIGSTOP)
+                time.sleep(stall_s)  # the stall being measured
+                os.kill(daemon.process.pid, signal.SIGCONT)
+                after = loop_counts(client, after=before)
+        finally:
+            daemon.close()
+    return {"hardware": "mirror", "failure": "api_sigstop", "stop_ms": None,
+            "missed_deadlines": after[1] - before[1],
+            "baseline_missed": baseline1[1] - baseline0[1],
+            "cycles": after[0] - before[0], "stall_s": stall_s}
+
+
+def loop_counts(client: Client, after: tuple[int, int] | None = None) -> tuple[int, int]:
+    """(cycles, overruns) from a status the loop published after ``after``'s (2 Hz)."""
+    deadline = time.monotonic() + WAIT_S
+    while True:
+        loop = client.get_status()["loop"]
+        counts = (int(loop["cycles"]), int(loop["overruns"]))
+        if after is None or counts[0] > after[0] + 500:
+            return counts
+        if time.monotonic() > deadline:
+            raise RuntimeError("the loop published no new statistics")
+        time.sleep(0.1)  # the loop publishes its statistics at 2 Hz
+
+
+def summarise(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    out = []
+    keys = sorted({(r["hardware"], r["failure"]) for r in rows}, key=lambda k: (k[0], k[1]))
+    for hardware, failure in keys:
+        runs = [r for r in rows if (r["hardware"], r["failure"]) == (hardware, failure)]
+        row: dict[str, Any] = {"hardware": hardware, "failure": failure, "runs": len(runs)}
+        for field in ("stop_ms", "missed_deadlines", "baseline_missed"):
+            values = [r[field] for r in runs if r.get(field) is not None]
+            if field in runs[0]:
+                row[field] = statistics.median(values) if values else None
+                if values and len(values) > 1:
+                    row[f"{field}_range"] = [min(values), max(values)]
+        if any(r.get("stop_ms") is None for r in runs) and failure != "api_sigstop":
+            row["not_stopped_runs"] = sum(r.get("stop_ms") is None for r in runs)
+        out.append(row)
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--hardware", nargs="+", choices=HARDWARE, default=list(HARDWARE))
+    parser.add_argument("--failure", nargs="+", choices=(*FAILURES, "api_sigstop"),
+                        default=[*FAILURES, "api_sigstop"])
+    parser.add_argument("--runs", type=int, default=3, help="runs per row (median reported)")
+    parser.add_argument("--stall-s", type=float, default=3.0, help="api_sigstop: stall length")
+    parser.add_argument("--priority", type=int, default=80,
+                        help="api_sigstop: the loop's SCHED_FIFO priority (0: normal)")
+    parser.add_argument("--json", action="store_true", help="one JSON object per row")
+    args = parser.parse_args(argv)
+    rows: list[dict[str, Any]] = []
+    for failure in args.failure:
+        for hardware in (args.hardware if failure != "api_sigstop" else ["mirror"]):
+            for run in range(args.runs):
+                print(f"# {hardware} {failure} run {run + 1}/{args.runs}", file=sys.stderr)
+                rows.append(api_stall_run(args.stall_s, args.priority) if failure == "api_sigstop"
+                            else watchdog_run(hardware, failure))
+    summary = summarise(rows)
+    if args.json:
+        for row in summary:
+            print(json.dumps(row))
+        return 0
+    print(f"{'hardware':<12} {'failure':<15} {'stop_ms':>10} {'range':>15} "
+          f"{'missed':>7} {'baseline':>9} {'runs':>5}  verdict")
+    for row in summary:
+        stop = row.get("stop_ms")
+        span = row.get("stop_ms_range")
+        verdict = ""
+        if row["failure"] != "api_sigstop":
+            ok = stop is not None and not row.get("not_stopped_runs") and (
+                span is None or span[1] <= TARGET_MS)
+            verdict = f"{'ok' if ok else 'MISSED'} (<= {TARGET_MS:g} ms)"
+        print(f"{row['hardware']:<12} {row['failure']:<15} "
+              f"{'-' if stop is None else f'{stop:.1f}':>10} "
+              f"{'' if span is None else f'{span[0]:.1f}-{span[1]:.1f}':>15} "
+              f"{'-' if row.get('missed_deadlines') is None else row['missed_deadlines']:>7} "
+              f"{'-' if row.get('baseline_missed') is None else row['baseline_missed']:>9} "
+              f"{row['runs']:>5}  {verdict}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,158 @@
+"""What the socket server needs from a backend, and what a backend reports to the server.
+
+:class:`Backend` is implemented for real by :class:`jtc_hw.daemon.backend.LoopBackend` (the
+control loop in its own process) and in tests by a small controller host; the server
+(:class:`jtc_hw.daemon.server.Server`) is the :class:`BackendListener`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any, Protocol
+
+from ..controller.goals import GoalFeedback, GoalResult
+from ..controller.tolerances import JointTolerance
+from ..controller.trajectory import JointTrajectory, TrajectorySample
+
+__all__ = ["Backend", "BackendListener"]
+
+
+class BackendListener(Protocol):
+    """What the backend reports to (the ``Server`` is one)."""
+
+    def on_goal_event(self, event: GoalResult | GoalFeedback) -> None:
+        """A goal's feedback or result; called in the asyncio loop's thread.
+
+        Raises:
+            Nothing.
+        """
+
+    def on_state(self, snapshot: dict[str, Any]) -> None:
+        """A JSON-able controller state snapshot, at ``state_publish_rate``; loop thread.
+
+        Raises:
+            Nothing.
+        """
+
+
+class Backend(Protocol):
+    """The control loop's host, as the server sees it.
+
+    The synchronous methods are called from the asyncio loop and must return at once (no
+    waiting on the control loop): answer from replicas and caches. The coroutines may wait on
+    the control loop; only the requesting client waits for them.
+    """
+
+    joint_names: tuple[str, ...]
+
+    def now_ns(self) -> int:
+        """The daemon's monotonic clock, in nanoseconds.
+
+        Raises:
+            Nothing expected: an exception becomes an ``internal`` error reply.
+        """
+        ...
+
+    def hello(self) -> dict[str, Any]:
+        """Facts for a new client (``update_rate``, ``state_publish_rate``, ...).
+
+        Raises:
+            Nothing expected: an exception becomes an ``internal`` error reply.
+        """
+        ...
+
+    def config_dict(self) -> dict[str, Any]:
+        """The configuration in effect, JSON-able.
+
+        Raises:
+            Nothing expected: an exception becomes an ``internal`` error reply.
+        """
+        ...
+
+    def status(self) -> dict[str, Any]:
+        """Loop statistics, hardware and controller status, JSON-able.
+
+        Raises:
+            Nothing expected: an exception becomes an ``internal`` error reply.
+        """
+        ...
+
+    async def send_goal(
+        self,
+        traj: JointTrajectory,
+        path_tolerance: Sequence[JointTolerance],
+        goal_tolerance: Sequence[JointTolerance],
+        goal_time_tolerance: float,
+    ) -> int:
+        """Accept an action goal and return its id.
+
+        Raises:
+            GoalRejected: why it was refused, with the FollowJointTrajectory error code.
+        """
+        ...
+
+    async def cancel_goal(self, goal_id: int) -> bool:
+        """Request cancellation; False if ``goal_id`` is not executing.
+
+        Raises:
+            HardwareError: the control loop did not answer (an ``internal`` error reply).
+        """
+        ...
+
+    async def send_trajectory(self, traj: JointTrajectory) -> None:
+        """A topic trajectory (no points: stop).
+
+        Raises:
+            GoalRejected: why it was refused.
+        """
+        ...
+
+    def query_state(self, time_ns: int) -> TrajectorySample:
+        """The desired state at ``time_ns``.
+
+        Raises:
+            ControllerStateError: the controller is not active.
+        """
+        ...
+
+    async def sim(self, component: str, freeze: bool | None, fault: str | None = None) -> None:
+        """Freeze or release a simulated component's feedback (``None``: unchanged), or
+        inject a latched read fault (applied by the loop).
+
+        Raises:
+            ConfigurationError: no such simulated component.
+            HardwareError: the hardware could not do it.
+        """
+        ...
+
+    async def stop_motion(self) -> bool:
+        """End any motion and hold the measured position: cancel the active goal (its result
+        is ``canceled``) or stop a topic trajectory. Must not wait on anything but the loop.
+
+        Returns:
+            False if there was nothing to stop (the controller is not active: stopped after a
+            fault, or not started).
+
+        Raises:
+            HardwareError: the request could not reach the control loop.
+        """
+        ...
+
+    async def rearm(self) -> bool:
+        """Leave a hardware fault: clear the devices' latched faults and hold the position.
+
+        Returns:
+            False if there was nothing to re-arm (the controller is running, no fault).
+
+        Raises:
+            HardwareError: re-arming failed (the controller stays stopped).
+        """
+        ...
+
+    def set_listener(self, listener: BackendListener) -> None:
+        """Where goal events and state snapshots go from now on.
+
+        Raises:
+            Nothing.
+        """
+        ...

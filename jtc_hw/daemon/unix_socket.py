@@ -1,0 +1,142 @@
+"""The daemon's unix socket file: its directory, binding it, replacing a stale one, removing it.
+
+Nobody else may be able to put a socket where clients look for the daemon: a directory the
+daemon creates is writable by its user only (others may only enter it, as ``socket_mode``
+allows them to connect), and the default place is refused if someone else prepared it. A
+socket file left by a dead daemon is replaced; one a live daemon listens on, or a file that is
+not a socket, is refused. On close the file is removed only if it is still the one bound.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import socket
+import stat
+from pathlib import Path
+
+from ..api.paths import default_socket_path, directory_problem
+from ..errors import ConfigurationError
+
+__all__ = ["bind_unix", "directory_mode", "remove_socket_file"]
+
+log = logging.getLogger("jtc_hw.server")
+
+SocketIdentity = tuple[int, int]
+"""``(st_dev, st_ino)`` of the socket file the daemon bound."""
+
+
+def directory_mode(socket_mode: int) -> int:
+    """Mode of a socket directory the daemon creates: only its user may write it (nobody
+    else can replace the socket), and whoever ``socket_mode`` lets connect may enter it."""
+    mode = 0o700
+    if socket_mode & 0o070:
+        mode |= 0o010
+    if socket_mode & 0o007:
+        mode |= 0o001
+    return mode
+
+
+def _make_directory(directory: Path, mode: int) -> None:
+    missing: list[Path] = []
+    for d in (directory, *directory.parents):
+        if os.path.lexists(d):
+            break
+        missing.append(d)
+    try:
+        for d in reversed(missing):
+            try:
+                os.mkdir(d, mode)
+            except FileExistsError:
+                continue  # made meanwhile by someone else: examined below
+            os.chmod(d, mode)  # mkdir's mode is reduced by the umask
+            log.info("created the socket's directory %s (mode %04o)", d, mode)
+    except OSError as exc:
+        raise ConfigurationError(
+            f"cannot create the socket's directory {directory}: {exc.strerror or exc}",
+            "socket",
+        ) from None
+
+
+def bind_unix(path: Path, socket_mode: int) -> tuple[socket.socket, SocketIdentity]:
+    """Bind (not listen) a unix stream socket at ``path`` with ``socket_mode``.
+
+    Raises:
+        ConfigurationError: the directory cannot be made or is untrustworthy (the default
+            place), a live daemon listens there, the path is not a socket, or binding fails;
+            each names the path and what to do.
+    """
+    _make_directory(path.parent, directory_mode(socket_mode))
+    if os.path.normpath(path) == os.path.normpath(default_socket_path()):
+        # The default place: check that no other user could have prepared it for us.
+        problem = directory_problem(str(path.parent))
+        if problem is not None:
+            raise ConfigurationError(
+                f"refusing the default socket directory: {problem}. Remove it (as root) "
+                "and start again, or set daemon.socket to a path in a directory only this "
+                "daemon's user can write",
+                "socket",
+            )
+    _remove_stale(path)
+    sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    try:
+        sock.bind(str(path))
+        # Nobody can connect before listen(), which start_unix_server calls: no window.
+        os.chmod(path, socket_mode)
+        st = os.stat(path)
+    except OSError as exc:
+        sock.close()
+        raise ConfigurationError(
+            f"cannot bind the unix socket {path}: {exc.strerror or exc}", "socket"
+        ) from None
+    return sock, (st.st_dev, st.st_ino)
+
+
+def _remove_stale(path: Path) -> None:
+    try:
+        st = os.lstat(path)
+    except FileNotFoundError:
+        return
+    if not stat.S_ISSOCK(st.st_mode):
+        raise ConfigurationError(
+            f"{path} exists and is not a socket; refusing to replace it (remove it, or "
+            "choose another socket path)",
+            "socket",
+        )
+    probe = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    probe.settimeout(1.0)
+    try:
+        probe.connect(str(path))
+    except (ConnectionRefusedError, FileNotFoundError):
+        log.info("replacing stale socket %s (no daemon listening)", path)
+        try:
+            os.unlink(path)
+        except FileNotFoundError:
+            pass
+        return
+    except OSError as exc:
+        raise ConfigurationError(
+            f"cannot tell whether a daemon listens on {path} ({exc}); stop it or remove "
+            "the file",
+            "socket",
+        ) from None
+    finally:
+        probe.close()
+    raise ConfigurationError(
+        f"another daemon is listening on {path}; stop it first or choose another socket",
+        "socket",
+    )
+
+
+def remove_socket_file(path: Path, identity: SocketIdentity) -> None:
+    """Remove ``path`` if it is still the socket bound (``identity``); log otherwise."""
+    try:
+        st = os.stat(path)
+        if (st.st_dev, st.st_ino) == identity:
+            os.unlink(path)
+        else:
+            log.warning("%s was replaced by someone else; leaving it", path)
+    except FileNotFoundError:
+        pass
+    except OSError as exc:
+        log.warning("cannot remove %s: %s", path, exc)

@@ -23,14 +23,16 @@ Three measurements (the first by default, or when ``--sizes`` is given with the 
     and the row says so). Reports the acceptance time, the deadlines the loop skipped from
     sending the goal until its plan was released again (the goal is cancelled once accepted
     plus 1 s), and the loop process's resident memory before, while executing and after the
-    goal ended.
+    goal ended. Meanwhile another client asks all the time: ``get_status`` (served by the API
+    process's event loop) and ``cancel`` of an unknown goal (a request to the control loop
+    and back); ``probe_*_ms_max`` is the longest either waited while the goal was accepted.
 
 ``breakdown`` (``--breakdown``)
     In this process, no daemon: the same code the daemon runs, stage by stage, for one goal of
     each ``--points`` size (best of several repetitions): client encoding, line framing and
     JSON decoding, request parsing, validation (``prepare``), fitting and splicing (``splice``),
     pickling the plan for the loop; and the loop side: the plan read through the loop's own
-    inbox (``jtc_hw.daemon.loop._Inbox``, with the budget of one cycle at ``--rate``) from a
+    inbox (``jtc_hw.daemon.pipe.Inbox``, with the budget of one cycle at ``--rate``) from a
     pipe that another thread fills with ``send_framed``, its slowest ``pump`` (one cycle's
     share) and how many cycles it takes, and releasing the plan. ``--cprofile`` adds the top
     functions of the API-process stages under ``cProfile``.
@@ -70,7 +72,12 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from loop_jitter import Daemon, next_loop_stats  # noqa: E402
 
 from jtc_hw.api.client import Client  # noqa: E402
-from jtc_hw.api.framing import DEFAULT_MAX_MESSAGE_BYTES, MessageDecoder, encode  # noqa: E402
+from jtc_hw.api.framing import (  # noqa: E402
+    DEFAULT_MAX_MESSAGE_BYTES,
+    MessageDecoder,
+    RequestError,
+    encode,
+)
 from jtc_hw.api.protocol import SendGoal, parse_request  # noqa: E402
 from jtc_hw.cli import DEMO_JOINTS  # noqa: E402
 from jtc_hw.controller.controller import Planner  # noqa: E402
@@ -254,6 +261,44 @@ def rss_kib(pid: int) -> int:
     raise RuntimeError(f"no VmRSS for process {pid}")
 
 
+class Probe(threading.Thread):
+    """Another client, asking all the time while a goal is being accepted: ``get_status``
+    (answered by the API process's event loop alone) and ``cancel`` of a goal that does not
+    exist (a request that travels to the control loop and back). Records how long each took."""
+
+    def __init__(self, socket_path: str) -> None:
+        super().__init__(daemon=True)
+        self.client = Client.connect(socket_path, timeout_s=TIMEOUT_S)
+        self.stop = threading.Event()
+        self.status_ms: list[float] = []
+        self.loop_ms: list[float] = []
+
+    def run(self) -> None:
+        while not self.stop.is_set():
+            t0 = time.perf_counter_ns()
+            self.client.get_status()
+            t1 = time.perf_counter_ns()
+            try:
+                self.client.cancel(2**62)
+            except RequestError:  # not_found: it went to the loop and back
+                pass
+            t2 = time.perf_counter_ns()
+            self.status_ms.append((t1 - t0) / 1e6)
+            self.loop_ms.append((t2 - t1) / 1e6)
+            time.sleep(0.002)
+
+    def finish(self) -> dict[str, Any]:
+        self.stop.set()
+        self.join(TIMEOUT_S)
+        self.client.close()
+        return {
+            "probes": len(self.status_ms),
+            "probe_status_ms_max": round(max(self.status_ms, default=0.0), 1),
+            "probe_loop_ms_max": round(max(self.loop_ms, default=0.0), 1),
+            "probe_loop_ms_p50": round(percentile(self.loop_ms, 50), 1) if self.loop_ms else None,
+        }
+
+
 def measure_huge(args: argparse.Namespace, note: Callable[[str], None]) -> dict[str, Any]:
     goal = compact_goal(args.huge_points)
     size = request_bytes(goal)
@@ -270,7 +315,10 @@ def measure_huge(args: argparse.Namespace, note: Callable[[str], None]) -> dict[
             before = next_loop_stats(client)
             rss_before = rss_kib(daemon.loop_pid)
             api_rss_before = rss_kib(daemon.pid)
+            probe = Probe(daemon.socket)
+            probe.start()
             accept, call, handle = timed_goal(client, stamped, goal)
+            probed = probe.finish()
             time.sleep(HUGE_EXECUTE_S)
             during = next_loop_stats(client)
             rss_during = rss_kib(daemon.loop_pid)
@@ -299,6 +347,7 @@ def measure_huge(args: argparse.Namespace, note: Callable[[str], None]) -> dict[
         "api_rss_mb_before": round(api_rss_before / 1024, 1),
         "api_rss_mb_after": round(api_rss_after / 1024, 1),
         "result": result.get("status"),
+        **probed,
     }
 
 
@@ -323,11 +372,14 @@ def loop_side(plan_message: tuple[Any, ...], rate_hz: float) -> dict[str, float]
     Returns the slowest ``pump`` (one cycle's read, ms), how many cycles the plan took to
     arrive, and the time to release the plan once received.
     """
-    from jtc_hw.daemon.loop import INBOX_BUDGET_PER_MS, _Inbox, send_framed
+    from jtc_hw.daemon.backend import _grow_send_buffer
+    from jtc_hw.daemon.loop import INBOX_SPARE, inbox_budget
+    from jtc_hw.daemon.pipe import Inbox, send_framed
 
     period_ns = round(1e9 / rate_hz)
     parent, child = multiprocessing.Pipe(duplex=True)
-    inbox = _Inbox(child, INBOX_BUDGET_PER_MS * max(1, period_ns // 1_000_000))
+    _grow_send_buffer(parent)  # as the API process does
+    inbox = Inbox(child, inbox_budget(period_ns))
     sender = threading.Thread(target=send_framed, args=(parent, plan_message), daemon=True)
     worst, cycles = 0.0, 0
     deadline = time.monotonic_ns()
@@ -337,7 +389,7 @@ def loop_side(plan_message: tuple[Any, ...], rate_hz: float) -> dict[str, float]
             deadline += period_ns
             time.sleep(max(0.0, (deadline - time.monotonic_ns()) / 1e9))
             t0 = time.perf_counter_ns()
-            inbox.pump()
+            inbox.pump(deadline + round((1 - INBOX_SPARE) * period_ns))
             worst = max(worst, (time.perf_counter_ns() - t0) / 1e6)
             cycles += 1
         received = inbox.pop()
@@ -458,7 +510,9 @@ def print_tables(rows: list[dict[str, Any]]) -> None:
                 f"cycle {r['loop_cost_us_worst']:.0f} us; loop RSS {r['loop_rss_mb_before']} -> "
                 f"{r['loop_rss_mb_during']} -> {r['loop_rss_mb_after']} MB (before, running, "
                 f"after); API RSS {r['api_rss_mb_before']} -> {r['api_rss_mb_after']} MB; "
-                f"result {r['result']}"
+                f"result {r['result']}; meanwhile another client's get_status waited at most "
+                f"{r['probe_status_ms_max']} ms, a request to the loop {r['probe_loop_ms_max']} "
+                f"ms ({r['probes']} of each)"
             )
             ok = r["overruns"] <= TARGET_OVERRUNS and r["rate_hz"] == 500
             print(

@@ -27,13 +27,19 @@ import difflib
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from itertools import chain, compress, repeat
+from operator import is_not, methodcaller
 from typing import Any, ClassVar
+
+import numpy as np
+from numpy.typing import NDArray
 
 from ..controller.goals import GoalFeedback, GoalResult
 from ..controller.tolerances import JointTolerance
 from ..controller.trajectory import (
     NS_PER_S,
     JointTrajectory,
+    PointColumns,
     TrajectoryPoint,
     TrajectorySample,
     seconds_to_ns,
@@ -46,6 +52,7 @@ from .framing import (
     RequestError,
     RequestId,
     _describe,
+    gc_paused,
 )
 
 __all__ = [
@@ -100,7 +107,7 @@ class WireTrajectory:
     """
 
     joint_names: tuple[str, ...]
-    points: tuple[TrajectoryPoint, ...]
+    points: Sequence[TrajectoryPoint]
     start_time_ns: int | None = None
     start_in: float | None = None
 
@@ -308,6 +315,7 @@ OPS: tuple[str, ...] = tuple(_OP_FIELDS)
 
 _TRAJECTORY_FIELDS = ("joint_names", "points", "start_time_ns", "start_in")
 _POINT_FIELDS = ("time_from_start", "positions", "velocities", "accelerations", "effort")
+_POINT_FIELD_SET = frozenset(_POINT_FIELDS)
 _TOLERANCE_FIELDS = ("name", "position", "velocity", "acceleration")
 
 
@@ -438,13 +446,18 @@ def _check_end(points: Sequence[TrajectoryPoint], start_ns: int, path: str) -> N
     """
     if not points:
         return
-    index = max(range(len(points)), key=lambda i: points[i].time_from_start_ns)
-    end = start_ns + points[index].time_from_start_ns
+    if isinstance(points, PointColumns):  # without building a point object per point
+        index = int(points.times_ns.argmax())
+        last = int(points.times_ns[index])
+    else:
+        index = max(range(len(points)), key=lambda i: points[i].time_from_start_ns)
+        last = points[index].time_from_start_ns
+    end = start_ns + last
     if end > MAX_NS:
         raise RequestError(
             BAD_REQUEST,
             f"{path}[{index}].time_from_start: the point would be due at {end} ns "
-            f"(start {start_ns} ns + {points[index].time_from_start_ns} ns), after the end of "
+            f"(start {start_ns} ns + {last} ns), after the end of "
             f"the daemon clock's range ({MAX_NS} ns); start earlier or shorten the trajectory",
         )
 
@@ -481,10 +494,13 @@ def parse_trajectory(
     names_raw = f.array("joint_names", f.required("joint_names", "array of joint names"))
     names = tuple(f.string(f"joint_names[{i}]", n) for i, n in enumerate(names_raw))
     points_raw = f.array("points", f.required("points", "array of points; empty means stop"))
-    points = tuple(
-        _parse_point(p, f"{path}.points[{i}]", request_id, names)
-        for i, p in enumerate(points_raw)
-    )
+    points: Sequence[TrajectoryPoint] | None = _point_columns(points_raw)
+    if points is None:  # irregular, or a problem to name: point by point
+        with gc_paused(len(points_raw) >= _MANY_POINTS):  # an object or more per point
+            points = tuple(
+                _parse_point(p, f"{path}.points[{i}]", request_id, names)
+                for i, p in enumerate(points_raw)
+            )
     start_time_ns: int | None = None
     start_in: float | None = None
     if f.has("start_time_ns") and f.has("start_in"):
@@ -502,6 +518,85 @@ def parse_trajectory(
     if f.has("start_in"):
         start_in = _seconds(f.obj["start_in"], _join(path, "start_in"), request_id)
     return WireTrajectory(names, points, start_time_ns, start_in)
+
+
+_MISSING = object()
+_MANY_POINTS = 1000
+_NUMBERS = frozenset({float, int})
+_DICT_ONLY = frozenset({dict})
+_LIST_ONLY = frozenset({list})
+
+
+def _point_columns(points: list[Any]) -> PointColumns | None:
+    """The points as arrays, when every one is well-formed and regular: objects with known
+    fields, a number of seconds that fits int64 nanoseconds, and arrays of finite numbers
+    within ``MAX_JOINT_VALUE``, of one length per field.
+
+    Whole-array checks instead of one Python call per value: a 2,000-point goal took 13 ms
+    point by point. None means "walk the points": they may be valid yet irregular (arrays of
+    different lengths, for the controller to refuse with its own message), or hold a problem
+    that ``_parse_point`` names with its JSON path. Either way the result is the same as the
+    point-by-point parse's (``tests/api/test_protocol_columns.py``).
+    """
+    m = len(points)
+    if not m or not _DICT_ONLY.issuperset(map(type, points)):
+        return None
+    keys = set(chain.from_iterable(points))
+    if not _POINT_FIELD_SET.issuperset(keys):
+        return None
+    seconds = list(map(methodcaller("get", "time_from_start", _MISSING), points))
+    kinds = set(map(type, seconds))
+    if not _NUMBERS.issuperset(kinds):  # missing, bool, or not a number
+        return None
+    try:
+        times = np.array(seconds, dtype=np.float64)
+    except OverflowError:
+        return None
+    if not (np.abs(times) <= _MAX_SECONDS).all():
+        return None
+    # As seconds_to_ns: integers exactly, floats rounded (half to even) to the nanosecond.
+    # Beyond int64 (MAX_NS) the point-by-point parse names the point; 2**63 - 1024 is the
+    # largest float below 2**63, and -2**63 itself is out of the protocol's range too.
+    times_ns = np.rint(times * NS_PER_S)
+    if not (np.abs(times_ns) < 2.0**63).all():
+        return None
+    ns = times_ns.astype(np.int64)
+    if int in kinds:
+        at = [i for i, s in enumerate(seconds) if type(s) is int]
+        ns[at] = np.array([seconds[i] for i in at], dtype=np.int64) * NS_PER_S
+    arrays: dict[str, NDArray[np.float64]] = {}
+    present: dict[str, NDArray[np.bool_]] = {}
+    for name in _POINT_FIELDS[1:]:
+        if name not in keys:  # no point carries it
+            continue
+        column = list(map(methodcaller("get", name, _MISSING), points))
+        mask = np.fromiter(map(is_not, column, repeat(_MISSING)), dtype=np.bool_, count=m)
+        given = column if mask.all() else list(compress(column, mask.tolist()))
+        if not _LIST_ONLY.issuperset(map(type, given)):  # null, or not an array
+            return None
+        lengths = set(map(len, given))
+        if len(lengths) != 1:  # mixed lengths: for the controller to refuse, or a problem
+            return None
+        (k,) = lengths
+        if not k:  # empty arrays (absent fields)
+            return None
+        if not _NUMBERS.issuperset(map(type, chain.from_iterable(given))):
+            return None
+        try:
+            flat = np.fromiter(chain.from_iterable(given), dtype=np.float64, count=len(given) * k)
+        except (ValueError, OverflowError):  # an integer beyond float64
+            return None
+        values = flat.reshape(len(given), k)
+        if not (np.abs(values) <= MAX_JOINT_VALUE).all():
+            return None  # out of range, or not finite (1e999): named point by point
+        if len(given) == m:
+            arrays[name] = values
+        else:
+            full = np.zeros((m, values.shape[1]))
+            full[mask] = values
+            arrays[name] = full
+        present[name] = mask
+    return PointColumns(ns, present=present, **arrays)
 
 
 def _parse_point(

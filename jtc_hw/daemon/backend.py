@@ -12,10 +12,16 @@ against the newer reference with a larger margin. ``query_state`` is answered fr
 without involving the loop at all.
 
 The loop's messages are read without blocking (:class:`~.pipe.Inbox`), whatever the loop has
-written in part. The loop's death is a result, not a silence: when its process ends (its
-sentinel) without having been asked to stop, every goal it accepted and has not finished
-(tracked here from ``committed`` to its result) gets one ``ABORTED`` result "control loop
-died: <how>" through the listener, a goal being planned or committed is refused, the status
+written in part; plans and requests are written without blocking (:class:`~.pipe.PlanWriter`,
+the rest when the pipe is writable), a request before what is left of a plan, so the event
+loop never waits for the loop to read a plan of megabytes. A plan is made far enough ahead
+for its transfer (a bounded amount per cycle), and after a large one the freed heap is given
+back to the system (``malloc_trim``, in the planning thread).
+
+The loop's death is a result, not a silence: when its process ends (its sentinel) without
+having been asked to stop, every goal it accepted and has not finished (tracked here from
+``committed`` to its result) gets one ``ABORTED`` result "control loop died: <how>" through
+the listener, a goal being planned or committed is refused, the status
 reports the fault, new goals and requests are refused with that reason, and
 :meth:`LoopBackend.wait_exited` returns, so that the service exits non-zero (systemd restarts
 it). Meanwhile the device-side watchdogs stop the motors.
@@ -27,7 +33,9 @@ import asyncio
 import itertools
 import logging
 import multiprocessing
+import os
 import signal
+import socket
 import time
 from collections.abc import Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
@@ -61,7 +69,7 @@ from ..errors import (
     HardwareError,
     JtcHwError,
 )
-from .pipe import Inbox, send_framed
+from .pipe import Inbox, PlanWriter
 from .robot import RobotConfig, joint_position_limits
 
 log = logging.getLogger("jtc_hw.backend")
@@ -81,6 +89,35 @@ REAP_TIMEOUT_S = 5.0
 """Bound on reaping the loop process once its sentinel says it ended (microseconds in practice)."""
 READ_BUDGET_BYTES = 1 << 20
 """Bytes of the loop's messages read per wake-up of the event loop (more: it wakes again)."""
+PIPE_READ_BYTES_PER_S = 1e9
+"""A conservative rate of the loop's reads from the pipe (2 GB/s measured on a busy 2-core VM),
+for planning far enough ahead of a large plan's arrival."""
+PLAN_SEND_BUFFER_BYTES = 4 << 20
+"""Socket send buffer asked for the pipe to the loop (the kernel caps it at ``wmem_max``)."""
+TRIM_AFTER_BYTES = 16 << 20
+"""A plan or replaced reference this large makes the API process return freed memory to the
+system afterwards (``realtime.release_freed_memory``, in the planning thread)."""
+TRIM_DELAY_S = 0.5
+"""After a large plan is committed: time for the request's decoded objects to go first."""
+"""Socket send buffer asked for the pipe to the loop (the kernel caps it at ``wmem_max``)."""
+
+
+def _grow_send_buffer(conn: Connection) -> int:
+    """Ask for a larger send buffer on our end of the pipe to the loop; the one granted.
+
+    The loop reads whatever has arrived once a cycle: with the default buffer (~208 kB) that
+    is all a cycle gets of a plan, so a 2.4 MB plan takes a dozen cycles however large the
+    loop's budget.
+
+    Raises:
+        OSError: the socket refused the option (not expected for a Unix socket).
+    """
+    sock = socket.socket(fileno=os.dup(conn.fileno()))
+    try:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, PLAN_SEND_BUFFER_BYTES)
+        return int(sock.getsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF))
+    finally:
+        sock.close()
 
 
 class Listener(Protocol):
@@ -169,9 +206,14 @@ class LoopBackend:
         self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="jtc-hw-plan")
         self._period_ns = round(1e9 / self.config.update_rate)
         self._margin_ns = max(5_000_000, 3 * self._period_ns)
+        self._bytes_per_cycle = 1 << 18  # what the loop reads of a plan per cycle (start())
+        self._plan_ns_per_point = 2_000.0  # planning time per point, learnt from large plans
         self._active_goal: int | None = None
         self._open_goals: dict[int, None] = {}  # committed, no result yet (in commit order)
         self._inbox: Inbox | None = None
+        self._writer: PlanWriter | None = None
+        self._writing = False  # waiting for the pipe to be writable (add_writer)
+        self._trim: asyncio.TimerHandle | None = None  # a release of freed memory, scheduled
         self._stopping = False
         self._last_error: str | None = None  # the loop's last error log line
         self.death: str | None = None
@@ -188,12 +230,20 @@ class LoopBackend:
         Raises:
             HardwareError: the loop process failed to start (its log says why).
         """
-        from .loop import loop_main
+        from .loop import INBOX_SPARE, inbox_budget, loop_main
 
         aio = asyncio.get_running_loop()
         ctx = multiprocessing.get_context("spawn")
         parent, child = ctx.Pipe(duplex=True)
         self._conn = parent
+        # What the loop reads of a plan per cycle: its budget, the time it may read for at a
+        # conservative copy rate, and what the socket can hold (it reads what has arrived).
+        reading_s = (1 - INBOX_SPARE - 0.1) * self._period_ns / 1e9  # minus the cycle itself
+        self._bytes_per_cycle = min(
+            _grow_send_buffer(parent),
+            inbox_budget(self._period_ns),
+            round(PIPE_READ_BYTES_PER_S * reading_s),
+        )
         self._ready = aio.create_future()
         self._exited = aio.create_future()
         self._process = ctx.Process(
@@ -205,6 +255,7 @@ class LoopBackend:
         self._process.start()
         child.close()
         self._inbox = Inbox(parent, READ_BUDGET_BYTES, framed=False)
+        self._writer = PlanWriter(parent)
         aio.add_reader(parent.fileno(), self._readable)
         aio.add_reader(self._process.sentinel, self._process_ended)
         waiters: set[asyncio.Future[Any]] = {self._ready, self._exited}
@@ -267,8 +318,20 @@ class LoopBackend:
             if self._inbox is not None:
                 self._inbox.close()
                 self._inbox = None
+            if self._writer is not None:
+                if self._writing:
+                    try:
+                        aio.remove_writer(self._conn.fileno())
+                    except (ValueError, OSError):
+                        pass
+                    self._writing = False
+                self._writer.close()
+                self._writer = None
             self._conn.close()
             self._conn = None
+        if self._trim is not None:
+            self._trim.cancel()
+            self._trim = None
         self._executor.shutdown(wait=False)
 
     @property
@@ -338,11 +401,15 @@ class LoopBackend:
         kind = message[0]
         if kind == "reference":
             _, version, trajectory, plan_id = message
+            replaced = self._ref
             if plan_id is not None:
                 self._ref = self._plans.pop(plan_id).reference
             else:
                 self._ref = trajectory
             self._version = version
+            if replaced is not None and replaced.nbytes >= TRIM_AFTER_BYTES:
+                del replaced
+                self._release_memory(0.0)
         elif kind in ("committed", "stale", "reply"):
             future = self._waiting.pop(message[1], None)
             if kind == "committed":
@@ -500,7 +567,8 @@ class LoopBackend:
                 goal_tolerance,
                 goal_time_tolerance,
                 valid_from,
-            )
+            ),
+            len(traj.points),
         )
         assert result is not None
         return int(result)
@@ -518,7 +586,8 @@ class LoopBackend:
         await self._plan_and_commit(
             lambda ref, ver, now, valid_from: self._planner.plan_trajectory(
                 ref, ver, now, traj, valid_from
-            )
+            ),
+            len(traj.points),
         )
 
     async def stop_motion(self) -> bool:
@@ -570,16 +639,35 @@ class LoopBackend:
             return "the control loop is not running"
         return None
 
-    def _send(self, message: tuple[Any, ...]) -> None:
+    def _send(self, message: tuple[Any, ...], bulk: bool = False) -> None:
+        """Queue ``message`` for the loop and write what the pipe takes now; the rest is written
+        when it becomes writable (the event loop never waits for the loop to read a plan).
+        A request (not ``bulk``) goes before what is left of a plan being written."""
         reason = self._refusal()
         if reason is not None:
             raise ControllerStateError(reason)
-        assert self._conn is not None
-        try:
-            send_framed(self._conn, message)
-        except OSError:
+        writer = self._writer
+        assert self._conn is not None and writer is not None
+        writer.put(message, bulk)
+        self._write()
+        if writer.closed:
             # The loop is gone (its death is being reported by _process_ended).
-            raise ControllerStateError(self._refusal() or "the control loop exited") from None
+            raise ControllerStateError(self._refusal() or "the control loop exited")
+
+    def _write(self) -> None:
+        writer, conn = self._writer, self._conn
+        if writer is None or conn is None:
+            return
+        done = writer.flush() or writer.closed
+        if done == (not self._writing):
+            return
+        aio = asyncio.get_running_loop()
+        if done:
+            aio.remove_writer(conn.fileno())
+            self._writing = False
+        else:
+            aio.add_writer(conn.fileno(), self._write)
+            self._writing = True
 
     async def _request(self, op: str, args: dict[str, Any]) -> Any:
         request_id = next(self._ids)
@@ -596,9 +684,37 @@ class LoopBackend:
             raise _LOOP_ERRORS.get(kind, HardwareError)(message)
         return value
 
-    async def _plan_and_commit(self, make: Any) -> int | None:
+    def _release_memory(self, delay_s: float) -> None:
+        """Return freed memory to the system in ``delay_s``, in the planning thread (it walks
+        the heap: not in the event loop's thread); one pending release covers them all."""
+        if self._trim is not None:
+            return
+        from .realtime import release_freed_memory
+
         aio = asyncio.get_running_loop()
-        margin = self._margin_ns
+
+        def release() -> None:
+            self._trim = None
+            try:
+                aio.run_in_executor(self._executor, release_freed_memory)
+            except RuntimeError:  # the executor was shut down: the daemon is stopping
+                pass
+
+        self._trim = aio.call_later(delay_s, release)
+
+    def _transfer_ns(self, nbytes: int) -> int:
+        """How much longer than a small plan one of ``nbytes`` takes to reach the loop, which
+        reads a bounded amount of it per cycle (:class:`~.pipe.Inbox`); the base margin covers
+        the cycle a small plan waits for."""
+        return (-(-nbytes // self._bytes_per_cycle) - 1) * self._period_ns
+
+    async def _plan_and_commit(self, make: Any, points: int) -> int | None:
+        aio = asyncio.get_running_loop()
+        # Plan far enough ahead for the plan to reach the loop: a 2,000-point plan is 2.4 MB,
+        # several cycles of the loop's inbox budget.
+        expected = Trajectory.nbytes_for(points + 1, len(self.joint_names))
+        planning = round(2 * self._plan_ns_per_point * points)  # twice the usual: seldom late
+        margin = self._margin_ns + planning + self._transfer_ns(expected)
         for _attempt in range(ATTEMPTS):
             refused = self._refusal()
             if refused is not None:
@@ -615,19 +731,26 @@ class LoopBackend:
                 self._executor, make, ref, version, planned, valid_from
             )
             took = self.now_ns() - begin
-            if self.now_ns() + self._margin_ns // 2 > planned:
-                margin = 2 * margin + took  # fitting took longer than the margin: plan later
+            if points >= 100:  # fixed costs are noise by then
+                self._plan_ns_per_point += 0.25 * (took / points - self._plan_ns_per_point)
+            transfer = self._transfer_ns(plan.reference.nbytes)
+            if self.now_ns() + transfer + self._margin_ns // 2 > planned:
+                # Fitting and sending it take longer than the margin: plan later (without
+                # sending a plan the loop would refuse as late).
+                margin = max(2 * margin, took + transfer + self._margin_ns)
                 continue
             plan_id = next(self._ids)
             self._plans[plan_id] = plan
             future = aio.create_future()
             self._waiting[plan_id] = future
             try:
-                self._send(("commit", plan_id, plan))
+                self._send(("commit", plan_id, plan), bulk=True)
                 reply = await asyncio.wait_for(future, REQUEST_TIMEOUT_S)
             except ControllerStateError as exc:  # the loop died before it answered
                 self._waiting.pop(plan_id, None)
                 raise GoalRejected(str(exc)) from None
+            if plan.reference.nbytes >= TRIM_AFTER_BYTES:
+                self._release_memory(TRIM_DELAY_S)  # the fitting's temporaries, the request
             if reply[0] == "committed":
                 return reply[2]  # type: ignore[no-any-return]
             reason = reply[2]

@@ -6,8 +6,8 @@ The loop runs in its own process so that API work (parsing, fitting a 2,000-poin
 serving clients) never shares an interpreter lock with it. It talks to the API process over
 one duplex ``multiprocessing`` connection:
 
-- in (framed by ``send_framed``, arrays out of band): ``("commit", plan_id, Plan)``,
-  ``("request", request_id, op, args)``;
+- in (records of ``pipe.PlanWriter``, a plan's arrays out of band in chunks):
+  ``("commit", plan_id, Plan)``, ``("request", request_id, op, args)``;
 - out: ``("ready", info)``, ``("reference", version, trajectory_or_None, plan_id_or_None)``,
   ``("committed", plan_id, goal_id)``, ``("stale", plan_id, reason)``, ``("events", [...])``,
   ``("state", snapshot)``, ``("status", dict)``, ``("reply", request_id, ok, value)``,
@@ -29,7 +29,10 @@ same hardware stops there, having sent nothing.
 
 One cycle at deadline ``t``: drain requests -> ``hardware.read(t)`` -> ``controller.update`` ->
 ``hardware.write`` -> report events; a state snapshot at ``state_publish_rate``, statistics at
-2 Hz. The controller's clock is the deadline grid itself (exact multiples of the period); how
+2 Hz. After it, in the time left before ``t + period``: write the outbox, read the inbox (a
+bounded amount) and handle what that completed at ``t`` (a plan committed, a request served
+and their answers written at once, rather than a period later), then free or collect in
+spare time. The controller's clock is the deadline grid itself (exact multiples of the period); how
 late the process woke is measured and published, never fed into the control law. Garbage
 collection is disabled in the loop and run explicitly (generation 0) when a cycle has slack.
 """
@@ -94,6 +97,7 @@ class ControlLoop:
         self._last_state: JointState | None = None
         self._last_command: JointCommand | None = None
         self._shutdown_reason = "daemon stopping"
+        self.inbox_spare_ns = round(INBOX_SPARE * self.period_ns)
         self.api_stall_ns = round(robot.daemon.api_stall_s * 1e9)
         self.api_stalled = False
         self.api_stalls = 0
@@ -271,12 +275,23 @@ class ControlLoop:
 
     # -- the cycle ----------------------------------------------------------------------------
 
-    def cycle(self, now_ns: int, period_ns: int, inbox: Inbox) -> None:
-        """One read -> update -> write at deadline ``now_ns``."""
+    def handle_inbox(self, inbox: Inbox, now_ns: int) -> bool:
+        """Handle every completed message, in order, at deadline ``now_ns``.
+
+        Returns:
+            Whether there was any.
+        """
         message = inbox.pop()
+        if message is None:
+            return False
         while message is not None:
             self._handle(message, now_ns)
             message = inbox.pop()
+        return True
+
+    def cycle(self, now_ns: int, period_ns: int, inbox: Inbox) -> None:
+        """One read -> update -> write at deadline ``now_ns``."""
+        self.handle_inbox(inbox, now_ns)
         if self.fault is not None or not self.ctrl.active:
             return
         try:
@@ -365,6 +380,24 @@ class ControlLoop:
         if self.ctrl.active and not self.ctrl.holding:
             self.ctrl.abort(reason)  # the result waits in the outbox, in order
 
+    def after_cycle(self, deadline_ns: int, inbox: Inbox) -> None:
+        """After the cycle at ``deadline_ns``: write the outbox, read the inbox (its budget at
+        most, and not once ``inbox_spare_ns`` is all that is left of the period) and handle
+        what that completed at ``deadline_ns``, writing the answers at once.
+
+        Handling it now rather than at the next cycle commits a plan (or serves a stop) a
+        period earlier. Committing at a deadline whose sample was already taken changes
+        nothing the joints got: a plan keeps the reference it replaces from its
+        ``valid_from_ns`` up to its planned time.
+
+        Raises:
+            Nothing: see :meth:`serve_outbox` and :meth:`Inbox.pump`.
+        """
+        self.serve_outbox(deadline_ns)
+        inbox.pump(deadline_ns + self.period_ns - self.inbox_spare_ns)
+        if self.handle_inbox(inbox, deadline_ns):
+            self.serve_outbox(deadline_ns)  # "committed", the reply: now, not a period later
+
     def run(self, inbox: Inbox) -> None:
         """Cycle until asked to stop or the API process disappears."""
         ticker = Ticker(self.period_ns)
@@ -383,8 +416,7 @@ class ControlLoop:
             if deadline >= self._next_status_ns:
                 self._next_status_ns = deadline + STATUS_PERIOD_NS
                 self.publish("status", self.status())
-            self.serve_outbox(deadline)
-            inbox.pump()
+            self.after_cycle(deadline, inbox)
             if inbox.closed and not inbox.waiting:  # what arrived before the end goes first
                 log.warning("the API process went away: stopping the loop safely")
                 self._shutdown_reason = "daemon API process exited"
@@ -392,7 +424,7 @@ class ControlLoop:
             elif deadline + self.period_ns - clock() > GC_SLACK_NS:
                 if self._retired:
                     self._retired.popleft()
-                else:
+                elif not inbox.release():
                     gc.collect(0)
         self.shutdown(clock())
 
@@ -418,8 +450,19 @@ QUIET_LOGGERS = {
 }
 """Third-party loggers whose level the loop process raises."""
 
-INBOX_BUDGET_PER_MS = 256 * 1024
-"""Bytes the loop reads from the API process per cycle, per millisecond of period."""
+INBOX_BUDGET_PER_MS = 1280 * 1024
+"""Bytes the loop reads from the API process per cycle at most, per millisecond of period
+(500 Hz: 2.5 MiB, a 2,000-point plan in one cycle when time allows, see ``INBOX_SPARE``)."""
+
+INBOX_SPARE = 0.4
+"""Share of the period the loop never spends reading its inbox: it stops reading once only
+this much is left before the next deadline (each read is at most ``pipe.CHUNK_BYTES``, ~0.1 ms),
+so that reading never makes it late."""
+
+
+def inbox_budget(period_ns: int) -> int:
+    """Bytes the loop reads from the API process per cycle, for a loop of ``period_ns``."""
+    return INBOX_BUDGET_PER_MS * max(1, period_ns // 1_000_000)
 
 LOOP_SWITCH_INTERVAL_S = 0.0001
 """The loop process's interpreter switch interval (``sys.setswitchinterval``), s."""
@@ -464,13 +507,14 @@ def loop_main(source: str | dict[str, Any], controller_name: str | None, conn: C
             pid=os.getppid(),
         )
         from ..hardware.timing import reduce_timer_slack
-        from .realtime import apply_realtime, keep_freed_memory
+        from .realtime import apply_realtime, disable_huge_pages, keep_freed_memory
 
         rt = robot.daemon.realtime
         for line in apply_realtime(rt.priority, rt.lock_memory, rt.cpu_affinity):
             loop.send("log", logging.INFO, line)
         loop.send("log", logging.INFO, reduce_timer_slack())
         loop.send("log", logging.INFO, keep_freed_memory())
+        loop.send("log", logging.INFO, disable_huge_pages())
         now = time.monotonic_ns()
         loop.start(now)
         loop._report_reference()  # before "ready": the API process plans against it at once
@@ -484,7 +528,7 @@ def loop_main(source: str | dict[str, Any], controller_name: str | None, conn: C
             },
         )
         outbox.drain(EXIT_DRAIN_S)  # not cycling yet: waiting is harmless
-        inbox = Inbox(conn, INBOX_BUDGET_PER_MS * max(1, loop.period_ns // 1_000_000))
+        inbox = Inbox(conn, inbox_budget(loop.period_ns))
         try:
             loop.run(inbox)
         finally:

@@ -3,21 +3,26 @@ reader and writer.
 
 Theory of operation
 -------------------
-The two processes share one ``multiprocessing`` duplex connection (a Unix stream socketpair)
-and keep its wire format: each message is a 4-byte big-endian length (or -1 and an 8-byte
-length) followed by its pickle. What changes is who may wait:
+The two processes share one ``multiprocessing`` duplex connection (a Unix stream socketpair).
+Neither ever waits for the other:
 
-- **API -> loop** (:func:`send_framed`): a plan's arrays travel out of band, each as its own
-  message after a head that counts them. The API process sends blocking; the loop reads with
-  :class:`Inbox`, a bounded amount per cycle, never blocking.
+- **API -> loop** (:class:`PlanWriter`, :func:`send_framed`): records of a 9-byte header (a
+  kind and a length) and a payload. A request is one ``WHOLE`` record (its pickle). A plan's
+  arrays travel out of band: a ``HEAD`` record (the pickle without them, and their sizes),
+  then ``CHUNK`` records of at most :data:`CHUNK_BYTES` that the loop's :class:`Inbox` reads
+  straight into the arrays' memory, a bounded amount per cycle. The API process writes
+  without blocking, requests before the rest of a plan: a stop never waits behind a plan
+  still to be written, only behind what the socket already holds.
 - **loop -> API** (:class:`Outbox`): the loop never waits for the API process. Messages are
   queued, and the queue is written once per cycle with ``sendmsg(MSG_DONTWAIT)`` (all pending
   messages in one system call, a partial write resumed where it stopped). Droppable messages
   (``state``, the periodic ``status``) are coalesced while the queue is not empty, the newest
   kept; every other message is kept in order. If the API process stops reading, the age of
   the oldest kept message tells the loop how long it has been stalled
-  (:meth:`Outbox.oldest_ns`). The API process reads with an :class:`Inbox` too (unframed), so
-  a message the loop has written only in part never blocks the API's event loop either.
+  (:meth:`Outbox.oldest_ns`). This direction keeps ``multiprocessing``'s wire format (a 4-byte
+  big-endian length, or -1 and an 8-byte length, then the pickle); the API process reads it
+  with an :class:`Inbox` too (unframed), so a message the loop has written only in part never
+  blocks the API's event loop either.
 
 Both ends use a duplicate of the connection's socket with per-call ``MSG_DONTWAIT``: setting
 ``O_NONBLOCK`` would change the shared file description, and with it the other direction's
@@ -27,53 +32,192 @@ blocking sends.
 from __future__ import annotations
 
 import collections
+import ctypes
+import mmap
 import os
 import pickle
 import select
 import socket
 import struct
+import sys
 import time
 from collections.abc import Callable
 from multiprocessing.connection import Connection
 from typing import Any
 
-__all__ = ["Inbox", "Outbox", "encode_message", "recv_framed", "send_framed"]
+import numpy as np
+from numpy.typing import NDArray
 
-_FRAME = struct.Struct("<I")
+__all__ = ["Inbox", "Outbox", "PlanWriter", "encode_message", "send_framed"]
+
 _HEADER = struct.Struct("!i")
 _LONG_HEADER = struct.Struct("!Q")
 _IOV_MAX = 64
 """Messages handed to one ``sendmsg`` (Linux allows 1024; a cycle queues a handful)."""
 
+_RECORD = struct.Struct("<BQ")
+"""API -> loop record header: kind, payload length."""
+WHOLE, HEAD, CHUNK = 1, 2, 3
+"""Record kinds: a whole message (its pickle); the head of a message whose buffers follow
+(``_SIZES`` count, then each buffer's size, then the pickle); a piece of those buffers."""
+_COUNT = struct.Struct("<I")
+_SIZE = struct.Struct("<Q")
 
-def send_framed(conn: Connection, message: tuple[Any, ...]) -> None:
-    """Send ``message`` with its arrays out of band (pickle protocol 5).
+CHUNK_BYTES = 256 << 10
+"""Largest ``CHUNK`` record: what a request may have to wait behind at the writer, and the
+most one read of the loop's inbox copies (~0.1 ms)."""
+_TIMED_READ_BYTES = 4096
+"""Reads of at least this much are followed by a look at the clock (:meth:`Inbox.pump`)."""
 
-    A 2,000-point plan carries megabytes of coefficients. Pickled in band, unpickling copies
-    them while holding the interpreter lock. Out of band, each array travels as its own frame
-    that :class:`Inbox` reads straight into its own buffer, and unpickling only wraps those
-    bytes: no copy.
+
+class PlanWriter:
+    """The API process's writer to the loop: never blocks, requests before the rest of a plan.
+
+    :meth:`put` queues a message: with ``bulk`` (a plan), its arrays are sent out of band in
+    ``CHUNK`` records; otherwise (a request) as one ``WHOLE`` record, written before any
+    bulk record not yet started. :meth:`flush` writes what the socket takes now
+    (``sendmsg(MSG_DONTWAIT)``, the arrays' memory itself: no copy) and says whether
+    everything was written; the owner calls it again when the socket is writable.
+
+    A plan of megabytes used to be written with a blocking send from the asyncio thread,
+    which then waited for the loop to read it, a budget per cycle (a 75,000-point plan:
+    hundreds of milliseconds), while no other client was served; and a stop sent meanwhile
+    queued behind the whole plan.
+
+    Args:
+        conn: the connection (its socket is duplicated; the connection stays open).
+    """
+
+    def __init__(self, conn: Connection) -> None:
+        self._sock = socket.socket(fileno=os.dup(conn.fileno()))
+        self._urgent: collections.deque[bytes] = collections.deque()
+        self._bulk: collections.deque[collections.deque[bytes | memoryview]] = (
+            collections.deque()
+        )
+        self._current: list[bytes | memoryview] = []  # the record being written, its parts
+        self._written = 0  # bytes of it already written
+        self.closed = False
+        """Writing failed for good (the loop process is gone)."""
+
+    def close(self) -> None:
+        """Release the duplicated socket (the connection itself stays open).
+
+        Raises:
+            Nothing.
+        """
+        self._sock.close()
+
+    @property
+    def pending(self) -> bool:
+        """Something waits to be written."""
+        return bool(self._current or self._urgent or self._bulk)
+
+    def put(self, message: tuple[Any, ...], bulk: bool = False) -> None:
+        """Queue ``message``; :meth:`flush` writes it.
+
+        Raises:
+            pickle.PicklingError: ``message`` cannot be pickled (a programming error).
+        """
+        if self.closed:
+            return
+        if not bulk:
+            payload = pickle.dumps(message, protocol=5)
+            self._urgent.append(_RECORD.pack(WHOLE, len(payload)) + payload)
+            return
+        self._bulk.append(collections.deque(_records(message)))
+
+    def flush(self) -> bool:
+        """Write what the socket takes now; never blocks.
+
+        Returns:
+            True if nothing is left to write.
+
+        Raises:
+            Nothing: a failing socket (the loop exited) sets :attr:`closed` and drops the queue.
+        """
+        while not self.closed:
+            if not self._current and not self._next():
+                return True
+            parts = self._current
+            if self._written:
+                parts = _skip(parts, self._written)
+            try:
+                sent = self._sock.sendmsg(parts, (), socket.MSG_DONTWAIT)
+            except (BlockingIOError, InterruptedError):
+                return False
+            except OSError:
+                self.closed = True
+                self._urgent.clear()
+                self._bulk.clear()
+                self._current = []
+                return False
+            self._written += sent
+            if self._written == sum(len(part) for part in self._current):
+                self._current = []
+                self._written = 0
+        return False
+
+    def _next(self) -> bool:
+        """Make the next record current: a request first, else the next piece of a plan."""
+        if self._urgent:
+            self._current = [self._urgent.popleft()]
+            return True
+        while self._bulk:
+            records = self._bulk[0]
+            if records:
+                header = records.popleft()
+                self._current = [header] if header[0] == HEAD else [header, records.popleft()]
+                return True
+            self._bulk.popleft()
+        return False
+
+
+def _records(message: tuple[Any, ...]) -> list[bytes | memoryview]:
+    """``message`` as a ``HEAD`` record and its buffers' ``CHUNK`` records: a HEAD record is
+    one item (header and payload), a CHUNK two (its header, then the memory it carries)."""
+    buffers: list[pickle.PickleBuffer] = []
+    head = pickle.dumps(message, protocol=5, buffer_callback=buffers.append)
+    raws = [buffer.raw() for buffer in buffers]
+    sizes = b"".join(_SIZE.pack(raw.nbytes) for raw in raws)
+    payload = _COUNT.pack(len(raws)) + sizes + head
+    out: list[bytes | memoryview] = [_RECORD.pack(HEAD, len(payload)) + payload]
+    for raw in raws:
+        for start in range(0, raw.nbytes, CHUNK_BYTES):
+            piece = raw[start : start + CHUNK_BYTES]
+            out.append(_RECORD.pack(CHUNK, piece.nbytes))
+            out.append(piece)
+    return out
+
+
+def _skip(parts: list[bytes | memoryview], count: int) -> list[bytes | memoryview]:
+    """``parts`` without their first ``count`` bytes."""
+    out = []
+    for part in parts:
+        if count >= len(part):
+            count -= len(part)
+            continue
+        out.append(memoryview(part)[count:] if count else part)
+        count = 0
+    return out
+
+
+def send_framed(conn: Connection, message: tuple[Any, ...], bulk: bool = True) -> None:
+    """Send ``message`` as :class:`PlanWriter` does, waiting until it is written (tests, tools).
 
     Raises:
         OSError: the connection is closed (the peer exited).
     """
-    buffers: list[pickle.PickleBuffer] = []
-    head = pickle.dumps(message, protocol=5, buffer_callback=buffers.append)
-    conn.send_bytes(_FRAME.pack(len(buffers)) + head)
-    for buffer in buffers:
-        conn.send_bytes(buffer.raw())
-
-
-def recv_framed(conn: Connection) -> Any:
-    """Receive one message sent by :func:`send_framed` (blocking).
-
-    Raises:
-        EOFError: the peer closed the connection.
-    """
-    head = conn.recv_bytes()
-    (count,) = _FRAME.unpack_from(head)
-    buffers = [conn.recv_bytes() for _ in range(count)]
-    return pickle.loads(memoryview(head)[_FRAME.size :], buffers=buffers)
+    writer = PlanWriter(conn)
+    try:
+        writer.put(message, bulk)
+        poller = select.poll()
+        poller.register(writer._sock.fileno(), select.POLLOUT)
+        while not writer.flush():
+            if writer.closed:
+                raise BrokenPipeError("the connection to the loop is closed")
+            poller.poll()
+    finally:
+        writer.close()
 
 
 def encode_message(message: Any) -> bytes:
@@ -89,6 +233,94 @@ def encode_message(message: Any) -> bytes:
     return _HEADER.pack(size) + payload
 
 
+_Buffer = bytearray | memoryview | mmap.mmap
+
+LARGE_MESSAGE_BYTES = 1 << 20
+"""A plan's array from this size on is received into memory that is not zero-filled."""
+
+RETURNED_MESSAGE_BYTES = 8 << 20
+"""A plan's array from this size on gets memory of its own, returned to the system once
+released (smaller ones reuse the heap, which the loop process keeps: ``keep_freed_memory``)."""
+
+RELEASE_CHUNK_BYTES = 2 << 20
+"""Memory of a large array returned to the system per :meth:`Inbox.release` (0.2-0.35 ms
+measured)."""
+
+
+def _receive_buffer(size: int) -> _Buffer:
+    """A buffer to receive one of a plan's arrays (``size`` bytes) into.
+
+    ``bytearray(size)`` writes ``size`` zero bytes at once: 42 ms for the 90 MB plan of a
+    75,000-point goal, in one cycle (19 deadlines missed at 500 Hz). A large array gets an
+    uninitialised buffer instead: its pages are first touched by the reads, a bounded amount
+    per pump. A very large one is an anonymous mapping of its own, so that the memory goes
+    back to the system after it (:meth:`Inbox.release`), a chunk at a time.
+    """
+    if size >= RETURNED_MESSAGE_BYTES:
+        # Private: MADV_DONTNEED then frees the pages at once (a shared anonymous mapping keeps
+        # them until the unmap, which then costs 20 ms for 90 MB).
+        return mmap.mmap(-1, size, flags=mmap.MAP_PRIVATE | mmap.MAP_ANONYMOUS)
+    if size >= LARGE_MESSAGE_BYTES:
+        return np.empty(size, dtype=np.uint8).data
+    return bytearray(size)
+
+
+def _munlock(address: int, length: int) -> None:
+    """``munlock`` a range of this process's memory (errors ignored: best effort)."""
+    try:
+        munlock = ctypes.CDLL(None, use_errno=True).munlock
+    except (OSError, AttributeError):
+        return
+    munlock.argtypes = [ctypes.c_void_p, ctypes.c_size_t]
+    munlock(address, length)
+
+
+class _Mapped:
+    """A message buffer of its own mapping, to unmap once nothing uses it, a chunk at a time.
+
+    The unpickled arrays are made from ``array`` (a view of the whole mapping): each keeps a
+    reference to it (through the memoryview numpy takes of it), so while its (CPython)
+    reference count is above our own, something made from the message is alive and the
+    memory stays. The mapping's own exports are no evidence: ``array`` holds them, not the
+    unpickled arrays.
+    """
+
+    def __init__(self, mapping: mmap.mmap) -> None:
+        self.mapping = mapping
+        self.array: NDArray[np.uint8] | None = np.frombuffer(mapping, dtype=np.uint8)
+        self.address = self.array.ctypes.data
+        self.returned = 0  # bytes given back so far
+
+    def unused(self) -> bool:
+        """Whether nothing made from the message (e.g. a plan's reference) is left."""
+        if self.array is not None:
+            if sys.getrefcount(self.array) > 2:  # ours and getrefcount's argument
+                return False
+            self.array = None  # its view of the mapping goes with it
+        return True
+
+    def give_back(self, limit: int) -> bool:
+        """Return at most ``limit`` more bytes to the system; True once all is unmapped."""
+        size = len(self.mapping)
+        if self.returned < size:
+            length = min(limit, size - self.returned)
+            try:
+                self.mapping.madvise(mmap.MADV_DONTNEED, self.returned, length)
+            except OSError:
+                # Locked pages (the loop process's lock_memory: mlockall) refuse it (EINVAL):
+                # unlock the chunk first, then they can go.
+                _munlock(self.address + self.returned, length)
+                try:
+                    self.mapping.madvise(mmap.MADV_DONTNEED, self.returned, length)
+                except OSError:
+                    pass  # left to the unmap at the end
+            self.returned += length
+            if self.returned < size:
+                return False
+        self.mapping.close()  # nothing left in it: cheap
+        return True
+
+
 class Inbox:
     """Messages read without ever blocking, a bounded amount at a time.
 
@@ -96,18 +328,23 @@ class Inbox:
     interpreter lock: measured, a thread receiving a 2.4 MB plan stretched cycles by
     milliseconds (each time the loop thread released the lock in a system call, the receiver
     took it for up to the switch interval). So the loop process has one thread, and
-    :meth:`pump` reads what has arrived, at most ``budget`` bytes, straight into the buffer of
-    the message being received (``MSG_DONTWAIT``: the connection stays blocking for sends), and
-    completes messages in ``multiprocessing``'s wire format. A 2,000-point plan then arrives
-    over a few cycles, each paying a bounded copy. In the API process it lets the event loop
-    read the loop's messages without waiting for the rest of one the loop wrote in part.
+    :meth:`pump` reads what has arrived, at most ``budget`` bytes (and not past a time it is
+    given), straight into the memory of what is being received (``MSG_DONTWAIT``: the
+    connection stays blocking for sends): a plan's arrays are read where they will stay, a
+    chunk record at a time. A 2,000-point plan then arrives over one or two cycles, each
+    paying a bounded copy. In the API process it lets the event loop read the loop's messages
+    (``multiprocessing``'s format) without waiting for the rest of one the loop wrote in part.
+
+    A plan's arrays of :data:`LARGE_MESSAGE_BYTES` or more are received into memory that is
+    not zero-filled first (the reads touch it, a budget at a time), and those of
+    :data:`RETURNED_MESSAGE_BYTES` or more into a mapping of their own, which
+    :meth:`release` hands back to the system once nothing unpickled from it is alive.
 
     Args:
         conn: the connection (its socket is duplicated; the connection stays open).
         budget: bytes read per :meth:`pump` at most.
-        framed: messages are :func:`send_framed` groups (a head counting out-of-band
-            buffers); ``False``: each message is one pickle (:class:`Outbox`,
-            ``Connection.send``).
+        framed: the API -> loop records of :class:`PlanWriter`; ``False``: each message is
+            one pickle in ``multiprocessing``'s format (:class:`Outbox`, ``Connection.send``).
     """
 
     def __init__(self, conn: Connection, budget: int, *, framed: bool = True) -> None:
@@ -116,14 +353,20 @@ class Inbox:
         self._framed = framed
         self._queue: collections.deque[Any] = collections.deque()
         self.closed = False
-        """The peer closed its end (or the socket failed); what arrived before is queued."""
-        self._header = bytearray(_HEADER.size)
-        self._body: bytearray | None = None  # the message being received, once its size is known
+        """The peer closed its end (or the socket failed, or the stream made no sense);
+        what arrived before is queued."""
+        self._header = bytearray(_RECORD.size if framed else _HEADER.size)
+        self._body: bytearray | None = None  # the record or message being received
         self._view = memoryview(self._header)
         self._filled = 0
-        self._long = False
-        self._frame: list[bytearray] = []  # [head, buffers...] of the framed message so far
-        self._frame_size = 0  # buffers the framed message has (from its head)
+        self._long = False  # unframed: a -1 header announced an 8-byte length
+        self._kind = 0  # framed: the record being received (0: its header)
+        self._head: bytes | None = None  # framed: the pickle whose buffers are arriving
+        self._buffers: list[_Buffer] = []  # ... those buffers
+        self._target = 0  # ... the one being filled
+        self._offset = 0  # ... and how much of it is
+        self._record_left = 0  # bytes of the current CHUNK record not read yet
+        self._mapped: list[_Mapped] = []  # large messages' memory, to give back once unused
 
     def close(self) -> None:
         """Release the duplicated socket (the connection itself stays open).
@@ -133,8 +376,10 @@ class Inbox:
         """
         self._sock.close()
 
-    def pump(self) -> None:
-        """Read what has arrived, at most ``budget`` bytes; never blocks.
+    def pump(self, until_ns: int | None = None) -> None:
+        """Read what has arrived, at most ``budget`` bytes (and, with ``until_ns``, no more
+        once that time on the monotonic clock has passed, checked after each read of a plan's
+        memory: headers and requests are read whatever the time); never blocks.
 
         Raises:
             Nothing: a failing socket sets :attr:`closed`.
@@ -155,7 +400,98 @@ class Inbox:
             budget -= got
             self._filled += got
             if self._filled == len(self._view):
-                self._advance()
+                if self._framed:
+                    self._advance_framed()
+                else:
+                    self._advance()
+            if got >= _TIMED_READ_BYTES and until_ns is not None:
+                if time.monotonic_ns() >= until_ns:
+                    return
+
+    # -- API -> loop records ----------------------------------------------------------------
+
+    def _expect_record(self) -> None:
+        self._kind = 0
+        self._view = memoryview(self._header)
+        self._filled = 0
+
+    def _advance_framed(self) -> None:
+        kind = self._kind
+        if kind == 0:
+            kind, size = _RECORD.unpack(self._header)
+            if kind == CHUNK and self._head is not None and 0 < size:
+                self._kind = CHUNK
+                self._record_left = size
+                self._chunk_view()
+            elif size > 0 and (kind == WHOLE or (kind == HEAD and self._head is None)):
+                # (a request may come between the chunks of a plan: it overtook their rest)
+                self._kind = kind
+                self._body = bytearray(size)
+                self._view = memoryview(self._body)
+                self._filled = 0
+            else:  # a bug on the writing side: nothing after this can be trusted
+                self.closed = True
+            return
+        if kind == CHUNK:
+            got = len(self._view)
+            self._record_left -= got
+            self._offset += got
+            self._skip_full()
+            if self._record_left:
+                if self._target == len(self._buffers):
+                    self.closed = True  # more bytes than the head announced
+                    return
+                self._chunk_view()
+                return
+            self._expect_record()
+            if self._target == len(self._buffers):
+                self._complete()
+            return
+        body, self._body = self._body, None
+        assert body is not None
+        self._expect_record()
+        if kind == WHOLE:
+            self._queue.append(pickle.loads(body))
+            return
+        (count,) = _COUNT.unpack_from(body)
+        at = _COUNT.size
+        sizes = []
+        for _ in range(count):
+            sizes.append(_SIZE.unpack_from(body, at)[0])
+            at += _SIZE.size
+        self._head = bytes(memoryview(body)[at:])
+        self._buffers = [_receive_buffer(size) for size in sizes]
+        self._target = self._offset = 0
+        self._skip_full()
+        if self._target == len(self._buffers):
+            self._complete()
+
+    def _skip_full(self) -> None:
+        """Move past the buffers filled completely (and empty ones)."""
+        buffers = self._buffers
+        while self._target < len(buffers) and self._offset == len(buffers[self._target]):
+            self._target += 1
+            self._offset = 0
+
+    def _chunk_view(self) -> None:
+        buffer = self._buffers[self._target]
+        end = min(len(buffer), self._offset + self._record_left)
+        self._view = memoryview(buffer)[self._offset : end]
+        self._filled = 0
+
+    def _complete(self) -> None:
+        buffers: list[Any] = list(self._buffers)
+        for i, buffer in enumerate(buffers):
+            if isinstance(buffer, mmap.mmap):
+                mapped = _Mapped(buffer)
+                self._mapped.append(mapped)
+                assert mapped.array is not None  # a new one is in use until released
+                buffers[i] = mapped.array.data
+        head, self._head, self._buffers = self._head, None, []
+        assert head is not None
+        self._queue.append(pickle.loads(head, buffers=buffers))
+
+    # -- loop -> API messages (multiprocessing's format) ------------------------------------
 
     def _advance(self) -> None:
         if self._body is None:
@@ -166,33 +502,38 @@ class Inbox:
                 (size,) = _HEADER.unpack(self._header)
                 if size == -1:
                     self._long = True
-                    self._expect(bytearray(_LONG_HEADER.size), header=True)
+                    self._header = bytearray(_LONG_HEADER.size)
+                    self._view = memoryview(self._header)
+                    self._filled = 0
                     return
             self._body = bytearray(size)
-            self._expect(self._body)
+            self._view = memoryview(self._body)
+            self._filled = 0
             if size:
                 return
         body, self._body = self._body, None
-        self._expect(bytearray(_HEADER.size), header=True)
-        self._message(body)
-
-    def _expect(self, buffer: bytearray, header: bool = False) -> None:
-        if header:
-            self._header = buffer
-        self._view = memoryview(buffer)
+        self._header = bytearray(_HEADER.size)
+        self._view = memoryview(self._header)
         self._filled = 0
+        self._queue.append(pickle.loads(body))
 
-    def _message(self, body: bytearray) -> None:
-        if not self._framed:
-            self._queue.append(pickle.loads(body))
-            return
-        if not self._frame:
-            (self._frame_size,) = _FRAME.unpack_from(body)
-        self._frame.append(body)
-        if len(self._frame) == self._frame_size + 1:
-            head, *buffers = self._frame
-            self._frame = []
-            self._queue.append(pickle.loads(memoryview(head)[_FRAME.size :], buffers=buffers))
+    def release(self) -> bool:
+        """Give back a chunk of the memory of the large messages nothing uses any more.
+
+        Call in spare time: costs at most one ``madvise`` of :data:`RELEASE_CHUNK_BYTES`.
+
+        Returns:
+            Whether there was something to give back.
+
+        Raises:
+            Nothing.
+        """
+        for mapped in self._mapped:
+            if mapped.unused():
+                if mapped.give_back(RELEASE_CHUNK_BYTES):
+                    self._mapped.remove(mapped)
+                return True
+        return False
 
     @property
     def waiting(self) -> int:

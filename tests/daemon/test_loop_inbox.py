@@ -84,3 +84,120 @@ def test_pump_never_blocks_and_sees_the_end(pipe: tuple[object, object]) -> None
         assert inbox.closed and inbox.waiting == 0
     finally:
         inbox.close()
+
+
+def test_large_messages_get_memory_of_their_own_given_back_once_unused(
+    pipe: tuple[object, object], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import mmap
+    import threading
+
+    from jtc_hw.daemon import pipe as pipe_module
+
+    monkeypatch.setattr(pipe_module, "RETURNED_MESSAGE_BYTES", 1 << 16)
+    monkeypatch.setattr(pipe_module, "RELEASE_CHUNK_BYTES", 1 << 16)
+    sender, receiver = pipe
+    big = np.arange(100_000, dtype=np.float64)  # 800 kB: its own mapping, 13 chunks
+    inbox = _Inbox(receiver, 1 << 20)  # type: ignore[arg-type]
+    try:
+        thread = threading.Thread(target=send_framed, args=(sender, ("commit", 1, {"a": big})))
+        thread.start()
+        (message,) = _drain(inbox, 1)
+        thread.join(timeout=10)
+        (mapped,) = inbox._mapped
+        assert isinstance(mapped.mapping, mmap.mmap)
+        received = message[2]["a"]  # type: ignore[index]
+        np.testing.assert_array_equal(received, big)
+        del message
+        view = received[5:9]
+        del received
+        for _ in range(3):  # a view of it is alive: nothing is given back
+            assert not inbox.release()
+        np.testing.assert_array_equal(view, big[5:9])
+        del view
+        chunks = 0
+        while inbox.release():
+            chunks += 1
+        assert chunks == 13  # 800,000 bytes in 64 kB chunks, the last one unmapping it
+        assert mapped.mapping.closed and not inbox._mapped
+    finally:
+        inbox.close()
+
+
+def test_receive_buffers_by_size() -> None:
+    import mmap
+
+    from jtc_hw.daemon import pipe as pipe_module
+
+    assert isinstance(pipe_module._receive_buffer(100), bytearray)
+    assert isinstance(pipe_module._receive_buffer(pipe_module.LARGE_MESSAGE_BYTES), memoryview)
+    mapping = pipe_module._receive_buffer(pipe_module.RETURNED_MESSAGE_BYTES)
+    assert isinstance(mapping, mmap.mmap)
+    mapping.close()
+
+
+def test_a_request_overtakes_the_rest_of_a_plan_and_nothing_blocks(
+    pipe: tuple[object, object],
+) -> None:
+    import socket
+
+    from jtc_hw.daemon.pipe import CHUNK_BYTES, PlanWriter
+
+    sender, receiver = pipe
+    with socket.socket(fileno=sender.fileno()) as sock:  # type: ignore[attr-defined]
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, 65536)
+        sock.detach()
+    big = np.arange(1_000_000, dtype=np.float64)  # 8 MB: 31 chunks, far beyond the socket
+    writer = PlanWriter(sender)  # type: ignore[arg-type]
+    inbox = _Inbox(receiver, 1 << 16)  # type: ignore[arg-type]
+    try:
+        writer.put(("commit", 1, {"a": big}), bulk=True)
+        assert not writer.flush() and writer.pending  # the socket is full: returns, no wait
+        writer.put(("request", 2, "stop", {}))
+        got: list[object] = []
+        for _ in range(100_000):
+            inbox.pump()
+            while (message := inbox.pop()) is not None:
+                got.append(message)
+            if len(got) == 2:
+                break
+            writer.flush()
+        assert [m[0] for m in got] == ["request", "commit"]  # type: ignore[index]
+        np.testing.assert_array_equal(got[1][2]["a"], big)  # type: ignore[index]
+        assert not writer.pending
+        assert big.nbytes > 2 * CHUNK_BYTES
+    finally:
+        inbox.close()
+        writer.close()
+
+
+def test_a_writer_whose_reader_is_gone_is_closed(pipe: tuple[object, object]) -> None:
+    from jtc_hw.daemon.pipe import PlanWriter
+
+    sender, receiver = pipe
+    receiver.close()  # type: ignore[attr-defined]
+    writer = PlanWriter(sender)  # type: ignore[arg-type]
+    try:
+        writer.put(("request", 1, "stop", {}))
+        assert not writer.flush()
+        assert writer.closed and not writer.pending
+        writer.put(("request", 2, "stop", {}))  # ignored once closed
+        assert not writer.pending
+    finally:
+        writer.close()
+
+
+def test_a_stream_that_makes_no_sense_closes_the_inbox(pipe: tuple[object, object]) -> None:
+    from jtc_hw.daemon.pipe import _RECORD, CHUNK
+
+    sender, receiver = pipe
+    inbox = _Inbox(receiver, 1 << 16)  # type: ignore[arg-type]
+    try:
+        import os
+
+        os.write(sender.fileno(), _RECORD.pack(CHUNK, 10) + b"x" * 10)  # type: ignore[attr-defined]
+        for _ in range(10):
+            inbox.pump()
+        assert inbox.closed and inbox.pop() is None
+    finally:
+        inbox.close()

@@ -233,3 +233,90 @@ def test_reduce_timer_slack_in_a_child() -> None:
         pytest.skip("no /proc/self/timerslack_ns on this system")
     assert line == "timer slack set to 1 ns (sleeps end on time)"
     assert slack == "1"
+
+
+def test_huge_pages_are_turned_off_for_the_process() -> None:
+    code = (
+        "from jtc_hw.daemon.realtime import disable_huge_pages\n"
+        "print(disable_huge_pages())\n"
+        "print(open('/proc/self/status').read())\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    line, status = out.stdout.split("\n", 1)
+    if "THP_enabled:" not in status:
+        pytest.skip("this kernel does not report THP_enabled in /proc/<pid>/status")
+    assert line.startswith("transparent huge pages off")
+    assert "THP_enabled:\t0" in status
+
+
+def test_release_freed_memory_returns_a_freed_heap_to_the_system() -> None:
+    code = (
+        "import ctypes\n"
+        "from jtc_hw.daemon.realtime import release_freed_memory\n"
+        "libc = ctypes.CDLL(None)\n"
+        "libc.malloc.restype = ctypes.c_void_p\n"
+        "libc.free.argtypes = [ctypes.c_void_p]\n"
+        "libc.mallopt(-1, 1 << 30)\n"  # M_TRIM_THRESHOLD: free() alone keeps the memory
+        "libc.mallopt(-3, 1 << 30)\n"  # M_MMAP_THRESHOLD: blocks come from the heap
+        "def rss():\n"
+        "    for line in open('/proc/self/status'):\n"
+        "        if line.startswith('VmRSS:'):\n"
+        "            return int(line.split()[1])\n"
+        "blocks = [libc.malloc(1 << 20) for _ in range(64)]\n"
+        "for b in blocks:\n"
+        "    ctypes.memset(b, 1, 1 << 20)\n"
+        "full = rss()\n"
+        "for b in blocks:\n"
+        "    libc.free(b)\n"
+        "kept = rss()\n"
+        "print(release_freed_memory(), full, kept, rss())\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    released, full, kept, after = out.stdout.split()
+    assert int(kept) > int(full) - 8 * 1024  # freed but kept by the allocator (kB)
+    assert released == "True"
+    assert int(after) < int(kept) - 48 * 1024  # most of the 64 MB went back
+
+
+def test_locked_memory_large_buffers_are_locked_as_touched_and_given_back() -> None:
+    """With lock_memory, a plan's own mapping is neither faulted in whole when it is made (one
+    read of the inbox would pay for 90 MB) nor kept for good: MADV_DONTNEED refuses locked
+    pages, so each chunk is unlocked first."""
+    if not mlock_permitted():
+        pytest.skip("mlockall is not permitted here")
+    code = textwrap.dedent(
+        """
+        import json
+        from jtc_hw.daemon import pipe
+        from jtc_hw.daemon.realtime import apply_realtime
+
+        def kib(key):
+            for line in open("/proc/self/status"):
+                if line.startswith(key):
+                    return int(line.split()[1])
+
+        lines = apply_realtime(0, True, [])
+        before = kib("VmRSS:")
+        mapping = pipe._receive_buffer(64 << 20)  # 64 MB: a mapping of its own
+        made = kib("VmRSS:")
+        mapping[: 8 << 20] = b"x" * (8 << 20)  # what the reads would have touched
+        touched, locked = kib("VmRSS:"), kib("VmLck:")
+        mapped = pipe._Mapped(mapping)
+        assert mapped.unused()
+        while not mapped.give_back(2 << 20):
+            pass
+        print(json.dumps({"line": lines[1], "before": before, "made": made, "touched": touched,
+                          "locked": locked, "after": kib("VmRSS:")}))
+        """
+    )
+    env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env,
+                          timeout=60, check=False)
+    assert proc.returncode == 0, proc.stderr
+    out = json.loads(proc.stdout)
+    if "MCL_ONFAULT" not in out["line"]:
+        pytest.skip(f"this kernel has no MCL_ONFAULT: {out['line']}")
+    assert out["made"] - out["before"] < 4 * 1024  # kB: not faulted in when made
+    assert out["touched"] - out["made"] >= 8 * 1024 - 64  # the touched part is resident...
+    assert out["locked"] >= 8 * 1024  # ... and locked
+    assert out["after"] < out["touched"] - 7 * 1024  # and given back, though it was locked

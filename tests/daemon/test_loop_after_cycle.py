@@ -1,0 +1,113 @@
+"""What the loop does after a cycle: a plan or request the inbox completes is handled at once.
+
+A real ``ControlLoop`` on simulated joints, stepped on a simulated clock, with the API end of a
+real socketpair: a plan sent while the loop cycles must be committed by the ``after_cycle`` that
+reads its last bytes, at that cycle's deadline, and the ``committed`` answer written by that same
+``after_cycle`` -- not a period later -- without the joints' command changing at that deadline.
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from jtc_hw.controller.trajectory import JointTrajectory, TrajectoryPoint
+from jtc_hw.daemon.loop import ControlLoop
+from jtc_hw.daemon.pipe import Inbox, Outbox, send_framed
+from jtc_hw.daemon.robot import load_robot
+
+from conftest import make_robot_config
+
+pytestmark = pytest.mark.usefixtures("no_leaks")
+
+JOINTS = ["a", "b"]
+RATE = 500
+PERIOD_NS = 1_000_000_000 // RATE
+
+
+class Rig:
+    def __init__(self, tmp_path: Path) -> None:
+        hardware = [{"name": "arm", "kind": "mirror", "joints": JOINTS, "params": {}}]
+        robot = load_robot(
+            make_robot_config(tmp_path / "x.sock", JOINTS, hardware, update_rate=RATE)
+        )
+        self.api, self.loop_end = multiprocessing.Pipe(duplex=True)
+        self.now = 10_000_000_000
+        self.outbox = Outbox(self.loop_end, 1 << 20, lambda: self.now)
+        self.loop_inbox = Inbox(self.loop_end, 1 << 20)
+        self.api_inbox = Inbox(self.api, 1 << 20, framed=False)
+        self.loop = ControlLoop(robot, self.outbox)
+        self.loop.start(self.now)
+
+    def close(self) -> None:
+        for inbox in (self.loop_inbox, self.api_inbox):
+            inbox.close()
+        self.outbox.close()
+        self.api.close()
+        self.loop_end.close()
+
+    def cycle(self) -> None:
+        self.now += PERIOD_NS
+        self.loop.cycle(self.now, PERIOD_NS, self.loop_inbox)
+
+    def received(self) -> list[Any]:
+        self.api_inbox.pump()
+        out = []
+        while (message := self.api_inbox.pop()) is not None:
+            out.append(message)
+        return out
+
+
+@pytest.fixture
+def rig(tmp_path: Path) -> Iterator[Rig]:
+    r = Rig(tmp_path)
+    try:
+        yield r
+    finally:
+        r.close()
+
+
+def test_a_plan_is_committed_by_the_after_cycle_that_completes_it(rig: Rig) -> None:
+    rig.cycle()
+    rig.loop.after_cycle(rig.now, rig.loop_inbox)
+    rig.received()
+    trajectory = JointTrajectory(JOINTS, [TrajectoryPoint(1.0, [0.5, -0.5], [0.0, 0.0])])
+    # Planned as the API process plans: a little ahead, valid from two periods back.
+    plan = rig.loop.ctrl.plan_goal(
+        rig.now + 3 * PERIOD_NS, trajectory, valid_from_ns=rig.now - 2 * PERIOD_NS
+    )
+    rig.cycle()  # the plan is sent while this cycle runs
+    sampled = rig.loop.ctrl.reference.sample(rig.now)
+    send_framed(rig.api, ("commit", 41, plan))
+    messages: list[Any] = []
+    for _ in range(100):  # the pump stops at a time of the real clock: it may take several
+        rig.loop.after_cycle(rig.now, rig.loop_inbox)
+        messages += rig.received()
+        if rig.loop.ctrl.active_goal is not None:
+            break  # committed by this after_cycle: its answer must be out already
+        assert not messages
+    committed = [m for m in messages if m[0] == "committed"]
+    assert committed == [("committed", 41, 1)]
+    references = [m for m in messages if m[0] == "reference"]
+    assert references and references[-1][3] == 41  # reported by plan id, before "committed"
+    assert messages.index(references[-1]) < messages.index(committed[0])
+    assert rig.loop.ctrl.active_goal == 1
+    # The deadline already sampled gets the same desired state from the new reference.
+    after = rig.loop.ctrl.reference.sample(rig.now)
+    for a, b in zip(sampled, after, strict=True):
+        np.testing.assert_array_equal(a, b)
+    rig.cycle()  # and the next cycle follows the goal
+    assert rig.loop.ctrl.active_goal == 1
+
+
+def test_a_request_is_answered_by_the_after_cycle_that_completes_it(rig: Rig) -> None:
+    rig.cycle()
+    send_framed(rig.api, ("request", 5, "stop", {}), bulk=False)
+    rig.loop.after_cycle(rig.now, rig.loop_inbox)  # one record: read whatever the time
+    assert ("reply", 5, True, True) in rig.received()
+

@@ -346,6 +346,48 @@ def test_oversize_message_keeps_the_connection(sock: Path) -> None:
     run(main())
 
 
+def test_a_long_request_being_decoded_does_not_hold_up_other_clients(
+    sock: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A long line (a large goal) is decoded in a worker thread: while its decode is held up
+    here (deterministically, by a gate), another client's request is answered."""
+    import threading
+
+    from jtc_hw.api.protocol import Decoder
+    from jtc_hw.daemon.server import DECODE_IN_WORKER_BYTES
+
+    gate = threading.Event()
+    feed = Decoder.feed
+    marked: set[int] = set()
+
+    def gated_feed(self: Decoder, data: bytes) -> Any:
+        if b"GATED" in data:
+            marked.add(id(self))
+        if id(self) in marked and b"\n" in data:  # the data completing the long line
+            assert gate.wait(10.0), "the event loop was held up by the long line's decode"
+        return feed(self, data)
+
+    monkeypatch.setattr(Decoder, "feed", gated_feed)
+
+    async def main() -> None:
+        async with serving(sock):
+            slow, quick = await Peer.unix(sock), await Peer.unix(sock)
+            pad = "GATED" + "x" * DECODE_IN_WORKER_BYTES
+            await slow.send({"id": 1, "op": "hello", "client_name": "slow", "pad": pad})
+            answer = await quick.request("hello")  # served while the long line waits
+            assert answer["ok"] is True
+            gate.set()
+            reply = await slow.recv()
+            assert reply["id"] == 1 and reply["error"]["code"] == "bad_request"  # "pad"
+            await slow.close()
+            await quick.close()
+
+    try:
+        run(main())
+    finally:
+        gate.set()
+
+
 def test_malformed_json_unknown_op_and_bad_fields(sock: Path, logs: LogWatch) -> None:
     async def main() -> None:
         async with serving(sock):

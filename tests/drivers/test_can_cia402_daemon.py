@@ -20,7 +20,7 @@ from typing import Any
 import can
 import pytest
 import yaml
-from helpers.daemon import WAIT_S, DaemonProcess, connect, next_state, settle
+from helpers.daemon import WAIT_S, DaemonProcess, connect, loop_process, next_state, settle
 
 from jtc_hw.api.client import Client
 from jtc_hw.api.framing import RequestError
@@ -186,26 +186,6 @@ def test_rearm_is_refused_in_one_line_while_a_drive_cannot_stay_enabled(
         assert back["status"] == "succeeded", back
 
 
-def loop_process(daemon: DaemonProcess) -> int:
-    """The pid of the daemon's control-loop process (its child named ``jtc-hw-loop``, or the
-    one multiprocessing spawned; the other child is multiprocessing's resource tracker)."""
-    spawned = []
-    for entry in os.listdir("/proc"):
-        if not entry.isdigit():
-            continue
-        try:
-            stat = Path(f"/proc/{entry}/stat").read_text()
-            cmdline = Path(f"/proc/{entry}/cmdline").read_bytes()
-        except OSError:
-            continue
-        if int(stat[stat.rfind(")") + 2 :].split()[1]) != daemon.pid:
-            continue
-        if stat[stat.find("(") + 1 : stat.rfind(")")] == "jtc-hw-loop":
-            return int(entry)
-        if b"spawn_main" in cmdline:
-            spawned.append(int(entry))
-    assert len(spawned) == 1, f"expected one control-loop process, found {spawned}"
-    return spawned[0]
 
 
 @pytest.fixture

@@ -28,9 +28,9 @@ from helpers.daemon import (
     MS,
     WAIT_S,
     DaemonProcess,
-    _session_members,
     connect,
     daemon_env,
+    loop_process,
     next_state,
     robot_config,
     settle,
@@ -386,16 +386,6 @@ def test_bus_loss_power_cycle_rearm_enables_every_motor(
             emulator.close()
 
 
-def _loop_process(daemon: DaemonProcess) -> int:
-    """The daemon's control-loop child (named ``jtc-hw-loop``, or multiprocessing's spawned
-    child while it does not carry that name)."""
-    for pid, name in _session_members(daemon.pid).items():
-        if pid == daemon.pid:
-            continue
-        cmdline = Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ")
-        if name == "jtc-hw-loop" or b"spawn_main" in cmdline:
-            return pid
-    raise AssertionError(f"no control-loop process among {_session_members(daemon.pid)}")
 
 
 def test_killing_the_loop_lets_the_damiao_timeouts_stop_the_motors(
@@ -407,7 +397,7 @@ def test_killing_the_loop_lets_the_damiao_timeouts_stop_the_motors(
             next_state(sub, lambda s: s["holding"])
         assert all(world.emulator.enabled(i) for i in IDS)
         assert all(world.emulator.timeout_s(i) == pytest.approx(WATCHDOG_S) for i in IDS)
-        pid = _loop_process(world.daemon)
+        pid = loop_process(world.daemon)
         killed = time.monotonic()
         os.kill(pid, signal.SIGKILL)
         # The motors' own timeouts stop them: the emulator records each expiry (after the

@@ -19,7 +19,16 @@ from typing import Any
 
 import pytest
 import yaml
-from helpers.daemon import MS, WAIT_S, DaemonProcess, connect, next_state, settle
+from helpers.daemon import (
+    MS,
+    WAIT_S,
+    DaemonProcess,
+    connect,
+    loop_process,
+    next_state,
+    settle,
+    wait_gone,
+)
 
 from jtc_hw import GoalRejected
 from jtc_hw.api.client import Client
@@ -169,7 +178,7 @@ def test_a_stalled_loop_trips_the_watchdog_then_a_rearm_holds_where_the_servos_s
         for feedback in goal.feedback(timeout_s=WAIT_S):
             if feedback["time_from_start"] >= 0.3:
                 break
-        loop = loop_process(position_daemon.pid)
+        loop = loop_process(position_daemon)
         since = time.monotonic()
         os.kill(loop, signal.SIGSTOP)
         try:
@@ -248,47 +257,10 @@ def test_velocity_and_current_mode_goals_succeed(
 # -- fail-safe: the loop process dies -------------------------------------------------------------
 
 
-def _children(pid: int) -> list[int]:
-    """Live child processes of ``pid`` (from /proc: the daemon's loop and helper processes)."""
-    found = []
-    for entry in os.listdir("/proc"):
-        if not entry.isdigit():
-            continue
-        try:
-            stat = Path(f"/proc/{entry}/stat").read_text()
-        except OSError:
-            continue
-        fields = stat[stat.rfind(")") + 2 :].split()  # state ppid ...
-        if int(fields[1]) == pid and fields[0] != "Z":
-            found.append(int(entry))
-    return found
 
 
-def loop_process(daemon_pid: int) -> int:
-    """The pid of the daemon's control-loop process ("jtc-hw-loop", a multiprocessing spawn
-    child: its command line runs ``spawn_main``; the resource tracker's does not)."""
-    for pid in _children(daemon_pid):
-        try:
-            cmdline = Path(f"/proc/{pid}/cmdline").read_bytes()
-        except OSError:
-            continue
-        if b"spawn_main" in cmdline:
-            return pid
-    raise AssertionError(f"no control-loop process among the children of {daemon_pid}")
 
 
-def wait_gone(pid: int, timeout_s: float = WAIT_S) -> None:
-    """Until ``pid`` is dead (gone, or a zombie its parent has not reaped)."""
-    deadline = time.monotonic() + timeout_s
-    while True:
-        try:
-            stat = Path(f"/proc/{pid}/stat").read_text()
-        except OSError:
-            return
-        if stat[stat.rfind(")") + 2 :].split()[0] == "Z":
-            return
-        assert time.monotonic() < deadline, f"process {pid} still alive after SIGKILL"
-        time.sleep(0.005)  # polling /proc for another process's end
 
 
 def _stop_whatever_is_left(d: DaemonProcess) -> None:
@@ -329,7 +301,7 @@ def test_sigkill_of_the_loop_in_velocity_mode_stops_the_servos_on_their_watchdog
                         break
                 assert emu.watchdog_trips() == [], "a servo tripped while the loop was running"
                 assert all(emu.register(i, "present_velocity") != 0 for i in IDS)
-                loop = loop_process(d.pid)
+                loop = loop_process(d)
                 killed = time.monotonic()
                 os.kill(loop, signal.SIGKILL)
                 wait_gone(loop)
@@ -379,7 +351,7 @@ def test_sigkill_of_the_whole_daemon_stops_the_servos_on_their_watchdog(tmp_path
             d.wait_ready()
             with connect(d) as client:
                 _moving_velocity_goal(emu, d, client)
-                loop = loop_process(d.pid)
+                loop = loop_process(d)
                 killed = time.monotonic()
                 os.killpg(d.pid, signal.SIGKILL)
                 wait_gone(loop)
@@ -406,7 +378,7 @@ def test_sigkill_of_the_api_process_lets_the_loop_stop_the_servos_itself(
             d.wait_ready()
             with connect(d) as client:
                 _moving_velocity_goal(emu, d, client)
-                loop = loop_process(d.pid)
+                loop = loop_process(d)
                 os.kill(d.pid, signal.SIGKILL)
                 wait_gone(loop)  # the loop process noticed and finished by itself
         finally:

@@ -21,6 +21,7 @@ from typing import Any
 import yaml
 
 from jtc_hw.api.client import Client, StateSubscription
+from jtc_hw.daemon.loop import LOOP_PROCESS_NAME
 
 from conftest import ROOT, make_robot_config
 
@@ -78,6 +79,28 @@ def _session_members(sid: int) -> dict[int, str]:
         if int(fields[3]) == sid and fields[0] != "Z":
             members[int(entry)] = name
     return members
+
+
+def loop_process(daemon: DaemonProcess) -> int:
+    """The pid of the daemon's control-loop process (it names itself ``jtc-hw-loop``)."""
+    members = _session_members(daemon.pid)
+    loops = [pid for pid, name in members.items() if name == LOOP_PROCESS_NAME]
+    assert len(loops) == 1, f"expected one {LOOP_PROCESS_NAME} process in {members}"
+    return loops[0]
+
+
+def wait_gone(pid: int, timeout_s: float = WAIT_S) -> None:
+    """Until ``pid`` is dead (gone, or a zombie its parent has not reaped)."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        try:
+            stat = Path(f"/proc/{pid}/stat").read_text()
+        except OSError:
+            return
+        if stat[stat.rfind(")") + 2 :].split()[0] == "Z":
+            return
+        assert time.monotonic() < deadline, f"process {pid} still alive after {timeout_s} s"
+        time.sleep(0.005)  # polling /proc for another process's end
 
 
 _DAEMONS: list[DaemonProcess] = []

@@ -107,18 +107,6 @@ def ctx_switches(pid: int) -> tuple[int, int]:
     return int(values["voluntary_ctxt_switches"]), int(values["nonvoluntary_ctxt_switches"])
 
 
-def children(pid: int) -> list[int]:
-    found = []
-    for entry in Path("/proc").iterdir():
-        if not entry.name.isdigit():
-            continue
-        try:
-            fields = (entry / "stat").read_text().rsplit(")", 1)[1].split()
-        except OSError:
-            continue
-        if int(fields[1]) == pid:
-            found.append(int(entry.name))
-    return found
 
 
 class Daemon:
@@ -182,16 +170,7 @@ class Daemon:
                         f"the daemon did not answer hello:\n{self.log_tail()}"
                     ) from None
                 time.sleep(0.05)
-        loops = [
-            pid
-            for pid in children(self.pid)
-            if b"spawn_main" in Path(f"/proc/{pid}/cmdline").read_bytes()
-            and b"resource_tracker" not in Path(f"/proc/{pid}/cmdline").read_bytes()
-        ]
-        if len(loops) != 1:
-            client.close()
-            raise RuntimeError(f"expected one loop process under {self.pid}, found {loops}")
-        self.loop_pid = loops[0]
+        self.loop_pid = int(client.get_status()["loop_pid"])
         return client
 
     def scheduling(self) -> str:

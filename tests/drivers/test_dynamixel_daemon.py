@@ -280,41 +280,50 @@ def _stop_whatever_is_left(d: DaemonProcess) -> None:
 STOP_WAIT_S = 10.0
 
 
+@contextlib.contextmanager
+def moving_arm(directory: Path) -> Iterator[tuple[DynamixelEmulator, DxlDaemon, Any, Any]]:
+    """Emulated servos in velocity mode (Bus Watchdog 0.1 s), their daemon, a client and a goal
+    half a second under way, the servos turning. On exit, whatever is left of the daemon ends."""
+    with DynamixelEmulator(IDS, initial_positions=START) as emu:
+        d = DxlDaemon(directory, lambda sock: robot(
+            sock, emu.device_path, "velocity", {"p": 5.0, "ff_velocity_scale": 1.0},
+            watchdog_s=0.1))
+        d.start()
+        try:
+            d.wait_ready()
+            with connect(d) as client:
+                with client.subscribe_state() as sub:
+                    p0 = next_state(sub, lambda s: s["active_goal"] is None)
+                goal = client.send_goal(traj([p + 1.0 for p in p0["actual"]["positions"]], 4.0))
+                for feedback in goal.feedback(timeout_s=WAIT_S):
+                    if feedback["time_from_start"] >= 0.5:
+                        break
+                assert emu.watchdog_trips() == [], "a servo tripped while the loop was running"
+                assert all(emu.register(i, "present_velocity") != 0 for i in IDS)
+                yield emu, d, client, goal
+        finally:
+            _stop_whatever_is_left(d)
+
+
 def test_sigkill_of_the_loop_in_velocity_mode_stops_the_servos_on_their_watchdog(
     tmp_path: Path,
 ) -> None:
     """Issue 10: the loop killed mid-goal, nothing commands the servos any more; they stop by
     themselves when their Bus Watchdog (armed by the driver, default 0.1 s) expires, and the
     client gets its goal's one result: ABORTED, naming the loop's death."""
-    with DynamixelEmulator(IDS, initial_positions=START) as emu:
-        d = DxlDaemon(tmp_path / "kill", lambda sock: robot(
-            sock, emu.device_path, "velocity", {"p": 5.0, "ff_velocity_scale": 1.0},
-            watchdog_s=0.1))
-        d.start()
-        try:
-            d.wait_ready()
-            with connect(d) as client, client.subscribe_state() as sub:
-                p0 = next_state(sub, lambda s: s["active_goal"] is None)["actual"]["positions"]
-                goal = client.send_goal(traj([p + 1.0 for p in p0], 4.0))
-                for feedback in goal.feedback(timeout_s=WAIT_S):
-                    if feedback["time_from_start"] >= 0.5:
-                        break
-                assert emu.watchdog_trips() == [], "a servo tripped while the loop was running"
-                assert all(emu.register(i, "present_velocity") != 0 for i in IDS)
-                loop = loop_process(d)
-                killed = time.monotonic()
-                os.kill(loop, signal.SIGKILL)
-                wait_gone(loop)
-                trips = emu.wait_watchdog_stopped(IDS, timeout_s=WAIT_S)
-                result = goal.wait(timeout_s=WAIT_S)
-                assert d.proc is not None
-                assert d.proc.wait(timeout=WAIT_S) == 1, "the daemon exits non-zero"
-                results = client.received("result", goal.goal_id)
-        finally:
-            _stop_whatever_is_left(d)
+    with moving_arm(tmp_path / "kill") as (emu, d, client, goal):
+        loop = loop_process(d)
+        killed = time.monotonic()
+        os.kill(loop, signal.SIGKILL)
+        wait_gone(loop)
+        trips = emu.wait_watchdog_stopped(IDS, timeout_s=WAIT_S)
+        result = goal.wait(timeout_s=WAIT_S)
+        assert d.proc is not None
+        assert d.proc.wait(timeout=WAIT_S) == 1, "the daemon exits non-zero"
+        assert len(client.received("result", goal.goal_id)) == 1
         assert result["status"] == "aborted"
         assert result["error_string"].startswith("control loop died: killed by SIGKILL")
-        assert len(results) == 1
+        assert set(trips) == set(IDS)
         for servo_id, trip in trips.items():
             # The last packet came from the loop before it died (the emulator may process it a
             # little later on a loaded machine); the servo counted the configured 0.1 s from
@@ -329,35 +338,15 @@ def test_sigkill_of_the_loop_in_velocity_mode_stops_the_servos_on_their_watchdog
                                                               abs=0.01)
 
 
-def _moving_velocity_goal(emu: DynamixelEmulator, d: DxlDaemon, client: Client) -> None:
-    with client.subscribe_state() as sub:
-        p0 = next_state(sub, lambda s: s["active_goal"] is None)["actual"]["positions"]
-    goal = client.send_goal(traj([p + 1.0 for p in p0], 4.0))
-    for feedback in goal.feedback(timeout_s=WAIT_S):
-        if feedback["time_from_start"] >= 0.5:
-            break
-    assert all(emu.register(i, "present_velocity") != 0 for i in IDS)
-
-
 def test_sigkill_of_the_whole_daemon_stops_the_servos_on_their_watchdog(tmp_path: Path) -> None:
     """docs/safety.md, SIGKILL: API process and loop killed at once (what systemd does after
     TimeoutStopSec); nothing is left to command the servos, their watchdogs stop them."""
-    with DynamixelEmulator(IDS, initial_positions=START) as emu:
-        d = DxlDaemon(tmp_path / "killall", lambda sock: robot(
-            sock, emu.device_path, "velocity", {"p": 5.0, "ff_velocity_scale": 1.0},
-            watchdog_s=0.1))
-        d.start()
-        try:
-            d.wait_ready()
-            with connect(d) as client:
-                _moving_velocity_goal(emu, d, client)
-                loop = loop_process(d)
-                killed = time.monotonic()
-                os.killpg(d.pid, signal.SIGKILL)
-                wait_gone(loop)
-                trips = emu.wait_watchdog_stopped(IDS, timeout_s=WAIT_S)
-        finally:
-            _stop_whatever_is_left(d)
+    with moving_arm(tmp_path / "killall") as (emu, d, _client, _goal):
+        loop = loop_process(d)
+        killed = time.monotonic()
+        os.killpg(d.pid, signal.SIGKILL)
+        wait_gone(loop)
+        trips = emu.wait_watchdog_stopped(IDS, timeout_s=WAIT_S)
         assert set(trips) == set(IDS)
         for servo_id, trip in trips.items():
             assert trip.expired_s > killed, servo_id  # not a trip while the daemon ran
@@ -369,20 +358,10 @@ def test_sigkill_of_the_api_process_lets_the_loop_stop_the_servos_itself(
 ) -> None:
     """docs/safety.md, API death: the loop sees its pipe end, ends the goal, holds (the
     component's safe action), disarms the watchdogs of a clean stop and exits; no trip."""
-    with DynamixelEmulator(IDS, initial_positions=START) as emu:
-        d = DxlDaemon(tmp_path / "api", lambda sock: robot(
-            sock, emu.device_path, "velocity", {"p": 5.0, "ff_velocity_scale": 1.0},
-            watchdog_s=0.1))
-        d.start()
-        try:
-            d.wait_ready()
-            with connect(d) as client:
-                _moving_velocity_goal(emu, d, client)
-                loop = loop_process(d)
-                os.kill(d.pid, signal.SIGKILL)
-                wait_gone(loop)  # the loop process noticed and finished by itself
-        finally:
-            _stop_whatever_is_left(d)
+    with moving_arm(tmp_path / "api") as (emu, d, _client, _goal):
+        loop = loop_process(d)
+        os.kill(d.pid, signal.SIGKILL)
+        wait_gone(loop)  # the loop process noticed and finished by itself
         for servo_id in IDS:
             assert emu.register(servo_id, "bus_watchdog") == 0, servo_id  # disarmed cleanly
             assert emu.register(servo_id, "goal_velocity") == 0, servo_id  # the hold

@@ -625,23 +625,17 @@ class MitBusEmulator:
         """Apply one frame; the reply to send now (``None``: none, or queued). Under the lock."""
         if len(msg.data) != 8:
             return None
-        if msg.arbitration_id == REGISTER_ID and self.has_timeout:
-            motor_id = msg.data[0] | (msg.data[1] << 8)
-            slot = self._slots.get(motor_id)
-            if slot is None:
-                return None
-            self._advance(slot, now)
-            slot.last_rx = now
-            slot.commands += 1
+        register = msg.arbitration_id == REGISTER_ID and self.has_timeout
+        motor_id = msg.data[0] | (msg.data[1] << 8) if register else msg.arbitration_id
+        slot = self._slots.get(motor_id)
+        if slot is None:
+            return None
+        self._advance(slot, now)
+        slot.last_rx = now  # any frame addressed to the motor feeds its CAN timeout
+        slot.commands += 1
+        if register:
             data = self._register(slot, msg.data)
         else:
-            motor_id = msg.arbitration_id
-            slot = self._slots.get(motor_id)
-            if slot is None:
-                return None
-            self._advance(slot, now)
-            slot.last_rx = now
-            slot.commands += 1
             self._command(slot, msg.data, now)
             data = self._state(motor_id, slot)
         if data is None or self._bus_off or slot.silent:

@@ -18,6 +18,16 @@ from typing import Any
 
 import numpy as np
 import pytest
+from helpers.dynamixel import (
+    IDS,
+    OFFSET,
+    START,
+    TICK,
+    WAIT_S,
+    driver_factory,
+    emulated_arm,
+    now_ns,
+)
 
 from jtc_hw.controller.joints import JointCommand
 from jtc_hw.drivers.dynamixel.bus import DynamixelBus, ServoStatusError, latency_timer_ms
@@ -28,59 +38,20 @@ from jtc_hw.errors import CommunicationError, ConfigurationError, MotorFault
 from jtc_hw.hardware import LifecycleState
 
 S = 1_000_000_000
-IDS = [1, 2, 3]
-JOINTS = ["shoulder", "elbow", "wrist"]
-TICK = 2 * math.pi / 4096
 XM430 = model_by_name("XM430-W350")
-# Mid-range of Position mode (tick 2048 = pi) is joint 0 with this offset.
-OFFSET = -math.pi
-START = {1: math.pi + 0.2, 2: math.pi - 0.3, 3: math.pi + 0.5}  # motor rad
-WAIT_S = 10.0
 
 
-def now_ns() -> int:
-    return time.monotonic_ns()
 
 
 @pytest.fixture
 def emulator() -> Iterator[DynamixelEmulator]:
-    with DynamixelEmulator(IDS, initial_positions=START) as emu:
-        yield emu
+    yield from emulated_arm()
 
 
 @pytest.fixture
 def make_hw(emulator: DynamixelEmulator) -> Iterator[Callable[..., DynamixelHardware]]:
     """Build drivers on the emulator's pty; each is shut down after the test."""
-    made: list[DynamixelHardware] = []
-
-    def make(
-        command_interfaces: tuple[str, ...] = ("position",),
-        joints: list[str] = JOINTS,
-        **params: Any,
-    ) -> DynamixelHardware:
-        base: dict[str, Any] = {
-            "port": emulator.device_path,
-            "baud_rate": 4_000_000,
-            "ids": IDS[: len(joints)],
-            "offset": OFFSET,
-            # Generous: the emulator shares this process (and the GIL) with the test.
-            "timeout_ms": 30.0,
-            "latency_timer_warn": False,
-            # Long: a loaded machine pausing this process must not trip the servos' watchdog
-            # (test_dynamixel_watchdog.py tests it).
-            "watchdog_s": 1.0,
-        }
-        base.update(params)
-        hw = DynamixelHardware("arm", joints, command_interfaces, ("position", "velocity"), base)
-        made.append(hw)
-        return hw
-
-    yield make
-    for hw in made:
-        try:
-            hw.shutdown(now_ns())
-        except Exception:  # noqa: BLE001 - a test that broke the bus on purpose
-            pass
+    yield from driver_factory(emulator)
 
 
 def expected_joint(motor_rad: float, offset: float = OFFSET, direction: int = 1,

@@ -18,6 +18,15 @@ from typing import Any
 
 import numpy as np
 import pytest
+from helpers.dynamixel import (
+    IDS,
+    OFFSET,
+    TICK,
+    WAIT_S,
+    driver_factory,
+    emulated_arm,
+    now_ns,
+)
 
 from jtc_hw.controller.joints import JointCommand
 from jtc_hw.drivers.dynamixel.control_table import HardwareError
@@ -27,55 +36,21 @@ from jtc_hw.errors import ConfigurationError, MotorFault
 from jtc_hw.errors import HardwareError as JtcHardwareError
 from jtc_hw.hardware import LifecycleState
 
-IDS = [1, 2, 3]
-JOINTS = ["shoulder", "elbow", "wrist"]
-TICK = 2 * math.pi / 4096
-OFFSET = -math.pi  # tick 2048 (mid-range) is joint 0
-START = {1: math.pi + 0.2, 2: math.pi - 0.3, 3: math.pi + 0.5}  # motor rad
-WAIT_S = 10.0
 TORQUE_ENABLE, HARDWARE_ERROR, BUS_WATCHDOG = 64, 70, 98
 GOAL_VELOCITY, GOAL_POSITION, PRESENT_POSITION = 104, 116, 132
 
 
-def now_ns() -> int:
-    return time.monotonic_ns()
 
 
 @pytest.fixture
 def emulator() -> Iterator[DynamixelEmulator]:
-    with DynamixelEmulator(IDS, initial_positions=START) as emu:
-        yield emu
+    yield from emulated_arm()
 
 
 @pytest.fixture
 def make_hw(emulator: DynamixelEmulator) -> Iterator[Callable[..., DynamixelHardware]]:
     """Build drivers on the emulator's pty; each is shut down after the test."""
-    made: list[DynamixelHardware] = []
-
-    def make(command_interfaces: tuple[str, ...] = ("position",), **params: Any
-             ) -> DynamixelHardware:
-        base: dict[str, Any] = {
-            "port": emulator.device_path,
-            "baud_rate": 4_000_000,
-            "ids": IDS,
-            "offset": OFFSET,
-            "timeout_ms": 30.0,  # the emulator shares this process (and the GIL)
-            "latency_timer_warn": False,
-            # Tests that let the watchdog expire choose a short one; the others keep a long
-            # one, so that a loaded machine pausing this process trips nothing.
-            "watchdog_s": 1.0,
-        }
-        base.update(params)
-        hw = DynamixelHardware("arm", JOINTS, command_interfaces, ("position", "velocity"), base)
-        made.append(hw)
-        return hw
-
-    yield make
-    for hw in made:
-        try:
-            hw.shutdown(now_ns())
-        except Exception:  # noqa: BLE001 - a test that broke the bus on purpose
-            pass
+    yield from driver_factory(emulator)
 
 
 def registers(hw: DynamixelHardware, address: int, size: int = 1, signed: bool = True

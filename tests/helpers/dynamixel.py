@@ -1,0 +1,62 @@
+"""A three-servo Dynamixel arm on the pty emulator, for the driver's in-process tests."""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable, Iterator
+from typing import Any
+
+from jtc_hw.drivers.dynamixel.emulator import DynamixelEmulator
+from jtc_hw.drivers.dynamixel.hardware import DynamixelHardware
+
+IDS = [1, 2, 3]
+JOINTS = ["shoulder", "elbow", "wrist"]
+TICK = 2 * math.pi / 4096
+OFFSET = -math.pi  # tick 2048 (mid-range of Position mode, pi) is joint 0
+START = {1: math.pi + 0.2, 2: math.pi - 0.3, 3: math.pi + 0.5}  # motor rad
+WAIT_S = 10.0
+
+
+def now_ns() -> int:
+    return time.monotonic_ns()
+
+
+def emulated_arm() -> Iterator[DynamixelEmulator]:
+    """The servos at ``START`` (a fixture body: ``yield from emulated_arm()``)."""
+    with DynamixelEmulator(IDS, initial_positions=START) as emu:
+        yield emu
+
+
+def driver_factory(emulator: DynamixelEmulator) -> Iterator[Callable[..., DynamixelHardware]]:
+    """Build drivers on the emulator's pty, each shut down afterwards (a fixture body)."""
+    made: list[DynamixelHardware] = []
+
+    def make(
+        command_interfaces: tuple[str, ...] = ("position",),
+        joints: list[str] = JOINTS,
+        **params: Any,
+    ) -> DynamixelHardware:
+        base: dict[str, Any] = {
+            "port": emulator.device_path,
+            "baud_rate": 4_000_000,
+            "ids": IDS[: len(joints)],
+            "offset": OFFSET,
+            # Generous: the emulator shares this process (and the GIL) with the test.
+            "timeout_ms": 30.0,
+            "latency_timer_warn": False,
+            # Long: a loaded machine pausing this process must not trip the servos' watchdog;
+            # the tests that let it expire choose a short one.
+            "watchdog_s": 1.0,
+        }
+        base.update(params)
+        hw = DynamixelHardware("arm", joints, command_interfaces, ("position", "velocity"), base)
+        made.append(hw)
+        return hw
+
+    yield make
+    for hw in made:
+        try:
+            hw.shutdown(now_ns())
+        except Exception:  # noqa: BLE001 - a test that broke the bus on purpose
+            pass

@@ -8,8 +8,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from helpers.fake_backend import TOKEN
-from test_client import ServerThread
+from helpers.fake_backend import TOKEN, ServerThread
 
 from jtc_hw.cli import EXIT_NO_DAEMON, EXIT_OK, load_goal_file, main
 from jtc_hw.controller.trajectory import JointTrajectory, TrajectoryPoint

@@ -3,59 +3,28 @@ stand-in backend of test_server."""
 
 from __future__ import annotations
 
-import asyncio
 import os
 import shutil
 import socket
 import tempfile
-import threading
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any
 
 import pytest
-from helpers.fake_backend import TOKEN, FakeBackend
+from helpers.fake_backend import TOKEN, ServerThread
 
 from jtc_hw import GoalRejected, JointTolerance, JointTrajectory, TrajectoryPoint
 from jtc_hw.api.client import UNTRUSTED, Client, ClientConnectionError, GoalHandle
 from jtc_hw.api.framing import RequestError
-from jtc_hw.daemon.server import Server, ServerSettings, TcpEndpoint
+from jtc_hw.daemon.server import ServerSettings, TcpEndpoint
 from jtc_hw.errors import ProtocolError
 
 pytestmark = pytest.mark.usefixtures("no_leaks")  # threads, sockets, resources
 
 S = 1_000_000_000
-T = TypeVar("T")
 
 
-class ServerThread:
-    """The server on its own asyncio loop in a thread, as the daemon runs it."""
-
-    def __init__(self, settings: ServerSettings, backend: FakeBackend | None = None) -> None:
-        self.backend = backend or FakeBackend()
-        self.loop = asyncio.new_event_loop()
-        self.thread = threading.Thread(target=self.loop.run_forever, name="test-server")
-        self.thread.start()
-        self.server = Server(self.backend, settings)
-        self._await(self.server.start())
-
-    def _await(self, coro: Any) -> Any:
-        return asyncio.run_coroutine_threadsafe(coro, self.loop).result(10)
-
-    def call(self, fn: Callable[..., T], *args: Any) -> T:
-        """Run ``fn`` in the server's loop thread (where the backend delivers events)."""
-
-        async def wrapper() -> T:
-            return fn(*args)
-
-        result: T = self._await(wrapper())
-        return result
-
-    def close(self) -> None:
-        self._await(self.server.close())
-        self.loop.call_soon_threadsafe(self.loop.stop)
-        self.thread.join(10)
-        self.loop.close()
 
 
 @pytest.fixture

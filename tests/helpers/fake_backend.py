@@ -8,8 +8,9 @@ implements for real. Used by the server and client tests.
 from __future__ import annotations
 
 import asyncio
-from collections.abc import Sequence
-from typing import Any
+import threading
+from collections.abc import Callable, Sequence
+from typing import Any, TypeVar
 
 import numpy as np
 
@@ -17,10 +18,12 @@ from jtc_hw import GoalFeedback, GoalResult, JointTrajectoryController, Trajecto
 from jtc_hw.controller.config_io import config_to_dict
 from jtc_hw.controller.tolerances import JointTolerance
 from jtc_hw.controller.trajectory import JointTrajectory
-from jtc_hw.daemon.server import BackendListener
+from jtc_hw.daemon.server import BackendListener, Server, ServerSettings
 from jtc_hw.errors import ConfigurationError
 
 from conftest import Mirror, S, make_config
+
+T = TypeVar("T")
 
 TOKEN = "0123456789abcdef-token"
 
@@ -155,3 +158,33 @@ class FakeBackend:
                 "pad": "p" * pad,
             }
         )
+
+
+class ServerThread:
+    """The server on its own asyncio loop in a thread, as the daemon runs it."""
+
+    def __init__(self, settings: ServerSettings, backend: FakeBackend | None = None) -> None:
+        self.backend = backend or FakeBackend()
+        self.loop = asyncio.new_event_loop()
+        self.thread = threading.Thread(target=self.loop.run_forever, name="test-server")
+        self.thread.start()
+        self.server = Server(self.backend, settings)
+        self._await(self.server.start())
+
+    def _await(self, coro: Any) -> Any:
+        return asyncio.run_coroutine_threadsafe(coro, self.loop).result(10)
+
+    def call(self, fn: Callable[..., T], *args: Any) -> T:
+        """Run ``fn`` in the server's loop thread (where the backend delivers events)."""
+
+        async def wrapper() -> T:
+            return fn(*args)
+
+        result: T = self._await(wrapper())
+        return result
+
+    def close(self) -> None:
+        self._await(self.server.close())
+        self.loop.call_soon_threadsafe(self.loop.stop)
+        self.thread.join(10)
+        self.loop.close()

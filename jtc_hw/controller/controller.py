@@ -785,22 +785,26 @@ class JointTrajectoryController:
         Joints that are not command joints read NaN."""
         mask = self._cmd_mask
         fields = (command.positions, command.velocities, command.accelerations, command.effort)
-        kept: list[F64 | None] = []
+        exact = True  # ``command`` has exactly the configured fields, NaN off command joints
         for on, values in zip(self._cmd_fields, fields, strict=True):
             if not on:
-                kept.append(None)
+                exact = exact and values is None
                 continue
             if values is None or values.shape != (self._n,):
                 return
-            if mask is None:
-                if not np.isfinite(values).all():
-                    return
-                kept.append(values)
-            else:
-                if not np.isfinite(values[mask]).all():
-                    return
-                kept.append(np.where(mask, values, np.nan))
-        self._output = JointCommand(*kept)
+            if not np.isfinite(values if mask is None else values[mask]).all():
+                return
+            if mask is not None and not np.isnan(values[~mask]).all():
+                exact = False
+        if exact:
+            self._output = command
+            return
+        self._output = JointCommand(
+            *(
+                None if not on or f is None else f if mask is None else np.where(mask, f, np.nan)
+                for on, f in zip(self._cmd_fields, fields, strict=True)
+            )
+        )
 
     def _require_active_for_commands(self) -> None:
         if not self._active:

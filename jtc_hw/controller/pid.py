@@ -59,6 +59,8 @@ class Pid:
         )
         self.i_term = np.zeros_like(self.p)
         self.output = np.zeros_like(self.p)
+        self._clamps_output = bool(np.isfinite(self.u_min).any() or np.isfinite(self.u_max).any())
+        self._deadband = bool((self.error_deadband != 0.0).any())
 
     def reset(self) -> None:
         """Forget the integral and the previous output (activation, and entering a hold after
@@ -81,25 +83,31 @@ class Pid:
             # is the previous one.
             out: F64 = self.output.copy()
             return out
+        u: F64 = self.p * error + self.i_term + self.d * error_dot
+        if np.isfinite(u).all():
+            # Every input finite (a non-finite e or e_dot makes u non-finite, whatever the
+            # gains): the common case, without per-joint masks.
+            if self._clamps_output:
+                np.clip(u, self.u_min, self.u_max, out=u)
+            if self._deadband:
+                outside = np.abs(error) > self.error_deadband
+                self.i_term += np.where(outside, dt_s * self.i * error, 0.0)
+            else:
+                # |e| > 0: a zero error would add zero anyway.
+                self.i_term += dt_s * self.i * error
+            np.clip(self.i_term, -self.i_clamp, self.i_clamp, out=self.i_term)
+            self.output[:] = u
+            return u
         finite = np.isfinite(error) & np.isfinite(error_dot)
-        all_finite = bool(finite.all())
-        if all_finite:
-            e, e_dot = error, error_dot
-        else:
-            # A non-finite input gives NaN for that joint and leaves its state alone; the
-            # other joints are computed as usual (each joint has its own PID upstream).
-            e = np.where(finite, error, 0.0)
-            e_dot = np.where(finite, error_dot, 0.0)
-        u: F64 = self.p * e + self.i_term + self.d * e_dot
+        # A non-finite input gives NaN for that joint and leaves its state alone; the other
+        # joints are computed as usual (each joint has its own PID upstream).
+        e = np.where(finite, error, 0.0)
+        e_dot = np.where(finite, error_dot, 0.0)
+        u = self.p * e + self.i_term + self.d * e_dot
         np.clip(u, self.u_min, self.u_max, out=u)
-        integrate = np.abs(e) > self.error_deadband
-        if not all_finite:
-            integrate &= finite
+        integrate = finite & (np.abs(e) > self.error_deadband)
         self.i_term += np.where(integrate, dt_s * self.i * e, 0.0)
         np.clip(self.i_term, -self.i_clamp, self.i_clamp, out=self.i_term)
-        if all_finite:
-            self.output[:] = u
-        else:
-            self.output[finite] = u[finite]
-            u[~finite] = np.nan
+        self.output[finite] = u[finite]
+        u[~finite] = np.nan
         return u

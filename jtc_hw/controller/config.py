@@ -485,6 +485,35 @@ def _check_interfaces(command: tuple[str, ...], state: tuple[str, ...]) -> None:
         )
 
 
+def _check_command_joints(command_joints: tuple[str, ...], joints: tuple[str, ...]) -> None:
+    """Upstream's rule (jtc_upstream_behaviour.md sections 1 and 3): empty means ``joints``;
+    the same length maps by index (names may differ: a controller chain); shorter must be a
+    subset of ``joints`` (mapped by name); longer is an error.
+
+    Raises:
+        ConfigurationError: longer than ``joints``, or shorter and naming a joint that is not
+            in ``joints``.
+    """
+    if len(command_joints) > len(joints):
+        raise ConfigurationError(
+            f"has {len(command_joints)} names but joints has only {len(joints)}; list at most "
+            "one command joint per joint (or leave command_joints empty to command every joint)",
+            "command_joints",
+            command_joints,
+        )
+    if command_joints and len(command_joints) < len(joints):
+        unknown = [name for name in command_joints if name not in joints]
+        if unknown:
+            raise ConfigurationError(
+                f"names {fmt_list(unknown)}, which {'is' if len(unknown) == 1 else 'are'} not "
+                f"in joints ({', '.join(joints)}); with fewer command joints than joints, "
+                "command_joints must be a subset of joints (the other joints are monitored "
+                "only)" + did_you_mean(unknown[0], joints),
+                "command_joints",
+                unknown[0],
+            )
+
+
 def _check_key(key: Any, path: str) -> str:
     if not isinstance(key, str):
         raise ConfigurationError(
@@ -557,13 +586,7 @@ def _validate(cfg: ControllerConfig) -> None:
     for name, value in _checked_fields(cfg, PARAMETERS, "").items():
         put(name, value)
     joints = cfg.joints
-    if cfg.command_joints and len(cfg.command_joints) != len(joints):
-        raise ConfigurationError(
-            f"has {len(cfg.command_joints)} names but joints has {len(joints)}; give one "
-            "command joint per joint, or leave command_joints empty",
-            "command_joints",
-            cfg.command_joints,
-        )
+    _check_command_joints(cfg.command_joints, joints)
     _check_interfaces(cfg.command_interfaces, cfg.state_interfaces)
 
     constraints = cfg.constraints

@@ -68,6 +68,33 @@ DEACTIVATED = "Current goal cancelled during deactivate transition."
 SUCCEEDED = "Goal successfully reached!"
 
 
+class ControllerState(NamedTuple):
+    """The ``controller_state`` of one cycle (jtc_upstream_behaviour.md section 16).
+
+    Attributes:
+        time_ns: the cycle's time.
+        reference: the desired state at ``time_ns`` (upstream's ``reference``).
+        reference_time_from_start: seconds from the start of the trajectory being followed
+            (the command's start time, or when the current hold began) to ``time_ns``.
+        feedback: the measured state; velocities only with a velocity state interface,
+            accelerations only with an acceleration state interface (else ``None``).
+        feedback_time_from_start: as ``reference_time_from_start`` (equal: no speed scaling).
+        error: ``(3, n)`` desired minus measured position / velocity / acceleration.
+        output: what the command interfaces hold, read back with upstream's rule: refreshed
+            only in a cycle whose command is finite on every configured command interface of
+            every command joint, else the previous value is kept; ``None`` for an interface
+            that is not configured, ``NaN`` for joints that are not command joints.
+    """
+
+    time_ns: int
+    reference: TrajectorySample
+    reference_time_from_start: float
+    feedback: JointState
+    feedback_time_from_start: float
+    error: F64
+    output: JointCommand
+
+
 class UpdateResult(NamedTuple):
     """What one cycle produced.
 
@@ -77,12 +104,14 @@ class UpdateResult(NamedTuple):
             (including those caused by ``send_goal`` / ``cancel_goal`` since the last cycle).
         desired: the reference at ``now``.
         error: ``(3, n)`` desired minus measured position / velocity / acceleration.
+        state: the cycle's controller state (``controller_state`` topic).
     """
 
     command: JointCommand
     events: tuple[Event, ...]
     desired: TrajectorySample
     error: F64
+    state: ControllerState
 
 
 @dataclass
@@ -199,6 +228,18 @@ class Planner:
         return Plan(goal, new_ref, version, now_ns, start, tolerances, valid_from)
 
 
+def _command_mask(config: ControllerConfig) -> NDArray[np.bool_] | None:
+    """Which joints get commands: ``None`` for all of them (``command_joints`` empty, or as
+    many as ``joints``: mapped by index, the names may differ), else the joints that
+    ``command_joints`` names (a subset, mapped by name; the others are monitored only).
+    jtc_upstream_behaviour.md sections 1 and 12."""
+    command_joints = config.command_joints
+    if not command_joints or len(command_joints) == len(config.joints):
+        return None
+    named = set(command_joints)
+    return np.array([j in named for j in config.joints], dtype=bool)
+
+
 class JointTrajectoryController:
     """ROS 2 ``joint_trajectory_controller`` semantics, with time and state injected.
 
@@ -234,6 +275,8 @@ class JointTrajectoryController:
         self._use_pid = config.use_pid
         self._has_vel_state = "velocity" in config.state_interfaces
         self._has_acc_state = "acceleration" in config.state_interfaces
+        self._cmd_mask = _command_mask(config)
+        self._cmd_fields = (self._cmd_pos, self._cmd_vel, self._cmd_acc, self._cmd_eff)
         self._lookahead_ns = round(NS_PER_S / config.update_rate)
         self._feedback_ns = round(NS_PER_S / config.action_monitor_rate)
         self._cmd_timeout_ns = round(config.effective_cmd_timeout * NS_PER_S)
@@ -248,8 +291,12 @@ class JointTrajectoryController:
         self._events: list[Event] = []
         self._next_goal_id = 1
         self._last_command_positions = np.zeros(n)
+        self._last_command_velocities: F64 | None = None
+        self._last_command_accelerations: F64 | None = None
         self._nan = np.full(n, np.nan)
         self._nan.setflags(write=False)
+        self._output = self._nan_command()
+        self._ref_start_ns = 0
 
     # -- lifecycle ----------------------------------------------------------------------------
 
@@ -274,10 +321,16 @@ class JointTrajectoryController:
     ) -> None:
         """Start: hold the start state, with no jump.
 
-        The start position is the measured one, or -- when
-        ``set_last_command_interface_value_as_state_on_activation`` is true and ``last_command``
-        carries a finite position for every joint -- the last position command. Any trajectory
-        or goal from an earlier activation is gone; PID integrators start at zero.
+        The start state is the measured one, except -- when
+        ``set_last_command_interface_value_as_state_on_activation`` is true and every joint is
+        a command joint -- for each of position, velocity and acceleration whose command
+        interface is configured and whose ``last_command`` values are all finite: that field
+        is the last command (jtc_upstream_behaviour.md section 3 step 4; a single NaN, "no
+        value", makes that field the measured one). The hold is at the start positions with
+        zero velocity; the start state is also the last commanded state
+        (``last_commanded_state``) and ``last_command`` the first ``output`` of the
+        controller state. Any trajectory or goal from an earlier activation is gone; PID
+        integrators start at zero.
 
         Raises:
             ControllerStateError: already active.
@@ -286,23 +339,60 @@ class JointTrajectoryController:
         if self._active:
             raise ControllerStateError("activate: the controller is already active")
         positions = self._checked_positions(state)
-        start = positions.copy()
-        if (
-            self.config.set_last_command_interface_value_as_state_on_activation
-            and last_command is not None
-            and last_command.positions is not None
-            and self._cmd_pos
-            and last_command.positions.shape == (self._n,)
-            and bool(np.isfinite(last_command.positions).all())
-        ):
-            start = np.array(last_command.positions, dtype=np.float64)
+        seed = (
+            last_command
+            if self.config.set_last_command_interface_value_as_state_on_activation
+            and self._cmd_mask is None
+            else None
+        )
+        start = self._seeded(seed, "positions", self._cmd_pos, positions)
+        assert start is not None
+        velocities = self._seeded(
+            seed, "velocities", self._cmd_vel, state.velocities if self._has_vel_state else None
+        )
+        accelerations = self._seeded(
+            seed,
+            "accelerations",
+            self._cmd_acc,
+            state.accelerations if self._has_acc_state else None,
+        )
         self._set_reference(Trajectory.constant(now_ns, start))
         self._last_command_positions = start.copy()
+        self._last_command_velocities = velocities
+        self._last_command_accelerations = accelerations
+        self._output = self._nan_command()
+        if last_command is not None:
+            self._refresh_output(last_command)
         self._execution = None
         self._pending_stop = None
         self._pid.reset()
         self._commanding = self.config.start_with_holding
         self._active = True
+
+    def _seeded(
+        self, last_command: JointCommand | None, name: str, configured: bool, measured: F64 | None
+    ) -> F64 | None:
+        """One field of the activation state: the last command's if usable, else measured."""
+        values = getattr(last_command, name) if last_command is not None else None
+        if (
+            configured
+            and values is not None
+            and values.shape == (self._n,)
+            and bool(np.isfinite(values).all())
+        ):
+            return np.array(values, dtype=np.float64)
+        return None if measured is None else np.array(measured, dtype=np.float64)
+
+    @property
+    def last_commanded_state(self) -> JointState:
+        """Upstream's ``last_commanded_state``: the state last commanded (the look-ahead sample
+        of the last cycle, in every joint), or the activation state before the first cycle.
+        Velocities and accelerations are ``None`` where nothing gave them."""
+        return JointState(
+            self._last_command_positions,
+            self._last_command_velocities,
+            self._last_command_accelerations,
+        )
 
     def deactivate(
         self, now_ns: int, reason: str | None = None, *, abort: bool = False
@@ -444,7 +534,7 @@ class JointTrajectoryController:
             self._next_goal_id += 1
         else:
             self._preempt(PREEMPTED_BY_TOPIC, now_ns)
-        self._set_reference(plan.reference)
+        self._set_reference(plan.reference, plan.start_ns)
         self._execution = _Execution(handle, plan.tolerances, plan.start_ns, plan.reference.end_ns)
         self._commanding = True
         return None if handle is None else handle.goal_id
@@ -553,7 +643,20 @@ class JointTrajectoryController:
                 )
         command = self._control(now_ns, period_ns, desired, error)
         events, self._events = tuple(self._events), []
-        return UpdateResult(command, events, desired, error)
+        since_start = (now_ns - self._ref_start_ns) / NS_PER_S
+        feedback = state
+        if (state.velocities is not None and not self._has_vel_state) or (
+            state.accelerations is not None and not self._has_acc_state
+        ):
+            feedback = JointState(
+                positions,
+                state.velocities if self._has_vel_state else None,
+                state.accelerations if self._has_acc_state else None,
+            )
+        controller_state = ControllerState(
+            now_ns, desired, since_start, feedback, since_start, error, self._output
+        )
+        return UpdateResult(command, events, desired, error, controller_state)
 
     # -- internals ----------------------------------------------------------------------------
 
@@ -665,9 +768,43 @@ class JointTrajectoryController:
         self._set_reference(Trajectory.constant(now_ns, hold.copy()))
         self._pid.reset()
 
-    def _set_reference(self, reference: Trajectory) -> None:
+    def _set_reference(self, reference: Trajectory, start_ns: int | None = None) -> None:
+        """Follow ``reference`` from now on; ``start_ns``: its start time for the state's
+        ``time_from_start`` (default: its first breakpoint, the time a hold begins)."""
         self._ref = reference
+        self._ref_start_ns = reference.start_ns if start_ns is None else start_ns
         self._version += 1
+
+    def _nan_command(self) -> JointCommand:
+        nan = self._nan
+        return JointCommand(*(nan if on else None for on in self._cmd_fields))
+
+    def _refresh_output(self, command: JointCommand) -> None:
+        """Upstream's read-back rule for the state's ``output`` (section 16): take ``command``
+        only if every configured interface holds a finite value for every command joint.
+        Joints that are not command joints read NaN."""
+        mask = self._cmd_mask
+        fields = (command.positions, command.velocities, command.accelerations, command.effort)
+        exact = True  # ``command`` has exactly the configured fields, NaN off command joints
+        for on, values in zip(self._cmd_fields, fields, strict=True):
+            if not on:
+                exact = exact and values is None
+                continue
+            if values is None or values.shape != (self._n,):
+                return
+            if not np.isfinite(values if mask is None else values[mask]).all():
+                return
+            if mask is not None and not np.isnan(values[~mask]).all():
+                exact = False
+        if exact:
+            self._output = command
+            return
+        self._output = JointCommand(
+            *(
+                None if not on or f is None else f if mask is None else np.where(mask, f, np.nan)
+                for on, f in zip(self._cmd_fields, fields, strict=True)
+            )
+        )
 
     def _require_active_for_commands(self) -> None:
         if not self._active:
@@ -712,30 +849,38 @@ class JointTrajectoryController:
         self, now_ns: int, period_ns: int, desired: TrajectorySample, error: F64
     ) -> JointCommand:
         if not self._commanding:
-            nan = self._nan
-            return JointCommand(
-                nan if self._cmd_pos else None,
-                nan if self._cmd_vel else None,
-                nan if self._cmd_acc else None,
-                nan if self._cmd_eff else None,
-            )
+            return self._nan_command()
+        # Upstream (jtc_upstream_behaviour.md section 12): forwarded commands and the
+        # closed-loop feed-forward (velocity, and effort for effort-only) come from the sample
+        # one period ahead; the PID acts on the error at ``now`` (``desired``).
         ahead = self._ref.sample(now_ns + self._lookahead_ns)
         pid_out: F64 | None = None
         if self._use_pid:
-            pid_out = self._ff * desired.velocities + self._pid.compute(
+            pid_out = self._ff * ahead.velocities + self._pid.compute(
                 error[0], error[1], period_ns / NS_PER_S
             )
         position = velocity = acceleration = effort = None
         if self._cmd_pos:
             position = ahead.positions
-            self._last_command_positions = position
         if self._cmd_vel:
             velocity = pid_out if pid_out is not None else ahead.velocities
         if self._cmd_acc:
             acceleration = ahead.accelerations
         if self._cmd_eff:
             assert pid_out is not None
-            effort = pid_out + desired.effort
-        if not self._cmd_pos:
-            self._last_command_positions = ahead.positions
-        return JointCommand(position, velocity, acceleration, effort)
+            effort = pid_out + ahead.effort
+        # Upstream's last_commanded_state is the look-ahead sample in every joint (also the
+        # ones that are only monitored): open-loop holds start from it.
+        self._last_command_positions = ahead.positions
+        self._last_command_velocities = ahead.velocities
+        self._last_command_accelerations = ahead.accelerations
+        mask = self._cmd_mask
+        if mask is not None:
+            # Commands go to command joints only; NaN ("write nothing") for monitored joints.
+            position, velocity, acceleration, effort = (
+                None if f is None else np.where(mask, f, np.nan)
+                for f in (position, velocity, acceleration, effort)
+            )
+        command = JointCommand(position, velocity, acceleration, effort)
+        self._refresh_output(command)
+        return command

@@ -134,6 +134,15 @@ def _vector(a: Any) -> list[float | None] | None:
     return [float(x) if np.isfinite(x) else None for x in np.asarray(a, dtype=float)]
 
 
+def _command_json(command: JointCommand) -> dict[str, list[float | None] | None]:
+    """The configured interfaces of a command (NaN, "nothing", as null)."""
+    return {
+        name: _vector(getattr(command, name))
+        for name in ("positions", "velocities", "accelerations", "effort")
+        if getattr(command, name) is not None
+    }
+
+
 def check_position_limits(
     traj: JointTrajectory, limits: Mapping[str, tuple[float, float]]
 ) -> None:
@@ -445,8 +454,10 @@ class LoopBackend:
             self.exit_code = message[1]
 
     def _snapshot(self, raw: tuple[Any, ...]) -> dict[str, Any]:
-        t, desired, positions, velocities, error, command, holding, goal = raw
-        cmd: JointCommand = command
+        (
+            t, desired, positions, velocities, error, command, holding, goal,
+            reference_tfs, feedback_tfs, accelerations, output,
+        ) = raw
         return {
             "time_ns": t,
             "joint_names": list(self.joint_names),
@@ -455,18 +466,21 @@ class LoopBackend:
                 "velocities": _vector(desired[1]),
                 "accelerations": _vector(desired[2]),
                 "effort": _vector(desired[3]),
+                "time_from_start": reference_tfs,
             },
-            "actual": {"positions": _vector(positions), "velocities": _vector(velocities)},
+            "actual": {
+                "positions": _vector(positions),
+                "velocities": _vector(velocities),
+                "accelerations": _vector(accelerations),
+                "time_from_start": feedback_tfs,
+            },
             "error": {
                 "positions": _vector(error[0]),
                 "velocities": _vector(error[1]),
                 "accelerations": _vector(error[2]),
             },
-            "command": {
-                name: _vector(getattr(cmd, name))
-                for name in ("positions", "velocities", "accelerations", "effort")
-                if getattr(cmd, name) is not None
-            },
+            "command": _command_json(command),
+            "output": _command_json(output),
             "holding": holding,
             "active_goal": goal,
         }

@@ -306,17 +306,22 @@ class ControlLoop:
         self._send_events(out.events)
         if now_ns >= self._next_state_ns:
             self._next_state_ns = now_ns + self.state_every_ns
+            cs = out.state
             self.publish(
                 "state",
                 (
                     now_ns,
                     np.stack(out.desired),
                     state.positions,
-                    state.velocities,
+                    cs.feedback.velocities,
                     out.error,
                     out.command,
                     self.ctrl.holding,
                     self.ctrl.active_goal,
+                    cs.reference_time_from_start,
+                    cs.feedback_time_from_start,
+                    cs.feedback.accelerations,
+                    cs.output,
                 ),
             )
 

@@ -41,7 +41,7 @@ from typing import Any, Final
 from ..api.paths import SOCKET_NAME, default_socket_path
 from ..controller.config import ControllerConfig
 from ..controller.config_io import load_config
-from ..controller.parsing import describe, did_you_mean, read_source
+from ..controller.parsing import describe, did_you_mean, fmt_list, read_source
 from ..errors import ConfigurationError
 from ..hardware import (
     MIN_WATCHDOG_PERIODS,
@@ -461,7 +461,8 @@ def load_robot(
         ConfigurationError: anything :func:`~jtc_hw.controller.config_io.load_config` rejects; a
             ``hardware`` entry with an unknown or missing key, an unknown kind (the message
             lists the kinds), a joint that is not the controller's or is given twice, a
-            controller joint no component provides; a ``daemon`` key that is unknown, of the
+            controller joint no component provides; ``command_joints`` naming other joints
+            than ``joints`` (a controller chain); a ``daemon`` key that is unknown, of the
             wrong type or out of range, a TCP host that is not a loopback address, a token
             shorter than 16 characters. The message names the dotted key path.
         TypeError: ``source`` is neither a path nor a mapping.
@@ -474,9 +475,31 @@ def load_robot(
     else:
         source_path = os.path.abspath(os.fspath(source))
         base_dir = os.path.dirname(source_path)
+    _check_command_joints(controller)
     hardware = _parse_hardware(data.get("hardware"), controller)
     daemon = _parse_daemon(data.get("daemon"), base_dir)
     return RobotConfig(controller, hardware, daemon, source_path)
+
+
+def _check_command_joints(controller: ControllerConfig) -> None:
+    """The daemon drives its hardware joints directly: ``command_joints`` may leave some
+    joints monitored only (a subset), but not rename them.
+
+    Raises:
+        ConfigurationError: as many command joints as joints with other names (upstream maps
+            them by index onto another controller's interfaces in a chain, which the daemon
+            does not have).
+    """
+    command, joints = controller.command_joints, controller.joints
+    if len(command) == len(joints) and command != joints:
+        raise ConfigurationError(
+            f"{fmt_list(command)} names other joints than joints ({', '.join(joints)}); in "
+            "ros2_control that chains to another controller's interfaces, but the daemon "
+            "commands its hardware joints itself: leave command_joints empty, or list the "
+            "joints to command (a subset of joints; the others are only monitored)",
+            "command_joints",
+            command,
+        )
 
 
 def security_warnings(robot: RobotConfig) -> list[str]:

@@ -447,7 +447,10 @@ INVALID: list[tuple[dict[str, Any], str, list[str]]] = [
     ({"joints": []}, "joints", ["must not be empty"]),
     ({"command_interfaces": "{}"}, "command_interfaces", ["must not be empty"]),
     ({"state_interfaces": []}, "state_interfaces", ["must not be empty"]),
-    ({"command_joints": ["c1"]}, "command_joints", ["has 1 names but joints has 2"]),
+    ({"command_joints": ["c1"]}, "command_joints",
+     ["names [c1], which is not in joints (j1, j2)", "must be a subset of joints"]),
+    ({"command_joints": ["j1", "j2", "j3"]}, "command_joints",
+     ["has 3 names but joints has only 2"]),
     # allowed values
     ({"command_interfaces": ["positon"]}, "command_interfaces",
      ["'positon' is not an allowed interface type",

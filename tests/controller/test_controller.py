@@ -464,8 +464,9 @@ def test_pid_proportional() -> None:
 def test_pid_integral_accumulates_and_clamps() -> None:
     ctrl = pid_controller(i=2.0, i_clamp=0.05)
     outs = [ctrl.update(k * 10 * MS, 10 * MS, JointState([-0.1], [0.0])) for k in range(1, 6)]
-    # k_i * e * dt = 2 * 0.1 * 0.01 = 0.002 per cycle
-    assert [o.command.effort[0] for o in outs[:3]] == pytest.approx([0.002, 0.004, 0.006])
+    # k_i * e * dt = 2 * 0.1 * 0.01 = 0.002 per cycle, contributing from the next call on
+    # (control_toolbox: the integral lags one call)
+    assert [o.command.effort[0] for o in outs[:3]] == pytest.approx([0.0, 0.002, 0.004])
     for k in range(6, 100):
         out = ctrl.update(k * 10 * MS, 10 * MS, JointState([-0.1], [0.0]))
     assert out.command.effort[0] == pytest.approx(0.05)
@@ -495,8 +496,9 @@ def test_pid_velocity_feed_forward_and_effort_feed_forward() -> None:
     )
     t = 500 * MS
     d = ctrl.query_state(t)
+    ahead = ctrl.query_state(t + 10 * MS)  # feed-forward from the look-ahead sample
     out = ctrl.update(t, 10 * MS, JointState(d.positions, d.velocities))
-    assert out.command.effort[0] == pytest.approx(2.0 * d.velocities[0] + d.effort[0])
+    assert out.command.effort[0] == pytest.approx(2.0 * ahead.velocities[0] + ahead.effort[0])
 
 
 def test_velocity_only_uses_pid_and_stops_after_cancel() -> None:

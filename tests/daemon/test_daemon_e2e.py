@@ -65,6 +65,7 @@ STATE_KEYS = {
     "actual",
     "error",
     "command",
+    "output",
     "holding",
     "active_goal",
     "dropped",
@@ -393,11 +394,19 @@ def test_state_messages_and_query_state_of_a_future_goal(arm: DaemonProcess) -> 
         for state in states:
             assert set(state) == STATE_KEYS
             assert state["event"] == "state" and state["joint_names"] == JOINTS
-            assert set(state["desired"]) == {"positions", "velocities", "accelerations", "effort"}
-            assert set(state["actual"]) == {"positions", "velocities"}
+            assert set(state["desired"]) == {
+                "positions", "velocities", "accelerations", "effort", "time_from_start"
+            }
+            assert set(state["actual"]) == {
+                "positions", "velocities", "accelerations", "time_from_start"
+            }
             assert set(state["error"]) == {"positions", "velocities", "accelerations"}
             assert set(state["command"]) == {"positions"}  # the configured command interface
-            for group in ("desired", "actual", "error", "command"):
+            assert set(state["output"]) == {"positions"}
+            for group in ("desired", "actual"):
+                assert isinstance(state[group].pop("time_from_start"), float)
+            assert state["actual"].pop("accelerations") is None  # no acceleration state
+            for group in ("desired", "actual", "error", "command", "output"):
                 for values in state[group].values():
                     assert len(values) == 6 and all(isinstance(v, float) for v in values)
             assert isinstance(state["holding"], bool) and state["active_goal"] is None

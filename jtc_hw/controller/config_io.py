@@ -63,6 +63,7 @@ __all__ = [
     "load_config",
     "lookup_parameter",
     "parameter_names",
+    "parameters_report",
     "read_only_differences",
     "set_parameters",
 ]
@@ -399,6 +400,18 @@ class ParameterChange:
     effects: Mapping[str, Effect]
     warnings: tuple[str, ...] = ()
 
+    def to_json(self) -> dict[str, Any]:
+        """The ``set_parameters`` reply's fields (``docs/protocol.md``).
+
+        Raises:
+            Nothing.
+        """
+        return {
+            "parameters": dict(self.values),
+            "takes_effect": {name: effect.value for name, effect in self.effects.items()},
+            "warnings": list(self.warnings),
+        }
+
 
 def parameter_names(cfg: ControllerConfig) -> list[str]:
     """Every parameter's name, ROS style (``gains.<joint>.p``), in the schema's order."""
@@ -477,6 +490,22 @@ def get_parameters(cfg: ControllerConfig, names: Iterable[str] | None = None) ->
     params = config_to_dict(cfg)
     wanted = parameter_names(cfg) if names is None else list(names)
     return {name: _get(params, lookup_parameter(cfg, name)[0]) for name in wanted}
+
+
+def parameters_report(
+    cfg: ControllerConfig, names: Iterable[str] | None = None
+) -> dict[str, Any]:
+    """The ``get_parameters`` reply's fields: the values (:func:`get_parameters`) and which of
+    them are read-only.
+
+    Raises:
+        ConfigurationError: a name is not a parameter.
+    """
+    values = get_parameters(cfg, names)
+    return {
+        "parameters": values,
+        "read_only": [name for name in values if lookup_parameter(cfg, name)[1].read_only],
+    }
 
 
 def read_only_differences(old: ControllerConfig, new: ControllerConfig) -> list[str]:

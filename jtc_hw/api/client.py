@@ -415,6 +415,46 @@ class Client:
         """
         return dict(self._request("get_config", {}, timeout_s)["config"])
 
+    def get_parameters(
+        self, names: Sequence[str] | None = None, timeout_s: float | None = None
+    ) -> dict[str, Any]:
+        """Controller parameter values by ROS-style name (``gains.<joint>.p``): all of them,
+        or ``names``.
+
+        Returns:
+            The reply: ``parameters`` (name to value) and ``read_only`` (those of them that
+            cannot change while the daemon runs).
+
+        Raises:
+            RequestError: a name is not a parameter (``bad_request``, naming it).
+            TimeoutError: no reply within the timeout.
+            ClientConnectionError: the connection is lost.
+        """
+        fields: dict[str, Any] = {} if names is None else {"names": list(names)}
+        return self._request("get_parameters", fields, timeout_s)
+
+    def set_parameters(
+        self, changes: Mapping[str, Any], timeout_s: float | None = None
+    ) -> dict[str, Any]:
+        """Change controller parameters while the daemon runs, all or nothing, e.g.
+        ``client.set_parameters({"gains.j1.p": 12.0, "constraints.goal_time": 0.5})``.
+
+        Upstream's timing: gains from the next control cycle, default tolerances and the goal
+        checks from the next goal or trajectory (the running one keeps its own), ``cmd_timeout``
+        and the activation settings at the next activation.
+
+        Returns:
+            The reply: ``parameters`` (the new values), ``takes_effect`` (when, per name) and
+            ``warnings`` (settings the change made suspicious, as ``jtc-hw check`` says).
+
+        Raises:
+            RequestError: ``bad_request``: an unknown or read-only parameter, or a value the
+                configuration file would refuse (the same message); nothing changed.
+            TimeoutError: no reply within the timeout.
+            ClientConnectionError: the connection is lost.
+        """
+        return self._request("set_parameters", {"parameters": dict(changes)}, timeout_s)
+
     def sim(
         self,
         component: str,

@@ -60,6 +60,7 @@ __all__ = [
     "CancelGoal",
     "Decoder",
     "GetConfig",
+    "GetParameters",
     "GetStatus",
     "Hello",
     "MAX_NS",
@@ -70,6 +71,7 @@ __all__ = [
     "SendGoal",
     "MAX_JOINT_VALUE",
     "SendTrajectory",
+    "SetParameters",
     "Sim",
     "Stop",
     "SubscribeState",
@@ -279,6 +281,26 @@ class Rearm:
     id: RequestId = None
 
 
+@dataclass(frozen=True)
+class GetParameters:
+    """``get_parameters``: controller parameter values by ROS-style name (``names``: some of
+    them, ``None``: all)."""
+
+    op: ClassVar[str] = "get_parameters"
+    id: RequestId = None
+    names: tuple[str, ...] | None = None
+
+
+@dataclass(frozen=True)
+class SetParameters:
+    """``set_parameters``: change controller parameters while running (all or nothing); the
+    values are checked by the daemon as the configuration file's are."""
+
+    op: ClassVar[str] = "set_parameters"
+    id: RequestId = None
+    parameters: dict[str, Any] = field(default_factory=dict)
+
+
 Request = (
     Hello
     | Auth
@@ -293,6 +315,8 @@ Request = (
     | GetStatus
     | Sim
     | Rearm
+    | GetParameters
+    | SetParameters
 )
 
 _OP_FIELDS: dict[str, tuple[str, ...]] = {
@@ -309,6 +333,8 @@ _OP_FIELDS: dict[str, tuple[str, ...]] = {
     "get_status": (),
     "sim": ("component", "freeze", "fault"),
     "rearm": (),
+    "get_parameters": ("names",),
+    "set_parameters": ("parameters",),
 }
 OPS: tuple[str, ...] = tuple(_OP_FIELDS)
 """Every operation name, in documentation order."""
@@ -715,6 +741,23 @@ def parse_request(obj: Any) -> Request:
         if fault is None or f.has("freeze"):
             freeze = f.boolean("freeze", f.required("freeze", "true to freeze its feedback"))
         return Sim(rid, component, freeze, fault)
+    if op == "get_parameters":
+        if not f.has("names"):
+            return GetParameters(rid)
+        names = tuple(
+            f.string(f"names[{i}]", name) for i, name in enumerate(f.array("names", o["names"]))
+        )
+        if not names:
+            raise f.error("give at least one name, or leave 'names' out for all", "names")
+        return GetParameters(rid, names)
+    if op == "set_parameters":
+        changes = f.required("parameters", "new values by name, e.g. {\"gains.j1.p\": 10.0}")
+        if not isinstance(changes, dict) or not changes:
+            raise f.error(
+                f"expected a non-empty object of new values by name, got {_describe(changes)}",
+                "parameters",
+            )
+        return SetParameters(rid, dict(changes))
     simple: dict[str, type[Request]] = {
         "stop": Stop,
         "subscribe_state": SubscribeState,

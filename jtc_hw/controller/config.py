@@ -31,7 +31,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterable, Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from enum import Enum
 from types import MappingProxyType
 from typing import Any, Final
@@ -49,6 +49,7 @@ __all__ = [
     "Constraints",
     "DEFAULTS",
     "DEFAULT_CONTROLLER_NAME",
+    "Effect",
     "GAIN_PARAMETERS",
     "Gains",
     "JOINT_CONSTRAINT_PARAMETERS",
@@ -110,6 +111,19 @@ class Kind(Enum):
     STRING_ARRAY = "a list of strings"
 
 
+class Effect(Enum):
+    """When a parameter changed at runtime (``set_parameters``) takes effect: upstream's timing.
+
+    Upstream re-reads its parameters at the start of the next ``update``: gains apply from that
+    cycle, the default tolerances and the goal checks from the next command, and what it reads
+    only in ``on_activate`` (``cmd_timeout``, the activation seeding) from the next activation.
+    """
+
+    NEXT_CYCLE = "next cycle"
+    NEXT_COMMAND = "next goal or trajectory"
+    NEXT_ACTIVATION = "next activation"
+
+
 @dataclass(frozen=True)
 class Param:
     """One row of a schema table.
@@ -124,6 +138,9 @@ class Param:
         required: the parameter must be given (no usable default).
         unique: string array without duplicates.
         non_empty: string array that must have at least one element.
+        read_only: fixed once the controller is configured (upstream's ``read_only``, or read
+            only at configuration there); ``set_parameters`` refuses it.
+        effect: when a change at runtime takes effect (ignored when ``read_only``).
     """
 
     name: str
@@ -135,6 +152,8 @@ class Param:
     required: bool = False
     unique: bool = False
     non_empty: bool = False
+    read_only: bool = False
+    effect: Effect = Effect.NEXT_COMMAND
 
 
 def _table(*params: Param) -> Mapping[str, Param]:
@@ -142,38 +161,46 @@ def _table(*params: Param) -> Mapping[str, Param]:
 
 
 _F, _B, _S, _A = Kind.FLOAT, Kind.BOOL, Kind.STRING, Kind.STRING_ARRAY
+_CYCLE, _ACTIVATION = Effect.NEXT_CYCLE, Effect.NEXT_ACTIVATION
 
 PARAMETERS: Final[Mapping[str, Param]] = _table(
     Param("joints", _A, (), "joint names to control and listen to",
-          required=True, unique=True, non_empty=True),
+          required=True, unique=True, non_empty=True, read_only=True),
     Param("command_joints", _A, (),
           "joint names to control, if they differ from the state joints (controller chains)",
-          unique=True),
+          unique=True, read_only=True),
     Param("command_interfaces", _A, (), "command interfaces provided for all joints",
-          choices=COMMAND_INTERFACE_TYPES, required=True, unique=True, non_empty=True),
+          choices=COMMAND_INTERFACE_TYPES, required=True, unique=True, non_empty=True,
+          read_only=True),
     Param("state_interfaces", _A, (), "state interfaces provided for all joints",
-          choices=STATE_INTERFACE_TYPES, required=True, unique=True, non_empty=True),
+          choices=STATE_INTERFACE_TYPES, required=True, unique=True, non_empty=True,
+          read_only=True),
     Param("allow_partial_joints_goal", _B, False,
           "allow goals defining a trajectory for only some joints"),
     Param("open_loop_control", _B, False,
-          "use the last commands instead of the states as the start of new trajectories"),
+          "use the last commands instead of the states as the start of new trajectories",
+          read_only=True),
     Param("allow_integration_in_goal_trajectories", _B, False,
           "accept goals without positions (or velocities) and integrate them"),
     Param("state_publish_rate", _F, 50.0, "rate the controller state is published, Hz",
-          minimum=0.1),
+          minimum=0.1, effect=_CYCLE),
     Param("set_last_command_interface_value_as_state_on_activation", _B, True,
-          "on activation, use the last command interface values as current and commanded state"),
-    Param("action_monitor_rate", _F, 20.0, "rate action goals are monitored, Hz", minimum=0.1),
+          "on activation, use the last command interface values as current and commanded state",
+          effect=_ACTIVATION),
+    Param("action_monitor_rate", _F, 20.0, "rate action goals are monitored, Hz", minimum=0.1,
+          read_only=True),
     Param("interpolation_method", _S, "splines", "type of interpolation, if any",
-          choices=("splines", "none")),
+          choices=("splines", "none"), read_only=True),
     Param("allow_nonzero_velocity_at_trajectory_end", _B, True,
           "if false, goals whose last point has a non-zero velocity are rejected"),
     Param("cmd_timeout", _F, 0.0,
-          "seconds after the last point after which the command is stale (0: off)", minimum=0.0),
+          "seconds after the last point after which the command is stale (0: off)", minimum=0.0,
+          effect=_ACTIVATION),
     Param("start_with_holding", _B, True,
-          "hold the position after activation (otherwise command nothing until a trajectory)"),
+          "hold the position after activation (otherwise command nothing until a trajectory)",
+          effect=_ACTIVATION),
     Param("update_rate", _F, 100.0, "control loop rate, Hz (the controller manager's setting)",
-          minimum=0.1),
+          minimum=0.1, read_only=True),
 )
 """Top-level controller parameters (``constraints`` and ``gains`` are sections, below)."""
 
@@ -194,14 +221,17 @@ JOINT_CONSTRAINT_PARAMETERS: Final[Mapping[str, Param]] = _table(
 """``constraints.<joint>.*`` parameters."""
 
 GAIN_PARAMETERS: Final[Mapping[str, Param]] = _table(
-    Param("p", _F, 0.0, "proportional gain"),
-    Param("i", _F, 0.0, "integral gain"),
-    Param("d", _F, 0.0, "derivative gain"),
-    Param("i_clamp", _F, 0.0, "symmetric integral clamp", minimum=0.0),
-    Param("ff_velocity_scale", _F, 0.0, "velocity feed-forward scale"),
-    Param("normalize_error", _B, False, "(deprecated) normalise the position error to [-pi, pi]"),
+    Param("p", _F, 0.0, "proportional gain", effect=_CYCLE),
+    Param("i", _F, 0.0, "integral gain", effect=_CYCLE),
+    Param("d", _F, 0.0, "derivative gain", effect=_CYCLE),
+    Param("i_clamp", _F, 0.0, "symmetric integral clamp", minimum=0.0, effect=_CYCLE),
+    Param("ff_velocity_scale", _F, 0.0, "velocity feed-forward scale", effect=_CYCLE),
+    # Whether a joint wraps is fixed at configuration upstream (read from the URDF at init;
+    # these flags, where they exist, at configure): splices and errors depend on it.
+    Param("normalize_error", _B, False, "(deprecated) normalise the position error to [-pi, pi]",
+          read_only=True),
     Param("angle_wraparound", _B, False,
-          "continuous joint: normalise the position error to [-pi, pi]"),
+          "continuous joint: normalise the position error to [-pi, pi]", read_only=True),
 )
 """``gains.<joint>.*`` parameters."""
 
@@ -282,6 +312,9 @@ class Constraints:
         if isinstance(self.joints, Mapping) and not isinstance(self.joints, MappingProxyType):
             object.__setattr__(self, "joints", MappingProxyType(dict(self.joints)))
 
+    def __reduce__(self) -> tuple[Any, ...]:
+        return _reduce(self)
+
 
 @dataclass(frozen=True)
 class Gains:
@@ -341,6 +374,12 @@ class ControllerConfig:
     def __post_init__(self) -> None:
         _validate(self)
 
+    def __reduce__(self) -> tuple[Any, ...]:
+        # Pickled as its checked fields and restored without checking again: the daemon's
+        # API process validates a runtime change once and hands the result to the loop
+        # process, where a full check would cost milliseconds of a cycle's spare time.
+        return _reduce(self)
+
     def has_command(self, iface: str) -> bool:
         """Whether ``iface`` is one of the command interfaces."""
         return iface in self.command_interfaces
@@ -367,6 +406,25 @@ class ControllerConfig:
     def wraparound(self) -> tuple[bool, ...]:
         """Per joint (in ``joints`` order): whether its position error wraps to [-pi, pi]."""
         return tuple(self.gains[j].wraps for j in self.joints)
+
+
+def _reduce(obj: Any) -> tuple[Any, ...]:
+    """``__reduce__`` of a frozen config dataclass holding read-only mappings (not picklable)."""
+    state = {
+        f.name: dict(value) if isinstance(value := getattr(obj, f.name), Mapping) else value
+        for f in fields(obj)
+    }
+    return (_restore, (type(obj), state))
+
+
+def _restore(cls: type[Any], state: dict[str, Any]) -> Any:
+    """Rebuild what :func:`_reduce` took apart (its values were checked when it was made)."""
+    obj = object.__new__(cls)
+    for name, value in state.items():
+        if isinstance(value, dict):
+            value = MappingProxyType(value)
+        object.__setattr__(obj, name, value)
+    return obj
 
 
 # --------------------------------------------------------------------------------------------

@@ -5,12 +5,19 @@ controller found by name or by type, or a plain mapping; see :mod:`jtc_hw.contro
 and returns a checked, immutable :class:`~jtc_hw.controller.config.ControllerConfig`;
 :func:`config_to_dict` gives back plain data that it reads again, and :func:`explain` the
 human summary that ``jtc-hw check`` prints.
+
+Runtime parameters: :func:`get_parameters` and :func:`set_parameters` name parameters as ROS
+does (``cmd_timeout``, ``constraints.goal_time``, ``constraints.<joint>.goal``,
+``gains.<joint>.p``). A change is checked by building the whole configuration again from the
+current one with the new values, through the same parser as a configuration file, so a bad
+value gives the file's message; read-only parameters (the schema's ``read_only``) are refused.
 """
 
 from __future__ import annotations
 
 import os
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass
 from typing import Any
 
 from ..errors import ConfigurationError
@@ -28,8 +35,10 @@ from .config import (
     ROS_PARAMETERS,
     Constraints,
     ControllerConfig,
+    Effect,
     Gains,
     JointConstraints,
+    Param,
     _check_key,
     _check_keys,
     _coerce,
@@ -46,7 +55,18 @@ from .parsing import (
     read_source,
 )
 
-__all__ = ["config_to_dict", "explain", "load_config"]
+__all__ = [
+    "ParameterChange",
+    "config_to_dict",
+    "explain",
+    "get_parameters",
+    "load_config",
+    "lookup_parameter",
+    "parameter_names",
+    "parameters_report",
+    "read_only_differences",
+    "set_parameters",
+]
 
 # Loading
 # --------------------------------------------------------------------------------------------
@@ -352,3 +372,214 @@ def explain(cfg: ControllerConfig) -> list[str]:
                 f"{joint!r} is always 0"
             )
     return warnings
+
+
+# --------------------------------------------------------------------------------------------
+# Runtime parameters
+# --------------------------------------------------------------------------------------------
+
+_SECTION_TABLES: dict[str, Mapping[str, Param]] = {
+    "constraints": JOINT_CONSTRAINT_PARAMETERS,
+    "gains": GAIN_PARAMETERS,
+}
+
+
+@dataclass(frozen=True)
+class ParameterChange:
+    """A checked runtime change (what :func:`set_parameters` returns).
+
+    Attributes:
+        config: the configuration with the change applied.
+        values: each changed parameter's new value, as :func:`get_parameters` gives it.
+        effects: when each changed parameter takes effect.
+        warnings: :func:`explain` findings the change introduced.
+    """
+
+    config: ControllerConfig
+    values: Mapping[str, Any]
+    effects: Mapping[str, Effect]
+    warnings: tuple[str, ...] = ()
+
+    def to_json(self) -> dict[str, Any]:
+        """The ``set_parameters`` reply's fields (``docs/protocol.md``).
+
+        Raises:
+            Nothing.
+        """
+        return {
+            "parameters": dict(self.values),
+            "takes_effect": {name: effect.value for name, effect in self.effects.items()},
+            "warnings": list(self.warnings),
+        }
+
+
+def parameter_names(cfg: ControllerConfig) -> list[str]:
+    """Every parameter's name, ROS style (``gains.<joint>.p``), in the schema's order."""
+    return [
+        *PARAMETERS,
+        *(f"constraints.{name}" for name in CONSTRAINT_PARAMETERS),
+        *(
+            f"{section}.{joint}.{name}"
+            for section, table in _SECTION_TABLES.items()
+            for joint in cfg.joints
+            for name in table
+        ),
+    ]
+
+
+def lookup_parameter(cfg: ControllerConfig, name: Any) -> tuple[tuple[str, ...], Param]:
+    """Where parameter ``name`` sits in :func:`config_to_dict`'s mapping, and its schema row.
+
+    Raises:
+        ConfigurationError: not a parameter of ``cfg``; the message says what is close or
+            which joints exist, as for a configuration file.
+    """
+    if not isinstance(name, str):
+        raise ConfigurationError(
+            f"parameter names are strings such as 'gains.<joint>.p', got {describe(name)}",
+            "",
+            name,
+        )
+    if name in PARAMETERS:
+        return (name,), PARAMETERS[name]
+    section, _, rest = name.partition(".")
+    if section not in _SECTION_TABLES:
+        raise _unknown_parameter(name, [*PARAMETERS, *_SECTIONS])
+    if not rest:
+        example = "goal_time" if section == "constraints" else f"{cfg.joints[0]}.p"
+        raise ConfigurationError(
+            f"is a section, not a parameter; name one of its parameters, e.g. "
+            f"'{section}.{example}'",
+            section,
+            name,
+        )
+    if section == "constraints" and rest in CONSTRAINT_PARAMETERS:
+        return (section, rest), CONSTRAINT_PARAMETERS[rest]
+    joint, dot, field = rest.rpartition(".")  # joint names may contain dots
+    table = _SECTION_TABLES[section]
+    others = tuple(CONSTRAINT_PARAMETERS) if section == "constraints" else ()
+    if not dot:
+        if rest in cfg.joints:
+            raise ConfigurationError(
+                f"is a joint's entry, not a parameter; name one of its parameters: "
+                f"{', '.join(f'{name}.{p}' for p in table)}",
+                name,
+                name,
+            )
+        raise _not_a_joint(rest, section, cfg.joints, others)
+    if joint not in cfg.joints:
+        raise _not_a_joint(joint, section, cfg.joints, others)
+    if field not in table:
+        raise _unknown_parameter(field, table, f"{section}.{joint}")
+    return (section, joint, field), table[field]
+
+
+def _get(params: Mapping[str, Any], path: tuple[str, ...]) -> Any:
+    value: Any = params
+    for key in path:
+        value = value[key]
+    return value
+
+
+def get_parameters(cfg: ControllerConfig, names: Iterable[str] | None = None) -> dict[str, Any]:
+    """Parameter values by ROS-style name (all of them, or ``names`` in their order).
+
+    Raises:
+        ConfigurationError: a name is not a parameter (see :func:`lookup_parameter`).
+    """
+    params = config_to_dict(cfg)
+    wanted = parameter_names(cfg) if names is None else list(names)
+    return {name: _get(params, lookup_parameter(cfg, name)[0]) for name in wanted}
+
+
+def parameters_report(
+    cfg: ControllerConfig, names: Iterable[str] | None = None
+) -> dict[str, Any]:
+    """The ``get_parameters`` reply's fields: the values (:func:`get_parameters`) and which of
+    them are read-only.
+
+    Raises:
+        ConfigurationError: a name is not a parameter.
+    """
+    values = get_parameters(cfg, names)
+    return {
+        "parameters": values,
+        "read_only": [name for name in values if lookup_parameter(cfg, name)[1].read_only],
+    }
+
+
+def read_only_differences(old: ControllerConfig, new: ControllerConfig) -> list[str]:
+    """The read-only parameters whose values differ between ``old`` and ``new``.
+
+    Cheap (no full comparison): the control loop calls it before switching configurations.
+    """
+    names = [
+        name for name, p in PARAMETERS.items()
+        if p.read_only and getattr(old, name) != getattr(new, name)
+    ]
+    if old.name != new.name:
+        names.append("name")
+    if names:  # a different joint list: the per-joint entries are moot
+        return names
+    for section, table in _SECTION_TABLES.items():
+        fixed = [name for name, p in table.items() if p.read_only]
+        if not fixed:
+            continue
+        entries = old.constraints.joints if section == "constraints" else old.gains
+        others = new.constraints.joints if section == "constraints" else new.gains
+        for joint in old.joints:
+            names.extend(
+                f"{section}.{joint}.{name}"
+                for name in fixed
+                if getattr(entries[joint], name) != getattr(others[joint], name)
+            )
+    return names
+
+
+def set_parameters(cfg: ControllerConfig, changes: Mapping[str, Any]) -> ParameterChange:
+    """Check a runtime change of parameters and return the configuration with it applied.
+
+    All or nothing: the names are looked up, read-only ones refused, then the configuration is
+    built again from ``cfg`` with the new values by the configuration file's parser.
+
+    Args:
+        cfg: the configuration in effect.
+        changes: new values by ROS-style name (``{"gains.j1.p": 10.0}``), as YAML or JSON
+            would give them.
+
+    Returns:
+        The new configuration, the changed values and when each takes effect.
+
+    Raises:
+        ConfigurationError: nothing to change, an unknown name, read-only parameters (all of
+            them named), or a value the configuration file would refuse (the same message).
+    """
+    if not isinstance(changes, Mapping) or not changes:
+        raise ConfigurationError(
+            "give at least one parameter and its new value, e.g. {'gains.<joint>.p': 10.0}",
+            "",
+            changes,
+        )
+    found = {name: lookup_parameter(cfg, name) for name in changes}
+    fixed = [name for name, (_, param) in found.items() if param.read_only]
+    if fixed:
+        refusal = ConfigurationError(
+            f"read-only parameter{'s' if len(fixed) > 1 else ''} {', '.join(fixed)} cannot be "
+            "changed while the controller runs (upstream declares them read-only, or reads "
+            "them only when it is configured); change the configuration file and restart the "
+            "daemon"
+        )
+        refusal.path, refusal.value = fixed[0], changes[fixed[0]]
+        raise refusal
+    params = config_to_dict(cfg)
+    for name, value in changes.items():
+        *parents, key = found[name][0]
+        _get(params, tuple(parents))[key] = value
+    new = _build(cfg.name, params, None)
+    before = set(explain(cfg))
+    return ParameterChange(
+        new,
+        get_parameters(new, changes),
+        {name: param.effect for name, (_, param) in found.items()},
+        tuple(w for w in explain(new) if w not in before),
+    )

@@ -26,15 +26,22 @@ One ``update(now, period, state)``:
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
 
-from ..errors import ControllerStateError, GoalRejected, HardwareError, StalePlan
+from ..errors import (
+    ConfigurationError,
+    ControllerStateError,
+    GoalRejected,
+    HardwareError,
+    StalePlan,
+)
 from .config import ControllerConfig
+from .config_io import ParameterChange, get_parameters, read_only_differences, set_parameters
 from .goals import (
     ErrorCode,
     Event,
@@ -367,6 +374,8 @@ class JointTrajectoryController:
         self._pending_stop = None
         self._pid.reset()
         self._commanding = self.config.start_with_holding
+        # Upstream resolves cmd_timeout in on_activate only: a runtime change waits for it.
+        self._cmd_timeout_ns = round(self.config.effective_cmd_timeout * NS_PER_S)
         self._active = True
 
     def _seeded(
@@ -598,6 +607,59 @@ class JointTrajectoryController:
         """The trajectory being followed (immutable)."""
         return self._ref
 
+    # -- runtime parameters -------------------------------------------------------------------
+
+    def get_parameters(self, names: Iterable[str] | None = None) -> dict[str, Any]:
+        """Parameter values by ROS-style name (``gains.<joint>.p``): all, or ``names``.
+
+        Raises:
+            ConfigurationError: a name is not a parameter of this controller.
+        """
+        return get_parameters(self.config, names)
+
+    def set_parameters(self, changes: Mapping[str, Any]) -> ParameterChange:
+        """Change parameters while running, with upstream's timing (``ParameterChange.effects``):
+        gains from the next ``update``; default tolerances, ``goal_time`` and the goal checks
+        (``allow_*``) from the next command, the running one keeping its own; ``cmd_timeout``
+        and the activation settings at the next ``activate``.
+
+        Example::
+
+            ctrl.set_parameters({"gains.j1.p": 12.0, "constraints.goal_time": 0.5})
+
+        Raises:
+            ConfigurationError: an unknown or read-only parameter, or a value the
+                configuration file would refuse (the same message); nothing changed.
+        """
+        change = set_parameters(self.config, changes)
+        self.apply_parameters(change.config)
+        return change
+
+    def apply_parameters(self, config: ControllerConfig) -> None:
+        """Switch to ``config``, a checked configuration differing from the current one only in
+        parameters that may change at runtime (``set_parameters`` made elsewhere, e.g. by the
+        daemon's API process); same timing as ``set_parameters``.
+
+        Raises:
+            ConfigurationError: ``config`` changes read-only parameters (named); nothing changed.
+        """
+        fixed = read_only_differences(self.config, config)
+        if fixed:
+            raise ConfigurationError(
+                f"read-only parameters differ: {', '.join(fixed)}; they cannot change while "
+                "the controller runs"
+            )
+        self.config = config
+        self._planner = Planner(config)  # defaults and checks for the next command
+        gains = [config.gains[j] for j in self.joint_names]
+        self._pid.set_gains(
+            np.array([g.p for g in gains]),
+            np.array([g.i for g in gains]),
+            np.array([g.d for g in gains]),
+            np.array([g.i_clamp for g in gains]),
+        )
+        self._ff = np.array([g.ff_velocity_scale for g in gains])
+
     # -- the cycle ----------------------------------------------------------------------------
 
     def update(self, now_ns: int, period_ns: int, state: JointState) -> UpdateResult:
@@ -724,8 +786,8 @@ class JointTrajectoryController:
                 GoalTransition.ABORT,
                 ErrorCode.GOAL_TOLERANCE_VIOLATED,
                 f"Aborted due to command timeout: {late_ns / NS_PER_S:.6f} s past the last "
-                f"point (cmd_timeout {self.config.cmd_timeout} s) and still outside the goal "
-                "tolerance: " + self._describe(error, tol.goal, outside),
+                f"point (cmd_timeout {self._cmd_timeout_ns / NS_PER_S:g} s) and still outside "
+                "the goal tolerance: " + self._describe(error, tol.goal, outside),
                 True,
             )
         return None

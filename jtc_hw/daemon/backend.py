@@ -45,7 +45,12 @@ from typing import Any, Protocol
 import numpy as np
 
 from ..controller.config import ControllerConfig
-from ..controller.config_io import config_to_dict
+from ..controller.config_io import (
+    ParameterChange,
+    config_to_dict,
+    parameters_report,
+    set_parameters,
+)
 from ..controller.controller import Plan, Planner
 from ..controller.goals import (
     ErrorCode,
@@ -213,6 +218,7 @@ class LoopBackend:
         self._conn: Connection | None = None
         self._process: multiprocessing.process.BaseProcess | None = None
         self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="jtc-hw-plan")
+        self._parameters_lock = asyncio.Lock()  # one change at a time, each from the last
         self._period_ns = round(1e9 / self.config.update_rate)
         self._margin_ns = max(5_000_000, 3 * self._period_ns)
         self._bytes_per_cycle = 1 << 18  # what the loop reads of a plan per cycle (start())
@@ -633,6 +639,39 @@ class LoopBackend:
             False if there was nothing to re-arm (no fault, the controller is running).
         """
         return bool(await self._request("rearm", {}))
+
+    def get_parameters(self, names: Sequence[str] | None) -> dict[str, Any]:
+        """Controller parameters in effect (``config_io.parameters_report``).
+
+        Raises:
+            ConfigurationError: a name is not a parameter.
+        """
+        return parameters_report(self.config, names)
+
+    async def set_parameters(self, changes: Mapping[str, Any]) -> ParameterChange:
+        """Check a change here, once (the configuration file's parser, in the planning
+        thread), have the loop's controller switch to the result, then plan with it too.
+
+        The loop gains the checked configuration itself (no second check in its process) and
+        applies upstream's timing; goals planned after this returns get the new defaults and
+        checks. Changes are serialised, each made from the configuration the previous left.
+
+        Raises:
+            ConfigurationError: an unknown or read-only parameter or a bad value; nothing
+                changed.
+            ControllerStateError: the control loop is not running.
+            HardwareError: the control loop did not answer (it may or may not have applied
+                the change; ``get_parameters`` shows the API process's copy, unchanged).
+        """
+        async with self._parameters_lock:
+            aio = asyncio.get_running_loop()
+            change: ParameterChange = await aio.run_in_executor(
+                self._executor, set_parameters, self.config, dict(changes)
+            )
+            await self._request("set_parameters", {"config": change.config})
+            self.config = change.config
+            self._planner = Planner(change.config)
+            return change
 
     async def sim(self, component: str, freeze: bool | None, fault: str | None = None) -> None:
         """Freeze or release a simulated component's feedback; returns once the loop did.

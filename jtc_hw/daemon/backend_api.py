@@ -7,9 +7,10 @@ control loop in its own process) and in tests by a small controller host; the se
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from typing import Any, Protocol
 
+from ..controller.config_io import ParameterChange
 from ..controller.goals import GoalFeedback, GoalResult
 from ..controller.tolerances import JointTolerance
 from ..controller.trajectory import JointTrajectory, TrajectorySample
@@ -146,6 +147,26 @@ class Backend(Protocol):
 
         Raises:
             HardwareError: re-arming failed (the controller stays stopped).
+        """
+        ...
+
+    def get_parameters(self, names: Sequence[str] | None) -> dict[str, Any]:
+        """Controller parameters in effect: ``{"parameters": {name: value}, "read_only":
+        [name, ...]}`` (``config_io.parameters_report``), all or ``names``.
+
+        Raises:
+            ConfigurationError: a name is not a parameter.
+        """
+        ...
+
+    async def set_parameters(self, changes: Mapping[str, Any]) -> ParameterChange:
+        """Check a change of controller parameters, have the control loop apply it, and
+        return once it has (``config_dict`` and ``hello`` then show it).
+
+        Raises:
+            ConfigurationError: an unknown or read-only parameter, or a bad value (the
+                configuration file's message); nothing changed.
+            HardwareError: the control loop did not answer.
         """
         ...
 

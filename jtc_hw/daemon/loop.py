@@ -7,7 +7,9 @@ serving clients) never shares an interpreter lock with it. It talks to the API p
 one duplex ``multiprocessing`` connection:
 
 - in (records of ``pipe.PlanWriter``, a plan's arrays out of band in chunks):
-  ``("commit", plan_id, Plan)``, ``("request", request_id, op, args)``;
+  ``("commit", plan_id, Plan)``, ``("request", request_id, op, args)`` (ops: ``cancel``,
+  ``stop``, ``sim``, ``rearm``, ``set_parameters`` with a configuration the API process
+  checked, ``shutdown``);
 - out: ``("ready", info)``, ``("reference", version, trajectory_or_None, plan_id_or_None)``,
   ``("committed", plan_id, goal_id)``, ``("stale", plan_id, reason)``, ``("events", [...])``,
   ``("state", snapshot)``, ``("status", dict)``, ``("reply", request_id, ok, value)``,
@@ -262,6 +264,14 @@ class ControlLoop:
                 component.set_frozen(bool(args["freeze"]))
             if args.get("fault"):
                 component.inject_fault(str(args["fault"]))
+            return True
+        if op == "set_parameters":
+            # Checked by the API process; the controller refuses read-only differences.
+            config = args["config"]
+            self.ctrl.apply_parameters(config)
+            self.config = config
+            self.state_every_ns = round(1e9 / config.state_publish_rate)
+            self._next_state_ns = min(self._next_state_ns, now_ns + self.state_every_ns)
             return True
         if op == "rearm":
             done = self._rearm(now_ns)

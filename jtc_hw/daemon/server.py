@@ -73,6 +73,7 @@ from ..api.protocol import (
     CancelGoal,
     Decoder,
     GetConfig,
+    GetParameters,
     GetStatus,
     Hello,
     QueryState,
@@ -80,6 +81,7 @@ from ..api.protocol import (
     Request,
     SendGoal,
     SendTrajectory,
+    SetParameters,
     Sim,
     Stop,
     SubscribeState,
@@ -739,6 +741,16 @@ class Server:
                 if req.fault is not None:
                     return reply(req.id, component=req.component, fault=req.fault)
                 return reply(req.id, component=req.component, frozen=req.freeze)
+            case GetParameters():
+                return self._merge(req.id, backend.get_parameters(req.names), {})
+            case SetParameters():
+                change = await backend.set_parameters(req.parameters)
+                log.info(
+                    "%s: parameters changed: %s",
+                    conn.label,
+                    ", ".join(f"{k}={v!r}" for k, v in change.values.items()),
+                )
+                return self._merge(req.id, change.to_json(), {})
             case Rearm():
                 done = await backend.rearm()
                 if not done:

@@ -9,13 +9,13 @@ from __future__ import annotations
 
 import asyncio
 import threading
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any, TypeVar
 
 import numpy as np
 
 from jtc_hw import GoalFeedback, GoalResult, JointTrajectoryController, TrajectorySample
-from jtc_hw.controller.config_io import config_to_dict
+from jtc_hw.controller.config_io import ParameterChange, config_to_dict, parameters_report
 from jtc_hw.controller.tolerances import JointTolerance
 from jtc_hw.controller.trajectory import JointTrajectory
 from jtc_hw.daemon.server import BackendListener, Server, ServerSettings
@@ -118,6 +118,15 @@ class FakeBackend:
 
     async def rearm(self) -> bool:
         return False
+
+    def get_parameters(self, names: Sequence[str] | None) -> dict[str, Any]:
+        return parameters_report(self.ctrl.config, names)
+
+    async def set_parameters(self, changes: Mapping[str, Any]) -> ParameterChange:
+        await asyncio.sleep(0)  # the real backend waits for the loop process here
+        change = self.ctrl.set_parameters(changes)
+        self.config = change.config
+        return change
 
     async def sim(self, component: str, freeze: bool | None, fault: str | None = None) -> None:
         if component != "mirror":

@@ -245,7 +245,40 @@ class Fuzzer:
                 fields["fault"] = r.choice(["test fault", "", " ", "\u00e9t\u00e9", "x" * 200])
             elif roll < 0.8:
                 fields["fault"], fields["freeze"] = "test fault", False
+        elif op == "get_parameters":
+            if r.random() < 0.6:
+                fields["names"] = r.choice([
+                    [self.parameter_name()],
+                    [self.parameter_name() for _ in range(r.randrange(4))],
+                    self.any_value(),
+                ])
+        elif op == "set_parameters":
+            roll = r.random()
+            if roll < 0.9:
+                fields["parameters"] = {
+                    self.parameter_name(): self.parameter_value() for _ in range(r.randrange(4))
+                }
+            elif roll < 0.95:
+                fields["parameters"] = self.any_value()
         return {"op": op, **fields}
+
+    def parameter_name(self) -> Any:
+        r = self.random
+        joint = r.choice(self.joints + EDGE_STRINGS[:6])
+        return r.choice([
+            "cmd_timeout", "constraints.goal_time", "constraints.stopped_velocity_tolerance",
+            f"constraints.{joint}.goal", f"constraints.{joint}.trajectory",
+            f"gains.{joint}.p", f"gains.{joint}.i_clamp", "allow_partial_joints_goal",
+            "state_publish_rate", "joints", "update_rate", "interpolation_method",
+            "gains", f"gains.{joint}", "constraints.", r.choice(EDGE_STRINGS),
+        ])
+
+    def parameter_value(self) -> Any:
+        r = self.random
+        roll = r.random()
+        if roll < 0.6:  # mostly loose tolerances and small values: goals keep succeeding
+            return r.choice([0.0, 0.5, 1.0, 2.0, 10.0, True, False])
+        return self.any_value()
 
     def mutate(self, obj: dict[str, Any]) -> dict[str, Any]:
         """Wrong structure: a field dropped, added, or given an arbitrary value."""
@@ -256,7 +289,8 @@ class Fuzzer:
         if roll < 0.3 and keys:
             obj.pop(r.choice(keys))
         elif roll < 0.5:
-            obj[r.choice(["x", "ops", "trajectory", "goal_id", "in", "token", "freeze"])] = (
+            obj[r.choice(["x", "ops", "trajectory", "goal_id", "in", "token", "freeze",
+                          "names", "parameters"])] = (
                 self.any_value()
             )
         elif keys:

@@ -234,6 +234,11 @@ class JointTrajectoryController:
         self._use_pid = config.use_pid
         self._has_vel_state = "velocity" in config.state_interfaces
         self._has_acc_state = "acceleration" in config.state_interfaces
+        # Which errors exist (upstream 8.4): a velocity error only where velocity is commanded
+        # (velocity or effort), an acceleration error only where acceleration is; otherwise 0,
+        # so e.g. stopped_velocity_tolerance never blocks a position-commanded goal.
+        self._vel_error = self._has_vel_state and (self._cmd_vel or self._cmd_eff)
+        self._acc_error = self._has_acc_state and self._cmd_acc
         self._lookahead_ns = round(NS_PER_S / config.update_rate)
         self._feedback_ns = round(NS_PER_S / config.action_monitor_rate)
         self._cmd_timeout_ns = round(config.effective_cmd_timeout * NS_PER_S)
@@ -582,9 +587,9 @@ class JointTrajectoryController:
             )
         else:
             error[0] = desired.positions - positions
-        if self._has_vel_state and state.velocities is not None:
+        if self._vel_error and state.velocities is not None:
             error[1] = desired.velocities - state.velocities
-        if self._has_acc_state and state.accelerations is not None:
+        if self._acc_error and state.accelerations is not None:
             error[2] = desired.accelerations - state.accelerations
         return error
 

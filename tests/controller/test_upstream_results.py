@@ -6,6 +6,7 @@ controller is stepped on a simulated clock (``update(now, period, state)`` calle
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import numpy as np
@@ -17,6 +18,7 @@ from jtc_hw import (
     GoalResult,
     GoalStatus,
     JointState,
+    JointTolerance,
     JointTrajectory,
     JointTrajectoryController,
     TrajectoryPoint,
@@ -85,3 +87,76 @@ def test_last_velocity_above_flt_epsilon_is_rejected(value: float) -> None:
     message = str(info.value)
     assert f"velocity of joint 'j2' is {value!r}, must be 0" in message
     assert "1.1920929e-07" in message and "allow_nonzero_velocity_at_trajectory_end" in message
+
+
+# -- point 7: which errors exist ---------------------------------------------------------------
+
+
+def test_dynamixel_velocity_count_at_rest_does_not_block_a_position_goal() -> None:
+    """Section 8.4: with a position command interface the velocity error is not computed, so
+    stopped_velocity_tolerance (0.01 rad/s) cannot keep a goal from succeeding. A Dynamixel
+    reports velocity in counts of 0.229 rpm (0.024 rad/s): a servo at rest reading one count
+    used to make the goal wait forever (goal_time 0)."""
+    one_count = 0.229 * 2 * math.pi / 60  # rad/s
+    assert one_count > 0.01
+    ctrl = JointTrajectoryController(make_config(constraints=constraints(0.0, 0.01)))
+    assert ctrl.config.constraints.stopped_velocity_tolerance == 0.01
+    assert ctrl.config.constraints.goal_time == 0.0
+    ctrl.activate(0, JointState([0.0, 0.0], [0.0, 0.0]))
+    gid = ctrl.send_goal(0, goal(0.2, [0.5, -0.5]))
+    at_rest = JointState([0.5, -0.5], [one_count, -one_count])
+    found: list[GoalResult] = []
+    for k in range(1, 31):  # 0.3 s: past the end, never finishing before the fix
+        out = ctrl.update(k * PERIOD, PERIOD, at_rest)
+        assert out.error[1].tolist() == [0.0, 0.0]  # no velocity error exists
+        found += results(out.events)
+    assert [(r.goal_id, r.status) for r in found] == [(gid, GoalStatus.SUCCEEDED)]
+
+
+def test_velocity_error_exists_with_a_velocity_command_interface() -> None:
+    """Section 8.4: velocity state and a velocity command interface: the velocity error is
+    computed and stopped_velocity_tolerance holds the goal back while the joint moves."""
+    config = make_config(
+        command_interfaces=("position", "velocity"), constraints=constraints(0.0, 0.01)
+    )
+    ctrl = JointTrajectoryController(config)
+    ctrl.activate(0, JointState([0.0, 0.0], [0.0, 0.0]))
+    gid = ctrl.send_goal(0, goal(0.2, [0.5, -0.5]))
+    drifting = JointState([0.5, -0.5], [0.024, 0.0])
+    out = ctrl.update(300 * MS, PERIOD, drifting)
+    assert out.error[1].tolist() == [-0.024, 0.0]
+    assert results(out.events) == []
+    out = ctrl.update(310 * MS, PERIOD, JointState([0.5, -0.5], [0.005, 0.0]))
+    assert [r.goal_id for r in results(out.events)] == [gid]
+
+
+@pytest.mark.parametrize(
+    ("command_interfaces", "computed"),
+    [
+        (("position",), False),
+        (("position", "velocity"), False),
+        (("position", "velocity", "acceleration"), True),
+    ],
+)
+def test_acceleration_error_needs_an_acceleration_command_interface(
+    command_interfaces: tuple[str, ...], computed: bool
+) -> None:
+    """Section 8.4: the acceleration error only with an acceleration state interface and an
+    acceleration command interface; otherwise it stays 0 and an acceleration goal tolerance
+    never triggers."""
+    config = make_config(
+        command_interfaces=command_interfaces,
+        state_interfaces=("position", "velocity", "acceleration"),
+        constraints=constraints(0.0, 0.01),
+    )
+    ctrl = JointTrajectoryController(config)
+    ctrl.activate(0, JointState([0.0, 0.0], [0.0, 0.0], [0.0, 0.0]))
+    gid = ctrl.send_goal(
+        0,
+        goal(0.2, [0.5, -0.5]),
+        goal_tolerance=[JointTolerance("j1", acceleration=0.1)],
+    )
+    shaking = JointState([0.5, -0.5], [0.0, 0.0], [5.0, 0.0])
+    out = ctrl.update(300 * MS, PERIOD, shaking)
+    assert out.error[2].tolist() == ([-5.0, 0.0] if computed else [0.0, 0.0])
+    assert [r.goal_id for r in results(out.events)] == ([] if computed else [gid])

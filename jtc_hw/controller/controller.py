@@ -66,6 +66,9 @@ STOPPED_BY_TOPIC = "Current goal cancelled: an empty trajectory on the topic int
 CANCELED_ON_REQUEST = "Goal canceled on request; holding the current position."
 DEACTIVATED = "Current goal cancelled during deactivate transition."
 SUCCEEDED = "Goal successfully reached!"
+PATH_TOLERANCE_VIOLATED = "Aborted due to path tolerance violation"
+GOAL_TIME_EXCEEDED = "Aborted due to goal_time_tolerance exceeding by {late_s} seconds"
+"""Upstream's text; ``late_s`` formatted as C++ ``std::to_string(double)`` does (``%f``)."""
 
 
 class UpdateResult(NamedTuple):
@@ -102,6 +105,7 @@ class _Outcome(NamedTuple):
     code: ErrorCode
     message: str
     hold_measured: bool
+    details: str = ""
 
 
 @dataclass(frozen=True, eq=False)
@@ -603,9 +607,9 @@ class JointTrajectoryController:
                 return _Outcome(
                     GoalTransition.ABORT,
                     ErrorCode.PATH_TOLERANCE_VIOLATED,
-                    "Aborted due to path tolerance violation: "
-                    + self._describe(error, tol.path, bad),
+                    PATH_TOLERANCE_VIOLATED,
                     True,
+                    self._describe(error, tol.path, bad),
                 )
         if before_end:
             return None
@@ -617,9 +621,9 @@ class JointTrajectoryController:
             return _Outcome(
                 GoalTransition.ABORT,
                 ErrorCode.GOAL_TOLERANCE_VIOLATED,
-                f"Aborted due to goal_time_tolerance exceeding by {late_ns / NS_PER_S:.6f} "
-                f"seconds: " + self._describe(error, tol.goal, outside),
+                GOAL_TIME_EXCEEDED.format(late_s=f"{late_ns / NS_PER_S:f}"),
                 True,
+                self._describe(error, tol.goal, outside),
             )
         if self._cmd_timeout_ns and late_ns > self._cmd_timeout_ns:
             return _Outcome(
@@ -627,8 +631,9 @@ class JointTrajectoryController:
                 ErrorCode.GOAL_TOLERANCE_VIOLATED,
                 f"Aborted due to command timeout: {late_ns / NS_PER_S:.6f} s past the last "
                 f"point (cmd_timeout {self.config.cmd_timeout} s) and still outside the goal "
-                "tolerance: " + self._describe(error, tol.goal, outside),
+                "tolerance",
                 True,
+                self._describe(error, tol.goal, outside),
             )
         return None
 
@@ -647,9 +652,11 @@ class JointTrajectoryController:
     def _conclude(self, now_ns: int, ex: _Execution, outcome: _Outcome, positions: F64) -> None:
         self._execution = None
         if ex.goal is not None:
-            self._finish(ex.goal, outcome.transition, outcome.code, outcome.message, now_ns)
+            self._finish(
+                ex.goal, outcome.transition, outcome.code, outcome.message, now_ns, outcome.details
+            )
         elif outcome.transition is GoalTransition.ABORT:
-            self._events.append(TrajectoryStopped(outcome.message, now_ns))
+            self._events.append(TrajectoryStopped(outcome.message, now_ns, outcome.details))
         if outcome.hold_measured:
             self._hold(now_ns, positions)
 
@@ -660,9 +667,10 @@ class JointTrajectoryController:
         code: ErrorCode,
         message: str,
         now_ns: int,
+        details: str = "",
     ) -> None:
         status = goal.transition(transition)
-        self._events.append(GoalResult(goal.goal_id, status, code, message, now_ns))
+        self._events.append(GoalResult(goal.goal_id, status, code, message, now_ns, details))
 
     def _hold(self, now_ns: int, positions: F64) -> None:
         """Hold the measured position (open loop: the last commanded one), zero velocity."""

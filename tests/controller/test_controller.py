@@ -291,8 +291,9 @@ def test_path_violation_aborts_and_the_violating_cycle_already_holds() -> None:
         GoalStatus.ABORTED,
         ErrorCode.PATH_TOLERANCE_VIOLATED,
     )
-    assert "joint 'j2' position error" in result.error_string
-    assert "j1" not in result.error_string
+    assert result.error_string == "Aborted due to path tolerance violation"  # upstream's text
+    assert "joint 'j2' position error" in result.details
+    assert "j1" not in result.details
     np.testing.assert_array_equal(out.command.positions, [0.0, 0.0])  # no command past the check
     rig.mirror.frozen = False
     rig.step(50)

@@ -7,6 +7,7 @@ controller is stepped on a simulated clock (``update(now, period, state)`` calle
 from __future__ import annotations
 
 import math
+import re
 from typing import Any
 
 import numpy as np
@@ -22,10 +23,11 @@ from jtc_hw import (
     JointTrajectory,
     JointTrajectoryController,
     TrajectoryPoint,
+    TrajectoryStopped,
 )
 from jtc_hw.controller.validation import FLT_EPSILON
 
-from conftest import MS, Rig, make_config
+from conftest import MS, Rig, S, make_config
 
 NAMES = ("j1", "j2")
 PERIOD = 10 * MS
@@ -87,6 +89,83 @@ def test_last_velocity_above_flt_epsilon_is_rejected(value: float) -> None:
     message = str(info.value)
     assert f"velocity of joint 'j2' is {value!r}, must be 0" in message
     assert "1.1920929e-07" in message and "allow_nonzero_velocity_at_trajectory_end" in message
+
+
+# -- point 6: result strings are upstream's, the details apart ---------------------------------
+
+
+def test_path_violation_error_string_is_upstreams_and_details_name_the_joint() -> None:
+    """Section 7 step 8d: "Aborted due to path tolerance violation", exactly; which joint broke
+    which tolerance goes to ``details``."""
+    rig = Rig(make_config(constraints=constraints(0.05)), [0.0, 0.0])
+    gid = rig.ctrl.send_goal(rig.now, goal(1.0, [0.0, 1.0]))
+    rig.mirror.frozen = True
+    rig.run_until(lambda out: bool(rig.results(gid)))
+    (result,) = rig.results(gid)
+    assert (result.status, result.error_code) == (
+        GoalStatus.ABORTED,
+        ErrorCode.PATH_TOLERANCE_VIOLATED,
+    )
+    assert result.error_string == "Aborted due to path tolerance violation"
+    assert re.fullmatch(r"joint 'j2' position error \+0\.0\d+ exceeds 0\.05", result.details)
+
+
+def test_goal_time_error_string_is_upstreams_with_the_lateness_as_to_string() -> None:
+    """Section 7 step 8d: "Aborted due to goal_time_tolerance exceeding by <s> seconds", <s>
+    formatted as std::to_string(double) (six decimals); details name the joint."""
+    rig = Rig(make_config(constraints=constraints(0.0, 0.01, goal_time=0.2)), [0.0, 0.0])
+    gid = rig.ctrl.send_goal(rig.now, goal(0.5, [0.5, 0.0]))
+    end = rig.now + 500 * MS
+    rig.mirror.frozen = True
+    rig.run_until(lambda out: bool(rig.results(gid)))
+    (result,) = rig.results(gid)
+    assert result.error_code == ErrorCode.GOAL_TOLERANCE_VIOLATED
+    late_s = (result.time_ns - end) / S
+    assert late_s > 0.2
+    assert result.error_string == (
+        f"Aborted due to goal_time_tolerance exceeding by {late_s:.6f} seconds"
+    )
+    assert result.details.startswith("joint 'j1' position error") and "j2" not in result.details
+
+
+def test_success_error_string_is_upstreams_without_details() -> None:
+    """Section 7 step 8d: "Goal successfully reached!", nothing in ``details``."""
+    rig = Rig(make_config(constraints=constraints(0.05, 0.01)), [0.0, 0.0])
+    gid = rig.ctrl.send_goal(rig.now, goal(0.3, [0.2, 0.1]))
+    rig.run_until(lambda out: bool(rig.results(gid)))
+    (result,) = rig.results(gid)
+    assert (result.status, result.error_string, result.details) == (
+        GoalStatus.SUCCEEDED,
+        "Goal successfully reached!",
+        "",
+    )
+
+
+def test_cmd_timeout_message_keeps_the_joint_details_apart() -> None:
+    """Section 8.6 (decided deviation: cmd_timeout ends a goal with a result): its message says
+    what timed out; the joints outside the goal tolerance are in ``details``."""
+    config = make_config(constraints=constraints(0.0, 0.01), cmd_timeout=0.3)
+    rig = Rig(config, [0.0, 0.0])
+    gid = rig.ctrl.send_goal(rig.now, goal(0.5, [0.5, 0.5]))
+    rig.mirror.frozen = True
+    rig.run_until(lambda out: bool(rig.results(gid)))
+    (result,) = rig.results(gid)
+    assert result.error_string.startswith("Aborted due to command timeout: ")
+    assert "joint" not in result.error_string
+    assert "joint 'j1' position error" in result.details
+    assert "joint 'j2' position error" in result.details
+
+
+def test_topic_trajectory_stop_carries_the_same_text_and_details() -> None:
+    """Section 7 step 8e: a topic trajectory has no result; its stop notice carries the same
+    reason as a goal would and the details apart."""
+    rig = Rig(make_config(constraints=constraints(0.05)), [0.0, 0.0])
+    rig.mirror.frozen = True
+    rig.ctrl.send_trajectory(rig.now, goal(1.0, [1.0, 0.0]))
+    rig.run_until(lambda out: any(isinstance(e, TrajectoryStopped) for e in out.events))
+    (stopped,) = [e for e in rig.events if isinstance(e, TrajectoryStopped)]
+    assert stopped.reason == "Aborted due to path tolerance violation"
+    assert stopped.details.startswith("joint 'j1' position error")
 
 
 # -- point 7: which errors exist ---------------------------------------------------------------

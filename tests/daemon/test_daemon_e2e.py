@@ -70,7 +70,7 @@ STATE_KEYS = {
     "dropped",
     "dropped_total",
 }
-RESULT_KEYS = {"event", "goal_id", "status", "error_code", "error_string", "time_ns"}
+RESULT_KEYS = {"event", "goal_id", "status", "error_code", "error_string", "details", "time_ns"}
 
 
 # -- the daemon process ------------------------------------------------------------------------

@@ -313,15 +313,18 @@ class JointTrajectoryController:
         self._commanding = self.config.start_with_holding
         self._active = True
 
-    def deactivate(
-        self, now_ns: int, reason: str | None = None, *, abort: bool = False
-    ) -> tuple[Event, ...]:
-        """Stop: the active goal gets its result and no more commands are produced.
+    def deactivate(self, now_ns: int, reason: str | None = None) -> tuple[Event, ...]:
+        """Stop, as upstream's ``on_deactivate``: the active goal ends ``ABORTED`` with
+        ``INVALID_GOAL`` (-1) and no more commands are produced.
+
+        The caller writes :attr:`deactivation_command` to the hardware once (velocity,
+        acceleration and effort 0, position left as it is), as upstream writes it into the
+        command interfaces before they are released.
 
         Args:
             now_ns: the time, stamped on the result.
-            reason: the result's message (default: upstream's deactivation message).
-            abort: report the goal ``ABORTED`` (a fault) instead of ``CANCELED``.
+            reason: the result's ``error_string`` (default: upstream's deactivation message;
+                the daemon names the fault or the shutdown).
 
         Returns:
             The events not yet delivered, ending with the goal's result if one was active.
@@ -333,13 +336,31 @@ class JointTrajectoryController:
             raise ControllerStateError("deactivate: the controller is not active")
         ex = self._execution
         if ex is not None and ex.goal is not None:
-            transition = GoalTransition.ABORT if abort else GoalTransition.PREEMPT
-            self._finish(ex.goal, transition, ErrorCode.INVALID_GOAL, reason or DEACTIVATED, now_ns)
+            self._finish(
+                ex.goal, GoalTransition.ABORT, ErrorCode.INVALID_GOAL, reason or DEACTIVATED, now_ns
+            )
         self._execution = None
         self._pending_stop = None
         self._active = False
         events, self._events = tuple(self._events), []
         return events
+
+    @property
+    def deactivation_command(self) -> JointCommand:
+        """What upstream's ``on_deactivate`` writes: 0 to every velocity, acceleration and
+        effort command interface, and the position command unchanged (``NaN``: write nothing,
+        the device keeps its position target).
+
+        A velocity-commanded joint would otherwise keep turning at its last command until the
+        driver's own safe action (or watchdog) stops it.
+        """
+        zeros = np.zeros(self._n)
+        return JointCommand(
+            self._nan if self._cmd_pos else None,
+            zeros if self._cmd_vel else None,
+            zeros if self._cmd_acc else None,
+            zeros if self._cmd_eff else None,
+        )
 
     # -- commands -----------------------------------------------------------------------------
 

@@ -106,4 +106,6 @@ def test_the_command_line_prints_the_details_under_the_result(
     succeeded = dict(aborted, status="succeeded", error_code=0,
                      error_string="Goal successfully reached!", details="")
     assert _goal_result(_Finished(succeeded), 1.0, True, 1.0) == EXIT_OK
-    assert capsys.readouterr().out == "goal 7 succeeded (error_code 0): Goal successfully reached!\n"
+    assert capsys.readouterr().out == (
+        "goal 7 succeeded (error_code 0): Goal successfully reached!\n"
+    )

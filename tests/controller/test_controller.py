@@ -94,7 +94,7 @@ def test_reactivation_discards_the_old_goal_and_holds_the_new_position() -> None
     rig.step(50)
     events = rig.ctrl.deactivate(rig.now)
     (result,) = [e for e in events if isinstance(e, GoalResult)]
-    assert (result.goal_id, result.status) == (gid, GoalStatus.CANCELED)
+    assert (result.goal_id, result.status) == (gid, GoalStatus.ABORTED)  # upstream section 3
     rig.mirror.p = np.array([-0.4, 0.7])  # moved while inactive (e.g. torque off)
     rig.ctrl.activate(rig.now, rig.mirror.state())
     for _ in range(300):
@@ -106,7 +106,7 @@ def test_fault_deactivation_aborts_with_reason() -> None:
     rig = Rig(make_config(), [0.0, 0.0])
     gid = rig.ctrl.send_goal(rig.now, traj((2.0, [1.0, 1.0])))
     rig.step(3)
-    events = rig.ctrl.deactivate(rig.now, "servo 3 overheated", abort=True)
+    events = rig.ctrl.deactivate(rig.now, "servo 3 overheated")
     result = [e for e in events if isinstance(e, GoalResult)][0]
     assert (result.goal_id, result.status, result.error_string) == (
         gid,
@@ -552,7 +552,7 @@ def test_leaving_a_fault_rearms_without_a_jump() -> None:
     rig = Rig(make_config(), [0.0, 0.0])
     gid = rig.ctrl.send_goal(rig.now, traj((2.0, [1.0, 1.0])))
     rig.step(50)
-    events = rig.ctrl.deactivate(rig.now, "servo 2: no status packet", abort=True)
+    events = rig.ctrl.deactivate(rig.now, "servo 2: no status packet")
     assert [e.status for e in events if isinstance(e, GoalResult)] == [GoalStatus.ABORTED]
     rig.mirror.p = rig.mirror.p - 0.05  # sagged while faulted
     rig.ctrl.activate(rig.now, rig.mirror.state(), JointCommand(positions=[math.nan] * 2))

@@ -239,3 +239,76 @@ def test_acceleration_error_needs_an_acceleration_command_interface(
     out = ctrl.update(300 * MS, PERIOD, shaking)
     assert out.error[2].tolist() == ([-5.0, 0.0] if computed else [0.0, 0.0])
     assert [r.goal_id for r in results(out.events)] == ([] if computed else [gid])
+
+
+# -- point 8: deactivation ---------------------------------------------------------------------
+
+
+def test_deactivation_aborts_the_goal_with_invalid_goal() -> None:
+    """Sections 3 and 9: deactivating aborts the active goal, INVALID_GOAL (-1), upstream's
+    message."""
+    rig = Rig(make_config(), [0.0, 0.0])
+    gid = rig.ctrl.send_goal(rig.now, goal(2.0, [1.0, 1.0]))
+    rig.step(20)
+    (result,) = results(rig.ctrl.deactivate(rig.now))
+    assert (result.goal_id, result.status, result.error_code, result.error_string) == (
+        gid,
+        GoalStatus.ABORTED,
+        ErrorCode.INVALID_GOAL,
+        "Current goal cancelled during deactivate transition.",
+    )
+
+
+def test_deactivation_while_a_cancel_is_pending_aborts_too() -> None:
+    """Section 3: the goal still executing (its cancel not yet applied) ends ABORTED, and only
+    once."""
+    rig = Rig(make_config(), [0.0, 0.0])
+    gid = rig.ctrl.send_goal(rig.now, goal(2.0, [1.0, 1.0]))
+    rig.step(5)
+    assert rig.ctrl.cancel_goal(gid)
+    (result,) = results(rig.ctrl.deactivate(rig.now, "daemon stopping: holding position"))
+    assert (result.status, result.error_code, result.error_string) == (
+        GoalStatus.ABORTED,
+        ErrorCode.INVALID_GOAL,
+        "daemon stopping: holding position",
+    )
+
+
+@pytest.mark.parametrize(
+    "command_interfaces",
+    [
+        ("position",),
+        ("position", "velocity"),
+        ("position", "velocity", "acceleration"),
+        ("velocity",),
+        ("effort",),
+    ],
+)
+def test_deactivation_command_zeroes_velocity_acceleration_and_effort(
+    command_interfaces: tuple[str, ...],
+) -> None:
+    """Section 3 (deactivate): velocity, acceleration and effort commands are written 0, the
+    position command is left as it is (NaN: "write nothing")."""
+    config = make_config(command_interfaces=command_interfaces, gains={
+        j: {"p": 1.0} for j in NAMES
+    })
+    rig = Rig(config, [0.0, 0.0])
+    rig.ctrl.send_goal(rig.now, goal(1.0, [1.0, -1.0]))
+    moving = rig.step(30).command
+    rig.ctrl.deactivate(rig.now)
+    cmd = rig.ctrl.deactivation_command
+    for name, interface in (
+        ("velocities", "velocity"),
+        ("accelerations", "acceleration"),
+        ("effort", "effort"),
+    ):
+        values = getattr(cmd, name)
+        if interface in command_interfaces:
+            assert values.tolist() == [0.0, 0.0], name
+            assert np.abs(getattr(moving, name)).max() > 0.0 or name == "accelerations"
+        else:
+            assert values is None, name
+    if "position" in command_interfaces:
+        assert np.isnan(cmd.positions).all()
+    else:
+        assert cmd.positions is None

@@ -181,8 +181,10 @@ class ControlLoop:
         ``on_deactivate`` leaves it in the command interfaces for the next write.
 
         Only components that are active and have not faulted get it: upstream's controller
-        manager no longer writes to a component in error. A failed write is logged; the safe
-        action follows anyway.
+        manager no longer writes to a component in error.
+
+        Raises:
+            Nothing: a failed write is logged; the safe action follows anyway.
         """
         command = self.ctrl.deactivation_command
         if command.velocities is None and command.accelerations is None and command.effort is None:

@@ -303,6 +303,8 @@ def _goal_result(handle: Any, total_s: float, quiet: bool, timeout_s: float) -> 
         f"goal {result['goal_id']} {result['status']} (error_code {result['error_code']}): "
         f"{result['error_string']}"
     )
+    if result.get("details"):  # a daemon before issue 11 sends none
+        print(f"  {result['details']}")
     return EXIT_OK if result["status"] == "succeeded" else EXIT_GOAL_FAILED
 
 

@@ -90,8 +90,9 @@ class GoalHandle:
 
     @property
     def result(self) -> dict[str, Any] | None:
-        """The ``result`` event (``status``, ``error_code``, ``error_string``, ``time_ns``), or
-        ``None`` while the goal runs."""
+        """The ``result`` event (``status``, ``error_code``, ``error_string``: upstream's text,
+        ``details``: which joint broke which tolerance, ``time_ns``), or ``None`` while the goal
+        runs."""
         with self._cond:
             return self._result
 

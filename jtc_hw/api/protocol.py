@@ -838,7 +838,8 @@ def sample_to_json(sample: TrajectorySample) -> dict[str, Any]:
 
 
 def result_event(result: GoalResult) -> dict[str, Any]:
-    """The ``result`` event of a goal.
+    """The ``result`` event of a goal: ``error_string`` is upstream's text, ``details`` what
+    we add (which joint broke which tolerance; ``""`` when nothing).
 
     Raises:
         Nothing.
@@ -849,6 +850,7 @@ def result_event(result: GoalResult) -> dict[str, Any]:
         "status": result.status.value,
         "error_code": int(result.error_code),
         "error_string": result.error_string,
+        "details": result.details,
         "time_ns": result.time_ns,
     }
 

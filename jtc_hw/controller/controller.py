@@ -73,6 +73,9 @@ STOPPED_BY_TOPIC = "Current goal cancelled: an empty trajectory on the topic int
 CANCELED_ON_REQUEST = "Goal canceled on request; holding the current position."
 DEACTIVATED = "Current goal cancelled during deactivate transition."
 SUCCEEDED = "Goal successfully reached!"
+PATH_TOLERANCE_VIOLATED = "Aborted due to path tolerance violation"
+GOAL_TIME_EXCEEDED = "Aborted due to goal_time_tolerance exceeding by {late_s} seconds"
+"""Upstream's text; ``late_s`` formatted as C++ ``std::to_string(double)`` does (``%f``)."""
 
 
 class ControllerState(NamedTuple):
@@ -138,6 +141,7 @@ class _Outcome(NamedTuple):
     code: ErrorCode
     message: str
     hold_measured: bool
+    details: str = ""
 
 
 @dataclass(frozen=True, eq=False)
@@ -284,6 +288,11 @@ class JointTrajectoryController:
         self._has_acc_state = "acceleration" in config.state_interfaces
         self._cmd_mask = _command_mask(config)
         self._cmd_fields = (self._cmd_pos, self._cmd_vel, self._cmd_acc, self._cmd_eff)
+        # Which errors exist (upstream 8.4): a velocity error only where velocity is commanded
+        # (velocity or effort), an acceleration error only where acceleration is; otherwise 0,
+        # so e.g. stopped_velocity_tolerance never blocks a position-commanded goal.
+        self._vel_error = self._has_vel_state and (self._cmd_vel or self._cmd_eff)
+        self._acc_error = self._has_acc_state and self._cmd_acc
         self._lookahead_ns = round(NS_PER_S / config.update_rate)
         self._feedback_ns = round(NS_PER_S / config.action_monitor_rate)
         self._cmd_timeout_ns = round(config.effective_cmd_timeout * NS_PER_S)
@@ -403,15 +412,18 @@ class JointTrajectoryController:
             self._last_command_accelerations,
         )
 
-    def deactivate(
-        self, now_ns: int, reason: str | None = None, *, abort: bool = False
-    ) -> tuple[Event, ...]:
-        """Stop: the active goal gets its result and no more commands are produced.
+    def deactivate(self, now_ns: int, reason: str | None = None) -> tuple[Event, ...]:
+        """Stop, as upstream's ``on_deactivate``: the active goal ends ``ABORTED`` with
+        ``INVALID_GOAL`` (-1) and no more commands are produced.
+
+        The caller writes :attr:`deactivation_command` to the hardware once (velocity,
+        acceleration and effort 0, position left as it is), as upstream writes it into the
+        command interfaces before they are released.
 
         Args:
             now_ns: the time, stamped on the result.
-            reason: the result's message (default: upstream's deactivation message).
-            abort: report the goal ``ABORTED`` (a fault) instead of ``CANCELED``.
+            reason: the result's ``error_string`` (default: upstream's deactivation message;
+                the daemon names the fault or the shutdown).
 
         Returns:
             The events not yet delivered, ending with the goal's result if one was active.
@@ -423,13 +435,34 @@ class JointTrajectoryController:
             raise ControllerStateError("deactivate: the controller is not active")
         ex = self._execution
         if ex is not None and ex.goal is not None:
-            transition = GoalTransition.ABORT if abort else GoalTransition.PREEMPT
-            self._finish(ex.goal, transition, ErrorCode.INVALID_GOAL, reason or DEACTIVATED, now_ns)
+            self._finish(
+                ex.goal, GoalTransition.ABORT, ErrorCode.INVALID_GOAL, reason or DEACTIVATED, now_ns
+            )
         self._execution = None
         self._pending_stop = None
         self._active = False
         events, self._events = tuple(self._events), []
         return events
+
+    @property
+    def deactivation_command(self) -> JointCommand:
+        """What upstream's ``on_deactivate`` writes: 0 to every velocity, acceleration and
+        effort command interface, and the position command unchanged (``NaN``: write nothing,
+        the device keeps its position target).
+
+        A velocity-commanded joint would otherwise keep turning at its last command until the
+        driver's own safe action (or watchdog) stops it. Joints outside a ``command_joints``
+        subset get ``NaN`` everywhere: the controller never commands them.
+        """
+        zeros = np.zeros(self._n)
+        if self._cmd_mask is not None:
+            zeros[~self._cmd_mask] = np.nan  # joints outside command_joints: write nothing
+        return JointCommand(
+            self._nan if self._cmd_pos else None,
+            zeros if self._cmd_vel else None,
+            zeros if self._cmd_acc else None,
+            zeros if self._cmd_eff else None,
+        )
 
     # -- commands -----------------------------------------------------------------------------
 
@@ -747,9 +780,9 @@ class JointTrajectoryController:
             )
         else:
             error[0] = desired.positions - positions
-        if self._has_vel_state and state.velocities is not None:
+        if self._vel_error and state.velocities is not None:
             error[1] = desired.velocities - state.velocities
-        if self._has_acc_state and state.accelerations is not None:
+        if self._acc_error and state.accelerations is not None:
             error[2] = desired.accelerations - state.accelerations
         return error
 
@@ -763,9 +796,9 @@ class JointTrajectoryController:
                 return _Outcome(
                     GoalTransition.ABORT,
                     ErrorCode.PATH_TOLERANCE_VIOLATED,
-                    "Aborted due to path tolerance violation: "
-                    + self._describe(error, tol.path, bad),
+                    PATH_TOLERANCE_VIOLATED,
                     True,
+                    self._describe(error, tol.path, bad),
                 )
         if before_end:
             return None
@@ -777,9 +810,9 @@ class JointTrajectoryController:
             return _Outcome(
                 GoalTransition.ABORT,
                 ErrorCode.GOAL_TOLERANCE_VIOLATED,
-                f"Aborted due to goal_time_tolerance exceeding by {late_ns / NS_PER_S:.6f} "
-                f"seconds: " + self._describe(error, tol.goal, outside),
+                GOAL_TIME_EXCEEDED.format(late_s=f"{late_ns / NS_PER_S:f}"),
                 True,
+                self._describe(error, tol.goal, outside),
             )
         if self._cmd_timeout_ns and late_ns > self._cmd_timeout_ns:
             return _Outcome(
@@ -787,8 +820,9 @@ class JointTrajectoryController:
                 ErrorCode.GOAL_TOLERANCE_VIOLATED,
                 f"Aborted due to command timeout: {late_ns / NS_PER_S:.6f} s past the last "
                 f"point (cmd_timeout {self._cmd_timeout_ns / NS_PER_S:g} s) and still outside "
-                "the goal tolerance: " + self._describe(error, tol.goal, outside),
+                "the goal tolerance",
                 True,
+                self._describe(error, tol.goal, outside),
             )
         return None
 
@@ -807,9 +841,11 @@ class JointTrajectoryController:
     def _conclude(self, now_ns: int, ex: _Execution, outcome: _Outcome, positions: F64) -> None:
         self._execution = None
         if ex.goal is not None:
-            self._finish(ex.goal, outcome.transition, outcome.code, outcome.message, now_ns)
+            self._finish(
+                ex.goal, outcome.transition, outcome.code, outcome.message, now_ns, outcome.details
+            )
         elif outcome.transition is GoalTransition.ABORT:
-            self._events.append(TrajectoryStopped(outcome.message, now_ns))
+            self._events.append(TrajectoryStopped(outcome.message, now_ns, outcome.details))
         if outcome.hold_measured:
             self._hold(now_ns, positions)
 
@@ -820,9 +856,10 @@ class JointTrajectoryController:
         code: ErrorCode,
         message: str,
         now_ns: int,
+        details: str = "",
     ) -> None:
         status = goal.transition(transition)
-        self._events.append(GoalResult(goal.goal_id, status, code, message, now_ns))
+        self._events.append(GoalResult(goal.goal_id, status, code, message, now_ns, details))
 
     def _hold(self, now_ns: int, positions: F64) -> None:
         """Hold the measured position (open loop: the last commanded one), zero velocity."""

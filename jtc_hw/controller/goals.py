@@ -72,13 +72,21 @@ TRANSITIONS: dict[tuple[GoalStatus, GoalTransition], GoalStatus] = {
 
 @dataclass(frozen=True)
 class GoalResult:
-    """The one result of an accepted goal."""
+    """The one result of an accepted goal.
+
+    Attributes:
+        error_string: upstream's text, exactly (e.g. "Aborted due to path tolerance
+            violation"), so that clients comparing strings keep working.
+        details: what upstream only logs: which joint broke which tolerance, by how much
+            ("" when there is nothing to add).
+    """
 
     goal_id: int
     status: GoalStatus
     error_code: ErrorCode
     error_string: str
     time_ns: int
+    details: str = ""
 
 
 @dataclass(frozen=True, eq=False)
@@ -106,10 +114,14 @@ class GoalFeedback:
 
 @dataclass(frozen=True)
 class TrajectoryStopped:
-    """A topic (fire-and-forget) trajectory was stopped by the controller; no goal to report to."""
+    """A topic (fire-and-forget) trajectory was stopped by the controller; no goal to report to.
+
+    ``reason`` and ``details`` are as a goal result's ``error_string`` and ``details``.
+    """
 
     reason: str
     time_ns: int
+    details: str = ""
 
 
 Event = GoalResult | GoalFeedback | TrajectoryStopped

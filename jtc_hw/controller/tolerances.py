@@ -41,6 +41,9 @@ class SegmentTolerances:
     Attributes:
         path: ``(3, n)`` position / velocity / acceleration tolerance while moving.
         goal: ``(3, n)`` the same at the end (velocity defaults to stopped_velocity_tolerance).
+            The velocity and acceleration rows only bite where the controller computes that
+            error (upstream 8.4: a velocity or effort command interface for velocity, an
+            acceleration command interface for acceleration); elsewhere the error is 0.
         goal_time: seconds allowed past the end to get inside ``goal``; 0 waits forever.
     """
 

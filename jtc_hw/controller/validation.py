@@ -32,6 +32,9 @@ from .trajectory import (
 
 INVALID_GOAL = -1
 INVALID_JOINTS = -2
+FLT_EPSILON = 2.0**-23
+"""C's ``FLT_EPSILON`` (1.1920929e-07, exactly 2**-23): upstream counts a last-point velocity
+as non-zero only above it, so a "stopped" velocity with rounding noise is not rejected."""
 
 
 def prepare(config: ControllerConfig, msg: Any) -> PreparedTrajectory:
@@ -148,7 +151,7 @@ def _checked(
     if (
         not config.allow_nonzero_velocity_at_trajectory_end
         and has_v[-1]
-        and bool((arrays["velocities"][-1] != 0.0).any())
+        and bool((np.abs(arrays["velocities"][-1]) > FLT_EPSILON).any())
     ):
         return None
     for name in FIELDS:
@@ -231,11 +234,11 @@ def _prepare_points(
     if not config.allow_nonzero_velocity_at_trajectory_end and present["velocities"][-1]:
         last = arrays["velocities"][-1]
         for j, value in enumerate(last):
-            if value != 0.0:
+            if abs(value) > FLT_EPSILON:
                 raise GoalRejected(
                     f"point #{m - 1} (the last): velocity of joint '{msg.joint_names[j]}' is "
-                    f"{float(value)!r}, must be 0 because "
-                    "allow_nonzero_velocity_at_trajectory_end is false"
+                    f"{float(value)!r}, must be 0 (|velocity| <= {FLT_EPSILON:.8g}, FLT_EPSILON) "
+                    "because allow_nonzero_velocity_at_trajectory_end is false"
                 )
     flags = {name: np.array(present[name], dtype=bool) for name in FIELDS}
     return PreparedTrajectory(

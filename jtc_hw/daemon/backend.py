@@ -438,7 +438,8 @@ class LoopBackend:
         elif kind == "events":
             for event in message[1]:
                 if isinstance(event, TrajectoryStopped):
-                    log.warning("topic trajectory stopped: %s", event.reason)
+                    log.warning("topic trajectory stopped: %s%s", event.reason,
+                                f": {event.details}" if event.details else "")
                 elif isinstance(event, GoalResult):
                     self._finish_goal(event)
                 elif self._listener is not None:
@@ -499,11 +500,12 @@ class LoopBackend:
             self._listener.on_goal_event(result)
         log.log(
             logging.ERROR if self.death else logging.INFO,
-            "goal %d %s (%d): %s",
+            "goal %d %s (%d): %s%s",
             result.goal_id,
             result.status.value,
             int(result.error_code),
             result.error_string,
+            f": {result.details}" if result.details else "",
         )
 
     def _fail_waiting(self, reason: str) -> None:

@@ -87,6 +87,11 @@ class ControlLoop:
         self.period_ns = round(1e9 / self.config.update_rate)
         self.ctrl = JointTrajectoryController(self.config)
         self.hardware: HardwareSet = create_hardware_set(robot)
+        joint_index = {joint: i for i, joint in enumerate(self.hardware.joints)}
+        self._component_joints = [
+            np.array([joint_index[j] for j in comp.joints], dtype=np.intp)
+            for comp in self.hardware.components
+        ]
         self.stats = LoopStats(self.config.update_rate)
         self.state_every_ns = round(1e9 / self.config.state_publish_rate)
         self.fault: str | None = None
@@ -161,7 +166,8 @@ class ControlLoop:
         self.send("log", logging.ERROR, f"hardware fault: {reason}")
         events: tuple[Event, ...] = ()
         if self.ctrl.active:
-            events = self.ctrl.deactivate(now_ns, f"hardware fault: {reason}", abort=True)
+            events = self.ctrl.deactivate(now_ns, f"hardware fault: {reason}")
+            self._write_deactivation_command(now_ns)
         try:
             self.hardware.deactivate(now_ns)
         except JtcHwError as exc:
@@ -170,6 +176,34 @@ class ControlLoop:
         # asks for the status on seeing the result finds the fault.
         self.send("status", self.status())
         self._send_events(events)
+
+    def _write_deactivation_command(self, now_ns: int) -> None:
+        """Write the controller's deactivation command (velocity, acceleration and effort 0,
+        position unchanged) once, before the hardware's safe action, as upstream's
+        ``on_deactivate`` leaves it in the command interfaces for the next write.
+
+        Only components that are active and have not faulted get it: upstream's controller
+        manager no longer writes to a component in error.
+
+        Raises:
+            Nothing: a failed write is logged; the safe action follows anyway.
+        """
+        command = self.ctrl.deactivation_command
+        if command.velocities is None and command.accelerations is None and command.effort is None:
+            return  # position only: nothing changes ("write nothing")
+        for comp, index in zip(self.hardware.components, self._component_joints, strict=True):
+            if comp.state is not LifecycleState.ACTIVE or comp.last_fault is not None:
+                continue
+            part = JointCommand(
+                *(None if v is None else v[index] for v in (
+                    command.positions, command.velocities, command.accelerations, command.effort
+                ))
+            )
+            try:
+                comp.write(now_ns, part)
+            except JtcHwError as exc:
+                log.warning("%s: writing the deactivation command (velocity, acceleration and "
+                            "effort 0) failed: %s", comp.name, exc)
 
     def _rearm(self, now_ns: int) -> bool:
         if self.fault is None and self.ctrl.active:
@@ -448,6 +482,7 @@ class ControlLoop:
         reason = self._shutdown_reason
         if self.ctrl.active:
             events = self.ctrl.deactivate(now_ns, f"{reason}: holding position")
+            self._write_deactivation_command(now_ns)
             self._send_events(events)
         try:
             if self.fault is None:

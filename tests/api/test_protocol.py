@@ -603,6 +603,7 @@ def test_replies_and_events() -> None:
         "status": "succeeded",
         "error_code": 0,
         "error_string": "done",
+        "details": "",
         "time_ns": 77,
     }
     z = np.zeros(2)

@@ -5,6 +5,8 @@
 code, unchanged but for names, so that ``test_vectorised.py`` can check that the vectorised code
 gives bit-identical trajectories and the same rejections (message and code) on random input.
 Not used by the package; do not "fix" it: it is the definition of the behaviour being kept.
+Changed on purpose since: the last-point velocity rule counts |v| <= FLT_EPSILON as zero (issue
+11, upstream's rule; it was ``!= 0``).
 """
 
 from __future__ import annotations
@@ -574,11 +576,11 @@ def prepare(config: ControllerConfig, msg: Any) -> PreparedTrajectory:
     if not config.allow_nonzero_velocity_at_trajectory_end and present["velocities"][-1]:
         last = arrays["velocities"][-1]
         for j, value in enumerate(last):
-            if value != 0.0:
+            if abs(value) > 2.0**-23:  # issue 11 point 4: upstream's FLT_EPSILON
                 raise GoalRejected(
                     f"point #{m - 1} (the last): velocity of joint '{msg.joint_names[j]}' is "
-                    f"{float(value)!r}, must be 0 because "
-                    "allow_nonzero_velocity_at_trajectory_end is false"
+                    f"{float(value)!r}, must be 0 (|velocity| <= 1.1920929e-07, FLT_EPSILON) "
+                    "because allow_nonzero_velocity_at_trajectory_end is false"
                 )
     return PreparedTrajectory(
         joint_indices=joint_index,

@@ -44,7 +44,7 @@ from jtc_hw import (
     TrajectoryStopped,
 )
 from jtc_hw.controller.config import ControllerConfig
-from jtc_hw.controller.controller import Plan
+from jtc_hw.controller.controller import DEACTIVATED, Plan
 from jtc_hw.controller.interpolation import SegmentKind
 from jtc_hw.controller.trajectory import TrajectorySample, shortest_angular_distance
 from jtc_hw.controller.validation import prepare
@@ -631,7 +631,7 @@ class GoalLifecycle(RuleBasedStateMachine):
         self.cancel_requested: set[int] = set()
         # id -> the (status, codes) its result must have, once an operation decided it
         self.decided: dict[int, tuple[GoalStatus, set[int]]] = {}
-        self.fault_reason: dict[int, str] = {}  # ids active at a fault deactivation
+        self.fault_reason: dict[int, str] = {}  # ids active at a deactivation: its message
         self.last_accepted: int | None = None
         self.plans: list[tuple[Command, Plan]] = []
         self.last_ref = (self.ctrl.reference, self.ctrl.reference_version)
@@ -992,30 +992,30 @@ class GoalLifecycle(RuleBasedStateMachine):
     def clock_jump(self, gap: int) -> None:
         self.now += gap  # cycles skipped: the controller only sees the times it is given
 
-    @rule(abort=st.booleans(), reactivate=st.integers(0, 3))
-    def deactivate_activate(self, abort: bool, reactivate: int) -> None:
-        """Deactivate (a fault when ``abort``) and activate again, now or at the next call."""
+    @rule(fault=st.booleans(), reactivate=st.integers(0, 3))
+    def deactivate_activate(self, fault: bool, reactivate: int) -> None:
+        """Deactivate (for a fault when ``fault``) and activate again, now or at the next
+        call."""
         if not self.ctrl.active:
             with pytest.raises(ControllerStateError):
                 self.ctrl.deactivate(self.now)
             self._activate()
             return
         gid = self.ctrl.active_goal
-        self._deactivate(abort)
+        self._deactivate(fault)
         assert not self.ctrl.cancel_goal(gid if gid is not None else 1)
         if reactivate:  # else stay inactive until the next call
             self._activate()
 
-    def _deactivate(self, abort: bool) -> None:
-        """The active goal ends now: ABORTED with the fault's reason, or CANCELED (-1)."""
-        reason = "servo overheated" if abort else None
+    def _deactivate(self, fault: bool) -> None:
+        """The active goal ends now, ABORTED (-1) as upstream, with the fault's reason or
+        upstream's deactivation message (even while a cancel is pending)."""
+        reason = "servo overheated" if fault else None
         gid = self.ctrl.active_goal
-        if gid is not None and abort:
-            self.fault_reason[gid] = "servo overheated"
+        if gid is not None:
+            self.fault_reason[gid] = reason or DEACTIVATED
             self.decided[gid] = (GoalStatus.ABORTED, {-1})
-        elif gid is not None:
-            self.decided[gid] = (GoalStatus.CANCELED, {-1})
-        self._process(self.ctrl.deactivate(self.now, reason, abort=abort))
+        self._process(self.ctrl.deactivate(self.now, reason))
         assert not self._outstanding(), self._outstanding()
         assert self.ctrl.active_goal is None and not self.ctrl.active
 
@@ -1046,7 +1046,7 @@ class GoalLifecycle(RuleBasedStateMachine):
         if not hasattr(self, "ctrl") or sys.exc_info()[0] is not None:
             return  # a step failed: that error is the one to report
         if self.ctrl.active:
-            self._deactivate(abort=False)
+            self._deactivate(fault=False)
         assert not self._outstanding(), f"goals without a result: {self._outstanding()}"
 
 

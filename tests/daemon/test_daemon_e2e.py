@@ -71,7 +71,7 @@ STATE_KEYS = {
     "dropped",
     "dropped_total",
 }
-RESULT_KEYS = {"event", "goal_id", "status", "error_code", "error_string", "time_ns"}
+RESULT_KEYS = {"event", "goal_id", "status", "error_code", "error_string", "details", "time_ns"}
 
 
 # -- the daemon process ------------------------------------------------------------------------
@@ -720,7 +720,7 @@ def test_sigterm_mid_goal(fresh_daemon: Callable[..., DaemonProcess]) -> None:
         moving = next_state(sub, lambda s: s["active_goal"] == goal.goal_id)
         os.kill(d.pid, signal.SIGTERM)
         result = goal.wait(timeout_s=STOP_TIMEOUT_S)
-        assert (result["status"], result["error_code"]) == ("canceled", -1), result
+        assert (result["status"], result["error_code"]) == ("aborted", -1), result  # deactivation
         assert result["error_string"] == "daemon stopping (SIGTERM): holding position"
         # Then the daemon closes the connection.
         with pytest.raises(ClientConnectionError):
@@ -741,7 +741,7 @@ def test_sigterm_mid_goal(fresh_daemon: Callable[..., DaemonProcess]) -> None:
     last_state = [m for m in client.events[:at] if m["event"] == "state"][-1]
     assert last_state["active_goal"] == goal.goal_id and last_state["holding"] is False
     assert moving["time_ns"] <= last_state["time_ns"] <= result["time_ns"]
-    assert f"goal {goal.goal_id} canceled (-1): daemon stopping (SIGTERM): holding position" in log
+    assert f"goal {goal.goal_id} aborted (-1): daemon stopping (SIGTERM): holding position" in log
 
 
 # -- 11. the command line ----------------------------------------------------------------------

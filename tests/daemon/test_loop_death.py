@@ -134,7 +134,7 @@ def test_a_requested_stop_is_not_a_death(tmp_path: Path) -> None:
         assert await backend.stop("test over") == 0
         assert backend.death is None
         (result,) = recorder.results(goal_id)
-        assert result.status is GoalStatus.CANCELED
+        assert result.status is GoalStatus.ABORTED  # a deactivation, as upstream's
         assert result.error_string == "test over: holding position"
         assert backend.status()["alive"] is False
         assert backend.status()["controller"]["fault"] is None

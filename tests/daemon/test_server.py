@@ -106,7 +106,8 @@ def test_goal_events_go_to_the_sender_only(sock: Path) -> None:
                 "goal_id": goal_id,
                 "status": "succeeded",
                 "error_code": 0,
-                "error_string": result["error_string"],
+                "error_string": "Goal successfully reached!",
+                "details": "",
                 "time_ns": result["time_ns"],
             }
             # Exactly one result: nothing else for this goal arrives before a later reply.

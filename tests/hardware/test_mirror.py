@@ -385,7 +385,7 @@ def test_frozen_mirror_makes_the_controller_abort() -> None:
     assert (result.goal_id, result.status, result.error_code) == (
         gid, GoalStatus.ABORTED, ErrorCode.PATH_TOLERANCE_VIOLATED,
     )
-    assert "j2" in result.error_string
+    assert "j2" in result.details
 
 
 def test_reactivation_resumes_from_the_held_command() -> None:

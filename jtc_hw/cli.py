@@ -299,9 +299,10 @@ def _goal_result(handle: Any, total_s: float, quiet: bool, timeout_s: float) -> 
         result = handle.wait(timeout_s=timeout_s)
     if progress is not None:
         progress.finish()
+    text = result["error_string"]  # empty for a cancel, as upstream's
     print(
-        f"goal {result['goal_id']} {result['status']} (error_code {result['error_code']}): "
-        f"{result['error_string']}"
+        f"goal {result['goal_id']} {result['status']} (error_code {result['error_code']})"
+        + (f": {text}" if text else "")
     )
     if result.get("details"):  # a daemon before issue 11 sends none
         print(f"  {result['details']}")

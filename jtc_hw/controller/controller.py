@@ -70,7 +70,10 @@ F64 = NDArray[np.float64]
 PREEMPTED_BY_ACTION = "Current goal cancelled due to new incoming action."
 PREEMPTED_BY_TOPIC = "Current goal cancelled due to new incoming trajectory on the topic interface."
 STOPPED_BY_TOPIC = "Current goal cancelled: an empty trajectory on the topic interface stopped it."
-CANCELED_ON_REQUEST = "Goal canceled on request; holding the current position."
+CANCELED_ON_REQUEST = ""
+"""Upstream's cancel result carries an empty ``error_string`` (section 9); what happened goes
+to ``details`` (:data:`CANCELED_DETAILS`)."""
+CANCELED_DETAILS = "canceled on request; holding the current position"
 DEACTIVATED = "Current goal cancelled during deactivate transition."
 SUCCEEDED = "Goal successfully reached!"
 PATH_TOLERANCE_VIOLATED = "Aborted due to path tolerance violation"
@@ -622,7 +625,7 @@ class JointTrajectoryController:
         if ex.goal.status is not GoalStatus.EXECUTING:
             return False
         ex.goal.transition(GoalTransition.REQUEST_CANCEL)
-        self._request_stop(GoalTransition.CANCEL_DONE, CANCELED_ON_REQUEST)
+        self._request_stop(GoalTransition.CANCEL_DONE, CANCELED_DETAILS)
         return True
 
     def query_state(self, t_ns: int) -> TrajectorySample:
@@ -919,6 +922,7 @@ class JointTrajectoryController:
                     ErrorCode.SUCCESSFUL,
                     CANCELED_ON_REQUEST,
                     now_ns,
+                    CANCELED_DETAILS,
                 )
             else:
                 self._finish(
@@ -940,7 +944,12 @@ class JointTrajectoryController:
                 if transition is GoalTransition.CANCEL_DONE
                 else ErrorCode.INVALID_GOAL
             )
-            self._finish(ex.goal, transition, code, self._stop_reason, now_ns)
+            if transition is GoalTransition.CANCEL_DONE:
+                self._finish(
+                    ex.goal, transition, code, CANCELED_ON_REQUEST, now_ns, self._stop_reason
+                )
+            else:
+                self._finish(ex.goal, transition, code, self._stop_reason, now_ns)
         self._hold(now_ns, positions)
         self._commanding = True
 

@@ -9,7 +9,13 @@ from .controller.controller import JointTrajectoryController, UpdateResult
 from .controller.goals import ErrorCode, GoalFeedback, GoalResult, GoalStatus, TrajectoryStopped
 from .controller.joints import JointCommand, JointState
 from .controller.tolerances import JointTolerance
-from .controller.trajectory import JointTrajectory, Trajectory, TrajectoryPoint, TrajectorySample
+from .controller.trajectory import (
+    JointTrajectory,
+    QueriedState,
+    Trajectory,
+    TrajectoryPoint,
+    TrajectorySample,
+)
 from .errors import (
     CommunicationError,
     ConfigurationError,
@@ -40,6 +46,7 @@ __all__ = [
     "JtcHwError",
     "MotorFault",
     "ProtocolError",
+    "QueriedState",
     "Trajectory",
     "TrajectoryPoint",
     "TrajectorySample",

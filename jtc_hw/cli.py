@@ -389,6 +389,11 @@ def cmd_query(args: argparse.Namespace) -> int:
         reply = client.query_state(in_s=args.t)
         names = client.joint_names
         print(f"desired state in {args.t:g} s:")
+        where = reply.get("where")
+        if where == "after_end":
+            print("  success: false (at or after the last point; these are its values)")
+        elif where == "before_start":
+            print("  success: false (before the trajectory's start; this is the measured state)")
         for key in ("positions", "velocities", "accelerations", "effort"):
             values = reply.get(key) or reply.get("desired", {}).get(key)
             print(f"  {key:<13} {_fmt(values)}")

@@ -343,11 +343,15 @@ class Client:
         time_ns: int | None = None,
         timeout_s: float | None = None,
     ) -> dict[str, Any]:
-        """The desired state at ``time_ns`` (daemon clock) or ``in_s`` seconds from now.
+        """The ``query_state`` service: the desired state at ``time_ns`` (daemon clock) or
+        ``in_s`` seconds from now.
 
         Returns:
-            ``time_ns``, ``joint_names``, ``positions``, ``velocities``, ``accelerations``,
-            ``effort``.
+            ``time_ns``, ``success``, ``where``, ``joint_names``, ``positions``, ``velocities``,
+            ``accelerations``, ``effort``. As upstream, ``success`` is true only inside the
+            trajectory: before its start (``where`` ``"before_start"``) the values are the
+            measured state, at or after its last point (``"after_end"``, also while holding) the
+            last point's.
 
         Raises:
             ValueError: not exactly one of ``in_s`` and ``time_ns``.

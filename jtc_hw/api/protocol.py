@@ -40,6 +40,7 @@ from ..controller.trajectory import (
     NS_PER_S,
     JointTrajectory,
     PointColumns,
+    QueriedState,
     TrajectoryPoint,
     TrajectorySample,
     seconds_to_ns,
@@ -823,7 +824,7 @@ class Decoder:
 # -- events ------------------------------------------------------------------------------------
 
 
-def sample_to_json(sample: TrajectorySample) -> dict[str, Any]:
+def sample_to_json(sample: TrajectorySample | QueriedState) -> dict[str, Any]:
     """A desired state as ``{positions, velocities, accelerations, effort}`` arrays.
 
     Raises:

@@ -338,6 +338,16 @@ def explain(cfg: ControllerConfig) -> list[str]:
             f"cmd_timeout: {cfg.cmd_timeout:g} s is ignored: it must be greater than "
             f"constraints.goal_time ({goal_time:g} s)"
         )
+    moving = [i for i in ("velocity", "effort") if i in cfg.command_interfaces]
+    if cfg.allow_nonzero_velocity_at_trajectory_end and moving and not cfg.effective_cmd_timeout:
+        # Past its last point the reference keeps that point's velocity (upstream): on a
+        # velocity or effort interface the joints keep moving until a new command arrives.
+        warnings.append(
+            "allow_nonzero_velocity_at_trajectory_end: a trajectory ending with a velocity "
+            f"keeps the joints moving (command interface {' and '.join(moving)}) until the "
+            "next command, and cmd_timeout is off; set cmd_timeout (seconds, greater than "
+            "constraints.goal_time) to stop them when commands stop coming"
+        )
     output = "effort" if "effort" in cfg.command_interfaces else "velocity"
     if cfg.command_interfaces == ("velocity",):
         why = "open_loop_control disables the PID loop"

@@ -14,9 +14,10 @@ One ``update(now, period, state)``:
 2. sample the reference at ``now`` and compute the error, desired minus measured (shortest
    angle for continuous joints);
 3. if a command is executing, check it *before* commanding anything: path tolerance while
-   moving (and at the first sample, even if it is already the end), goal tolerance past the
-   end, ``goal_time`` and ``cmd_timeout``; decide success or abort; an abort holds the measured
-   position in this same cycle;
+   moving (and at the first sample, even if it is already the end), goal tolerance,
+   ``goal_time`` and ``cmd_timeout`` once the look-ahead time ``now + 1/update_rate`` reaches
+   the last point (upstream: success comes one period before the reference reaches it);
+   decide success or abort; an abort holds the measured position in this same cycle;
 4. compute the command: forwarded interfaces (position, velocity without PID, acceleration)
    take the reference at ``now + 1/update_rate`` -- a command written at cycle ``t`` is what
    the joints should reach by the next cycle; PID outputs (velocity alone, effort) act on the
@@ -59,6 +60,7 @@ from .trajectory import (
     NS_PER_S,
     JointTrajectory,
     PreparedTrajectory,
+    QueriedState,
     Trajectory,
     TrajectorySample,
     shortest_angular_distance,
@@ -312,6 +314,7 @@ class JointTrajectoryController:
         self._last_command_positions = np.zeros(n)
         self._last_command_velocities: F64 | None = None
         self._last_command_accelerations: F64 | None = None
+        self._measured = JointState(np.zeros(n))  # the last state read (query_state)
         self._nan = np.full(n, np.nan)
         self._nan.setflags(write=False)
         self._output = self._nan_command()
@@ -376,6 +379,7 @@ class JointTrajectoryController:
             state.accelerations if self._has_acc_state else None,
         )
         self._set_reference(Trajectory.constant(now_ns, start))
+        self._measured = state
         self._last_command_positions = start.copy()
         self._last_command_velocities = velocities
         self._last_command_accelerations = accelerations
@@ -628,15 +632,27 @@ class JointTrajectoryController:
         self._request_stop(GoalTransition.CANCEL_DONE, CANCELED_DETAILS)
         return True
 
-    def query_state(self, t_ns: int) -> TrajectorySample:
-        """The desired state at any time (``query_state`` service); no side effects.
+    def query_state(self, t_ns: int) -> QueriedState:
+        """The ``query_state`` service (upstream's section 16): the desired state at ``t_ns``.
+
+        ``success`` is True only strictly inside the reference; before the time it was
+        installed the answer carries the last measured state, at or after its last point the
+        last point's values (``where`` says which). Unlike upstream's, it has no side effects.
 
         Raises:
             ControllerStateError: the controller is not active.
         """
         if not self._active:
             raise ControllerStateError("query_state: the controller is not active")
-        return self._ref.sample(t_ns)
+        m = self._measured
+        zero = np.zeros(self._n)
+        current = TrajectorySample(
+            m.positions,
+            zero if m.velocities is None else m.velocities,
+            zero if m.accelerations is None else m.accelerations,
+            zero,
+        )
+        return self._ref.query(t_ns, current)
 
     @property
     def reference(self) -> Trajectory:
@@ -714,13 +730,19 @@ class JointTrajectoryController:
         if not self._active:
             raise ControllerStateError("update: the controller is not active")
         positions = self._checked_positions(state)
+        self._measured = state
         if self._pending_stop is not None:
             self._apply_stop(now_ns, positions)
+        if now_ns < self._ref.state_before_ns:
+            return self._before_reference(now_ns, state, positions)
         desired = self._ref.sample(now_ns)
         error = self._error(desired, state, positions)
+        # The look-ahead time (upstream section 7 step 7: one nominal period ahead): decisions
+        # judge "before the last point" on it.
+        ahead_ns = now_ns + self._lookahead_ns
         ex = self._execution
         if ex is not None:
-            outcome = self._check(now_ns, ex, error)
+            outcome = self._check(now_ns, ahead_ns, ex, error)
             if outcome is not None:
                 self._conclude(now_ns, ex, outcome, positions)
                 if outcome.hold_measured:
@@ -758,6 +780,31 @@ class JointTrajectoryController:
 
     # -- internals ----------------------------------------------------------------------------
 
+    def _before_reference(self, now_ns: int, state: JointState, positions: F64) -> UpdateResult:
+        """A cycle before the reference's ``state_before_ns`` (a clock that went back): upstream
+        samples nothing there (section 4.3 step 3), so nothing is decided or commanded; the
+        desired state reported is the reference's first."""
+        nan = self._nan
+        command = JointCommand(
+            nan if self._cmd_pos else None,
+            nan if self._cmd_vel else None,
+            nan if self._cmd_acc else None,
+            nan if self._cmd_eff else None,
+        )
+        desired = self._ref.sample(self._ref.state_before_ns)
+        error = self._error(desired, state, positions)
+        events, self._events = tuple(self._events), []
+        since_start = (now_ns - self._ref_start_ns) / NS_PER_S
+        feedback = JointState(
+            positions,
+            state.velocities if self._has_vel_state else None,
+            state.accelerations if self._has_acc_state else None,
+        )
+        controller_state = ControllerState(
+            now_ns, desired, since_start, feedback, since_start, error, self._output
+        )
+        return UpdateResult(command, events, desired, error, controller_state)
+
     def _checked_positions(self, state: JointState) -> F64:
         positions = state.positions
         if positions.shape != (self._n,):
@@ -789,9 +836,12 @@ class JointTrajectoryController:
             error[2] = desired.accelerations - state.accelerations
         return error
 
-    def _check(self, now_ns: int, ex: _Execution, error: F64) -> _Outcome | None:
+    def _check(self, now_ns: int, ahead_ns: int, ex: _Execution, error: F64) -> _Outcome | None:
         tol = ex.tolerances
-        before_end = now_ns < ex.end_ns
+        # Upstream section 7 step 8: "before the last point" is judged on the look-ahead
+        # sample, so success, goal checks and cmd_timeout start one period before the
+        # reference reaches the last point (how late is still measured from now).
+        before_end = ahead_ns < ex.end_ns
         first, ex.first_sample = ex.first_sample, False
         if before_end or first:
             bad = violated(error, tol.path)
@@ -806,9 +856,23 @@ class JointTrajectoryController:
         if before_end:
             return None
         outside = violated(error, tol.goal)
-        if not outside.any():
-            return _Outcome(GoalTransition.SUCCEED, ErrorCode.SUCCESSFUL, SUCCEEDED, False)
         late_ns = now_ns - ex.end_ns
+        if not outside.any():
+            if ex.goal is None and self._cmd_timeout_ns:
+                # A topic trajectory never succeeds upstream (section 7 step 8e): it is watched
+                # until cmd_timeout stops it, which is what ends a streamed motion whose last
+                # point keeps a velocity (section 4.3 step 6) when its client falls silent.
+                if late_ns > self._cmd_timeout_ns:
+                    return _Outcome(
+                        GoalTransition.ABORT,
+                        ErrorCode.GOAL_TOLERANCE_VIOLATED,
+                        f"Stopped due to command timeout: {late_ns / NS_PER_S:.6f} s past the "
+                        f"last point (cmd_timeout {self._cmd_timeout_ns / NS_PER_S:g} s) with no "
+                        "new command",
+                        True,
+                    )
+                return None
+            return _Outcome(GoalTransition.SUCCEED, ErrorCode.SUCCESSFUL, SUCCEEDED, False)
         if tol.goal_time > 0.0 and late_ns > round(tol.goal_time * NS_PER_S):
             return _Outcome(
                 GoalTransition.ABORT,

@@ -281,6 +281,31 @@ class TrajectorySample(NamedTuple):
     effort: F64
 
 
+BEFORE_START = "before_start"
+INSIDE = "inside"
+AFTER_END = "after_end"
+
+
+class QueriedState(NamedTuple):
+    """Answer of ``query_state`` (upstream's ``QueryTrajectoryState``, section 16).
+
+    Attributes:
+        positions, velocities, accelerations, effort: the values the answer carries (arrays in
+            controller joint order), as ``TrajectorySample``.
+        success: True only when the time lies inside the trajectory.
+        where: ``"inside"``, ``"before_start"`` (before the time the reference was installed:
+            the values are the current measured state) or ``"after_end"`` (at or after the last
+            point: the values are the last point's).
+    """
+
+    positions: F64
+    velocities: F64
+    accelerations: F64
+    effort: F64
+    success: bool
+    where: str
+
+
 def shortest_angular_distance(from_angle: F64, to_angle: F64) -> F64:
     """Signed angle in ``[-pi, pi)`` that takes ``from_angle`` to ``to_angle``."""
     d: F64 = np.mod(to_angle - from_angle + math.pi, 2.0 * math.pi) - math.pi
@@ -371,24 +396,36 @@ class Trajectory:
 
     ``sample(t)`` returns, for ``t`` in integer nanoseconds on the controller's clock:
 
-    - before the first breakpoint: the state at the first breakpoint (nothing is extrapolated
-      backwards);
+    - before ``state_before_ns`` (upstream's time of the state before the trajectory, section
+      4.3 step 3 of the upstream reference): nothing, it raises ``ValueError``; the reference
+      is not defined before it was installed;
     - inside a segment ``[t_i, t_i+1)``: the segment's polynomial; at a knot time exactly, the
       segment that *starts* there, so a knot's own values come back unrounded;
       linear segments give position and a constant velocity (acceleration 0), cubic and quintic
-      give position, velocity and acceleration, method ``none`` gives the held point's values;
-      effort is linear between points (held for ``none``);
-    - at or after the last breakpoint: the last point's position and effort, held, with zero
-      velocity and acceleration ("after the last waypoint is reached, its position is held").
+      give position, velocity and acceleration, method ``none`` gives the next point's values
+      (upstream's section 4.6); effort is linear between points (held for ``none``);
+    - at or after the last breakpoint: the last point as given (upstream's section 4.3 step 6):
+      its position and effort, and its velocity and acceleration *kept* (0 where the point had
+      none), until the controller replaces the reference.
 
-    A trajectory with no segments (``constant``) returns its state at every time.
+    A trajectory with no segments (``constant``) returns its state at every time from
+    ``state_before_ns`` on. ``query(t, current)`` answers upstream's ``query_state``.
 
     Its state is a few numpy arrays (the breakpoints too), so that pickling it -- a plan sent
     to the loop process -- moves them as whole buffers, whatever the number of segments.
     """
 
     __slots__ = (
-        "_breaks", "_blocks", "_origins", "_kinds", "_final", "_start", "_end", "_last", "n_joints"
+        "_breaks",
+        "_blocks",
+        "_origins",
+        "_kinds",
+        "_final",
+        "_start",
+        "_end",
+        "_last",
+        "n_joints",
+        "state_before_ns",
     )
 
     def __init__(
@@ -398,6 +435,7 @@ class Trajectory:
         origins: NDArray[np.int64],
         kinds: NDArray[np.int8],
         final: F64,
+        state_before_ns: int | None = None,
     ) -> None:
         breaks_array = np.array(breaks, dtype=np.int64)
         self._breaks = breaks_array
@@ -408,6 +446,8 @@ class Trajectory:
         self._final = final
         self._start = int(breaks_array[0])
         self._end = int(breaks_array[-1])
+        # The earliest time the trajectory is defined (default: its first breakpoint).
+        self.state_before_ns = self._start if state_before_ns is None else int(state_before_ns)
         # The segment the last sample fell in, (start, end, index): the loop samples increasing
         # times, mostly in the same segment, and comparing two ints is cheaper than a search.
         # Replaced whole (one assignment), so threads sampling at once each read a consistent
@@ -493,7 +533,7 @@ class Trajectory:
         splice_at = max(start, now_ns)
         cols = new.joint_indices
         knot_times = np.concatenate((np.array([splice_at], dtype=np.int64), abs_times[keep:]))
-        knots = self._new_knots(new, keep, self.sample(splice_at), cols, knot_times, wraparound)
+        knots = self._new_knots(new, keep, self._sample(splice_at), cols, knot_times, wraparound)
         keep_from = now_ns if keep_from_ns is None else min(keep_from_ns, now_ns)
         return self._combine(keep_from, splice_at, cols, knots, interpolation_method)
 
@@ -598,13 +638,19 @@ class Trajectory:
             else:  # every joint: fit in the controller's joint order, straight into place
                 self._new_pieces(t, _reorder(knots, cols, n), method, tail)
 
-        # Past the end every joint holds its last position and effort (joints a partial command
-        # does not name hold the current trajectory's last values).
+        # Past the end every joint is its last point as given, velocity and acceleration kept
+        # (upstream section 4.3 step 6: a streaming client's last point keeps the joint moving
+        # until the next one; cmd_timeout is the guard). Joints a partial command does not name
+        # keep the current trajectory's last point.
         final = self._final.copy() if partial else np.zeros((4, n))
-        final[1:3] = 0.0
         final[0, cols] = knots.pos[-1]
+        final[1, cols] = knots.vel[-1]
+        final[2, cols] = knots.acc[-1]
         final[3, cols] = knots.eff[-1]
-        return Trajectory(breaks, out.blocks, out.origins, out.kinds, final)
+        # Not defined before the time this trajectory is kept from (nor before the one it
+        # replaces was): sampling there fails, as upstream's before its state-before time.
+        state_before = max(now_ns, self.state_before_ns)
+        return Trajectory(breaks, out.blocks, out.origins, out.kinds, final, state_before)
 
     @staticmethod
     def _new_pieces(
@@ -627,15 +673,20 @@ class Trajectory:
         row = times.searchsorted(t, side="right") - 1
         inside = int(np.count_nonzero(row < m))  # the segments before the last knot come first
         origins[inside:] = t[inside:, None]
-        if inside < t.shape[0]:  # past the last knot: hold its position and effort
+        if inside < t.shape[0]:  # past the last knot: its values as given, velocity kept
             blocks[inside:, 0, 0] = pos[-1]
+            blocks[inside:, 1, 0] = vel[-1]
+            blocks[inside:, 2, 0] = acc[-1]
             blocks[inside:, 3, 0] = eff[-1]
         if not inside:
             return out
         r = row[:inside]
         origins[:inside] = times[r][:, None]
         if method == "none":
-            constant_blocks(pos[r], vel[r], acc[r], eff[r], out=blocks[:inside])
+            # Upstream section 4.6: the state before during the lead-in (row 0), then during
+            # the segment from point i (row i + 1) the raw *next* point i + 1 (row i + 2).
+            shown = np.where(r == 0, 0, r + 1)
+            constant_blocks(pos[shown], vel[shown], acc[shown], eff[shown], out=blocks[:inside])
             kinds[:inside] = SegmentKind.HOLD
             return out
         # Fit each knot segment in use once (a partial goal's grid can split one in several).
@@ -672,7 +723,7 @@ class Trajectory:
         blocks[after, :, 0] = f
         early = t < self._start
         if early.any():
-            blocks[early, :, 0] = np.stack(self.sample(self._start))
+            blocks[early, :, 0] = np.stack(self._sample(self._start))
         inside = np.flatnonzero(~after & ~early)
         if inside.size:
             i = self._breaks.searchsorted(t[inside], side="right") - 1
@@ -713,8 +764,41 @@ class Trajectory:
     def sample(self, t_ns: int) -> TrajectorySample:
         """Desired state at ``t_ns``; pure: the same time always gives the same answer.
 
-        See the class docstring for the behaviour before the start, inside and past the end.
+        See the class docstring for the behaviour inside and past the end.
+
+        Raises:
+            ValueError: ``t_ns`` is before ``state_before_ns`` (upstream's sampling fails
+                there, section 4.3 step 3).
         """
+        if t_ns < self.state_before_ns:
+            raise ValueError(
+                f"cannot sample the trajectory at {t_ns} ns: it is defined from "
+                f"{self.state_before_ns} ns (the time it was installed) on"
+            )
+        return self._sample(t_ns)
+
+    def query(self, t_ns: int, current: TrajectorySample) -> QueriedState:
+        """Upstream's ``query_state`` (section 16) on this trajectory; pure.
+
+        Args:
+            t_ns: the time asked for.
+            current: the current (measured) state, which the answer carries before the start.
+
+        Returns:
+            ``success`` True with the sample strictly between ``state_before_ns`` and the last
+            point; False before ``state_before_ns`` (carrying ``current``) and at or after the
+            last point (carrying the last point's values, as ``sample``).
+        """
+        if t_ns < self.state_before_ns:
+            return QueriedState(*current, success=False, where=BEFORE_START)
+        s = self._sample(t_ns)
+        if t_ns >= self._end:
+            return QueriedState(*s, success=False, where=AFTER_END)
+        return QueriedState(*s, success=True, where=INSIDE)
+
+    def _sample(self, t_ns: int) -> TrajectorySample:
+        """``sample`` without the check of ``state_before_ns`` (before the first breakpoint:
+        the state at it), for building trajectories."""
         if t_ns >= self._end or not self._blocks.shape[0]:
             f = self._final
             return TrajectorySample(f[0], f[1], f[2], f[3])

@@ -64,6 +64,7 @@ from ..controller.tolerances import JointTolerance
 from ..controller.trajectory import (
     JointTrajectory,
     PointColumns,
+    QueriedState,
     Trajectory,
     TrajectorySample,
 )
@@ -207,6 +208,9 @@ class LoopBackend:
         self._planner = Planner(self.config)
         self._position_limits = joint_position_limits(robot)
         self._ref: Trajectory | None = None
+        # The last measured positions and velocities the loop published (query_state carries
+        # them before the reference's start, as upstream's current state).
+        self._measured: tuple[Any, Any] | None = None
         self._version = -1
         self._plans: dict[int, Plan] = {}
         self._waiting: dict[int, asyncio.Future[Any]] = {}
@@ -445,6 +449,7 @@ class LoopBackend:
                 elif self._listener is not None:
                     self._listener.on_goal_event(event)
         elif kind == "state":
+            self._measured = (message[1][2], message[1][3])
             if self._listener is not None:
                 self._listener.on_state(self._snapshot(message[1]))
         elif kind == "status":
@@ -556,15 +561,29 @@ class LoopBackend:
             status["controller"] = controller
         return status
 
-    def query_state(self, time_ns: int) -> TrajectorySample:
-        """Desired state at ``time_ns`` from the replica reference.
+    def query_state(self, time_ns: int) -> QueriedState:
+        """``query_state`` at ``time_ns`` from the replica reference (see
+        ``JointTrajectoryController.query_state``); before the reference's start it carries
+        the last published measured state (before any: the reference's first state).
 
         Raises:
             ControllerStateError: the loop has not reported a reference yet.
         """
-        if self._ref is None:
+        ref = self._ref
+        if ref is None:
             raise ControllerStateError("the controller is not active yet")
-        return self._ref.sample(time_ns)
+        first = ref.sample(ref.state_before_ns)
+        current = first
+        if self._measured is not None:
+            positions, velocities = self._measured
+            zero = np.zeros(len(self.joint_names))
+            current = TrajectorySample(
+                np.asarray(positions, dtype=np.float64),
+                zero if velocities is None else np.asarray(velocities, dtype=np.float64),
+                zero,
+                zero,
+            )
+        return ref.query(time_ns, current)
 
     async def send_goal(
         self,

@@ -13,7 +13,7 @@ from typing import Any, Protocol
 from ..controller.config_io import ParameterChange
 from ..controller.goals import GoalFeedback, GoalResult
 from ..controller.tolerances import JointTolerance
-from ..controller.trajectory import JointTrajectory, TrajectorySample
+from ..controller.trajectory import JointTrajectory, QueriedState
 
 __all__ = ["Backend", "BackendListener"]
 
@@ -108,8 +108,9 @@ class Backend(Protocol):
         """
         ...
 
-    def query_state(self, time_ns: int) -> TrajectorySample:
-        """The desired state at ``time_ns``.
+    def query_state(self, time_ns: int) -> QueriedState:
+        """``query_state`` at ``time_ns`` (upstream's section 16: ``success`` only inside
+        the reference).
 
         Raises:
             ControllerStateError: the controller is not active.

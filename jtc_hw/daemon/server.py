@@ -719,12 +719,14 @@ class Server:
                 return reply(req.id, stopped=True)
             case QueryState():
                 t = req.resolve(backend.now_ns())
-                sample = backend.query_state(t)
+                queried = backend.query_state(t)
                 return reply(
                     req.id,
                     time_ns=t,
+                    success=queried.success,
+                    where=queried.where,
                     joint_names=list(backend.joint_names),
-                    **sample_to_json(sample),
+                    **sample_to_json(queried),
                 )
             case SubscribeState():
                 conn.subscribed = True

@@ -5,8 +5,10 @@
 code, unchanged but for names, so that ``test_vectorised.py`` can check that the vectorised code
 gives bit-identical trajectories and the same rejections (message and code) on random input.
 Not used by the package; do not "fix" it: it is the definition of the behaviour being kept.
-Changed on purpose since: the last-point velocity rule counts |v| <= FLT_EPSILON as zero (issue
-11, upstream's rule; it was ``!= 0``).
+Deliberate changes of behaviour since are made here too, marked with their issue: issue 11
+(upstream's sections 4.3 step 6 and 4.6) keeps the last point's velocity and acceleration past
+the end, and method ``none`` shows the next point; the last-point velocity rule counts
+|v| <= FLT_EPSILON as zero (upstream's rule; it was ``!= 0``).
 """
 
 from __future__ import annotations
@@ -368,7 +370,7 @@ class Trajectory:
     ) -> Trajectory:
         n = self.n_joints
         partial = cols.shape[0] != n
-        pos, eff = knots.pos, knots.eff
+        pos, vel, acc, eff = knots.pos, knots.vel, knots.acc, knots.eff
 
         # Breakpoints: the current trajectory from the segment holding `now` up to the splice,
         # the new knots, and (partial goals) the current trajectory's later breakpoints.
@@ -404,8 +406,9 @@ class Trajectory:
         # Past the end every joint holds its last position and effort (joints a partial command
         # does not name hold the current trajectory's last values).
         final = self._final.copy() if partial else np.zeros((4, n))
-        final[1:3] = 0.0
         final[0, cols] = pos[-1]
+        final[1, cols] = vel[-1]  # issue 11: the last point's velocity and acceleration kept
+        final[2, cols] = acc[-1]
         final[3, cols] = eff[-1]
         return Trajectory(breaks, blocks, origins, kinds, final)
 
@@ -423,12 +426,13 @@ class Trajectory:
         # (first point due at the splice time) has two rows at the same time: take the later.
         row = bisect_right(knot_times, t) - 1
         if row >= len(knot_times) - 1:
-            block = constant_block(pos[-1], np.zeros(k), np.zeros(k), eff[-1])
+            block = constant_block(pos[-1], vel[-1], acc[-1], eff[-1])  # issue 11
             return _Piece(block, np.full(k, t, dtype=np.int64), np.zeros(k, dtype=np.int8))
         t0, t1 = knot_times[row], knot_times[row + 1]
         origin = np.full(k, t0, dtype=np.int64)
         if method == "none":
-            block = constant_block(pos[row], vel[row], acc[row], eff[row])
+            shown = 0 if row == 0 else row + 1  # issue 11: the next point (row 0: lead-in)
+            block = constant_block(pos[shown], vel[shown], acc[shown], eff[shown])
             return _Piece(block, origin, np.full(k, SegmentKind.HOLD, dtype=np.int8))
         kind = kind_for(has_v[row] and has_v[row + 1], has_a[row] and has_a[row + 1])
         duration = (t1 - t0) / NS_PER_S

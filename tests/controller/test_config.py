@@ -774,15 +774,21 @@ def test_has_command_and_state() -> None:
 # ------------------------------------------------------------------------------------------
 
 
+# Effort and velocity command interfaces below come with a cmd_timeout: without one, the
+# default allow_nonzero_velocity_at_trajectory_end (true) is warned about (issue 11; tested in
+# tests/controller/test_upstream_sampling.py).
+GUARDED = {"cmd_timeout": 1.0}
+
+
 def test_explain_nothing_to_say() -> None:
     assert explain(load_config(plain())) == []
-    assert explain(load_config(plain(command_interfaces=["effort"], gains={
+    assert explain(load_config(plain(command_interfaces=["effort"], **GUARDED, gains={
         "j1": {"p": 1, "i": 1, "i_clamp": 1}, "j2": {"p": 1}}))) == []
 
 
 def test_explain_integral_without_clamp() -> None:
-    cfg = load_config(plain(command_interfaces=["effort"], gains={"j1": {"p": 1, "i": 0.5},
-                                                                  "j2": {"p": 1}}))
+    cfg = load_config(plain(command_interfaces=["effort"], **GUARDED,
+                            gains={"j1": {"p": 1, "i": 0.5}, "j2": {"p": 1}}))
     (warning,) = explain(cfg)
     assert warning.startswith("gains.j1.i_clamp:")
     assert "the integral term is clamped to zero; set i_clamp" in warning
@@ -793,14 +799,14 @@ def test_explain_gains_ignored() -> None:
     (warning,) = explain(cfg)
     assert warning.startswith("gains.j1:") and "(p)" in warning
     assert "ignored with these command interfaces" in warning
-    cfg = load_config(plain(command_interfaces=["velocity"], open_loop_control=True,
+    cfg = load_config(plain(command_interfaces=["velocity"], open_loop_control=True, **GUARDED,
                             gains={"j2": {"d": 1.0}}))
     (warning,) = explain(cfg)
     assert warning.startswith("gains.j2:") and "open_loop_control" in warning
 
 
 def test_explain_zero_gains_with_pid() -> None:
-    cfg = load_config(plain(command_interfaces=["velocity"], gains={"j1": {"p": 1}}))
+    cfg = load_config(plain(command_interfaces=["velocity"], **GUARDED, gains={"j1": {"p": 1}}))
     (warning,) = explain(cfg)
     assert warning.startswith("gains.j2:") and "velocity command of 'j2' is always 0" in warning
 

@@ -128,7 +128,9 @@ def test_nan_state_is_never_taken_for_a_position() -> None:
 # -- execution and time base ------------------------------------------------------------------
 
 
-def test_goal_succeeds_exactly_at_the_end_and_not_before() -> None:
+def test_goal_succeeds_one_period_before_the_end_and_not_before() -> None:
+    """Upstream section 7 step 8: success is judged on the look-ahead sample, one period
+    before the reference reaches the last point (issue 11; it was at the end before)."""
     # The mirror measures velocity by backward difference, like an encoder: a cubic arriving
     # with zero velocity reads up to 0.06 rad/s at the last knot, inside this stopped tolerance.
     config = make_config(constraints=constraints(0.05, 0.01, stopped_velocity_tolerance=0.1))
@@ -138,7 +140,7 @@ def test_goal_succeeds_exactly_at_the_end_and_not_before() -> None:
         rig.now, JointTrajectory(NAMES, [TrajectoryPoint(t, p, v) for t, p, v in points])
     )
     end = rig.now + 1 * S
-    while rig.now < end:
+    while rig.now < end - 10 * MS:
         rig.step()
         assert rig.results(gid) == []  # success is never reported early
     rig.step()
@@ -146,7 +148,7 @@ def test_goal_succeeds_exactly_at_the_end_and_not_before() -> None:
     assert (result.status, result.error_code, result.time_ns) == (
         GoalStatus.SUCCEEDED,
         ErrorCode.SUCCESSFUL,
-        end,
+        end - 10 * MS,
     )
     rig.step(100)
     assert rig.results(gid) == [result]
@@ -196,7 +198,8 @@ def test_future_start_time_holds_until_then() -> None:
     while rig.now + 10 * MS < start:
         np.testing.assert_array_equal(rig.step().command.positions, [0.2, 0.2])
     rig.run_until(lambda out: bool(rig.results(gid)))
-    assert rig.now - 10 * MS == start + 500 * MS
+    # Decided one period before the end (upstream section 7 step 8; issue 11).
+    assert rig.results(gid)[0].time_ns == start + 500 * MS - 10 * MS
 
 
 def test_past_start_uses_time_from_start_not_its_sum() -> None:
@@ -210,7 +213,8 @@ def test_past_start_uses_time_from_start_not_its_sum() -> None:
     gid = rig.ctrl.send_goal(rig.now, traj(*pts, start_time_ns=rig.now - 2500 * MS))
     t0 = rig.now
     rig.run_until(lambda out: bool(rig.results(gid)))
-    assert rig.now - 10 * MS == t0 + 500 * MS
+    # Decided one period before the end (upstream section 7 step 8; issue 11).
+    assert rig.results(gid)[0].time_ns == t0 + 500 * MS - 10 * MS
 
 
 # -- preemption, cancel, topic ------------------------------------------------------------------
@@ -578,17 +582,22 @@ def test_acceleration_interface_forwards_desired_acceleration() -> None:
     assert out.command.accelerations[0] > 0.0
 
 
-def test_forward_velocity_after_success_is_zero() -> None:
+def test_forward_velocity_after_success_is_kept() -> None:
+    """Upstream sections 4.3 step 6 and 11.2: the success hold is the last point as given, its
+    velocity re-commanded (issue 11; this test asserted 0 before)."""
     config = make_config(
         joints=("j",),
         command_interfaces=("position", "velocity"),
         allow_nonzero_velocity_at_trajectory_end=True,
+        constraints={"stopped_velocity_tolerance": 10.0},
     )
     rig = Rig(config, [0.0])
     gid = rig.ctrl.send_goal(rig.now, JointTrajectory(("j",), [TrajectoryPoint(0.5, [0.5], [1.0])]))
     rig.run_until(lambda out: bool(rig.results(gid)))
-    rig.step()
-    assert rig.last.command.velocities[0] == 0.0
+    for _ in range(50):
+        rig.step()
+        assert rig.last.command.velocities[0] == 1.0
+        assert rig.last.command.positions[0] == 0.5
 
 
 def test_open_loop_holds_last_command_on_abort() -> None:

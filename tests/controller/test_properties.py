@@ -199,13 +199,22 @@ def kind_of(has_v: bool, has_a: bool) -> int:
     return LINEAR if not has_v else (QUINTIC if has_a else CUBIC)
 
 
-def continuity_violations(traj: Trajectory, t: int, level: int) -> list[str]:
+def continuity_violations(
+    traj: Trajectory, t: int, level: int, before: Trajectory | None = None
+) -> list[str]:
     """Compare sample(t - 1) with sample(t) (1 ns apart) up to the derivative ``level`` allows.
+
+    ``before``: the trajectory ``traj`` replaced, equal to it before ``t`` (a splice at ``t``):
+    its sample gives the left side, since ``traj`` is not defined before it was installed; no
+    left side at all (``t`` is where ``before`` starts too) gives no violation.
 
     A difference over 1 ns is the next derivative times 1e-9 s; the tolerance is twice that
     (the next derivative taken at both sides; jerk estimated over 1 us) plus float slack.
     """
-    left, right = traj.sample(t - 1), traj.sample(t)
+    left_of = traj if before is None else before
+    if t - 1 < left_of.state_before_ns:
+        return []
+    left, right = left_of.sample(t - 1), traj.sample(t)
     d = 1_000
     rows = [("positions", "velocities")]
     if level >= CUBIC:
@@ -218,7 +227,8 @@ def continuity_violations(traj: Trajectory, t: int, level: int) -> list[str]:
         if (np.abs(x_r - x_l) > tol).any():
             out.append(f"{field} jump at {t}: left {x_l}, right {x_r}, tol {tol}")
     if level >= QUINTIC:
-        far_l, far_r = traj.sample(t - 1 - d), traj.sample(t + d)
+        far_l = left_of.sample(max(t - 1 - d, left_of.state_before_ns))
+        far_r = traj.sample(t + d)
         jerk = np.maximum(
             np.abs(left.accelerations - far_l.accelerations),
             np.abs(far_r.accelerations - right.accelerations),
@@ -265,9 +275,10 @@ def test_samples_pass_through_every_waypoint(sc: Scenario) -> None:
             np.testing.assert_allclose(pos, exp.pos[i], rtol=1e-9, atol=1e-9, err_msg=f"{i}")
         if point.effort is not None:
             np.testing.assert_array_equal(s.effort[cols], point.effort, err_msg=f"point {i}")
-        if i == m - 1:  # the last point is held, at rest
+        if i == m - 1:  # the last point as given, its velocity and acceleration kept (issue 11)
             assert (traj.kinds_at(t) == HOLD).all()
-            assert (s.velocities == 0.0).all() and (s.accelerations == 0.0).all()
+            np.testing.assert_allclose(vel, exp.vel[i], rtol=1e-9, atol=1e-9)
+            np.testing.assert_array_equal(acc, exp.acc[i])
             assert traj.end_ns == t
             continue
         kind = kind_of(exp.has_v[i] and exp.has_v[i + 1], exp.has_a[i] and exp.has_a[i + 1])
@@ -284,10 +295,10 @@ def test_samples_pass_through_every_waypoint(sc: Scenario) -> None:
         if kind == QUINTIC:
             np.testing.assert_array_equal(acc, point.accelerations, err_msg=f"point {i}")
 
-    # Held after the end, with zero velocity and acceleration.
+    # After the end: the last point as given, not decaying (upstream section 4.3 step 6).
     last = traj.sample(times[-1] + 10**15)
-    np.testing.assert_array_equal(last.positions, traj.sample(times[-1]).positions)
-    assert (last.velocities == 0.0).all() and (last.accelerations == 0.0).all()
+    for mine, at_end in zip(last, traj.sample(times[-1]), strict=True):
+        np.testing.assert_array_equal(mine, at_end)
 
 
 # -- 1b. continuity at the knots -------------------------------------------------------------------
@@ -302,14 +313,14 @@ def test_continuity_at_interior_knots_matches_segment_kind(sc: Scenario) -> None
     # The splice: the bridge leaves the previous state with the continuity its kind allows.
     if times[0] > sc.splice_at:
         level = int(traj.kinds_at(sc.splice_at).min())
-        problems += continuity_violations(traj, sc.splice_at, level)
+        problems += continuity_violations(traj, sc.splice_at, level, sc.base)
     for t in times[:-1]:
         if t == sc.splice_at:
             continue  # a first point due at the splice time: no lead-in, a jump is allowed
         level = int(min(traj.kinds_at(t - 1).min(), traj.kinds_at(t).min()))
         assert level in (LINEAR, CUBIC, QUINTIC)
         problems += continuity_violations(traj, t, level)
-    # The last knot: position is continuous (velocity drops to 0 there: the hold).
+    # The last knot: position is continuous (the velocity becomes the last point's there).
     if times[-1] > sc.splice_at:
         problems += continuity_violations(traj, times[-1], LINEAR)
     assert not problems, problems
@@ -337,6 +348,10 @@ def test_samples_are_always_finite(sc: Scenario, extra: list[int]) -> None:
     for a, b in zip([sc.splice_at] + times, times):
         probes += [a + (b - a) // 3, (a + b) // 2]
     for t in probes:
+        if t < traj.state_before_ns:  # not defined before it is installed (issue 11)
+            with pytest.raises(ValueError, match="defined from"):
+                traj.sample(t)
+            continue
         s = traj.sample(t)
         for field in FIELDS:
             assert np.isfinite(getattr(s, field)).all(), (t, field, s)
@@ -357,6 +372,7 @@ def test_sample_is_pure(sc: Scenario, data: st.DataObject) -> None:
     times = sc.knot_times
     probes = [sc.now - 5, sc.splice_at, times[-1] + 1] + [t + d for t in times for d in (-1, 0)]
     probes += data.draw(st.lists(st.integers(sc.now - S, times[-1] + S), max_size=15))
+    probes = [t for t in probes if t >= traj.state_before_ns]  # defined from there (issue 11)
     first = {t: snapshot(traj.sample(t)) for t in probes}
     kinds = {t: traj.kinds_at(t).tobytes() for t in probes}
     # Mutating what sample returned must not leak into later samples (writes may be refused).
@@ -449,7 +465,7 @@ def test_replacement_keeps_the_current_trajectory_until_the_splice(
         np.testing.assert_array_equal(
             second.sample(ts).velocities[cubic], first.sample(ts).velocities[cubic]
         )
-        problems = continuity_violations(second, ts, LINEAR)
+        problems = continuity_violations(second, ts, LINEAR, first)
         assert not problems, problems
 
     # The last point of the new command is reached and held.
@@ -534,17 +550,23 @@ def test_wraparound_lead_in_never_moves_more_than_pi(
 
 @FAST
 @given(sc=scenarios(method="none"))
-def test_none_method_holds_each_point_until_the_next(sc: Scenario) -> None:
+def test_none_method_gives_the_next_point(sc: Scenario) -> None:
+    """Upstream section 4.6 (issue 11): the state before during the lead-in, point i + 1 from
+    point i's time to point i + 1's, the last point after the end."""
     traj = sc.build()
     times, cols = sc.knot_times, sc.cols
     p0 = sc.start_state[0]
     if times[0] > sc.splice_at:
         for t in (sc.splice_at, (sc.splice_at + times[0]) // 2, times[0] - 1):
             np.testing.assert_array_equal(traj.sample(t).positions, p0)
-    for i, point in enumerate(sc.msg.points):
+    points = sc.msg.points
+    for i in range(len(points)):
         nxt = times[i + 1] if i + 1 < len(times) else times[i] + 10 * S
+        shown = points[min(i + 1, len(points) - 1)]
         for t in (times[i], (times[i] + nxt) // 2, nxt - 1):
-            np.testing.assert_array_equal(traj.sample(t).positions[cols], point.positions)
+            if t < traj.state_before_ns:  # a point due before the splice was dropped
+                continue
+            np.testing.assert_array_equal(traj.sample(t).positions[cols], shown.positions)
 
 
 # == 2. Goal lifecycle ============================================================================

@@ -174,7 +174,7 @@ def test_nonzero_initial_point_is_the_lead_in_start() -> None:
     traj = build(one_joint(), pts(pos=POS, vel=VEL, acc=ACC), start=(-1.0, 0.5, 0.0))
     s = traj.sample(T0)
     assert (s.positions[0], s.velocities[0], s.accelerations[0]) == (-1.0, 0.5, 0.0)
-    assert jumps(traj, [T0] + INNER).max() < 1e-6  # smooth from the initial point on
+    assert jumps(traj, INNER).max() < 1e-6  # smooth from the initial point on
 
 
 def test_first_point_at_zero_means_no_lead_in() -> None:
@@ -195,30 +195,60 @@ def test_inconsistent_points_splines_overshoot_none_returns_given_points() -> No
     assert none_p <= {0.0, 1.0}  # only the initial point and the given points
 
 
-def test_none_method_is_zero_order_hold() -> None:
-    traj = build(one_joint(interpolation_method="none"), pts(pos=POS, vel=VEL))
-    assert traj.sample(KNOTS[0] - 1).positions[0] == 0.0  # initial point until the first time
+def test_none_method_gives_the_next_point() -> None:
+    """Upstream section 4.6: the state before during the lead-in, the raw point i + 1 during
+    segment i (already at point 0's own time), the last point after the end (issue 11; this
+    test asserted a zero-order hold before)."""
+    traj = build(
+        one_joint(interpolation_method="none", allow_nonzero_velocity_at_trajectory_end=True),
+        pts(pos=POS, vel=VEL[:3] + [0.5], acc=ACC),
+        start=(0.25, 0.0, 0.0),
+    )
+    for probe in (T0, T0 + 100 * MS, KNOTS[0] - 1):  # lead-in: the state before
+        s = traj.sample(probe)
+        assert (s.positions[0], s.velocities[0], s.accelerations[0]) == (0.25, 0.0, 0.0)
     for i, t in enumerate(KNOTS[:-1]):
         for probe in (t, t + 250 * MS, KNOTS[i + 1] - 1):
             s = traj.sample(probe)
-            assert (s.positions[0], s.velocities[0]) == (POS[i], VEL[i])
-    assert traj.sample(KNOTS[-1]).positions[0] == POS[-1]
+            expected = (POS[i + 1], [*VEL[:3], 0.5][i + 1], ACC[i + 1])
+            assert (s.positions[0], s.velocities[0], s.accelerations[0]) == expected
+    for probe in (KNOTS[-1], KNOTS[-1] + 10 * S):
+        s = traj.sample(probe)
+        assert (s.positions[0], s.velocities[0], s.accelerations[0]) == (POS[-1], 0.5, ACC[-1])
 
 
-def test_after_last_point_position_is_held() -> None:
+def test_after_last_point_keeps_its_velocity_and_acceleration() -> None:
+    """Upstream section 4.3 step 6: past the end the reference is the last point as given, its
+    velocity and acceleration kept, not decaying (issue 11; this test asserted a zero-velocity
+    hold before)."""
     traj = build(
-        one_joint(allow_nonzero_velocity_at_trajectory_end=True), pts(pos=POS, vel=VEL[:3] + [2.0])
+        one_joint(allow_nonzero_velocity_at_trajectory_end=True),
+        pts(pos=POS, vel=VEL[:3] + [2.0], acc=ACC[:3] + [-0.5]),
     )
     for t in (KNOTS[-1], KNOTS[-1] + 1, KNOTS[-1] + 100 * S):
         s = traj.sample(t)
-        assert s.positions[0] == POS[-1]
-        assert s.velocities[0] == 0.0 and s.accelerations[0] == 0.0
+        assert (s.positions[0], s.velocities[0], s.accelerations[0]) == (POS[-1], 2.0, -0.5)
     assert traj.end_ns == KNOTS[-1]
 
 
-def test_before_start_returns_start_state() -> None:
+def test_after_last_point_absent_fields_are_zero() -> None:
+    """Upstream section 4.3 step 6: absent velocities and accelerations of the last point are
+    0 past the end (a linear last segment's slope does not carry over)."""
+    traj = build(one_joint(), pts(pos=POS))
+    assert traj.sample(KNOTS[-1] - 1).velocities[0] != 0.0
+    s = traj.sample(KNOTS[-1] + 5 * S)
+    assert (s.positions[0], s.velocities[0], s.accelerations[0]) == (POS[-1], 0.0, 0.0)
+
+
+def test_sampling_before_the_state_before_time_fails() -> None:
+    """Upstream section 4.3 step 3: sampling before the time of the state before the
+    trajectory fails (issue 11; this test expected the start state before)."""
     traj = build(one_joint(), pts(pos=POS), start=(0.25, 0.0, 0.0))
-    assert traj.sample(T0 - 5 * S).positions[0] == 0.25
+    assert traj.state_before_ns == T0
+    assert traj.sample(T0).positions[0] == 0.25
+    for t in (T0 - 1, T0 - 5 * S):
+        with pytest.raises(ValueError, match=f"at {t} ns: it is defined from {T0} ns"):
+            traj.sample(t)
 
 
 def test_sample_is_pure() -> None:

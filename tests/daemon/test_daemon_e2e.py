@@ -421,10 +421,15 @@ def test_state_messages_and_query_state_of_a_future_goal(arm: DaemonProcess) -> 
         at_end = client.query_state(time_ns=start + S)
         assert at_end["time_ns"] == start + S and at_end["joint_names"] == JOINTS
         assert at_end["positions"] == target  # a knot is hit exactly
-        midway = client.query_state(time_ns=start + S // 2)["positions"]
-        assert midway == pytest.approx([(a + b) / 2 for a, b in zip(p0, target)], abs=1e-9)
+        assert at_end["success"] is False  # upstream: at or after the last point (issue 11)
+        midway = client.query_state(time_ns=start + S // 2)
+        assert midway["success"] is True
+        assert midway["positions"] == pytest.approx(
+            [(a + b) / 2 for a, b in zip(p0, target)], abs=1e-9
+        )
         after = client.query_state(time_ns=start + 2 * S)
         assert after["positions"] == target and after["velocities"] == [0.0] * 6
+        assert (after["success"], after["where"]) == (False, "after_end")
 
         feedback = list(goal.feedback(timeout_s=WAIT_S))
         assert feedback[0]["time_from_start"] < 0  # it starts 0.5 s after acceptance

@@ -328,3 +328,18 @@ def test_deactivation_command_leaves_joints_outside_command_joints_alone() -> No
     assert velocities is not None
     assert math.isnan(velocities[0])
     assert velocities[1] == 0.0
+
+
+def test_cancel_result_has_upstreams_empty_error_string() -> None:
+    """Section 9 (cancel request): the goal ends CANCELED with error_code 0 and an empty
+    error_string, as upstream's; what happened is in ``details``."""
+    rig = Rig(make_config(), [0.0, 0.0])
+    gid = rig.ctrl.send_goal(rig.now, goal(1.0, [1.0, -1.0]))
+    rig.step(10)
+    assert rig.ctrl.cancel_goal(gid)
+    rig.step(2)
+    (result,) = rig.results(gid)
+    assert result.status is GoalStatus.CANCELED
+    assert result.error_code == ErrorCode.SUCCESSFUL
+    assert result.error_string == ""
+    assert "canceled on request" in result.details

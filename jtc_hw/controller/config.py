@@ -37,6 +37,7 @@ from types import MappingProxyType
 from typing import Any, Final
 
 from ..errors import ConfigurationError
+from .limits import JointLimits, check_joint_limits
 from .parsing import coerce_bool, coerce_string_array, describe, did_you_mean, fmt_list
 
 __all__ = [
@@ -370,6 +371,9 @@ class ControllerConfig:
     constraints: Constraints = field(default_factory=Constraints)
     gains: Mapping[str, Gains] = field(default_factory=_empty_mapping)
     update_rate: float = _float_default(PARAMETERS, "update_rate")
+    limits: Mapping[str, JointLimits] = field(default_factory=_empty_mapping)
+    """Per joint, the controller's joint limits (issue 12; :mod:`.limits`); joints absent are
+    unlimited. Not one of upstream's parameters (upstream reads limits from the URDF)."""
 
     def __post_init__(self) -> None:
         _validate(self)
@@ -646,6 +650,14 @@ def _validate(cfg: ControllerConfig) -> None:
     joints = cfg.joints
     _check_command_joints(cfg.command_joints, joints)
     _check_interfaces(cfg.command_interfaces, cfg.state_interfaces)
+
+    limits = _expect_mapping(cfg.limits, "limits")
+    checked_limits: dict[str, JointLimits] = {}
+    for key, value in limits.items():
+        if _check_key(key, "limits") not in joints:
+            raise _not_a_joint(key, "limits", joints)
+        checked_limits[key] = check_joint_limits(value, f"limits.{key}")
+    put("limits", MappingProxyType(checked_limits))
 
     constraints = cfg.constraints
     if not isinstance(constraints, Constraints):

@@ -190,7 +190,7 @@ class Plan:
     and the resulting duration; None when the goal was checked against the limits as sent."""
 
 
-FIT_ROUNDS = 6
+FIT_ROUNDS = 8
 """Slow-down rounds before a goal whose lead-in keeps exceeding a limit is rejected: the
 first round is exact for the points' segments, later ones only correct the lead-in."""
 
@@ -339,7 +339,11 @@ class Planner:
                     f"{message}; slow the trajectory down (its times by a factor of at least "
                     f'{fit_factor(found):.6g}), or send it with time_scaling "fit"'
                 )
-            factor *= fit_factor(found) * (1.0 + 4 * TOLERANCE)
+            # First round: exact for everything that scales (a lead-in from rest too). Later
+            # rounds only correct a lead-in from a moving reference, whose start velocity does
+            # not scale: its acceleration falls only like 1/s (jerk 1/s**2), so a step is
+            # taken as if it did (lead_in=True): it may overshoot the smallest factor slightly.
+            factor *= fit_factor(found, lead_in=_round > 0) * (1.0 + 4 * TOLERANCE)
             current_prepared = scale_prepared(prepared, factor)
             current = reference.splice(
                 now_ns,

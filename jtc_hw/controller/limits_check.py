@@ -238,7 +238,9 @@ def _bracketed_roots(coef: F64, low: F64, high: F64, split: F64) -> F64:
 def _roots(coef: F64, low: F64, high: F64, split: F64 | None) -> F64:
     """Real roots of polynomials of degree <= 4: closed form where the coefficients of degree
     3 and up are zero, else bracketed by ``split`` (the roots of the derivative)."""
-    if coef.shape[1] <= 3 or split is None:
+    if coef.shape[1] < 3:  # linear (snap): pad to a quadratic with a zero leading term
+        coef = np.concatenate((coef, np.zeros((coef.shape[0], 3 - coef.shape[1]))), axis=1)
+    if coef.shape[1] == 3 or split is None:
         return _quadratic_roots(coef[:, 0], coef[:, 1], coef[:, 2])
     high_order = (coef[:, 3:] != 0.0).any(axis=1)
     out = np.full((coef.shape[0], split.shape[1] + 1), np.nan)
@@ -419,13 +421,20 @@ def _worst(
     )
 
 
-def fit_factor(excesses: Mapping[str, Excess]) -> float:
+def fit_factor(excesses: Mapping[str, Excess], *, lead_in: bool = False) -> float:
     """The smallest uniform slow-down that brings the scale-invariant parts within the
-    velocity, acceleration and jerk limits (``max(r_v, sqrt(r_a), cbrt(r_j))``, at least 1)."""
+    velocity, acceleration and jerk limits (``max(r_v, sqrt(r_a), cbrt(r_j))``, at least 1).
+
+    Args:
+        excesses: what :func:`check` found.
+        lead_in: the excess is in a lead-in from a moving reference, whose acceleration and
+            jerk fall only like ``1/s`` and ``1/s**2``: ``max(r_v, r_a, sqrt(r_j))``.
+    """
     factor = 1.0
     for name, excess in excesses.items():
         if name in _EXPONENT:
-            factor = max(factor, excess.ratio ** (1.0 / _EXPONENT[name]))
+            exponent = _EXPONENT[name] - 1.0 if lead_in and name != "velocity" else _EXPONENT[name]
+            factor = max(factor, excess.ratio ** (1.0 / exponent))
     return factor
 
 

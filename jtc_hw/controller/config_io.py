@@ -587,6 +587,17 @@ def explain(cfg: ControllerConfig) -> list[str]:
             "next command, and cmd_timeout is off; set cmd_timeout (seconds, greater than "
             "constraints.goal_time) to stop them when commands stop coming"
         )
+    shaped = [j for j, lim in cfg.limits.items() if lim.position is not None or any(
+        v is not None for v in (lim.velocity, lim.acceleration, lim.jerk)
+    )]
+    if cfg.time_scaling == "fit" and not any(
+        lim.velocity or lim.acceleration or lim.jerk for lim in cfg.limits.values()
+    ):
+        warnings.append(
+            "limits.time_scaling: 'fit' slows goals down to the velocity, acceleration and jerk "
+            "limits, but no joint has one"
+            + (" (only position ranges, which slowing cannot fix)" if shaped else "")
+        )
     output = "effort" if "effort" in cfg.command_interfaces else "velocity"
     if cfg.command_interfaces == ("velocity",):
         why = "open_loop_control disables the PID loop"

@@ -50,6 +50,7 @@ from .limits import JointLimits
 from .trajectory import NS_PER_S, PreparedTrajectory, Trajectory
 
 __all__ = [
+    "AcceptedGoal",
     "FIT",
     "REJECT",
     "TIME_SCALING_MODES",
@@ -60,6 +61,7 @@ __all__ = [
     "describe_excess",
     "fit_factor",
     "scale_prepared",
+    "scaling_fields",
 ]
 
 REJECT = "reject"
@@ -90,6 +92,32 @@ class TimeScaling(NamedTuple):
 
     factor: float
     duration_s: float
+
+
+class AcceptedGoal(int):
+    """A goal id that also carries how the goal was fitted to the joint limits.
+
+    An ``int`` everywhere a goal id is expected (the daemon's backend returns it from
+    ``send_goal``); ``time_scaling`` is the ``Plan``'s (None: checked as sent, or no limits).
+    """
+
+    time_scaling: TimeScaling | None
+
+    def __new__(cls, goal_id: int, time_scaling: TimeScaling | None = None) -> AcceptedGoal:
+        accepted = super().__new__(cls, goal_id)
+        accepted.time_scaling = time_scaling
+        return accepted
+
+    def reply_fields(self) -> dict[str, float]:
+        """The ``accepted`` reply's fields for it (:func:`scaling_fields`)."""
+        return scaling_fields(self.time_scaling)
+
+
+def scaling_fields(scaling: TimeScaling | None) -> dict[str, float]:
+    """``time_scale`` and ``duration_s`` of a reply when ``fit`` was in effect, else none."""
+    if scaling is None:
+        return {}
+    return {"time_scale": scaling.factor, "duration_s": scaling.duration_s}
 
 
 class Excess(NamedTuple):

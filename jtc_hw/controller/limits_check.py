@@ -39,7 +39,7 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -74,8 +74,8 @@ INVALID_GOAL = -1
 TOLERANCE = 1e-9
 """Relative slack on a limit: a value computed as the limit plus rounding is within it."""
 
-_BISECTIONS = 30
-"""Bisection steps for a bracketed root: the bracket shrinks by 2**-30 (1e-9 of a segment);
+_BISECTIONS = 24
+"""Bisection steps for a bracketed root: the bracket shrinks by 2**-24 (6e-8 of a segment);
 the quantity is flat at its extremum, so the value's error is far below that."""
 
 _FIELDS = ("position", "velocity", "acceleration", "jerk")
@@ -191,103 +191,101 @@ class LimitTable:
 
 
 # --------------------------------------------------------------------------------------------
-# Polynomials, vectorised: coefficients (N, d + 1), lowest degree first
+# Polynomials, vectorised: a polynomial is a list of coefficient arrays (one value per row),
+# lowest degree first; its length is the highest degree any row uses, plus one
 # --------------------------------------------------------------------------------------------
 
+Poly = list[F64]
 
-def _derivative(coef: F64) -> F64:
-    orders = np.arange(1, coef.shape[1], dtype=np.float64)
-    out: F64 = coef[:, 1:] * orders
+
+def _derivative(poly: Poly) -> Poly:
+    return [poly[k] * float(k) for k in range(1, len(poly))]
+
+
+def _evaluate(poly: Poly, t: F64) -> F64:
+    """Horner's scheme, row by row (``t``: one time per row)."""
+    if not poly:
+        return np.zeros_like(t)
+    out = poly[-1] * np.ones_like(t) if len(poly) == 1 else poly[-1] * t
+    if len(poly) == 1:
+        return out
+    for k in range(len(poly) - 2, 0, -1):
+        out += poly[k]
+        out *= t
+    out += poly[0]
     return out
 
 
-def _horner(coef: F64, t: F64) -> F64:
-    """Each row's polynomial at that row's times ``t`` (N, C)."""
-    out = np.broadcast_to(coef[:, -1:], t.shape).copy()
-    for k in range(coef.shape[1] - 2, -1, -1):
-        out *= t
-        out += coef[:, k : k + 1]
-    result: F64 = out
-    return result
-
-
-def _horner_1d(coef: F64, t: F64) -> F64:
-    out = coef[:, -1].copy()
-    for k in range(coef.shape[1] - 2, -1, -1):
-        out *= t
-        out += coef[:, k]
-    result: F64 = out
-    return result
-
-
-def _quadratic_roots(c0: F64, c1: F64, c2: F64) -> F64:
-    """Real roots (N, 2) of ``c0 + c1 t + c2 t**2`` (NaN where there is none); a linear or
-    constant row gives its root or none. A negative discriminant gives the vertex instead:
-    an extra sample, which can only find true values."""
+def _quadratic_roots(poly: Poly) -> list[F64]:
+    """Real roots (two arrays, NaN where there is none) of a polynomial of degree <= 2 per
+    row; a linear row gives its root, a constant row none. A negative discriminant gives the
+    vertex instead: an extra sample, which can only find true values."""
+    if len(poly) < 2:
+        return []
+    c0, c1 = poly[0], poly[1]
     with np.errstate(divide="ignore", invalid="ignore"):
+        if len(poly) == 2:
+            return [np.where(c1 != 0.0, -c0 / c1, np.nan)]
+        c2 = poly[2]
         disc = np.maximum(c1 * c1 - 4.0 * c2 * c0, 0.0)
         q = -0.5 * (c1 + np.copysign(np.sqrt(disc), c1))
         quad = c2 != 0.0
         r1 = np.where(quad, q / c2, np.where(c1 != 0.0, -c0 / c1, np.nan))
         r2 = np.where(quad & (q != 0.0), c0 / q, np.nan)
-    return np.stack((r1, r2), axis=1)
+    return [r1, r2]
 
 
-def _bracketed_roots(coef: F64, low: F64, high: F64, split: F64) -> F64:
+def _bracketed_roots(poly: Poly, low: F64, high: F64, split: list[F64]) -> list[F64]:
     """Real roots in ``[low, high]`` of each row's polynomial, given the roots of its
-    derivative (``split``, NaN for none): on each piece between them it is monotonic.
+    derivative (``split``, NaN for none): between two of them it is monotonic, so it has at
+    most one root there, found by bisection.
 
     Returns:
-        (N, K + 1) roots, NaN where a piece has none.
+        ``len(split) + 1`` arrays of roots, NaN where a piece has none.
     """
-    n, k = split.shape
-    inner = np.where(np.isnan(split), high[:, None], np.clip(split, low[:, None], high[:, None]))
-    points = np.sort(np.concatenate((low[:, None], inner, high[:, None]), axis=1), axis=1)
-    values = _horner(coef, points)
+    inner = [np.where(np.isnan(r), high, np.clip(r, low, high)) for r in split]
+    points = np.sort(np.stack((low, *inner, high), axis=1), axis=1)
+    values = np.stack([_evaluate(poly, points[:, i]) for i in range(points.shape[1])], axis=1)
     a, b = points[:, :-1], points[:, 1:]
     fa, fb = values[:, :-1], values[:, 1:]
-    roots = np.full((n, k + 1), np.nan)
+    roots = np.full(a.shape, np.nan)
     change = (b > a) & (np.sign(fa) * np.sign(fb) <= 0.0)
     rows, pieces = np.nonzero(change)
-    if not rows.size:
-        return roots
-    lo, hi, flo = a[rows, pieces], b[rows, pieces], fa[rows, pieces]
-    rising = flo < 0.0  # fa and fb differ in sign (or one is 0): the root is where it crosses
-    c = coef[rows]
-    for _ in range(_BISECTIONS):
-        mid = 0.5 * (lo + hi)
-        below = (_horner_1d(c, mid) < 0.0) == rising
-        lo = np.where(below, mid, lo)
-        hi = np.where(below, hi, mid)
-    roots[rows, pieces] = 0.5 * (lo + hi)
-    return roots
-
-
-def _roots(coef: F64, low: F64, high: F64, split: F64 | None) -> F64:
-    """Real roots of polynomials of degree <= 4: closed form where the coefficients of degree
-    3 and up are zero, else bracketed by ``split`` (the roots of the derivative)."""
-    if coef.shape[1] < 3:  # linear (snap): pad to a quadratic with a zero leading term
-        coef = np.concatenate((coef, np.zeros((coef.shape[0], 3 - coef.shape[1]))), axis=1)
-    if coef.shape[1] == 3 or split is None:
-        return _quadratic_roots(coef[:, 0], coef[:, 1], coef[:, 2])
-    high_order = (coef[:, 3:] != 0.0).any(axis=1)
-    out = np.full((coef.shape[0], split.shape[1] + 1), np.nan)
-    low_rows = np.flatnonzero(~high_order)
-    if low_rows.size:
-        c = coef[low_rows]
-        out[low_rows, :2] = _quadratic_roots(c[:, 0], c[:, 1], c[:, 2])
-    rows = np.flatnonzero(high_order)
     if rows.size:
-        out[rows] = _bracketed_roots(coef[rows], low[rows], high[rows], split[rows])
-    return out
+        lo, hi = a[rows, pieces], b[rows, pieces]
+        rising = fa[rows, pieces] < 0.0  # the root is where it crosses zero
+        sub = [c[rows] for c in poly]
+        for _ in range(_BISECTIONS):
+            mid = 0.5 * (lo + hi)
+            below = (_evaluate(sub, mid) < 0.0) == rising
+            lo = np.where(below, mid, lo)
+            hi = np.where(below, hi, mid)
+        roots[rows, pieces] = 0.5 * (lo + hi)
+    return list(roots.T)
 
 
-def _extreme_times(values: F64, candidates: F64) -> tuple[F64, F64, F64, F64]:
-    """Per row: the minimum, the time of the minimum, the maximum, the time of the maximum."""
-    rows = np.arange(values.shape[0])
-    lo = values.argmin(axis=1)
-    hi = values.argmax(axis=1)
-    return values[rows, lo], candidates[rows, lo], values[rows, hi], candidates[rows, hi]
+def _roots(poly: Poly, low: F64, high: F64, split: list[F64] | None) -> list[F64]:
+    """Real roots of polynomials of degree <= 4: closed form for the rows whose coefficients
+    of degree 3 and up are zero, bracketed by ``split`` (the derivative's roots) for the
+    others."""
+    if len(poly) <= 3 or split is None:
+        return _quadratic_roots(poly)
+    high_order = np.zeros(low.shape, dtype=bool)
+    for c in poly[3:]:
+        high_order |= c != 0.0
+    out = [np.full(low.shape, np.nan) for _ in range(len(split) + 1)]
+    closed = _quadratic_roots(poly[:3])
+    if high_order.any():
+        rows = np.flatnonzero(high_order)
+        for i, r in enumerate(closed):
+            out[i] = np.where(high_order, np.nan, r)
+        bracketed = _bracketed_roots(
+            [c[rows] for c in poly], low[rows], high[rows], [r[rows] for r in split]
+        )
+        for i, r in enumerate(bracketed):
+            out[i][rows] = r
+        return out
+    return closed
 
 
 # --------------------------------------------------------------------------------------------
@@ -323,15 +321,40 @@ def check(
     segments = max(breaks.shape[0] - 1 - first, 0)
     k = cols.shape[0]
     n = segments * k
-    b = blocks[first:][:, :, :, cols]  # (s, 4, 6, k)
-    org = origins[first:][:, cols]
-    t0 = (breaks[first:-1][:, None] - org).reshape(n) / NS_PER_S
-    t1 = (breaks[first + 1 :][:, None] - org).reshape(n) / NS_PER_S
-    hold = (kinds[first:][:, cols] == SegmentKind.HOLD).reshape(n)
-    coef = np.moveaxis(b[:, 0], 1, 2).reshape(n, 6).copy()
-    const = np.moveaxis(b[:, :3, 0], 1, 2).reshape(n, 3)  # held rows: p, v, a as stored
-    coef[hold, 1:] = 0.0
+    every = k == blocks.shape[3] and bool((cols == np.arange(k)).all())
+    pick = slice(None) if every else cols  # all joints: views, no copies
+
+    def rows(values: NDArray[Any]) -> NDArray[Any]:
+        """(segments, joints) of the checked segments and columns, flattened."""
+        return np.ascontiguousarray(values[first:][:, pick]).reshape(n)
+
+    org = origins[first:][:, pick]
+    t0 = ((breaks[first:-1][:, None] - org) / NS_PER_S).reshape(n)
+    t1 = ((breaks[first + 1 :][:, None] - org) / NS_PER_S).reshape(n)
     origin_ns = org.reshape(n)
+    hold = rows(kinds) == SegmentKind.HOLD
+    any_hold = bool(hold.any())
+    degree = 0  # the highest power any checked row uses
+    position: Poly = []
+    for power in range(6):
+        c = rows(blocks[:, 0, power])
+        if power and any_hold:
+            c = np.where(hold, 0.0, c)  # held rows: the stored values, below
+        position.append(c)
+        if power and c.any():
+            degree = power
+    position = position[: degree + 1]
+    velocity = _derivative(position)
+    acceleration = _derivative(velocity)
+    jerk = _derivative(acceleration)
+    snap = _derivative(jerk)
+    if any_hold:  # held rows are constants as stored (method none, past a joint's end)
+        for poly, row in ((velocity, 1), (acceleration, 2)):
+            stored = np.where(hold, rows(blocks[:, row, 0]), 0.0)
+            if poly:
+                poly[0] = np.where(hold, stored, poly[0])
+            else:
+                poly.append(stored)
 
     low = np.minimum(table.low[cols], start_positions[cols])
     high = np.maximum(table.high[cols], start_positions[cols])
@@ -344,26 +367,27 @@ def check(
         "position": bool(np.isfinite(low).any() or np.isfinite(high).any()),
         **{name: bool(np.isfinite(v).any()) for name, v in bound.items()},
     }
+    # The roots of each derivative (by order: 1 is the velocity's), each found between those
+    # of the next one.
+    chain = {1: velocity, 2: acceleration, 3: jerk, 4: snap}
+    roots: dict[int, list[F64]] = {}
 
-    d1 = _derivative(coef)
-    d2 = _derivative(d1)
-    d3 = _derivative(d2)
-    d4 = _derivative(d3)
-    roots: dict[int, F64] = {}
-
-    def roots_of(order: int) -> F64:
-        """Roots of the ``order``-th derivative of P (1: velocity's, ... 4: snap's)."""
+    def roots_of(order: int) -> list[F64]:
         if order not in roots:
-            poly = (d1, d2, d3, d4)[order - 1]
-            split = roots_of(order + 1) if poly.shape[1] > 3 else None
+            poly = chain[order]
+            split = roots_of(order + 1) if len(poly) > 3 else None
             roots[order] = _roots(poly, t0, t1, split)
         return roots[order]
 
-    # (value polynomial, the order of the derivative whose roots hold its extremes)
-    quantities = {"position": (coef, 1), "velocity": (d1, 2), "acceleration": (d2, 3),
-                  "jerk": (d3, 4)}
+    quantities = {
+        "position": (position, 1),
+        "velocity": (velocity, 2),
+        "acceleration": (acceleration, 3),
+        "jerk": (jerk, 4),
+    }
     found: dict[str, Excess] = {}
     end_ns = int(breaks[-1])
+    cols_k = np.arange(k)
     for name in _FIELDS:
         if not wanted[name]:
             continue
@@ -373,19 +397,17 @@ def check(
         time_max = np.zeros(k, dtype=np.int64)
         if n:
             poly, order = quantities[name]
-            extra = roots_of(order)
-            cand = np.concatenate((t0[:, None], t1[:, None], extra), axis=1)
-            cand = np.where(np.isnan(cand), t0[:, None], np.clip(cand, t0[:, None], t1[:, None]))
-            values = _horner(poly, cand)
-            if name != "jerk":
-                held = const[hold, _FIELDS.index(name)]
-                values[hold] = held[:, None]
-            else:
-                values[hold] = 0.0
-            vmin, tmin, vmax, tmax = _extreme_times(values, cand)
+            vmin = vmax = _evaluate(poly, t0)
+            tmin = tmax = t0
+            for candidate in [t1, *roots_of(order)]:
+                inside = ~np.isnan(candidate)
+                t = np.where(inside, np.clip(candidate, t0, t1), t0)
+                value = _evaluate(poly, t)
+                lower, higher = value < vmin, value > vmax
+                vmin, tmin = np.where(lower, value, vmin), np.where(lower, t, tmin)
+                vmax, tmax = np.where(higher, value, vmax), np.where(higher, t, tmax)
             vmin2, vmax2 = vmin.reshape(segments, k), vmax.reshape(segments, k)
             smin, smax = vmin2.argmin(axis=0), vmax2.argmax(axis=0)
-            cols_k = np.arange(k)
             values_min = vmin2[smin, cols_k]
             values_max = vmax2[smax, cols_k]
             at_min = smin * k + cols_k

@@ -108,10 +108,6 @@ class AcceptedGoal(int):
         accepted.time_scaling = time_scaling
         return accepted
 
-    def reply_fields(self) -> dict[str, float]:
-        """The ``accepted`` reply's fields for it (:func:`scaling_fields`)."""
-        return scaling_fields(self.time_scaling)
-
 
 def scaling_fields(scaling: TimeScaling | None) -> dict[str, float]:
     """``time_scale`` and ``duration_s`` of a reply when ``fit`` was in effect, else none."""

@@ -35,11 +35,13 @@ Three measurements (the first by default, or when ``--sizes`` is given with the 
     inbox (``jtc_hw.daemon.pipe.Inbox``, with the budget of one cycle at ``--rate``) from a
     pipe that another thread fills with ``send_framed``, its slowest ``pump`` (one cycle's
     share) and how many cycles it takes, and releasing the plan. ``--cprofile`` adds the top
-    functions of the API-process stages under ``cProfile``.
+    functions of the API-process stages under ``cProfile``. ``--limits`` gives every joint
+    position, velocity, acceleration and jerk limits that the goal fits, so ``plan_goal``
+    includes the check against them (issue 12), and adds the check alone (``limits_check``).
 
 Usage:  python bench/goal_latency.py [--points 2 200 2000 20000] [--runs N] [--rate HZ]
             [--priority N] [--sizes] [--huge] [--huge-points N] [--breakdown] [--cprofile]
-            [--json]
+            [--limits] [--json]
 ``--json`` prints one JSON object per line instead of the tables; a ``sizes`` row holds
 ``{"points", "accept_ms_p50", "accept_ms_p99", ...}``.
 Target: 2,000 points accepted in <= 10 ms (median); a 75,000-point goal costs the loop at most
@@ -50,6 +52,7 @@ from __future__ import annotations
 
 import argparse
 import cProfile
+import dataclasses
 import io
 import json
 import math
@@ -81,6 +84,8 @@ from jtc_hw.api.framing import (  # noqa: E402
 from jtc_hw.api.protocol import SendGoal, parse_request  # noqa: E402
 from jtc_hw.cli import DEMO_JOINTS  # noqa: E402
 from jtc_hw.controller.controller import Planner  # noqa: E402
+from jtc_hw.controller.limits import JointLimits  # noqa: E402
+from jtc_hw.controller.limits_check import check  # noqa: E402
 from jtc_hw.controller.trajectory import Trajectory  # noqa: E402
 from jtc_hw.controller.validation import prepare  # noqa: E402
 from jtc_hw.daemon.robot import load_robot  # noqa: E402
@@ -408,6 +413,9 @@ def breakdown(points: int, args: argparse.Namespace) -> dict[str, Any]:
     from jtc_hw.cli import demo_config
 
     config = load_robot(demo_config("/nonexistent/bench.sock")).controller
+    if args.limits:  # generous: the goal fits, and every limit is checked on every segment
+        bounds = JointLimits((-10.0, 10.0), 10.0, 1e4, 1e9)
+        config = dataclasses.replace(config, limits={j: bounds for j in config.joints})
     planner = Planner(config)
     goal = wave_goal(points)
     message = {"id": 1, "op": "send_goal", "trajectory": goal}
@@ -429,6 +437,13 @@ def breakdown(points: int, args: argparse.Namespace) -> dict[str, Any]:
     stages["plan_goal_ms"], plan = best_ms(
         lambda: planner.plan_goal(reference, 1, now, trajectory), repeat
     )
+    if planner.limits is not None:
+        table, columns = planner.limits, np.arange(len(config.joints))
+        starts = np.zeros(len(config.joints))
+        stages["limits_check_ms"], found = best_ms(
+            lambda: check(plan.reference, now, table, columns, starts), repeat
+        )
+        assert not found, found
     buffers: list[pickle.PickleBuffer] = []
 
     def dump() -> bytes:
@@ -524,13 +539,15 @@ def print_tables(rows: list[dict[str, Any]]) -> None:
         print("breakdown, in process (best of several), ms:")
         keys = [
             "client_encode_ms", "decode_ms", "parse_ms", "prepare_ms", "splice_ms",
-            "plan_goal_ms", "pickle_ms", "unpickle_ms", "api_total_ms", "loop_pump_ms_max",
+            "plan_goal_ms", "limits_check_ms", "pickle_ms", "unpickle_ms", "api_total_ms",
+            "loop_pump_ms_max",
             "loop_cycles_to_receive", "loop_release_ms", "request_bytes", "plan_bytes",
             "plan_inband_bytes",
         ]
         print(f"{'stage':<24}" + "".join(f"{r['points']:>12}" for r in parts))
         for key in keys:
-            print(f"{key:<24}" + "".join(f"{r[key]:>12}" for r in parts))
+            if any(key in r for r in parts):
+                print(f"{key:<24}" + "".join(f"{r.get(key, '-'):>12}" for r in parts))
         for r in parts:
             if "cprofile" in r:
                 print(f"cProfile, {r['points']} points, API-process stages:\n{r['cprofile']}")
@@ -546,6 +563,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--huge-points", type=int, default=HUGE_POINTS)
     parser.add_argument("--breakdown", action="store_true", help="stages, in process")
     parser.add_argument("--cprofile", action="store_true", help="with --breakdown")
+    parser.add_argument(
+        "--limits", action="store_true", help="with --breakdown: every joint has position, "
+        "velocity, acceleration and jerk limits (the goal fits them; plan_goal checks it)"
+    )
     parser.add_argument(
         "--sizes", action="store_true", help="measure the sizes too (the default without "
         "--huge or --breakdown)"

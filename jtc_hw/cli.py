@@ -256,6 +256,7 @@ def cmd_check(args: argparse.Namespace) -> int:
         f"                  goal_time {c.constraints.goal_time:g} s, "
         f"stopped_velocity_tolerance {c.constraints.stopped_velocity_tolerance:g}"
     )
+    _print_limits(c)
     watchdog_warnings = []
     for component in hardware.components:
         print(f"  hardware        {component.name}: {component.kind}, "
@@ -280,8 +281,54 @@ def cmd_check(args: argparse.Namespace) -> int:
         f"  realtime        priority {rt.priority or 'normal'}, lock_memory {rt.lock_memory}, "
         f"cpu_affinity {list(rt.cpu_affinity) or 'any'}"
     )
-    _print_warnings([*explain(c), *security_warnings(robot), *watchdog_warnings])
+    _print_warnings(
+        [*explain(c), *_limits_warnings(robot), *security_warnings(robot), *watchdog_warnings]
+    )
     return EXIT_OK
+
+
+def _print_limits(c: Any) -> None:
+    """``check``'s joint limits table (the controller's, YAML and URDF merged)."""
+    if not c.limits:
+        print("  limits          none: goals are not checked against joint limits")
+        return
+    print(
+        f"  limits          {'joint':<14} {'position':>17} {'velocity':>9} {'accel.':>9} "
+        f"{'jerk':>9}   (-: unlimited); time_scaling {c.time_scaling}"
+    )
+
+    def number(value: float | None) -> str:
+        return "-" if value is None else f"{value:g}"
+
+    for joint in c.joints:
+        lim = c.limits.get(joint)
+        if lim is None:
+            continue
+        position = "-" if lim.position is None else f"[{lim.position[0]:g}, {lim.position[1]:g}]"
+        print(
+            f"                  {joint:<14} {position:>17} {number(lim.velocity):>9} "
+            f"{number(lim.acceleration):>9} {number(lim.jerk):>9}"
+        )
+
+
+def _limits_warnings(robot: Any) -> list[str]:
+    """Joints whose hardware ``position_limits`` are narrower than the controller's range:
+    a goal the controller accepts could then be clamped by the driver."""
+    from .daemon.robot import joint_position_limits
+
+    warnings = []
+    for joint, (low, high) in joint_position_limits(robot).items():
+        lim = robot.controller.limits.get(joint)
+        if lim is None or lim.position is None:
+            continue
+        if low > lim.position[0] or high < lim.position[1]:
+            warnings.append(
+                f"limits.{joint}.position: [{lim.position[0]:g}, {lim.position[1]:g}] reaches "
+                f"beyond the hardware's position_limits [{low:g}, {high:g}]: goals within the "
+                "controller's range could be clamped by the driver; narrow the controller's "
+                "range (the hardware's is the last line of defence, it should be the wider)"
+            )
+    return warnings
 
 
 def _goal_result(handle: Any, total_s: float, quiet: bool, timeout_s: float) -> int:
@@ -316,8 +363,14 @@ def cmd_send(args: argparse.Namespace) -> int:
     total = float(points[-1].get("time_from_start", 0.0)) if points else 0.0
     with _connect(args) as client:
         if args.topic:
-            client.send_trajectory(trajectory, start_in=args.start_in)
-            print(f"trajectory sent ({len(points)} points, {total:.2f} s), not monitored")
+            sent = client.send_trajectory(
+                trajectory, start_in=args.start_in, time_scaling=args.time_scaling
+            )
+            total = sent.get("duration_s", total)
+            print(
+                f"trajectory sent ({len(points)} points, {total:.2f} s"
+                f"{_slowed(sent.get('time_scale'))}), not monitored"
+            )
             return EXIT_OK
         handle = client.send_goal(
             trajectory,
@@ -325,9 +378,22 @@ def cmd_send(args: argparse.Namespace) -> int:
             goal.get("goal_tolerance", ()),
             float(goal.get("goal_time_tolerance", 0.0)),
             start_in=args.start_in,
+            time_scaling=args.time_scaling,
         )
-        print(f"goal {handle.goal_id} accepted: {len(points)} points over {total:.2f} s")
+        if handle.duration_s is not None:
+            total = handle.duration_s
+        print(
+            f"goal {handle.goal_id} accepted: {len(points)} points over {total:.2f} s"
+            f"{_slowed(handle.time_scale)}"
+        )
         return _goal_result(handle, total + (args.start_in or 0.0), args.quiet, args.wait)
+
+
+def _slowed(factor: float | None) -> str:
+    """What ``send`` adds when the daemon slowed the trajectory down to the joint limits."""
+    if factor is None or factor <= 1.0:
+        return ""
+    return f" (slowed down {factor:.3g}x to fit the joint limits)"
 
 
 def cmd_cancel(args: argparse.Namespace) -> int:
@@ -842,6 +908,13 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         metavar="S",
         help="start the trajectory S seconds from now",
+    )
+    p.add_argument(
+        "--time-scaling",
+        choices=("reject", "fit"),
+        default=None,
+        help="a trajectory beyond the joint limits: 'fit' slows it down uniformly until it "
+        "fits, 'reject' refuses it (default: the daemon's limits.time_scaling)",
     )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument(

@@ -255,6 +255,7 @@ class Client:
         on_feedback: FeedbackCallback | None = None,
         feedback_maxlen: int = 1000,
         timeout_s: float | None = None,
+        time_scaling: str | None = None,
     ) -> GoalHandle:
         """Send a ``follow_joint_trajectory`` goal.
 
@@ -267,9 +268,13 @@ class Client:
                 short; do not call client methods from it).
             feedback_maxlen: feedback events buffered for ``GoalHandle.feedback``.
             timeout_s: for the accept/reject reply.
+            time_scaling: a goal beyond the joint limits: ``"fit"`` slows it down uniformly
+                until it fits, ``"reject"`` refuses it (default: the daemon's
+                ``limits.time_scaling``).
 
         Returns:
-            The accepted goal's handle.
+            The accepted goal's handle; with ``fit`` in effect its ``time_scale`` and
+            ``duration_s`` say how it was slowed.
 
         Raises:
             GoalRejected: the daemon rejected the goal (``error_code`` says why).
@@ -285,6 +290,8 @@ class Client:
             fields["goal_tolerance"] = _tolerances(goal_tolerance)
         if goal_time_tolerance:
             fields["goal_time_tolerance"] = goal_time_tolerance
+        if time_scaling is not None:
+            fields["time_scaling"] = time_scaling
         pending = _Pending("send_goal", on_feedback, feedback_maxlen)
         self._request("send_goal", fields, timeout_s, pending)
         assert pending.goal is not None
@@ -306,8 +313,12 @@ class Client:
         *,
         start_in: float | None = None,
         timeout_s: float | None = None,
+        time_scaling: str | None = None,
     ) -> dict[str, Any]:
         """Fire-and-forget trajectory (the ``joint_trajectory`` topic); no points: stop.
+
+        ``time_scaling`` as for ``send_goal``; with ``fit`` in effect the reply has
+        ``time_scale`` and ``duration_s``.
 
         Raises:
             GoalRejected: the daemon refused the trajectory.
@@ -315,9 +326,10 @@ class Client:
             TimeoutError: no reply within the timeout.
             ClientConnectionError: the connection is lost.
         """
-        return self._request(
-            "send_trajectory", {"trajectory": _trajectory(trajectory, start_in)}, timeout_s
-        )
+        fields: dict[str, Any] = {"trajectory": _trajectory(trajectory, start_in)}
+        if time_scaling is not None:
+            fields["time_scaling"] = time_scaling
+        return self._request("send_trajectory", fields, timeout_s)
 
     def stop(self, timeout_s: float | None = None) -> dict[str, Any]:
         """End any motion and hold the measured position: the active goal ends ``canceled``,
@@ -622,6 +634,9 @@ class Client:
             if pending.op == "send_goal":
                 goal_id = int(message["goal_id"])
                 handle = GoalHandle(self, goal_id, pending.on_feedback, pending.feedback_maxlen)
+                if "time_scale" in message:
+                    handle.time_scale = float(message["time_scale"])
+                    handle.duration_s = float(message["duration_s"])
                 with self._lock:
                     self._goals[goal_id] = handle
                 pending.goal = handle

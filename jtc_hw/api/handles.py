@@ -31,6 +31,9 @@ class GoalHandle:
         goal_id: the daemon's id of the goal.
         feedback_dropped: feedback messages discarded here because nobody consumed them
             (the buffer keeps the newest ``feedback_maxlen``).
+        time_scale: with ``time_scaling`` ``fit`` in effect, the factor the goal was slowed
+            down by to fit the joint limits (1.0: not at all); None otherwise.
+        duration_s: with ``fit`` in effect, the goal's duration after slowing; else None.
     """
 
     def __init__(
@@ -42,6 +45,8 @@ class GoalHandle:
     ) -> None:
         self.goal_id = goal_id
         self.feedback_dropped = 0
+        self.time_scale: float | None = None
+        self.duration_s: float | None = None
         self._client = client
         self._on_feedback = on_feedback
         self._cond = threading.Condition()

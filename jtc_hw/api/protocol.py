@@ -35,6 +35,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..controller.goals import GoalFeedback, GoalResult
+from ..controller.limits_check import TIME_SCALING_MODES
 from ..controller.tolerances import JointTolerance
 from ..controller.trajectory import (
     NS_PER_S,
@@ -171,6 +172,9 @@ class SendGoal:
     path_tolerance: tuple[JointTolerance, ...] = ()
     goal_tolerance: tuple[JointTolerance, ...] = ()
     goal_time_tolerance: float = 0.0
+    time_scaling: str | None = None
+    """``"reject"`` or ``"fit"`` a goal beyond the joint limits; None: the daemon's
+    ``limits.time_scaling``."""
 
 
 @dataclass(frozen=True)
@@ -189,6 +193,8 @@ class SendTrajectory:
     op: ClassVar[str] = "send_trajectory"
     id: RequestId = None
     trajectory: WireTrajectory = field(default_factory=lambda: WireTrajectory((), ()))
+    time_scaling: str | None = None
+    """As ``SendGoal.time_scaling``."""
 
 
 @dataclass(frozen=True)
@@ -323,9 +329,11 @@ Request = (
 _OP_FIELDS: dict[str, tuple[str, ...]] = {
     "hello": ("protocol_version",),
     "auth": ("token",),
-    "send_goal": ("trajectory", "path_tolerance", "goal_tolerance", "goal_time_tolerance"),
+    "send_goal": (
+        "trajectory", "path_tolerance", "goal_tolerance", "goal_time_tolerance", "time_scaling"
+    ),
     "cancel_goal": ("goal_id",),
-    "send_trajectory": ("trajectory",),
+    "send_trajectory": ("trajectory", "time_scaling"),
     "stop": (),
     "query_state": ("time_ns", "in"),
     "subscribe_state": (),
@@ -348,6 +356,25 @@ _TOLERANCE_FIELDS = ("name", "position", "velocity", "acceleration")
 
 def _join(path: str, key: str) -> str:
     return f"{path}.{key}" if path else key
+
+
+def _time_scaling(f: _Fields) -> str | None:
+    """The optional ``time_scaling`` field: one of ``TIME_SCALING_MODES``.
+
+    Raises:
+        RequestError: not a string, or not one of them.
+    """
+    if not f.has("time_scaling"):
+        return None
+    mode = f.string("time_scaling", f.obj["time_scaling"])
+    if mode not in TIME_SCALING_MODES:
+        raise f.error(
+            f"'{mode}' is not one of {', '.join(repr(m) for m in TIME_SCALING_MODES)} ('fit': "
+            "slow a goal beyond the joint limits down until it fits, 'reject': refuse it)"
+            f"{_suggest(mode, TIME_SCALING_MODES)}",
+            "time_scaling",
+        )
+    return mode
 
 
 def _suggest(name: str, choices: Sequence[str]) -> str:
@@ -715,7 +742,7 @@ def parse_request(obj: Any) -> Request:
         goal_tol = _parse_tolerances(o.get("goal_tolerance", []), "goal_tolerance", rid)
         gtt = _seconds(o.get("goal_time_tolerance", 0.0), "goal_time_tolerance", rid)
         _ns(gtt, "goal_time_tolerance", rid)
-        return SendGoal(rid, traj, path_tol, goal_tol, gtt)
+        return SendGoal(rid, traj, path_tol, goal_tol, gtt, _time_scaling(f))
     if op == "cancel_goal":
         goal_id = f.integer("goal_id", f.required("goal_id", "the goal to cancel"), 0, MAX_NS)
         return CancelGoal(rid, goal_id)
@@ -723,7 +750,7 @@ def parse_request(obj: Any) -> Request:
         traj = parse_trajectory(
             f.required("trajectory", "the trajectory; no points means stop"), "trajectory", rid
         )
-        return SendTrajectory(rid, traj)
+        return SendTrajectory(rid, traj, _time_scaling(f))
     if op == "query_state":
         if f.has("time_ns") == f.has("in"):
             raise f.error(

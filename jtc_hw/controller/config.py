@@ -56,6 +56,7 @@ __all__ = [
     "JOINT_CONSTRAINT_PARAMETERS",
     "JointConstraints",
     "Kind",
+    "LIMITS_PARAMETERS",
     "PARAMETERS",
     "Param",
     "STATE_INTERFACE_TYPES",
@@ -69,8 +70,9 @@ CONTROLLER_TYPE: Final = "joint_trajectory_controller/JointTrajectoryController"
 
 CONTROLLER_MANAGER: Final = "controller_manager"
 ROS_PARAMETERS: Final = "ros__parameters"
-RESERVED_TOP_LEVEL_KEYS: Final = frozenset({"hardware", "daemon"})
-"""Top-level keys that belong to the daemon; :func:`load_config` skips them."""
+RESERVED_TOP_LEVEL_KEYS: Final = frozenset({"hardware", "daemon", "limits"})
+"""Top-level keys that are not controller parameters: :func:`load_config` skips ``hardware``
+and ``daemon`` (the daemon's) and reads ``limits`` itself (the joint limits, issue 12)."""
 
 JOINTS_PLACEHOLDER: Final = "<joints>"
 """Placeholder key used by the reference's example parameter file."""
@@ -236,6 +238,14 @@ GAIN_PARAMETERS: Final[Mapping[str, Param]] = _table(
 )
 """``gains.<joint>.*`` parameters."""
 
+LIMITS_PARAMETERS: Final[Mapping[str, Param]] = _table(
+    Param("time_scaling", _S, "reject",
+          "a goal beyond the joint limits: 'reject' it, or 'fit': slow it down until it fits",
+          choices=("reject", "fit")),
+)
+"""``limits.*`` parameters other than the per-joint limits (not upstream's: upstream does not
+check goals against limits)."""
+
 
 def _freeze(value: Any) -> Any:
     if isinstance(value, Mapping):
@@ -374,6 +384,9 @@ class ControllerConfig:
     limits: Mapping[str, JointLimits] = field(default_factory=_empty_mapping)
     """Per joint, the controller's joint limits (issue 12; :mod:`.limits`); joints absent are
     unlimited. Not one of upstream's parameters (upstream reads limits from the URDF)."""
+    time_scaling: str = _str_default(LIMITS_PARAMETERS, "time_scaling")
+    """``limits.time_scaling``: what a goal beyond the limits gets by default, ``"reject"`` or
+    ``"fit"`` (slowed down uniformly; :mod:`.limits_check`); a goal may ask for either."""
 
     def __post_init__(self) -> None:
         _validate(self)
@@ -658,6 +671,10 @@ def _validate(cfg: ControllerConfig) -> None:
             raise _not_a_joint(key, "limits", joints)
         checked_limits[key] = check_joint_limits(value, f"limits.{key}")
     put("limits", MappingProxyType(checked_limits))
+    put(
+        "time_scaling",
+        _coerce(LIMITS_PARAMETERS["time_scaling"], cfg.time_scaling, "limits.time_scaling"),
+    )
 
     constraints = cfg.constraints
     if not isinstance(constraints, Constraints):

@@ -15,10 +15,12 @@ value gives the file's message; read-only parameters (the schema's ``read_only``
 
 from __future__ import annotations
 
+import math
 import os
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
+from xml.etree import ElementTree
 
 from ..errors import ConfigurationError
 from .config import (
@@ -30,6 +32,7 @@ from .config import (
     DEFAULT_CONTROLLER_NAME,
     GAIN_PARAMETERS,
     JOINT_CONSTRAINT_PARAMETERS,
+    LIMITS_PARAMETERS,
     PARAMETERS,
     RESERVED_TOP_LEVEL_KEYS,
     ROS_PARAMETERS,
@@ -46,6 +49,7 @@ from .config import (
     _not_a_joint,
     _unknown_parameter,
 )
+from .limits import LIMIT_FIELDS, JointLimits
 from .parsing import (
     closest,
     coerce_string_array,
@@ -60,11 +64,13 @@ __all__ = [
     "config_to_dict",
     "explain",
     "get_parameters",
+    "limits_to_dict",
     "load_config",
     "lookup_parameter",
     "parameter_names",
     "parameters_report",
     "read_only_differences",
+    "read_urdf_limits",
     "set_parameters",
 ]
 
@@ -216,7 +222,13 @@ def _parse_gains(raw: Any, joints: Sequence[str]) -> dict[str, Gains]:
     return gains
 
 
-def _build(name: str, params: Mapping[Any, Any], cm_update_rate: float | None) -> ControllerConfig:
+def _build(
+    name: str,
+    params: Mapping[Any, Any],
+    cm_update_rate: float | None,
+    limits: Any = None,
+    base_dir: str | None = None,
+) -> ControllerConfig:
     known = [*PARAMETERS, *_SECTIONS]
     for key in params:
         if _check_key(key, "") not in known:
@@ -242,11 +254,212 @@ def _build(name: str, params: Mapping[Any, Any], cm_update_rate: float | None) -
         kwargs["update_rate"] = cm_update_rate
     kwargs["constraints"] = _parse_constraints(params.get("constraints", {}), joints)
     kwargs["gains"] = _parse_gains(params.get("gains", {}), joints)
+    if limits is not None:
+        kwargs["limits"], scaling = _parse_limits(limits, joints, base_dir or os.getcwd())
+        if scaling is not None:
+            kwargs["time_scaling"] = scaling
     return ControllerConfig(name=name, **kwargs)
 
 
+# Joint limits: the ``limits`` section, and URDF files
+# --------------------------------------------------------------------------------------------
+
+URDF_KEY = "urdf"
+"""``limits.urdf``: a URDF file whose joint limits are read (relative to the YAML file)."""
+
+
+def _limit_number(value: Any, path: str, *, positive: bool) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise ConfigurationError(f"expected a number, got {describe(value)}", path, value)
+    number = float(value)
+    if not math.isfinite(number) or (positive and number <= 0.0):
+        wanted = "a finite number > 0" if positive else "a finite number"
+        raise ConfigurationError(f"must be {wanted}, got {value!r}", path, value)
+    return number
+
+
+def _parse_joint_limits(raw: Any, path: str, base: JointLimits | None) -> JointLimits:
+    """One joint's entry; fields it gives replace ``base``'s (the URDF's), ``null`` removes
+    one."""
+    entry = _expect_mapping(raw, path)
+    values: dict[str, Any] = {
+        name: None if base is None else getattr(base, name) for name in LIMIT_FIELDS
+    }
+    for key, value in entry.items():
+        if _check_key(key, path) not in LIMIT_FIELDS:
+            raise ConfigurationError(
+                f"unknown limit {key!r}{did_you_mean(key, LIMIT_FIELDS)}; a joint's limits "
+                f"are {', '.join(LIMIT_FIELDS)}",
+                f"{path}.{key}",
+                key,
+            )
+        where = f"{path}.{key}"
+        if value is None:
+            values[key] = None
+        elif key == "position":
+            if (
+                isinstance(value, (str, bytes, Mapping))
+                or not isinstance(value, Sequence)
+                or len(value) != 2
+            ):
+                raise ConfigurationError(
+                    f"expected [min, max], got {describe(value)}", where, value
+                )
+            low = _limit_number(value[0], where, positive=False)
+            high = _limit_number(value[1], where, positive=False)
+            if not low < high:
+                raise ConfigurationError(
+                    f"expected [min, max] with min < max, got {list(value)!r}", where, value
+                )
+            values[key] = (low, high)
+        else:
+            values[key] = _limit_number(value, where, positive=True)
+    return JointLimits(**values)
+
+
+def _parse_limits(
+    raw: Any, joints: Sequence[str], base_dir: str
+) -> tuple[dict[str, JointLimits], str | None]:
+    """The ``limits`` section: per-joint limits (over those of ``urdf``, field by field)
+    and ``time_scaling``.
+
+    Raises:
+        ConfigurationError: an unknown key or joint, a bad value, or a URDF that cannot be
+            read (the message names the file, the joint and the attribute).
+    """
+    section = _expect_mapping(raw, "limits")
+    limits: dict[str, JointLimits] = {}
+    if URDF_KEY in section:
+        urdf = section[URDF_KEY]
+        if not isinstance(urdf, str) or not urdf:
+            raise ConfigurationError(
+                f"expected the path of a URDF file, got {describe(urdf)}", "limits.urdf", urdf
+            )
+        limits = read_urdf_limits(os.path.join(base_dir, os.path.expanduser(urdf)), joints)
+    scaling = None
+    others = (URDF_KEY, *LIMITS_PARAMETERS)
+    for key, value in section.items():
+        _check_key(key, "limits")
+        if key == URDF_KEY:
+            continue
+        if key in LIMITS_PARAMETERS:
+            scaling = _coerce(LIMITS_PARAMETERS[key], value, f"limits.{key}")
+        elif key in joints:
+            entry = _parse_joint_limits(value, f"limits.{key}", limits.get(key))
+            limits[key] = entry
+        else:
+            raise _not_a_joint(key, "limits", joints, others)
+    return {joint: lim for joint, lim in limits.items() if not lim.empty}, scaling
+
+
+def _urdf_error(filename: str, message: str) -> ConfigurationError:
+    return ConfigurationError(f"URDF {filename}: {message}", "limits.urdf", filename)
+
+
+def _urdf_float(
+    element: Any, attribute: str, filename: str, joint: str
+) -> float | None:
+    text = element.get(attribute)
+    if text is None:
+        return None
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not math.isfinite(value):
+        raise _urdf_error(
+            filename,
+            f"joint {joint!r}: <{element.tag} {attribute}={text!r}> is not a finite number",
+        )
+    return value
+
+
+def read_urdf_limits(filename: str, joints: Sequence[str]) -> dict[str, JointLimits]:
+    """The limits a URDF file gives the joints ``joints`` (others are skipped).
+
+    ``<limit lower upper velocity effort>`` of revolute and prismatic joints give the position
+    range (narrowed by ``<safety_controller soft_lower_limit soft_upper_limit>``), continuous
+    joints only velocity and effort; a velocity or effort of 0 (URDF's "not given") is no
+    limit. The file is read with the standard library's XML parser; a document type
+    declaration is refused, so no entity is ever expanded.
+
+    Raises:
+        ConfigurationError: the file cannot be read, is not well-formed, has a DOCTYPE, has
+            no ``<robot>`` root, or a joint's attribute is not a number, negative where it
+            must not be, or a range whose lower end is not below its upper end.
+    """
+    try:
+        with open(filename, "rb") as stream:
+            data = stream.read()
+    except OSError as exc:
+        raise _urdf_error(filename, f"cannot read it: {exc.strerror or exc}") from None
+    if b"<!DOCTYPE" in data.upper() or b"<!ENTITY" in data.upper():
+        raise _urdf_error(
+            filename,
+            "has a document type declaration (<!DOCTYPE ...> or <!ENTITY ...>), which is "
+            "refused so that no entity is expanded; a URDF needs none: remove it",
+        )
+    try:
+        root = ElementTree.fromstring(data)
+    except ElementTree.ParseError as exc:
+        raise _urdf_error(filename, f"is not well-formed XML: {exc}") from None
+    if root.tag != "robot":
+        raise _urdf_error(filename, f"the root element is <{root.tag}>, not <robot>")
+    wanted = set(joints)
+    limits: dict[str, JointLimits] = {}
+    for element in root.iter("joint"):
+        name = element.get("name")
+        kind = element.get("type")
+        if name not in wanted or kind not in ("revolute", "prismatic", "continuous"):
+            continue
+        limit = element.find("limit")
+        safety = element.find("safety_controller")
+        position = None
+        velocity = effort = None
+        if limit is not None:
+            for attribute in ("velocity", "effort"):
+                value = _urdf_float(limit, attribute, filename, name)
+                if value is not None and value < 0.0:
+                    raise _urdf_error(
+                        filename,
+                        f"joint {name!r}: <limit {attribute}={limit.get(attribute)!r}> must "
+                        "not be negative",
+                    )
+                if value:
+                    if attribute == "velocity":
+                        velocity = value
+                    else:
+                        effort = value
+            if kind != "continuous":
+                lower = _urdf_float(limit, "lower", filename, name)
+                upper = _urdf_float(limit, "upper", filename, name)
+                if lower is not None or upper is not None:
+                    low = 0.0 if lower is None else lower
+                    high = 0.0 if upper is None else upper
+                    if safety is not None:
+                        soft_low = _urdf_float(safety, "soft_lower_limit", filename, name)
+                        soft_high = _urdf_float(safety, "soft_upper_limit", filename, name)
+                        low = low if soft_low is None else max(low, soft_low)
+                        high = high if soft_high is None else min(high, soft_high)
+                    if not low < high:
+                        raise _urdf_error(
+                            filename,
+                            f"joint {name!r}: the position range [{low:g}, {high:g}] (from "
+                            "<limit lower upper> and <safety_controller soft_lower_limit "
+                            "soft_upper_limit>) is empty",
+                        )
+                    position = (low, high)
+        found = JointLimits(position, velocity, None, None, effort)
+        if not found.empty:
+            limits[name] = found
+    return limits
+
+
 def load_config(
-    source: str | os.PathLike[str] | Mapping[str, Any], controller_name: str | None = None
+    source: str | os.PathLike[str] | Mapping[str, Any],
+    controller_name: str | None = None,
+    *,
+    base_dir: str | os.PathLike[str] | None = None,
 ) -> ControllerConfig:
     """Read, check and freeze a controller configuration.
 
@@ -255,11 +468,15 @@ def load_config(
             layout (``<name>: {ros__parameters: {...}}`` plus an optional
             ``controller_manager`` section whose ``update_rate`` is used), or the parameters
             directly at the top level (plus an optional ``update_rate``). Top-level
-            ``hardware`` and ``daemon`` keys are skipped (they configure the daemon).
+            ``hardware`` and ``daemon`` keys are skipped (they configure the daemon); a
+            top-level ``limits`` section gives the joint limits (per joint, or ``urdf``: a
+            URDF file's) and ``time_scaling``.
         controller_name: which controller section to use when there are several. Without
             it, the only section is used, or the only one the controller manager declares
             with the joint_trajectory_controller type. For the plain layout it is the
             resulting name (default ``joint_trajectory_controller``).
+        base_dir: the directory a relative ``limits.urdf`` is relative to (default: the
+            file's directory, or the current directory for a mapping).
 
     Returns:
         The validated configuration, with defaults filled for every joint.
@@ -272,7 +489,10 @@ def load_config(
     """
     data = read_source(source)
     name, params, cm_update_rate = _select_controller(data, controller_name)
-    return _build(name, params, cm_update_rate)
+    if base_dir is None and not isinstance(source, Mapping):
+        base_dir = os.path.dirname(os.path.abspath(os.fspath(source)))
+    directory = None if base_dir is None else os.fspath(base_dir)
+    return _build(name, params, cm_update_rate, data.get("limits"), directory)
 
 
 # --------------------------------------------------------------------------------------------
@@ -308,7 +528,9 @@ def config_to_dict(cfg: ControllerConfig, *, nested: bool = False) -> dict[str, 
         joint: {name: getattr(g, name) for name in GAIN_PARAMETERS}
         for joint, g in cfg.gains.items()
     }
+    limits = limits_to_dict(cfg)
     if not nested:
+        params["limits"] = limits
         return params
     update_rate = params.pop("update_rate")
     if float(update_rate).is_integer():
@@ -318,7 +540,24 @@ def config_to_dict(cfg: ControllerConfig, *, nested: bool = False) -> dict[str, 
             ROS_PARAMETERS: {"update_rate": update_rate, cfg.name: {"type": CONTROLLER_TYPE}}
         },
         cfg.name: {ROS_PARAMETERS: params},
+        "limits": limits,
     }
+
+
+def limits_to_dict(cfg: ControllerConfig) -> dict[str, Any]:
+    """The ``limits`` section of ``cfg``: ``time_scaling`` and, per limited joint (in the
+    order of ``joints``), the fields it limits (a URDF's included, so no ``urdf`` key)."""
+    out: dict[str, Any] = {name: getattr(cfg, name) for name in LIMITS_PARAMETERS}
+    for joint in cfg.joints:
+        lim = cfg.limits.get(joint)
+        if lim is None:
+            continue
+        out[joint] = {
+            name: _plain(getattr(lim, name))
+            for name in LIMIT_FIELDS
+            if getattr(lim, name) is not None
+        }
+    return out
 
 
 def explain(cfg: ControllerConfig) -> list[str]:
@@ -347,6 +586,17 @@ def explain(cfg: ControllerConfig) -> list[str]:
             f"keeps the joints moving (command interface {' and '.join(moving)}) until the "
             "next command, and cmd_timeout is off; set cmd_timeout (seconds, greater than "
             "constraints.goal_time) to stop them when commands stop coming"
+        )
+    shaped = [j for j, lim in cfg.limits.items() if lim.position is not None or any(
+        v is not None for v in (lim.velocity, lim.acceleration, lim.jerk)
+    )]
+    if cfg.time_scaling == "fit" and not any(
+        lim.velocity or lim.acceleration or lim.jerk for lim in cfg.limits.values()
+    ):
+        warnings.append(
+            "limits.time_scaling: 'fit' slows goals down to the velocity, acceleration and jerk "
+            "limits, but no joint has one"
+            + (" (only position ranges, which slowing cannot fix)" if shaped else "")
         )
     output = "effort" if "effort" in cfg.command_interfaces else "velocity"
     if cfg.command_interfaces == ("velocity",):
@@ -428,6 +678,7 @@ def parameter_names(cfg: ControllerConfig) -> list[str]:
     return [
         *PARAMETERS,
         *(f"constraints.{name}" for name in CONSTRAINT_PARAMETERS),
+        *(f"limits.{name}" for name in LIMITS_PARAMETERS),
         *(
             f"{section}.{joint}.{name}"
             for section, table in _SECTION_TABLES.items()
@@ -453,6 +704,17 @@ def lookup_parameter(cfg: ControllerConfig, name: Any) -> tuple[tuple[str, ...],
     if name in PARAMETERS:
         return (name,), PARAMETERS[name]
     section, _, rest = name.partition(".")
+    if section == "limits":
+        if rest in LIMITS_PARAMETERS:
+            return (section, rest), LIMITS_PARAMETERS[rest]
+        runtime = ", ".join(f"limits.{p}" for p in LIMITS_PARAMETERS)
+        raise ConfigurationError(
+            "the joint limits are fixed when the configuration is loaded (the robot file's "
+            "limits section or its URDF); change them there and restart the daemon; the "
+            f"runtime parameters of this section are {runtime}",
+            name,
+            name,
+        )
     if section not in _SECTION_TABLES:
         raise _unknown_parameter(name, [*PARAMETERS, *_SECTIONS])
     if not rest:
@@ -529,6 +791,8 @@ def read_only_differences(old: ControllerConfig, new: ControllerConfig) -> list[
     ]
     if old.name != new.name:
         names.append("name")
+    if old.limits != new.limits:
+        names.append("limits")
     if names:  # a different joint list: the per-joint entries are moot
         return names
     for section, table in _SECTION_TABLES.items():
@@ -585,7 +849,7 @@ def set_parameters(cfg: ControllerConfig, changes: Mapping[str, Any]) -> Paramet
     for name, value in changes.items():
         *parents, key = found[name][0]
         _get(params, tuple(parents))[key] = value
-    new = _build(cfg.name, params, None)
+    new = _build(cfg.name, params, None, params.pop("limits"))
     before = set(explain(cfg))
     return ParameterChange(
         new,

@@ -54,6 +54,19 @@ from .goals import (
     TrajectoryStopped,
 )
 from .joints import JointCommand, JointState
+from .limits_check import (
+    FIT,
+    REJECT,
+    TIME_SCALING_MODES,
+    TOLERANCE,
+    LimitTable,
+    TimeScaling,
+    check,
+    describe_excess,
+    fit_factor,
+    reject,
+    scale_prepared,
+)
 from .pid import Pid
 from .tolerances import JointTolerance, SegmentTolerances, violated
 from .trajectory import (
@@ -172,6 +185,14 @@ class Plan:
     start_ns: int
     tolerances: SegmentTolerances
     valid_from_ns: int
+    time_scaling: TimeScaling | None = None
+    """With ``time_scaling`` ``fit`` in effect: the slow-down applied (1.0: none was needed)
+    and the resulting duration; None when the goal was checked against the limits as sent."""
+
+
+FIT_ROUNDS = 8
+"""Slow-down rounds before a goal whose lead-in keeps exceeding a limit is rejected: the
+first round is exact for the points' segments, later ones only correct the lead-in."""
 
 
 class Planner:
@@ -187,6 +208,7 @@ class Planner:
         self.joint_names = tuple(config.joints)
         self.wraparound = np.asarray(config.wraparound, dtype=bool)
         self.defaults = SegmentTolerances.from_config(config)
+        self.limits = LimitTable.of(config.joints, config.limits)
 
     def plan_goal(
         self,
@@ -198,17 +220,27 @@ class Planner:
         goal_tolerance: Sequence[JointTolerance] = (),
         goal_time_tolerance: float = 0.0,
         valid_from_ns: int | None = None,
+        time_scaling: str | None = None,
     ) -> Plan:
         """Validate and fit an action goal (``valid_from_ns``: see ``Plan``; default ``now_ns``).
 
+        Args:
+            time_scaling: ``"reject"`` or ``"fit"`` (see ``limits_check``); None: the
+                configuration's ``limits.time_scaling``.
+
         Raises:
-            GoalRejected: invalid trajectory or tolerances, or entirely in the past.
+            GoalRejected: invalid trajectory or tolerances, entirely in the past, beyond the
+                joint limits (``reject``; with ``fit``: a position limit, or a lead-in that
+                slowing cannot fix), or an unknown ``time_scaling``.
         """
+        mode = self._mode(time_scaling)
         prepared = prepare(self.config, trajectory)
         tolerances = self.defaults.with_overrides(
             self.joint_names, path_tolerance, goal_tolerance, goal_time_tolerance
         )
-        return self._plan(True, reference, version, now_ns, prepared, tolerances, valid_from_ns)
+        return self._plan(
+            True, reference, version, now_ns, prepared, tolerances, valid_from_ns, mode
+        )
 
     def plan_trajectory(
         self,
@@ -217,14 +249,32 @@ class Planner:
         now_ns: int,
         trajectory: JointTrajectory,
         valid_from_ns: int | None = None,
+        time_scaling: str | None = None,
     ) -> Plan:
         """Validate and fit a topic trajectory (non-empty; an empty one is a stop request).
 
+        Args:
+            time_scaling: as for ``plan_goal``.
+
         Raises:
-            GoalRejected: invalid or entirely in the past.
+            GoalRejected: invalid, entirely in the past, or beyond the joint limits (see
+                ``plan_goal``).
         """
+        mode = self._mode(time_scaling)
         prepared = prepare(self.config, trajectory)
-        return self._plan(False, reference, version, now_ns, prepared, self.defaults, valid_from_ns)
+        return self._plan(
+            False, reference, version, now_ns, prepared, self.defaults, valid_from_ns, mode
+        )
+
+    def _mode(self, time_scaling: str | None) -> str:
+        if time_scaling is None:
+            return self.config.time_scaling
+        if time_scaling not in TIME_SCALING_MODES:
+            raise GoalRejected(
+                f"time_scaling: {time_scaling!r} is not one of "
+                f"{', '.join(repr(m) for m in TIME_SCALING_MODES)}"
+            )
+        return time_scaling
 
     def _plan(
         self,
@@ -235,13 +285,78 @@ class Planner:
         prepared: PreparedTrajectory,
         tolerances: SegmentTolerances,
         valid_from_ns: int | None,
+        mode: str = REJECT,
     ) -> Plan:
         valid_from = now_ns if valid_from_ns is None else min(valid_from_ns, now_ns)
         new_ref = reference.splice(
             now_ns, prepared, self.config.interpolation_method, self.wraparound, valid_from
         )
         start = prepared.start_time_ns or now_ns
-        return Plan(goal, new_ref, version, now_ns, start, tolerances, valid_from)
+        scaling = None
+        if self.limits is not None:
+            new_ref, scaling = self._within_limits(
+                reference, now_ns, prepared, new_ref, start, valid_from, mode
+            )
+        return Plan(goal, new_ref, version, now_ns, start, tolerances, valid_from, scaling)
+
+    def _within_limits(
+        self,
+        reference: Trajectory,
+        now_ns: int,
+        prepared: PreparedTrajectory,
+        spliced: Trajectory,
+        start: int,
+        valid_from: int,
+        mode: str,
+    ) -> tuple[Trajectory, TimeScaling | None]:
+        """Check ``spliced`` (``prepared`` spliced into ``reference``) against the limits
+        and, with ``fit``, slow ``prepared`` down until it is within them.
+
+        Raises:
+            GoalRejected: beyond a limit (see ``plan_goal``).
+        """
+        table = self.limits
+        assert table is not None
+        splice_at = max(start, now_ns)
+        cols = prepared.joint_indices
+        start_positions = spliced.sample(splice_at).positions
+        factor = 1.0
+        current, current_prepared = spliced, prepared
+        for _round in range(FIT_ROUNDS + 1):
+            found = check(current, splice_at, table, cols, start_positions)
+            if not found:
+                if mode != FIT:
+                    return current, None
+                duration = int(current_prepared.times_ns[-1]) / NS_PER_S
+                return current, TimeScaling(factor, duration)
+            first_due = start + int(current_prepared.times_ns[0])
+            worst = found.get("position") or max(found.values(), key=lambda e: e.ratio)
+            message = describe_excess(worst, table, start, first_due, current.end_ns)
+            if "position" in found:
+                raise reject(message)
+            if mode != FIT:
+                raise reject(
+                    f"{message}; slow the trajectory down (its times by a factor of at least "
+                    f'{fit_factor(found):.6g}), or send it with time_scaling "fit"'
+                )
+            # First round: exact for everything that scales (a lead-in from rest too). Later
+            # rounds only correct a lead-in from a moving reference, whose start velocity does
+            # not scale: its acceleration falls only like 1/s (jerk 1/s**2), so a step is
+            # taken as if it did (lead_in=True): it may overshoot the smallest factor slightly.
+            factor *= fit_factor(found, lead_in=_round > 0) * (1.0 + 4 * TOLERANCE)
+            current_prepared = scale_prepared(prepared, factor)
+            current = reference.splice(
+                now_ns,
+                current_prepared,
+                self.config.interpolation_method,
+                self.wraparound,
+                valid_from,
+            )
+        raise reject(
+            f"{message}, even slowed down by a factor of {factor:.6g}: the lead-in from the "
+            "current reference's motion to the first point does not fit the limits; send a "
+            "first point that continues the current motion, or wait for it to end"
+        )
 
 
 def _command_mask(config: ControllerConfig) -> NDArray[np.bool_] | None:
@@ -302,6 +417,8 @@ class JointTrajectoryController:
         self._feedback_ns = round(NS_PER_S / config.action_monitor_rate)
         self._cmd_timeout_ns = round(config.effective_cmd_timeout * NS_PER_S)
         self._planner = Planner(config)
+        self.last_time_scaling: TimeScaling | None = None
+        """How the last accepted command was fitted to the joint limits (``Plan``)."""
         self._version = 0
         self._active = False
         self._ref = Trajectory.constant(0, np.zeros(n))
@@ -480,27 +597,42 @@ class JointTrajectoryController:
         path_tolerance: Sequence[JointTolerance] = (),
         goal_tolerance: Sequence[JointTolerance] = (),
         goal_time_tolerance: float = 0.0,
+        *,
+        time_scaling: str | None = None,
     ) -> int:
         """Accept an action goal (``follow_joint_trajectory``) or raise why not.
 
         On acceptance the trajectory is spliced into the reference and the previous goal, if
         any, is canceled (its result is delivered with the next ``update``).
 
+        Args:
+            time_scaling: a goal beyond the joint limits is rejected (``"reject"``) or slowed
+                down to fit them (``"fit"``); None: ``config.time_scaling``. With ``fit``,
+                ``last_time_scaling`` then says the factor and the new duration.
+
         Returns:
             The goal id; its result arrives exactly once among ``update``/``deactivate`` events.
 
         Raises:
-            GoalRejected: inactive controller, invalid trajectory or tolerances, or a
-                trajectory entirely in the past; the reference is unchanged.
+            GoalRejected: inactive controller, invalid trajectory or tolerances, a trajectory
+                entirely in the past, or beyond the joint limits; the reference is unchanged.
         """
         plan = self.plan_goal(
-            now_ns, trajectory, path_tolerance, goal_tolerance, goal_time_tolerance
+            now_ns,
+            trajectory,
+            path_tolerance,
+            goal_tolerance,
+            goal_time_tolerance,
+            time_scaling=time_scaling,
         )
         goal_id = self.commit(plan, now_ns)
         assert goal_id is not None
+        self.last_time_scaling = plan.time_scaling
         return goal_id
 
-    def send_trajectory(self, now_ns: int, trajectory: JointTrajectory) -> None:
+    def send_trajectory(
+        self, now_ns: int, trajectory: JointTrajectory, *, time_scaling: str | None = None
+    ) -> None:
         """Fire-and-forget trajectory (the ``joint_trajectory`` topic).
 
         An empty trajectory (no points) stops: the measured position is held from the next
@@ -508,13 +640,19 @@ class JointTrajectoryController:
         goal is canceled, and the default path tolerances and ``goal_time`` are monitored
         (a violation holds the position and emits ``TrajectoryStopped``).
 
+        Args:
+            time_scaling: as for ``send_goal``.
+
         Raises:
-            GoalRejected: inactive controller, invalid or entirely past trajectory.
+            GoalRejected: inactive controller, invalid or entirely past trajectory, or beyond
+                the joint limits.
         """
         if isinstance(trajectory, JointTrajectory) and not trajectory.points:
             self.request_stop()
             return
-        self.commit(self.plan_trajectory(now_ns, trajectory), now_ns)
+        plan = self.plan_trajectory(now_ns, trajectory, time_scaling=time_scaling)
+        self.commit(plan, now_ns)
+        self.last_time_scaling = plan.time_scaling
 
     def plan_goal(
         self,
@@ -524,8 +662,11 @@ class JointTrajectoryController:
         goal_tolerance: Sequence[JointTolerance] = (),
         goal_time_tolerance: float = 0.0,
         valid_from_ns: int | None = None,
+        *,
+        time_scaling: str | None = None,
     ) -> Plan:
-        """First half of ``send_goal``: validate and fit against the current reference.
+        """First half of ``send_goal``: validate and fit against the current reference
+        (``Plan.time_scaling`` says how a ``fit`` goal was slowed).
 
         Raises:
             GoalRejected: see ``send_goal``.
@@ -540,16 +681,21 @@ class JointTrajectoryController:
             goal_tolerance,
             goal_time_tolerance,
             valid_from_ns,
+            time_scaling,
         )
 
-    def plan_trajectory(self, now_ns: int, trajectory: JointTrajectory) -> Plan:
+    def plan_trajectory(
+        self, now_ns: int, trajectory: JointTrajectory, *, time_scaling: str | None = None
+    ) -> Plan:
         """First half of ``send_trajectory`` for a non-empty trajectory.
 
         Raises:
             GoalRejected: see ``send_trajectory``.
         """
         self._require_active_for_commands()
-        return self._planner.plan_trajectory(self._ref, self._version, now_ns, trajectory)
+        return self._planner.plan_trajectory(
+            self._ref, self._version, now_ns, trajectory, time_scaling=time_scaling
+        )
 
     def commit(self, plan: Plan, now_ns: int) -> int | None:
         """Second half: swap in a planned reference (O(1), no fitting).

@@ -813,6 +813,14 @@ class Trajectory:
         out = evaluate(self._blocks[i], tau)
         return TrajectorySample(out[0], out[1], out[2], out[3])
 
+    def pieces(
+        self,
+    ) -> tuple[NDArray[np.int64], F64, NDArray[np.int64], NDArray[np.int8], F64]:
+        """Its arrays, read-only, for checks that read whole polynomials (``limits_check``):
+        breakpoints ``(s + 1,)``, blocks ``(s, 4, 6, n)``, origins and kinds ``(s, n)``, and
+        the state past the end ``(4, n)``."""
+        return self._breaks, self._blocks, self._origins, self._kinds, self._final
+
     def kinds_at(self, t_ns: int) -> NDArray[np.int8]:
         """Per joint, the ``SegmentKind`` in effect at ``t_ns`` (HOLD past the end)."""
         if not self._blocks.shape[0] or t_ns >= self._end:

@@ -60,6 +60,7 @@ from ..controller.goals import (
     TrajectoryStopped,
 )
 from ..controller.joints import JointCommand
+from ..controller.limits_check import AcceptedGoal, TimeScaling
 from ..controller.tolerances import JointTolerance
 from ..controller.trajectory import (
     JointTrajectory,
@@ -591,15 +592,27 @@ class LoopBackend:
         path_tolerance: Sequence[JointTolerance] = (),
         goal_tolerance: Sequence[JointTolerance] = (),
         goal_time_tolerance: float = 0.0,
+        *,
+        time_scaling: str | None = None,
     ) -> int:
         """Plan and commit an action goal.
 
+        Args:
+            time_scaling: ``"reject"`` or ``"fit"`` a goal beyond the joint limits (None:
+                ``limits.time_scaling``).
+
+        Returns:
+            The goal id, an ``AcceptedGoal`` whose ``time_scaling`` says how it was fitted.
+
         Raises:
-            GoalRejected: invalid goal, or the loop kept refusing the plan.
+            GoalRejected: invalid goal, beyond the joint limits, or the loop kept refusing the
+                plan.
         """
         check_position_limits(traj, self._position_limits)
-        result = await self._plan_and_commit(
-            lambda ref, ver, now, valid_from: self._planner.plan_goal(
+        made: list[Plan] = []  # the last plan made is the one committed
+
+        def make(ref: Trajectory, ver: int, now: int, valid_from: int) -> Plan:
+            plan = self._planner.plan_goal(
                 ref,
                 ver,
                 now,
@@ -608,28 +621,42 @@ class LoopBackend:
                 goal_tolerance,
                 goal_time_tolerance,
                 valid_from,
-            ),
-            len(traj.points),
-        )
-        assert result is not None
-        return int(result)
+                time_scaling,
+            )
+            made.append(plan)
+            return plan
 
-    async def send_trajectory(self, traj: JointTrajectory) -> None:
+        result = await self._plan_and_commit(make, len(traj.points))
+        assert result is not None
+        return AcceptedGoal(int(result), made[-1].time_scaling)
+
+    async def send_trajectory(
+        self, traj: JointTrajectory, *, time_scaling: str | None = None
+    ) -> TimeScaling | None:
         """Plan and commit a topic trajectory; an empty one stops.
 
+        Args:
+            time_scaling: as for ``send_goal``.
+
+        Returns:
+            How it was fitted to the joint limits (None: as sent, or a stop).
+
         Raises:
-            GoalRejected: invalid trajectory, or not active.
+            GoalRejected: invalid trajectory, beyond the joint limits, or not active.
         """
         if not traj.points:
             await self._request("stop", {})
-            return
+            return None
         check_position_limits(traj, self._position_limits)
-        await self._plan_and_commit(
-            lambda ref, ver, now, valid_from: self._planner.plan_trajectory(
-                ref, ver, now, traj, valid_from
-            ),
-            len(traj.points),
-        )
+        made: list[Plan] = []
+
+        def make(ref: Trajectory, ver: int, now: int, valid_from: int) -> Plan:
+            plan = self._planner.plan_trajectory(ref, ver, now, traj, valid_from, time_scaling)
+            made.append(plan)
+            return plan
+
+        await self._plan_and_commit(make, len(traj.points))
+        return made[-1].time_scaling
 
     async def stop_motion(self) -> bool:
         """End any motion and hold; False if the controller is not active (nothing to stop).

@@ -12,6 +12,7 @@ from typing import Any, Protocol
 
 from ..controller.config_io import ParameterChange
 from ..controller.goals import GoalFeedback, GoalResult
+from ..controller.limits_check import TimeScaling
 from ..controller.tolerances import JointTolerance
 from ..controller.trajectory import JointTrajectory, QueriedState
 
@@ -84,8 +85,11 @@ class Backend(Protocol):
         path_tolerance: Sequence[JointTolerance],
         goal_tolerance: Sequence[JointTolerance],
         goal_time_tolerance: float,
+        *,
+        time_scaling: str | None = None,
     ) -> int:
-        """Accept an action goal and return its id.
+        """Accept an action goal and return its id (an ``AcceptedGoal`` where the goal was
+        fitted to the joint limits: the ``accepted`` reply then says how).
 
         Raises:
             GoalRejected: why it was refused, with the FollowJointTrajectory error code.
@@ -100,8 +104,10 @@ class Backend(Protocol):
         """
         ...
 
-    async def send_trajectory(self, traj: JointTrajectory) -> None:
-        """A topic trajectory (no points: stop).
+    async def send_trajectory(
+        self, traj: JointTrajectory, *, time_scaling: str | None = None
+    ) -> TimeScaling | None:
+        """A topic trajectory (no points: stop); how it was fitted to the joint limits.
 
         Raises:
             GoalRejected: why it was refused.

@@ -468,13 +468,13 @@ def load_robot(
         TypeError: ``source`` is neither a path nor a mapping.
     """
     data = read_source(source)
-    controller = load_config(data, controller_name)
     if isinstance(source, Mapping):
         source_path = None
         base_dir = os.getcwd()
     else:
         source_path = os.path.abspath(os.fspath(source))
         base_dir = os.path.dirname(source_path)
+    controller = load_config(data, controller_name, base_dir=base_dir)  # limits.urdf: relative
     _check_command_joints(controller)
     hardware = _parse_hardware(data.get("hardware"), controller)
     daemon = _parse_daemon(data.get("daemon"), base_dir)

@@ -91,6 +91,7 @@ from ..api.protocol import (
     sample_to_json,
 )
 from ..controller.goals import GoalFeedback, GoalResult
+from ..controller.limits_check import scaling_fields
 from ..errors import (
     ConfigurationError,
     ControllerStateError,
@@ -674,11 +675,14 @@ class Server:
                 return reply(req.id, authenticated=True)
             case SendGoal():
                 traj = req.trajectory.to_joint_trajectory(backend.now_ns())
-                goal_id = int(
-                    await backend.send_goal(
-                        traj, req.path_tolerance, req.goal_tolerance, req.goal_time_tolerance
-                    )
+                accepted = await backend.send_goal(
+                    traj,
+                    req.path_tolerance,
+                    req.goal_tolerance,
+                    req.goal_time_tolerance,
+                    time_scaling=req.time_scaling,
                 )
+                goal_id = int(accepted)
                 # Nothing may be awaited from here on: the route must exist before this task
                 # yields, so that every later event of the goal finds it (module docstring).
                 self._routes[goal_id] = conn
@@ -691,7 +695,8 @@ class Server:
                         goal_id,
                     )
                 log.info("%s: goal %d accepted", conn.label, goal_id)
-                conn.send(encode(reply(req.id, goal_id=goal_id, accepted=True)))
+                scaled = scaling_fields(getattr(accepted, "time_scaling", None))
+                conn.send(encode(reply(req.id, goal_id=goal_id, accepted=True, **scaled)))
                 for event in self._early.pop(goal_id, ()):
                     self._route(conn, event)
                 return None
@@ -706,8 +711,8 @@ class Server:
                 return reply(req.id, goal_id=req.goal_id, canceling=True)
             case SendTrajectory():
                 traj = req.trajectory.to_joint_trajectory(backend.now_ns())
-                await backend.send_trajectory(traj)
-                return reply(req.id, stopping=not traj.points)
+                scaling = await backend.send_trajectory(traj, time_scaling=req.time_scaling)
+                return reply(req.id, stopping=not traj.points, **scaling_fields(scaling))
             case Stop():
                 if not await backend.stop_motion():
                     return reply(

@@ -16,6 +16,7 @@ import numpy as np
 
 from jtc_hw import GoalFeedback, GoalResult, JointTrajectoryController, TrajectorySample
 from jtc_hw.controller.config_io import ParameterChange, config_to_dict, parameters_report
+from jtc_hw.controller.limits_check import AcceptedGoal, TimeScaling
 from jtc_hw.controller.tolerances import JointTolerance
 from jtc_hw.controller.trajectory import JointTrajectory
 from jtc_hw.daemon.server import BackendListener, Server, ServerSettings
@@ -31,8 +32,8 @@ TOKEN = "0123456789abcdef-token"
 class FakeBackend:
     """A controller host on a simulated clock; ``step`` runs control cycles and publishes."""
 
-    def __init__(self, joints: Sequence[str] = ("j1", "j2")) -> None:
-        self.config = make_config(joints, update_rate=100.0)
+    def __init__(self, joints: Sequence[str] = ("j1", "j2"), **params: Any) -> None:
+        self.config = make_config(joints, update_rate=100.0, **params)
         self.joint_names = tuple(self.config.joints)
         self.ctrl = JointTrajectoryController(self.config)
         self.mirror = Mirror([0.0] * len(joints))
@@ -75,10 +76,20 @@ class FakeBackend:
         path_tolerance: Sequence[JointTolerance],
         goal_tolerance: Sequence[JointTolerance],
         goal_time_tolerance: float,
+        *,
+        time_scaling: str | None = None,
     ) -> int:
         await asyncio.sleep(0)  # the real backend waits for the loop process here
-        goal_id = self.ctrl.send_goal(
-            self.t, traj, path_tolerance, goal_tolerance, goal_time_tolerance
+        goal_id = AcceptedGoal(
+            self.ctrl.send_goal(
+                self.t,
+                traj,
+                path_tolerance,
+                goal_tolerance,
+                goal_time_tolerance,
+                time_scaling=time_scaling,
+            ),
+            self.ctrl.last_time_scaling,
         )
         if not self.early_feedback:
             return goal_id
@@ -102,8 +113,11 @@ class FakeBackend:
     async def cancel_goal(self, goal_id: int) -> bool:
         return self.ctrl.cancel_goal(goal_id)
 
-    async def send_trajectory(self, traj: JointTrajectory) -> None:
-        self.ctrl.send_trajectory(self.t, traj)
+    async def send_trajectory(
+        self, traj: JointTrajectory, *, time_scaling: str | None = None
+    ) -> TimeScaling | None:
+        self.ctrl.send_trajectory(self.t, traj, time_scaling=time_scaling)
+        return self.ctrl.last_time_scaling if traj.points else None
 
     async def stop_motion(self) -> bool:
         await asyncio.sleep(0)  # the real backend waits for the loop process here

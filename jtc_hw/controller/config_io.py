@@ -529,6 +529,10 @@ def read_only_differences(old: ControllerConfig, new: ControllerConfig) -> list[
     ]
     if old.name != new.name:
         names.append("name")
+    names.extend(
+        f"constraints.{name}" for name, p in CONSTRAINT_PARAMETERS.items()
+        if p.read_only and getattr(old.constraints, name) != getattr(new.constraints, name)
+    )
     if names:  # a different joint list: the per-joint entries are moot
         return names
     for section, table in _SECTION_TABLES.items():

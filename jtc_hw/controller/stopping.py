@@ -1,0 +1,289 @@
+"""Decelerating stops: the reference that brings every joint to rest instead of a hold.
+
+Theory of operation
+-------------------
+Upstream's ``constraints.decelerate_on_cancel`` (jtc_upstream_behaviour.md section 11.3)
+replaces the hold of a stop (cancel, path and goal-time aborts, ``cmd_timeout``, topic stops)
+by a trajectory that decelerates each joint from its *measured* position and velocity at
+``max_deceleration_on_cancel`` until it is at rest, then holds there. Upstream needs the
+option, a deceleration > 0 for every joint, every URDF velocity limit > 0 and a velocity state
+interface; otherwise it falls back to the plain hold. :func:`stop_decelerations` checks the same
+preconditions here, reading the velocity limits from ``ControllerConfig.limits`` and deriving a
+deceleration where none is given (see :func:`stop_decelerations`).
+
+Upstream stores the stop as one waypoint per update period (positions, velocities and
+accelerations of the constant-deceleration parabola, splined in between). The curve sampled at
+those times is the same here, but it is stored exactly, as the few polynomial pieces it is made
+of (one per phase per joint, on the trajectory's shared breakpoint grid): a 0.5 s stop at 1 kHz
+is then a handful of segments rather than 500, which keeps building it inside the control cycle
+and sending it to the daemon's API process cheap.
+
+Beyond upstream: when a joint has a jerk limit, its stop is an S-curve: the acceleration moves
+from its current value at most at the jerk limit to ``-a_peak`` (``a_peak`` at most the
+deceleration), stays there, and returns to 0 exactly when the velocity reaches 0. Each joint's
+profile is computed in closed form (:func:`stop_phases`).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import numpy as np
+from numpy.typing import NDArray
+
+from .config import ControllerConfig
+from .interpolation import SegmentKind
+from .trajectory import NS_PER_S, Trajectory
+
+__all__ = [
+    "DERIVED_STOP_TIME_S",
+    "FLT_EPSILON",
+    "Phase",
+    "stop_decelerations",
+    "stop_jerks",
+    "stop_phases",
+    "stop_trajectory",
+    "stop_unavailable_reason",
+]
+
+F64 = NDArray[np.float64]
+
+FLT_EPSILON = 1.1920928955078125e-07
+"""C's ``FLT_EPSILON``: upstream treats ``|v0|`` at or below it as already at rest."""
+
+DERIVED_STOP_TIME_S = 0.5
+"""With a velocity limit but neither ``max_deceleration_on_cancel`` nor an acceleration limit,
+the derived deceleration stops the joint from its velocity limit in this many seconds
+(deceleration = velocity limit / 0.5 s)."""
+
+
+class Phase(NamedTuple):
+    """One constant-jerk piece of a joint's stop, from ``start_s`` to ``end_s`` after the stop
+    began, with the state at ``start_s`` (position, velocity, acceleration) and its jerk."""
+
+    start_s: float
+    end_s: float
+    position: float
+    velocity: float
+    acceleration: float
+    jerk: float
+
+
+def stop_decelerations(config: ControllerConfig) -> F64 | None:
+    """Per joint (``joints`` order), the deceleration of a decelerating stop, or ``None`` when
+    stops are plain holds (:func:`stop_unavailable_reason` says why).
+
+    A joint's deceleration is its ``constraints.<joint>.max_deceleration_on_cancel`` when it
+    is > 0; otherwise it is derived from its limits: the acceleration limit if there is one,
+    else the velocity limit / :data:`DERIVED_STOP_TIME_S`.
+
+    Raises:
+        Nothing.
+    """
+    if stop_unavailable_reason(config) is not None:
+        return None
+    return np.array([_deceleration(config, j) for j in config.joints])
+
+
+def stop_jerks(config: ControllerConfig) -> F64:
+    """Per joint, the jerk limit bounding its stop (``inf`` where there is none).
+
+    Raises:
+        Nothing.
+    """
+    jerks = []
+    for joint in config.joints:
+        limits = config.limits.get(joint)
+        jerk = None if limits is None else limits.jerk
+        jerks.append(math.inf if jerk is None else float(jerk))
+    return np.array(jerks)
+
+
+def _deceleration(config: ControllerConfig, joint: str) -> float:
+    explicit = config.constraints.joints[joint].max_deceleration_on_cancel
+    if explicit > 0.0:
+        return explicit
+    limits = config.limits.get(joint)
+    if limits is None:
+        return 0.0
+    if limits.acceleration is not None:
+        return float(limits.acceleration)
+    if limits.velocity is not None:
+        return float(limits.velocity) / DERIVED_STOP_TIME_S
+    return 0.0
+
+
+def stop_unavailable_reason(config: ControllerConfig) -> str | None:
+    """Why stops are plain holds with this configuration, or ``None`` if they decelerate.
+
+    Upstream's preconditions (section 11.3): the option, a velocity state interface, and for
+    every joint a deceleration > 0 (given or derived) and a velocity limit > 0 where one is
+    configured (``check_joint_limits`` guarantees that).
+
+    Raises:
+        Nothing.
+    """
+    if not config.constraints.decelerate_on_cancel:
+        return "constraints.decelerate_on_cancel is false"
+    if "velocity" not in config.state_interfaces:
+        return (
+            "a decelerating stop starts from the measured velocity: add 'velocity' to "
+            "state_interfaces"
+        )
+    missing = [j for j in config.joints if _deceleration(config, j) <= 0.0]
+    if missing:
+        return (
+            f"joint(s) {', '.join(missing)} have no deceleration: set "
+            "constraints.<joint>.max_deceleration_on_cancel, or give limits.<joint>.acceleration "
+            "or limits.<joint>.velocity to derive one"
+        )
+    return None
+
+
+def _advance(phase: Phase, dt: float) -> tuple[float, float, float]:
+    """Position, velocity and acceleration ``dt`` seconds into ``phase``."""
+    j = phase.jerk
+    a = phase.acceleration
+    v = phase.velocity
+    return (
+        phase.position + v * dt + 0.5 * a * dt * dt + j * dt * dt * dt / 6.0,
+        v + a * dt + 0.5 * j * dt * dt,
+        a + j * dt,
+    )
+
+
+def stop_phases(
+    position: float, velocity: float, acceleration: float, deceleration: float, jerk: float
+) -> tuple[list[Phase], float]:
+    """One joint's stop, in closed form: its moving phases and the position it rests at.
+
+    Without a jerk limit (``jerk`` infinite) this is upstream's profile: the acceleration is
+    ``-dir * deceleration`` from the start (``acceleration`` is ignored) until the velocity is
+    0 at ``|v0| / deceleration``; nothing moves if ``|v0| <= FLT_EPSILON``.
+
+    With a jerk limit ``J`` and ``A = deceleration``: the starting acceleration is clamped to
+    ``[-A, A]``; ``dir`` is the sign of the velocity the joint would reach if its acceleration
+    went to 0 at once at ``J`` (``v0 + a0 |a0| / (2 J)``), so a joint already braking hard
+    towards rest is not made to overshoot. In that direction (``v``, ``a`` the starting values
+    times ``dir``), the velocity still to lose after ramping is ``R = v + a^2 / (2 J)``; the
+    acceleration ramps at ``-J`` from ``a`` to ``-a_peak``, holds ``-a_peak`` for ``t2``, and
+    ramps back to 0 at ``+J``, with ``a_peak = sqrt(J R)`` and ``t2 = 0`` when that is at most
+    ``A``, else ``a_peak = A`` and ``t2 = (R - A^2 / J) / A``.
+
+    Args:
+        position, velocity, acceleration: the state the stop starts from.
+        deceleration: the largest ``|acceleration|`` of the stop, > 0.
+        jerk: the largest ``|jerk|``, > 0, or ``inf``.
+
+    Returns:
+        The phases in time order (empty when already at rest) and the rest position.
+
+    Raises:
+        Nothing.
+    """
+    big_a = deceleration
+    if math.isinf(jerk):
+        if abs(velocity) <= FLT_EPSILON:
+            return [], position
+        direction = 1.0 if velocity >= 0.0 else -1.0
+        t_stop = abs(velocity) / big_a
+        rest = position + direction * velocity * velocity / (2.0 * big_a)
+        return [Phase(0.0, t_stop, position, velocity, -direction * big_a, 0.0)], rest
+    a0 = min(max(acceleration, -big_a), big_a)
+    if abs(velocity) <= FLT_EPSILON and abs(a0) <= FLT_EPSILON:
+        return [], position
+    direction = 1.0 if velocity + a0 * abs(a0) / (2.0 * jerk) >= 0.0 else -1.0
+    v = direction * velocity
+    a = direction * a0
+    remaining = max(v + a * a / (2.0 * jerk), 0.0)
+    if remaining <= big_a * big_a / jerk:
+        peak = math.sqrt(jerk * remaining)
+        t2 = 0.0
+    else:
+        peak = big_a
+        t2 = (remaining - big_a * big_a / jerk) / big_a
+    durations = ((a + peak) / jerk, t2, peak / jerk)
+    jerks = (-direction * jerk, 0.0, direction * jerk)
+    phases: list[Phase] = []
+    state = (position, velocity, a0)
+    t = 0.0
+    for duration, j in zip(durations, jerks, strict=True):
+        if duration <= 0.0:
+            continue
+        phase = Phase(t, t + duration, state[0], state[1], state[2], j)
+        phases.append(phase)
+        state = _advance(phase, duration)
+        t += duration
+    return phases, state[0]
+
+
+def stop_trajectory(
+    now_ns: int,
+    positions: F64,
+    velocities: F64,
+    accelerations: F64,
+    decelerations: F64,
+    jerks: F64,
+) -> Trajectory:
+    """The decelerating stop of every joint, starting at ``now_ns`` from the given state.
+
+    Each joint follows :func:`stop_phases`; once at rest it holds its rest position with zero
+    velocity and acceleration, and so does the trajectory after its last breakpoint.
+
+    Args:
+        now_ns: when the stop starts (its first breakpoint; it is not defined before).
+        positions, velocities, accelerations: the state it starts from, per joint.
+        decelerations: per joint, > 0 (:func:`stop_decelerations`).
+        jerks: per joint, > 0 or ``inf`` (:func:`stop_jerks`).
+
+    Returns:
+        The reference to follow.
+
+    Raises:
+        Nothing.
+    """
+    n = positions.shape[0]
+    rest = np.empty(n)
+    per_joint: list[list[tuple[int, int, Phase]]] = []
+    breaks = {now_ns}
+    for i in range(n):
+        phases, rest[i] = stop_phases(
+            float(positions[i]),
+            float(velocities[i]),
+            float(accelerations[i]),
+            float(decelerations[i]),
+            float(jerks[i]),
+        )
+        timed = []
+        for phase in phases:
+            start = now_ns + round(phase.start_s * NS_PER_S)
+            end = now_ns + round(phase.end_s * NS_PER_S)
+            if end > start:  # a phase shorter than a nanosecond is never sampled
+                timed.append((start, end, phase))
+                breaks.update((start, end))
+        per_joint.append(timed)
+    grid = np.array(sorted(breaks), dtype=np.int64)
+    final = np.zeros((4, n))
+    final[0] = rest
+    segments = grid.shape[0] - 1
+    if not segments:
+        return Trajectory.constant(now_ns, rest)
+    blocks = np.zeros((segments, 4, 6, n))
+    origins = np.repeat(grid[:-1, None], n, axis=1)
+    kinds = np.zeros((segments, n), dtype=np.int8)
+    blocks[:, 0, 0, :] = rest  # at rest unless a phase covers the segment
+    starts = grid[:-1]
+    for i, timed in enumerate(per_joint):
+        for start, end, phase in timed:
+            rows = np.flatnonzero((starts >= start) & (starts < end))
+            block = blocks[rows, :, :, i]
+            block[:] = 0.0
+            p, v, a, j = phase.position, phase.velocity, phase.acceleration, phase.jerk
+            block[:, 0, :4] = (p, v, 0.5 * a, j / 6.0)
+            block[:, 1, :3] = (v, a, 0.5 * j)
+            block[:, 2, :2] = (a, j)
+            blocks[rows, :, :, i] = block
+            origins[rows, i] = start
+            kinds[rows, i] = SegmentKind.CUBIC
+    return Trajectory(grid, blocks, origins, kinds, final, now_ns)

@@ -54,6 +54,7 @@ from .parsing import (
     fmt_list,
     read_source,
 )
+from .stopping import stop_unavailable_reason
 
 __all__ = [
     "ParameterChange",
@@ -348,6 +349,13 @@ def explain(cfg: ControllerConfig) -> list[str]:
             "next command, and cmd_timeout is off; set cmd_timeout (seconds, greater than "
             "constraints.goal_time) to stop them when commands stop coming"
         )
+    if cfg.constraints.decelerate_on_cancel:
+        why_not = stop_unavailable_reason(cfg)
+        if why_not is not None:
+            warnings.append(
+                "constraints.decelerate_on_cancel: stops hold on the spot instead (upstream's "
+                f"fall-back): {why_not}"
+            )
     output = "effort" if "effort" in cfg.command_interfaces else "velocity"
     if cfg.command_interfaces == ("velocity",):
         why = "open_loop_control disables the PID loop"

@@ -228,8 +228,11 @@ def stop_trajectory(
 ) -> Trajectory:
     """The decelerating stop of every joint, starting at ``now_ns`` from the given state.
 
-    Each joint follows :func:`stop_phases`; once at rest it holds its rest position with zero
-    velocity and acceleration, and so does the trajectory after its last breakpoint.
+    Each joint follows :func:`stop_phases` (computed here for all joints at once, with the same
+    formulas); once at rest it holds its rest position with zero velocity and acceleration,
+    and so does the trajectory after its last breakpoint. The breakpoints are the union of the
+    joints' phase boundaries (at most three per joint), each joint's pieces keeping their own
+    time origin.
 
     Args:
         now_ns: when the stop starts (its first breakpoint; it is not defined before).
@@ -244,46 +247,92 @@ def stop_trajectory(
         Nothing.
     """
     n = positions.shape[0]
-    rest = np.empty(n)
-    per_joint: list[list[tuple[int, int, Phase]]] = []
-    breaks = {now_ns}
-    for i in range(n):
-        phases, rest[i] = stop_phases(
-            float(positions[i]),
-            float(velocities[i]),
-            float(accelerations[i]),
-            float(decelerations[i]),
-            float(jerks[i]),
-        )
-        timed = []
-        for phase in phases:
-            start = now_ns + round(phase.start_s * NS_PER_S)
-            end = now_ns + round(phase.end_s * NS_PER_S)
-            if end > start:  # a phase shorter than a nanosecond is never sampled
-                timed.append((start, end, phase))
-                breaks.update((start, end))
-        per_joint.append(timed)
-    grid = np.array(sorted(breaks), dtype=np.int64)
+    p0 = np.asarray(positions, dtype=np.float64)
+    v0 = np.asarray(velocities, dtype=np.float64)
+    big_a = np.asarray(decelerations, dtype=np.float64)
+    jerk = np.asarray(jerks, dtype=np.float64)
+    limited = np.isfinite(jerk)
+    safe_jerk = np.where(limited, jerk, 1.0)  # no inf arithmetic for the unlimited joints
+    a0 = np.clip(np.asarray(accelerations, dtype=np.float64), -big_a, big_a)
+    a0 = np.where(limited, a0, 0.0)
+    # Direction: the velocity's sign; with a jerk limit, that of the velocity reached if the
+    # acceleration went to 0 at once at the jerk limit (see stop_phases).
+    reached = v0 + np.where(limited, a0 * np.abs(a0) / (2.0 * safe_jerk), 0.0)
+    direction = np.where(reached >= 0.0, 1.0, -1.0)
+    moving = np.where(
+        limited,
+        (np.abs(v0) > FLT_EPSILON) | (np.abs(a0) > FLT_EPSILON),
+        np.abs(v0) > FLT_EPSILON,
+    )
+    v = direction * v0
+    a = direction * a0
+    remaining = np.maximum(v + a * a / (2.0 * safe_jerk), 0.0)
+    short = remaining <= big_a * big_a / safe_jerk
+    peak = np.where(short, np.sqrt(safe_jerk * remaining), big_a)
+    t2_jerk = np.where(short, 0.0, (remaining - big_a * big_a / safe_jerk) / big_a)
+    # Phase durations: ramp to -peak, constant -peak, ramp back to 0 (jerk-limited); a single
+    # constant-deceleration phase of |v0| / A otherwise (upstream).
+    zero = np.zeros(n)
+    d1 = np.where(limited, (a + peak) / safe_jerk, 0.0)
+    d2 = np.where(limited, t2_jerk, np.abs(v0) / big_a)
+    d3 = np.where(limited, peak / safe_jerk, 0.0)
+    d1, d2, d3 = (np.where(moving, d, 0.0) for d in (d1, d2, d3))
+    j1 = np.where(limited, -direction * safe_jerk, 0.0)
+    j3 = np.where(limited, direction * safe_jerk, 0.0)
+    # State at the start of each phase (phase 2 starts at -dir * peak, or -dir * A unlimited).
+    a_start = np.where(limited, a0, -direction * big_a)
+    p1, v1, acc1 = _advance_all(p0, v0, a_start, j1, d1)
+    acc1 = np.where(limited, np.where(d1 > 0.0, acc1, a_start), -direction * big_a)
+    p2, v2, acc2 = _advance_all(p1, v1, acc1, zero, d2)
+    p3 = _advance_all(p2, v2, acc2, j3, d3)[0]
+    # Upstream's hold point for the constant deceleration; the S-curve's end otherwise.
+    rest = np.where(limited, p3, p0 + direction * v0 * v0 / (2.0 * big_a))
+    rest = np.where(moving, rest, p0)
+    # Phase boundaries in ns (cumulative, each rounded once): b1 <= b2 <= b3.
+    b1 = now_ns + np.round(d1 * NS_PER_S).astype(np.int64)
+    b2 = now_ns + np.round((d1 + d2) * NS_PER_S).astype(np.int64)
+    b3 = now_ns + np.round((d1 + d2 + d3) * NS_PER_S).astype(np.int64)
+    grid = np.unique(np.concatenate(([now_ns], b1, b2, b3)))
+    if grid.shape[0] == 1:
+        return Trajectory.constant(now_ns, rest)
+    starts = grid[:-1]
+    # Per segment and joint: which phase it lies in (0, 1, 2; 3 = at rest). A zero-length
+    # phase has equal boundaries and is skipped.
+    phase = (
+        (starts[:, None] >= b1[None, :]).astype(np.intp)
+        + (starts[:, None] >= b2[None, :])
+        + (starts[:, None] >= b3[None, :])
+    )
+    cols = np.arange(n)
+    table_p = np.stack((p0, p1, p2, rest))
+    table_v = np.stack((v0, v1, v2, zero))
+    table_a = np.stack((a_start, acc1, acc2, zero))
+    table_j = np.stack((j1, zero, j3, zero))
+    table_o = np.stack((np.full(n, now_ns, dtype=np.int64), b1, b2, b3))
+    pp, vv, aa, jj = (t[phase, cols] for t in (table_p, table_v, table_a, table_j))
+    segments = starts.shape[0]
+    blocks = np.zeros((segments, 4, 6, n))
+    blocks[:, 0, 0] = pp
+    blocks[:, 0, 1] = vv
+    blocks[:, 0, 2] = 0.5 * aa
+    blocks[:, 0, 3] = jj / 6.0
+    blocks[:, 1, 0] = vv
+    blocks[:, 1, 1] = aa
+    blocks[:, 1, 2] = 0.5 * jj
+    blocks[:, 2, 0] = aa
+    blocks[:, 2, 1] = jj
+    origins = table_o[phase, cols]
+    kinds = np.where(phase < 3, SegmentKind.CUBIC, SegmentKind.HOLD).astype(np.int8)
     final = np.zeros((4, n))
     final[0] = rest
-    segments = grid.shape[0] - 1
-    if not segments:
-        return Trajectory.constant(now_ns, rest)
-    blocks = np.zeros((segments, 4, 6, n))
-    origins = np.repeat(grid[:-1, None], n, axis=1)
-    kinds = np.zeros((segments, n), dtype=np.int8)
-    blocks[:, 0, 0, :] = rest  # at rest unless a phase covers the segment
-    starts = grid[:-1]
-    for i, timed in enumerate(per_joint):
-        for start, end, phase in timed:
-            rows = np.flatnonzero((starts >= start) & (starts < end))
-            block = blocks[rows, :, :, i]
-            block[:] = 0.0
-            p, v, a, j = phase.position, phase.velocity, phase.acceleration, phase.jerk
-            block[:, 0, :4] = (p, v, 0.5 * a, j / 6.0)
-            block[:, 1, :3] = (v, a, 0.5 * j)
-            block[:, 2, :2] = (a, j)
-            blocks[rows, :, :, i] = block
-            origins[rows, i] = start
-            kinds[rows, i] = SegmentKind.CUBIC
     return Trajectory(grid, blocks, origins, kinds, final, now_ns)
+
+
+def _advance_all(p: F64, v: F64, a: F64, j: F64, dt: F64) -> tuple[F64, F64, F64]:
+    """Position, velocity and acceleration ``dt`` into constant-jerk pieces (per joint)."""
+    dt2 = dt * dt
+    return (
+        p + v * dt + 0.5 * a * dt2 + j * dt2 * dt / 6.0,
+        v + a * dt + 0.5 * j * dt2,
+        a + j * dt,
+    )

@@ -357,3 +357,12 @@ def test_the_stop_is_reported_as_a_reference_change() -> None:
     assert len(rig.ctrl.reference.breakpoints_ns) <= 3  # a few pieces, not one per period
     assert rig.ctrl.reference.state_before_ns == rig.now - rig.period
     assert rig.ctrl.reference.end_ns == rig.now - rig.period + 600 * MS
+
+
+def test_check_warns_when_decelerate_on_cancel_falls_back() -> None:
+    from jtc_hw.controller.config_io import explain
+
+    assert not [w for w in explain(decel_config()) if "decelerate_on_cancel" in w]
+    [warning] = [w for w in explain(decel_config(state_interfaces=["position"]))
+                 if "decelerate_on_cancel" in w]
+    assert "hold on the spot" in warning and "state_interfaces" in warning

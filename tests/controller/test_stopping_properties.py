@@ -15,11 +15,13 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
+import pytest
 from hypothesis import HealthCheck, given, note, settings
 from hypothesis import strategies as st
 
 from jtc_hw import GoalResult, JointTrajectory, TrajectoryPoint
 from jtc_hw.controller.limits import JointLimits
+from jtc_hw.controller.stopping import stop_phases, stop_trajectory
 
 from conftest import Rig, S, make_config
 
@@ -133,3 +135,28 @@ def test_stops_at_random_times(sc: dict[str, object]) -> None:
     assert (np.abs(rig.last.command.positions - rig.mirror.p) < 1e-9).all()
     results = [e for e in rig.events if isinstance(e, GoalResult)]
     assert [r.goal_id for r in results] == [goal]
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    st.floats(-5.0, 5.0), st.floats(-5.0, 5.0), st.floats(-20.0, 20.0),
+    st.floats(0.5, 30.0), st.one_of(st.just(np.inf), st.floats(2.0, 1000.0)),
+)
+def test_the_stop_trajectory_follows_the_closed_form(
+    p0: float, v0: float, a0: float, decel: float, jerk: float
+) -> None:
+    """``stop_trajectory`` (all joints at once) equals ``stop_phases`` (one joint, the
+    documented closed form) at every phase boundary and at rest."""
+    traj = stop_trajectory(
+        0, np.array([p0]), np.array([v0]), np.array([a0]), np.array([decel]), np.array([jerk])
+    )
+    phases, rest = stop_phases(p0, v0, a0, decel, jerk)
+    assert traj.sample(traj.end_ns + S).positions[0] == pytest.approx(rest, abs=1e-9)
+    for ph in phases:
+        t_ns = round(ph.start_s * S)
+        if round(ph.end_s * S) == t_ns:
+            continue  # shorter than a nanosecond: never sampled
+        s = traj.sample(t_ns)
+        assert s.positions[0] == pytest.approx(ph.position, abs=1e-6)
+        assert s.velocities[0] == pytest.approx(ph.velocity, abs=1e-6)
+        assert s.accelerations[0] == pytest.approx(ph.acceleration, abs=1e-6)

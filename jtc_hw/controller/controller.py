@@ -6,18 +6,21 @@ The controller never reads a clock and does no I/O: every method takes the time 
 nanoseconds on one monotonic clock) and ``update`` takes the measured state. It always follows
 one immutable reference ``Trajectory``: at activation a hold at the start state, then every
 accepted command is spliced into it (see ``Trajectory.splice``), and every stop re-anchors it
-as a hold.
+as a hold (or, with ``decelerate_on_cancel``, a decelerating stop ending in one).
 
 One ``update(now, period, state)``:
 
-1. apply a pending stop (cancel, empty topic trajectory): hold the measured position;
+1. apply a pending stop (cancel, empty topic trajectory): hold the measured position, or
+   with ``decelerate_on_cancel`` follow a decelerating stop from the measured state
+   (``stopping.py``);
 2. sample the reference at ``now`` and compute the error, desired minus measured (shortest
    angle for continuous joints);
 3. if a command is executing, check it *before* commanding anything: path tolerance while
    moving (and at the first sample, even if it is already the end), goal tolerance,
    ``goal_time`` and ``cmd_timeout`` once the look-ahead time ``now + 1/update_rate`` reaches
    the last point (upstream: success comes one period before the reference reaches it);
-   decide success or abort; an abort holds the measured position in this same cycle;
+   decide success or abort; an abort holds the measured position (or starts the decelerating
+   stop) in this same cycle;
 4. compute the command: forwarded interfaces (position, velocity without PID, acceleration)
    take the reference at ``now + 1/update_rate`` -- a command written at cycle ``t`` is what
    the joints should reach by the next cycle; PID outputs (velocity alone, effort) act on the
@@ -597,12 +600,15 @@ class JointTrajectoryController:
 
     def request_stop(self) -> None:
         """Stop as an empty topic trajectory does: hold the measured position from the next
-        cycle; an active goal ends ``CANCELED``.
+        cycle (or decelerate to rest, see :meth:`stop`; a decelerating stop under way goes on
+        unchanged); an active goal ends ``CANCELED``.
 
         Raises:
             GoalRejected: the controller is not active.
         """
         self._require_active_for_commands()
+        if self._execution is None and self.stopping_until_ns is not None:
+            return  # a decelerating stop is under way: it goes on unchanged
         self._request_stop(GoalTransition.PREEMPT, STOPPED_BY_TOPIC)
 
     def abort(self, reason: str) -> None:

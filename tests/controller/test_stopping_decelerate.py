@@ -271,6 +271,9 @@ def test_stop_for_shutdown_aborts_and_is_not_restarted() -> None:
     rig.step()
     assert rig.ctrl.reference_version == version
     assert rig.ctrl.stopping_until_ns == end
+    rig.ctrl.request_stop()  # the stop op / an empty topic trajectory: the same
+    rig.step()
+    assert rig.ctrl.reference_version == version
     rig.step(round((end - rig.now) / rig.period) + 1)
     assert (rig.last.command.velocities == 0.0).all()
     assert len(rig.results()) == 1

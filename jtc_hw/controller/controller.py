@@ -58,7 +58,13 @@ from .goals import (
 )
 from .joints import JointCommand, JointState
 from .pid import Pid
-from .stopping import stop_decelerations, stop_jerks, stop_trajectory
+from .stopping import (
+    stop_decelerations,
+    stop_duration_bound_s,
+    stop_jerks,
+    stop_trajectory,
+    warm_up,
+)
 from .tolerances import JointTolerance, SegmentTolerances, violated
 from .trajectory import (
     NS_PER_S,
@@ -310,6 +316,10 @@ class JointTrajectoryController:
         self._stop_decel = stop_decelerations(config)
         self._stop_jerk = stop_jerks(config)
         self._stop_ref: Trajectory | None = None  # the decelerating stop being followed
+        if self._stop_decel is not None:
+            # The first stop must not pay numpy's first-call costs inside a control cycle
+            # (measured: several ms in a fresh loop process, enough to skip deadlines).
+            warm_up(n)
         self._planner = Planner(config)
         self._version = 0
         self._active = False
@@ -659,8 +669,10 @@ class JointTrajectoryController:
         return ref.end_ns if ref is not None and ref is self._ref else None
 
     def stop_duration_s(self, state: JointState) -> float:
-        """How long a decelerating stop started from ``state`` would last (0 if stops hold or
-        ``state`` has no usable velocities): the daemon's bound for waiting on one.
+        """At least as long as a decelerating stop started from ``state`` lasts (0 if stops
+        hold or ``state`` has no usable velocities; without an acceleration state, the
+        acceleration is taken as 0): the daemon's bound for waiting on one. Cheap: no
+        trajectory is built.
 
         Raises:
             Nothing.
@@ -673,8 +685,7 @@ class JointTrajectoryController:
         a = state.accelerations if self._has_acc_state else None
         if a is None or a.shape != (self._n,) or not np.isfinite(a).all():
             a = np.zeros(self._n)
-        stop = stop_trajectory(0, state.positions, v, a, self._stop_decel, self._stop_jerk)
-        return stop.end_ns / NS_PER_S
+        return stop_duration_bound_s(v, a, self._stop_decel, self._stop_jerk)
 
     @property
     def reference_version(self) -> int:

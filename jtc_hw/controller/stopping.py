@@ -41,10 +41,12 @@ __all__ = [
     "FLT_EPSILON",
     "Phase",
     "stop_decelerations",
+    "stop_duration_bound_s",
     "stop_jerks",
     "stop_phases",
     "stop_trajectory",
     "stop_unavailable_reason",
+    "warm_up",
 ]
 
 F64 = NDArray[np.float64]
@@ -336,3 +338,35 @@ def _advance_all(p: F64, v: F64, a: F64, j: F64, dt: F64) -> tuple[F64, F64, F64
         v + a * dt + 0.5 * j * dt2,
         a + j * dt,
     )
+
+
+def stop_duration_bound_s(
+    velocities: F64, accelerations: F64, decelerations: F64, jerks: F64
+) -> float:
+    """An upper bound of how long the stop from this state lasts, in seconds, without
+    building it: ``|v| / A`` per joint, plus ``2 (A + |a|) / J`` with a jerk limit (the
+    S-curve's ramps; see :func:`stop_phases`), the largest over the joints.
+
+    Raises:
+        Nothing.
+    """
+    v = np.abs(np.asarray(velocities, dtype=np.float64))
+    a = np.minimum(np.abs(np.asarray(accelerations, dtype=np.float64)), decelerations)
+    ramps = np.where(np.isfinite(jerks), 2.0 * (decelerations + a) / np.where(
+        np.isfinite(jerks), jerks, 1.0), 0.0)
+    return float(np.max(v / decelerations + ramps, initial=0.0))
+
+
+def warm_up(n_joints: int) -> None:
+    """Build and sample a throw-away stop of ``n_joints`` joints (jerk-limited and not), so
+    that the first real one, built inside a control cycle, does not pay numpy's first-call
+    costs.
+
+    Raises:
+        Nothing.
+    """
+    ones = np.ones(n_joints)
+    jerks = np.where(np.arange(n_joints) % 2 == 0, np.inf, 10.0)
+    stop = stop_trajectory(0, ones, ones, ones, ones, jerks)
+    stop.sample(1)
+    stop.sample(stop.end_ns)

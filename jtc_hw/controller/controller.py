@@ -1022,6 +1022,9 @@ class JointTrajectoryController:
         As upstream, the stop starts from the measured position and velocity; its starting
         acceleration (used only by a jerk-limited joint) is the measured one with an
         acceleration state interface, else the reference's at ``now_ns``.
+
+        Raises:
+            Nothing.
         """
         velocities = state.velocities
         if (

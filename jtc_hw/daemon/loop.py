@@ -341,6 +341,9 @@ class ControlLoop:
         Returns:
             True when the loop ends at once; else the longest it keeps cycling, in seconds
             (the API process waits that much longer for it to exit).
+
+        Raises:
+            Nothing: the controller is active whenever ``stop`` is asked of it.
         """
         if self._stopping_until_ns is not None:
             return (self._stopping_until_ns - now_ns) / 1e9
@@ -358,7 +361,11 @@ class ControlLoop:
     def _shutdown_stop_done(self, now_ns: int) -> bool:
         """Whether a shutdown waiting for its decelerating stop can end the loop now: the stop
         has ended (a cycle after its end has read the joints at rest), the controller or
-        hardware stopped otherwise, or the bound has passed."""
+        hardware stopped otherwise, or the bound has passed.
+
+        Raises:
+            Nothing.
+        """
         cap = self._stopping_until_ns
         if cap is None or self.fault is not None or not self.ctrl.active or now_ns >= cap:
             return True

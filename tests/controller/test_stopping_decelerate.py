@@ -369,3 +369,19 @@ def test_check_warns_when_decelerate_on_cancel_falls_back() -> None:
     [warning] = [w for w in explain(decel_config(state_interfaces=["position"]))
                  if "decelerate_on_cancel" in w]
     assert "hold on the spot" in warning and "state_interfaces" in warning
+
+
+def test_topic_path_violation_decelerates() -> None:
+    cfg = decel_config(6.0, constraints={"j1": {"trajectory": 0.05,
+                                                "max_deceleration_on_cancel": 6.0}})
+    rig = Rig(cfg, [0.0, 0.0])
+    rig.ctrl.send_trajectory(rig.now, cruise_goal())
+    rig.step(1500)
+    rig.mirror.p[0] -= 0.1  # the joint slips: path tolerance violated
+    v_meas = rig.mirror.v.copy()
+    out = rig.step()
+    [stopped] = [e for e in out.events if isinstance(e, TrajectoryStopped)]
+    assert stopped.reason == "Aborted due to path tolerance violation"
+    assert rig.ctrl.stopping_until_ns is not None
+    v, _ = run_stop(rig, 700)
+    assert_ramps_to_rest(np.vstack([out.command.velocities, v]), 6.0, v_meas)

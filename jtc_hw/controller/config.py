@@ -213,6 +213,9 @@ CONSTRAINT_PARAMETERS: Final[Mapping[str, Param]] = _table(
           minimum=0.0),
     Param("goal_time", _F, 0.0,
           "time tolerance for reaching the goal, seconds (0: wait indefinitely)", minimum=0.0),
+    Param("decelerate_on_cancel", _B, False,
+          "stop by decelerating to rest (cancel, aborts, cmd_timeout, stop, shutdown) "
+          "instead of holding on the spot", read_only=True),
 )
 """``constraints.*`` parameters other than the per-joint entries."""
 
@@ -220,6 +223,9 @@ JOINT_CONSTRAINT_PARAMETERS: Final[Mapping[str, Param]] = _table(
     Param("trajectory", _F, 0.0, "position tolerance during the motion (0: not checked)",
           minimum=0.0),
     Param("goal", _F, 0.0, "position tolerance at the goal (0: not checked)", minimum=0.0),
+    Param("max_deceleration_on_cancel", _F, 0.0,
+          "deceleration of a decelerating stop, per second squared (0: derived from the "
+          "joint's limits)", minimum=0.0, read_only=True),
 )
 """``constraints.<joint>.*`` parameters."""
 
@@ -304,6 +310,9 @@ class JointConstraints:
 
     trajectory: float = _float_default(JOINT_CONSTRAINT_PARAMETERS, "trajectory")
     goal: float = _float_default(JOINT_CONSTRAINT_PARAMETERS, "goal")
+    max_deceleration_on_cancel: float = _float_default(
+        JOINT_CONSTRAINT_PARAMETERS, "max_deceleration_on_cancel"
+    )
 
 
 @dataclass(frozen=True)
@@ -317,6 +326,7 @@ class Constraints:
         CONSTRAINT_PARAMETERS, "stopped_velocity_tolerance"
     )
     goal_time: float = _float_default(CONSTRAINT_PARAMETERS, "goal_time")
+    decelerate_on_cancel: bool = _bool_default(CONSTRAINT_PARAMETERS, "decelerate_on_cancel")
     joints: Mapping[str, JointConstraints] = field(default_factory=_empty_mapping)
 
     def __post_init__(self) -> None:

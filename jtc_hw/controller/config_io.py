@@ -58,6 +58,7 @@ from .parsing import (
     fmt_list,
     read_source,
 )
+from .stopping import stop_unavailable_reason
 
 __all__ = [
     "ParameterChange",
@@ -598,6 +599,13 @@ def explain(cfg: ControllerConfig) -> list[str]:
             "limits, but no joint has one"
             + (" (only position ranges, which slowing cannot fix)" if shaped else "")
         )
+    if cfg.constraints.decelerate_on_cancel:
+        why_not = stop_unavailable_reason(cfg)
+        if why_not is not None:
+            warnings.append(
+                "constraints.decelerate_on_cancel: stops hold on the spot instead (upstream's "
+                f"fall-back): {why_not}"
+            )
     output = "effort" if "effort" in cfg.command_interfaces else "velocity"
     if cfg.command_interfaces == ("velocity",):
         why = "open_loop_control disables the PID loop"
@@ -793,6 +801,10 @@ def read_only_differences(old: ControllerConfig, new: ControllerConfig) -> list[
         names.append("name")
     if old.limits != new.limits:
         names.append("limits")
+    names.extend(
+        f"constraints.{name}" for name, p in CONSTRAINT_PARAMETERS.items()
+        if p.read_only and getattr(old.constraints, name) != getattr(new.constraints, name)
+    )
     if names:  # a different joint list: the per-joint entries are moot
         return names
     for section, table in _SECTION_TABLES.items():

@@ -6,18 +6,21 @@ The controller never reads a clock and does no I/O: every method takes the time 
 nanoseconds on one monotonic clock) and ``update`` takes the measured state. It always follows
 one immutable reference ``Trajectory``: at activation a hold at the start state, then every
 accepted command is spliced into it (see ``Trajectory.splice``), and every stop re-anchors it
-as a hold.
+as a hold (or, with ``decelerate_on_cancel``, a decelerating stop ending in one).
 
 One ``update(now, period, state)``:
 
-1. apply a pending stop (cancel, empty topic trajectory): hold the measured position;
+1. apply a pending stop (cancel, empty topic trajectory): hold the measured position, or
+   with ``decelerate_on_cancel`` follow a decelerating stop from the measured state
+   (``stopping.py``);
 2. sample the reference at ``now`` and compute the error, desired minus measured (shortest
    angle for continuous joints);
 3. if a command is executing, check it *before* commanding anything: path tolerance while
    moving (and at the first sample, even if it is already the end), goal tolerance,
    ``goal_time`` and ``cmd_timeout`` once the look-ahead time ``now + 1/update_rate`` reaches
    the last point (upstream: success comes one period before the reference reaches it);
-   decide success or abort; an abort holds the measured position in this same cycle;
+   decide success or abort; an abort holds the measured position (or starts the decelerating
+   stop) in this same cycle;
 4. compute the command: forwarded interfaces (position, velocity without PID, acceleration)
    take the reference at ``now + 1/update_rate`` -- a command written at cycle ``t`` is what
    the joints should reach by the next cycle; PID outputs (velocity alone, effort) act on the
@@ -68,6 +71,13 @@ from .limits_check import (
     scale_prepared,
 )
 from .pid import Pid
+from .stopping import (
+    stop_decelerations,
+    stop_duration_bound_s,
+    stop_jerks,
+    stop_trajectory,
+    warm_up,
+)
 from .tolerances import JointTolerance, SegmentTolerances, violated
 from .trajectory import (
     NS_PER_S,
@@ -89,6 +99,7 @@ CANCELED_ON_REQUEST = ""
 """Upstream's cancel result carries an empty ``error_string`` (section 9); what happened goes
 to ``details`` (:data:`CANCELED_DETAILS`)."""
 CANCELED_DETAILS = "canceled on request; holding the current position"
+CANCELED_DECELERATING_DETAILS = "canceled on request; decelerating to a stop"
 DEACTIVATED = "Current goal cancelled during deactivate transition."
 SUCCEEDED = "Goal successfully reached!"
 PATH_TOLERANCE_VIOLATED = "Aborted due to path tolerance violation"
@@ -416,6 +427,14 @@ class JointTrajectoryController:
         self._lookahead_ns = round(NS_PER_S / config.update_rate)
         self._feedback_ns = round(NS_PER_S / config.action_monitor_rate)
         self._cmd_timeout_ns = round(config.effective_cmd_timeout * NS_PER_S)
+        # Decelerating stops (stopping.py): None when every stop is a plain hold.
+        self._stop_decel = stop_decelerations(config)
+        self._stop_jerk = stop_jerks(config)
+        self._stop_ref: Trajectory | None = None  # the decelerating stop being followed
+        if self._stop_decel is not None:
+            # The first stop must not pay numpy's first-call costs inside a control cycle
+            # (measured: several ms in a fresh loop process, enough to skip deadlines).
+            warm_up(n)
         self._planner = Planner(config)
         self.last_time_scaling: TimeScaling | None = None
         """How the last accepted command was fitted to the joint limits (``Plan``)."""
@@ -505,6 +524,7 @@ class JointTrajectoryController:
             self._refresh_output(last_command)
         self._execution = None
         self._pending_stop = None
+        self._stop_ref = None
         self._pid.reset()
         self._commanding = self.config.start_with_holding
         # Upstream resolves cmd_timeout in on_activate only: a runtime change waits for it.
@@ -736,12 +756,15 @@ class JointTrajectoryController:
 
     def request_stop(self) -> None:
         """Stop as an empty topic trajectory does: hold the measured position from the next
-        cycle; an active goal ends ``CANCELED``.
+        cycle (or decelerate to rest, see :meth:`stop`; a decelerating stop under way goes on
+        unchanged); an active goal ends ``CANCELED``.
 
         Raises:
             GoalRejected: the controller is not active.
         """
         self._require_active_for_commands()
+        if self._execution is None and self.stopping_until_ns is not None:
+            return  # a decelerating stop is under way: it goes on unchanged
         self._request_stop(GoalTransition.PREEMPT, STOPPED_BY_TOPIC)
 
     def abort(self, reason: str) -> None:
@@ -756,6 +779,59 @@ class JointTrajectoryController:
         self._require_active_for_commands()
         if self._execution is not None:
             self._request_stop(GoalTransition.ABORT, reason)
+
+    def stop(self, reason: str) -> None:
+        """Bring the joints to rest from the next ``update``, whatever is executing: the
+        decelerating stop when ``constraints.decelerate_on_cancel`` applies (see
+        :attr:`decelerates`), else a hold of the measured position. An active goal ends
+        ``ABORTED`` (``INVALID_GOAL``) with ``reason``. A decelerating stop already under way
+        goes on unchanged. For the daemon's shutdown, which then waits for
+        :attr:`stopping_until_ns` before deactivating.
+
+        Raises:
+            GoalRejected: the controller is not active.
+        """
+        self._require_active_for_commands()
+        if self._execution is None and self.stopping_until_ns is not None:
+            return
+        self._request_stop(GoalTransition.ABORT, reason)
+
+    @property
+    def decelerates(self) -> bool:
+        """Whether stops decelerate (``decelerate_on_cancel`` and its preconditions hold)
+        rather than hold on the spot."""
+        return self._stop_decel is not None
+
+    @property
+    def stop_pending(self) -> bool:
+        """Whether a stop was requested that the next ``update`` applies."""
+        return self._pending_stop is not None
+
+    @property
+    def stopping_until_ns(self) -> int | None:
+        """While the reference is a decelerating stop: the time its last joint comes to rest
+        (it holds from then on); ``None`` otherwise."""
+        ref = self._stop_ref
+        return ref.end_ns if ref is not None and ref is self._ref else None
+
+    def stop_duration_s(self, state: JointState) -> float:
+        """At least as long as a decelerating stop started from ``state`` lasts (0 if stops
+        hold or ``state`` has no usable velocities; without an acceleration state, the
+        acceleration is taken as 0): the daemon's bound for waiting on one. Cheap: no
+        trajectory is built.
+
+        Raises:
+            Nothing.
+        """
+        v = state.velocities
+        if self._stop_decel is None or v is None or v.shape != (self._n,):
+            return 0.0
+        if not np.isfinite(v).all():
+            return 0.0
+        a = state.accelerations if self._has_acc_state else None
+        if a is None or a.shape != (self._n,) or not np.isfinite(a).all():
+            a = np.zeros(self._n)
+        return stop_duration_bound_s(v, a, self._stop_decel, self._stop_jerk)
 
     @property
     def reference_version(self) -> int:
@@ -775,7 +851,8 @@ class JointTrajectoryController:
         if ex.goal.status is not GoalStatus.EXECUTING:
             return False
         ex.goal.transition(GoalTransition.REQUEST_CANCEL)
-        self._request_stop(GoalTransition.CANCEL_DONE, CANCELED_DETAILS)
+        details = CANCELED_DETAILS if self._stop_decel is None else CANCELED_DECELERATING_DETAILS
+        self._request_stop(GoalTransition.CANCEL_DONE, details)
         return True
 
     def query_state(self, t_ns: int) -> QueriedState:
@@ -857,6 +934,8 @@ class JointTrajectoryController:
             np.array([g.i_clamp for g in gains]),
         )
         self._ff = np.array([g.ff_velocity_scale for g in gains])
+        self._stop_decel = stop_decelerations(config)
+        self._stop_jerk = stop_jerks(config)
 
     # -- the cycle ----------------------------------------------------------------------------
 
@@ -878,7 +957,7 @@ class JointTrajectoryController:
         positions = self._checked_positions(state)
         self._measured = state
         if self._pending_stop is not None:
-            self._apply_stop(now_ns, positions)
+            self._apply_stop(now_ns, state, positions)
         if now_ns < self._ref.state_before_ns:
             return self._before_reference(now_ns, state, positions)
         desired = self._ref.sample(now_ns)
@@ -890,7 +969,7 @@ class JointTrajectoryController:
         if ex is not None:
             outcome = self._check(now_ns, ahead_ns, ex, error)
             if outcome is not None:
-                self._conclude(now_ns, ex, outcome, positions)
+                self._conclude(now_ns, ex, outcome, state, positions)
                 if outcome.hold_measured:
                     desired = self._ref.sample(now_ns)
                     error = self._error(desired, state, positions)
@@ -1051,7 +1130,9 @@ class JointTrajectoryController:
                     )
         return "; ".join(parts)
 
-    def _conclude(self, now_ns: int, ex: _Execution, outcome: _Outcome, positions: F64) -> None:
+    def _conclude(
+        self, now_ns: int, ex: _Execution, outcome: _Outcome, state: JointState, positions: F64
+    ) -> None:
         self._execution = None
         if ex.goal is not None:
             self._finish(
@@ -1060,7 +1141,7 @@ class JointTrajectoryController:
         elif outcome.transition is GoalTransition.ABORT:
             self._events.append(TrajectoryStopped(outcome.message, now_ns, outcome.details))
         if outcome.hold_measured:
-            self._hold(now_ns, positions)
+            self._stop(now_ns, state, positions)
 
     def _finish(
         self,
@@ -1078,6 +1159,41 @@ class JointTrajectoryController:
         """Hold the measured position (open loop: the last commanded one), zero velocity."""
         hold = self._last_command_positions if self.config.open_loop_control else positions
         self._set_reference(Trajectory.constant(now_ns, hold.copy()))
+        self._pid.reset()
+
+    def _stop(self, now_ns: int, state: JointState, positions: F64) -> None:
+        """Bring the joints to rest: the decelerating stop when it is configured and the
+        measured velocities are usable (jtc_upstream_behaviour.md section 11.3), else the hold.
+
+        As upstream, the stop starts from the measured position and velocity; its starting
+        acceleration (used only by a jerk-limited joint) is the measured one with an
+        acceleration state interface, else the reference's at ``now_ns``.
+
+        Raises:
+            Nothing.
+        """
+        velocities = state.velocities
+        if (
+            self._stop_decel is None
+            or velocities is None
+            or velocities.shape != (self._n,)
+            or not np.isfinite(velocities).all()
+        ):
+            self._hold(now_ns, positions)
+            return
+        accelerations = state.accelerations if self._has_acc_state else None
+        if accelerations is None or accelerations.shape != (self._n,):
+            accelerations = (
+                self._ref.sample(now_ns).accelerations
+                if now_ns >= self._ref.state_before_ns
+                else np.zeros(self._n)
+            )
+        accelerations = np.where(np.isfinite(accelerations), accelerations, 0.0)
+        stop = stop_trajectory(
+            now_ns, positions, velocities, accelerations, self._stop_decel, self._stop_jerk
+        )
+        self._set_reference(stop)
+        self._stop_ref = stop
         self._pid.reset()
 
     def _set_reference(self, reference: Trajectory, start_ns: int | None = None) -> None:
@@ -1145,7 +1261,7 @@ class JointTrajectoryController:
         self._pending_stop = transition
         self._stop_reason = reason
 
-    def _apply_stop(self, now_ns: int, positions: F64) -> None:
+    def _apply_stop(self, now_ns: int, state: JointState, positions: F64) -> None:
         transition, self._pending_stop = self._pending_stop, None
         ex, self._execution = self._execution, None
         if ex is not None and ex.goal is not None and transition is not None:
@@ -1160,7 +1276,7 @@ class JointTrajectoryController:
                 )
             else:
                 self._finish(ex.goal, transition, code, self._stop_reason, now_ns)
-        self._hold(now_ns, positions)
+        self._stop(now_ns, state, positions)
         self._commanding = True
 
     def _control(

@@ -308,12 +308,15 @@ class LoopBackend:
             return 0
         self._stopping = True
         if not self._exited.done():
+            stopping_s = 0.0  # a decelerating stop the loop finishes first (its bound)
             try:
-                await self._request("shutdown", {"reason": reason})
+                reply = await self._request("shutdown", {"reason": reason})
+                if isinstance(reply, float):
+                    stopping_s = reply
             except JtcHwError as exc:
                 log.warning("shutdown request: %s", exc)
             try:
-                await asyncio.wait_for(asyncio.shield(self._exited), timeout=10.0)
+                await asyncio.wait_for(asyncio.shield(self._exited), timeout=10.0 + stopping_s)
             except TimeoutError:
                 log.error("the control loop did not stop within 10 s; terminating it")
                 self._process.terminate()

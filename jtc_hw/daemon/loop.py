@@ -37,6 +37,13 @@ and their answers written at once, rather than a period later), then free or col
 spare time. The controller's clock is the deadline grid itself (exact multiples of the period); how
 late the process woke is measured and published, never fed into the control law. Garbage
 collection is disabled in the loop and run explicitly (generation 0) when a cycle has slack.
+
+Shutdown (the ``shutdown`` request: SIGTERM, SIGINT): the active goal gets its result, the
+controller is deactivated (velocity, acceleration and effort commands 0), the hardware applies
+its safe action and is released. With ``constraints.decelerate_on_cancel`` the loop first keeps
+cycling through the controller's decelerating stop until the joints are at rest, at most the
+stop's duration plus ``SHUTDOWN_STOP_MARGIN_S`` (and ``SHUTDOWN_STOP_MAX_S``), refusing new
+goals meanwhile.
 """
 
 from __future__ import annotations
@@ -75,6 +82,14 @@ of ordered messages at most (a goal's feedback at ``action_monitor_rate``), so `
 normally ends the goal long before this bound."""
 EXIT_DRAIN_S = 5.0
 """How long the ending loop waits for the API process to take its last messages."""
+SHUTDOWN_STOP_MARGIN_S = 0.5
+"""With ``constraints.decelerate_on_cancel``, a shutdown waits for the decelerating stop: at
+most the stop's duration (as the last measured velocities give it) plus this margin, which
+covers a velocity that grew in the cycle before the stop began."""
+SHUTDOWN_STOP_MAX_S = 5.0
+"""...and never longer than this, so that the daemon exits well within systemd's
+``TimeoutStopSec=10``; a longer stop is cut short there by the deactivation and the hardware's
+safe action, as without decelerating stops."""
 
 
 class ControlLoop:
@@ -104,6 +119,7 @@ class ControlLoop:
         self._last_state: JointState | None = None
         self._last_command: JointCommand | None = None
         self._shutdown_reason = "daemon stopping"
+        self._stopping_until_ns: int | None = None  # a shutdown waiting for its stop: the cap
         self.inbox_spare_ns = round(INBOX_SPARE * self.period_ns)
         self.api_stall_ns = round(robot.daemon.api_stall_s * 1e9)
         self.api_stalled = False
@@ -261,6 +277,9 @@ class ControlLoop:
         if self.fault is not None or not self.ctrl.active:
             self.send("stale", plan_id, f"not active: {self.fault or 'controller stopped'}")
             return
+        if self._stopping_until_ns is not None:
+            self.send("stale", plan_id, f"not active: {self._shutdown_reason}")
+            return
         if self.api_stalled:
             # Its feedback and result could not be delivered either.
             self.send(
@@ -313,9 +332,48 @@ class ControlLoop:
             return done
         if op == "shutdown":
             self._shutdown_reason = str(args.get("reason") or self._shutdown_reason)
+            return self._begin_shutdown(now_ns)
+        raise JtcHwError(f"unknown loop request {op!r}")
+
+    def _begin_shutdown(self, now_ns: int) -> bool | float:
+        """Stop cycling now, or -- with decelerating stops -- once the joints are at rest.
+
+        Returns:
+            True when the loop ends at once; else the longest it keeps cycling, in seconds
+            (the API process waits that much longer for it to exit).
+
+        Raises:
+            Nothing: the controller is active whenever ``stop`` is asked of it.
+        """
+        if self._stopping_until_ns is not None:
+            return (self._stopping_until_ns - now_ns) / 1e9
+        if self.fault is not None or not self.ctrl.active or not self.ctrl.decelerates:
             self.running = False
             return True
-        raise JtcHwError(f"unknown loop request {op!r}")
+        state = self._last_state
+        duration_s = 0.0 if state is None else self.ctrl.stop_duration_s(state)
+        bound_s = min(duration_s + SHUTDOWN_STOP_MARGIN_S, SHUTDOWN_STOP_MAX_S)
+        self.ctrl.stop(f"{self._shutdown_reason}: decelerating to a stop")
+        self._stopping_until_ns = now_ns + round(bound_s * 1e9)
+        log.info("%s: decelerating to a stop (at most %.3f s)", self._shutdown_reason, bound_s)
+        return bound_s
+
+    def _shutdown_stop_done(self, now_ns: int) -> bool:
+        """Whether a shutdown waiting for its decelerating stop can end the loop now: the stop
+        has ended (a cycle after its end has read the joints at rest), the controller or
+        hardware stopped otherwise, or the bound has passed.
+
+        Raises:
+            Nothing.
+        """
+        cap = self._stopping_until_ns
+        if cap is None or self.fault is not None or not self.ctrl.active or now_ns >= cap:
+            return True
+        if self.ctrl.stop_pending:
+            return False
+        end = self.ctrl.stopping_until_ns
+        # One cycle past the end: the rest command was written and the joints read at rest.
+        return end is None or now_ns >= end + self.period_ns
 
     # -- the cycle ----------------------------------------------------------------------------
 
@@ -342,6 +400,7 @@ class ControlLoop:
             state = self.hardware.read(now_ns)
             out = self.ctrl.update(now_ns, period_ns, state)
             self.hardware.write(now_ns, out.command)
+            self._last_state = state
         except HardwareError as exc:
             self._enter_fault(now_ns, str(exc))
             self._report_reference()
@@ -460,6 +519,8 @@ class ControlLoop:
             period = self.period_ns if previous is None else deadline - previous
             previous = deadline
             self.cycle(deadline, period, inbox)
+            if self._stopping_until_ns is not None and self._shutdown_stop_done(deadline):
+                self.running = False
             done = clock()
             self.stats.record(woke - deadline, done - woke, skipped)
             if deadline >= self._next_status_ns:
@@ -478,7 +539,10 @@ class ControlLoop:
         self.shutdown(clock())
 
     def shutdown(self, now_ns: int) -> None:
-        """Give the active goal its result, hold, apply the safe action, release hardware."""
+        """Give the active goal its result, hold, apply the safe action, release hardware.
+
+        With decelerating stops, a requested shutdown (``_begin_shutdown``) comes here once
+        the joints are at rest; the goal already has its result then."""
         reason = self._shutdown_reason
         if self.ctrl.active:
             events = self.ctrl.deactivate(now_ns, f"{reason}: holding position")

@@ -352,7 +352,8 @@ REFERENCE_DEFAULTS: dict[str, Any] = {
     "constraints": {
         "stopped_velocity_tolerance": 0.01,
         "goal_time": 0.0,
-        "<joints>": {"trajectory": 0.0, "goal": 0.0},
+        "decelerate_on_cancel": False,
+        "<joints>": {"trajectory": 0.0, "goal": 0.0, "max_deceleration_on_cancel": 0.0},
     },
     "gains": {
         "<joints>": {

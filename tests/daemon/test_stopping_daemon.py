@@ -1,0 +1,171 @@
+"""Decelerating stops through the daemon (issue 12 part B): SIGTERM and the ``stop`` op.
+
+The daemon runs as a subprocess on mirror hardware (position commands, no lag: the measured
+velocity is the joint's actual rate over each cycle) with ``constraints.decelerate_on_cancel``.
+The state stream is published every cycle; what it shows of the joints' velocities is checked
+(a ramp down at the configured deceleration, not a step), never how long anything took.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from helpers.daemon import (
+    GOAL_TOL,
+    JOINTS,
+    PATH_TOL,
+    STOP_TIMEOUT_S,
+    WAIT_S,
+    DaemonProcess,
+    connect,
+    next_state,
+)
+
+from jtc_hw.api.client import ClientConnectionError
+
+pytestmark = pytest.mark.usefixtures("no_leaks")
+
+DECEL = 2.0  # rad/s^2: a 1 s stop from CRUISE, long enough to be seen on a busy machine
+RATE = 500
+CRUISE = 2.0  # rad/s of joint1 while the stop comes
+
+
+def controller_settings() -> dict[str, Any]:
+    return {
+        "state_publish_rate": float(RATE),
+        "constraints": {
+            "stopped_velocity_tolerance": 0.05,
+            "goal_time": 0.5,
+            "decelerate_on_cancel": True,
+            **{
+                j: {"trajectory": PATH_TOL, "goal": GOAL_TOL, "max_deceleration_on_cancel": DECEL}
+                for j in JOINTS
+            },
+        },
+    }
+
+
+def cruise_goal() -> dict[str, Any]:
+    """joint1 cruises at 2 rad/s from 0.5 s to 1.5 s (a straight quintic), the others at
+    rest."""
+    def point(t: float, p: float, v: float) -> dict[str, Any]:
+        return {
+            "time_from_start": t,
+            "positions": [p] + [0.0] * 5,
+            "velocities": [v] + [0.0] * 5,
+            "accelerations": [0.0] * 6,
+        }
+
+    return {
+        "joint_names": JOINTS,
+        "points": [point(0.5, 0.5, CRUISE), point(1.5, 2.5, CRUISE), point(2.5, 3.0, 0.0)],
+    }
+
+
+@pytest.fixture
+def decelerating_daemon(tmp_path: Path) -> Iterator[DaemonProcess]:
+    d = DaemonProcess(tmp_path / "d", controller=controller_settings(), update_rate=RATE)
+    d.start()
+    try:
+        d.wait_ready()
+        yield d
+    finally:
+        d.shutdown()
+
+
+def after(states: list[dict[str, Any]], t0_ns: int) -> list[dict[str, Any]]:
+    return [s for s in states if s["time_ns"] >= t0_ns]
+
+
+def assert_ramp(states: list[dict[str, Any]]) -> None:
+    """joint1 ramps to rest at DECEL, not a step.
+
+    The state stream of a busy machine drops states (a slow reader gets the newest) and the
+    loop may skip a deadline (skipped, not bunched: docs/decisions.md 8), so:
+
+    - the commanded velocity (the desired one, the reference at each state's time) changes
+      between any two states by at most DECEL times the time between them, and ends at 0;
+    - the joint (the mirror, measured) passes through intermediate speeds and ends at rest:
+      a hold would take it from cruising to 0 in one cycle;
+    - where two states are consecutive cycles, each after a cycle on time, their measured
+      velocities (each the motion of one period towards the position commanded the cycle
+      before) differ by at most one period's worth of DECEL.
+    """
+    t_ns = np.array([s["time_ns"] for s in states], dtype=np.int64)
+    desired = np.array([s["desired"]["velocities"][0] for s in states])
+    measured = np.array([s["actual"]["velocities"][0] for s in states])
+    allowed = DECEL * np.diff(t_ns) / 1e9 * (1 + 1e-6) + 1e-9
+    assert (np.abs(np.diff(desired)) <= allowed).all(), np.abs(np.diff(desired)) - allowed
+    assert desired[-1] == 0.0 and abs(measured[-1]) < 1e-9
+    between = (np.abs(measured) > 0.25 * CRUISE) & (np.abs(measured) < 0.75 * CRUISE)
+    assert between.sum() >= 3, measured  # 0.5 s of intermediate speeds, states every 2 ms
+    period_ns = 1_000_000_000 // RATE
+    regular = np.diff(t_ns) == period_ns  # regular[i]: state i + 1 is the cycle after state i
+    clean = np.zeros(len(states), dtype=bool)  # measured[i] is one period's motion on time
+    clean[2:] = regular[1:] & regular[:-1]
+    pairs = clean[1:] & clean[:-1] & regular
+    steps = np.abs(np.diff(measured))[pairs]
+    assert (steps <= DECEL * period_ns / 1e9 * (1 + 1e-6) + 1e-9).all(), steps.max()
+
+
+def test_sigterm_mid_goal_decelerates_to_rest(decelerating_daemon: DaemonProcess) -> None:
+    d = decelerating_daemon
+    with connect(d) as client, client.subscribe_state() as sub:
+        goal = client.send_goal(cruise_goal())
+        cruising = next_state(
+            sub,
+            lambda s: s["active_goal"] == goal.goal_id
+            and abs(s["actual"]["velocities"][0] - CRUISE) < 1e-6,
+        )
+        os.kill(d.pid, signal.SIGTERM)
+        result = goal.wait(timeout_s=STOP_TIMEOUT_S)
+        assert (result["status"], result["error_code"]) == ("aborted", -1), result
+        assert result["error_string"] == "daemon stopping (SIGTERM): decelerating to a stop"
+        with pytest.raises(ClientConnectionError):  # the daemon closes it once stopped
+            while True:
+                sub.get(timeout_s=STOP_TIMEOUT_S)
+    assert d.wait_exit() == 0
+    log = d.log()
+    assert "decelerating to a stop" in log and "stopped cleanly" in log
+    assert "Traceback" not in log and "ERROR" not in log
+    states = [m for m in client.events if m["event"] == "state"]
+    assert_ramp(after(states, cruising["time_ns"]))
+    # The loop kept cycling after the result until the joints were at rest.
+    assert states[-1]["time_ns"] > result["time_ns"]
+    assert states[-1]["desired"]["velocities"] == [0.0] * 6
+    assert [m["goal_id"] for m in client.events if m["event"] == "result"] == [goal.goal_id]
+
+
+def test_stop_op_decelerates_and_the_daemon_serves_on(decelerating_daemon: DaemonProcess) -> None:
+    d = decelerating_daemon
+    with connect(d) as client, client.subscribe_state() as sub:
+        goal = client.send_goal(cruise_goal())
+        cruising = next_state(
+            sub,
+            lambda s: s["active_goal"] == goal.goal_id
+            and abs(s["actual"]["velocities"][0] - CRUISE) < 1e-6,
+        )
+        client.stop()
+        result = goal.wait(timeout_s=WAIT_S)
+        assert result["status"] == "canceled", result
+        # At rest: a state whose velocities and desired velocities are all zero.
+        rest = next_state(
+            sub,
+            lambda s: s["desired"]["velocities"] == [0.0] * 6
+            and all(abs(x) < 1e-9 for x in s["actual"]["velocities"]),
+        )
+        states = [m for m in client.events if m["event"] == "state"]
+        assert_ramp([s for s in after(states, cruising["time_ns"])
+                     if s["time_ns"] <= rest["time_ns"]])
+        # Still serving: a new goal is accepted and reached.
+        again = client.send_goal({
+            "joint_names": JOINTS,
+            "points": [{"time_from_start": 0.5, "positions": [0.0] * 6}],
+        })
+        assert again.wait(timeout_s=WAIT_S)["status"] == "succeeded"

@@ -77,7 +77,11 @@ def test_stops_at_random_times(sc: dict[str, object]) -> None:
     rig = Rig(cfg, [0.0, 0.0, 0.0])
     ctrl = rig.ctrl
     assert ctrl.decelerates
-    goal = ctrl.send_goal(rig.now, JointTrajectory(JOINTS, sc["points"]))  # type: ignore[arg-type]
+    # The jerk limits shape the stops; the goal itself is slowed to them (issue 12 part A
+    # checks every goal against the limits), so it is still a random motion to stop from.
+    goal = ctrl.send_goal(
+        rig.now, JointTrajectory(JOINTS, sc["points"]), time_scaling="fit"  # type: ignore[arg-type]
+    )
     rig.step(round(float(sc["stop_at_s"]) * rate))  # type: ignore[arg-type]
     kind = sc["kind"]
     executing = ctrl.active_goal == goal

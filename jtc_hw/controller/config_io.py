@@ -33,12 +33,14 @@ from .config import (
     PARAMETERS,
     RESERVED_TOP_LEVEL_KEYS,
     ROS_PARAMETERS,
+    SPEED_SCALING_PARAMETERS,
     Constraints,
     ControllerConfig,
     Effect,
     Gains,
     JointConstraints,
     Param,
+    SpeedScaling,
     _check_key,
     _check_keys,
     _coerce,
@@ -242,6 +244,9 @@ def _build(name: str, params: Mapping[Any, Any], cm_update_rate: float | None) -
         kwargs["update_rate"] = cm_update_rate
     kwargs["constraints"] = _parse_constraints(params.get("constraints", {}), joints)
     kwargs["gains"] = _parse_gains(params.get("gains", {}), joints)
+    scaling = _expect_mapping(params.get("speed_scaling", {}), "speed_scaling")
+    _check_keys(scaling, SPEED_SCALING_PARAMETERS, "speed_scaling")
+    kwargs["speed_scaling"] = SpeedScaling(**scaling)
     return ControllerConfig(name=name, **kwargs)
 
 
@@ -307,6 +312,9 @@ def config_to_dict(cfg: ControllerConfig, *, nested: bool = False) -> dict[str, 
     params["gains"] = {
         joint: {name: getattr(g, name) for name in GAIN_PARAMETERS}
         for joint, g in cfg.gains.items()
+    }
+    params["speed_scaling"] = {
+        name: getattr(cfg.speed_scaling, name) for name in SPEED_SCALING_PARAMETERS
     }
     if not nested:
         return params
@@ -434,6 +442,7 @@ def parameter_names(cfg: ControllerConfig) -> list[str]:
             for joint in cfg.joints
             for name in table
         ),
+        *(f"speed_scaling.{name}" for name in SPEED_SCALING_PARAMETERS),
     ]
 
 
@@ -453,6 +462,10 @@ def lookup_parameter(cfg: ControllerConfig, name: Any) -> tuple[tuple[str, ...],
     if name in PARAMETERS:
         return (name,), PARAMETERS[name]
     section, _, rest = name.partition(".")
+    if section == "speed_scaling":
+        if rest not in SPEED_SCALING_PARAMETERS:
+            raise _unknown_parameter(rest, SPEED_SCALING_PARAMETERS, section)
+        return (section, rest), SPEED_SCALING_PARAMETERS[rest]
     if section not in _SECTION_TABLES:
         raise _unknown_parameter(name, [*PARAMETERS, *_SECTIONS])
     if not rest:
@@ -529,6 +542,10 @@ def read_only_differences(old: ControllerConfig, new: ControllerConfig) -> list[
     ]
     if old.name != new.name:
         names.append("name")
+    names.extend(
+        f"speed_scaling.{name}" for name, p in SPEED_SCALING_PARAMETERS.items()
+        if p.read_only and getattr(old.speed_scaling, name) != getattr(new.speed_scaling, name)
+    )
     if names:  # a different joint list: the per-joint entries are moot
         return names
     for section, table in _SECTION_TABLES.items():

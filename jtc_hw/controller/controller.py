@@ -251,20 +251,23 @@ class Planner:
         return Plan(goal, new_ref, version, now_ns, start, tolerances, valid_from)
 
 
-def in_trajectory_time(trajectory: JointTrajectory, lag_ns: int) -> JointTrajectory:
+def in_trajectory_time(
+    trajectory: JointTrajectory, now_ns: int, tau_ns: int, factor: float
+) -> JointTrajectory:
     """``trajectory`` with its header stamp moved to trajectory time (speed scaling).
 
-    With speed scaling the reference runs on trajectory time, which lags the clock by
-    ``lag_ns`` (the time lost to factors below 1 so far); a stamp on the clock is moved by
-    that lag, so that a stamped start keeps its distance from now. A zero ("now") or negative
-    stamp (refused by validation) is left as it is.
+    With speed scaling the reference runs on trajectory time (``tau_ns`` at clock time
+    ``now_ns``); as upstream (section 14.1 step 2) the stamp's distance from now is scaled by
+    the factor in force, so at a steady factor the command starts at the stamp's clock time.
+    A zero ("now") or negative stamp (refused by validation) is left as it is.
     """
-    if lag_ns == 0 or not isinstance(trajectory, JointTrajectory):
+    if (now_ns == tau_ns and factor == 1.0) or not isinstance(trajectory, JointTrajectory):
         return trajectory  # validation names what is wrong with a non-trajectory
     stamp = trajectory.start_time_ns
     if isinstance(stamp, bool) or not isinstance(stamp, int) or stamp <= 0:
         return trajectory
-    return JointTrajectory(trajectory.joint_names, trajectory.points, max(1, stamp - lag_ns))
+    moved = tau_ns + (stamp - now_ns if factor == 1.0 else round((stamp - now_ns) * factor))
+    return JointTrajectory(trajectory.joint_names, trajectory.points, max(1, moved))
 
 
 def _command_mask(config: ControllerConfig) -> NDArray[np.bool_] | None:
@@ -575,7 +578,7 @@ class JointTrajectoryController:
             self._ref,
             self._version,
             tau,
-            in_trajectory_time(trajectory, now_ns - tau),
+            in_trajectory_time(trajectory, now_ns, tau, self._scale),
             path_tolerance,
             goal_tolerance,
             goal_time_tolerance,
@@ -591,7 +594,7 @@ class JointTrajectoryController:
         self._require_active_for_commands()
         tau = self._traj_time(now_ns)
         return self._planner.plan_trajectory(
-            self._ref, self._version, tau, in_trajectory_time(trajectory, now_ns - tau)
+            self._ref, self._version, tau, in_trajectory_time(trajectory, now_ns, tau, self._scale)
         )
 
     def commit(self, plan: Plan, now_ns: int) -> int | None:
@@ -819,9 +822,10 @@ class JointTrajectoryController:
 
         The fastest change toward the target that keeps every joint with an acceleration
         limit within it, on the reference at the look-ahead time ``ahead``: the joint's
-        acceleration is ``a s^2 + v ds/dt``, so ``|ds/dt| <= (A - sign(v ds/dt) a s^2) / |v|``
-        (0 when the joint already uses all of its limit against the change: the factor waits);
-        a joint at rest does not bound it. Joints without a limit bound it by the ramp time.
+        acceleration is ``a s^2 + v ds/dt``, so ``|ds/dt| <= (A - |a| s^2) / |v|`` keeps it
+        within ``A`` whatever the signs (0 when the reference alone already uses the whole
+        limit: the factor waits); a joint at rest does not bound it. Joints without a limit
+        bound it by the ramp time.
         """
         scale, target = self._scale, self._scale_target
         if scale == target:
@@ -835,9 +839,7 @@ class JointTrajectoryController:
             speed = np.abs(v)
             moving = speed > 1e-9
             if moving.any():
-                room = self._acc_limit - np.sign(v) * direction * ahead.accelerations[index] * (
-                    scale * scale
-                )
+                room = self._acc_limit - np.abs(ahead.accelerations[index]) * (scale * scale)
                 bound = min(bound, float((np.maximum(room, 0.0)[moving] / speed[moving]).min()))
         period_s = self._lookahead_ns / NS_PER_S
         self._scale_rate = direction * min(bound, abs(target - scale) / period_s)

@@ -355,6 +355,7 @@ class JointTrajectoryController:
         self._scale = initial
         self._scale_target = initial
         self._scale_rate = 0.0  # d(factor)/dt in force since _wall_ns, 1/s
+        self._ramp_target = initial  # what _scale_rate aims at (the target may change since)
         self._resume_scale = initial if initial > 0.0 else 1.0
         self._set_ramp_bounds(config)
 
@@ -790,7 +791,7 @@ class JointTrajectoryController:
         self._wall_ns = now_ns
         rate = self._scale_rate
         if rate != 0.0 and elapsed > 0:
-            target = self._scale_target
+            target = self._ramp_target
             scale = self._scale + rate * (elapsed / NS_PER_S)
             # The rate was chosen to land on the target; rounding must not overshoot it.
             if (rate > 0.0 and scale >= target - 1e-12) or (rate < 0.0 and scale <= target + 1e-12):
@@ -832,6 +833,7 @@ class JointTrajectoryController:
             self._scale_rate = 0.0
             return
         direction = 1.0 if target > scale else -1.0
+        self._ramp_target = target
         bound = self._default_ramp_rate
         index = self._acc_index
         if index is not None and ahead is not None:

@@ -302,3 +302,15 @@ def test_activation_resets_the_factor_to_the_initial_one() -> None:
     run.ctrl.deactivate(run.now)
     run.ctrl.activate(run.now, run.mirror.state())
     assert (run.ctrl.speed_scaling_factor, run.ctrl.speed_scaling_target) == (0.7, 0.7)
+
+
+def test_a_new_target_mid_ramp_turns_the_ramp_without_a_jump() -> None:
+    run = Run(make_config(NAMES, speed_scaling={"ramp_time": 0.2}))
+    run.ctrl.set_speed_scaling(0.0)
+    factors = [run.step().state.speed_scaling_factor for _ in range(6)]
+    run.ctrl.set_speed_scaling(0.9)
+    factors += [run.step().state.speed_scaling_factor for _ in range(20)]
+    steps = np.diff(factors)
+    assert np.abs(steps).max() <= 0.05 + 1e-12, steps
+    assert min(factors) == pytest.approx(0.7)  # the period already under way ends at 0.7
+    assert factors[-1] == 0.9

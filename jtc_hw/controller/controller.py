@@ -350,6 +350,7 @@ class JointTrajectoryController:
         # clock time it was last advanced to.
         self._tau_ns = 0
         self._wall_ns = 0
+        self._timebase_started = False
         self._ref_start_wall_ns = 0
         initial = config.speed_scaling.initial_scaling_factor
         self._scale = initial
@@ -417,7 +418,11 @@ class JointTrajectoryController:
             self._cmd_acc,
             state.accelerations if self._has_acc_state else None,
         )
-        self._tau_ns = self._wall_ns = now_ns
+        # Trajectory time starts at the clock and then never jumps, across re-activations too
+        # (the daemon's API process extrapolates it to plan).
+        self._tau_ns = self._traj_time(now_ns) if self._timebase_started else now_ns
+        self._timebase_started = True
+        self._wall_ns = now_ns
         initial = self.config.speed_scaling.initial_scaling_factor
         self._scale = self._scale_target = initial
         self._scale_rate = 0.0

@@ -14,12 +14,12 @@ import dataclasses
 import numpy as np
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+from test_scaling_controller import ACCEL, INTERFACES, NAMES, PATH_TOL, Run, goal
 
 from jtc_hw import GoalStatus
 from jtc_hw.controller.limits import JointLimits
 
 from conftest import make_config
-from test_scaling_controller import ACCEL, INTERFACES, NAMES, PATH_TOL, Run, goal
 
 FORWARDED = ["position", "position_velocity", "position_velocity_acceleration"]
 

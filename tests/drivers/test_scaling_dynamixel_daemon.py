@@ -16,11 +16,10 @@ from typing import Any
 
 import pytest
 from helpers.daemon import WAIT_S, connect, next_state, settle
+from test_dynamixel_daemon import GOAL_TOL, IDS, JOINTS, START, DxlDaemon, robot
 
 from jtc_hw.cli import EXIT_OK, main
 from jtc_hw.drivers.dynamixel.emulator import DynamixelEmulator
-
-from test_dynamixel_daemon import GOAL_TOL, IDS, JOINTS, START, DxlDaemon, robot
 
 pytestmark = pytest.mark.usefixtures("no_leaks")
 

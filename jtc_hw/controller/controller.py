@@ -23,6 +23,11 @@ One ``update(now, period, state)``:
    the joints should reach by the next cycle; PID outputs (velocity alone, effort) act on the
    error measured now: ``u = k_ff v_d + effort_d + k_p e + k_i sum(e dt) + k_d (v_d - v)``;
 5. return the command and the events (goal results, feedback at ``action_monitor_rate``).
+
+Speed scaling (``set_speed_scaling``): the reference lives on trajectory time, which advances by
+the elapsed clock time times a factor that ramps toward its target within the acceleration
+limits; "now" above is that trajectory time (equal to the clock while the factor is 1), and the
+velocities and accelerations sampled are those of the slowed motion (``v s``, ``a s^2 + v ds/dt``).
 """
 
 from __future__ import annotations
@@ -426,7 +431,7 @@ class JointTrajectoryController:
         initial = self.config.speed_scaling.initial_scaling_factor
         self._scale = self._scale_target = initial
         self._scale_rate = 0.0
-        self._set_reference(Trajectory.constant(now_ns, start))
+        self._set_reference(Trajectory.constant(self._tau_ns, start))
         self._measured = state
         self._last_command_positions = start.copy()
         self._last_command_velocities = velocities

@@ -314,3 +314,23 @@ def test_a_new_target_mid_ramp_turns_the_ramp_without_a_jump() -> None:
     assert np.abs(steps).max() <= 0.05 + 1e-12, steps
     assert min(factors) == pytest.approx(0.7)  # the period already under way ends at 0.7
     assert factors[-1] == 0.9
+
+
+def test_a_reactivation_after_slowing_commands_at_once() -> None:
+    """Trajectory time lags the clock after a slowed stretch and stays continuous across
+    activations: the new hold starts at trajectory time, so the first cycle commands."""
+    run = Run(config("position"))
+    run.ctrl.send_goal(run.now, goal())
+    run.ctrl.set_speed_scaling(0.2)
+    for _ in range(100):
+        run.step()
+    assert run.ctrl.trajectory_time_ns < run.now - 500 * MS
+    run.ctrl.deactivate(run.now)
+    run.ctrl.activate(run.now, run.mirror.state())
+    held = run.mirror.p.copy()
+    out = run.step()
+    np.testing.assert_array_equal(out.command.positions, held)
+    assert out.state.speed_scaling_factor == 1.0
+    gid = run.ctrl.send_goal(run.now, goal())
+    run.until(lambda out: bool([r for r in run.results() if r.goal_id == gid]))
+    assert run.results()[-1].status is GoalStatus.SUCCEEDED

@@ -334,3 +334,30 @@ def test_a_reactivation_after_slowing_commands_at_once() -> None:
     gid = run.ctrl.send_goal(run.now, goal())
     run.until(lambda out: bool([r for r in run.results() if r.goal_id == gid]))
     assert run.results()[-1].status is GoalStatus.SUCCEEDED
+
+
+def test_the_parameters_are_checked_and_named() -> None:
+    for bad, message in [
+        ({"state_interface": "arm/speed_scaling"}, "speed_scaling.state_interface: 'arm/"),
+        ({"command_interface": "x"}, "the daemon has no named interfaces"),
+        ({"initial_scaling_factor": -0.5}, "speed_scaling.initial_scaling_factor: must be >= 0"),
+        ({"ramp_time": -1}, "speed_scaling.ramp_time: must be >= 0"),
+        ({"ramp": 1}, "did you mean 'ramp_time'"),
+    ]:
+        with pytest.raises(ConfigurationError, match=message):
+            make_config(NAMES, speed_scaling=bad)
+
+
+def test_upstreams_parameters_are_read_only_and_the_ramp_time_changes_next_cycle() -> None:
+    run = Run(make_config(NAMES, speed_scaling={"ramp_time": 0.2}))
+    assert run.ctrl.get_parameters(["speed_scaling.initial_scaling_factor"]) == {
+        "speed_scaling.initial_scaling_factor": 1.0
+    }
+    for name in ("initial_scaling_factor", "state_interface", "command_interface"):
+        with pytest.raises(ConfigurationError, match="read-only"):
+            run.ctrl.set_parameters({f"speed_scaling.{name}": 0.5})
+    change = run.ctrl.set_parameters({"speed_scaling.ramp_time": 1.0})
+    assert change.effects["speed_scaling.ramp_time"].value == "next cycle"
+    run.ctrl.set_speed_scaling(0.0)
+    run.step()
+    assert run.step().state.speed_scaling_factor == pytest.approx(0.99)  # 1 / 1.0 s at 100 Hz

@@ -362,6 +362,10 @@ def _print_state(state: dict[str, Any], header: bool) -> None:
     line = f"t={state['time_ns'] / 1e9:.3f} s  {'holding' if state['holding'] else 'moving'}"
     if goal is not None:
         line += f"  goal {goal}"
+    scaling = state.get("speed_scaling")
+    if scaling and (scaling["factor"] != 1.0 or scaling["target"] != 1.0):
+        ramp = "" if scaling["factor"] == scaling["target"] else f" -> {scaling['target']:g}"
+        line += f"  speed {scaling['factor']:.3g}{ramp}"
     if dropped:
         line += f"  ({dropped} state messages dropped: this terminal is slower than the rate)"
     print(line)

@@ -109,3 +109,23 @@ def test_cli_help_explains(command: str, capsys: pytest.CaptureFixture[str]) -> 
     out = " ".join(capsys.readouterr().out.split())
     assert "ramps" in out and "acceleration limits" in out
     assert "1 is as planned" in out and "paused" in out
+
+
+def test_jtc_hw_state_shows_a_factor_other_than_1(capsys: pytest.CaptureFixture[str]) -> None:
+    from jtc_hw.cli import _print_state
+
+    state = {
+        "time_ns": 12_000_000_000,
+        "joint_names": ["j1"],
+        "desired": {"positions": [0.1]},
+        "actual": {"positions": [0.1], "velocities": [0.0]},
+        "error": {"positions": [0.0]},
+        "holding": False,
+        "active_goal": 3,
+        "speed_scaling": {"factor": 0.42, "target": 0.0},
+    }
+    _print_state(state, header=False)
+    assert capsys.readouterr().out.splitlines()[-1] == "t=12.000 s  moving  goal 3  speed 0.42 -> 0"
+    state["speed_scaling"] = {"factor": 1.0, "target": 1.0}
+    _print_state(state, header=False)
+    assert capsys.readouterr().out.splitlines()[-1] == "t=12.000 s  moving  goal 3"

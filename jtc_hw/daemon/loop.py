@@ -406,6 +406,10 @@ class ControlLoop:
                 "active_goal": self.ctrl.active_goal,
                 "fault": self.fault,
                 "reference_version": self.ctrl.reference_version,
+                "speed_scaling": {
+                    "factor": self.ctrl.speed_scaling_factor,
+                    "target": self.ctrl.speed_scaling_target,
+                },
             },
         }
 

@@ -47,6 +47,10 @@ def test_a_goal_sent_while_paused_waits_then_resume_completes_it(daemon: DaemonP
             accepted["desired"]["time_from_start"], abs=1e-9
         )
         assert client.received("result") == []
+        # The status (2 Hz) published since the pause, well over 0.5 s ago, has it too.
+        assert client.get_status()["controller"]["speed_scaling"] == {
+            "factor": 0.0, "target": 0.0
+        }
         assert paused["speed_scaling"]["target"] == 0.0
         assert client.set_speed_scaling(resume=True)["target"] == 1.0
         result = handle.wait(timeout_s=WAIT_S)

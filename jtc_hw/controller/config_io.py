@@ -356,6 +356,11 @@ def explain(cfg: ControllerConfig) -> list[str]:
             "next command, and cmd_timeout is off; set cmd_timeout (seconds, greater than "
             "constraints.goal_time) to stop them when commands stop coming"
         )
+    if cfg.speed_scaling.initial_scaling_factor == 0.0:
+        warnings.append(
+            "speed_scaling.initial_scaling_factor: is 0: the controller starts paused and "
+            "goals wait until the factor is raised ('jtc-hw resume' or 'jtc-hw speed 1')"
+        )
     output = "effort" if "effort" in cfg.command_interfaces else "velocity"
     if cfg.command_interfaces == ("velocity",):
         why = "open_loop_control disables the PID loop"

@@ -361,3 +361,11 @@ def test_upstreams_parameters_are_read_only_and_the_ramp_time_changes_next_cycle
     run.ctrl.set_speed_scaling(0.0)
     run.step()
     assert run.step().state.speed_scaling_factor == pytest.approx(0.99)  # 1 / 1.0 s at 100 Hz
+
+
+def test_check_warns_when_the_controller_starts_paused() -> None:
+    from jtc_hw.controller.config_io import explain
+
+    assert not [w for w in explain(make_config(NAMES)) if "speed_scaling" in w]
+    warnings = explain(make_config(NAMES, speed_scaling={"initial_scaling_factor": 0.0}))
+    assert [w for w in warnings if w.startswith("speed_scaling.initial_scaling_factor: is 0")]

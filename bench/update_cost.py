@@ -6,6 +6,11 @@ Cases:
               velocities, accelerations given), path and goal tolerances checked every cycle.
   pid-effort  effort command interface, PID on every joint (p, i, d, feed-forward), the same
               trajectory (with effort feed-forward), tolerances checked every cycle.
+  scaled      as quintic, with position, velocity and acceleration commanded, acceleration
+              limits on every joint and speed scaling at 0.5 (velocities and accelerations
+              scaled every cycle).
+  ramping     as scaled, the factor ramping between 0.5 and 0.8 all the time (the ramp's
+              bound from the acceleration limits computed every cycle).
 
 The state fed back is the previous command (an ideal joint), so the goal stays active and every
 cycle does the full work: sample twice (now, now + period), error, tolerance checks, control law.
@@ -18,6 +23,7 @@ Targets (2-core dev machine): 6 joints < 60 us median, 96 joints < 200 us median
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import gc
 import json
 import sys
@@ -36,11 +42,14 @@ from jtc_hw import (  # noqa: E402
     TrajectoryPoint,
     load_config,
 )
+from jtc_hw.controller.limits import JointLimits  # noqa: E402
 
 TARGET_MEDIAN_US = {6: 60.0, 96: 200.0}
 RATE_HZ = 1000.0
 POINTS = 100
 SPACING_S = 0.1
+CASES = ("quintic", "pid-effort", "scaled", "ramping")
+SCALED = ("scaled", "ramping")
 
 
 def controller(joints: int, case: str) -> JointTrajectoryController:
@@ -57,13 +66,21 @@ def controller(joints: int, case: str) -> JointTrajectoryController:
     }
     if case == "quintic":
         params["command_interfaces"] = ["position"]
+    elif case in SCALED:
+        params["command_interfaces"] = ["position", "velocity", "acceleration"]
+        params["state_interfaces"] = ["position", "velocity", "acceleration"]
     else:
         params["command_interfaces"] = ["effort"]
         params["gains"] = {
             n: {"p": 50.0, "i": 5.0, "d": 2.0, "i_clamp": 1.0, "ff_velocity_scale": 0.5}
             for n in names
         }
-    return JointTrajectoryController(load_config(params))
+    config = load_config(params)
+    if case in SCALED:
+        config = dataclasses.replace(
+            config, limits={n: JointLimits(acceleration=2.0) for n in names}
+        )
+    return JointTrajectoryController(config)
 
 
 def trajectory(joints: int, case: str) -> JointTrajectory:
@@ -89,17 +106,22 @@ def measure(joints: int, case: str, cycles: int) -> dict[str, Any]:
     now = 1_000_000_000
     ctrl.activate(now, JointState(np.zeros(joints), np.zeros(joints)))
     ctrl.send_goal(now, trajectory(joints, case))
+    if case in SCALED:
+        ctrl.set_speed_scaling(0.5)
     costs = np.empty(cycles, dtype=np.int64)
     state = JointState(np.zeros(joints), np.zeros(joints))
     clock = time.perf_counter_ns
     gc.collect()
     gc.freeze()
     for k in range(cycles):
+        if case == "ramping" and k % 100 == 0:
+            # Hardly ever settles: 0.3 of factor takes over 100 cycles at these limits.
+            ctrl.set_speed_scaling(0.8 if k % 200 == 0 else 0.5)
         begin = clock()
         out = ctrl.update(now, period, state)
         costs[k] = clock() - begin
         desired = out.desired
-        state = JointState(desired.positions, desired.velocities)
+        state = JointState(desired.positions, desired.velocities, desired.accelerations)
         now += period
     gc.unfreeze()
     if ctrl.active_goal is None:
@@ -127,7 +149,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.cycles > POINTS * SPACING_S * RATE_HZ - 10:
         parser.error(f"--cycles must stay below {int(POINTS * SPACING_S * RATE_HZ) - 10}")
     rows = [
-        measure(n, case, args.cycles) for n in args.joints for case in ("quintic", "pid-effort")
+        measure(n, case, args.cycles) for n in args.joints for case in CASES
     ]
     if args.json:
         for row in rows:

@@ -38,6 +38,8 @@ Drive robot joints with ROS 2 joint_trajectory_controller semantics, without ROS
   jtc-hw stop                  stop any motion and hold (gets through a daemon with every
                                client slot taken)
   jtc-hw rearm                 leave a hardware fault, holding where the joints are
+  jtc-hw speed 0.5             run the trajectory at half speed (ramps, within the limits)
+  jtc-hw pause / jtc-hw resume smoothly stop along the path / carry on at the speed before
   jtc-hw param set gains.j1.p 12
                                change a controller parameter while the daemon runs
                                ('jtc-hw param get' lists them)
@@ -426,6 +428,10 @@ def _print_state(state: dict[str, Any], header: bool) -> None:
     line = f"t={state['time_ns'] / 1e9:.3f} s  {'holding' if state['holding'] else 'moving'}"
     if goal is not None:
         line += f"  goal {goal}"
+    scaling = state.get("speed_scaling")
+    if scaling and (scaling["factor"] != 1.0 or scaling["target"] != 1.0):
+        ramp = "" if scaling["factor"] == scaling["target"] else f" -> {scaling['target']:g}"
+        line += f"  speed {scaling['factor']:.3g}{ramp}"
     if dropped:
         line += f"  ({dropped} state messages dropped: this terminal is slower than the rate)"
     print(line)
@@ -487,6 +493,33 @@ def cmd_rearm(args: argparse.Namespace) -> int:
             print("nothing to re-arm: the controller is running and no fault is latched")
             return EXIT_OK
         print(f"re-armed{f' after: {fault}' if fault else ''}; holding the measured position")
+        return EXIT_OK
+
+
+def _print_scaling(reply: dict[str, Any], what: str) -> None:
+    factor, target = reply["factor"], reply["target"]
+    ramp = "" if factor == target else f" (ramping from {factor:g})"
+    print(f"{what}: speed scaling {target:g}{ramp}")
+
+
+def cmd_speed(args: argparse.Namespace) -> int:
+    with _connect(args) as client:
+        reply = client.set_speed_scaling(args.factor, timeout_s=args.timeout)
+        _print_scaling(reply, "speed set")
+        return EXIT_OK
+
+
+def cmd_pause(args: argparse.Namespace) -> int:
+    with _connect(args) as client:
+        reply = client.set_speed_scaling(0.0, timeout_s=args.timeout)
+        _print_scaling(reply, "paused ('jtc-hw resume' carries on)")
+        return EXIT_OK
+
+
+def cmd_resume(args: argparse.Namespace) -> int:
+    with _connect(args) as client:
+        reply = client.set_speed_scaling(resume=True, timeout_s=args.timeout)
+        _print_scaling(reply, "resumed")
         return EXIT_OK
 
 
@@ -967,6 +1000,47 @@ def build_parser() -> argparse.ArgumentParser:
     )
     client_options(p)
     p.set_defaults(func=cmd_rearm)
+
+    scaling_help = (
+        "The trajectory time of the running goal (and of every later one) advances at the "
+        "factor times the clock: 1 is as planned, 0.5 half speed, 0 paused; the path is the "
+        "same, only slower. A change ramps rather than steps, as fast as the joints' "
+        "acceleration limits allow (joints without one: over speed_scaling.ramp_time "
+        "seconds per unit of factor), on every command interface. Goal time and tolerances "
+        "are judged in the slowed time, so a paused goal neither fails nor finishes; its "
+        "result comes once it is resumed and done."
+    )
+    p = sub.add_parser(
+        "speed",
+        help="set the speed scaling factor (1: as planned, 0.5: half speed, 0: pause)",
+        description=f"Set the speed scaling factor. {scaling_help}",
+    )
+    p.add_argument("factor", type=float, help="the factor, >= 0 (values above 1 speed up)")
+    client_options(p)
+    p.set_defaults(func=cmd_speed)
+
+    p = sub.add_parser(
+        "pause",
+        help="bring the motion to rest along its path (speed scaling 0)",
+        description=(
+            "Pause: ramp the speed scaling factor to 0, so the joints decelerate to rest on "
+            f"the path. 'jtc-hw resume' carries on at the factor before the pause. {scaling_help}"
+        ),
+    )
+    client_options(p)
+    p.set_defaults(func=cmd_pause)
+
+    p = sub.add_parser(
+        "resume",
+        help="carry on after 'jtc-hw pause' (the speed scaling factor before it)",
+        description=(
+            "Resume: ramp the speed scaling factor back to the last non-zero factor set (by "
+            "'jtc-hw speed', else the configured speed_scaling.initial_scaling_factor, or 1). "
+            f"{scaling_help}"
+        ),
+    )
+    client_options(p)
+    p.set_defaults(func=cmd_resume)
 
     p = sub.add_parser(
         "param",

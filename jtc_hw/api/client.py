@@ -506,6 +506,33 @@ class Client:
         """
         return self._request("rearm", {}, timeout_s)
 
+    def set_speed_scaling(
+        self, factor: float | None = None, *, resume: bool = False, timeout_s: float | None = None
+    ) -> dict[str, Any]:
+        """Set the speed scaling factor (1: as planned, 0.5: half speed, 0: pause), or with
+        ``resume=True`` go back to the factor before the pause. The factor ramps to its new
+        value within the joints' acceleration limits; the state stream's ``speed_scaling``
+        shows it.
+
+        Example::
+
+            client.set_speed_scaling(0.0)            # pause smoothly
+            client.set_speed_scaling(resume=True)    # carry on
+
+        Returns:
+            The reply: ``factor`` (in force now) and ``target`` (what it ramps to).
+
+        Raises:
+            ValueError: neither or both of ``factor`` and ``resume`` given.
+            RequestError: a factor below 0 or not a number (``bad_request``).
+            TimeoutError: no reply within the timeout.
+            ClientConnectionError: the connection is lost.
+        """
+        if (factor is None) != resume:
+            raise ValueError("give either a factor or resume=True")
+        fields: dict[str, Any] = {"resume": True} if resume else {"factor": factor}
+        return self._request("set_speed_scaling", fields, timeout_s)
+
     # -- lifecycle ----------------------------------------------------------------------------
 
     def close(self) -> None:

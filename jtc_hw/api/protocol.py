@@ -74,6 +74,7 @@ __all__ = [
     "MAX_JOINT_VALUE",
     "SendTrajectory",
     "SetParameters",
+    "SetSpeedScaling",
     "Sim",
     "Stop",
     "SubscribeState",
@@ -308,6 +309,17 @@ class SetParameters:
     parameters: dict[str, Any] = field(default_factory=dict)
 
 
+@dataclass(frozen=True)
+class SetSpeedScaling:
+    """``set_speed_scaling``: the speed scaling factor to ramp to (``factor``: 1 full speed,
+    0 pause), or ``resume``: back to the factor before the pause."""
+
+    op: ClassVar[str] = "set_speed_scaling"
+    id: RequestId = None
+    factor: float | None = None
+    resume: bool = False
+
+
 Request = (
     Hello
     | Auth
@@ -324,6 +336,7 @@ Request = (
     | Rearm
     | GetParameters
     | SetParameters
+    | SetSpeedScaling
 )
 
 _OP_FIELDS: dict[str, tuple[str, ...]] = {
@@ -344,6 +357,7 @@ _OP_FIELDS: dict[str, tuple[str, ...]] = {
     "rearm": (),
     "get_parameters": ("names",),
     "set_parameters": ("parameters",),
+    "set_speed_scaling": ("factor", "resume"),
 }
 OPS: tuple[str, ...] = tuple(_OP_FIELDS)
 """Every operation name, in documentation order."""
@@ -786,6 +800,21 @@ def parse_request(obj: Any) -> Request:
                 "parameters",
             )
         return SetParameters(rid, dict(changes))
+    if op == "set_speed_scaling":
+        resume = f.has("resume") and f.boolean("resume", o["resume"])
+        if f.has("factor") == resume:
+            raise f.error(
+                "give exactly one of 'factor' (a number >= 0: 1 full speed, 0.5 half, 0 pause) "
+                f"or 'resume': true{'; both were given' if resume else ''}"
+            )
+        if resume:
+            return SetSpeedScaling(rid, None, True)
+        factor = f.number("factor", o["factor"])
+        if factor < 0.0:
+            raise f.error(
+                f"must be >= 0 (1: full speed, 0: pause), got {factor!r}", "factor"
+            )
+        return SetSpeedScaling(rid, factor)
     simple: dict[str, type[Request]] = {
         "stop": Stop,
         "subscribe_state": SubscribeState,

@@ -59,7 +59,9 @@ __all__ = [
     "LIMITS_PARAMETERS",
     "PARAMETERS",
     "Param",
+    "SPEED_SCALING_PARAMETERS",
     "STATE_INTERFACE_TYPES",
+    "SpeedScaling",
 ]
 
 DEFAULT_CONTROLLER_NAME: Final = "joint_trajectory_controller"
@@ -96,7 +98,7 @@ ALLOWED_STATE_INTERFACE_COMBINATIONS: Final[tuple[tuple[str, ...], ...]] = (
 )
 """Supported state interface sets (order in the configuration does not matter)."""
 
-_SECTIONS: Final = ("constraints", "gains")
+_SECTIONS: Final = ("constraints", "gains", "speed_scaling")
 _PID_TERMS: Final = ("p", "i", "d", "i_clamp", "ff_velocity_scale")
 
 
@@ -252,6 +254,23 @@ LIMITS_PARAMETERS: Final[Mapping[str, Param]] = _table(
 """``limits.*`` parameters other than the per-joint limits (not upstream's: upstream does not
 check goals against limits)."""
 
+SPEED_SCALING_PARAMETERS: Final[Mapping[str, Param]] = _table(
+    Param("initial_scaling_factor", _F, 1.0,
+          "speed scaling factor at activation (1: as planned, 0: paused)", minimum=0.0,
+          read_only=True),
+    # Upstream names a controller manager's interface here; the daemon has none (only "" is
+    # accepted, see _validate), and the factor is set through set_speed_scaling instead.
+    Param("state_interface", _S, "", "interface the factor is read from (\"\": none)",
+          read_only=True),
+    Param("command_interface", _S, "", "interface the factor is written to (\"\": none)",
+          read_only=True),
+    # Not upstream's: how fast the factor moves when no acceleration limit bounds it.
+    Param("ramp_time", _F, 0.5,
+          "seconds a change of factor by 1 takes when no acceleration limit bounds it "
+          "(0: step)", minimum=0.0, effect=_CYCLE),
+)
+"""``speed_scaling.*`` parameters (jtc_upstream_behaviour.md sections 1 and 13)."""
+
 
 def _freeze(value: Any) -> Any:
     if isinstance(value, Mapping):
@@ -270,6 +289,7 @@ DEFAULTS: Final[Mapping[str, Any]] = _freeze({
         JOINTS_PLACEHOLDER: _defaults_of(JOINT_CONSTRAINT_PARAMETERS),
     },
     "gains": {JOINTS_PLACEHOLDER: _defaults_of(GAIN_PARAMETERS)},
+    "speed_scaling": _defaults_of(SPEED_SCALING_PARAMETERS),
 })
 """Every default, nested like the parameter file (``<joints>`` stands for each joint)."""
 
@@ -355,6 +375,18 @@ class Gains:
         return self.angle_wraparound or self.normalize_error
 
 
+@dataclass(frozen=True)
+class SpeedScaling:
+    """Speed scaling settings (``speed_scaling``; :data:`SPEED_SCALING_PARAMETERS`)."""
+
+    initial_scaling_factor: float = _float_default(
+        SPEED_SCALING_PARAMETERS, "initial_scaling_factor"
+    )
+    state_interface: str = _str_default(SPEED_SCALING_PARAMETERS, "state_interface")
+    command_interface: str = _str_default(SPEED_SCALING_PARAMETERS, "command_interface")
+    ramp_time: float = _float_default(SPEED_SCALING_PARAMETERS, "ramp_time")
+
+
 @dataclass(frozen=True, kw_only=True)
 class ControllerConfig:
     """Validated, immutable controller configuration.
@@ -397,6 +429,7 @@ class ControllerConfig:
     time_scaling: str = _str_default(LIMITS_PARAMETERS, "time_scaling")
     """``limits.time_scaling``: what a goal beyond the limits gets by default, ``"reject"`` or
     ``"fit"`` (slowed down uniformly; :mod:`.limits_check`); a goal may ask for either."""
+    speed_scaling: SpeedScaling = field(default_factory=SpeedScaling)
 
     def __post_init__(self) -> None:
         _validate(self)
@@ -732,6 +765,25 @@ def _validate(cfg: ControllerConfig) -> None:
         checked_gains = _checked_fields(given_gains, GAIN_PARAMETERS, f"gains.{joint}")
         joint_gains[joint] = Gains(**checked_gains)
     put("gains", MappingProxyType(joint_gains))
+
+    scaling = cfg.speed_scaling
+    if not isinstance(scaling, SpeedScaling):
+        raise ConfigurationError(
+            f"expected a SpeedScaling instance, got {describe(scaling)}",
+            "speed_scaling",
+            scaling,
+        )
+    checked_scaling = _checked_fields(scaling, SPEED_SCALING_PARAMETERS, "speed_scaling")
+    for name in ("state_interface", "command_interface"):
+        if checked_scaling[name]:
+            raise ConfigurationError(
+                f"{checked_scaling[name]!r}: the daemon has no named interfaces (no controller "
+                "manager); leave it empty and set the factor with set_speed_scaling "
+                "(jtc-hw speed)",
+                f"speed_scaling.{name}",
+                checked_scaling[name],
+            )
+    put("speed_scaling", SpeedScaling(**checked_scaling))
 
 
 # --------------------------------------------------------------------------------------------

@@ -36,12 +36,14 @@ from .config import (
     PARAMETERS,
     RESERVED_TOP_LEVEL_KEYS,
     ROS_PARAMETERS,
+    SPEED_SCALING_PARAMETERS,
     Constraints,
     ControllerConfig,
     Effect,
     Gains,
     JointConstraints,
     Param,
+    SpeedScaling,
     _check_key,
     _check_keys,
     _coerce,
@@ -259,6 +261,9 @@ def _build(
         kwargs["limits"], scaling = _parse_limits(limits, joints, base_dir or os.getcwd())
         if scaling is not None:
             kwargs["time_scaling"] = scaling
+    speed = _expect_mapping(params.get("speed_scaling", {}), "speed_scaling")
+    _check_keys(speed, SPEED_SCALING_PARAMETERS, "speed_scaling")
+    kwargs["speed_scaling"] = SpeedScaling(**speed)
     return ControllerConfig(name=name, **kwargs)
 
 
@@ -530,6 +535,9 @@ def config_to_dict(cfg: ControllerConfig, *, nested: bool = False) -> dict[str, 
         for joint, g in cfg.gains.items()
     }
     limits = limits_to_dict(cfg)
+    params["speed_scaling"] = {
+        name: getattr(cfg.speed_scaling, name) for name in SPEED_SCALING_PARAMETERS
+    }
     if not nested:
         params["limits"] = limits
         return params
@@ -606,6 +614,11 @@ def explain(cfg: ControllerConfig) -> list[str]:
                 "constraints.decelerate_on_cancel: stops hold on the spot instead (upstream's "
                 f"fall-back): {why_not}"
             )
+    if cfg.speed_scaling.initial_scaling_factor == 0.0:
+        warnings.append(
+            "speed_scaling.initial_scaling_factor: is 0: the controller starts paused and "
+            "goals wait until the factor is raised ('jtc-hw resume' or 'jtc-hw speed 1')"
+        )
     output = "effort" if "effort" in cfg.command_interfaces else "velocity"
     if cfg.command_interfaces == ("velocity",):
         why = "open_loop_control disables the PID loop"
@@ -693,6 +706,7 @@ def parameter_names(cfg: ControllerConfig) -> list[str]:
             for joint in cfg.joints
             for name in table
         ),
+        *(f"speed_scaling.{name}" for name in SPEED_SCALING_PARAMETERS),
     ]
 
 
@@ -723,6 +737,10 @@ def lookup_parameter(cfg: ControllerConfig, name: Any) -> tuple[tuple[str, ...],
             name,
             name,
         )
+    if section == "speed_scaling":
+        if rest not in SPEED_SCALING_PARAMETERS:
+            raise _unknown_parameter(rest, SPEED_SCALING_PARAMETERS, section)
+        return (section, rest), SPEED_SCALING_PARAMETERS[rest]
     if section not in _SECTION_TABLES:
         raise _unknown_parameter(name, [*PARAMETERS, *_SECTIONS])
     if not rest:
@@ -804,6 +822,10 @@ def read_only_differences(old: ControllerConfig, new: ControllerConfig) -> list[
     names.extend(
         f"constraints.{name}" for name, p in CONSTRAINT_PARAMETERS.items()
         if p.read_only and getattr(old.constraints, name) != getattr(new.constraints, name)
+    )
+    names.extend(
+        f"speed_scaling.{name}" for name, p in SPEED_SCALING_PARAMETERS.items()
+        if p.read_only and getattr(old.speed_scaling, name) != getattr(new.speed_scaling, name)
     )
     if names:  # a different joint list: the per-joint entries are moot
         return names

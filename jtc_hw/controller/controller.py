@@ -26,10 +26,16 @@ One ``update(now, period, state)``:
    the joints should reach by the next cycle; PID outputs (velocity alone, effort) act on the
    error measured now: ``u = k_ff v_d + effort_d + k_p e + k_i sum(e dt) + k_d (v_d - v)``;
 5. return the command and the events (goal results, feedback at ``action_monitor_rate``).
+
+Speed scaling (``set_speed_scaling``): the reference lives on trajectory time, which advances by
+the elapsed clock time times a factor that ramps toward its target within the acceleration
+limits; "now" above is that trajectory time (equal to the clock while the factor is 1), and the
+velocities and accelerations sampled are those of the slowed motion (``v s``, ``a s^2 + v ds/dt``).
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, NamedTuple
@@ -117,12 +123,16 @@ class ControllerState(NamedTuple):
             (the command's start time, or when the current hold began) to ``time_ns``.
         feedback: the measured state; velocities only with a velocity state interface,
             accelerations only with an acceleration state interface (else ``None``).
-        feedback_time_from_start: as ``reference_time_from_start`` (equal: no speed scaling).
+        feedback_time_from_start: seconds of the daemon's clock since that start (with speed
+            scaling, ``reference_time_from_start`` is about this times the factor).
         error: ``(3, n)`` desired minus measured position / velocity / acceleration.
         output: what the command interfaces hold, read back with upstream's rule: refreshed
             only in a cycle whose command is finite on every configured command interface of
             every command joint, else the previous value is kept; ``None`` for an interface
             that is not configured, ``NaN`` for joints that are not command joints.
+        speed_scaling_factor: the speed scaling factor in force this cycle (upstream's
+            ``speed_scaling_factor``).
+        speed_scaling_target: the factor it ramps toward (``set_speed_scaling``).
     """
 
     time_ns: int
@@ -132,6 +142,8 @@ class ControllerState(NamedTuple):
     feedback_time_from_start: float
     error: F64
     output: JointCommand
+    speed_scaling_factor: float = 1.0
+    speed_scaling_target: float = 1.0
 
 
 class UpdateResult(NamedTuple):
@@ -370,6 +382,25 @@ class Planner:
         )
 
 
+def in_trajectory_time(
+    trajectory: JointTrajectory, now_ns: int, tau_ns: int, factor: float
+) -> JointTrajectory:
+    """``trajectory`` with its header stamp moved to trajectory time (speed scaling).
+
+    With speed scaling the reference runs on trajectory time (``tau_ns`` at clock time
+    ``now_ns``); as upstream (section 14.1 step 2) the stamp's distance from now is scaled by
+    the factor in force, so at a steady factor the command starts at the stamp's clock time.
+    A zero ("now") or negative stamp (refused by validation) is left as it is.
+    """
+    if (now_ns == tau_ns and factor == 1.0) or not isinstance(trajectory, JointTrajectory):
+        return trajectory  # validation names what is wrong with a non-trajectory
+    stamp = trajectory.start_time_ns
+    if isinstance(stamp, bool) or not isinstance(stamp, int) or stamp <= 0:
+        return trajectory
+    moved = tau_ns + (stamp - now_ns if factor == 1.0 else round((stamp - now_ns) * factor))
+    return JointTrajectory(trajectory.joint_names, trajectory.points, max(1, moved))
+
+
 def _command_mask(config: ControllerConfig) -> NDArray[np.bool_] | None:
     """Which joints get commands: ``None`` for all of them (``command_joints`` empty, or as
     many as ``joints``: mapped by index, the names may differ), else the joints that
@@ -455,6 +486,20 @@ class JointTrajectoryController:
         self._nan.setflags(write=False)
         self._output = self._nan_command()
         self._ref_start_ns = 0
+        # Speed scaling (upstream section 13): the reference is sampled at trajectory time
+        # ``_tau_ns``, which advances by the elapsed time times the factor; ``_wall_ns`` is the
+        # clock time it was last advanced to.
+        self._tau_ns = 0
+        self._wall_ns = 0
+        self._timebase_started = False
+        self._ref_start_wall_ns = 0
+        initial = config.speed_scaling.initial_scaling_factor
+        self._scale = initial
+        self._scale_target = initial
+        self._scale_rate = 0.0  # d(factor)/dt in force since _wall_ns, 1/s
+        self._ramp_target = initial  # what _scale_rate aims at (the target may change since)
+        self._resume_scale = initial if initial > 0.0 else 1.0
+        self._set_ramp_bounds(config)
 
     # -- lifecycle ----------------------------------------------------------------------------
 
@@ -514,7 +559,15 @@ class JointTrajectoryController:
             self._cmd_acc,
             state.accelerations if self._has_acc_state else None,
         )
-        self._set_reference(Trajectory.constant(now_ns, start))
+        # Trajectory time starts at the clock and then never jumps, across re-activations too
+        # (the daemon's API process extrapolates it to plan).
+        self._tau_ns = self._traj_time(now_ns) if self._timebase_started else now_ns
+        self._timebase_started = True
+        self._wall_ns = now_ns
+        initial = self.config.speed_scaling.initial_scaling_factor
+        self._scale = self._scale_target = initial
+        self._scale_rate = 0.0
+        self._set_reference(Trajectory.constant(self._tau_ns, start))
         self._measured = state
         self._last_command_positions = start.copy()
         self._last_command_velocities = velocities
@@ -692,15 +745,16 @@ class JointTrajectoryController:
             GoalRejected: see ``send_goal``.
         """
         self._require_active_for_commands()
+        tau = self._traj_time(now_ns)
         return self._planner.plan_goal(
             self._ref,
             self._version,
-            now_ns,
-            trajectory,
+            tau,
+            in_trajectory_time(trajectory, now_ns, tau, self._scale),
             path_tolerance,
             goal_tolerance,
             goal_time_tolerance,
-            valid_from_ns,
+            None if valid_from_ns is None else self._traj_time(valid_from_ns),
             time_scaling,
         )
 
@@ -713,12 +767,20 @@ class JointTrajectoryController:
             GoalRejected: see ``send_trajectory``.
         """
         self._require_active_for_commands()
+        tau = self._traj_time(now_ns)
         return self._planner.plan_trajectory(
-            self._ref, self._version, now_ns, trajectory, time_scaling=time_scaling
+            self._ref,
+            self._version,
+            tau,
+            in_trajectory_time(trajectory, now_ns, tau, self._scale),
+            time_scaling=time_scaling,
         )
 
     def commit(self, plan: Plan, now_ns: int) -> int | None:
         """Second half: swap in a planned reference (O(1), no fitting).
+
+        The plan's times are trajectory times (:attr:`trajectory_time_ns`; equal to the clock
+        while the speed scaling factor has always been 1); ``now_ns`` is the clock's.
 
         Returns:
             The goal id for a goal plan, None for a topic plan.
@@ -729,6 +791,7 @@ class JointTrajectoryController:
                 another command), or ``now_ns`` is past the time it was planned for.
         """
         self._require_active_for_commands()
+        wall_ns, now_ns = now_ns, self._traj_time(now_ns)
         if plan.base_version != self._version:
             raise StalePlan(
                 f"planned against reference version {plan.base_version}, current is {self._version}"
@@ -744,11 +807,11 @@ class JointTrajectoryController:
             )
         handle = None
         if plan.goal:
-            self._preempt(PREEMPTED_BY_ACTION, now_ns)
+            self._preempt(PREEMPTED_BY_ACTION, wall_ns)
             handle = GoalHandle(self._next_goal_id)
             self._next_goal_id += 1
         else:
-            self._preempt(PREEMPTED_BY_TOPIC, now_ns)
+            self._preempt(PREEMPTED_BY_TOPIC, wall_ns)
         self._set_reference(plan.reference, plan.start_ns)
         self._execution = _Execution(handle, plan.tolerances, plan.start_ns, plan.reference.end_ns)
         self._commanding = True
@@ -811,8 +874,11 @@ class JointTrajectoryController:
     def stopping_until_ns(self) -> int | None:
         """While the reference is a decelerating stop: the time its last joint comes to rest
         (it holds from then on); ``None`` otherwise."""
-        ref = self._stop_ref
-        return ref.end_ns if ref is not None and ref is self._ref else None
+        if not self._following_stop:
+            return None
+        assert self._stop_ref is not None
+        # Trajectory time to the clock: the stop runs at the clock's pace from ``_tau_ns``.
+        return self._wall_ns + (self._stop_ref.end_ns - self._tau_ns)
 
     def stop_duration_s(self, state: JointState) -> float:
         """At least as long as a decelerating stop started from ``state`` lasts (0 if stops
@@ -875,12 +941,177 @@ class JointTrajectoryController:
             zero if m.accelerations is None else m.accelerations,
             zero,
         )
-        return self._ref.query(t_ns, current)
+        return self._ref.query(self._traj_time(t_ns), current)
 
     @property
     def reference(self) -> Trajectory:
-        """The trajectory being followed (immutable)."""
+        """The trajectory being followed (immutable), in trajectory time
+        (:attr:`trajectory_time_ns`)."""
         return self._ref
+
+    # -- speed scaling ------------------------------------------------------------------------
+
+    def set_speed_scaling(self, factor: float) -> None:
+        """Set the speed scaling factor's target: the trajectory time advances by the elapsed
+        time times the factor (1: as planned, 0.5: half speed, 0: paused; above 1: faster).
+
+        The factor ramps toward the target from the next ``update``, as fast as the
+        acceleration limits allow (``config.limits``; a joint's acceleration
+        ``a s^2 + v ds/dt`` stays within its limit), and for joints without one at
+        ``1 / speed_scaling.ramp_time`` per second; velocity and acceleration commands and
+        feed-forwards are scaled with it. It holds across goals; ``activate`` resets it to
+        ``speed_scaling.initial_scaling_factor``.
+
+        Example::
+
+            ctrl.set_speed_scaling(0.0)   # pause smoothly
+            ctrl.resume_speed_scaling()   # back to the factor before the pause
+
+        Raises:
+            ConfigurationError: ``factor`` is not a finite number >= 0.
+        """
+        if (
+            isinstance(factor, bool)
+            or not isinstance(factor, (int, float))
+            or not math.isfinite(factor)
+            or factor < 0.0
+        ):
+            raise ConfigurationError(
+                f"the speed scaling factor must be a finite number >= 0 (1: full speed, "
+                f"0: pause), got {factor!r}",
+                "factor",
+                factor,
+            )
+        self._scale_target = float(factor)
+        if factor > 0.0:
+            self._resume_scale = float(factor)
+
+    def resume_speed_scaling(self) -> float:
+        """Ramp back to the last non-zero factor set (the one before a pause; initially
+        ``initial_scaling_factor``, or 1 if that is 0).
+
+        Returns:
+            The target it ramps to.
+        """
+        self._scale_target = self._resume_scale
+        return self._resume_scale
+
+    @property
+    def speed_scaling_factor(self) -> float:
+        """The speed scaling factor in force (it ramps toward :attr:`speed_scaling_target`)."""
+        return self._scale
+
+    @property
+    def speed_scaling_target(self) -> float:
+        """The factor the speed scaling ramps toward (``set_speed_scaling``)."""
+        return self._scale_target
+
+    @property
+    def trajectory_time_ns(self) -> int:
+        """The trajectory time of the last cycle: where the reference is sampled. It equals the
+        clock while the factor has been 1 throughout; below 1 it falls behind the clock."""
+        return self._tau_ns
+
+    def _traj_time(self, wall_ns: int) -> int:
+        """The trajectory time at clock time ``wall_ns``, at the factor in force."""
+        elapsed = wall_ns - self._wall_ns
+        if elapsed == 0:
+            return self._tau_ns
+        scale = 1.0 if self._following_stop else self._scale
+        return self._tau_ns + (elapsed if scale == 1.0 else round(elapsed * scale))
+
+    @property
+    def _following_stop(self) -> bool:
+        """Whether the reference is a decelerating stop: it runs on the clock, not slowed by
+        the speed scaling factor, so that the joints decelerate at the configured rate from
+        the velocity they were measured at, whatever the factor (0 included)."""
+        ref = self._stop_ref
+        return ref is not None and ref is self._ref
+
+    def _advance(self, now_ns: int) -> int:
+        """Move the trajectory time (and the ramping factor) to clock time ``now_ns``."""
+        elapsed = now_ns - self._wall_ns
+        if elapsed == 0:
+            return self._tau_ns
+        self._tau_ns = self._traj_time(now_ns)
+        self._wall_ns = now_ns
+        rate = self._scale_rate
+        if rate != 0.0 and elapsed > 0:
+            target = self._ramp_target
+            scale = self._scale + rate * (elapsed / NS_PER_S)
+            # The rate was chosen to land on the target; rounding must not overshoot it.
+            if (rate > 0.0 and scale >= target - 1e-12) or (rate < 0.0 and scale <= target + 1e-12):
+                scale = target
+            self._scale = max(scale, 0.0)
+        return self._tau_ns
+
+    def _set_ramp_bounds(self, config: ControllerConfig) -> None:
+        """What bounds the factor's ramp: per joint with one, its acceleration limit; a ramp
+        time for the joints without (``speed_scaling.ramp_time``, 0: no bound)."""
+        limited = [
+            i
+            for i, j in enumerate(self.joint_names)
+            if j in config.limits and config.limits[j].acceleration is not None
+        ]
+        self._acc_index: NDArray[np.intp] | None = (
+            np.array(limited, dtype=np.intp) if limited else None
+        )
+        self._acc_limit = np.array(
+            [config.limits[self.joint_names[i]].acceleration for i in limited], dtype=np.float64
+        )
+        ramp_time = config.speed_scaling.ramp_time
+        self._default_ramp_rate = (
+            1.0 / ramp_time if ramp_time > 0.0 and len(limited) < self._n else math.inf
+        )
+
+    def _ramp(
+        self, ahead: TrajectorySample | None, here: TrajectorySample | None = None
+    ) -> None:
+        """Choose the factor's rate of change for the coming period (``_scale_rate``).
+
+        The fastest change toward the target that keeps every joint with an acceleration
+        limit within it, on the reference at the look-ahead time ``ahead``: the joint's
+        acceleration is ``a s^2 + v ds/dt``, so ``|ds/dt| <= (A - |a| s^2) / |v|`` keeps it
+        within ``A`` whatever the signs (0 when the reference alone already uses the whole
+        limit: the factor waits); a joint at rest does not bound it. Joints without a limit
+        bound it by the ramp time. With ``here`` (the reference at the cycle's own trajectory
+        time), the larger speed and acceleration of the two samples count: the period's
+        velocity step is taken between them, and a trajectory slowing down (or one paused,
+        whose time stands still) has a larger speed at ``here`` than at ``ahead``.
+        """
+        scale, target = self._scale, self._scale_target
+        if scale == target:
+            self._scale_rate = 0.0
+            return
+        direction = 1.0 if target > scale else -1.0
+        self._ramp_target = target
+        bound = self._default_ramp_rate
+        index = self._acc_index
+        if index is not None and ahead is not None:
+            speed = np.abs(ahead.velocities[index])
+            acc = np.abs(ahead.accelerations[index])
+            if here is not None:
+                speed = np.maximum(speed, np.abs(here.velocities[index]))
+                acc = np.maximum(acc, np.abs(here.accelerations[index]))
+            moving = speed > 1e-9
+            if moving.any():
+                room = self._acc_limit - acc * (scale * scale)
+                bound = min(bound, float((np.maximum(room, 0.0)[moving] / speed[moving]).min()))
+        period_s = self._lookahead_ns / NS_PER_S
+        self._scale_rate = direction * min(bound, abs(target - scale) / period_s)
+
+    def _scaled(self, sample: TrajectorySample) -> TrajectorySample:
+        """``sample`` (a reference sample in trajectory time) as the joints move on the clock:
+        velocities times the factor, accelerations ``a s^2 + v ds/dt``; positions and effort
+        as they are."""
+        scale, rate = self._scale, self._scale_rate
+        if (scale == 1.0 and rate == 0.0) or self._following_stop:
+            return sample
+        v = sample.velocities
+        return TrajectorySample(
+            sample.positions, v * scale, sample.accelerations * (scale * scale) + v * rate,
+            sample.effort,
+        )
 
     # -- runtime parameters -------------------------------------------------------------------
 
@@ -926,6 +1157,7 @@ class JointTrajectoryController:
             )
         self.config = config
         self._planner = Planner(config)  # defaults and checks for the next command
+        self._set_ramp_bounds(config)
         gains = [config.gains[j] for j in self.joint_names]
         self._pid.set_gains(
             np.array([g.p for g in gains]),
@@ -956,22 +1188,25 @@ class JointTrajectoryController:
             raise ControllerStateError("update: the controller is not active")
         positions = self._checked_positions(state)
         self._measured = state
+        # Speed scaling (upstream section 13): the reference is sampled, and tolerances, goal
+        # time and cmd_timeout judged, in trajectory time.
+        tau = self._advance(now_ns)
         if self._pending_stop is not None:
             self._apply_stop(now_ns, state, positions)
-        if now_ns < self._ref.state_before_ns:
+        if tau < self._ref.state_before_ns:
             return self._before_reference(now_ns, state, positions)
-        desired = self._ref.sample(now_ns)
+        desired = self._scaled(self._ref.sample(tau))
         error = self._error(desired, state, positions)
-        # The look-ahead time (upstream section 7 step 7: one nominal period ahead): decisions
-        # judge "before the last point" on it.
-        ahead_ns = now_ns + self._lookahead_ns
+        # The look-ahead time (upstream section 7 step 7: one nominal period ahead, unscaled):
+        # decisions judge "before the last point" on it.
+        ahead_ns = tau + self._lookahead_ns
         ex = self._execution
         if ex is not None:
-            outcome = self._check(now_ns, ahead_ns, ex, error)
+            outcome = self._check(tau, ahead_ns, ex, error)
             if outcome is not None:
                 self._conclude(now_ns, ex, outcome, state, positions)
                 if outcome.hold_measured:
-                    desired = self._ref.sample(now_ns)
+                    desired = self._scaled(self._ref.sample(tau))
                     error = self._error(desired, state, positions)
             elif ex.goal is not None and now_ns >= ex.next_feedback_ns:
                 ex.next_feedback_ns = now_ns + self._feedback_ns
@@ -979,16 +1214,16 @@ class JointTrajectoryController:
                     GoalFeedback(
                         ex.goal.goal_id,
                         now_ns,
-                        (now_ns - ex.start_ns) / NS_PER_S,
+                        (tau - ex.start_ns) / NS_PER_S,
                         desired,
                         positions,
                         state.velocities,
                         error,
                     )
                 )
-        command = self._control(now_ns, period_ns, desired, error)
+        command = self._control(tau, period_ns, desired, error)
         events, self._events = tuple(self._events), []
-        since_start = (now_ns - self._ref_start_ns) / NS_PER_S
+        since_start = (tau - self._ref_start_ns) / NS_PER_S
         feedback = state
         if (state.velocities is not None and not self._has_vel_state) or (
             state.accelerations is not None and not self._has_acc_state
@@ -999,7 +1234,15 @@ class JointTrajectoryController:
                 state.accelerations if self._has_acc_state else None,
             )
         controller_state = ControllerState(
-            now_ns, desired, since_start, feedback, since_start, error, self._output
+            now_ns,
+            desired,
+            since_start,
+            feedback,
+            (now_ns - self._ref_start_wall_ns) / NS_PER_S,
+            error,
+            self._output,
+            self._scale,
+            self._scale_target,
         )
         return UpdateResult(command, events, desired, error, controller_state)
 
@@ -1019,14 +1262,22 @@ class JointTrajectoryController:
         desired = self._ref.sample(self._ref.state_before_ns)
         error = self._error(desired, state, positions)
         events, self._events = tuple(self._events), []
-        since_start = (now_ns - self._ref_start_ns) / NS_PER_S
+        since_start = (self._tau_ns - self._ref_start_ns) / NS_PER_S
         feedback = JointState(
             positions,
             state.velocities if self._has_vel_state else None,
             state.accelerations if self._has_acc_state else None,
         )
         controller_state = ControllerState(
-            now_ns, desired, since_start, feedback, since_start, error, self._output
+            now_ns,
+            desired,
+            since_start,
+            feedback,
+            (now_ns - self._ref_start_wall_ns) / NS_PER_S,
+            error,
+            self._output,
+            self._scale,
+            self._scale_target,
         )
         return UpdateResult(command, events, desired, error, controller_state)
 
@@ -1158,7 +1409,8 @@ class JointTrajectoryController:
     def _hold(self, now_ns: int, positions: F64) -> None:
         """Hold the measured position (open loop: the last commanded one), zero velocity."""
         hold = self._last_command_positions if self.config.open_loop_control else positions
-        self._set_reference(Trajectory.constant(now_ns, hold.copy()))
+        # The reference runs on trajectory time (speed scaling): the hold starts there.
+        self._set_reference(Trajectory.constant(self._traj_time(now_ns), hold.copy()))
         self._pid.reset()
 
     def _stop(self, now_ns: int, state: JointState, positions: F64) -> None:
@@ -1181,16 +1433,19 @@ class JointTrajectoryController:
         ):
             self._hold(now_ns, positions)
             return
+        # The reference runs on trajectory time (speed scaling): the stop starts there, and
+        # is then followed at the clock's pace (``_following_stop``).
+        tau = self._traj_time(now_ns)
         accelerations = state.accelerations if self._has_acc_state else None
         if accelerations is None or accelerations.shape != (self._n,):
             accelerations = (
-                self._ref.sample(now_ns).accelerations
-                if now_ns >= self._ref.state_before_ns
+                self._scaled(self._ref.sample(tau)).accelerations
+                if tau >= self._ref.state_before_ns
                 else np.zeros(self._n)
             )
         accelerations = np.where(np.isfinite(accelerations), accelerations, 0.0)
         stop = stop_trajectory(
-            now_ns, positions, velocities, accelerations, self._stop_decel, self._stop_jerk
+            tau, positions, velocities, accelerations, self._stop_decel, self._stop_jerk
         )
         self._set_reference(stop)
         self._stop_ref = stop
@@ -1201,6 +1456,8 @@ class JointTrajectoryController:
         ``time_from_start`` (default: its first breakpoint, the time a hold begins)."""
         self._ref = reference
         self._ref_start_ns = reference.start_ns if start_ns is None else start_ns
+        # The same start on the clock (for the feedback's time_from_start).
+        self._ref_start_wall_ns = self._wall_ns + (self._ref_start_ns - self._tau_ns)
         self._version += 1
 
     def _nan_command(self) -> JointCommand:
@@ -1280,14 +1537,22 @@ class JointTrajectoryController:
         self._commanding = True
 
     def _control(
-        self, now_ns: int, period_ns: int, desired: TrajectorySample, error: F64
+        self, tau_ns: int, period_ns: int, desired: TrajectorySample, error: F64
     ) -> JointCommand:
         if not self._commanding:
+            if self._scale != self._scale_target:
+                self._ramp(None)
             return self._nan_command()
         # Upstream (jtc_upstream_behaviour.md section 12): forwarded commands and the
         # closed-loop feed-forward (velocity, and effort for effort-only) come from the sample
-        # one period ahead; the PID acts on the error at ``now`` (``desired``).
-        ahead = self._ref.sample(now_ns + self._lookahead_ns)
+        # one period ahead; the PID acts on the error at ``now`` (``desired``). Beyond
+        # upstream, speed scaling applies to every interface: the sample's velocity and
+        # acceleration are those of the slowed time (``_scaled``), with the factor's rate for
+        # the coming period chosen first (``_ramp``).
+        ahead = self._ref.sample(tau_ns + self._lookahead_ns)
+        if self._scale != self._scale_target or self._scale_rate != 0.0:
+            self._ramp(ahead, self._ref.sample(tau_ns))
+        ahead = self._scaled(ahead)
         pid_out: F64 | None = None
         if self._use_pid:
             pid_out = self._ff * ahead.velocities + self._pid.compute(

@@ -51,7 +51,7 @@ from ..controller.config_io import (
     parameters_report,
     set_parameters,
 )
-from ..controller.controller import Plan, Planner
+from ..controller.controller import Plan, Planner, in_trajectory_time
 from ..controller.goals import (
     ErrorCode,
     GoalFeedback,
@@ -212,6 +212,9 @@ class LoopBackend:
         # The last measured positions and velocities the loop published (query_state carries
         # them before the reference's start, as upstream's current state).
         self._measured: tuple[Any, Any] | None = None
+        # Speed scaling: (clock ns, trajectory time ns, factor, target) of the loop's latest
+        # state; the reference (and so every plan) is in trajectory time.
+        self._timebase: tuple[int, int, float, float] | None = None
         self._version = -1
         self._plans: dict[int, Plan] = {}
         self._waiting: dict[int, asyncio.Future[Any]] = {}
@@ -454,6 +457,9 @@ class LoopBackend:
                     self._listener.on_goal_event(event)
         elif kind == "state":
             self._measured = (message[1][2], message[1][3])
+            raw = message[1]
+            if len(raw) > 14:  # (a test's partial state has no speed scaling)
+                self._timebase = (raw[0], raw[14], raw[12], raw[13])
             if self._listener is not None:
                 self._listener.on_state(self._snapshot(message[1]))
         elif kind == "status":
@@ -463,6 +469,9 @@ class LoopBackend:
             if message[1] >= logging.ERROR:
                 self._last_error = message[2]
         elif kind == "ready":
+            t0 = message[1]["t0_ns"]
+            initial = self.config.speed_scaling.initial_scaling_factor
+            self._timebase = (t0, t0, initial, initial)  # activation: trajectory time = clock
             if self._ready is not None and not self._ready.done():
                 self._ready.set_result(message[1])
         elif kind == "exit":
@@ -472,7 +481,7 @@ class LoopBackend:
     def _snapshot(self, raw: tuple[Any, ...]) -> dict[str, Any]:
         (
             t, desired, positions, velocities, error, command, holding, goal,
-            reference_tfs, feedback_tfs, accelerations, output,
+            reference_tfs, feedback_tfs, accelerations, output, factor, target, _tau,
         ) = raw
         return {
             "time_ns": t,
@@ -499,6 +508,7 @@ class LoopBackend:
             "output": _command_json(output),
             "holding": holding,
             "active_goal": goal,
+            "speed_scaling": {"factor": factor, "target": target},
         }
 
     def _finish_goal(self, result: GoalResult) -> None:
@@ -587,7 +597,7 @@ class LoopBackend:
                 zero,
                 zero,
             )
-        return ref.query(time_ns, current)
+        return ref.query(self._trajectory_time(time_ns), current)
 
     async def send_goal(
         self,
@@ -612,6 +622,7 @@ class LoopBackend:
                 plan.
         """
         check_position_limits(traj, self._position_limits)
+        traj = self._stamp_in_trajectory_time(traj)
         made: list[Plan] = []  # the last plan made is the one committed
 
         def make(ref: Trajectory, ver: int, now: int, valid_from: int) -> Plan:
@@ -651,6 +662,7 @@ class LoopBackend:
             await self._request("stop", {})
             return None
         check_position_limits(traj, self._position_limits)
+        traj = self._stamp_in_trajectory_time(traj)
         made: list[Plan] = []
 
         def make(ref: Trajectory, ver: int, now: int, valid_from: int) -> Plan:
@@ -690,6 +702,23 @@ class LoopBackend:
             False if there was nothing to re-arm (no fault, the controller is running).
         """
         return bool(await self._request("rearm", {}))
+
+    async def set_speed_scaling(self, factor: float | None) -> dict[str, float]:
+        """Set the speed scaling factor's target in the loop's controller (``None``: resume,
+        back to the factor before the pause); it ramps there from the loop's next cycle.
+
+        Returns:
+            ``{"factor": in force now, "target": what it ramps to}``.
+
+        Raises:
+            ConfigurationError: not a finite number >= 0.
+            HardwareError: the control loop did not answer.
+        """
+        value: dict[str, float] = await self._request("set_speed_scaling", {"factor": factor})
+        if self._timebase is not None:
+            t, tau, current, _ = self._timebase
+            self._timebase = (t, tau, current, value["target"])
+        return value
 
     def get_parameters(self, names: Sequence[str] | None) -> dict[str, Any]:
         """Controller parameters in effect (``config_io.parameters_report``).
@@ -734,6 +763,33 @@ class LoopBackend:
         await self._request("sim", {"component": component, "freeze": freeze, "fault": fault})
 
     # -- internals ----------------------------------------------------------------------------
+
+    def _trajectory_time(self, wall_ns: int) -> int:
+        """Trajectory time at clock time ``wall_ns``, extrapolated from the loop's last state
+        at the factor then in force (exact while the factor has always been 1)."""
+        if self._timebase is None:
+            return wall_ns
+        t, tau, factor, _ = self._timebase
+        return tau + (wall_ns - t if factor == 1.0 else round((wall_ns - t) * factor))
+
+    def _plan_times(self, planned_ns: int, valid_from_ns: int) -> tuple[int, int]:
+        """A plan's planned and valid-from times (clock) in trajectory time, bounding where
+        the loop's trajectory time can be when the plan arrives: at most the last known one
+        advanced at the larger of the factor and its target, at least the last known one."""
+        if self._timebase is None:
+            return planned_ns, valid_from_ns
+        t, tau, factor, target = self._timebase
+        fastest = max(factor, target)
+        if fastest == 1.0 and t == tau:
+            return planned_ns, valid_from_ns  # never scaled: trajectory time is the clock
+        planned = tau + round((planned_ns - t) * fastest)
+        return planned, min(tau, tau + round((valid_from_ns - t) * min(factor, target)))
+
+    def _stamp_in_trajectory_time(self, traj: JointTrajectory) -> JointTrajectory:
+        if self._timebase is None:
+            return traj
+        t, tau, factor, _ = self._timebase
+        return in_trajectory_time(traj, t, tau, factor)
 
     def _refusal(self) -> str | None:
         """Why nothing can be sent to the loop now, or ``None``."""
@@ -832,7 +888,7 @@ class LoopBackend:
             # up to a period before now: keep the current reference from there.
             valid_from = begin - 2 * self._period_ns
             plan: Plan = await aio.run_in_executor(
-                self._executor, make, ref, version, planned, valid_from
+                self._executor, make, ref, version, *self._plan_times(planned, valid_from)
             )
             took = self.now_ns() - begin
             if points >= 100:  # fixed costs are noise by then

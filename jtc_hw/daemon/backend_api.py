@@ -146,6 +146,19 @@ class Backend(Protocol):
         """
         ...
 
+    async def set_speed_scaling(self, factor: float | None) -> dict[str, float]:
+        """Set the speed scaling factor's target (``None``: resume, back to the factor before
+        the pause); the control loop's controller ramps to it.
+
+        Returns:
+            ``{"factor": in force now, "target": what it ramps to}``.
+
+        Raises:
+            ConfigurationError: not a finite number >= 0.
+            HardwareError: the request could not reach the control loop.
+        """
+        ...
+
     async def rearm(self) -> bool:
         """Leave a hardware fault: clear the devices' latched faults and hold the position.
 

@@ -9,7 +9,7 @@ one duplex ``multiprocessing`` connection:
 - in (records of ``pipe.PlanWriter``, a plan's arrays out of band in chunks):
   ``("commit", plan_id, Plan)``, ``("request", request_id, op, args)`` (ops: ``cancel``,
   ``stop``, ``sim``, ``rearm``, ``set_parameters`` with a configuration the API process
-  checked, ``shutdown``);
+  checked, ``set_speed_scaling`` (a factor, or ``None`` to resume), ``shutdown``);
 - out: ``("ready", info)``, ``("reference", version, trajectory_or_None, plan_id_or_None)``,
   ``("committed", plan_id, goal_id)``, ``("stale", plan_id, reason)``, ``("events", [...])``,
   ``("state", snapshot)``, ``("status", dict)``, ``("reply", request_id, ok, value)``,
@@ -326,6 +326,16 @@ class ControlLoop:
             self.state_every_ns = round(1e9 / config.state_publish_rate)
             self._next_state_ns = min(self._next_state_ns, now_ns + self.state_every_ns)
             return True
+        if op == "set_speed_scaling":
+            factor = args.get("factor")
+            if factor is None:
+                self.ctrl.resume_speed_scaling()
+            else:
+                self.ctrl.set_speed_scaling(factor)
+            return {
+                "factor": self.ctrl.speed_scaling_factor,
+                "target": self.ctrl.speed_scaling_target,
+            }
         if op == "rearm":
             done = self._rearm(now_ns)
             self._report_reference()
@@ -425,6 +435,11 @@ class ControlLoop:
                     cs.feedback_time_from_start,
                     cs.feedback.accelerations,
                     cs.output,
+                    # Speed scaling: the factor, its target, and where trajectory time stands
+                    # at ``now_ns`` (the API process plans in trajectory time).
+                    cs.speed_scaling_factor,
+                    cs.speed_scaling_target,
+                    self.ctrl.trajectory_time_ns,
                 ),
             )
 
@@ -450,6 +465,10 @@ class ControlLoop:
                 "active_goal": self.ctrl.active_goal,
                 "fault": self.fault,
                 "reference_version": self.ctrl.reference_version,
+                "speed_scaling": {
+                    "factor": self.ctrl.speed_scaling_factor,
+                    "target": self.ctrl.speed_scaling_target,
+                },
             },
         }
 

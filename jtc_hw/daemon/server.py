@@ -82,6 +82,7 @@ from ..api.protocol import (
     SendGoal,
     SendTrajectory,
     SetParameters,
+    SetSpeedScaling,
     Sim,
     Stop,
     SubscribeState,
@@ -758,6 +759,16 @@ class Server:
                     ", ".join(f"{k}={v!r}" for k, v in change.values.items()),
                 )
                 return self._merge(req.id, change.to_json(), {})
+            case SetSpeedScaling():
+                speed = await backend.set_speed_scaling(None if req.resume else req.factor)
+                log.info(
+                    "%s: speed scaling %s: ramping from %g to %g",
+                    conn.label,
+                    "resumed" if req.resume else "set",
+                    speed["factor"],
+                    speed["target"],
+                )
+                return reply(req.id, factor=speed["factor"], target=speed["target"])
             case Rearm():
                 done = await backend.rearm()
                 if not done:

@@ -366,6 +366,12 @@ REFERENCE_DEFAULTS: dict[str, Any] = {
             "angle_wraparound": False,
         }
     },
+    "speed_scaling": {
+        "initial_scaling_factor": 1.0,
+        "state_interface": "",
+        "command_interface": "",
+        "ramp_time": 0.5,
+    },
 }
 
 
@@ -382,7 +388,7 @@ def test_defaults_table_matches_reference() -> None:
 def test_loaded_defaults_match_reference() -> None:
     cfg = load_config(BASE)
     for name, value in REFERENCE_DEFAULTS.items():
-        if name in ("constraints", "gains") or name in BASE:
+        if name in ("constraints", "gains", "speed_scaling") or name in BASE:
             continue
         assert getattr(cfg, name) == value, name
         assert type(getattr(cfg, name)) is type(value), name
@@ -393,6 +399,7 @@ def test_loaded_defaults_match_reference() -> None:
     for joint in cfg.joints:
         assert dataclasses.asdict(cfg.constraints.joints[joint]) == c["<joints>"]
         assert dataclasses.asdict(cfg.gains[joint]) == g
+    assert dataclasses.asdict(cfg.speed_scaling) == REFERENCE_DEFAULTS["speed_scaling"]
 
 
 def test_dataclass_defaults_match_reference() -> None:

@@ -385,3 +385,29 @@ def test_topic_path_violation_decelerates() -> None:
     assert rig.ctrl.stopping_until_ns is not None
     v, _ = run_stop(rig, 700)
     assert_ramps_to_rest(np.vstack([out.command.velocities, v]), 6.0, v_meas)
+
+
+@pytest.mark.parametrize("factor", [0.5, 0.0])
+def test_a_stop_runs_on_the_clock_whatever_the_speed_scaling(factor: float) -> None:
+    """Sections 11.3 and 13 together: a decelerating stop starts from the measured velocity
+    and decelerates at the configured rate on the clock, not in trajectory time, so neither
+    a slowed-down goal (0.5) nor a pause (0: trajectory time stands still) stretches or
+    freezes it; the factor set by the operator stays for the next command."""
+    cfg = decel_config(5.0, speed_scaling={"ramp_time": 0.0})  # the factor steps
+    rig = Rig(cfg, [0.0, 0.0])
+    goal = rig.ctrl.send_goal(rig.now, cruise_goal())
+    rig.step(1500)
+    rig.ctrl.set_speed_scaling(0.5)
+    rig.step(100)
+    v_before = rig.last.command.velocities.copy()
+    np.testing.assert_allclose(v_before, [1.5, -1.0])  # cruising at half speed
+    measured = rig.mirror.state()
+    rig.ctrl.set_speed_scaling(factor)
+    assert rig.ctrl.cancel_goal(goal)
+    v, p = run_stop(rig, 400)
+    assert_ramps_to_rest(v, 5.0, measured.velocities)
+    first_zero = int(np.flatnonzero((v == 0.0).all(axis=1))[0])
+    assert first_zero <= math.ceil(1.5 / 5.0 / T_S) + 1  # 1.5 rad/s at 5 rad/s^2: 0.3 s
+    rest = measured.positions + np.sign(measured.velocities) * measured.velocities**2 / 10.0
+    np.testing.assert_allclose(p[-1], rest, atol=1e-6)
+    assert rig.ctrl.speed_scaling_target == factor

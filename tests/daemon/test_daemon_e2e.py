@@ -68,6 +68,7 @@ STATE_KEYS = {
     "output",
     "holding",
     "active_goal",
+    "speed_scaling",
     "dropped",
     "dropped_total",
 }

@@ -133,6 +133,17 @@ class FakeBackend:
     async def rearm(self) -> bool:
         return False
 
+    async def set_speed_scaling(self, factor: float | None) -> dict[str, float]:
+        await asyncio.sleep(0)  # the real backend waits for the loop process here
+        if factor is None:
+            self.ctrl.resume_speed_scaling()
+        else:
+            self.ctrl.set_speed_scaling(factor)
+        return {
+            "factor": self.ctrl.speed_scaling_factor,
+            "target": self.ctrl.speed_scaling_target,
+        }
+
     def get_parameters(self, names: Sequence[str] | None) -> dict[str, Any]:
         return parameters_report(self.ctrl.config, names)
 
@@ -178,6 +189,10 @@ class FakeBackend:
                 "command": {"positions": sample.positions},
                 "holding": self.ctrl.holding,
                 "active_goal": self.ctrl.active_goal,
+                "speed_scaling": {
+                    "factor": self.ctrl.speed_scaling_factor,
+                    "target": self.ctrl.speed_scaling_target,
+                },
                 "pad": "p" * pad,
             }
         )

@@ -260,6 +260,16 @@ class Fuzzer:
                 }
             elif roll < 0.95:
                 fields["parameters"] = self.any_value()
+        elif op == "set_speed_scaling":
+            roll = r.random()
+            if roll < 0.6:  # mostly near full speed: keep goals finishing
+                fields["factor"] = r.choice([1.0, 1.0, 0.8, 1.5, 0.0, -0.5, 1e308, "1", None])
+            elif roll < 0.8:
+                fields["resume"] = r.choice([True, True, False, "true", 1])
+            elif roll < 0.9:
+                fields["factor"], fields["resume"] = 1.0, True
+            else:
+                fields["factor"] = self.number()
         return {"op": op, **fields}
 
     def parameter_name(self) -> Any:

@@ -1,0 +1,371 @@
+"""Speed scaling and pause (issue 12 part C) on the simulated clock.
+
+Pause at half of a goal on each command interface: the velocity ramps to 0 with no step larger
+than a period's worth of the joint's acceleration limit, the joints stay within the path
+tolerance, resume finishes the goal and exactly one result arrives. Also: upstream's time
+mapping (trajectory time advances by the period times the factor; the goal is judged in it),
+the default ramp without limits, and the parameters.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import pytest
+
+from jtc_hw import GoalStatus, JointTrajectory, JointTrajectoryController, TrajectoryPoint
+from jtc_hw.controller.limits import JointLimits
+from jtc_hw.errors import ConfigurationError
+
+from conftest import MS, Mirror, S, make_config
+
+NAMES = ("j1", "j2")
+ACCEL = {"j1": 4.0, "j2": 3.0}
+"""Acceleration limits: above what the goal itself needs at full speed (checked below)."""
+PATH_TOL = 0.05
+
+INTERFACES: dict[str, dict[str, Any]] = {
+    "position": {"command_interfaces": ("position",)},
+    "position_velocity": {"command_interfaces": ("position", "velocity")},
+    "position_velocity_acceleration": {
+        "command_interfaces": ("position", "velocity", "acceleration"),
+        "state_interfaces": ("position", "velocity", "acceleration"),
+    },
+    "velocity": {
+        "command_interfaces": ("velocity",),
+        "gains": {j: {"p": 20.0, "ff_velocity_scale": 1.0} for j in NAMES},
+    },
+    "effort": {
+        "command_interfaces": ("effort",),
+        "gains": {j: {"p": 400.0, "d": 40.0, "ff_velocity_scale": 0.0} for j in NAMES},
+    },
+}
+
+
+def goal() -> JointTrajectory:
+    return JointTrajectory(
+        NAMES,
+        [
+            TrajectoryPoint(1.0, [0.5, -0.3], [0.6, -0.3]),
+            TrajectoryPoint(2.0, [1.0, -0.5], [0.0, 0.0]),
+        ],
+    )
+
+
+def config(interfaces: str, **extra: Any) -> Any:
+    params: dict[str, Any] = {
+        "constraints": {
+            "goal_time": 1.0,
+            **{j: {"trajectory": PATH_TOL, "goal": 0.01} for j in NAMES},
+        },
+        **INTERFACES[interfaces],
+        **extra,
+    }
+    cfg = make_config(NAMES, **params)
+    import dataclasses
+
+    return dataclasses.replace(
+        cfg, limits={j: JointLimits(acceleration=a) for j, a in ACCEL.items()}
+    )
+
+
+class Run:
+    """A controller and ideal joints on the simulated clock, recording what moved."""
+
+    def __init__(self, cfg: Any) -> None:
+        self.ctrl = JointTrajectoryController(cfg)
+        self.mirror = Mirror([0.0, 0.0])
+        self.now = 10 * S
+        self.period = round(S / cfg.update_rate)
+        self.events: list[Any] = []
+        self.desired_v: list[np.ndarray] = []
+        self.actual_v: list[np.ndarray] = []
+        self.commands: list[Any] = []
+        self.states: list[Any] = []
+        self.ctrl.activate(self.now, self.mirror.state())
+
+    def step(self) -> Any:
+        out = self.ctrl.update(self.now, self.period, self.mirror.state())
+        self.events.extend(out.events)
+        self.mirror.apply(out.command, self.period / S)
+        self.desired_v.append(out.desired.velocities.copy())
+        self.actual_v.append(self.mirror.v.copy())
+        self.commands.append(out.command)
+        self.states.append(out.state)
+        self.now += self.period
+        return out
+
+    def until(self, predicate: Any, limit_s: float = 20.0) -> Any:
+        for _ in range(int(limit_s * S / self.period)):
+            out = self.step()
+            if predicate(out):
+                return out
+        raise AssertionError("condition not reached within the simulated time limit")
+
+    def results(self) -> list[Any]:
+        from jtc_hw import GoalResult
+
+        return [e for e in self.events if isinstance(e, GoalResult)]
+
+
+def max_step(values: list[np.ndarray]) -> np.ndarray:
+    return np.abs(np.diff(np.array(values), axis=0)).max(axis=0)  # type: ignore[no-any-return]
+
+
+def test_the_goal_fits_the_limits_at_full_speed() -> None:
+    """The bound asserted below is the limit: the goal alone must not need more."""
+    run = Run(config("position"))
+    run.ctrl.send_goal(run.now, goal())
+    run.until(lambda out: bool(run.results()))
+    dt = run.period / S
+    steps = max_step(run.desired_v)
+    assert (steps <= np.array([ACCEL[j] for j in NAMES]) * dt).all(), steps
+
+
+@pytest.mark.parametrize("interfaces", list(INTERFACES))
+def test_pause_at_half_ramps_to_rest_within_the_bound_and_resume_finishes(
+    interfaces: str,
+) -> None:
+    run = Run(config(interfaces))
+    gid = run.ctrl.send_goal(run.now, goal())
+    run.until(lambda out: out.state.reference_time_from_start >= 1.0)
+    start = len(run.desired_v) - 1
+    run.ctrl.set_speed_scaling(0.0)
+    run.until(lambda out: out.state.speed_scaling_factor == 0.0, limit_s=2.0)
+    ramp_end = len(run.desired_v)
+    for _ in range(50):  # stays paused
+        run.step()
+    dt = run.period / S
+    bound = np.array([ACCEL[j] for j in NAMES]) * dt
+    # The reference the joints are given ramps to rest: no step above the limit's worth of a
+    # period (2 % for the reference's own change of acceleration within one period).
+    steps = max_step(run.desired_v[start:])
+    assert (steps <= bound * 1.02 + 1e-12).all(), (steps, bound)
+    assert np.all(run.desired_v[-1] == 0.0)
+    assert ramp_end - start > 5, "the pause stepped instead of ramping"
+    if interfaces in ("position", "position_velocity", "position_velocity_acceleration"):
+        # Forwarded commands: the joints themselves move as commanded.
+        assert (max_step(run.actual_v[start:]) <= bound * 1.02 + 1e-12).all()
+        np.testing.assert_allclose(run.actual_v[-1], 0.0, atol=1e-12)
+    if interfaces == "position_velocity_acceleration":
+        # The acceleration command is the derivative of the velocity command (a s^2 + v ds/dt).
+        v = np.array([c.velocities for c in run.commands[start:ramp_end]])
+        a = np.array([c.accelerations for c in run.commands[start:ramp_end]])
+        np.testing.assert_allclose(np.diff(v, axis=0) / dt, a[:-1], atol=0.05 * max(ACCEL.values()))
+    paused_at = run.mirror.p.copy()
+    assert run.results() == [], "no result while paused"
+    errors = np.array([abs(s.error[0]) for s in run.states])
+    assert (errors <= PATH_TOL).all(), errors.max()
+    assert run.states[-1].speed_scaling_target == 0.0
+    np.testing.assert_allclose(run.mirror.p, paused_at)
+
+    assert run.ctrl.resume_speed_scaling() == 1.0
+    run.until(lambda out: bool(run.results()))
+    for _ in range(100):
+        run.step()
+    results = run.results()
+    assert len(results) == 1, results
+    assert results[0].goal_id == gid and results[0].status is GoalStatus.SUCCEEDED
+    np.testing.assert_allclose(run.mirror.p, [1.0, -0.5], atol=0.01)
+    steps = max_step(run.desired_v[start:])
+    assert (steps <= bound * 1.02 + 1e-12).all(), (steps, bound)
+
+
+def test_trajectory_time_advances_by_the_period_times_the_factor() -> None:
+    """Upstream section 13: at factor 0.5 a 2 s goal takes 4 s; goal time is judged in
+    trajectory time, so it succeeds rather than running late."""
+    cfg = config("position", speed_scaling={"initial_scaling_factor": 0.5})
+    run = Run(cfg)
+    begin = run.now
+    run.ctrl.send_goal(run.now, goal())
+    run.until(lambda out: bool(run.results()))
+    took = (run.now - begin) / S
+    assert 3.9 <= took <= 4.02, took
+    assert run.results()[0].status is GoalStatus.SUCCEEDED
+    state = run.states[-1]
+    assert state.speed_scaling_factor == 0.5
+    # desired.tfs ~ actual.tfs x factor (upstream's feedback)
+    assert state.reference_time_from_start == pytest.approx(
+        state.feedback_time_from_start * 0.5, abs=0.02
+    )
+    assert run.ctrl.trajectory_time_ns < run.now
+
+
+def test_velocity_and_acceleration_are_those_of_the_slowed_time() -> None:
+    cfg = config("position_velocity_acceleration", speed_scaling={"initial_scaling_factor": 0.5})
+    slow = Run(cfg)
+    full = Run(config("position_velocity_acceleration"))
+    for run in (slow, full):
+        run.ctrl.send_goal(run.now, goal())
+    # The command samples one unscaled period ahead (upstream section 7): after 80 periods at
+    # 0.5 and 40 at 1 both are at trajectory time 0.4 s and command the reference at 0.41 s.
+    for _ in range(81):
+        slow.step()
+    for _ in range(41):
+        full.step()
+    # Same place on the path; velocity halved, acceleration quartered.
+    np.testing.assert_allclose(slow.commands[-1].positions, full.commands[-1].positions,
+                               atol=1e-9)
+    np.testing.assert_allclose(slow.commands[-1].velocities, full.commands[-1].velocities * 0.5,
+                               atol=1e-9)
+    np.testing.assert_allclose(slow.commands[-1].accelerations,
+                               full.commands[-1].accelerations * 0.25, atol=1e-9)
+
+
+def test_without_limits_the_factor_ramps_over_the_ramp_time() -> None:
+    cfg = make_config(NAMES, speed_scaling={"ramp_time": 0.2})  # 100 Hz: 20 cycles from 1 to 0
+    run = Run(cfg)
+    run.ctrl.send_goal(run.now, goal())
+    run.until(lambda out: out.state.reference_time_from_start >= 0.5)
+    run.ctrl.set_speed_scaling(0.0)
+    # The rate is chosen in a cycle for the period that follows: the factor moves from the next.
+    factors = [run.step().state.speed_scaling_factor for _ in range(25)]
+    assert factors[0] == 1.0
+    assert factors[1] == pytest.approx(0.95)
+    assert np.all(np.diff(factors) <= 0.0)
+    assert factors.index(0.0) == 20
+    np.testing.assert_allclose(np.diff(factors[:21]), -0.05)
+
+
+def test_ramp_time_zero_steps_as_upstream() -> None:
+    run = Run(make_config(NAMES, speed_scaling={"ramp_time": 0.0}))
+    run.ctrl.set_speed_scaling(0.3)
+    run.step()
+    assert run.step().state.speed_scaling_factor == 0.3
+
+
+def test_a_goal_sent_while_paused_waits_for_resume() -> None:
+    run = Run(config("position"))
+    run.ctrl.set_speed_scaling(0.0)
+    run.step()
+    gid = run.ctrl.send_goal(run.now, goal())
+    run.step()
+    # The position command leads by one unscaled period (upstream section 7), even paused: the
+    # joints take that one period's step into the goal and stay there.
+    first = run.mirror.p.copy()
+    assert np.abs(first).max() < 1e-3
+    for _ in range(100):
+        run.step()
+    np.testing.assert_allclose(run.mirror.p, first)
+    assert run.results() == []
+    run.ctrl.set_speed_scaling(2.0)  # above 1: faster than planned (upstream accepts it)
+    run.until(lambda out: bool(run.results()))
+    assert [r.goal_id for r in run.results()] == [gid]
+    assert run.results()[0].status is GoalStatus.SUCCEEDED
+
+
+def test_a_stamped_goal_starts_at_its_stamp_while_slowed() -> None:
+    """As upstream (section 14.1): the stamp's distance from now is scaled by the factor."""
+    run = Run(config("position", speed_scaling={"initial_scaling_factor": 0.5}))
+    for _ in range(101):  # 100 periods at 0.5: trajectory time lags the clock by 0.5 s
+        run.step()
+    assert run.now - run.period - run.ctrl.trajectory_time_ns == 500 * MS
+    traj = goal()
+    stamped = JointTrajectory(traj.joint_names, traj.points, run.now + 200 * MS)
+    run.ctrl.send_goal(run.now, stamped)
+    for _ in range(19):  # up to the stamp (the command leads by a period): nothing moves
+        run.step()
+    np.testing.assert_allclose(run.mirror.p, [0.0, 0.0])
+    for _ in range(3):
+        run.step()
+    assert np.abs(run.mirror.p).max() > 0.0
+    run.until(lambda out: bool(run.results()))
+    assert run.results()[0].status is GoalStatus.SUCCEEDED
+
+
+@pytest.mark.parametrize("bad", [-0.1, float("nan"), float("inf"), True, "1"])
+def test_a_bad_factor_is_refused_by_name(bad: Any) -> None:
+    run = Run(make_config(NAMES))
+    with pytest.raises(ConfigurationError, match="finite number >= 0"):
+        run.ctrl.set_speed_scaling(bad)
+    assert run.ctrl.speed_scaling_target == 1.0
+
+
+def test_resume_goes_back_to_the_factor_before_the_pause() -> None:
+    run = Run(make_config(NAMES))
+    run.ctrl.set_speed_scaling(0.4)
+    run.ctrl.set_speed_scaling(0.0)
+    assert run.ctrl.resume_speed_scaling() == 0.4
+    run.ctrl.set_speed_scaling(0.0)
+    assert run.ctrl.resume_speed_scaling() == 0.4
+    paused = JointTrajectoryController(
+        make_config(NAMES, speed_scaling={"initial_scaling_factor": 0.0})
+    )
+    assert paused.resume_speed_scaling() == 1.0
+
+
+def test_activation_resets_the_factor_to_the_initial_one() -> None:
+    run = Run(make_config(NAMES, speed_scaling={"initial_scaling_factor": 0.7}))
+    run.ctrl.set_speed_scaling(0.2)
+    run.step()
+    run.ctrl.deactivate(run.now)
+    run.ctrl.activate(run.now, run.mirror.state())
+    assert (run.ctrl.speed_scaling_factor, run.ctrl.speed_scaling_target) == (0.7, 0.7)
+
+
+def test_a_new_target_mid_ramp_turns_the_ramp_without_a_jump() -> None:
+    run = Run(make_config(NAMES, speed_scaling={"ramp_time": 0.2}))
+    run.ctrl.set_speed_scaling(0.0)
+    factors = [run.step().state.speed_scaling_factor for _ in range(6)]
+    run.ctrl.set_speed_scaling(0.9)
+    factors += [run.step().state.speed_scaling_factor for _ in range(20)]
+    steps = np.diff(factors)
+    assert np.abs(steps).max() <= 0.05 + 1e-12, steps
+    assert min(factors) == pytest.approx(0.7)  # the period already under way ends at 0.7
+    assert factors[-1] == 0.9
+
+
+def test_a_reactivation_after_slowing_commands_at_once() -> None:
+    """Trajectory time lags the clock after a slowed stretch and stays continuous across
+    activations: the new hold starts at trajectory time, so the first cycle commands."""
+    run = Run(config("position"))
+    run.ctrl.send_goal(run.now, goal())
+    run.ctrl.set_speed_scaling(0.2)
+    for _ in range(100):
+        run.step()
+    assert run.ctrl.trajectory_time_ns < run.now - 500 * MS
+    run.ctrl.deactivate(run.now)
+    run.ctrl.activate(run.now, run.mirror.state())
+    held = run.mirror.p.copy()
+    out = run.step()
+    np.testing.assert_array_equal(out.command.positions, held)
+    assert out.state.speed_scaling_factor == 1.0
+    gid = run.ctrl.send_goal(run.now, goal())
+    run.until(lambda out: bool([r for r in run.results() if r.goal_id == gid]))
+    assert run.results()[-1].status is GoalStatus.SUCCEEDED
+
+
+def test_the_parameters_are_checked_and_named() -> None:
+    for bad, message in [
+        ({"state_interface": "arm/speed_scaling"}, "speed_scaling.state_interface: 'arm/"),
+        ({"command_interface": "x"}, "the daemon has no named interfaces"),
+        ({"initial_scaling_factor": -0.5}, "speed_scaling.initial_scaling_factor: must be >= 0"),
+        ({"ramp_time": -1}, "speed_scaling.ramp_time: must be >= 0"),
+        ({"ramp": 1}, "did you mean 'ramp_time'"),
+    ]:
+        with pytest.raises(ConfigurationError, match=message):
+            make_config(NAMES, speed_scaling=bad)
+
+
+def test_upstreams_parameters_are_read_only_and_the_ramp_time_changes_next_cycle() -> None:
+    run = Run(make_config(NAMES, speed_scaling={"ramp_time": 0.2}))
+    assert run.ctrl.get_parameters(["speed_scaling.initial_scaling_factor"]) == {
+        "speed_scaling.initial_scaling_factor": 1.0
+    }
+    for name in ("initial_scaling_factor", "state_interface", "command_interface"):
+        with pytest.raises(ConfigurationError, match="read-only"):
+            run.ctrl.set_parameters({f"speed_scaling.{name}": 0.5})
+    change = run.ctrl.set_parameters({"speed_scaling.ramp_time": 1.0})
+    assert change.effects["speed_scaling.ramp_time"].value == "next cycle"
+    run.ctrl.set_speed_scaling(0.0)
+    run.step()
+    assert run.step().state.speed_scaling_factor == pytest.approx(0.99)  # 1 / 1.0 s at 100 Hz
+
+
+def test_check_warns_when_the_controller_starts_paused() -> None:
+    from jtc_hw.controller.config_io import explain
+
+    assert not [w for w in explain(make_config(NAMES)) if "speed_scaling" in w]
+    warnings = explain(make_config(NAMES, speed_scaling={"initial_scaling_factor": 0.0}))
+    assert [w for w in warnings if w.startswith("speed_scaling.initial_scaling_factor: is 0")]

@@ -1,0 +1,85 @@
+"""Speed scaling through the real daemon on simulated joints (issue 12 part C): goals planned
+by the API process while the loop's trajectory time lags the clock, is paused, or ramps."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+
+import pytest
+from helpers.daemon import (
+    GOAL_TOL,
+    WAIT_S,
+    DaemonProcess,
+    connect,
+    next_state,
+    settle,
+    traj,
+)
+
+pytestmark = pytest.mark.usefixtures("no_leaks")  # threads, sockets, resources
+
+
+@pytest.fixture(scope="module")
+def daemon(tmp_path_factory: pytest.TempPathFactory) -> Iterator[DaemonProcess]:
+    d = DaemonProcess(tmp_path_factory.mktemp("scaling"))
+    d.start()
+    try:
+        d.wait_ready()
+        yield d
+    finally:
+        code = d.shutdown()
+    assert code == 0, f"the daemon exited with {code}:\n{d.log()}"
+
+
+def test_a_goal_sent_while_paused_waits_then_resume_completes_it(daemon: DaemonProcess) -> None:
+    with connect(daemon) as client, client.subscribe_state() as sub:
+        p0 = next_state(sub, lambda s: s["active_goal"] is None)["actual"]["positions"]
+        assert client.set_speed_scaling(0.0)["target"] == 0.0
+        paused = next_state(sub, lambda s: s["speed_scaling"]["factor"] == 0.0)
+        target = [p + 0.2 for p in p0]
+        handle = client.send_goal(traj(target, 1.0))
+        accepted = next_state(sub, lambda s: s["active_goal"] == handle.goal_id)
+        # 0.5 s of the daemon's clock paused: the joints stay (but for the one period the
+        # command leads by), no result, trajectory time does not move.
+        later = settle(sub, accepted["time_ns"] + 500_000_000)
+        assert later["actual"]["positions"] == pytest.approx(p0, abs=0.01)
+        assert later["desired"]["time_from_start"] == pytest.approx(
+            accepted["desired"]["time_from_start"], abs=1e-9
+        )
+        assert client.received("result") == []
+        # The status (2 Hz) published since the pause, well over 0.5 s ago, has it too.
+        assert client.get_status()["controller"]["speed_scaling"] == {
+            "factor": 0.0, "target": 0.0
+        }
+        assert paused["speed_scaling"]["target"] == 0.0
+        assert client.set_speed_scaling(resume=True)["target"] == 1.0
+        result = handle.wait(timeout_s=WAIT_S)
+        assert result["status"] == "succeeded", (result, daemon.log())
+        state = settle(sub, result["time_ns"] + 50_000_000)
+        assert state["actual"]["positions"] == pytest.approx(target, abs=GOAL_TOL)
+        assert len(client.received("result")) == 1
+
+
+def test_goals_planned_while_the_factor_ramps_and_lags_are_committed(
+    daemon: DaemonProcess,
+) -> None:
+    """The API process plans in trajectory time from the loop's state: goals sent at once
+    after each change of factor are accepted (no stale-plan refusals), replace each other as
+    usual and the last one succeeds."""
+    with connect(daemon) as client, client.subscribe_state() as sub:
+        p0 = next_state(sub, lambda s: s["active_goal"] is None)["actual"]["positions"]
+        handles = []
+        for k, factor in enumerate([0.3, 1.7, 0.6, 1.0]):
+            client.set_speed_scaling(factor)
+            handles.append(client.send_goal(traj([p + 0.05 * (k + 1) for p in p0], 0.4)))
+        results = [h.wait(timeout_s=WAIT_S) for h in handles]
+        assert [r["status"] for r in results] == ["canceled"] * 3 + ["succeeded"], results
+        state = settle(sub, results[-1]["time_ns"] + 50_000_000)
+        assert state["speed_scaling"] == {"factor": 1.0, "target": 1.0}
+        assert state["actual"]["positions"] == pytest.approx(
+            [p + 0.2 for p in p0], abs=GOAL_TOL
+        )
+        # The time lost while slowed stays lost: trajectory time lags the clock, and a goal
+        # planned now is still committed without a step and finishes.
+        handle = client.send_goal(traj(p0, 0.4))
+        assert handle.wait(timeout_s=WAIT_S)["status"] == "succeeded"

@@ -83,7 +83,11 @@ def measure(joints: int, kind: str, repeat: int) -> dict[str, Any]:
         ctrl = controller(joints, kind)
         now = 1_000_000_000
         ctrl.activate(now, JointState(np.zeros(joints), np.zeros(joints)))
-        goal = ctrl.send_goal(now, cruise(joints))
+        # The jerk limit that shapes the stop also bounds the goal (issue 12 part A): slowed
+        # to fit it, the goal is still cruising when the stop comes.
+        goal = ctrl.send_goal(
+            now, cruise(joints), time_scaling="fit" if kind == "jerk" else None
+        )
         previous = np.zeros(joints)
         state = JointState(np.zeros(joints), np.zeros(joints))
         for _ in range(600):  # cruising at 0.6 s

@@ -392,6 +392,15 @@ def cmd_send(args: argparse.Namespace) -> int:
     end = last.get("time_from_start") if isinstance(last, dict) else None
     # A malformed file is for the daemon to name precisely; this is only the progress bar's end.
     total = float(end) if isinstance(end, (int, float)) and not isinstance(end, bool) else 0.0
+    goal_time_tolerance = goal.get("goal_time_tolerance", 0.0)
+    if not isinstance(goal_time_tolerance, (int, float)) or isinstance(
+        goal_time_tolerance, bool
+    ):
+        raise ConfigurationError(
+            f"goal_time_tolerance: expected seconds (a number) or {{sec, nanosec}}, got "
+            f"{goal_time_tolerance!r}",
+            args.file,
+        )
     with _connect(args) as client:
         if args.topic:
             sent = client.send_trajectory(
@@ -403,15 +412,6 @@ def cmd_send(args: argparse.Namespace) -> int:
                 f"{_slowed(sent.get('time_scale'))}), not monitored"
             )
             return EXIT_OK
-        goal_time_tolerance = goal.get("goal_time_tolerance", 0.0)
-        if not isinstance(goal_time_tolerance, (int, float)) or isinstance(
-            goal_time_tolerance, bool
-        ):
-            raise ConfigurationError(
-                f"goal_time_tolerance: expected seconds (a number) or {{sec, nanosec}}, got "
-                f"{goal_time_tolerance!r}",
-                args.file,
-            )
         handle = client.send_goal(
             trajectory,
             goal.get("path_tolerance", ()),

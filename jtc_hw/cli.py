@@ -975,7 +975,8 @@ def build_parser() -> argparse.ArgumentParser:
         help="cancel the executing goal",
         description=(
             "Cancel a goal (by default the executing one): it ends canceled and the "
-            "controller holds where the joints are. Exits 1 when that goal is not executing."
+            "controller holds where the joints are. A goal id the daemon does not know as "
+            "executing is refused (exit 2)."
         ),
     )
     p.add_argument("goal_id", nargs="?", type=int, help="default: the executing goal")

@@ -185,8 +185,10 @@ def _connect(args: argparse.Namespace, hello: bool = True) -> Any:
     except ClientConnectionError as exc:
         if exc.code == UNTRUSTED:
             raise _NoDaemon(str(exc)) from exc
+        # The client's message ends with its own "is the daemon running?": say it once.
+        reason = str(exc).removesuffix("; is the daemon running?")
         raise _NoDaemon(
-            f"cannot reach a jtc-hw daemon at {path}: {exc}. Is it running "
+            f"cannot reach a jtc-hw daemon at {path}: {reason}. Is it running "
             "('jtc-hw run CONFIG', or 'systemctl status jtc-hw')? Use --socket to point at it."
         ) from exc
     except (OSError, JtcHwError) as exc:

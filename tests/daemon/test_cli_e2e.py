@@ -88,6 +88,7 @@ def test_exit_codes_say_who_answered(demo: DaemonProcess, tmp_path: Path) -> Non
     # Nobody at the socket: 3, and only then.
     nobody = jtc_hw("state", "--socket", str(tmp_path / "nobody.sock"))
     assert nobody.returncode == 3 and "cannot reach a jtc-hw daemon" in nobody.stderr
+    assert nobody.stderr.count("running") == 1 and "Traceback" not in nobody.stderr
 
 
 def test_state_header_shows_wall_time_and_json_streams_ndjson(demo: DaemonProcess) -> None:

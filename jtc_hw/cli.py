@@ -1,7 +1,8 @@
 """``jtc-hw``: run the daemon, check a configuration, and talk to a running daemon.
 
 Exit status: 0 success; 1 a goal ended without success (aborted, canceled); 2 bad input
-(configuration, trajectory file, rejected goal); 3 no daemon to talk to or it failed.
+(configuration, trajectory file) or the daemon answered and refused (rejected goal, bad
+request, not active); 3 only when no daemon answers (none running, refused socket, no reply).
 """
 
 from __future__ import annotations
@@ -26,6 +27,26 @@ import yaml
 from .errors import ConfigurationError, GoalRejected, JtcHwError
 
 EXIT_OK, EXIT_GOAL_FAILED, EXIT_BAD_INPUT, EXIT_NO_DAEMON = 0, 1, 2, 3
+
+EXIT_CODES_HELP = (
+    "Exit status: 0 success; 1 the goal aborted or was canceled; 2 bad input, or the daemon "
+    "answered and refused the request (rejected goal, bad request); 3 no daemon answers."
+)
+"""The exit statuses of client commands, in every such command's ``--help``."""
+
+_EXIT_HELP = {
+    "run": (
+        "Exit status: 0 stopped cleanly (SIGTERM/SIGINT); 1 the daemon failed while running "
+        "(see its log); 2 it could not start (bad configuration, socket or device in use)."
+    ),
+    "check": "Exit status: 0 the configuration is valid; 2 it is not (the error names the key).",
+    "demo": (
+        "Exit status: 0 the goal succeeded; 1 it aborted or was canceled; 2 bad configuration; "
+        "3 the daemon or emulator did not start or stopped with an error."
+    ),
+    "emulate": "Exit status: 0 stopped by Ctrl-C/SIGTERM; 2 bad emulator options.",
+}
+"""Exit statuses of the commands that are not clients of a running daemon."""
 
 DESCRIPTION = """\
 Drive robot joints with ROS 2 joint_trajectory_controller semantics, without ROS.
@@ -58,7 +79,10 @@ def load_goal_file(path: str) -> dict[str, Any]:
     """Read a trajectory from YAML, JSON or CSV into the protocol's goal form.
 
     YAML/JSON: either a trajectory (``joint_names``, ``points``) or a goal wrapping one
-    (``trajectory``, optional ``path_tolerance``, ``goal_tolerance``, ``goal_time_tolerance``).
+    (``trajectory``, optional ``path_tolerance``, ``goal_tolerance``, ``goal_time_tolerance``),
+    in the protocol's form or as ROS 2 prints them (``ros2 topic echo`` of a JointTrajectory,
+    a FollowJointTrajectory goal: ``header``, ``{sec, nanosec}`` durations; see
+    :mod:`jtc_hw.api.goal_files`).
     CSV: a header ``time_from_start,<joint>,...`` (positions); columns may also be named
     ``<joint>.position``, ``<joint>.velocity``, ``<joint>.acceleration``, ``<joint>.effort``.
 
@@ -78,14 +102,16 @@ def load_goal_file(path: str) -> dict[str, Any]:
         except ValueError as exc:
             raise ConfigurationError(f"not valid JSON: {exc}", path) from exc
     else:
+        from .api.goal_files import split_documents
         from .controller.parsing import load_yaml
 
-        data = load_yaml(text, path)  # strict, alias expansion bounded
+        # ros2 topic echo ends each message with '---'.
+        data = load_yaml(split_documents(text, path), path)  # strict, alias expansion bounded
     if not isinstance(data, dict):
         raise ConfigurationError("expected a mapping with joint_names and points", path)
-    if "trajectory" in data:
-        return data
-    return {"trajectory": data}
+    from .api.goal_files import ros_goal
+
+    return ros_goal(data, path)
 
 
 _FIELDS = {
@@ -159,8 +185,10 @@ def _connect(args: argparse.Namespace, hello: bool = True) -> Any:
     except ClientConnectionError as exc:
         if exc.code == UNTRUSTED:
             raise _NoDaemon(str(exc)) from exc
+        # The client's message ends with its own "is the daemon running?": say it once.
+        reason = str(exc).removesuffix("; is the daemon running?")
         raise _NoDaemon(
-            f"cannot reach a jtc-hw daemon at {path}: {exc}. Is it running "
+            f"cannot reach a jtc-hw daemon at {path}: {reason}. Is it running "
             "('jtc-hw run CONFIG', or 'systemctl status jtc-hw')? Use --socket to point at it."
         ) from exc
     except (OSError, JtcHwError) as exc:
@@ -361,8 +389,20 @@ def _goal_result(handle: Any, total_s: float, quiet: bool, timeout_s: float) -> 
 def cmd_send(args: argparse.Namespace) -> int:
     goal = load_goal_file(args.file)
     trajectory = goal["trajectory"]
-    points = trajectory.get("points") or []
-    total = float(points[-1].get("time_from_start", 0.0)) if points else 0.0
+    points = (trajectory.get("points") if isinstance(trajectory, dict) else None) or []
+    last = points[-1] if isinstance(points, list) and points else {}
+    end = last.get("time_from_start") if isinstance(last, dict) else None
+    # A malformed file is for the daemon to name precisely; this is only the progress bar's end.
+    total = float(end) if isinstance(end, (int, float)) and not isinstance(end, bool) else 0.0
+    goal_time_tolerance = goal.get("goal_time_tolerance", 0.0)
+    if not isinstance(goal_time_tolerance, (int, float)) or isinstance(
+        goal_time_tolerance, bool
+    ):
+        raise ConfigurationError(
+            f"goal_time_tolerance: expected seconds (a number) or {{sec, nanosec}}, got "
+            f"{goal_time_tolerance!r}",
+            args.file,
+        )
     with _connect(args) as client:
         if args.topic:
             sent = client.send_trajectory(
@@ -378,7 +418,7 @@ def cmd_send(args: argparse.Namespace) -> int:
             trajectory,
             goal.get("path_tolerance", ()),
             goal.get("goal_tolerance", ()),
-            float(goal.get("goal_time_tolerance", 0.0)),
+            float(goal_time_tolerance),
             start_in=args.start_in,
             time_scaling=args.time_scaling,
         )
@@ -410,50 +450,6 @@ def cmd_cancel(args: argparse.Namespace) -> int:
         canceled = reply.get("canceled", reply.get("ok"))
         print(f"goal {goal_id}: {'cancel requested' if canceled else 'not executing'}")
         return EXIT_OK if canceled else EXIT_GOAL_FAILED
-
-
-def _print_state(state: dict[str, Any], header: bool) -> None:
-    names = state["joint_names"]
-    if header:
-        print(f"{'joint':<14} {'desired':>9} {'actual':>9} {'error':>9} {'velocity':>9}")
-    d, a, e = state["desired"], state["actual"], state["error"]
-    for i, name in enumerate(names):
-        vel = (a.get("velocities") or [None] * len(names))[i]
-        print(
-            f"{name:<14} {_fmt([d['positions'][i]])} {_fmt([a['positions'][i]])} "
-            f"{_fmt([e['positions'][i]])} {_fmt([vel])}"
-        )
-    goal = state.get("active_goal")
-    dropped = state.get("dropped") or 0
-    line = f"t={state['time_ns'] / 1e9:.3f} s  {'holding' if state['holding'] else 'moving'}"
-    if goal is not None:
-        line += f"  goal {goal}"
-    scaling = state.get("speed_scaling")
-    if scaling and (scaling["factor"] != 1.0 or scaling["target"] != 1.0):
-        ramp = "" if scaling["factor"] == scaling["target"] else f" -> {scaling['target']:g}"
-        line += f"  speed {scaling['factor']:.3g}{ramp}"
-    if dropped:
-        line += f"  ({dropped} state messages dropped: this terminal is slower than the rate)"
-    print(line)
-
-
-def cmd_state(args: argparse.Namespace) -> int:
-    with _connect(args) as client:
-        subscription = client.subscribe_state()
-        try:
-            first = True
-            while True:
-                state = subscription.get(timeout_s=args.timeout)
-                if args.watch and not first and sys.stdout.isatty():
-                    sys.stdout.write(f"\x1b[{len(state['joint_names']) + 2}A")
-                _print_state(state, header=True)
-                first = False
-                if not args.watch:
-                    return EXIT_OK
-        except KeyboardInterrupt:
-            return EXIT_OK
-        finally:
-            subscription.close()
 
 
 def cmd_query(args: argparse.Namespace) -> int:
@@ -608,12 +604,6 @@ def cmd_emulate(args: argparse.Namespace) -> int:
     if rest[:1] == ["--"]:
         rest = rest[1:]
     return int(module.main(rest))
-
-
-def cmd_status(args: argparse.Namespace) -> int:
-    with _connect(args) as client:
-        print(json.dumps(client.get_status(), indent=2, default=str))
-        return EXIT_OK
 
 
 # -- demo -------------------------------------------------------------------------------------
@@ -857,6 +847,15 @@ def build_parser() -> argparse.ArgumentParser:
         description=DESCRIPTION,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
+    from . import __version__
+
+    parser.add_argument("--version", action="version", version=f"jtc-hw {__version__}")
+    parser.add_argument(
+        "-v",
+        "--verbose",
+        action="store_true",
+        help="keep the INFO logs of third-party libraries (canopen, python-can)",
+    )
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
 
     def client_options(p: argparse.ArgumentParser) -> None:
@@ -890,8 +889,8 @@ def build_parser() -> argparse.ArgumentParser:
             "daemon settings), print what it will do, and warn about settings that have no effect."
         ),
     )
-    p.add_argument("config_file", metavar="CONFIG")
-    p.add_argument("--controller")
+    p.add_argument("config_file", metavar="CONFIG", help="robot configuration (YAML)")
+    p.add_argument("--controller", help="controller section to use if the file has several")
     p.set_defaults(func=cmd_check)
 
     p = sub.add_parser(
@@ -915,7 +914,12 @@ def build_parser() -> argparse.ArgumentParser:
             "socketcand interface"
         ),
     )
-    p.add_argument("--timeout", type=float, default=30.0)
+    p.add_argument(
+        "--timeout",
+        type=float,
+        default=30.0,
+        help="seconds to wait for the daemon (and emulator) to start and answer (default 30)",
+    )
     p.set_defaults(func=cmd_demo)
 
     p = sub.add_parser(
@@ -925,11 +929,20 @@ def build_parser() -> argparse.ArgumentParser:
             "Send a trajectory (YAML, JSON or CSV) to the daemon as a follow_joint_trajectory "
             "goal, "
             "show a progress bar (time along the trajectory, tracking error) and exit with the "
-            "result: 0 succeeded, 1 aborted/canceled, 2 rejected. Ctrl-C cancels the goal. "
-            "CSV: header 'time_from_start,<joint>,...' (positions) or '<joint>.velocity' etc."
+            "result. Ctrl-C cancels the goal. "
+            "CSV: header 'time_from_start,<joint>,...' (positions) or '<joint>.velocity' etc. "
+            "YAML/JSON: the protocol's form (seconds as numbers), what 'ros2 topic echo' prints "
+            "for a trajectory_msgs/msg/JointTrajectory (header, time_from_start: {sec, "
+            "nanosec}), or a control_msgs FollowJointTrajectory goal (trajectory, "
+            "path_tolerance, goal_tolerance, goal_time_tolerance: {sec, nanosec})."
         ),
     )
-    p.add_argument("file", metavar="FILE")
+    p.add_argument(
+        "file",
+        metavar="FILE",
+        help="the trajectory or goal: YAML/JSON (also as 'ros2 topic echo' prints a "
+        "JointTrajectory, or a FollowJointTrajectory goal) or CSV; see examples/",
+    )
     p.add_argument(
         "--topic",
         action="store_true",
@@ -959,18 +972,49 @@ def build_parser() -> argparse.ArgumentParser:
     client_options(p)
     p.set_defaults(func=cmd_send)
 
-    p = sub.add_parser("cancel", help="cancel the executing goal")
+    p = sub.add_parser(
+        "cancel",
+        help="cancel the executing goal",
+        description=(
+            "Cancel a goal (by default the executing one): it ends canceled and the "
+            "controller holds where the joints are. A goal id the daemon does not know as "
+            "executing is refused (exit 2)."
+        ),
+    )
     p.add_argument("goal_id", nargs="?", type=int, help="default: the executing goal")
     client_options(p)
     p.set_defaults(func=cmd_cancel)
 
-    p = sub.add_parser("state", help="print the controller state (once, or --watch)")
+    from .cli_state import cmd_state, cmd_status
+
+    p = sub.add_parser(
+        "state",
+        help="print the controller state (once, or --watch)",
+        description=(
+            "Print the controller state: per joint desired, actual and error positions and "
+            "the velocity; the header shows this machine's wall time. During a hardware fault "
+            "(no state is published) it shows the fault and the held position instead. "
+            f"{EXIT_CODES_HELP}"
+        ),
+    )
     p.add_argument("--watch", action="store_true", help="keep printing at state_publish_rate")
+    p.add_argument(
+        "--json",
+        action="store_true",
+        help="print the daemon's state messages as NDJSON (one JSON object per line)",
+    )
     client_options(p)
     p.set_defaults(func=cmd_state)
 
-    p = sub.add_parser("query", help="desired state T seconds from now (query_state)")
-    p.add_argument("t", type=float, metavar="T")
+    p = sub.add_parser(
+        "query",
+        help="desired state T seconds from now (query_state)",
+        description=(
+            "Ask the controller for the desired state T seconds from now, as upstream's "
+            "query_state service: positions, velocities, accelerations, effort per joint."
+        ),
+    )
+    p.add_argument("t", type=float, metavar="T", help="seconds from now")
     client_options(p)
     p.set_defaults(func=cmd_query)
 
@@ -1096,16 +1140,34 @@ Exit status: 0 done; 2 unknown or read-only parameter, or a bad value; 3 no daem
     p.add_argument("args", nargs=argparse.REMAINDER, help="the emulator's options (see its --help)")
     p.set_defaults(func=cmd_emulate)
 
-    p = sub.add_parser("status", help="loop statistics, hardware and controller status (JSON)")
+    p = sub.add_parser(
+        "status",
+        help="loop statistics, hardware and controller status",
+        description=(
+            "Show the daemon's status as a table: controller (and any fault), loop timing, "
+            f"hardware components, clients. {EXIT_CODES_HELP}"
+        ),
+    )
+    p.add_argument("--json", action="store_true", help="print the daemon's full reply as JSON")
     client_options(p)
     p.set_defaults(func=cmd_status)
+    for name, command in sub.choices.items():
+        # Every subcommand's --help states its exit statuses (unless its description does).
+        if "Exit status" not in (command.description or ""):
+            command.epilog = _EXIT_HELP.get(name, EXIT_CODES_HELP)
     return parser
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of ``jtc-hw``."""
+    from .api.framing import RequestError
+
     parser = build_parser()
     args, extra = parser.parse_known_args(argv)
+    if args.verbose:
+        from .daemon.logs import VERBOSE_ENV
+
+        os.environ[VERBOSE_ENV] = "1"  # inherited by the daemon and emulators we start
     if extra and args.func is cmd_param and not any(e.startswith("--") for e in extra):
         args.items.extend(extra)  # argparse ends a positional list at the first option
     elif extra:
@@ -1122,7 +1184,18 @@ def main(argv: Sequence[str] | None = None) -> int:
     except _NoDaemon as exc:
         print(f"error: {exc}", file=sys.stderr)
         return EXIT_NO_DAEMON
-    except JtcHwError as exc:
+    except RequestError as exc:
+        # The daemon answered and refused the request (bad request, not active, busy...).
+        print(f"error: {exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except BrokenPipeError:
+        # The reader went away (jtc-hw state | head): not an error. Point stdout at
+        # /dev/null so the interpreter's final flush does not raise again.
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        return EXIT_OK
+    except (JtcHwError, TimeoutError) as exc:
+        # Connection lost, or no reply in time: no daemon answers.
         print(f"error: {exc}", file=sys.stderr)
         return EXIT_NO_DAEMON
     except KeyboardInterrupt:

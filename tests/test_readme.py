@@ -44,3 +44,5 @@ def test_demo_on_emulated_motors(hardware: str) -> None:
     assert "goal 1 succeeded (error_code 0)" in done.stdout
     assert "daemon stopped (SIGTERM), exit status 0" in done.stdout
     assert f"on {hardware}" in done.stderr and "stopped cleanly" in done.stderr
+    # Third-party loggers at WARNING unless -v: canopen logged ~200 INFO lines per demo.
+    assert "INFO canopen" not in done.stderr and "INFO can." not in done.stderr

@@ -620,6 +620,9 @@ def loop_main(source: str | dict[str, Any], controller_name: str | None, conn: C
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     for name, level in QUIET_LOGGERS.items():
         logging.getLogger(name).setLevel(level)
+    from .logs import quiet_third_party_loggers
+
+    quiet_third_party_loggers()  # canopen's INFO lines unless jtc-hw -v
     # Any thread would take the interpreter lock whenever the loop thread releases it (in any
     # system call) and keep it for up to the switch interval, 5 ms by default: measured, a
     # receiving thread made a 1 kHz loop skip deadlines under client load. There is none now

@@ -55,6 +55,9 @@ def setup_logging(level: str = "info", stream: Any = None) -> None:
     root = logging.getLogger()
     root.handlers[:] = [handler]
     root.setLevel(getattr(logging, level.upper(), logging.INFO))
+    from .logs import quiet_third_party_loggers
+
+    quiet_third_party_loggers()  # canopen's INFO lines unless jtc-hw -v
 
 
 class Daemon:

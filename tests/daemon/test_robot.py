@@ -82,7 +82,8 @@ def test_example_config_loads_and_runs(runtime_dir: Path) -> None:
     assert (spec.name, spec.kind, spec.joints, spec.path) == ("arm", "mirror", c.joints,
                                                               "hardware[0]")
     assert dict(spec.params) == {"lag_s": 0.0}
-    assert cfg.daemon == DaemonSettings(socket=str(runtime_dir / "jtc-hw.sock"))
+    # Its own socket (each example config has one), not the default in runtime_dir.
+    assert cfg.daemon == DaemonSettings(socket="/tmp/jtc-hw-mirror-arm.sock")
     hardware = create_hardware_set(cfg)
     hardware.configure()
     hardware.activate(0)

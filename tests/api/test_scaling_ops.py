@@ -112,7 +112,7 @@ def test_cli_help_explains(command: str, capsys: pytest.CaptureFixture[str]) -> 
 
 
 def test_jtc_hw_state_shows_a_factor_other_than_1(capsys: pytest.CaptureFixture[str]) -> None:
-    from jtc_hw.cli import _print_state
+    from jtc_hw.cli_state import print_state as _print_state
 
     state = {
         "time_ns": 12_000_000_000,

@@ -72,7 +72,7 @@ def test_a_command_in_rows_and_in_columns_gives_the_same_trajectory_message() ->
         TrajectoryPoint(0.5, [0.0, 1.0]),
         TrajectoryPoint(1.0, [1.0, float("nan")], [0.0, 0.0]),
     ], start_time_ns=0)
-    columns = JointTrajectory(["a", "b"], PointColumns(  # type: ignore[arg-type]
+    columns = JointTrajectory(["a", "b"], PointColumns(
         [500_000_000, 1_000_000_000],
         positions=np.array([[0.0, 1.0], [1.0, np.nan]]),
         velocities=np.array([[0.0, 0.0], [0.0, 0.0]]),

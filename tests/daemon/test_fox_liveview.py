@@ -285,3 +285,4 @@ def test_a_missing_sdk_names_the_extra_to_install(monkeypatch: pytest.MonkeyPatc
         view.start()
     assert "pip install 'jtc_hw[foxglove]'" in str(caught.value)
     assert "daemon.foxglove" in str(caught.value)
+

@@ -158,3 +158,32 @@ def test_check_shows_the_live_view(
     )
     assert main(["check", str(path)]) == EXIT_OK
     assert line in capsys.readouterr().out
+
+
+def test_a_port_in_use_is_refused_with_the_key_to_change() -> None:
+    """(Not under ``no_leaks``: the SDK's runtime, started here in the test process, keeps its
+    own sockets for the life of the process.)"""
+    pytest.importorskip("foxglove")
+    import asyncio
+    import socket
+
+    from jtc_hw.daemon.liveview import LiveView
+    from jtc_hw.daemon.robot import FoxgloveSettings
+    from jtc_hw.errors import ConfigurationError
+
+    async def attempt(port: int) -> str:
+        view = LiveView(FoxgloveSettings(port=port), "jtc", ["a"], 50.0, dict)
+        try:
+            view.start()
+        except ConfigurationError as exc:
+            return str(exc)
+        finally:
+            await view.close()
+        return "started"
+
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        message = asyncio.run(attempt(taken.getsockname()[1]))
+    assert message.startswith("daemon.foxglove.port: cannot serve the live view on 127.0.0.1:")
+    assert "choose another port (0: any free one)" in message

@@ -58,10 +58,10 @@ def live(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[DaemonProce
 class FoxgloveClient:
     """The client side of ``foxglove.websocket.v1``, enough to subscribe and decode."""
 
-    def __init__(self, port: int) -> None:
+    def __init__(self, port: int, **options: Any) -> None:
         self.ws = websockets_client.connect(
             f"ws://127.0.0.1:{port}", subprotocols=SUBPROTOCOLS, open_timeout=WAIT_S,
-            proxy=None,
+            proxy=None, **options,
         )
         assert self.ws.subprotocol in SUBPROTOCOLS
         self.channels: dict[str, dict[str, Any]] = {}  # by topic
@@ -138,6 +138,8 @@ def test_a_plain_client_gets_server_info_advertisements_and_joint_states(
         fox.handshake()
         assert fox.server_info is not None
         assert CONTROLLER in fox.server_info["name"]
+        # Read-only: no client publishing, services or parameters offered.
+        assert fox.server_info["capabilities"] == []
         for topic, schema_name in TOPICS.items():
             channel = fox.channels[topic]
             assert channel["encoding"] == "json", channel

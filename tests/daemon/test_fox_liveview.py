@@ -247,6 +247,62 @@ def test_diagnostics_carry_the_loop_controller_and_hardware(
     assert "api_stalls" in loop_keys
 
 
+def test_a_viewer_that_stops_reading_loses_samples_and_the_daemon_nothing(
+    live: tuple[DaemonProcess, int],
+) -> None:
+    """A viewer subscribed to everything stops reading: once its socket buffers and the SDK's
+    queue for it (256 messages) are full, the oldest samples are dropped for it alone. The
+    daemon's socket clients lose nothing meanwhile, and the viewer, reading again, gets the
+    newest samples with a hole before them."""
+    import socket
+
+    d, port = live
+    sock = socket.socket()
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+    sock.connect(("127.0.0.1", port))
+    stuck = FoxgloveClient(port, sock=sock, max_queue=1, max_size=None)
+    try:
+        stuck.handshake()
+        stuck.subscribe(*TOPICS)
+        with connect(d) as client, client.subscribe_state(maxlen=2000) as sub:
+            here_state = sub.get(timeout_s=WAIT_S)
+            here = here_state["actual"]["positions"]
+            # Large commands fill the socket buffers between the server and the viewer (a
+            # few MB) fast: each is about 1 MB of JSON (4,000 points holding where it is).
+            points = [{"time_from_start": 0.002 * (i + 1), "positions": here}
+                      for i in range(4000)]
+            for _ in range(6):
+                client.send_goal({"joint_names": JOINTS, "points": points})
+            after_goals_ns = client.hello()["now_ns"]
+            # Then 2 messages per state: 400 states are beyond the SDK's 256-message queue.
+            # (The subscription holds every state since it began, the goals' time included.)
+            states = [here_state]
+            while len(states) < 400 or states[-1]["time_ns"] < after_goals_ns + 8 * 10**9:
+                states.append(sub.get(timeout_s=WAIT_S))
+            client.stop()
+            status = client.get_status()
+        # Reading again: what the buffers held, then the queue's newest messages after a hole.
+        stamps: list[int] = []
+        while len(stamps) < 1000:
+            topic, stamp, _ = stuck.message()
+            if topic != "/joint_states":
+                continue
+            stamps.append(stamp)
+            if len(stamps) > 1 and stamps[-1] - stamps[-2] > 10 * 20_000_000:
+                break
+    finally:
+        stuck.close()
+    assert all(s["dropped"] == 0 for s in states), "a socket client lost states"
+    # The API process kept up: the stream it served has no hole like the viewer's.
+    stream_gap = max(b["time_ns"] - a["time_ns"] for a, b in zip(states, states[1:],
+                                                                  strict=False))
+    viewer_gap = stamps[-1] - stamps[-2]
+    assert stream_gap * 2 < viewer_gap, (stream_gap, viewer_gap)
+    assert status["alive"] is True and status["loop"]["api_stalls"] == 0
+    assert stamps == sorted(stamps)
+    assert stamps[-1] - stamps[-2] > 10 * 20_000_000, "no sample was dropped for the viewer"
+
+
 def test_the_live_view_is_off_by_default_and_its_options_are_checked(tmp_path: Path) -> None:
     from helpers.daemon import robot_config
 

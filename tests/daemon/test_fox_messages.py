@@ -20,13 +20,16 @@ from jtc_hw.daemon.liveview import (
     ERROR,
     OK,
     WARN,
+    LiveView,
     controller_state_message,
     diagnostics_message,
     goal_event_message,
     joint_state_message,
     ros_time,
+    topics,
     trajectory_message,
 )
+from jtc_hw.daemon.robot import FoxgloveSettings
 
 SNAPSHOT = {
     "time_ns": 5_000_000_000,
@@ -187,3 +190,45 @@ def test_a_port_in_use_is_refused_with_the_key_to_change() -> None:
         message = asyncio.run(attempt(taken.getsockname()[1]))
     assert message.startswith("daemon.foxglove.port: cannot serve the live view on 127.0.0.1:")
     assert "choose another port (0: any free one)" in message
+
+
+class _Channel:
+    """Stands in for an SDK channel: records what would be sent."""
+
+    def __init__(self, sinks: bool = True) -> None:
+        self.sinks = sinks
+        self.logged: list[tuple[dict[str, object], int]] = []
+
+    def has_sinks(self) -> bool:
+        return self.sinks
+
+    def log(self, message: dict[str, object], *, log_time: int) -> None:
+        self.logged.append((message, log_time))
+
+
+def _view_with_channels(rate: float | None) -> tuple[LiveView, dict[str, _Channel]]:
+
+    view = LiveView(FoxgloveSettings(rate=rate), "jtc", ["a", "b"], 50.0, dict)
+    channels = {role: _Channel() for role in topics("jtc")}
+    view._channels = channels
+    view._server = object()  # "started" (the channels above stand in for the SDK's)
+    return view, channels
+
+
+@pytest.mark.parametrize(("rate", "published"), [(None, 10), (50.0, 10), (10.0, 2)])
+def test_rate_thins_the_states_on_the_loops_clock(rate: float | None, published: int) -> None:
+    view, channels = _view_with_channels(rate)
+    for k in range(10):  # 10 states 20 ms apart (50 Hz)
+        view.on_state(dict(SNAPSHOT, time_ns=1_000_000_000 + k * 20_000_000))
+    assert len(channels["joint_states"].logged) == published
+    assert len(channels["controller_state"].logged) == published
+    stamps = [t for _, t in channels["joint_states"].logged]
+    assert len(set(np.diff(stamps))) <= 1, "evenly spaced, on the loop's grid"
+
+
+def test_nothing_is_built_for_a_channel_nobody_subscribes_to() -> None:
+    view, channels = _view_with_channels(None)
+    channels["joint_states"].sinks = False
+    view.on_state(dict(SNAPSHOT))
+    assert channels["joint_states"].logged == []
+    assert len(channels["controller_state"].logged) == 1

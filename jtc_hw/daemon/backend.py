@@ -653,6 +653,7 @@ class LoopBackend:
                 plan.
         """
         check_position_limits(traj, self._position_limits)
+        sent = traj  # as the client sent it (the taps see it so: stamped on the clock)
         traj = self._stamp_in_trajectory_time(traj)
         made: list[Plan] = []  # the last plan made is the one committed
 
@@ -673,7 +674,7 @@ class LoopBackend:
 
         result = await self._plan_and_commit(make, len(traj.points))
         assert result is not None
-        self._tap("on_command", traj, int(result))
+        self._tap("on_command", sent, int(result))
         return AcceptedGoal(int(result), made[-1].time_scaling)
 
     async def send_trajectory(
@@ -694,6 +695,7 @@ class LoopBackend:
             await self._request("stop", {})
             return None
         check_position_limits(traj, self._position_limits)
+        sent = traj
         traj = self._stamp_in_trajectory_time(traj)
         made: list[Plan] = []
 
@@ -703,7 +705,7 @@ class LoopBackend:
             return plan
 
         await self._plan_and_commit(make, len(traj.points))
-        self._tap("on_command", traj, None)
+        self._tap("on_command", sent, None)
         return made[-1].time_scaling
 
     async def stop_motion(self) -> bool:

@@ -151,7 +151,9 @@ def test_a_plain_client_gets_server_info_advertisements_and_joint_states(
         with connect(d) as client, client.subscribe_state(maxlen=1000) as sub:
             # A message on the view before the goal: it is live, subscribed and decoding.
             fox.collect(lambda topic, _: topic == "/joint_states")
-            goal = client.send_goal(traj(target, 0.5))
+            before_send_ns = time.monotonic_ns()
+            goal = client.send_goal(traj(target, 0.5), start_in=0.2)
+            after_send_ns = time.monotonic_ns()
             got = fox.collect(
                 lambda topic, m: topic.endswith("goal_events") and m["event"] == "result"
             )
@@ -198,7 +200,8 @@ def test_a_plain_client_gets_server_info_advertisements_and_joint_states(
     # One mapping of the loop's clock to wall time: stamps keep the loop's spacing exactly.
     offsets = {wall - loop for wall, loop in matched}
     assert len(offsets) == 1, offsets
-    assert abs(offsets.pop() - (time.time_ns() - time.monotonic_ns())) < 5_000_000_000
+    offset = offsets.pop()
+    assert abs(offset - (time.time_ns() - time.monotonic_ns())) < 5_000_000_000
 
     # controller_state: the reference reaches the target; the error is reference - feedback.
     controller = [m for _, m in by_topic[f"/{CONTROLLER}/controller_state"]]
@@ -215,6 +218,9 @@ def test_a_plain_client_gets_server_info_advertisements_and_joint_states(
     (_, command), = by_topic[f"/{CONTROLLER}/joint_trajectory"]
     assert command["joint_names"] == JOINTS
     assert command["header"]["frame_id"] == f"goal {goal.goal_id}"
+    # Stamped with its start as sent, on the loop's clock mapped like the states.
+    start_ns = stamp_ns(command["header"]) - offset
+    assert before_send_ns + 200_000_000 <= start_ns <= after_send_ns + 200_000_000
     assert command["points"][-1]["positions"] == pytest.approx(target)
     assert command["points"][-1]["time_from_start"] == {"sec": 0, "nanosec": 500_000_000}
     events = [m for _, m in by_topic[f"/{CONTROLLER}/goal_events"]]

@@ -36,8 +36,14 @@ Where the figures come from:
   tick-sampled, so only roughly comparable), since other processes competing for the CPUs change
   the figures, above all those of a normally scheduled loop.
 
+With ``--live-view`` the daemon also serves the Foxglove live view (``daemon.foxglove``, port
+chosen freely) and a viewer (``websockets``, the protocol by hand) subscribes to every channel
+and reads every message throughout idle and loaded, as Foxglove would: the figures then include
+the view's cost, for docs/benchmarks.md's side-by-side comparison.
+
 Usage:  python bench/loop_jitter.py [--duration S] [--rates 500 1000]
-            [--scenarios [bare] idle loaded] [--priority N] [--cpu N] [--lock-memory] [--json]
+            [--scenarios [bare] idle loaded] [--priority N] [--cpu N] [--lock-memory]
+            [--live-view] [--json]
 Target: at 1 kHz, p99 lateness < 300 us and no overruns, idle and loaded.
 """
 
@@ -215,6 +221,56 @@ class Daemon:
         tb: TracebackType | None,
     ) -> None:
         self.close()
+
+
+# -- the live view's viewer -------------------------------------------------------------------
+
+
+class Viewer:
+    """A Foxglove WebSocket client subscribed to every channel, reading in its own thread."""
+
+    def __init__(self, daemon: Daemon) -> None:
+        from websockets.sync.client import connect
+        from websockets.typing import Subprotocol
+
+        deadline = time.monotonic() + START_TIMEOUT_S
+        marker = "live view (Foxglove WebSocket) on ws://"
+        while True:
+            found = [line for line in daemon.log_path.read_text().splitlines() if marker in line]
+            if found:
+                break
+            if time.monotonic() > deadline:
+                raise RuntimeError(f"the live view did not start:\n{daemon.log_tail()}")
+            time.sleep(0.05)  # polling the daemon's log file for its start-up line
+        url = "ws://" + found[0].split(marker, 1)[1].strip()
+        self.ws = connect(url, subprotocols=[Subprotocol("foxglove.websocket.v1"),
+                                                 Subprotocol("foxglove.sdk.v1")],
+                          proxy=None, max_size=None)
+        self.messages = 0
+        self.bytes = 0
+        self._thread = threading.Thread(target=self._read, name="viewer", daemon=True)
+        self._thread.start()
+
+    def _read(self) -> None:
+        subscribed = 0
+        try:
+            for frame in self.ws:
+                if isinstance(frame, str):
+                    op = json.loads(frame)
+                    if op.get("op") == "advertise":
+                        subs = [{"id": subscribed + i, "channelId": c["id"]}
+                                for i, c in enumerate(op["channels"])]
+                        subscribed += len(subs)
+                        self.ws.send(json.dumps({"op": "subscribe", "subscriptions": subs}))
+                else:
+                    self.messages += 1
+                    self.bytes += len(frame)
+        except Exception:  # the connection closed (close() or the daemon's stop)
+            return
+
+    def close(self) -> None:
+        self.ws.close()
+        self._thread.join(timeout=10)
 
 
 # -- the load ---------------------------------------------------------------------------------
@@ -522,16 +578,24 @@ def measure_rate(
     if "bare" in args.scenarios:
         note(f"{rate_hz:g} Hz bare: measuring {args.duration:g} s")
         rows.append(run_bare(rate_hz, args))
-    with Daemon(rate_hz, args.priority, args.cpu, args.lock_memory) as daemon:
+    settings = {"foxglove": {"port": 0}} if args.live_view else None
+    with Daemon(rate_hz, args.priority, args.cpu, args.lock_memory, settings) as daemon:
         client = daemon.connect()
+        viewer = Viewer(daemon) if args.live_view else None
         try:
             scheduling = daemon.scheduling()
             note(f"{rate_hz:g} Hz: daemon {daemon.pid}, loop {daemon.loop_pid}: {scheduling}")
             for scenario in (s for s in args.scenarios if s != "bare"):
                 note(f"{rate_hz:g} Hz {scenario}: measuring {args.duration:g} s")
-                rows.append(run_scenario(daemon, client, rate_hz, scenario, args.duration))
-            rows = [dict(row, scheduling=scheduling) for row in rows]
+                seen = viewer.messages if viewer is not None else 0
+                row = run_scenario(daemon, client, rate_hz, scenario, args.duration)
+                if viewer is not None:
+                    row["live_view_messages"] = viewer.messages - seen
+                rows.append(row)
+            rows = [dict(row, scheduling=scheduling, live_view=args.live_view) for row in rows]
         finally:
+            if viewer is not None:
+                viewer.close()
             client.close()
             if daemon.process.poll() is not None:
                 note(f"the daemon died:\n{daemon.log_tail()}")
@@ -567,7 +631,8 @@ def print_table(
     )
     print(
         f"asked: --priority {args.priority} --cpu {'any' if args.cpu is None else args.cpu} "
-        f"--lock-memory {args.lock_memory}; the loop process ran with:"
+        f"--lock-memory {args.lock_memory} --live-view {args.live_view}; the loop process ran "
+        "with:"
     )
     for rate, how in schedulings.items():
         print(f"  {rate:g} Hz: {how}")
@@ -604,6 +669,9 @@ def print_table(
             f"{r['clients_cpu_pct']:g}%, of the whole machine ~{r['machine_cpu_pct']:g}% "
             "(tick-sampled)"
         )
+        if "live_view_messages" in r:
+            print(f"    live view: {r['live_view_messages']} messages to the viewer "
+                  f"({r['live_view_messages'] / r['duration_s']:.0f}/s, warm-up included)")
         if r["scenario"] == "loaded":
             print(
                 f"    goals: accepted in p50 {r['accept_ms_p50']:.0f} ms, max "
@@ -655,6 +723,12 @@ def main(argv: list[str] | None = None) -> int:
         "--lock-memory",
         action="store_true",
         help="daemon.realtime.lock_memory: mlockall the loop process",
+    )
+    parser.add_argument(
+        "--live-view",
+        action="store_true",
+        help="daemon.foxglove on, with a viewer subscribed to every channel (needs "
+        "jtc_hw[foxglove] and websockets)",
     )
     parser.add_argument("--json", action="store_true", help="one JSON object per run")
     args = parser.parse_args(argv)

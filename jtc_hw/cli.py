@@ -311,6 +311,11 @@ def cmd_check(args: argparse.Namespace) -> int:
         f"  realtime        priority {rt.priority or 'normal'}, lock_memory {rt.lock_memory}, "
         f"cpu_affinity {list(rt.cpu_affinity) or 'any'}"
     )
+    view = d.foxglove  # the live view (docs/foxglove.md)
+    print("  live view       " + (
+        f"Foxglove WebSocket ws://{view.host}:{view.port}, "
+        f"{f'{view.rate:g} Hz' if view.rate else 'every state'}" if view else
+        "off (daemon.foxglove)"))
     _print_warnings(
         [*explain(c), *_limits_warnings(robot), *security_warnings(robot), *watchdog_warnings]
     )

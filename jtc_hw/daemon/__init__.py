@@ -7,6 +7,7 @@
 - :mod:`.backend`: the API process's side of the loop (planning against a replica).
 - :mod:`.server`, :mod:`.connection`: the asyncio socket server and one client connection.
 - :mod:`.sdnotify`: the systemd notify protocol.
+- :mod:`.liveview`: the Foxglove live view (``daemon.foxglove``), a tap on the backend.
 
 Nothing is imported here, so that the loop process loads only what it runs.
 """

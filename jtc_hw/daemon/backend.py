@@ -135,6 +135,17 @@ class Listener(Protocol):
     def on_state(self, snapshot: dict[str, Any]) -> None: ...
 
 
+class Tap(Protocol):
+    """Also receives what the loop publishes, and every accepted command (the live view, a
+    recorder): called in the asyncio thread after the listener; must not block or raise."""
+
+    def on_goal_event(self, event: GoalResult | GoalFeedback) -> None: ...
+
+    def on_state(self, snapshot: dict[str, Any]) -> None: ...
+
+    def on_command(self, traj: JointTrajectory, goal_id: int | None) -> None: ...
+
+
 def _vector(a: Any) -> list[float | None] | None:
     if a is None:
         return None
@@ -220,6 +231,7 @@ class LoopBackend:
         self._waiting: dict[int, asyncio.Future[Any]] = {}
         self._ids = itertools.count(1)
         self._listener: Listener | None = None
+        self._taps: list[Tap] = []
         self._status: dict[str, Any] = {}
         self._ready: asyncio.Future[dict[str, Any]] | None = None
         self._exited: asyncio.Future[int] | None = None
@@ -453,15 +465,20 @@ class LoopBackend:
                                 f": {event.details}" if event.details else "")
                 elif isinstance(event, GoalResult):
                     self._finish_goal(event)
-                elif self._listener is not None:
-                    self._listener.on_goal_event(event)
+                else:
+                    if self._listener is not None:
+                        self._listener.on_goal_event(event)
+                    self._tap("on_goal_event", event)
         elif kind == "state":
             self._measured = (message[1][2], message[1][3])
             raw = message[1]
             if len(raw) > 14:  # (a test's partial state has no speed scaling)
                 self._timebase = (raw[0], raw[14], raw[12], raw[13])
-            if self._listener is not None:
-                self._listener.on_state(self._snapshot(message[1]))
+            if self._listener is not None or self._taps:
+                snapshot = self._snapshot(message[1])
+                if self._listener is not None:
+                    self._listener.on_state(snapshot)
+                self._tap("on_state", snapshot)
         elif kind == "status":
             self._status = message[1]
         elif kind == "log":
@@ -517,6 +534,7 @@ class LoopBackend:
             self._active_goal = None
         if self._listener is not None:
             self._listener.on_goal_event(result)
+        self._tap("on_goal_event", result)
         log.log(
             logging.ERROR if self.death else logging.INFO,
             "goal %d %s (%d): %s%s",
@@ -538,6 +556,19 @@ class LoopBackend:
     def set_listener(self, listener: Listener) -> None:
         """Where goal events and state snapshots go."""
         self._listener = listener
+
+    def add_tap(self, tap: Tap) -> None:
+        """Also send state snapshots, goal events and accepted commands to ``tap``."""
+        self._taps.append(tap)
+
+    def _tap(self, method: str, *args: Any) -> None:
+        for tap in self._taps:
+            try:
+                getattr(tap, method)(*args)
+            except Exception:
+                # A tap (a view, a recorder) must never stop the loop's messages reaching
+                # the clients.
+                log.exception("%s.%s failed; skipped", type(tap).__name__, method)
 
     def now_ns(self) -> int:
         """The daemon's clock (CLOCK_MONOTONIC, shared by both processes)."""
@@ -622,6 +653,7 @@ class LoopBackend:
                 plan.
         """
         check_position_limits(traj, self._position_limits)
+        sent = traj  # as the client sent it (the taps see it so: stamped on the clock)
         traj = self._stamp_in_trajectory_time(traj)
         made: list[Plan] = []  # the last plan made is the one committed
 
@@ -642,6 +674,7 @@ class LoopBackend:
 
         result = await self._plan_and_commit(make, len(traj.points))
         assert result is not None
+        self._tap("on_command", sent, int(result))
         return AcceptedGoal(int(result), made[-1].time_scaling)
 
     async def send_trajectory(
@@ -662,6 +695,7 @@ class LoopBackend:
             await self._request("stop", {})
             return None
         check_position_limits(traj, self._position_limits)
+        sent = traj
         traj = self._stamp_in_trajectory_time(traj)
         made: list[Plan] = []
 
@@ -671,6 +705,7 @@ class LoopBackend:
             return plan
 
         await self._plan_and_commit(make, len(traj.points))
+        self._tap("on_command", sent, None)
         return made[-1].time_scaling
 
     async def stop_motion(self) -> bool:

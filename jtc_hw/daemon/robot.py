@@ -18,6 +18,7 @@ layout); this module adds two top-level sections that ``load_config`` skips::
       realtime: {priority: 0, lock_memory: false, cpu_affinity: []}
       api_stall_s: 0.5
       log_level: info
+      foxglove: {host: 127.0.0.1, port: 8765, rate: null}   # live view, off when absent
 
 The keys, types, defaults and ranges of both sections live in the schema tables below
 (:data:`HARDWARE_KEYS`, :data:`DAEMON_PARAMETERS`, :data:`TCP_PARAMETERS`,
@@ -59,12 +60,14 @@ __all__ = [
     "DAEMON_PARAMETERS",
     "DEFAULT_API_STALL_S",
     "DEFAULT_HARDWARE_NAME",
+    "FOXGLOVE_PARAMETERS",
     "HARDWARE_KEYS",
     "LOG_LEVELS",
     "REALTIME_PARAMETERS",
     "SOCKET_NAME",
     "TCP_PARAMETERS",
     "DaemonSettings",
+    "FoxgloveSettings",
     "RealtimeSettings",
     "RobotConfig",
     "TcpSettings",
@@ -161,6 +164,18 @@ REALTIME_PARAMETERS: Final[Mapping[str, ParamSpec]] = param_table(
 )
 """``daemon.realtime.*``."""
 
+FOXGLOVE_PARAMETERS: Final[Mapping[str, ParamSpec]] = param_table(
+    ParamSpec("host", ParamKind.STRING, "127.0.0.1",
+              "address the live view listens on (loopback: only this machine)"),
+    ParamSpec("port", ParamKind.INT, 8765, "WebSocket port (0: any free port)", minimum=0,
+              maximum=65535),
+    ParamSpec("rate", ParamKind.FLOAT, None,
+              "joint states and controller state published per second, Hz (default: the "
+              "controller's state_publish_rate, which is also the most)", nullable=True,
+              minimum=0.1),
+)
+"""``daemon.foxglove.*``."""
+
 DAEMON_PARAMETERS: Final[Mapping[str, ParamSpec]] = param_table(
     ParamSpec("socket", ParamKind.STRING, None,
               "Unix socket path (default: $RUNTIME_DIRECTORY, $XDG_RUNTIME_DIR or /tmp)",
@@ -183,6 +198,9 @@ DAEMON_PARAMETERS: Final[Mapping[str, ParamSpec]] = param_table(
               "how long the control loop's messages may wait for the API process before the "
               "loop ends the active goal ABORTED and holds, s", minimum=MIN_API_STALL_S),
     ParamSpec("log_level", ParamKind.STRING, "info", "logging threshold", choices=LOG_LEVELS),
+    ParamSpec("foxglove", ParamKind.SECTION, None,
+              "live view over the Foxglove WebSocket protocol (off when absent; needs "
+              "jtc_hw[foxglove])", nullable=True, fields=FOXGLOVE_PARAMETERS),
 )
 """``daemon.*``."""
 
@@ -261,6 +279,37 @@ class RealtimeSettings:
     cpu_affinity: tuple[int, ...] = ()
 
 
+@dataclass(frozen=True)
+class FoxgloveSettings:
+    """``daemon.foxglove``: the live view (``jtc_hw.daemon.liveview``).
+
+    Attributes:
+        host: address to listen on; the protocol has no authentication, so a non-loopback
+            address shows the robot's state to anyone who can reach it (``security_warnings``).
+        port: TCP port (0: any free port).
+        rate: states published per second, Hz (None: every state the loop publishes).
+
+    Raises:
+        ConfigurationError: ``host`` is not an IP address or ``localhost`` (at construction).
+    """
+
+    host: str = "127.0.0.1"
+    port: int = 8765
+    rate: float | None = None
+
+    def __post_init__(self) -> None:
+        if self.host != "localhost":
+            try:
+                ipaddress.ip_address(self.host)
+            except ValueError:
+                raise ConfigurationError(
+                    f"{self.host!r} is not an IP address; use 127.0.0.1 (this machine only) "
+                    "or the address of one of this machine's interfaces",
+                    "daemon.foxglove.host",
+                    self.host,
+                ) from None
+
+
 
 
 @dataclass(frozen=True)
@@ -279,6 +328,7 @@ class DaemonSettings:
         api_stall_s: how long the loop's ordered messages (results, replies) may wait for the
             API process to read them before the loop ends the active goal and holds.
         log_level: one of :data:`LOG_LEVELS`.
+        foxglove: the live view, or None (off).
 
     Raises:
         ConfigurationError: the socket path is relative, empty or too long, or
@@ -294,6 +344,7 @@ class DaemonSettings:
     realtime: RealtimeSettings = field(default_factory=RealtimeSettings)
     api_stall_s: float = DEFAULT_API_STALL_S
     log_level: str = "info"
+    foxglove: FoxgloveSettings | None = None
 
     def __post_init__(self) -> None:
         if not isinstance(self.socket, str) or not os.path.isabs(self.socket):
@@ -438,6 +489,7 @@ def _parse_daemon(raw: Any, base_dir: str) -> DaemonSettings:
         realtime=RealtimeSettings(**realtime),
         api_stall_s=values["api_stall_s"],
         log_level=values["log_level"],
+        foxglove=None if values["foxglove"] is None else FoxgloveSettings(**values["foxglove"]),
     )
 
 
@@ -502,16 +554,29 @@ def _check_command_joints(controller: ControllerConfig) -> None:
         )
 
 
+def _foxglove_warnings(robot: RobotConfig) -> list[str]:
+    view = robot.daemon.foxglove
+    if view is None or _is_loopback(view.host):
+        return []
+    return [
+        f"daemon.foxglove.host {view.host} is not a loopback address: the live view has no "
+        "authentication, so anyone who reaches that port sees the robot's state; prefer "
+        "127.0.0.1 and an SSH tunnel (ssh -L 8765:127.0.0.1:8765 robot)"
+    ]
+
+
 def security_warnings(robot: RobotConfig) -> list[str]:
     """What in ``robot``'s file is exposed to other users (``jtc-hw check`` and ``run`` print
-    it): a TCP token in a file that group or others may read.
+    it): a TCP token in a file that group or others may read; a live view (which has no
+    authentication) on a non-loopback address.
 
     Raises:
         Nothing: a file that cannot be examined gives no warning.
     """
+    live = _foxglove_warnings(robot)
     path = robot.source_path
     if robot.daemon.tcp is None or path is None:
-        return []
+        return live
     try:
         mode = stat.S_IMODE(os.stat(path).st_mode)
     except OSError:
@@ -522,6 +587,7 @@ def security_warnings(robot: RobotConfig) -> list[str]:
         name for bit, name in ((0o040, "its group"), (0o004, "every user")) if mode & bit
     )
     return [
+        *live,
         f"{path} holds the TCP token (daemon.tcp.token) and is readable by {who} (mode "
         f"{mode:04o}): whoever reads it can command the robot over TCP. Make it private: "
         f"chmod 600 {path} (owned by the daemon's user)"

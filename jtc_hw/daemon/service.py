@@ -71,6 +71,7 @@ class Daemon:
         self._stop = asyncio.Event()
         self._reason = "daemon stopping"
         self._failed = False
+        self.live_view: Any = None  # the LiveView while daemon.foxglove serves one
 
     def request_stop(self, reason: str, failed: bool = False) -> None:
         """Begin an orderly shutdown (idempotent)."""
@@ -134,6 +135,11 @@ class Daemon:
             log.error("cannot open the socket: %s", exc)
             await self.backend.stop("start-up failed")
             return 2
+        live = await self._start_live_view()
+        if live is False:
+            await server.close()
+            await self.backend.stop("start-up failed")
+            return 2
         c = self.robot.controller
         kinds = ", ".join(sorted({h.kind for h in self.robot.hardware}))
         status = f"{len(c.joints)} joints at {c.update_rate:g} Hz on {kinds}; socket {server.path}"
@@ -148,6 +154,8 @@ class Daemon:
             death.cancel()
             self.notifier.stopping(status=self._reason)
             code = await self.backend.stop(self._reason)
+            if live is not None:
+                await live.close()
             await server.close()
             # asyncio restores the default (fatal) handlers when its loop closes: a second
             # SIGTERM now must not turn a clean stop into death by signal.
@@ -158,6 +166,25 @@ class Daemon:
             return 1
         log.info("stopped cleanly")
         return 0
+
+    async def _start_live_view(self) -> Any:
+        """The live view if ``daemon.foxglove`` asks for one (None: off; False: it could not
+        start, which is logged)."""
+        settings = self.robot.daemon.foxglove
+        if settings is None:
+            return None
+        from .liveview import LiveView
+
+        c = self.robot.controller
+        live = LiveView(settings, c.name, c.joints, c.state_publish_rate, self.backend.status)
+        try:
+            live.start()
+        except JtcHwError as exc:
+            log.error("cannot start: %s", exc)
+            return False
+        self.backend.add_tap(live)
+        self.live_view = live
+        return live
 
     async def _loop_death(self) -> None:
         """Exit (non-zero) as soon as the loop process ends without being asked to: the

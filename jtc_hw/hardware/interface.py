@@ -178,22 +178,27 @@ HEALTH_FIELDS: Final[tuple[str, ...]] = (
 """The keys of one motor's entry in :meth:`HardwareInterface.health` (``None``: unknown)."""
 
 
-def health_params(temperature_warn_c: float, voltage_range: tuple[float, float]) -> tuple[
-        ParamSpec, ...]:
-    """The health limit rows, for drivers that report temperatures and voltages to include in
-    their ``PARAMS`` with their motors' defaults.
+def health_params(
+    temperature_warn_c: float, voltage_range: tuple[float, float] | None
+) -> tuple[ParamSpec, ...]:
+    """The health limit rows, for drivers that report temperatures (and voltages) to include
+    in their ``PARAMS`` with their motors' defaults.
 
     Args:
         temperature_warn_c: default warning temperature, degC.
-        voltage_range: default [min, max] supply voltage, V, outside which a warning is raised.
+        voltage_range: default [min, max] supply voltage, V, outside which a warning is raised;
+            ``None``: the kind's motors report no voltage, so it has no such parameter.
     """
-    return (
+    rows = [
         ParamSpec("temperature_warn_c", ParamKind.FLOAT, float(temperature_warn_c),
                   "a motor at or above this temperature raises a warning in status and the "
                   "log, degC"),
-        ParamSpec("voltage_range", ParamKind.RANGE, tuple(float(v) for v in voltage_range),
-                  "[min, max] supply voltage, V: a motor reporting one outside raises a warning"),
-    )
+    ]
+    if voltage_range is not None:
+        rows.append(ParamSpec(
+            "voltage_range", ParamKind.RANGE, tuple(float(v) for v in voltage_range),
+            "[min, max] supply voltage, V: a motor reporting one outside raises a warning"))
+    return tuple(rows)
 
 
 def one_line(exc: BaseException) -> str:

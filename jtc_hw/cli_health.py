@@ -67,6 +67,9 @@ def _table(rows: Sequence[Sequence[str]]) -> list[str]:
 def format_hardware(report: Mapping[str, Any]) -> str:
     """The report of :func:`hardware_report` as text tables, one per component."""
     lines: list[str] = []
+    if not report["components"]:
+        lines.append("no hardware status yet (the control loop reports it twice a second; "
+                     "ask again)")
     for comp in report["components"]:
         heading = f"{comp['name']} ({comp['kind']}, {comp['state']})"
         bus = comp["bus"]

@@ -19,7 +19,8 @@ import pytest
 import yaml
 from helpers.daemon import WAIT_S, DaemonProcess, connect
 
-from jtc_hw.cli import main
+from jtc_hw.cli import EXIT_NO_DAEMON, main
+from jtc_hw.cli_health import format_hardware, hardware_report
 from jtc_hw.drivers.dynamixel.emulator import DynamixelEmulator
 
 from conftest import make_robot_config
@@ -152,3 +153,12 @@ def test_a_hot_motor_and_a_low_supply_show_in_status_the_table_and_the_log(
     daemon.wait_log("cleared: dynamixel hardware 'arm': motor 2 (joint 'elbow'): temperature 71")
     hot = [line for line in daemon.log().splitlines() if "temperature 71 degC" in line]
     assert [line.split()[0] for line in hot] == ["WARNING", "INFO"], hot
+
+
+def test_hardware_without_a_daemon_exits_3_and_before_the_first_status_says_so(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    assert main(["hardware", "--socket", str(tmp_path / "none.sock")]) == EXIT_NO_DAEMON
+    assert "cannot reach a jtc-hw daemon" in capsys.readouterr().err
+    text = format_hardware(hardware_report({"alive": True}))
+    assert text.startswith("no hardware status yet")

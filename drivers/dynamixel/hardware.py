@@ -142,6 +142,10 @@ _HEALTH_BLOCKS: Final = (
     ("moving", "moving_status"),
     ("present_input_voltage", "present_temperature"),
 )
+#: Default supply warning range, as factors of the model's nominal voltage (12 V: 10.2 .. 15 V,
+#: inside the 12 V X models' recommended 10 .. 14.8 V at the top, and their 9.5 .. 16 V Min/Max
+#: Voltage Limit defaults, at which the servo itself raises its Input Voltage Error).
+_SUPPLY_WARN: Final = (0.85, 1.25)
 _POSITION_FAMILY: Final = (
     OperatingMode.POSITION, OperatingMode.EXTENDED_POSITION, OperatingMode.CURRENT_BASED_POSITION
 )
@@ -229,9 +233,12 @@ class DynamixelHardware(HardwareInterface):
                   "how often every servo's temperature, voltage, hardware error and moving "
                   "status are read, s (one extra Sync Read in every third of it, after a write)",
                   minimum=0.01, maximum=60.0),
-        # The X series' own Min/Max Voltage Limit defaults are 9.5 / 16 V on the 12 V models;
-        # the Temperature Limit (which shuts the servo down) is 70 or 80 degC.
-        *health_params(65.0, (9.5, 16.0)),
+        # The Temperature Limit (which shuts an X servo down) is 70 or 80 degC.
+        *health_params(65.0, None),
+        ParamSpec("voltage_range", ParamKind.RANGE, None,
+                  "[min, max] supply voltage, V: a servo reporting one outside raises a warning "
+                  f"(null: {_SUPPLY_WARN[0]:g} .. {_SUPPLY_WARN[1]:g} x each model's nominal "
+                  "voltage, e.g. 10.2 .. 15 V for a 12 V servo)", nullable=True),
     )
 
     def __init__(
@@ -1071,6 +1078,8 @@ class DynamixelHardware(HardwareInterface):
                 errors.append("bus watchdog expired")
             volts = v.get("present_input_voltage")
             torque = v.get("torque_enable")
+            supply = self.params["voltage_range"] or tuple(
+                round(f * model.nominal_voltage_v, 2) for f in _SUPPLY_WARN)
             motors.append({
                 "motor": servo_id,
                 "joint": joint,
@@ -1080,6 +1089,7 @@ class DynamixelHardware(HardwareInterface):
                 "torque_enabled": None if torque is None else bool(torque),
                 "temperature_c": v.get("present_temperature"),
                 "voltage_v": None if volts is None else volts / 10.0,
+                "voltage_range_v": list(supply),
                 "moving": None if "moving" not in v else bool(v["moving"]),
                 "moving_status": v.get("moving_status"),
                 "errors": errors,

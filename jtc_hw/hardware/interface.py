@@ -612,7 +612,8 @@ class HardwareInterface(ABC):
             ``motors``: one mapping per motor with the keys of :data:`HEALTH_FIELDS`
             (``None``: not reported by this kind); ``bus``: ``transactions``, ``timeouts``,
             ``crc_errors``, ``retries`` (``None``: no bus); ``warnings``: lines naming the
-            motor, the reading and the limit.
+            motor, the reading and the limit. A motor's ``voltage_range_v``, if the driver
+            gives one, is the range its supply is checked against (else ``voltage_range``).
         """
         motors_raw, bus = self._health()
         motors: list[dict[str, Any]] = []
@@ -628,10 +629,11 @@ class HardwareInterface(ABC):
         """The warnings of ``motors`` against the kind's limits; logs the changes."""
         current: dict[tuple[str, str], str] = {}
         hot = self.params.get("temperature_warn_c")
-        volts = self.params.get("voltage_range")
         for m in motors:
             label = f"{self._owner()}: motor {m['motor']} (joint {m['joint']!r})"
             temp, voltage = m["temperature_c"], m["voltage_v"]
+            # A driver may give each motor its own range (e.g. from its model's supply).
+            volts = m.get("voltage_range_v") or self.params.get("voltage_range")
             if hot is not None and temp is not None and temp >= hot:
                 current[(str(m["motor"]), "temperature")] = (
                     f"{label}: temperature {temp:g} degC at or above temperature_warn_c "

@@ -138,6 +138,18 @@ def test_changes_in_the_emulator_show_and_a_hot_motor_warns_once(
     assert c.motor(2)["temperature_c"] == 40
 
 
+def test_the_default_supply_range_follows_the_model(
+    make_hw: Callable[..., DynamixelHardware], emulator: DynamixelEmulator,
+) -> None:
+    hw = make_hw()
+    c = Cycles(hw)
+    emulator.set_input_voltage(1, 10.0)  # a 12 V servo: below 0.85 x 12 V, above its 9.5 V limit
+    c.run(cycles_per_period(hw))
+    (warning,) = hw.health()["warnings"]
+    assert "motor 1" in warning and "10 V outside voltage_range [10.2, 15] V" in warning
+    assert emulator.register(1, "hardware_error_status") == 0  # a warning, not the servo's error
+
+
 def test_overheating_past_the_servo_limit_is_a_latched_hardware_error(
     make_hw: Callable[..., DynamixelHardware], emulator: DynamixelEmulator,
 ) -> None:
@@ -167,7 +179,8 @@ def test_health_limits_are_checked_parameters(make_hw: Callable[..., DynamixelHa
         make_hw(temperature_warn_c="hot")
     hw = make_hw()
     assert hw.params["temperature_warn_c"] == 65.0
-    assert tuple(hw.params["voltage_range"]) == (9.5, 16.0)
+    assert hw.params["voltage_range"] is None  # per servo: its model's nominal supply
+    assert [m["voltage_range_v"] for m in hw.health()["motors"]] == [[10.2, 15.0]] * 3
 
 
 def test_a_kind_without_health_reports_its_joints_with_nothing_known() -> None:

@@ -115,15 +115,18 @@ def return_delays_us() -> float:
     return MOTORS * RETURN_DELAY_US
 
 
-def measure(bitrate: int, duration_s: float, pace: bool) -> dict[str, float]:
-    """Run the driver's cycle for ``duration_s``; mean cycle, read and write times, us."""
+def measure(bitrate: int, duration_s: float, pace: bool,
+            health_period_s: float | None = None) -> dict[str, float]:
+    """Run the driver's cycle for ``duration_s``; mean cycle, read and write times, us
+    (``health_period_s``: the driver's health reads, ``None``: its default)."""
+    health = {} if health_period_s is None else {"health_period_s": health_period_s}
     with emulator_process(bitrate, pace) as device:
         joints = [f"joint{i}" for i in range(1, MOTORS + 1)]
         hw = DynamixelHardware(
             "bench", joints, ["position"], ["position", "velocity"],
             {"port": device, "baud_rate": bitrate, "ids": list(range(1, MOTORS + 1)),
              "offset": -math.pi, "return_delay_time_us": RETURN_DELAY_US,
-             "timeout_ms": 50.0, "latency_timer_warn": False},
+             "timeout_ms": 50.0, "latency_timer_warn": False, **health},
         )
         hw.configure()
         try:
@@ -136,7 +139,7 @@ def measure(bitrate: int, duration_s: float, pace: bool) -> dict[str, float]:
                 hw.write(time.monotonic_ns(), command)
             gc.collect()
             gc.disable()
-            read_ns = write_ns = 0
+            read_ns = write_ns = worst_ns = 0
             cycles = 0
             cpu0 = time.thread_time_ns()
             start = clock()
@@ -150,6 +153,7 @@ def measure(bitrate: int, duration_s: float, pace: bool) -> dict[str, float]:
                 now = clock()
                 read_ns += t1 - t0
                 write_ns += now - t1
+                worst_ns = max(worst_ns, now - t0)
                 cycles += 1
             cpu_ns = time.thread_time_ns() - cpu0
             gc.enable()
@@ -162,13 +166,15 @@ def measure(bitrate: int, duration_s: float, pace: bool) -> dict[str, float]:
         "read_us": read_ns / cycles / 1e3,
         "write_us": write_ns / cycles / 1e3,
         "driver_cpu_us": cpu_ns / cycles / 1e3,
+        "max_cycle_us": worst_ns / 1e3,
     }
 
 
-def dynamixel_rows(duration_s: float, bitrates: list[int], profile: bool) -> list[dict[str, Any]]:
+def dynamixel_rows(duration_s: float, bitrates: list[int], profile: bool,
+                   health_period_s: float | None = None) -> list[dict[str, Any]]:
     rows = []
     for bitrate in bitrates:
-        paced = measure(bitrate, duration_s, pace=True)
+        paced = measure(bitrate, duration_s, pace=True, health_period_s=health_period_s)
         wire = wire_us(bitrate)
         delays = return_delays_us()
         row: dict[str, Any] = {
@@ -187,6 +193,9 @@ def dynamixel_rows(duration_s: float, bitrates: list[int], profile: bool) -> lis
             # wire time at most if nothing overlaps, whatever the emulator costs.
             "driver_cpu_us": round(paced["driver_cpu_us"], 1),
             "driver_ratio": round((wire + paced["driver_cpu_us"]) / wire, 2),
+            # The slowest cycle: one with a health read (a third Sync Read) if any.
+            "max_cycle_us": round(paced["max_cycle_us"], 1),
+            "health_period_s": health_period_s,
         }
         if profile:
             unpaced = measure(bitrate, duration_s, pace=False)
@@ -267,13 +276,17 @@ def main(argv: list[str] | None = None) -> int:
                         help="Dynamixel bit rates (default 1000000 2000000 4000000)")
     parser.add_argument("--profile", action="store_true",
                         help="also split the cycle into read / write and run it unpaced")
+    parser.add_argument("--health-period-s", type=float, default=None,
+                        help="Dynamixel: the driver's health_period_s (default: the driver's; "
+                        "60 all but switches the health reads off, for a comparison)")
     parser.add_argument("--json", action="store_true", help="one JSON object per line")
     args = parser.parse_args(argv)
     rows: list[dict[str, Any]] = []
     notes: list[str] = []
     for bus in args.bus:
         if bus == "dynamixel":
-            rows += dynamixel_rows(args.duration, args.bitrates, args.profile)
+            rows += dynamixel_rows(args.duration, args.bitrates, args.profile,
+                                   args.health_period_s)
         else:
             got = can_rows(bus, args.duration)
             if isinstance(got, str):

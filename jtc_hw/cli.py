@@ -1156,6 +1156,9 @@ Exit status: 0 done; 2 unknown or read-only parameter, or a bad value; 3 no daem
     p.add_argument("--json", action="store_true", help="print the daemon's full reply as JSON")
     client_options(p)
     p.set_defaults(func=cmd_status)
+    from .cli_health import add_hardware_parser
+
+    add_hardware_parser(sub, client_options, _connect)
     for name, command in sub.choices.items():
         # Every subcommand's --help states its exit statuses (unless its description does).
         if "Exit status" not in (command.description or ""):

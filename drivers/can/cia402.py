@@ -102,6 +102,14 @@ _PROFILE_402 = 402
 _NOTIFIER_CYCLE_S = 0.02
 _SDO_NOTIFIER_CYCLE_S = 0.005  # SDO sessions of activate / deactivate: stop them sooner
 _FAULTY = (c4.State.FAULT, c4.State.FAULT_REACTION_ACTIVE)
+# Health: the error register 0x1001 is no PDO object; in cyclic operation one expedited SDO
+# upload request (client -> server 0x600 + node, answer on 0x580 + node) goes out after a
+# cycle's SYNC at a low rate, and the answer is taken with the TPDOs (the driver owns the bus
+# receive then: canopen's SDO client, which blocks, is not used).
+_SDO_REQUEST = 0x600
+_SDO_RESPONSE = 0x580
+_SDO_UPLOAD = 0x40  # ccs 2: initiate upload; scs 2 answers (0x4F for one expedited byte)
+_SDO_ABORT = 0x80
 _HEARTBEATS_PER_WATCHDOG = 4
 """The master's heartbeat goes out every watchdog_s / 4 (see ``Cia402Hardware``)."""
 _REACTIONS = {
@@ -149,12 +157,17 @@ class _Drive:
     consumer_sub: int = 0
     controlword: int = 0
     target: int = 0
+    error_register: int | None = None  # 0x1001, read by SDO at a low rate (health)
+    sdo_tx: int = 0
+    sdo_rx: int = 0
 
     def __post_init__(self) -> None:
         self.tpdo1 = c4.tpdo_cob_id(1, self.node_id)
         self.tpdo2 = c4.tpdo_cob_id(2, self.node_id)
         self.rpdo1 = c4.rpdo_cob_id(1, self.node_id)
         self.emcy = c4.emcy_cob_id(self.node_id)
+        self.sdo_tx = _SDO_REQUEST + self.node_id
+        self.sdo_rx = _SDO_RESPONSE + self.node_id
 
     def who(self) -> str:
         return f"drive node {self.node_id} (joint {self.joint!r}, bus {self.bus!r})"
@@ -187,6 +200,7 @@ class _Bus:
             self.keys[d.tpdo1] = (d, 1)
             self.keys[d.tpdo2] = (d, 2)
             self.keys[d.emcy] = (d, 0)
+            self.keys[d.sdo_rx] = (d, 3)
 
     def key(self, msg: can.Message) -> int | None:
         cob = int(msg.arbitration_id)
@@ -288,6 +302,10 @@ class Cia402Hardware(HardwareInterface):
                   "what a drive does when the daemon's heartbeat stops (0x6007): quick_stop "
                   "(0x605A / 0x6085), fault (0x605E, then Fault) or disable_voltage (coast)",
                   choices=tuple(_REACTIONS)),
+        ParamSpec("health_period_s", ParamKind.FLOAT, 1.0,
+                  "how often each drive's error register (0x1001) is read by SDO, s (one "
+                  "request frame after a cycle's SYNC, one drive at a time)",
+                  minimum=0.01, maximum=60.0),
     )
 
     def __init__(
@@ -364,6 +382,10 @@ class Cia402Hardware(HardwareInterface):
         self._armed = False  # the drives' consumers watch our heartbeat (0x1016 written)
         self._feeding = False  # we produce it (active, or activating / deactivating)
         self._disarm_failures: list[str] = []
+        self._health_slot_s: float = p["health_period_s"] / max(1, len(drives))
+        self._next_health = 0.0
+        self._health_turn = 0
+        self._sdo_aborts = 0
 
     # -- lifecycle primitives ---------------------------------------------------------------------
 
@@ -868,6 +890,25 @@ class Cia402Hardware(HardwareInterface):
             self._drain_late(b)
             b.sync_outstanding = True
         self._send_cycle(list(self._buses.values()), send_rpdo=True)
+        self._request_health()
+
+    def _request_health(self) -> None:
+        """Every health slot, one expedited SDO upload request of 0x1001 to the next drive.
+
+        After the SYNC (the set-points and the sampling instant are not delayed); the answer
+        arrives with a later cycle's TPDOs. One frame, not a transaction the cycle waits for.
+        """
+        now = time.monotonic()
+        if now < self._next_health or not self._drives:
+            return
+        self._next_health = now + self._health_slot_s
+        d = self._drives[self._health_turn % len(self._drives)]
+        self._health_turn += 1
+        index = c4.ERROR_REGISTER
+        self._send(self._buses[d.bus], can.Message(
+            arbitration_id=d.sdo_tx, is_extended_id=False,
+            data=bytes([_SDO_UPLOAD, index & 0xFF, index >> 8, 0, 0, 0, 0, 0]),
+        ))
 
     # -- bus helpers ------------------------------------------------------------------------------
 
@@ -954,6 +995,8 @@ class Cia402Hardware(HardwareInterface):
                 elif which == 2:
                     d.velocity_value, d.error_code, d.mode_display = c4.TPDO_FEEDBACK.decode(data)
                     d.rx2_at = now
+                elif which == 3:
+                    self._take_sdo(d, data)
                 elif len(data) >= 2:
                     d.last_emcy = int.from_bytes(data[:2], "little")
                     if d.last_emcy == c4.EMCY_HEARTBEAT:
@@ -963,6 +1006,16 @@ class Cia402Hardware(HardwareInterface):
                     f"{self._owner()}: {d.who()} sent a frame the configured mapping cannot "
                     f"decode ({exc}); another master may have remapped its PDOs"
                 ) from exc
+
+    def _take_sdo(self, d: _Drive, data: bytes) -> None:
+        """An SDO answer: the error register if it is the upload of 0x1001:00 (anything else,
+        e.g. a late answer to configure's canopen session, is not ours and is left alone)."""
+        if len(data) < 5 or data[1] | data[2] << 8 != c4.ERROR_REGISTER or data[3] != 0:
+            return
+        if data[0] & 0xE0 == _SDO_UPLOAD and data[0] & 0x02:  # expedited upload answer
+            d.error_register = data[4]
+        elif data[0] == _SDO_ABORT:
+            self._sdo_aborts += 1
 
     def _drain_late(self, b: _Bus) -> None:
         """Take the answers that came after the last read's window, counting them as late.
@@ -1048,6 +1101,43 @@ class Cia402Hardware(HardwareInterface):
         return MotorFault(message)
 
     # -- status -----------------------------------------------------------------------------------
+
+    def _health(self) -> tuple[list[dict[str, Any]], dict[str, Any] | None]:
+        """Statusword and error code from the TPDOs of every cycle, the error register from
+        the low-rate SDO reads; CiA 402 has no standard temperature or supply objects."""
+        motors: list[dict[str, Any]] = []
+        for d in self._drives:
+            errors = []
+            if d.error_code:
+                errors.append(f"error code 0x{d.error_code:04X}: {c4.describe_error(d.error_code)}")
+            if d.error_register:
+                errors.append(f"error register 0x{d.error_register:02X}")
+            if d.heartbeat_lost:
+                errors.append("lost the daemon's heartbeat")
+            motors.append({
+                "motor": d.node_id,
+                "joint": d.joint,
+                "mode": self.mode.name.lower(),
+                "torque_enabled": (None if d.state is None
+                                   else d.state is c4.State.OPERATION_ENABLED),
+                "state": None if d.state is None else d.state.value,
+                "statusword": None if d.statusword is None else f"0x{d.statusword:04X}",
+                "error_code": f"0x{d.error_code:04X}",
+                "error_register": None if d.error_register is None
+                else f"0x{d.error_register:02X}",
+                "errors": errors,
+                "last_fault": self._last_fault_by_node.get(d.node_id),
+            })
+        healths = [b.health for b in self._buses.values()]
+        bus = {
+            "transactions": sum(b.syncs for b in self._buses.values()),
+            "timeouts": sum(d.missed for d in self._drives),
+            # The CAN controller checks CRCs itself; what reaches us is its error frames.
+            "crc_errors": sum(h.error_frames for h in healths),
+            "retries": None,  # cyclic PDOs are never resent: the next SYNC supersedes
+            "sdo_aborts": self._sdo_aborts,
+        }
+        return motors, bus
 
     def _details(self) -> Mapping[str, Any]:
         now = time.monotonic()

@@ -98,6 +98,7 @@ from jtc_hw.hardware import (
     ParamKind,
     ParamSpec,
     SafeAction,
+    health_params,
     one_line,
     param_table,
 )
@@ -222,6 +223,9 @@ class MitHardware(HardwareInterface):
                   "degC", per_joint=True, minimum=0.0, maximum=200.0),
         # Applies to the models with a CAN timeout (Damiao); AK motors have none over CAN.
         WATCHDOG_PARAM,
+        # Only Damiao replies carry temperatures (a warning before max_temperature_c's fault);
+        # no MIT reply carries the supply voltage.
+        *health_params(65.0, None),
     )
 
     def __init__(
@@ -304,6 +308,7 @@ class MitHardware(HardwareInterface):
         self._rx_ns = np.zeros(n, dtype=np.int64)
         self._temperature: list[int | None] = [None] * n
         self._state_code: list[int | None] = [None] * n
+        self._rotor_temperature: list[int | None] = [None] * n
         self._missed = [0] * n
         self._held_p = np.zeros(n)
         self._held_v = np.zeros(n)
@@ -552,6 +557,40 @@ class MitHardware(HardwareInterface):
             "motors": motors,
         }
 
+    def _health(self) -> tuple[list[dict[str, Any]], dict[str, Any] | None]:
+        """From the replies the cycle collects anyway (no extra frame): Damiao's state code and
+        drive / rotor temperatures; AK replies carry neither. The warning temperature is the
+        hotter of the two."""
+        motors: list[dict[str, Any]] = []
+        for i, joint in enumerate(self.joints):
+            code = self._state_code[i]
+            temps = [t for t in (self._temperature[i], self._rotor_temperature[i])
+                     if t is not None]
+            errors = ([DAMIAO_STATES.get(code, f"error code {code:#x}")]
+                      if code is not None and code >= 8 else [])
+            motors.append({
+                "motor": self._ids[i],
+                "joint": joint,
+                "model": self.params["model"][i],
+                "mode": "mit" if self._motor_mode[i] else "off",
+                "torque_enabled": bool(self._motor_mode[i]),
+                "temperature_c": max(temps) if temps else None,
+                "drive_temperature_c": self._temperature[i],
+                "rotor_temperature_c": self._rotor_temperature[i],
+                "state": None if code is None else DAMIAO_STATES.get(code, f"{code:#x}"),
+                "errors": errors,
+                "last_fault": self._faults.get(joint),
+            })
+        healths = [link.health for link in self._links.values()]
+        bus = {
+            "transactions": sum(h.tx_frames for h in healths),
+            "timeouts": sum(self._missed),
+            # The CAN controller checks CRCs itself; what reaches us is its error frames.
+            "crc_errors": sum(h.error_frames for h in healths),
+            "retries": None,  # MIT never resends: the next cycle's frame supersedes
+        }
+        return motors, bus
+
     # -- helpers ------------------------------------------------------------------------------
 
     def _where(self, i: int) -> str:
@@ -658,6 +697,7 @@ class MitHardware(HardwareInterface):
                 self._rx_ns[i] = stamp
                 self._temperature[i] = reply.temperature
                 self._state_code[i] = reply.error_code
+                self._rotor_temperature[i] = reply.rotor_temperature
             link.latest.clear()
             try:
                 link.health.check(bus, self._owner())

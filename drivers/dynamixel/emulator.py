@@ -350,6 +350,10 @@ class _Servo:
         self.delay_s = 0.0
         self.corrupt = 0
         self.silent = False
+        # Health: what the temperature and supply sensors read (set_temperature /
+        # set_input_voltage); None: the model's nominal voltage.
+        self.temperature_c = 35.0
+        self.voltage_v: float | None = None
         self.sync_present()
 
     # -- table access -------------------------------------------------------------------------
@@ -565,8 +569,9 @@ class _Servo:
         )
         values["velocity_trajectory"] = d * velocity
         values["realtime_tick"] = int((now - self.epoch) * 1000.0) % 32768
-        values["present_input_voltage"] = round(m.nominal_voltage_v * 10.0)
-        values["present_temperature"] = 35
+        volts = m.nominal_voltage_v if self.voltage_v is None else self.voltage_v
+        values["present_input_voltage"] = round(volts * 10.0)
+        values["present_temperature"] = round(self.temperature_c)
         layout = self._layout
         packed = [
             # Clamped like set(); a register the motor does not drive keeps its value.
@@ -947,6 +952,54 @@ class DynamixelEmulator:
             s = self._servo(servo_id)
             s.step(time.monotonic())
             s.set("hardware_error_status", s.get("hardware_error_status") | int(bits))
+            s.set("torque_enable", 0)
+
+    def set_temperature(self, servo_id: int, celsius: float) -> None:
+        """Servo ``servo_id``'s internal temperature reads ``celsius`` from now on.
+
+        As the e-Manual documents: above the Temperature Limit (31) the Overheating Error bit
+        of Hardware Error Status is set; with that bit in Shutdown (63, default) the torque goes
+        off and the error stays latched until a reboot. Cooling down clears nothing latched.
+
+        Raises:
+            KeyError: unknown servo.
+        """
+        with self._lock:
+            s = self._servo(servo_id)
+            s.step(time.monotonic())
+            s.temperature_c = float(celsius)
+            s.stale = True
+            if round(celsius) > s.get("temperature_limit"):
+                self._detect(s, HardwareError.OVERHEATING)
+
+    def set_input_voltage(self, servo_id: int, volts: float | None) -> None:
+        """Servo ``servo_id``'s supply reads ``volts`` from now on (``None``: the model's
+        nominal voltage).
+
+        Outside Min/Max Voltage Limit (32, 34) the Input Voltage Error bit is set; it shuts
+        the servo down only if Shutdown (63) holds that bit (not by default), and then stays
+        latched until a reboot; otherwise it clears when the supply is back within the limits.
+
+        Raises:
+            KeyError: unknown servo.
+        """
+        with self._lock:
+            s = self._servo(servo_id)
+            s.step(time.monotonic())
+            s.voltage_v = None if volts is None else float(volts)
+            s.stale = True
+            tenths = round((s.model.nominal_voltage_v if volts is None else volts) * 10.0)
+            bit = int(HardwareError.INPUT_VOLTAGE)
+            if not s.get("min_voltage_limit") <= tenths <= s.get("max_voltage_limit"):
+                self._detect(s, HardwareError.INPUT_VOLTAGE)
+            elif not s.get("shutdown") & bit:
+                s.set("hardware_error_status", s.get("hardware_error_status") & ~bit)
+
+    @staticmethod
+    def _detect(s: _Servo, bits: HardwareError) -> None:
+        """Set ``bits`` in Hardware Error Status; torque off if Shutdown holds one of them."""
+        s.set("hardware_error_status", s.get("hardware_error_status") | int(bits))
+        if s.get("shutdown") & int(bits):
             s.set("torque_enable", 0)
 
     def set_firmware_version(self, servo_id: int, version: int) -> None:

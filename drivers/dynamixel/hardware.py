@@ -84,6 +84,7 @@ from jtc_hw.hardware import (
     ParamKind,
     ParamSpec,
     SafeAction,
+    health_params,
     param_table,
 )
 
@@ -133,6 +134,18 @@ _ENABLED_BLOCK: Final = (64, 136)
 #: the servo refused would be wherever the last session left it).
 _GOAL_SEED_TOLERANCE_TICKS: Final = 20
 _DATA_RANGE_ERROR: Final = 4  # status packet error number: Data Range Error
+#: Health reads, one Sync Read per slot, in turn (register names: first, last of each block):
+#: Torque Enable (64) .. Hardware Error Status (70), Moving (122) .. Moving Status (123),
+#: Present Input Voltage (144) .. Present Temperature (146), the same addresses on every X model.
+_HEALTH_BLOCKS: Final = (
+    ("torque_enable", "hardware_error_status"),
+    ("moving", "moving_status"),
+    ("present_input_voltage", "present_temperature"),
+)
+#: Default supply warning range, as factors of the model's nominal voltage (12 V: 10.2 .. 15 V,
+#: inside the 12 V X models' recommended 10 .. 14.8 V at the top, and their 9.5 .. 16 V Min/Max
+#: Voltage Limit defaults, at which the servo itself raises its Input Voltage Error).
+_SUPPLY_WARN: Final = (0.85, 1.25)
 _POSITION_FAMILY: Final = (
     OperatingMode.POSITION, OperatingMode.EXTENDED_POSITION, OperatingMode.CURRENT_BASED_POSITION
 )
@@ -216,6 +229,16 @@ class DynamixelHardware(HardwareInterface):
         ParamSpec("latency_timer_warn", ParamKind.BOOL, True,
                   "warn when the USB serial adapter's latency timer is above 1 ms"),
         WATCHDOG_PARAM,
+        ParamSpec("health_period_s", ParamKind.FLOAT, 0.5,
+                  "how often every servo's temperature, voltage, hardware error and moving "
+                  "status are read, s (one extra Sync Read in every third of it, after a write)",
+                  minimum=0.01, maximum=60.0),
+        # The Temperature Limit (which shuts an X servo down) is 70 or 80 degC.
+        *health_params(65.0, None),
+        ParamSpec("voltage_range", ParamKind.RANGE, None,
+                  "[min, max] supply voltage, V: a servo reporting one outside raises a warning "
+                  f"(null: {_SUPPLY_WARN[0]:g} .. {_SUPPLY_WARN[1]:g} x each model's nominal "
+                  "voltage, e.g. 10.2 .. 15 V for a 12 V servo)", nullable=True),
     )
 
     def __init__(
@@ -346,6 +369,13 @@ class DynamixelHardware(HardwareInterface):
         self._leftover_trips: set[int] = set()
         self._last_fault_by_servo: dict[int, str] = {}
         self._retries = 0
+        # Health: read in turn, one block per slot (see _read_health), kept per servo.
+        self._firmware: dict[int, int] = {}
+        self._health_values: dict[int, dict[str, int]] = {i: {} for i in self.ids}
+        self._health_slot_ns = max(1, round(p["health_period_s"] * 1e9 / len(_HEALTH_BLOCKS)))
+        self._next_health_ns: int | None = None
+        self._health_block = 0
+        self._health_errors = 0
         self._joint_of = dict(zip(self.ids, self.joints, strict=True))
         self._index_of = {servo_id: i for i, servo_id in enumerate(self.ids)}
         # What write() sends: the command field, its register, and the conversion to counts.
@@ -511,6 +541,7 @@ class DynamixelHardware(HardwareInterface):
         velocity mode) if the daemon stopped. Updating the firmware is free and quick; running
         some joints unprotected is not a choice this driver makes silently."""
         firmware = self._read_register(servo_id, "firmware_version")
+        self._firmware[servo_id] = firmware
         if firmware < BUS_WATCHDOG_FIRMWARE:
             raise HardwareError(
                 f"{self._servo(servo_id)}: firmware v{firmware} has no Bus Watchdog (needs "
@@ -841,6 +872,38 @@ class DynamixelHardware(HardwareInterface):
         if goals:
             self._check_silence()
             self._sync_write_goal(self._goal_name, goals)
+        self._read_health(now_ns)
+
+    def _read_health(self, now_ns: int) -> None:
+        """Every health slot, one Sync Read of the next health block of every servo.
+
+        After the cycle's write (a Sync Write has no reply, so the bus is free): the command
+        is out, and no cycle pays more than this one transaction. A failed health read is
+        counted, not raised: the next cycle's read is the one that decides about the bus.
+        """
+        if self._next_health_ns is None:
+            self._next_health_ns = now_ns
+        if now_ns < self._next_health_ns:
+            return
+        self._next_health_ns = now_ns + self._health_slot_ns
+        first, last = _HEALTH_BLOCKS[self._health_block]
+        self._health_block = (self._health_block + 1) % len(_HEALTH_BLOCKS)
+        model = self.models[0]
+        start = model.register(first).address
+        end_reg = model.register(last)
+        size = end_reg.address + end_reg.size - start
+        bus = self._require_bus()
+        try:
+            result = bus.sync_read(self.ids, start, size)
+        except ServoCommunicationError:
+            self._health_errors += 1
+            return
+        for i, servo_id in enumerate(self.ids):
+            block = result.data[servo_id]
+            values = self._health_values[servo_id]
+            for name in (first, last):
+                reg = self.models[i].register(name)
+                values[name] = reg.decode(block[reg.address - start:reg.address - start + reg.size])
 
     def _sync_write_goal(self, name: str, values: Mapping[int, int]) -> None:
         bus = self._require_bus()
@@ -1002,6 +1065,45 @@ class DynamixelHardware(HardwareInterface):
                     zip(self.ids, self.joints, self.models, strict=True))
             },
         }
+
+    def _health(self) -> tuple[list[dict[str, Any]], dict[str, Any] | None]:
+        motors: list[dict[str, Any]] = []
+        for servo_id, joint, model in zip(self.ids, self.joints, self.models, strict=True):
+            v = self._health_values[servo_id]
+            errors: list[str] = []
+            flags = v.get("hardware_error_status", self._latched.get(servo_id, 0))
+            if flags:
+                errors.append(f"hardware error: {_hardware_error_text(flags)}")
+            if servo_id in self._tripped or servo_id in self._leftover_trips:
+                errors.append("bus watchdog expired")
+            volts = v.get("present_input_voltage")
+            torque = v.get("torque_enable")
+            supply = self.params["voltage_range"] or tuple(
+                round(f * model.nominal_voltage_v, 2) for f in _SUPPLY_WARN)
+            motors.append({
+                "motor": servo_id,
+                "joint": joint,
+                "model": model.name,
+                "firmware": self._firmware.get(servo_id),
+                "mode": self.mode.name.lower(),
+                "torque_enabled": None if torque is None else bool(torque),
+                "temperature_c": v.get("present_temperature"),
+                "voltage_v": None if volts is None else volts / 10.0,
+                "voltage_range_v": list(supply),
+                "moving": None if "moving" not in v else bool(v["moving"]),
+                "moving_status": v.get("moving_status"),
+                "errors": errors,
+                "last_fault": self._last_fault_by_servo.get(servo_id),
+            })
+        stats = self._bus.stats if self._bus is not None else None
+        bus = None if stats is None else {
+            "transactions": stats.transactions,
+            "timeouts": stats.timeouts,
+            "crc_errors": stats.corrupt,
+            "retries": self._retries,
+            "health_read_errors": self._health_errors,
+        }
+        return motors, bus
 
     # -- test / tool accessors ------------------------------------------------------------------
 

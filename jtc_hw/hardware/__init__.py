@@ -18,6 +18,7 @@ from .components import HardwareSet
 from .interface import (
     COMMON_PARAMS,
     DEFAULT_WATCHDOG_S,
+    HEALTH_FIELDS,
     JOINT_MAPPING_PARAMS,
     MIN_WATCHDOG_PERIODS,
     NO_DEVICE_WATCHDOG,
@@ -27,6 +28,7 @@ from .interface import (
     HardwareInterface,
     LifecycleState,
     SafeAction,
+    health_params,
     one_line,
 )
 from .params import ParamKind, ParamSpec, param_table, validate_params
@@ -47,6 +49,7 @@ __all__ = [
     "COMMON_PARAMS",
     "DEFAULT_WATCHDOG_S",
     "ENTRY_POINT_GROUP",
+    "HEALTH_FIELDS",
     "JOINT_MAPPING_PARAMS",
     "MIN_WATCHDOG_PERIODS",
     "NO_DEVICE_WATCHDOG",
@@ -66,6 +69,7 @@ __all__ = [
     "check_hardware_kind",
     "create_hardware",
     "hardware_class",
+    "health_params",
     "one_line",
     "param_table",
     "register_hardware",

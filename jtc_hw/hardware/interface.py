@@ -49,6 +49,8 @@ __all__ = [
     "NO_DEVICE_WATCHDOG",
     "WATCHDOG_PARAM",
     "DeviceWatchdog",
+    "HEALTH_FIELDS",
+    "health_params",
     "HardwareInterface",
     "JOINT_MAPPING_PARAMS",
     "LifecycleState",
@@ -167,6 +169,36 @@ WATCHDOG_PARAM: Final = ParamSpec(
 )
 """The ``watchdog_s`` row, for drivers whose devices have a watchdog to include in their
 ``PARAMS``; the robot file checks it against the loop period (:data:`MIN_WATCHDOG_PERIODS`)."""
+
+
+HEALTH_FIELDS: Final[tuple[str, ...]] = (
+    "motor", "joint", "model", "firmware", "mode", "torque_enabled", "temperature_c",
+    "voltage_v", "errors", "last_fault",
+)
+"""The keys of one motor's entry in :meth:`HardwareInterface.health` (``None``: unknown)."""
+
+
+def health_params(
+    temperature_warn_c: float, voltage_range: tuple[float, float] | None
+) -> tuple[ParamSpec, ...]:
+    """The health limit rows, for drivers that report temperatures (and voltages) to include
+    in their ``PARAMS`` with their motors' defaults.
+
+    Args:
+        temperature_warn_c: default warning temperature, degC.
+        voltage_range: default [min, max] supply voltage, V, outside which a warning is raised;
+            ``None``: the kind's motors report no voltage, so it has no such parameter.
+    """
+    rows = [
+        ParamSpec("temperature_warn_c", ParamKind.FLOAT, float(temperature_warn_c),
+                  "a motor at or above this temperature raises a warning in status and the "
+                  "log, degC"),
+    ]
+    if voltage_range is not None:
+        rows.append(ParamSpec(
+            "voltage_range", ParamKind.RANGE, tuple(float(v) for v in voltage_range),
+            "[min, max] supply voltage, V: a motor reporting one outside raises a warning"))
+    return tuple(rows)
 
 
 def one_line(exc: BaseException) -> str:
@@ -316,6 +348,7 @@ class HardwareInterface(ABC):
         self._read_errors = 0
         self._write_errors = 0
         self._activations = 0
+        self._health_warnings: dict[tuple[str, str], str] = {}
 
     @classmethod
     def schema(cls) -> Mapping[str, ParamSpec]:
@@ -564,7 +597,63 @@ class HardwareInterface(ABC):
                 "activations": self._activations,
             },
             "details": dict(self._details()),
+            "health": self.health(),
         }
+
+    def health(self) -> dict[str, Any]:
+        """Each motor's health and the bus statistics, as last read (no I/O), with warnings.
+
+        Drivers that read their motors' health do it at a low rate inside their cycle's
+        transactions (see :meth:`_health`); this only reports. The limits
+        ``temperature_warn_c`` and ``voltage_range`` (when the kind has them) turn readings into
+        ``warnings``; each warning is logged once when it appears and once when it clears.
+
+        Returns:
+            ``motors``: one mapping per motor with the keys of :data:`HEALTH_FIELDS`
+            (``None``: not reported by this kind); ``bus``: ``transactions``, ``timeouts``,
+            ``crc_errors``, ``retries`` (``None``: no bus); ``warnings``: lines naming the
+            motor, the reading and the limit. A motor's ``voltage_range_v``, if the driver
+            gives one, is the range its supply is checked against (else ``voltage_range``).
+        """
+        motors_raw, bus = self._health()
+        motors: list[dict[str, Any]] = []
+        for raw in motors_raw:
+            entry: dict[str, Any] = dict.fromkeys(HEALTH_FIELDS)
+            entry["errors"] = []
+            entry.update(raw)
+            motors.append(entry)
+        warnings = self._health_limits(motors)
+        return {"motors": motors, "bus": bus, "warnings": warnings}
+
+    def _health_limits(self, motors: Sequence[Mapping[str, Any]]) -> list[str]:
+        """The warnings of ``motors`` against the kind's limits; logs the changes."""
+        current: dict[tuple[str, str], str] = {}
+        hot = self.params.get("temperature_warn_c")
+        for m in motors:
+            label = f"{self._owner()}: motor {m['motor']} (joint {m['joint']!r})"
+            temp, voltage = m["temperature_c"], m["voltage_v"]
+            # A driver may give each motor its own range (e.g. from its model's supply).
+            volts = m.get("voltage_range_v") or self.params.get("voltage_range")
+            if hot is not None and temp is not None and temp >= hot:
+                current[(str(m["motor"]), "temperature")] = (
+                    f"{label}: temperature {temp:g} degC at or above temperature_warn_c "
+                    f"{hot:g} degC")
+            if volts is not None and voltage is not None and not (
+                    volts[0] <= voltage <= volts[1]):
+                current[(str(m["motor"]), "voltage")] = (
+                    f"{label}: supply {voltage:g} V outside voltage_range "
+                    f"[{volts[0]:g}, {volts[1]:g}] V")
+            for error in m["errors"]:
+                current[(str(m["motor"]), f"error:{error}")] = f"{label}: {error}"
+        # Logged on a crossing only: status() runs at a low rate, but a hot motor stays hot.
+        for key, text in current.items():
+            if key not in self._health_warnings:
+                _log.warning("%s", text)
+        for key, text in self._health_warnings.items():
+            if key not in current:
+                _log.info("cleared: %s", text)
+        self._health_warnings = current
+        return list(current.values())
 
     def device_watchdog(self) -> DeviceWatchdog:
         """What stops this component's motors if the daemon cannot command them.
@@ -623,6 +712,16 @@ class HardwareInterface(ABC):
     def _details(self) -> Mapping[str, Any]:
         """Driver-specific JSON-able status entries (bus statistics, temperatures, ...)."""
         return {}
+
+    def _health(self) -> tuple[list[dict[str, Any]], dict[str, Any] | None]:
+        """The motors' health as last read (no I/O) and the bus statistics.
+
+        Default: one motor per joint with nothing known, no bus. Drivers override it with
+        what their motors report (any keys of :data:`HEALTH_FIELDS`; ``errors`` a list of
+        lines) and their bus counters (``transactions``, ``timeouts``, ``crc_errors``,
+        ``retries``).
+        """
+        return [{"motor": joint, "joint": joint} for joint in self.joints], None
 
     # -- helpers ------------------------------------------------------------------------------
 

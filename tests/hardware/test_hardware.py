@@ -343,6 +343,16 @@ def test_status_is_json_able() -> None:
             "reads": 0, "writes": 0, "read_errors": 0, "write_errors": 0, "activations": 0,
         },
         "details": {},
+        # A kind without health readings: its joints as motors, nothing known, no bus.
+        "health": {
+            "motors": [{
+                "motor": "x", "joint": "x", "model": None, "firmware": None, "mode": None,
+                "torque_enabled": None, "temperature_c": None, "voltage_v": None,
+                "errors": [], "last_fault": None,
+            }],
+            "bus": None,
+            "warnings": [],
+        },
     }
     assert repr(hw) == "<Recorder 'rec' (recorder) unconfigured joints=[x]>"
 

@@ -66,3 +66,18 @@ class CommunicationError(HardwareError):
 
 class MotorFault(HardwareError):
     """A motor reported a fault (overload, overheating, ...)."""
+
+
+def add_note(exc: BaseException, note: str) -> None:
+    """``exc.add_note(note)``: Python 3.11's, or the same ``__notes__`` list on 3.10 (which
+    stores it for the log and for code that reads it, but does not print it in tracebacks).
+
+    Raises:
+        Nothing.
+    """
+    adder = getattr(exc, "add_note", None)
+    if adder is not None:
+        adder(note)
+        return
+    notes = getattr(exc, "__notes__", None)
+    exc.__notes__ = [*(notes or ()), note]  # type: ignore[attr-defined]  # 3.11's attribute

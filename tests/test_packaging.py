@@ -7,7 +7,12 @@ with the folders that hold an ``__init__.py``.
 
 from __future__ import annotations
 
-import tomllib
+import sys
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # Python 3.10: the same parser, published as tomli (the test extra installs it there)
+    import tomli as tomllib
 
 from conftest import ROOT
 

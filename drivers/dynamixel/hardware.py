@@ -73,7 +73,13 @@ import numpy as np
 from numpy.typing import NDArray
 
 from jtc_hw.controller.config import STATE_INTERFACE_TYPES
-from jtc_hw.errors import CommunicationError, ConfigurationError, HardwareError, MotorFault
+from jtc_hw.errors import (
+    CommunicationError,
+    ConfigurationError,
+    HardwareError,
+    MotorFault,
+    add_note,
+)
 from jtc_hw.hardware import (
     JOINT_MAPPING_PARAMS,
     WATCHDOG_PARAM,
@@ -681,7 +687,7 @@ class DynamixelHardware(HardwareInterface):
             try:
                 self._deactivate(now_ns, self.safe_action)
             except HardwareError as rollback:
-                exc.add_note(f"undoing the activation failed too: {rollback}")
+                add_note(exc, f"undoing the activation failed too: {rollback}")
             raise
         return JointCommand(
             held_positions if self._interface == "position" else None,
@@ -984,7 +990,7 @@ class DynamixelHardware(HardwareInterface):
         if errors:
             first = errors[0]
             for other in errors[1:]:
-                first.add_note(f"also: {other}")
+                add_note(first, f"also: {other}")
             raise first
 
     def _recover(self) -> None:
@@ -1116,7 +1122,8 @@ class DynamixelHardware(HardwareInterface):
     def last_efforts(self) -> F64:
         """The joint efforts of the last good read, N*m (present current * torque constant *
         gear ratio)."""
-        return self._efforts.copy()
+        efforts: F64 = self._efforts.copy()
+        return efforts
 
     @property
     def bus(self) -> DynamixelBus | None:

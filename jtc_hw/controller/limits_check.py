@@ -322,7 +322,8 @@ def check(
 
     def rows(values: NDArray[Any]) -> NDArray[Any]:
         """(segments, joints) of the checked segments and columns, flattened."""
-        return np.ascontiguousarray(values[first:][:, pick]).reshape(n)
+        flat: NDArray[Any] = np.ascontiguousarray(values[first:][:, pick]).reshape(n)
+        return flat
 
     org = origins[first:][:, pick]
     t0 = ((breaks[first:-1][:, None] - org) / NS_PER_S).reshape(n)

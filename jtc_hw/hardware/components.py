@@ -16,7 +16,7 @@ from numpy.typing import NDArray
 from ..controller.config import COMMAND_INTERFACE_TYPES
 from ..controller.joints import JointCommand, JointState
 from ..controller.parsing import did_you_mean
-from ..errors import ConfigurationError, JtcHwError
+from ..errors import ConfigurationError, JtcHwError, add_note
 from .interface import _ALLOWED, HardwareInterface, LifecycleState, _lifecycle_error, _raise_first
 
 __all__ = [
@@ -185,7 +185,7 @@ class HardwareSet:
                     try:
                         other.cleanup()
                     except Exception as rollback:  # noqa: BLE001 - reported as a note
-                        exc.add_note(f"rolling back {other.name!r} failed: {rollback}")
+                        add_note(exc, f"rolling back {other.name!r} failed: {rollback}")
                 raise
             done.append(comp)
 
@@ -212,7 +212,7 @@ class HardwareSet:
                     try:
                         other.deactivate(now_ns)
                     except Exception as rollback:  # noqa: BLE001 - reported as a note
-                        exc.add_note(f"rolling back {other.name!r} failed: {rollback}")
+                        add_note(exc, f"rolling back {other.name!r} failed: {rollback}")
                 raise
             done.append(comp)
             values = (command.positions, command.velocities, command.accelerations, command.effort)

@@ -39,7 +39,13 @@ from numpy.typing import NDArray
 from ..controller.config import COMMAND_INTERFACE_TYPES, STATE_INTERFACE_TYPES
 from ..controller.joints import JointCommand, JointState
 from ..controller.parsing import describe, did_you_mean
-from ..errors import ConfigurationError, ControllerStateError, HardwareError, JtcHwError
+from ..errors import (
+    ConfigurationError,
+    ControllerStateError,
+    HardwareError,
+    JtcHwError,
+    add_note,
+)
 from .params import ParamKind, ParamSpec, _coerce, param_table, validate_params
 
 __all__ = [
@@ -414,7 +420,7 @@ class HardwareInterface(ABC):
             try:
                 self._deactivate(now_ns, self.safe_action)
             except Exception as rollback:  # noqa: BLE001 - reported as a note
-                exc.add_note(f"undoing the activation failed too: {rollback!r}")
+                add_note(exc, f"undoing the activation failed too: {rollback!r}")
             raise
         self._state = LifecycleState.ACTIVE
         self._activations += 1
@@ -780,5 +786,5 @@ def _raise_first(errors: Sequence[BaseException]) -> None:
         return
     first = errors[0]
     for other in errors[1:]:
-        first.add_note(f"also: {type(other).__name__}: {other}")
+        add_note(first, f"also: {type(other).__name__}: {other}")
     raise first

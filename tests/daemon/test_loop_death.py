@@ -49,10 +49,12 @@ class Recorder:
         return [e for e in self.events if isinstance(e, GoalResult) and e.goal_id == goal_id]
 
     async def wait_for(self, predicate: Any) -> None:
-        async with asyncio.timeout(WAIT_S):
+        async def until() -> None:
             while not predicate():
                 self.changed.clear()
                 await self.changed.wait()
+
+        await asyncio.wait_for(until(), WAIT_S)  # asyncio.timeout is Python 3.11
 
 
 def goal(target: float, duration_s: float) -> JointTrajectory:
@@ -79,8 +81,7 @@ def test_a_killed_loop_gives_each_open_goal_one_aborted_result_and_refuses_the_r
             second = await backend.send_goal(goal(-0.5, 20.0))
             assert backend.status()["loop_pid"] == backend.info["pid"]
             os.kill(backend.info["pid"], signal.SIGKILL)
-            async with asyncio.timeout(WAIT_S):
-                code = await backend.wait_exited()
+            code = await asyncio.wait_for(backend.wait_exited(), WAIT_S)
             assert code == -signal.SIGKILL
 
             death = "control loop died: killed by SIGKILL"

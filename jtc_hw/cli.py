@@ -1099,6 +1099,10 @@ Exit status: 0 done; 2 unknown or read-only parameter, or a bad value; 3 no daem
     p = sub.add_parser("status", help="loop statistics, hardware and controller status (JSON)")
     client_options(p)
     p.set_defaults(func=cmd_status)
+
+    from .rec.cli import add_parsers as add_rec_parsers  # record, plot (issue 13, rec)
+
+    add_rec_parsers(sub, client_options)
     return parser
 
 

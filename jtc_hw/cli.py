@@ -283,6 +283,10 @@ def cmd_check(args: argparse.Namespace) -> int:
         f"  realtime        priority {rt.priority or 'normal'}, lock_memory {rt.lock_memory}, "
         f"cpu_affinity {list(rt.cpu_affinity) or 'any'}"
     )
+    from .rec.cli import check_lines  # flight recorder, record (issue 13, rec)
+
+    for line in check_lines(d):
+        print(line)
     _print_warnings(
         [*explain(c), *_limits_warnings(robot), *security_warnings(robot), *watchdog_warnings]
     )

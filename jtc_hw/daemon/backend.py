@@ -30,6 +30,7 @@ it). Meanwhile the device-side watchdogs stop the motors.
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import itertools
 import logging
 import multiprocessing
@@ -198,6 +199,10 @@ def check_position_limits(
     )
 
 
+FLIGHT_AFTER_S = 1.0
+"""The flight recorder's bags go on this long after their trigger (``jtc_hw.rec.flight``)."""
+
+
 class LoopBackend:
     """Runs the loop process and serves the socket server's requests."""
 
@@ -244,6 +249,8 @@ class LoopBackend:
         self.last_heard_ns = 0
         self.info: dict[str, Any] = {}
         self.exit_code: int | None = None
+        self.flight: Any = None
+        """The flight recorder (``jtc_hw.rec.flight.FlightRecorder``), made by ``start``."""
 
     # -- process ------------------------------------------------------------------------------
 
@@ -253,8 +260,12 @@ class LoopBackend:
         Raises:
             HardwareError: the loop process failed to start (its log says why).
         """
+        from ..rec.flight import FlightRecorder
         from .loop import INBOX_SPARE, inbox_budget, loop_main
 
+        d = self.robot.daemon
+        self.flight = FlightRecorder(d.flight_recorder_dir, d.flight_recorder_s,
+                                     d.flight_recorder_keep, self.config.name)
         aio = asyncio.get_running_loop()
         ctx = multiprocessing.get_context("spawn")
         parent, child = ctx.Pipe(duplex=True)
@@ -310,6 +321,8 @@ class LoopBackend:
         if self._process is None or self._exited is None:
             return 0
         self._stopping = True
+        if self.flight is not None and not self._exited.done():
+            self.flight.trigger("shutdown")
         if not self._exited.done():
             stopping_s = 0.0  # a decelerating stop the loop finishes first (its bound)
             try:
@@ -326,6 +339,8 @@ class LoopBackend:
         await asyncio.get_running_loop().run_in_executor(None, self._process.join, 5.0)
         if not self._exited.done():  # its sentinel was not seen (yet): settle the goals now
             self._loop_ended(self._process.exitcode)
+        if self.flight is not None:  # the shutdown's bag, with what came after the trigger
+            await asyncio.get_running_loop().run_in_executor(None, self.flight.close)
         self._close()
         return self.exit_code or 0
 
@@ -460,14 +475,20 @@ class LoopBackend:
             raw = message[1]
             if len(raw) > 14:  # (a test's partial state has no speed scaling)
                 self._timebase = (raw[0], raw[14], raw[12], raw[13])
-            if self._listener is not None:
-                self._listener.on_state(self._snapshot(message[1]))
+            if self._listener is not None or self.flight is not None:
+                snapshot = self._snapshot(message[1])
+                if self.flight is not None:
+                    self.flight.on_state(snapshot)
+                if self._listener is not None:
+                    self._listener.on_state(snapshot)
         elif kind == "status":
             self._status = message[1]
         elif kind == "log":
             log.log(message[1], "%s", message[2])
             if message[1] >= logging.ERROR:
                 self._last_error = message[2]
+                if self.flight is not None and str(message[2]).startswith("hardware fault"):
+                    self._flight_trigger("fault")
         elif kind == "ready":
             t0 = message[1]["t0_ns"]
             initial = self.config.speed_scaling.initial_scaling_factor
@@ -512,6 +533,8 @@ class LoopBackend:
         }
 
     def _finish_goal(self, result: GoalResult) -> None:
+        if self.flight is not None:
+            result = self._flight_result(result)
         self._open_goals.pop(result.goal_id, None)
         if result.goal_id == self._active_goal:
             self._active_goal = None
@@ -526,6 +549,33 @@ class LoopBackend:
             result.error_string,
             f": {result.details}" if result.details else "",
         )
+
+    def _flight_trigger(self, reason: str, now_ns: int | None = None) -> str | None:
+        """Trigger the flight recorder; a timer writes the bag a second later even if no state
+        comes (a faulted loop publishes none)."""
+        path: str | None = self.flight.trigger(reason, now_ns)
+        if path is not None:
+            flight = self.flight
+            asyncio.get_running_loop().call_later(
+                FLIGHT_AFTER_S + 0.05, lambda: flight.poll(time.monotonic_ns()))
+        return path
+
+    def _flight_result(self, result: GoalResult) -> GoalResult:
+        """Record the result; an abort triggers the flight recorder and its details name the
+        bag (``flight recorder: PATH``)."""
+        path = None
+        if result.status is GoalStatus.ABORTED:
+            path = self._flight_trigger("aborted", result.time_ns)
+            if path is not None:
+                note = f"flight recorder: {path}"
+                result = dataclasses.replace(
+                    result, details=f"{result.details}; {note}" if result.details else note)
+        self.flight.on_event({
+            "event": "result", "goal_id": result.goal_id, "status": result.status.value,
+            "error_code": int(result.error_code), "error_string": result.error_string,
+            "details": result.details, "time_ns": result.time_ns,
+        })
+        return result
 
     def _fail_waiting(self, reason: str) -> None:
         for future in self._waiting.values():
@@ -573,6 +623,8 @@ class LoopBackend:
             if self.death:
                 controller.update(active=False, holding=False, fault=self.death)
             status["controller"] = controller
+        if self.flight is not None:
+            status["flight_recorder"] = self.flight.status()
         return status
 
     def query_state(self, time_ns: int) -> QueriedState:
@@ -701,7 +753,10 @@ class LoopBackend:
         Returns:
             False if there was nothing to re-arm (no fault, the controller is running).
         """
-        return bool(await self._request("rearm", {}))
+        rearmed = bool(await self._request("rearm", {}))
+        if rearmed and self.flight is not None:
+            self._flight_trigger("rearm")
+        return rearmed
 
     async def set_speed_scaling(self, factor: float | None) -> dict[str, float]:
         """Set the speed scaling factor's target in the loop's controller (``None``: resume,

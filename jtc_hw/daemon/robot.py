@@ -18,6 +18,9 @@ layout); this module adds two top-level sections that ``load_config`` skips::
       realtime: {priority: 0, lock_memory: false, cpu_affinity: []}
       api_stall_s: 0.5
       log_level: info
+      flight_recorder_s: 10          # 0: off
+      flight_recorder_dir: /var/lib/jtc-hw/flight
+      flight_recorder_keep: 20
 
 The keys, types, defaults and ranges of both sections live in the schema tables below
 (:data:`HARDWARE_KEYS`, :data:`DAEMON_PARAMETERS`, :data:`TCP_PARAMETERS`,
@@ -183,8 +186,26 @@ DAEMON_PARAMETERS: Final[Mapping[str, ParamSpec]] = param_table(
               "how long the control loop's messages may wait for the API process before the "
               "loop ends the active goal ABORTED and holds, s", minimum=MIN_API_STALL_S),
     ParamSpec("log_level", ParamKind.STRING, "info", "logging threshold", choices=LOG_LEVELS),
+    ParamSpec("flight_recorder_s", ParamKind.FLOAT, 10.0,
+              "seconds of state the flight recorder keeps and writes as a bag before an abort, "
+              "fault, rearm or SIGTERM (0: off)", minimum=0.0, maximum=3600.0),
+    ParamSpec("flight_recorder_dir", ParamKind.STRING, None,
+              "directory of the flight recorder's bags (default: $STATE_DIRECTORY/flight, "
+              "$XDG_STATE_HOME/jtc-hw/flight or ~/.local/state/jtc-hw/flight)", nullable=True),
+    ParamSpec("flight_recorder_keep", ParamKind.INT, 20,
+              "flight recorder bags kept (the oldest are removed)", minimum=1),
 )
 """``daemon.*``."""
+
+
+def default_flight_recorder_dir() -> str:
+    """Where the flight recorder writes without ``daemon.flight_recorder_dir``: systemd's
+    ``StateDirectory``, else the XDG state directory (a user's daemon)."""
+    state = os.environ.get("STATE_DIRECTORY")
+    if state:
+        return os.path.join(state.split(":")[0], "flight")
+    xdg = os.environ.get("XDG_STATE_HOME") or os.path.expanduser("~/.local/state")
+    return os.path.join(xdg, "jtc-hw", "flight")
 
 
 # --------------------------------------------------------------------------------------------
@@ -279,6 +300,9 @@ class DaemonSettings:
         api_stall_s: how long the loop's ordered messages (results, replies) may wait for the
             API process to read them before the loop ends the active goal and holds.
         log_level: one of :data:`LOG_LEVELS`.
+        flight_recorder_s: seconds the flight recorder keeps before a trigger (0: off).
+        flight_recorder_dir: absolute directory of its bags.
+        flight_recorder_keep: how many of its bags are kept.
 
     Raises:
         ConfigurationError: the socket path is relative, empty or too long, or
@@ -294,6 +318,9 @@ class DaemonSettings:
     realtime: RealtimeSettings = field(default_factory=RealtimeSettings)
     api_stall_s: float = DEFAULT_API_STALL_S
     log_level: str = "info"
+    flight_recorder_s: float = 10.0
+    flight_recorder_dir: str = field(default_factory=default_flight_recorder_dir)
+    flight_recorder_keep: int = 20
 
     def __post_init__(self) -> None:
         if not isinstance(self.socket, str) or not os.path.isabs(self.socket):
@@ -438,7 +465,19 @@ def _parse_daemon(raw: Any, base_dir: str) -> DaemonSettings:
         realtime=RealtimeSettings(**realtime),
         api_stall_s=values["api_stall_s"],
         log_level=values["log_level"],
+        flight_recorder_s=values["flight_recorder_s"],
+        flight_recorder_dir=_flight_recorder_dir(values["flight_recorder_dir"], base_dir),
+        flight_recorder_keep=values["flight_recorder_keep"],
     )
+
+
+def _flight_recorder_dir(value: str | None, base_dir: str) -> str:
+    if value is None:
+        return default_flight_recorder_dir()
+    if not value.strip():
+        raise ConfigurationError("is empty; give a directory, or remove the key for the default",
+                                 "daemon.flight_recorder_dir", value)
+    return os.path.normpath(os.path.join(base_dir, os.path.expanduser(value)))
 
 
 def load_robot(

@@ -522,7 +522,9 @@ def measure_rate(
     if "bare" in args.scenarios:
         note(f"{rate_hz:g} Hz bare: measuring {args.duration:g} s")
         rows.append(run_bare(rate_hz, args))
-    with Daemon(rate_hz, args.priority, args.cpu, args.lock_memory) as daemon:
+    settings = {"flight_recorder_dir": str(Path(tempfile.gettempdir()) / "jtc-hw-jitter-flight"),
+                "flight_recorder_s": args.flight_recorder_s}
+    with Daemon(rate_hz, args.priority, args.cpu, args.lock_memory, settings) as daemon:
         client = daemon.connect()
         try:
             scheduling = daemon.scheduling()
@@ -655,6 +657,13 @@ def main(argv: list[str] | None = None) -> int:
         "--lock-memory",
         action="store_true",
         help="daemon.realtime.lock_memory: mlockall the loop process",
+    )
+    parser.add_argument(
+        "--flight-recorder-s",
+        type=float,
+        default=10.0,
+        metavar="S",
+        help="daemon.flight_recorder_s (default 10, the daemon's default; 0: off)",
     )
     parser.add_argument("--json", action="store_true", help="one JSON object per run")
     args = parser.parse_args(argv)

@@ -165,6 +165,9 @@ class FlightRecorder:
                events: list[dict[str, Any]]) -> None:
         from .bag import BagRecorder
 
+        if not states and not events:  # e.g. a fault before the first state: nothing to show
+            log.info("flight recorder: nothing recorded before %s; no bag written", path.name)
+            return
         try:
             self.directory.mkdir(parents=True, exist_ok=True)
             recorder = BagRecorder(path, self.controller, self.offset_ns)

@@ -251,6 +251,8 @@ class LoopBackend:
         self.exit_code: int | None = None
         self.flight: Any = None
         """The flight recorder (``jtc_hw.rec.flight.FlightRecorder``), made by ``start``."""
+        self.recording: Any = None
+        """``daemon.record``'s recorder (``jtc_hw.rec.continuous``), made by ``start``."""
 
     # -- process ------------------------------------------------------------------------------
 
@@ -266,6 +268,10 @@ class LoopBackend:
         d = self.robot.daemon
         self.flight = FlightRecorder(d.flight_recorder_dir, d.flight_recorder_s,
                                      d.flight_recorder_keep, self.config.name)
+        if d.record is not None:
+            from ..rec.continuous import ContinuousRecorder
+
+            self.recording = ContinuousRecorder(d.record, self.config.name, self.status)
         aio = asyncio.get_running_loop()
         ctx = multiprocessing.get_context("spawn")
         parent, child = ctx.Pipe(duplex=True)
@@ -341,6 +347,8 @@ class LoopBackend:
             self._loop_ended(self._process.exitcode)
         if self.flight is not None:  # the shutdown's bag, with what came after the trigger
             await asyncio.get_running_loop().run_in_executor(None, self.flight.close)
+        if self.recording is not None:
+            await asyncio.get_running_loop().run_in_executor(None, self.recording.close)
         self._close()
         return self.exit_code or 0
 
@@ -479,6 +487,8 @@ class LoopBackend:
                 snapshot = self._snapshot(message[1])
                 if self.flight is not None:
                     self.flight.on_state(snapshot)
+                if self.recording is not None:
+                    self.recording.on_state(snapshot)
                 if self._listener is not None:
                     self._listener.on_state(snapshot)
         elif kind == "status":
@@ -570,11 +580,14 @@ class LoopBackend:
                 note = f"flight recorder: {path}"
                 result = dataclasses.replace(
                     result, details=f"{result.details}; {note}" if result.details else note)
-        self.flight.on_event({
+        event = {
             "event": "result", "goal_id": result.goal_id, "status": result.status.value,
             "error_code": int(result.error_code), "error_string": result.error_string,
             "details": result.details, "time_ns": result.time_ns,
-        })
+        }
+        self.flight.on_event(event)
+        if self.recording is not None:
+            self.recording.on_event(event)
         return result
 
     def _fail_waiting(self, reason: str) -> None:
@@ -625,6 +638,9 @@ class LoopBackend:
             status["controller"] = controller
         if self.flight is not None:
             status["flight_recorder"] = self.flight.status()
+        if self.recording is not None:
+            status["recording"] = {"file": str(self.recording.path),
+                                   "errors": self.recording.errors}
         return status
 
     def query_state(self, time_ns: int) -> QueriedState:

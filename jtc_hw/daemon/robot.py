@@ -21,6 +21,7 @@ layout); this module adds two top-level sections that ``load_config`` skips::
       flight_recorder_s: 10          # 0: off
       flight_recorder_dir: /var/lib/jtc-hw/flight
       flight_recorder_keep: 20
+      record: /var/lib/jtc-hw/runs   # optional: record every run from its start
 
 The keys, types, defaults and ranges of both sections live in the schema tables below
 (:data:`HARDWARE_KEYS`, :data:`DAEMON_PARAMETERS`, :data:`TCP_PARAMETERS`,
@@ -194,6 +195,9 @@ DAEMON_PARAMETERS: Final[Mapping[str, ParamSpec]] = param_table(
               "$XDG_STATE_HOME/jtc-hw/flight or ~/.local/state/jtc-hw/flight)", nullable=True),
     ParamSpec("flight_recorder_keep", ParamKind.INT, 20,
               "flight recorder bags kept (the oldest are removed)", minimum=1),
+    ParamSpec("record", ParamKind.STRING, None,
+              "directory where each run of the daemon is recorded as a bag from its start "
+              "(default: not recorded)", nullable=True),
 )
 """``daemon.*``."""
 
@@ -303,6 +307,7 @@ class DaemonSettings:
         flight_recorder_s: seconds the flight recorder keeps before a trigger (0: off).
         flight_recorder_dir: absolute directory of its bags.
         flight_recorder_keep: how many of its bags are kept.
+        record: absolute directory where each run is recorded from its start, or ``None``.
 
     Raises:
         ConfigurationError: the socket path is relative, empty or too long, or
@@ -321,6 +326,7 @@ class DaemonSettings:
     flight_recorder_s: float = 10.0
     flight_recorder_dir: str = field(default_factory=default_flight_recorder_dir)
     flight_recorder_keep: int = 20
+    record: str | None = None
 
     def __post_init__(self) -> None:
         if not isinstance(self.socket, str) or not os.path.isabs(self.socket):
@@ -468,15 +474,21 @@ def _parse_daemon(raw: Any, base_dir: str) -> DaemonSettings:
         flight_recorder_s=values["flight_recorder_s"],
         flight_recorder_dir=_flight_recorder_dir(values["flight_recorder_dir"], base_dir),
         flight_recorder_keep=values["flight_recorder_keep"],
+        record=None if values["record"] is None else _directory(values["record"], base_dir,
+                                                                 "daemon.record"),
     )
 
 
 def _flight_recorder_dir(value: str | None, base_dir: str) -> str:
     if value is None:
         return default_flight_recorder_dir()
+    return _directory(value, base_dir, "daemon.flight_recorder_dir")
+
+
+def _directory(value: str, base_dir: str, path: str) -> str:
     if not value.strip():
         raise ConfigurationError("is empty; give a directory, or remove the key for the default",
-                                 "daemon.flight_recorder_dir", value)
+                                 path, value)
     return os.path.normpath(os.path.join(base_dir, os.path.expanduser(value)))
 
 

@@ -61,17 +61,24 @@ def add_parsers(sub: Any, client_options: Any) -> None:
 
 def check_lines(daemon: Any) -> list[str]:
     """``jtc-hw check``'s lines for the flight recorder and recording settings."""
-    if not daemon.flight_recorder_s:
-        return ["  flight recorder off (daemon.flight_recorder_s: 0)"]
     try:
         import rosbags  # noqa: F401
 
         missing = ""
     except ImportError:
         missing = "; OFF: needs pip install 'jtc_hw[record]'"
-    return [f"  flight recorder {daemon.flight_recorder_s:g} s before each abort, fault, rearm "
+    lines = []
+    if not daemon.flight_recorder_s:
+        lines.append("  flight recorder off (daemon.flight_recorder_s: 0)")
+    else:
+        lines.append(
+            f"  flight recorder {daemon.flight_recorder_s:g} s before each abort, fault, rearm "
             f"and SIGTERM, into {daemon.flight_recorder_dir} (keeps "
-            f"{daemon.flight_recorder_keep}){missing}"]
+            f"{daemon.flight_recorder_keep}){missing}")
+    if daemon.record is not None:
+        refused = "; run REFUSES to start: needs pip install 'jtc_hw[record]'" if missing else ""
+        lines.append(f"  record          every run from its start into {daemon.record}{refused}")
+    return lines
 
 
 def _terminate(signum: int, frame: FrameType | None) -> None:

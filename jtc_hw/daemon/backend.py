@@ -266,12 +266,15 @@ class LoopBackend:
         from .loop import INBOX_SPARE, inbox_budget, loop_main
 
         d = self.robot.daemon
+        tolerances = {joint: {"path": c.trajectory, "goal": c.goal}
+                      for joint, c in self.config.constraints.joints.items()}
         self.flight = FlightRecorder(d.flight_recorder_dir, d.flight_recorder_s,
-                                     d.flight_recorder_keep, self.config.name)
+                                     d.flight_recorder_keep, self.config.name, tolerances)
         if d.record is not None:
             from ..rec.continuous import ContinuousRecorder
 
-            self.recording = ContinuousRecorder(d.record, self.config.name, self.status)
+            self.recording = ContinuousRecorder(d.record, self.config.name, self.status,
+                                                tolerances)
         aio = asyncio.get_running_loop()
         ctx = multiprocessing.get_context("spawn")
         parent, child = ctx.Pipe(duplex=True)

@@ -56,6 +56,9 @@ float64 speed_scaling_factor
 """
 
 CLOCK_OFFSET_KEY = "jtc_hw.clock_offset_ns"
+TOLERANCES_KEY = "jtc_hw.tolerances"
+"""``custom_data`` key: JSON ``{joint: {"path": x, "goal": y}}``, the configured constraints
+(``constraints.<joint>.trajectory`` / ``.goal``; 0: not checked) when the recording started."""
 
 DIAGNOSTIC_OK, DIAGNOSTIC_WARN, DIAGNOSTIC_ERROR = 0, 1, 2
 
@@ -98,6 +101,16 @@ def _floats(values: Sequence[float | None] | None) -> Any:
     return np.array([math.nan if v is None else v for v in values], dtype=np.float64)
 
 
+def tolerances_from_constraints(constraints: Mapping[str, Any]) -> dict[str, dict[str, float]]:
+    """``{joint: {"path", "goal"}}`` from the controller's ``constraints`` as ``get_config``
+    gives them (upstream names: ``<joint>: {trajectory, goal}``)."""
+    return {
+        joint: {"path": float(values.get("trajectory", 0.0)),
+                "goal": float(values.get("goal", 0.0))}
+        for joint, values in constraints.items() if isinstance(values, Mapping)
+    }
+
+
 class BagRecorder:
     """Writes the daemon's messages into one rosbag2/MCAP directory (see the module docstring).
 
@@ -105,9 +118,12 @@ class BagRecorder:
         path: the bag directory to create; it must not exist.
         controller: the controller's name, the namespace of its topics.
         clock_offset_ns: wall time minus daemon clock, measured once.
+        tolerances: the configured tolerances per joint (``tolerances_from_constraints``),
+            stored in the metadata for ``jtc-hw plot``'s band.
     """
 
-    def __init__(self, path: str | Path, controller: str, clock_offset_ns: int) -> None:
+    def __init__(self, path: str | Path, controller: str, clock_offset_ns: int,
+                 tolerances: Mapping[str, Mapping[str, float]] | None = None) -> None:
         """Create the bag directory and its connections.
 
         Raises:
@@ -126,6 +142,9 @@ class BagRecorder:
         self._writer = Writer(self.path, version=8, storage_plugin=StoragePlugin.MCAP)
         self._writer.open()
         self._writer.set_custom_data(CLOCK_OFFSET_KEY, str(clock_offset_ns))
+        if tolerances:
+            self._writer.set_custom_data(TOLERANCES_KEY, json.dumps(
+                {joint: dict(values) for joint, values in tolerances.items()}, sort_keys=True))
         self._connections = {
             topic: self._writer.add_connection(topic, msgtype, typestore=self._store)
             for topic, msgtype in topics(controller).items()

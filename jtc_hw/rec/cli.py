@@ -92,7 +92,7 @@ def cmd_record(args: argparse.Namespace) -> int:
         RecordingUnavailable: rosbags is not installed (the CLI prints its hint, exit 2).
     """
     from ..cli import _connect
-    from .bag import BagRecorder
+    from .bag import BagRecorder, tolerances_from_constraints
 
     if args.duration is not None and not args.duration > 0:
         print(f"error: --duration must be a positive number of seconds, not {args.duration}",
@@ -104,8 +104,10 @@ def cmd_record(args: argparse.Namespace) -> int:
             before = time.time_ns()
             now_ns = int(client.hello()["now_ns"])
             offset = (before + time.time_ns()) // 2 - now_ns
+            constraints = client.get_config()["controller"].get("constraints", {})
             try:
-                recorder = BagRecorder(args.out, args.controller_name, offset)
+                recorder = BagRecorder(args.out, args.controller_name, offset,
+                                       tolerances_from_constraints(constraints))
             except FileExistsError as exc:
                 print(f"error: {exc}", file=sys.stderr)
                 return EXIT_BAD_INPUT

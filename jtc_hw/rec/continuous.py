@@ -30,10 +30,12 @@ class ContinuousRecorder:
         directory: where the run's bag is created.
         controller: the controller's name (topic namespace).
         status: returns the daemon's ``get_status`` reply (for ``/diagnostics``).
+        tolerances: the configured tolerances per joint, stored in the bag's metadata.
     """
 
     def __init__(self, directory: str | Path, controller: str,
-                 status: Callable[[], Mapping[str, Any]]) -> None:
+                 status: Callable[[], Mapping[str, Any]],
+                 tolerances: Mapping[str, Mapping[str, float]] | None = None) -> None:
         """Create the bag.
 
         Raises:
@@ -46,7 +48,7 @@ class ContinuousRecorder:
         directory = Path(directory)
         directory.mkdir(parents=True, exist_ok=True)
         self.path = directory / (bag_name(time.time_ns(), "run"))
-        self._recorder = BagRecorder(self.path, controller, offset)
+        self._recorder = BagRecorder(self.path, controller, offset, tolerances)
         self._status = status
         self._next_diagnostics_ns = 0
         self._worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="record")

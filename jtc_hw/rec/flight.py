@@ -54,11 +54,14 @@ class FlightRecorder:
         seconds: how many seconds before a trigger each bag covers (0: off).
         keep: how many bags to keep (the oldest are removed).
         controller: the controller's name (topic namespace).
+        tolerances: the configured tolerances per joint, stored in each bag's metadata.
     """
 
     def __init__(self, directory: str | Path, seconds: float, keep: int,
-                 controller: str = "joint_trajectory_controller") -> None:
+                 controller: str = "joint_trajectory_controller",
+                 tolerances: Mapping[str, Mapping[str, float]] | None = None) -> None:
         self.directory = Path(directory)
+        self.tolerances = tolerances
         self.window_ns = round(seconds * 1e9)
         self.keep = keep
         self.controller = controller
@@ -170,7 +173,7 @@ class FlightRecorder:
             return
         try:
             self.directory.mkdir(parents=True, exist_ok=True)
-            recorder = BagRecorder(path, self.controller, self.offset_ns)
+            recorder = BagRecorder(path, self.controller, self.offset_ns, self.tolerances)
             try:
                 merged = sorted([(s["time_ns"], 0, s) for s in states]
                                 + [(e["time_ns"], 1, e) for e in events],

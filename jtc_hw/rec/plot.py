@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import Any
 
 from ..errors import ConfigurationError
-from .bag import CONTROLLER_STATE_TYPE, RecordingUnavailable, typestore
+from .bag import CONTROLLER_STATE_TYPE, TOLERANCES_KEY, RecordingUnavailable, typestore
 
 PLOT_HINT = "plotting needs matplotlib: pip install 'jtc_hw[plot]'"
 
@@ -73,12 +73,24 @@ def read_series(bag: str | Path, controller: str) -> dict[str, Any]:
     series: dict[str, Any] = {
         "t": (np.array(stamps, dtype=np.int64) - t0) / 1e9,
         "joints": joints,
+        "tolerances": _tolerances(Path(bag)),
         "events": [((ts - t0) / 1e9, _event_label(text)) for ts, text in raw_events],
     }
     for key, values in rows.items():
         width = min(len(v) for v in values)
         series[key] = np.array([v[:width] for v in values], dtype=np.float64)
     return series
+
+
+def _tolerances(bag: Path) -> dict[str, dict[str, float]]:
+    """The configured tolerances the recorder stored in ``metadata.yaml`` (none: ``{}``)."""
+    import yaml
+
+    try:
+        info = yaml.safe_load((bag / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+        return dict(json.loads(info.get("custom_data", {})[TOLERANCES_KEY]))
+    except (OSError, KeyError, TypeError, ValueError, AttributeError):
+        return {}
 
 
 def _event_label(text: str) -> str:
@@ -128,6 +140,11 @@ def plot_bag(
             panels.append(("velocity", "ref_vel", "act_vel"))
         for col, (what, ref, act) in enumerate(panels):
             ax = axes[row][col]
+            band = series["tolerances"].get(joint, {}).get("path", 0.0)
+            if what == "position" and band > 0:  # the configured path tolerance (0: none)
+                ax.fill_between(t, series[ref][:, i] - band, series[ref][:, i] + band,
+                                color="tab:blue", alpha=0.15, linewidth=0,
+                                label=f"path tolerance ±{band:g}")
             ax.plot(t, series[ref][:, i], label="desired", color="tab:blue")
             ax.plot(t, series[act][:, i], label="actual", color="tab:orange", linestyle="--")
             for when, label in series["events"]:

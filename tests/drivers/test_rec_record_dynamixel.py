@@ -10,6 +10,7 @@ deadlines; nothing asserts a duration.
 
 from __future__ import annotations
 
+import json
 import math
 import subprocess
 import sys
@@ -21,7 +22,7 @@ from typing import Any
 import pytest
 import yaml
 from helpers.daemon import MS, WAIT_S, connect, daemon_env
-from test_dynamixel_daemon import IDS, JOINTS, START, DxlDaemon, robot, traj
+from test_dynamixel_daemon import GOAL_TOL, IDS, JOINTS, PATH_TOL, START, DxlDaemon, robot, traj
 
 from jtc_hw.drivers.dynamixel.emulator import DynamixelEmulator
 
@@ -128,6 +129,9 @@ def test_bag_has_the_ros2_topics_and_types(recording: Any) -> None:
     counts = Counter(topic for topic, _, _, _ in messages)
     assert counts == {t["topic_metadata"]["name"]: t["message_count"]
                       for t in metadata["topics_with_message_count"]}
+    # The configured tolerances, for the plot's band.
+    tolerances = json.loads(metadata["custom_data"]["jtc_hw.tolerances"])
+    assert tolerances == {j: {"path": PATH_TOL, "goal": GOAL_TOL} for j in JOINTS}
 
 
 def test_states_at_the_publish_rate_with_the_controllers_values(recording: Any) -> None:
@@ -174,8 +178,6 @@ def test_states_at_the_publish_rate_with_the_controllers_values(recording: Any) 
 
 def test_goal_events_and_diagnostics(recording: Any) -> None:
     bag, _, result = recording
-    import json
-
     messages = read_bag(bag)
     events = [json.loads(m.data) for topic, _, _, m in messages
               if topic == f"/{CONTROLLER}/goal_events"]

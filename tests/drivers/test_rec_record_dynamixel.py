@@ -224,3 +224,25 @@ def test_record_refuses_an_existing_directory(daemon: DxlDaemon, tmp_path: Path)
     _, stderr = recorder.communicate(timeout=60)
     assert recorder.returncode == 2
     assert str(tmp_path) in stderr and "exists" in stderr and "Traceback" not in stderr
+
+
+@pytest.mark.parametrize(("blocked", "command", "hint"), [
+    ("matplotlib", ["plot", "BAG"], "pip install 'jtc_hw[plot]'"),
+    ("rosbags", ["plot", "BAG"], "pip install 'jtc_hw[record]'"),
+    ("rosbags", ["record", "NEW", "--socket", "SOCKET"], "pip install 'jtc_hw[record]'"),
+])
+def test_a_missing_extra_gives_the_install_hint(
+    recording: Any, daemon: DxlDaemon, tmp_path: Path, blocked: str, command: list[str],
+    hint: str,
+) -> None:
+    bag, _, _ = recording
+    argv = [str(bag) if a == "BAG" else str(tmp_path / "new") if a == "NEW"
+            else str(daemon.socket) if a == "SOCKET" else a for a in command]
+    # The library made unimportable in the CLI's process, as when it is not installed.
+    code = (f"import sys; sys.modules[{blocked!r}] = None; from jtc_hw.cli import main; "
+            f"sys.exit(main({argv!r}))")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          timeout=120, env=daemon_env())
+    assert done.returncode == 2, done
+    assert hint in done.stderr and "Traceback" not in done.stderr, done.stderr
+    assert not (tmp_path / "new").exists()

@@ -563,6 +563,16 @@ class LoopBackend:
             f": {result.details}" if result.details else "",
         )
 
+    def _record_command(self, traj: JointTrajectory) -> None:
+        """An accepted command, as received, for ``/<controller>/joint_trajectory`` (converted
+        to a message in the recorders' worker threads: a large goal costs the event loop
+        nothing here)."""
+        now = time.monotonic_ns()
+        if self.flight is not None:
+            self.flight.on_command(traj, now)
+        if self.recording is not None:
+            self.recording.on_command(traj, now)
+
     def _flight_trigger(self, reason: str, now_ns: int | None = None) -> str | None:
         """Trigger the flight recorder; a timer writes the bag a second later even if no state
         comes (a faulted loop publishes none)."""
@@ -693,6 +703,7 @@ class LoopBackend:
                 plan.
         """
         check_position_limits(traj, self._position_limits)
+        received = traj
         traj = self._stamp_in_trajectory_time(traj)
         made: list[Plan] = []  # the last plan made is the one committed
 
@@ -713,6 +724,7 @@ class LoopBackend:
 
         result = await self._plan_and_commit(make, len(traj.points))
         assert result is not None
+        self._record_command(received)
         return AcceptedGoal(int(result), made[-1].time_scaling)
 
     async def send_trajectory(
@@ -731,8 +743,10 @@ class LoopBackend:
         """
         if not traj.points:
             await self._request("stop", {})
+            self._record_command(traj)
             return None
         check_position_limits(traj, self._position_limits)
+        received = traj
         traj = self._stamp_in_trajectory_time(traj)
         made: list[Plan] = []
 
@@ -742,6 +756,7 @@ class LoopBackend:
             return plan
 
         await self._plan_and_commit(make, len(traj.points))
+        self._record_command(received)
         return made[-1].time_scaling
 
     async def stop_motion(self) -> bool:

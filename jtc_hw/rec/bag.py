@@ -150,6 +150,7 @@ class BagRecorder:
             for topic, msgtype in topics(controller).items()
         }
         self._last_goal: Any = None
+        self._command_connection: Any = None  # created with the first command
         self._closed = False
 
     def _stamp(self, time_ns: int) -> Any:
@@ -223,6 +224,36 @@ class BagRecorder:
             if goal is not None:
                 self.goal_event({"event": "goal_started", "goal_id": goal, "time_ns": time_ns})
             self._last_goal = goal
+
+    def command(self, trajectory: Any, time_ns: int) -> None:
+        """Record an accepted command (a ``JointTrajectory``: joint_names, points with
+        ``time_from_start_ns`` and value tuples, ``start_time_ns``) received at ``time_ns`` on
+        ``/<controller>/joint_trajectory``. Its header stamp is the command's start time on the
+        wall clock, or 0 for "start now", as in ROS."""
+        topic = f"/{self.controller}/joint_trajectory"
+        if self._command_connection is None:
+            self._command_connection = self._writer.add_connection(
+                topic, "trajectory_msgs/msg/JointTrajectory", typestore=self._store)
+            self._connections[topic] = self._command_connection
+        types = self._store.types
+        Duration = types["builtin_interfaces/msg/Duration"]
+        Point = types["trajectory_msgs/msg/JointTrajectoryPoint"]
+        Time = types["builtin_interfaces/msg/Time"]
+        Header = types["std_msgs/msg/Header"]
+        Message = types["trajectory_msgs/msg/JointTrajectory"]
+        points = []
+        for point in trajectory.points:
+            t = int(point.time_from_start_ns)
+            points.append(Point(
+                positions=_floats(point.positions), velocities=_floats(point.velocities),
+                accelerations=_floats(point.accelerations), effort=_floats(point.effort),
+                time_from_start=Duration(sec=t // 1_000_000_000, nanosec=t % 1_000_000_000)))
+        start = int(trajectory.start_time_ns)
+        wall = start + self.offset_ns if start else 0
+        header = Header(stamp=Time(sec=wall // 1_000_000_000, nanosec=wall % 1_000_000_000),
+                        frame_id="")
+        self._write(topic, time_ns, Message(
+            header=header, joint_names=list(trajectory.joint_names), points=points))
 
     def goal_event(self, event: Mapping[str, Any]) -> None:
         """Record a goal event (``result``, ``feedback``, ``goal_started``...) as JSON text."""

@@ -63,6 +63,10 @@ class ContinuousRecorder:
             self._next_diagnostics_ns = t + DIAGNOSTICS_PERIOD_NS
             self._worker.submit(self._guarded, self._recorder.diagnostics, self._status(), t)
 
+    def on_command(self, trajectory: Any, time_ns: int) -> None:
+        """Queue an accepted command (``JointTrajectory``) for writing."""
+        self._worker.submit(self._guarded, self._recorder.command, trajectory, time_ns)
+
     def on_event(self, event: Mapping[str, Any]) -> None:
         """Queue a goal event for writing."""
         self._worker.submit(self._guarded, self._recorder.goal_event, dict(event))

@@ -76,6 +76,7 @@ class FlightRecorder:
                             "(pip install 'jtc_hw[record]')")
         self._states: collections.deque[dict[str, Any]] = collections.deque()
         self._events: collections.deque[dict[str, Any]] = collections.deque()
+        self._commands: collections.deque[tuple[int, Any]] = collections.deque()
         # (bag path, write once a state is at/after this, trigger time)
         self._pending: list[tuple[Path, int, int]] = []
         self._writer = ThreadPoolExecutor(max_workers=1, thread_name_prefix="flight-recorder")
@@ -95,6 +96,8 @@ class FlightRecorder:
             self._states.popleft()
         while self._events and self._events[0]["time_ns"] < horizon:
             self._events.popleft()
+        while self._commands and self._commands[0][0] < horizon:
+            self._commands.popleft()
         self.poll(t)
 
     def poll(self, now_ns: int) -> None:
@@ -105,6 +108,11 @@ class FlightRecorder:
             self._pending = [p for p in self._pending if now_ns < p[1]]
             for path, end_ns, _ in due:
                 self._submit(path, end_ns)
+
+    def on_command(self, trajectory: Any, time_ns: int) -> None:
+        """Keep an accepted command (``JointTrajectory``, converted only if a bag is written)."""
+        if self.available:
+            self._commands.append((time_ns, trajectory))
 
     def on_event(self, event: Mapping[str, Any]) -> None:
         """Keep a goal event (a result or feedback as the socket sends it, with ``time_ns``)."""
@@ -161,11 +169,12 @@ class FlightRecorder:
         start = end - AFTER_NS - self.window_ns
         states = [s for s in self._states if start <= s["time_ns"] <= end]
         events = [e for e in self._events if start <= e["time_ns"] <= end]
-        future: Future[None] = self._writer.submit(self._write, path, states, events)
+        commands = [(t, c) for t, c in self._commands if start <= t <= end]
+        future: Future[None] = self._writer.submit(self._write, path, states, events, commands)
         del future  # errors are logged and counted by _write
 
     def _write(self, path: Path, states: list[dict[str, Any]],
-               events: list[dict[str, Any]]) -> None:
+               events: list[dict[str, Any]], commands: list[tuple[int, Any]]) -> None:
         from .bag import BagRecorder
 
         if not states and not events:  # e.g. a fault before the first state: nothing to show
@@ -176,13 +185,16 @@ class FlightRecorder:
             recorder = BagRecorder(path, self.controller, self.offset_ns, self.tolerances)
             try:
                 merged = sorted([(s["time_ns"], 0, s) for s in states]
-                                + [(e["time_ns"], 1, e) for e in events],
+                                + [(e["time_ns"], 1, e) for e in events]
+                                + [(t, 2, c) for t, c in commands],
                                 key=lambda item: (item[0], item[1]))
-                for _, kind, message in merged:
+                for t, kind, message in merged:
                     if kind == 0:
                         recorder.state(message)
-                    else:
+                    elif kind == 1:
                         recorder.goal_event(message)
+                    else:
+                        recorder.command(message, t)
             finally:
                 recorder.close()
         except Exception as exc:  # noqa: BLE001 - a full disk must not take the daemon down

@@ -45,5 +45,13 @@ def test_the_run_is_recorded_from_the_start(tmp_path: Path) -> None:
     events = [json.loads(m.data) for topic, m in messages if topic.endswith("goal_events")]
     assert {"event": "result", "goal_id": result["goal_id"], "status": "succeeded"}.items() <= \
         next(e for e in events if e["event"] == "result").items()
+    # The accepted command, as sent: header stamp 0 ("start now"), one point at 0.5 s.
+    (command,) = [m for topic, m in messages
+                  if topic == "/joint_trajectory_controller/joint_trajectory"]
+    assert list(command.joint_names) == [f"joint{i}" for i in range(1, 7)]
+    assert (command.header.stamp.sec, command.header.stamp.nanosec) == (0, 0)
+    (point,) = command.points
+    assert list(point.positions) == [0.2] * 6
+    assert (point.time_from_start.sec, point.time_from_start.nanosec) == (0, 500_000_000)
     final = [m for topic, m in messages if topic == "/joint_states"][-1]
     assert list(final.position) == pytest.approx([0.2] * 6, abs=0.02)

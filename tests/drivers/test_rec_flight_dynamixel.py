@@ -116,6 +116,9 @@ def test_an_abort_writes_the_seconds_before_it_named_in_the_result(
     # The goal's motion before the fault is in it: the reference moved away from p0.
     moved = [abs(a - b) for a, b in zip(states[-1].reference.positions, p0)]
     assert max(moved) > 0.02  # 0.4 s into a 2 s cubic move of 0.4 rad: about 0.04
+    # The aborted goal's command is in it.
+    (command,) = [m for topic, m in messages if topic == f"/{CONTROLLER}/joint_trajectory"]
+    assert list(command.points[0].positions) == pytest.approx([p - 0.4 for p in p0])
     events = [json.loads(m.data) for topic, m in messages
               if topic == f"/{CONTROLLER}/goal_events"]
     results = [e for e in events if e["event"] == "result"]

@@ -27,7 +27,8 @@ def read_series(bag: str | Path, controller: str) -> dict[str, Any]:
     Returns:
         ``t`` (seconds from the first state), ``joints``, ``ref_pos``/``act_pos``/``ref_vel``/
         ``act_vel`` (arrays of shape samples × joints; velocities may have 0 columns) and
-        ``events`` (a list of (t, text)).
+        ``events`` (a list of (t, text)), ``waypoints`` (a list of (t, joint, position) of the
+        recorded commands' points), ``tolerances`` (the configured ones, by joint).
 
     Raises:
         RecordingUnavailable: rosbags is not installed.
@@ -40,6 +41,9 @@ def read_series(bag: str | Path, controller: str) -> dict[str, Any]:
 
     state_topic = f"/{controller}/controller_state"
     events_topic = f"/{controller}/goal_events"
+    commands_topic = f"/{controller}/joint_trajectory"
+    # (wall ns, joint name, position) of every commanded waypoint that has positions
+    raw_waypoints: list[tuple[int, str, float]] = []
     stamps: list[int] = []
     rows: dict[str, list[Any]] = {"ref_pos": [], "act_pos": [], "ref_vel": [], "act_vel": []}
     joints: list[str] = []
@@ -50,8 +54,19 @@ def read_series(bag: str | Path, controller: str) -> dict[str, Any]:
     except Exception as exc:  # rosbags raises its own error types for a missing/bad bag
         raise ConfigurationError(f"{bag}: not a readable rosbag2 directory ({exc})") from exc
     try:
-        wanted = [c for c in reader.connections if c.topic in (state_topic, events_topic)]
+        wanted = [c for c in reader.connections
+                  if c.topic in (state_topic, events_topic, commands_topic)]
         for connection, timestamp, data in reader.messages(connections=wanted):
+            if connection.topic == commands_topic:
+                command: Any = reader.deserialize(data, "trajectory_msgs/msg/JointTrajectory")
+                stamp = command.header.stamp.sec * 1_000_000_000 + command.header.stamp.nanosec
+                start = stamp or timestamp  # 0: "start now", when the daemon accepted it
+                for point in command.points:
+                    at = start + point.time_from_start.sec * 1_000_000_000 \
+                        + point.time_from_start.nanosec
+                    for name, value in zip(command.joint_names, point.positions, strict=False):
+                        raw_waypoints.append((at, str(name), float(value)))
+                continue
             if connection.topic == events_topic:
                 text: Any = reader.deserialize(data, "std_msgs/msg/String")
                 raw_events.append((timestamp, str(text.data)))
@@ -75,6 +90,7 @@ def read_series(bag: str | Path, controller: str) -> dict[str, Any]:
         "joints": joints,
         "tolerances": _tolerances(Path(bag)),
         "events": [((ts - t0) / 1e9, _event_label(text)) for ts, text in raw_events],
+        "waypoints": [((at - t0) / 1e9, name, value) for at, name, value in raw_waypoints],
     }
     for key, values in rows.items():
         width = min(len(v) for v in values)
@@ -147,6 +163,10 @@ def plot_bag(
                                 label=f"path tolerance ±{band:g}")
             ax.plot(t, series[ref][:, i], label="desired", color="tab:blue")
             ax.plot(t, series[act][:, i], label="actual", color="tab:orange", linestyle="--")
+            marks = [(at, v) for at, name, v in series["waypoints"] if name == joint]
+            if what == "position" and marks:
+                ax.plot([m[0] for m in marks], [m[1] for m in marks], linestyle="none",
+                        marker="o", color="tab:green", markersize=4, label="waypoints")
             for when, label in series["events"]:
                 ax.axvline(when, color="tab:gray", linewidth=0.8)
                 if row == 0:

@@ -55,3 +55,39 @@ def test_the_run_is_recorded_from_the_start(tmp_path: Path) -> None:
     assert (point.time_from_start.sec, point.time_from_start.nanosec) == (0, 500_000_000)
     final = [m for topic, m in messages if topic == "/joint_states"][-1]
     assert list(final.position) == pytest.approx([0.2] * 6, abs=0.02)
+
+
+def test_plot_marks_the_commanded_waypoints(tmp_path: Path) -> None:
+    pytest.importorskip("matplotlib")
+    from jtc_hw.rec.plot import plot_bag, read_series
+
+    runs = tmp_path / "runs"
+    d = DaemonProcess(tmp_path / "d", record=str(runs))
+    d.start()
+    try:
+        d.wait_ready()
+        with connect(d) as client:
+            result = client.send_goal(traj([0.3] * 6, 0.5)).wait(timeout_s=WAIT_S)
+            assert result["status"] == "succeeded", result
+    finally:
+        assert d.shutdown() == 0, d.log()
+    (bag,) = runs.iterdir()
+    series = read_series(bag, "joint_trajectory_controller")
+    assert sorted(name for _, name, _ in series["waypoints"]) == sorted(
+        f"joint{i}" for i in range(1, 7))
+    (at,) = {round(t, 6) for t, _, _ in series["waypoints"]}
+    assert {v for _, _, v in series["waypoints"]} == {0.3}
+    # The waypoint is where the desired position arrives at it, 0.5 s after the goal's start
+    # (the recording goes on at least until the result, a cycle after that).
+    import numpy as np
+
+    assert at <= series["t"][-1] + 0.03
+    desired = np.interp(at, series["t"], series["ref_pos"][:, 0])
+    # A "start now" command is placed at the time the loop confirmed it (its log time), which
+    # may precede the actual start by up to the plan's lead: the marker is in the last part of
+    # the move, not exactly at its end (docs/recording.md).
+    assert desired > 0.2
+    assert np.interp(at - 0.3, series["t"], series["ref_pos"][:, 0]) < 0.2
+    assert series["tolerances"]["joint1"]["path"] == 0.05
+    out = plot_bag(bag, tmp_path / "p.png")
+    assert out.stat().st_size > 10_000

@@ -126,7 +126,7 @@ def _record(client: Any, recorder: Any, args: argparse.Namespace) -> None:
     subscription = client.subscribe_state(maxlen=1_000_000)
     print(f"recording to {recorder.path}", flush=True)
     end_ns: int | None = None
-    next_diagnostics_ns = 0
+    next_diagnostics_ns: int | None = None
     try:
         while True:
             state = subscription.get(timeout_s=args.timeout)
@@ -136,9 +136,13 @@ def _record(client: Any, recorder: Any, args: argparse.Namespace) -> None:
             if end_ns is not None and t > end_ns:
                 return
             recorder.state(state)
+            if next_diagnostics_ns is None:
+                next_diagnostics_ns = t
             if t >= next_diagnostics_ns:
                 recorder.diagnostics(client.get_status(), t)
-                next_diagnostics_ns = t + DIAGNOSTICS_PERIOD_NS
+                # On a 1 s grid from the first state: a late state does not shift the next.
+                while next_diagnostics_ns <= t:
+                    next_diagnostics_ns += DIAGNOSTICS_PERIOD_NS
     except KeyboardInterrupt:
         return
     finally:

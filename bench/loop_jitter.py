@@ -578,7 +578,12 @@ def measure_rate(
     if "bare" in args.scenarios:
         note(f"{rate_hz:g} Hz bare: measuring {args.duration:g} s")
         rows.append(run_bare(rate_hz, args))
-    settings = {"foxglove": {"port": 0}} if args.live_view else None
+    settings: dict[str, Any] = {
+        "flight_recorder_dir": str(Path(tempfile.gettempdir()) / "jtc-hw-jitter-flight"),
+        "flight_recorder_s": args.flight_recorder_s,
+    }
+    if args.live_view:
+        settings["foxglove"] = {"port": 0}
     with Daemon(rate_hz, args.priority, args.cpu, args.lock_memory, settings) as daemon:
         client = daemon.connect()
         viewer = Viewer(daemon) if args.live_view else None
@@ -729,6 +734,13 @@ def main(argv: list[str] | None = None) -> int:
         action="store_true",
         help="daemon.foxglove on, with a viewer subscribed to every channel (needs "
         "jtc_hw[foxglove] and websockets)",
+    )
+    parser.add_argument(
+        "--flight-recorder-s",
+        type=float,
+        default=10.0,
+        metavar="S",
+        help="daemon.flight_recorder_s (default 10, the daemon's default; 0: off)",
     )
     parser.add_argument("--json", action="store_true", help="one JSON object per run")
     args = parser.parse_args(argv)

@@ -316,6 +316,10 @@ def cmd_check(args: argparse.Namespace) -> int:
         f"Foxglove WebSocket ws://{view.host}:{view.port}, "
         f"{f'{view.rate:g} Hz' if view.rate else 'every state'}" if view else
         "off (daemon.foxglove)"))
+    from .rec.cli import check_lines  # flight recorder, record (issue 13, rec)
+
+    for line in check_lines(d):
+        print(line)
     _print_warnings(
         [*explain(c), *_limits_warnings(robot), *security_warnings(robot), *watchdog_warnings]
     )
@@ -1159,6 +1163,9 @@ Exit status: 0 done; 2 unknown or read-only parameter, or a bad value; 3 no daem
     from .cli_health import add_hardware_parser
 
     add_hardware_parser(sub, client_options, _connect)
+    from .rec.cli import add_parsers as add_rec_parsers  # record, plot (issue 13, rec)
+
+    add_rec_parsers(sub, client_options)
     for name, command in sub.choices.items():
         # Every subcommand's --help states its exit statuses (unless its description does).
         if "Exit status" not in (command.description or ""):

@@ -30,6 +30,7 @@ it). Meanwhile the device-side watchdogs stop the motors.
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import itertools
 import logging
 import multiprocessing
@@ -209,6 +210,10 @@ def check_position_limits(
     )
 
 
+FLIGHT_AFTER_S = 1.0
+"""The flight recorder's bags go on this long after their trigger (``jtc_hw.rec.flight``)."""
+
+
 class LoopBackend:
     """Runs the loop process and serves the socket server's requests."""
 
@@ -256,6 +261,10 @@ class LoopBackend:
         self.last_heard_ns = 0
         self.info: dict[str, Any] = {}
         self.exit_code: int | None = None
+        self.flight: Any = None
+        """The flight recorder (``jtc_hw.rec.flight.FlightRecorder``), made by ``start``."""
+        self.recording: Any = None
+        """``daemon.record``'s recorder (``jtc_hw.rec.continuous``), made by ``start``."""
 
     # -- process ------------------------------------------------------------------------------
 
@@ -265,8 +274,19 @@ class LoopBackend:
         Raises:
             HardwareError: the loop process failed to start (its log says why).
         """
+        from ..rec.flight import FlightRecorder
         from .loop import INBOX_SPARE, inbox_budget, loop_main
 
+        d = self.robot.daemon
+        tolerances = {joint: {"path": c.trajectory, "goal": c.goal}
+                      for joint, c in self.config.constraints.joints.items()}
+        self.flight = FlightRecorder(d.flight_recorder_dir, d.flight_recorder_s,
+                                     d.flight_recorder_keep, self.config.name, tolerances)
+        if d.record is not None:
+            from ..rec.continuous import ContinuousRecorder
+
+            self.recording = ContinuousRecorder(d.record, self.config.name, self.status,
+                                                tolerances)
         aio = asyncio.get_running_loop()
         ctx = multiprocessing.get_context("spawn")
         parent, child = ctx.Pipe(duplex=True)
@@ -322,6 +342,8 @@ class LoopBackend:
         if self._process is None or self._exited is None:
             return 0
         self._stopping = True
+        if self.flight is not None and not self._exited.done():
+            self.flight.trigger("shutdown")
         if not self._exited.done():
             stopping_s = 0.0  # a decelerating stop the loop finishes first (its bound)
             try:
@@ -338,6 +360,10 @@ class LoopBackend:
         await asyncio.get_running_loop().run_in_executor(None, self._process.join, 5.0)
         if not self._exited.done():  # its sentinel was not seen (yet): settle the goals now
             self._loop_ended(self._process.exitcode)
+        if self.flight is not None:  # the shutdown's bag, with what came after the trigger
+            await asyncio.get_running_loop().run_in_executor(None, self.flight.close)
+        if self.recording is not None:
+            await asyncio.get_running_loop().run_in_executor(None, self.recording.close)
         self._close()
         return self.exit_code or 0
 
@@ -474,8 +500,17 @@ class LoopBackend:
             raw = message[1]
             if len(raw) > 14:  # (a test's partial state has no speed scaling)
                 self._timebase = (raw[0], raw[14], raw[12], raw[13])
-            if self._listener is not None or self._taps:
+            if (
+                self._listener is not None
+                or self._taps
+                or self.flight is not None
+                or self.recording is not None
+            ):
                 snapshot = self._snapshot(message[1])
+                if self.flight is not None:
+                    self.flight.on_state(snapshot)
+                if self.recording is not None:
+                    self.recording.on_state(snapshot)
                 if self._listener is not None:
                     self._listener.on_state(snapshot)
                 self._tap("on_state", snapshot)
@@ -485,6 +520,8 @@ class LoopBackend:
             log.log(message[1], "%s", message[2])
             if message[1] >= logging.ERROR:
                 self._last_error = message[2]
+                if self.flight is not None and str(message[2]).startswith("hardware fault"):
+                    self._flight_trigger("fault")
         elif kind == "ready":
             t0 = message[1]["t0_ns"]
             initial = self.config.speed_scaling.initial_scaling_factor
@@ -529,6 +566,8 @@ class LoopBackend:
         }
 
     def _finish_goal(self, result: GoalResult) -> None:
+        if self.flight is not None:
+            result = self._flight_result(result)
         self._open_goals.pop(result.goal_id, None)
         if result.goal_id == self._active_goal:
             self._active_goal = None
@@ -544,6 +583,46 @@ class LoopBackend:
             result.error_string,
             f": {result.details}" if result.details else "",
         )
+
+    def _record_command(self, traj: JointTrajectory) -> None:
+        """An accepted command, as received, for ``/<controller>/joint_trajectory`` (converted
+        to a message in the recorders' worker threads: a large goal costs the event loop
+        nothing here)."""
+        now = time.monotonic_ns()
+        if self.flight is not None:
+            self.flight.on_command(traj, now)
+        if self.recording is not None:
+            self.recording.on_command(traj, now)
+
+    def _flight_trigger(self, reason: str, now_ns: int | None = None) -> str | None:
+        """Trigger the flight recorder; a timer writes the bag a second later even if no state
+        comes (a faulted loop publishes none)."""
+        path: str | None = self.flight.trigger(reason, now_ns)
+        if path is not None:
+            flight = self.flight
+            asyncio.get_running_loop().call_later(
+                FLIGHT_AFTER_S + 0.05, lambda: flight.poll(time.monotonic_ns()))
+        return path
+
+    def _flight_result(self, result: GoalResult) -> GoalResult:
+        """Record the result; an abort triggers the flight recorder and its details name the
+        bag (``flight recorder: PATH``)."""
+        path = None
+        if result.status is GoalStatus.ABORTED:
+            path = self._flight_trigger("aborted", result.time_ns)
+            if path is not None:
+                note = f"flight recorder: {path}"
+                result = dataclasses.replace(
+                    result, details=f"{result.details}; {note}" if result.details else note)
+        event = {
+            "event": "result", "goal_id": result.goal_id, "status": result.status.value,
+            "error_code": int(result.error_code), "error_string": result.error_string,
+            "details": result.details, "time_ns": result.time_ns,
+        }
+        self.flight.on_event(event)
+        if self.recording is not None:
+            self.recording.on_event(event)
+        return result
 
     def _fail_waiting(self, reason: str) -> None:
         for future in self._waiting.values():
@@ -604,6 +683,11 @@ class LoopBackend:
             if self.death:
                 controller.update(active=False, holding=False, fault=self.death)
             status["controller"] = controller
+        if self.flight is not None:
+            status["flight_recorder"] = self.flight.status()
+        if self.recording is not None:
+            status["recording"] = {"file": str(self.recording.path),
+                                   "errors": self.recording.errors}
         return status
 
     def query_state(self, time_ns: int) -> QueriedState:
@@ -675,6 +759,7 @@ class LoopBackend:
         result = await self._plan_and_commit(make, len(traj.points))
         assert result is not None
         self._tap("on_command", sent, int(result))
+        self._record_command(sent)
         return AcceptedGoal(int(result), made[-1].time_scaling)
 
     async def send_trajectory(
@@ -693,6 +778,7 @@ class LoopBackend:
         """
         if not traj.points:
             await self._request("stop", {})
+            self._record_command(traj)
             return None
         check_position_limits(traj, self._position_limits)
         sent = traj
@@ -706,6 +792,7 @@ class LoopBackend:
 
         await self._plan_and_commit(make, len(traj.points))
         self._tap("on_command", sent, None)
+        self._record_command(sent)
         return made[-1].time_scaling
 
     async def stop_motion(self) -> bool:
@@ -736,7 +823,10 @@ class LoopBackend:
         Returns:
             False if there was nothing to re-arm (no fault, the controller is running).
         """
-        return bool(await self._request("rearm", {}))
+        rearmed = bool(await self._request("rearm", {}))
+        if rearmed and self.flight is not None:
+            self._flight_trigger("rearm")
+        return rearmed
 
     async def set_speed_scaling(self, factor: float | None) -> dict[str, float]:
         """Set the speed scaling factor's target in the loop's controller (``None``: resume,

@@ -19,6 +19,10 @@ layout); this module adds two top-level sections that ``load_config`` skips::
       api_stall_s: 0.5
       log_level: info
       foxglove: {host: 127.0.0.1, port: 8765, rate: null}   # live view, off when absent
+      flight_recorder_s: 10          # 0: off
+      flight_recorder_dir: /var/lib/jtc-hw/flight
+      flight_recorder_keep: 20
+      record: /var/lib/jtc-hw/runs   # optional: record every run from its start
 
 The keys, types, defaults and ranges of both sections live in the schema tables below
 (:data:`HARDWARE_KEYS`, :data:`DAEMON_PARAMETERS`, :data:`TCP_PARAMETERS`,
@@ -201,8 +205,29 @@ DAEMON_PARAMETERS: Final[Mapping[str, ParamSpec]] = param_table(
     ParamSpec("foxglove", ParamKind.SECTION, None,
               "live view over the Foxglove WebSocket protocol (off when absent; needs "
               "jtc_hw[foxglove])", nullable=True, fields=FOXGLOVE_PARAMETERS),
+    ParamSpec("flight_recorder_s", ParamKind.FLOAT, 10.0,
+              "seconds of state the flight recorder keeps and writes as a bag before an abort, "
+              "fault, rearm or SIGTERM (0: off)", minimum=0.0, maximum=3600.0),
+    ParamSpec("flight_recorder_dir", ParamKind.STRING, None,
+              "directory of the flight recorder's bags (default: $STATE_DIRECTORY/flight, "
+              "$XDG_STATE_HOME/jtc-hw/flight or ~/.local/state/jtc-hw/flight)", nullable=True),
+    ParamSpec("flight_recorder_keep", ParamKind.INT, 20,
+              "flight recorder bags kept (the oldest are removed)", minimum=1),
+    ParamSpec("record", ParamKind.STRING, None,
+              "directory where each run of the daemon is recorded as a bag from its start "
+              "(default: not recorded)", nullable=True),
 )
 """``daemon.*``."""
+
+
+def default_flight_recorder_dir() -> str:
+    """Where the flight recorder writes without ``daemon.flight_recorder_dir``: systemd's
+    ``StateDirectory``, else the XDG state directory (a user's daemon)."""
+    state = os.environ.get("STATE_DIRECTORY")
+    if state:
+        return os.path.join(state.split(":")[0], "flight")
+    xdg = os.environ.get("XDG_STATE_HOME") or os.path.expanduser("~/.local/state")
+    return os.path.join(xdg, "jtc-hw", "flight")
 
 
 # --------------------------------------------------------------------------------------------
@@ -329,6 +354,10 @@ class DaemonSettings:
             API process to read them before the loop ends the active goal and holds.
         log_level: one of :data:`LOG_LEVELS`.
         foxglove: the live view, or None (off).
+        flight_recorder_s: seconds the flight recorder keeps before a trigger (0: off).
+        flight_recorder_dir: absolute directory of its bags.
+        flight_recorder_keep: how many of its bags are kept.
+        record: absolute directory where each run is recorded from its start, or ``None``.
 
     Raises:
         ConfigurationError: the socket path is relative, empty or too long, or
@@ -345,6 +374,10 @@ class DaemonSettings:
     api_stall_s: float = DEFAULT_API_STALL_S
     log_level: str = "info"
     foxglove: FoxgloveSettings | None = None
+    flight_recorder_s: float = 10.0
+    flight_recorder_dir: str = field(default_factory=default_flight_recorder_dir)
+    flight_recorder_keep: int = 20
+    record: str | None = None
 
     def __post_init__(self) -> None:
         if not isinstance(self.socket, str) or not os.path.isabs(self.socket):
@@ -490,7 +523,25 @@ def _parse_daemon(raw: Any, base_dir: str) -> DaemonSettings:
         api_stall_s=values["api_stall_s"],
         log_level=values["log_level"],
         foxglove=None if values["foxglove"] is None else FoxgloveSettings(**values["foxglove"]),
+        flight_recorder_s=values["flight_recorder_s"],
+        flight_recorder_dir=_flight_recorder_dir(values["flight_recorder_dir"], base_dir),
+        flight_recorder_keep=values["flight_recorder_keep"],
+        record=None if values["record"] is None else _directory(values["record"], base_dir,
+                                                                 "daemon.record"),
     )
+
+
+def _flight_recorder_dir(value: str | None, base_dir: str) -> str:
+    if value is None:
+        return default_flight_recorder_dir()
+    return _directory(value, base_dir, "daemon.flight_recorder_dir")
+
+
+def _directory(value: str, base_dir: str, path: str) -> str:
+    if not value.strip():
+        raise ConfigurationError("is empty; give a directory, or remove the key for the default",
+                                 path, value)
+    return os.path.normpath(os.path.join(base_dir, os.path.expanduser(value)))
 
 
 def load_robot(

@@ -134,7 +134,8 @@ class DaemonProcess:
                 stdout=subprocess.DEVNULL,
                 stderr=stderr,
                 cwd=ROOT,
-                env=env or daemon_env(),
+                # The flight recorder's bags in the test's directory, not the user's.
+                env=env or daemon_env(XDG_STATE_HOME=str(self.config_path.parent / "state")),
                 start_new_session=True,  # its own process group: a last-resort kill finds all
             )
 

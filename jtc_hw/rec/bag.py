@@ -1,0 +1,306 @@
+"""Write what the daemon publishes as a rosbag2 directory with MCAP storage (``rosbags``).
+
+Theory of operation
+-------------------
+A ``BagRecorder`` is fed the socket's messages as plain dicts: ``state`` events (one per
+``state_publish_rate`` tick of the loop), ``get_status`` replies, and changes of the active goal.
+Each becomes the ROS 2 message a ROS user expects on the topic of the same name:
+
+- ``/joint_states`` (``sensor_msgs/msg/JointState``): the measured positions and velocities;
+- ``/<controller>/controller_state`` (``control_msgs/msg/JointTrajectoryControllerState``, the
+  current definition: reference, feedback, error, output, speed_scaling_factor);
+- ``/<controller>/goal_events`` (``std_msgs/msg/String`` holding one JSON object, schema in
+  ``docs/recording.md``);
+- ``/diagnostics`` (``diagnostic_msgs/msg/DiagnosticArray``): loop statistics and each hardware
+  component's status.
+
+Timestamps: the daemon clock (CLOCK_MONOTONIC of the loop's deadlines, ``time_ns``) is mapped to
+wall time once, with the offset measured when the recording starts (``clock_offset_ns``), so
+consecutive messages keep the loop's exact spacing. The offset is stored in the bag's
+``metadata.yaml`` (``custom_data: jtc_hw.clock_offset_ns``) so a reader can recover daemon times.
+
+``rosbags`` is imported lazily: without it ``BagRecorder`` raises ``RecordingUnavailable`` with
+the install hint.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+from ..errors import ConfigurationError
+
+RECORD_HINT = "recording needs the rosbags library: pip install 'jtc_hw[record]'"
+
+CONTROLLER_STATE_TYPE = "control_msgs/msg/JointTrajectoryControllerState"
+
+# control_msgs' current definition (ros-controls/control_msgs, after the deprecated
+# desired/actual fields were removed and speed_scaling_factor was added). rosbags' stores do not
+# ship control_msgs, so it is registered from this text.
+CONTROLLER_STATE_MSG = """\
+std_msgs/Header header
+string[] joint_names
+trajectory_msgs/JointTrajectoryPoint reference
+trajectory_msgs/JointTrajectoryPoint feedback
+trajectory_msgs/JointTrajectoryPoint error
+trajectory_msgs/JointTrajectoryPoint output
+string[] multi_dof_joint_names
+trajectory_msgs/MultiDOFJointTrajectoryPoint multi_dof_reference
+trajectory_msgs/MultiDOFJointTrajectoryPoint multi_dof_feedback
+trajectory_msgs/MultiDOFJointTrajectoryPoint multi_dof_error
+trajectory_msgs/MultiDOFJointTrajectoryPoint multi_dof_output
+float64 speed_scaling_factor
+"""
+
+CLOCK_OFFSET_KEY = "jtc_hw.clock_offset_ns"
+TOLERANCES_KEY = "jtc_hw.tolerances"
+"""``custom_data`` key: JSON ``{joint: {"path": x, "goal": y}}``, the configured constraints
+(``constraints.<joint>.trajectory`` / ``.goal``; 0: not checked) when the recording started."""
+
+DIAGNOSTIC_OK, DIAGNOSTIC_WARN, DIAGNOSTIC_ERROR = 0, 1, 2
+
+
+class RecordingUnavailable(ConfigurationError):
+    """The optional recording library is not installed (the CLI exits 2 with the hint)."""
+
+
+def topics(controller: str) -> dict[str, str]:
+    """The recording's topics and their ROS 2 message types, for a controller name."""
+    return {
+        "/joint_states": "sensor_msgs/msg/JointState",
+        f"/{controller}/controller_state": CONTROLLER_STATE_TYPE,
+        f"/{controller}/goal_events": "std_msgs/msg/String",
+        "/diagnostics": "diagnostic_msgs/msg/DiagnosticArray",
+    }
+
+
+def typestore() -> Any:
+    """rosbags' ROS 2 Jazzy type store with ``control_msgs/msg/JointTrajectoryControllerState``.
+
+    Raises:
+        RecordingUnavailable: rosbags is not installed.
+    """
+    try:
+        from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+    except ImportError as exc:
+        raise RecordingUnavailable(RECORD_HINT) from exc
+    store = get_typestore(Stores.ROS2_JAZZY)
+    store.register(get_types_from_msg(CONTROLLER_STATE_MSG, CONTROLLER_STATE_TYPE))
+    return store
+
+
+def _floats(values: Sequence[float | None] | None) -> Any:
+    """A float64 array for a message field; the socket's ``null`` (no value) becomes NaN."""
+    import numpy as np
+
+    if not values:
+        return np.zeros(0, dtype=np.float64)
+    return np.array([math.nan if v is None else v for v in values], dtype=np.float64)
+
+
+def tolerances_from_constraints(constraints: Mapping[str, Any]) -> dict[str, dict[str, float]]:
+    """``{joint: {"path", "goal"}}`` from the controller's ``constraints`` as ``get_config``
+    gives them (upstream names: ``<joint>: {trajectory, goal}``)."""
+    return {
+        joint: {"path": float(values.get("trajectory", 0.0)),
+                "goal": float(values.get("goal", 0.0))}
+        for joint, values in constraints.items() if isinstance(values, Mapping)
+    }
+
+
+class BagRecorder:
+    """Writes the daemon's messages into one rosbag2/MCAP directory (see the module docstring).
+
+    Args:
+        path: the bag directory to create; it must not exist.
+        controller: the controller's name, the namespace of its topics.
+        clock_offset_ns: wall time minus daemon clock, measured once.
+        tolerances: the configured tolerances per joint (``tolerances_from_constraints``),
+            stored in the metadata for ``jtc-hw plot``'s band.
+    """
+
+    def __init__(self, path: str | Path, controller: str, clock_offset_ns: int,
+                 tolerances: Mapping[str, Mapping[str, float]] | None = None) -> None:
+        """Create the bag directory and its connections.
+
+        Raises:
+            RecordingUnavailable: rosbags is not installed.
+            FileExistsError: the directory exists (rosbag2 never writes into an existing one).
+        """
+        self._store = typestore()
+        from rosbags.rosbag2 import StoragePlugin, Writer
+
+        self.path = Path(path)
+        if self.path.exists():
+            raise FileExistsError(f"{self.path} exists: give a new directory name for the bag")
+        self.controller = controller
+        self.offset_ns = clock_offset_ns
+        self.counts: dict[str, int] = {}
+        self._writer = Writer(self.path, version=8, storage_plugin=StoragePlugin.MCAP)
+        self._writer.open()
+        self._writer.set_custom_data(CLOCK_OFFSET_KEY, str(clock_offset_ns))
+        if tolerances:
+            self._writer.set_custom_data(TOLERANCES_KEY, json.dumps(
+                {joint: dict(values) for joint, values in tolerances.items()}, sort_keys=True))
+        self._connections = {
+            topic: self._writer.add_connection(topic, msgtype, typestore=self._store)
+            for topic, msgtype in topics(controller).items()
+        }
+        self._last_goal: Any = None
+        self._command_connection: Any = None  # created with the first command
+        self._closed = False
+
+    def _stamp(self, time_ns: int) -> Any:
+        wall = time_ns + self.offset_ns
+        Time = self._store.types["builtin_interfaces/msg/Time"]
+        return Time(sec=wall // 1_000_000_000, nanosec=wall % 1_000_000_000)
+
+    def _header(self, time_ns: int) -> Any:
+        Header = self._store.types["std_msgs/msg/Header"]
+        return Header(stamp=self._stamp(time_ns), frame_id="")
+
+    def _write(self, topic: str, time_ns: int, message: Any) -> None:
+        connection = self._connections[topic]
+        data = self._store.serialize_cdr(message, connection.msgtype)
+        self._writer.write(connection, time_ns + self.offset_ns, data)
+        self.counts[topic] = self.counts.get(topic, 0) + 1
+
+    def _point(self, values: Mapping[str, Any] | None) -> Any:
+        Point = self._store.types["trajectory_msgs/msg/JointTrajectoryPoint"]
+        Duration = self._store.types["builtin_interfaces/msg/Duration"]
+        values = values or {}
+        t = values.get("time_from_start") or 0.0
+        t_ns = round(t * 1e9)
+        return Point(
+            positions=_floats(values.get("positions")),
+            velocities=_floats(values.get("velocities")),
+            accelerations=_floats(values.get("accelerations")),
+            effort=_floats(values.get("effort")),
+            time_from_start=Duration(sec=t_ns // 1_000_000_000, nanosec=t_ns % 1_000_000_000),
+        )
+
+    def _multi_dof_point(self) -> Any:
+        Point = self._store.types["trajectory_msgs/msg/MultiDOFJointTrajectoryPoint"]
+        Duration = self._store.types["builtin_interfaces/msg/Duration"]
+        return Point(transforms=[], velocities=[], accelerations=[],
+                     time_from_start=Duration(sec=0, nanosec=0))
+
+    def state(self, event: Mapping[str, Any]) -> None:
+        """Record one ``state`` event: ``/joint_states``, ``controller_state``, goal changes."""
+        time_ns = int(event["time_ns"])
+        names = list(event["joint_names"])
+        actual = event.get("actual") or {}
+        types = self._store.types
+        JointState = types["sensor_msgs/msg/JointState"]
+        self._write("/joint_states", time_ns, JointState(
+            header=self._header(time_ns), name=names,
+            position=_floats(actual.get("positions")),
+            velocity=_floats(actual.get("velocities")),
+            effort=_floats(actual.get("effort")),
+        ))
+        output = event.get("output") or event.get("command")
+        scaling = (event.get("speed_scaling") or {}).get("factor", 1.0)
+        State = types[CONTROLLER_STATE_TYPE]
+        empty = self._multi_dof_point()
+        self._write(f"/{self.controller}/controller_state", time_ns, State(
+            header=self._header(time_ns), joint_names=names,
+            reference=self._point(event.get("desired")),
+            feedback=self._point(actual),
+            error=self._point(event.get("error")),
+            output=self._point(output),
+            multi_dof_joint_names=[],
+            multi_dof_reference=empty, multi_dof_feedback=empty,
+            multi_dof_error=empty, multi_dof_output=empty,
+            speed_scaling_factor=float(1.0 if scaling is None else scaling),
+        ))
+        goal = event.get("active_goal")
+        if goal != self._last_goal:
+            if self._last_goal is not None:
+                self.goal_event({"event": "goal_ended", "goal_id": self._last_goal,
+                                 "time_ns": time_ns})
+            if goal is not None:
+                self.goal_event({"event": "goal_started", "goal_id": goal, "time_ns": time_ns})
+            self._last_goal = goal
+
+    def command(self, trajectory: Any, time_ns: int) -> None:
+        """Record an accepted command (a ``JointTrajectory``: joint_names, points with
+        ``time_from_start_ns`` and value tuples, ``start_time_ns``) received at ``time_ns`` on
+        ``/<controller>/joint_trajectory``. Its header stamp is the command's start time on the
+        wall clock, or 0 for "start now", as in ROS."""
+        topic = f"/{self.controller}/joint_trajectory"
+        if self._command_connection is None:
+            self._command_connection = self._writer.add_connection(
+                topic, "trajectory_msgs/msg/JointTrajectory", typestore=self._store)
+            self._connections[topic] = self._command_connection
+        types = self._store.types
+        Duration = types["builtin_interfaces/msg/Duration"]
+        Point = types["trajectory_msgs/msg/JointTrajectoryPoint"]
+        Time = types["builtin_interfaces/msg/Time"]
+        Header = types["std_msgs/msg/Header"]
+        Message = types["trajectory_msgs/msg/JointTrajectory"]
+        points = []
+        for point in trajectory.points:
+            t = int(point.time_from_start_ns)
+            points.append(Point(
+                positions=_floats(point.positions), velocities=_floats(point.velocities),
+                accelerations=_floats(point.accelerations), effort=_floats(point.effort),
+                time_from_start=Duration(sec=t // 1_000_000_000, nanosec=t % 1_000_000_000)))
+        start = int(trajectory.start_time_ns)
+        wall = start + self.offset_ns if start else 0
+        header = Header(stamp=Time(sec=wall // 1_000_000_000, nanosec=wall % 1_000_000_000),
+                        frame_id="")
+        self._write(topic, time_ns, Message(
+            header=header, joint_names=list(trajectory.joint_names), points=points))
+
+    def goal_event(self, event: Mapping[str, Any]) -> None:
+        """Record a goal event (``result``, ``feedback``, ``goal_started``...) as JSON text."""
+        String = self._store.types["std_msgs/msg/String"]
+        self._write(f"/{self.controller}/goal_events", int(event["time_ns"]),
+                    String(data=json.dumps(dict(event), sort_keys=True, allow_nan=False)))
+
+    def diagnostics(self, status: Mapping[str, Any], time_ns: int) -> None:
+        """Record a ``get_status`` reply as a ``DiagnosticArray`` (loop, controller, hardware)."""
+        types = self._store.types
+        Status = types["diagnostic_msgs/msg/DiagnosticStatus"]
+        Array = types["diagnostic_msgs/msg/DiagnosticArray"]
+        entries = []
+        loop = status.get("loop") or {}
+        entries.append(Status(level=DIAGNOSTIC_OK, name="jtc_hw: loop", message="",
+                              hardware_id="", values=self._key_values(loop)))
+        controller = status.get("controller") or {}
+        fault = controller.get("fault")
+        entries.append(Status(
+            level=DIAGNOSTIC_ERROR if fault else DIAGNOSTIC_OK, name="jtc_hw: controller",
+            message=str(fault or ""), hardware_id="", values=self._key_values(controller)))
+        hardware = status.get("hardware") or {}
+        components = hardware.items() if isinstance(hardware, Mapping) else enumerate(hardware)
+        for name, component in components:
+            info = component if isinstance(component, Mapping) else {"value": component}
+            error = info.get("fault") or info.get("error")
+            entries.append(Status(
+                level=DIAGNOSTIC_ERROR if error else DIAGNOSTIC_OK, name=f"jtc_hw: {name}",
+                message=str(error or ""), hardware_id=str(name),
+                values=self._key_values(info)))
+        self._write("/diagnostics", time_ns, Array(header=self._header(time_ns), status=entries))
+
+    def _key_values(self, values: Mapping[str, Any], prefix: str = "") -> list[Any]:
+        """Scalars of a nested mapping as ``KeyValue``s with dotted keys (lists as JSON)."""
+        KeyValue = self._store.types["diagnostic_msgs/msg/KeyValue"]
+        out = []
+        for key, value in values.items():
+            name = f"{prefix}{key}"
+            if isinstance(value, Mapping):
+                out.extend(self._key_values(value, f"{name}."))
+            else:
+                text = value if isinstance(value, str) else json.dumps(value, default=str)
+                out.append(KeyValue(key=name, value=text))
+        return out
+
+    def close(self) -> None:
+        """Finish the bag (writes ``metadata.yaml`` and the MCAP summary)."""
+        if not self._closed:
+            self._closed = True
+            self._writer.close()

@@ -1,0 +1,168 @@
+"""The ``jtc-hw record`` and ``jtc-hw plot`` commands (registered by ``jtc_hw.cli``).
+
+``record`` is a client of a running daemon: it subscribes to the ``state`` stream (every
+``state_publish_rate`` tick), asks ``get_status`` once a second for ``/diagnostics``, and writes a
+rosbag2/MCAP directory with ``BagRecorder``. Nothing runs in the loop process. It stops after
+``--duration`` seconds of daemon time (counted from the first state it receives), or on
+Ctrl-C/SIGTERM, and always finishes the bag so that it opens.
+"""
+
+from __future__ import annotations
+
+import argparse
+import signal
+import sys
+import time
+from types import FrameType
+from typing import Any
+
+DEFAULT_CONTROLLER = "joint_trajectory_controller"
+DIAGNOSTICS_PERIOD_NS = 1_000_000_000
+EXIT_OK, EXIT_BAD_INPUT = 0, 2
+
+
+def add_parsers(sub: Any, client_options: Any) -> None:
+    """Register ``record`` and ``plot`` on ``jtc-hw``'s subparsers."""
+    p = sub.add_parser(
+        "record",
+        help="record the robot's state into a ROS 2 bag (rosbag2, MCAP storage)",
+        description=(
+            "Record /joint_states, /<controller>/controller_state, /<controller>/goal_events and "
+            "/diagnostics from a running daemon into the rosbag2 directory OUT (MCAP storage; "
+            "opens in ros2 bag info/play, Foxglove, PlotJuggler). Stops after --duration "
+            "seconds, or on Ctrl-C. Needs pip install 'jtc_hw[record]'. Exit codes: 0 recorded, "
+            "2 bad input (OUT exists, library missing), 3 no daemon."
+        ),
+    )
+    p.add_argument("out", metavar="OUT", help="bag directory to create (must not exist)")
+    p.add_argument("--duration", type=float, default=None,
+                   help="seconds to record (daemon clock); default: until Ctrl-C")
+    p.add_argument("--controller-name", default=DEFAULT_CONTROLLER,
+                   help=f"namespace of the controller's topics (default {DEFAULT_CONTROLLER})")
+    client_options(p)
+    p.set_defaults(func=cmd_record)
+
+    p = sub.add_parser(
+        "plot",
+        help="plot a recording: desired vs actual per joint",
+        description=(
+            "Plot a bag written by 'jtc-hw record': per joint, the reference (desired) and "
+            "feedback (actual) position, and velocity where recorded, over time, with the goal "
+            "events marked. Needs pip install 'jtc_hw[plot]'. Exit codes: 0 written, 2 bad input."
+        ),
+    )
+    p.add_argument("bag", metavar="BAG", help="the bag directory")
+    p.add_argument("--joints", nargs="+", help="joints to plot (default: all)")
+    p.add_argument("--out", help="image file to write (default: BAG/plot.png)")
+    p.add_argument("--controller-name", default=DEFAULT_CONTROLLER,
+                   help=f"namespace of the controller's topics (default {DEFAULT_CONTROLLER})")
+    p.set_defaults(func=cmd_plot)
+
+
+def check_lines(daemon: Any) -> list[str]:
+    """``jtc-hw check``'s lines for the flight recorder and recording settings."""
+    try:
+        import rosbags  # noqa: F401
+
+        missing = ""
+    except ImportError:
+        missing = "; OFF: needs pip install 'jtc_hw[record]'"
+    lines = []
+    if not daemon.flight_recorder_s:
+        lines.append("  flight recorder off (daemon.flight_recorder_s: 0)")
+    else:
+        lines.append(
+            f"  flight recorder {daemon.flight_recorder_s:g} s before each abort, fault, rearm "
+            f"and SIGTERM, into {daemon.flight_recorder_dir} (keeps "
+            f"{daemon.flight_recorder_keep}){missing}")
+    if daemon.record is not None:
+        refused = "; run REFUSES to start: needs pip install 'jtc_hw[record]'" if missing else ""
+        lines.append(f"  record          every run from its start into {daemon.record}{refused}")
+    return lines
+
+
+def _terminate(signum: int, frame: FrameType | None) -> None:
+    raise KeyboardInterrupt
+
+
+def cmd_record(args: argparse.Namespace) -> int:
+    """``jtc-hw record``: see the module docstring.
+
+    Raises:
+        RecordingUnavailable: rosbags is not installed (the CLI prints its hint, exit 2).
+    """
+    from ..cli import _connect
+    from .bag import BagRecorder, tolerances_from_constraints
+
+    if args.duration is not None and not args.duration > 0:
+        print(f"error: --duration must be a positive number of seconds, not {args.duration}",
+              file=sys.stderr)
+        return EXIT_BAD_INPUT
+    previous = signal.signal(signal.SIGTERM, _terminate)
+    try:
+        with _connect(args) as client:
+            before = time.time_ns()
+            now_ns = int(client.hello()["now_ns"])
+            offset = (before + time.time_ns()) // 2 - now_ns
+            constraints = client.get_config()["controller"].get("constraints", {})
+            try:
+                recorder = BagRecorder(args.out, args.controller_name, offset,
+                                       tolerances_from_constraints(constraints))
+            except FileExistsError as exc:
+                print(f"error: {exc}", file=sys.stderr)
+                return EXIT_BAD_INPUT
+            try:
+                _record(client, recorder, args)
+            finally:
+                recorder.close()
+            counts = ", ".join(f"{topic}: {n}" for topic, n in sorted(recorder.counts.items()))
+            print(f"wrote {recorder.path} ({counts})", flush=True)
+            return EXIT_OK
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def _record(client: Any, recorder: Any, args: argparse.Namespace) -> None:
+    subscription = client.subscribe_state(maxlen=1_000_000)
+    print(f"recording to {recorder.path}", flush=True)
+    end_ns: int | None = None
+    next_diagnostics_ns: int | None = None
+    try:
+        while True:
+            state = subscription.get(timeout_s=args.timeout)
+            t = int(state["time_ns"])
+            if end_ns is None and args.duration is not None:
+                end_ns = t + round(args.duration * 1e9)
+            if end_ns is not None and t > end_ns:
+                return
+            recorder.state(state)
+            if next_diagnostics_ns is None:
+                next_diagnostics_ns = t
+            if t >= next_diagnostics_ns:
+                recorder.diagnostics(client.get_status(), t)
+                # On a 1 s grid from the first state: a late state does not shift the next.
+                while next_diagnostics_ns <= t:
+                    next_diagnostics_ns += DIAGNOSTICS_PERIOD_NS
+    except KeyboardInterrupt:
+        return
+    finally:
+        try:
+            subscription.close()
+        except Exception:  # noqa: BLE001 - the connection may be gone; the bag is still finished
+            pass
+
+
+def cmd_plot(args: argparse.Namespace) -> int:
+    """``jtc-hw plot``: write the figure and print its path.
+
+    Raises:
+        PlotUnavailable: matplotlib or rosbags is not installed (exit 2 with the hint).
+    """
+    from pathlib import Path
+
+    from .plot import plot_bag
+
+    out = Path(args.out) if args.out else Path(args.bag) / "plot.png"
+    plot_bag(args.bag, out, joints=args.joints, controller=args.controller_name)
+    print(f"wrote {out}")
+    return EXIT_OK

@@ -1,0 +1,219 @@
+"""The flight recorder: the last seconds of state, written as a bag when something goes wrong.
+
+Theory of operation
+-------------------
+Runs in the API process (``LoopBackend`` feeds it; the loop never does). It keeps the state
+snapshots the loop publishes (at ``state_publish_rate``) and the goal events of the last
+``flight_recorder_s`` seconds plus one, in memory. ``trigger(reason)`` (an abort, a hardware fault,
+a rearm, SIGTERM) chooses the bag's name at once, so that the goal's result can name it, and
+writes the bag once a state one second after the trigger has arrived (``flush`` writes at once,
+for a shutdown): the bag covers ``flight_recorder_s`` before and a second after. Writing happens
+in a worker thread, never in the event loop. Only the newest ``flight_recorder_keep`` bags are
+kept in ``flight_recorder_dir``.
+
+Time: daemon clock (CLOCK_MONOTONIC) mapped to wall time by one offset measured at start.
+
+Without ``rosbags`` the recorder is off (``available`` is False) and says so once in the log.
+"""
+
+from __future__ import annotations
+
+import collections
+import logging
+import re
+import shutil
+import threading
+import time
+from collections.abc import Mapping
+from concurrent.futures import Future, ThreadPoolExecutor
+from pathlib import Path
+from typing import Any
+
+log = logging.getLogger("jtc_hw.flight_recorder")
+
+AFTER_NS = 1_000_000_000
+"""How long after a trigger the bag goes on."""
+
+NAME_PATTERN = re.compile(r"^\d{8}T\d{6}\.\d{3}Z-[a-z_]+$")
+"""A flight recorder bag's directory name: UTC time of the trigger, reason."""
+
+
+def bag_name(wall_ns: int, reason: str) -> str:
+    """``20261201T224833.123Z-aborted``: sorts by time, says why."""
+    seconds, rest = divmod(wall_ns, 1_000_000_000)
+    stamp = time.strftime("%Y%m%dT%H%M%S", time.gmtime(seconds))
+    slug = re.sub(r"[^a-z_]+", "_", reason.lower()).strip("_") or "trigger"
+    return f"{stamp}.{rest // 1_000_000:03d}Z-{slug}"
+
+
+class FlightRecorder:
+    """Ring buffer of state snapshots and goal events, written as rosbag2/MCAP on a trigger.
+
+    Args:
+        directory: where bags go (created when the first one is written).
+        seconds: how many seconds before a trigger each bag covers (0: off).
+        keep: how many bags to keep (the oldest are removed).
+        controller: the controller's name (topic namespace).
+        tolerances: the configured tolerances per joint, stored in each bag's metadata.
+    """
+
+    def __init__(self, directory: str | Path, seconds: float, keep: int,
+                 controller: str = "joint_trajectory_controller",
+                 tolerances: Mapping[str, Mapping[str, float]] | None = None) -> None:
+        self.directory = Path(directory)
+        self.tolerances = tolerances
+        self.window_ns = round(seconds * 1e9)
+        self.keep = keep
+        self.controller = controller
+        self.offset_ns = time.time_ns() - time.monotonic_ns()
+        self.available = seconds > 0
+        if self.available:
+            try:
+                import rosbags  # noqa: F401
+            except ImportError:
+                self.available = False
+                log.warning("flight recorder off: it needs the rosbags library "
+                            "(pip install 'jtc_hw[record]')")
+        self._states: collections.deque[dict[str, Any]] = collections.deque()
+        self._events: collections.deque[dict[str, Any]] = collections.deque()
+        self._commands: collections.deque[tuple[int, Any]] = collections.deque()
+        # (bag path, write once a state is at/after this, trigger time)
+        self._pending: list[tuple[Path, int, int]] = []
+        self._writer = ThreadPoolExecutor(max_workers=1, thread_name_prefix="flight-recorder")
+        self._lock = threading.Lock()  # the files: written by the worker, listed by status
+        self.written: list[str] = []
+        self.last_file: str | None = None
+        self.errors = 0
+
+    def on_state(self, snapshot: Mapping[str, Any]) -> None:
+        """Keep a state snapshot; write the bags whose second after has now passed."""
+        if not self.available:
+            return
+        t = int(snapshot["time_ns"])
+        self._states.append(dict(snapshot))
+        horizon = t - self.window_ns - AFTER_NS
+        while self._states and self._states[0]["time_ns"] < horizon:
+            self._states.popleft()
+        while self._events and self._events[0]["time_ns"] < horizon:
+            self._events.popleft()
+        while self._commands and self._commands[0][0] < horizon:
+            self._commands.popleft()
+        self.poll(t)
+
+    def poll(self, now_ns: int) -> None:
+        """Write the bags whose second after has passed at ``now_ns`` (daemon clock). Called
+        with each state, and by a timer: a faulted loop may publish no more states."""
+        due = [p for p in self._pending if now_ns >= p[1]]
+        if due:
+            self._pending = [p for p in self._pending if now_ns < p[1]]
+            for path, end_ns, _ in due:
+                self._submit(path, end_ns)
+
+    def on_command(self, trajectory: Any, time_ns: int) -> None:
+        """Keep an accepted command (``JointTrajectory``, converted only if a bag is written)."""
+        if self.available:
+            self._commands.append((time_ns, trajectory))
+
+    def on_event(self, event: Mapping[str, Any]) -> None:
+        """Keep a goal event (a result or feedback as the socket sends it, with ``time_ns``)."""
+        if self.available:
+            self._events.append(dict(event))
+
+    def trigger(self, reason: str, now_ns: int | None = None) -> str | None:
+        """Name a bag for ``reason`` now and write it a second later; its path (None: off).
+
+        A trigger within a second of the previous one (a fault, then the abort it causes) shares
+        its bag: that one already covers the second after.
+        """
+        if not self.available:
+            return None
+        now = time.monotonic_ns() if now_ns is None else now_ns
+        for path, _, when in self._pending:
+            if abs(now - when) < AFTER_NS:
+                return str(path)
+        path = self.directory / bag_name(now + self.offset_ns, reason)
+        self._pending.append((path, now + AFTER_NS, now))
+        log.warning("flight recorder: %s; writing %s", reason, path)
+        return str(path)
+
+    def flush(self, timeout_s: float = 10.0) -> None:
+        """Write every pending bag now (shutdown) and wait for the writer."""
+        pending, self._pending = self._pending, []
+        for path, _, _ in pending:
+            self._submit(path, None)
+        self._writer.submit(lambda: None).result(timeout=timeout_s)
+
+    def close(self) -> None:
+        """Flush and stop the writer thread."""
+        try:
+            self.flush()
+        finally:
+            self._writer.shutdown(wait=True)
+
+    def status(self) -> dict[str, Any]:
+        """For ``get_status``: settings, the newest bag, the bags kept, write errors."""
+        with self._lock:
+            return {
+                "enabled": self.available,
+                "seconds": self.window_ns / 1e9,
+                "directory": str(self.directory),
+                "keep": self.keep,
+                "last_file": self.last_file,
+                "files": list(self.written),
+                "errors": self.errors,
+            }
+
+    def _submit(self, path: Path, end_ns: int | None) -> None:
+        last = self._states[-1]["time_ns"] if self._states else 0
+        end = last if end_ns is None else end_ns
+        start = end - AFTER_NS - self.window_ns
+        states = [s for s in self._states if start <= s["time_ns"] <= end]
+        events = [e for e in self._events if start <= e["time_ns"] <= end]
+        commands = [(t, c) for t, c in self._commands if start <= t <= end]
+        future: Future[None] = self._writer.submit(self._write, path, states, events, commands)
+        del future  # errors are logged and counted by _write
+
+    def _write(self, path: Path, states: list[dict[str, Any]],
+               events: list[dict[str, Any]], commands: list[tuple[int, Any]]) -> None:
+        from .bag import BagRecorder
+
+        if not states and not events:  # e.g. a fault before the first state: nothing to show
+            log.info("flight recorder: nothing recorded before %s; no bag written", path.name)
+            return
+        try:
+            self.directory.mkdir(parents=True, exist_ok=True)
+            recorder = BagRecorder(path, self.controller, self.offset_ns, self.tolerances)
+            try:
+                merged = sorted([(s["time_ns"], 0, s) for s in states]
+                                + [(e["time_ns"], 1, e) for e in events]
+                                + [(t, 2, c) for t, c in commands],
+                                key=lambda item: (item[0], item[1]))
+                for t, kind, message in merged:
+                    if kind == 0:
+                        recorder.state(message)
+                    elif kind == 1:
+                        recorder.goal_event(message)
+                    else:
+                        recorder.command(message, t)
+            finally:
+                recorder.close()
+        except Exception as exc:  # noqa: BLE001 - a full disk must not take the daemon down
+            with self._lock:
+                self.errors += 1
+            log.error("flight recorder: could not write %s: %s", path, exc)
+            return
+        with self._lock:
+            self.last_file = str(path)
+            self.written.append(str(path))
+        log.info("flight recorder: wrote %s (%d states, %d events)", path, len(states),
+                 len(events))
+        self._prune()
+
+    def _prune(self) -> None:
+        bags = sorted(p for p in self.directory.iterdir()
+                      if p.is_dir() and NAME_PATTERN.match(p.name))
+        for old in bags[:-self.keep] if self.keep > 0 else []:
+            shutil.rmtree(old, ignore_errors=True)
+            with self._lock:
+                if str(old) in self.written:
+                    self.written.remove(str(old))

@@ -1,0 +1,151 @@
+"""The flight recorder's settings in the robot file (``daemon.flight_recorder_*``), and the
+flight recorder itself in process: the window it writes, sharing a bag, bounded disk use."""
+
+from __future__ import annotations
+
+import json
+import re
+from pathlib import Path
+from typing import Any
+
+import pytest
+import yaml
+
+from jtc_hw.daemon.robot import load_robot
+from jtc_hw.errors import ConfigurationError
+
+BASE: dict[str, Any] = {
+    "joints": ["j1", "j2"],
+    "command_interfaces": ["position"],
+    "state_interfaces": ["position", "velocity"],
+}
+MS = 1_000_000
+
+
+def robot(daemon: dict[str, Any], path: Path | None = None) -> Any:
+    data = dict(BASE, daemon=daemon)
+    if path is None:
+        return load_robot(data)
+    path.write_text(yaml.safe_dump(data))
+    return load_robot(str(path))
+
+
+@pytest.fixture(autouse=True)
+def state_home(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> Path:
+    monkeypatch.delenv("STATE_DIRECTORY", raising=False)
+    monkeypatch.setenv("XDG_STATE_HOME", str(tmp_path / "state"))
+    return tmp_path / "state"
+
+
+def test_defaults(state_home: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    d = robot({}).daemon
+    assert d.flight_recorder_s == 10.0 and d.flight_recorder_keep == 20
+    assert d.flight_recorder_dir == str(state_home / "jtc-hw" / "flight")
+    monkeypatch.setenv("STATE_DIRECTORY", "/var/lib/jtc-hw:/var/lib/other")
+    assert robot({}).daemon.flight_recorder_dir == "/var/lib/jtc-hw/flight"
+
+
+def test_a_relative_directory_is_relative_to_the_robot_file(tmp_path: Path) -> None:
+    d = robot({"flight_recorder_dir": "bags", "flight_recorder_s": 0}, tmp_path / "r.yaml").daemon
+    assert d.flight_recorder_dir == str(tmp_path / "bags") and d.flight_recorder_s == 0
+
+
+@pytest.mark.parametrize(("daemon", "path", "words"), [
+    ({"flight_recorder_s": -1}, "daemon.flight_recorder_s", "between 0 and 3600"),
+    ({"flight_recorder_s": "ten"}, "daemon.flight_recorder_s", "number"),
+    ({"flight_recorder_keep": 0}, "daemon.flight_recorder_keep", ">= 1"),
+    ({"flight_recorder_dir": " "}, "daemon.flight_recorder_dir", "empty"),
+    ({"flight_recorder_sec": 5}, "flight_recorder_sec", "flight_recorder_s"),
+])
+def test_bad_values_are_named(daemon: dict[str, Any], path: str, words: str) -> None:
+    with pytest.raises(ConfigurationError) as info:
+        robot(daemon)
+    assert path in str(info.value) and words in str(info.value), str(info.value)
+
+
+# -- the recorder in process -------------------------------------------------------------------
+
+
+def state(t_ns: int, x: float, goal: int | None = None) -> dict[str, Any]:
+    return {
+        "time_ns": t_ns, "joint_names": ["j1", "j2"],
+        "desired": {"positions": [x, -x], "velocities": [0.0, 0.0], "time_from_start": 0.0},
+        "actual": {"positions": [x, -x], "velocities": [0.0, None]},
+        "error": {"positions": [0.0, 0.0]}, "command": {"positions": [x, -x]},
+        "output": {"positions": [x, -x]}, "holding": goal is None, "active_goal": goal,
+        "speed_scaling": {"factor": 1.0, "target": 1.0},
+    }
+
+
+def read(bag: Path) -> list[tuple[str, Any]]:
+    mcap_reader = pytest.importorskip("mcap.reader")
+    decoder = pytest.importorskip("mcap_ros2.decoder")
+    (path,) = bag.glob("*.mcap")
+    with path.open("rb") as f:
+        reader = mcap_reader.make_reader(f, decoder_factories=[decoder.DecoderFactory()])
+        return [(c.topic, m) for _, c, _, m in reader.iter_decoded_messages()]
+
+
+def test_the_bag_covers_the_window_before_and_the_second_after(tmp_path: Path) -> None:
+    pytest.importorskip("rosbags")
+    from jtc_hw.rec.flight import FlightRecorder
+
+    recorder = FlightRecorder(tmp_path, seconds=1.0, keep=3)
+    try:
+        t0 = 10_000 * MS
+        for i in range(200):  # 4 s at 50 Hz
+            recorder.on_state(state(t0 + i * 20 * MS, i * 0.01, goal=1 if i >= 100 else None))
+        trigger_ns = t0 + 199 * 20 * MS
+        path = recorder.trigger("aborted", trigger_ns)
+        assert path is not None and re.search(r"/\d{8}T\d{6}\.\d{3}Z-aborted$", path)
+        # A fault within the second shares the bag.
+        assert recorder.trigger("fault", trigger_ns + 5 * MS) == path
+        recorder.on_event({"event": "result", "goal_id": 1, "status": "aborted",
+                           "time_ns": trigger_ns})
+        for i in range(200, 260):  # 1.2 s more: the bag is written at trigger + 1 s
+            recorder.on_state(state(t0 + i * 20 * MS, i * 0.01, goal=None))
+        recorder.flush()
+        assert recorder.status()["last_file"] == path
+    finally:
+        recorder.close()
+    messages = read(Path(path))
+    xs = [m.feedback.positions[0] for topic, m in messages if topic.endswith("controller_state")]
+    # From 1 s before the trigger (i = 149) to 1 s after (i = 249).
+    assert xs == pytest.approx([i * 0.01 for i in range(149, 250)])
+    events = [json.loads(m.data) for topic, m in messages if topic.endswith("goal_events")]
+    assert [e["event"] for e in events] == ["goal_started", "result", "goal_ended"]
+
+
+def test_only_the_newest_bags_are_kept(tmp_path: Path) -> None:
+    pytest.importorskip("rosbags")
+    from jtc_hw.rec.flight import FlightRecorder
+
+    recorder = FlightRecorder(tmp_path, seconds=0.5, keep=2)
+    paths = []
+    try:
+        t = 1_000 * MS
+        for _ in range(4):
+            for _ in range(10):
+                recorder.on_state(state(t, 0.0))
+                t += 20 * MS
+            paths.append(recorder.trigger("rearm", t))
+            t += 2_000 * MS  # the next trigger is more than a second later: its own bag
+            recorder.flush()
+    finally:
+        recorder.close()
+    kept = sorted(str(p) for p in tmp_path.iterdir())
+    assert kept == sorted(paths[-2:]) and len(set(paths)) == 4
+    assert recorder.status()["files"] == paths[-2:]
+
+
+def test_off_when_zero(tmp_path: Path) -> None:
+    from jtc_hw.rec.flight import FlightRecorder
+
+    recorder = FlightRecorder(tmp_path / "none", seconds=0.0, keep=2)
+    try:
+        recorder.on_state(state(0, 0.0))
+        assert recorder.trigger("aborted", 0) is None
+        assert recorder.status()["enabled"] is False
+    finally:
+        recorder.close()
+    assert not (tmp_path / "none").exists()

@@ -354,7 +354,7 @@ class LoopBackend:
                 log.warning("shutdown request: %s", exc)
             try:
                 await asyncio.wait_for(asyncio.shield(self._exited), timeout=10.0 + stopping_s)
-            except TimeoutError:
+            except asyncio.TimeoutError:  # the builtin TimeoutError from 3.11 on
                 log.error("the control loop did not stop within 10 s; terminating it")
                 self._process.terminate()
         await asyncio.get_running_loop().run_in_executor(None, self._process.join, 5.0)
@@ -961,7 +961,7 @@ class LoopBackend:
         self._send(("request", request_id, op, args))
         try:
             _, _, ok, value = await asyncio.wait_for(future, REQUEST_TIMEOUT_S)
-        except TimeoutError:
+        except asyncio.TimeoutError:  # the builtin TimeoutError from 3.11 on
             self._waiting.pop(request_id, None)
             raise HardwareError(f"the control loop did not answer {op!r} within 5 s") from None
         if not ok:

@@ -372,7 +372,7 @@ class Server:
                 data = await asyncio.wait_for(
                     conn.reader.read(_READ_CHUNK), max(0.0, deadline - time.monotonic())
                 )
-            except TimeoutError:
+            except asyncio.TimeoutError:  # the builtin TimeoutError from 3.11 on
                 out.append(encode(error_reply(None, BUSY, self._busy_message(conn.kind))))
                 return out
             except OSError:
@@ -415,7 +415,7 @@ class Server:
             await asyncio.wait_for(writer.drain(), self.settings.close_timeout_s)
             writer.close()
             await asyncio.wait_for(writer.wait_closed(), self.settings.close_timeout_s)
-        except (OSError, TimeoutError):
+        except (OSError, asyncio.TimeoutError):
             writer.transport.abort()
 
     async def _finish(self, conn: Connection, writer_task: asyncio.Task[None]) -> None:
@@ -423,7 +423,7 @@ class Server:
         conn.wake.set()
         try:
             await asyncio.wait_for(writer_task, self.settings.close_timeout_s)
-        except TimeoutError:
+        except asyncio.TimeoutError:
             conn.abort(f"{conn.close_reason}; did not read its last messages in time")
         except asyncio.CancelledError:
             writer_task.cancel()
@@ -433,7 +433,7 @@ class Server:
             conn.writer.close()
             try:
                 await asyncio.wait_for(conn.writer.wait_closed(), self.settings.close_timeout_s)
-            except (OSError, TimeoutError, asyncio.CancelledError):
+            except (OSError, asyncio.TimeoutError, asyncio.CancelledError):
                 conn.writer.transport.abort()
         self._conns.pop(conn.number, None)
         self._tasks.pop(conn.number, None)
@@ -516,7 +516,7 @@ class Server:
                     data = await conn.reader.read(_READ_CHUNK)
                 else:
                     data = await asyncio.wait_for(conn.reader.read(_READ_CHUNK), timeout)
-            except TimeoutError:  # before OSError, of which it is a subclass
+            except asyncio.TimeoutError:  # before OSError (3.11 on: the builtin, an OSError)
                 if self._timed_out(conn, time.monotonic()):
                     return
                 continue

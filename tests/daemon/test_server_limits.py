@@ -294,7 +294,7 @@ def test_tcp_has_its_own_limit_and_a_short_authentication_deadline(logs: LogWatc
                     try:
                         await peer.send(b" ")
                         closing = await peer.recv(timeout_s=0.05)
-                    except TimeoutError:
+                    except asyncio.TimeoutError:  # the builtin TimeoutError from 3.11 on
                         continue
                     except (ConnectionResetError, BrokenPipeError):
                         break

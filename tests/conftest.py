@@ -18,6 +18,7 @@ import numpy as np
 import pytest
 
 from jtc_hw import JointState, JointTrajectoryController, load_config
+from jtc_hw.api import Client
 from jtc_hw.controller.config import ControllerConfig
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -208,3 +209,31 @@ def daemon_log_on_failure() -> Iterator[None]:
         new = d.log()[offsets.get(id(d), 0) :]
         if new:
             print(f"--- daemon {d.config_path} stderr ---\n{new}")
+
+
+# -- a socket server on a fake backend (tests/helpers/fake_backend.py), for the api tests --------
+
+
+@pytest.fixture
+def sock(tmp_path: Path) -> Path:
+    """The server's socket path."""
+    return tmp_path / "d.sock"
+
+
+@pytest.fixture
+def daemon(sock: Path) -> Iterator[Any]:
+    """A real socket server on ``sock`` with a ``FakeBackend``, in its own thread."""
+    from helpers.fake_backend import ServerThread
+
+    from jtc_hw.daemon.server import ServerSettings
+
+    srv = ServerThread(ServerSettings(socket=sock))
+    yield srv
+    srv.close()
+
+
+@pytest.fixture
+def client(daemon: Any, sock: Path) -> Iterator[Client]:
+    """A ``Client`` connected to ``daemon``."""
+    with Client.connect(str(sock), timeout_s=5.0) as c:
+        yield c

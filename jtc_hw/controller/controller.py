@@ -1222,8 +1222,24 @@ class JointTrajectoryController:
                     )
                 )
         command = self._control(tau, period_ns, desired, error)
+        return self._result(now_ns, tau, command, desired, error, state, positions)
+
+    # -- internals ----------------------------------------------------------------------------
+
+    def _result(
+        self,
+        now_ns: int,
+        tau_ns: int,
+        command: JointCommand,
+        desired: TrajectorySample,
+        error: F64,
+        state: JointState,
+        positions: F64,
+    ) -> UpdateResult:
+        """The cycle's result: its command, the events queued since the last one and the
+        controller state (section 16: feedback velocities and accelerations only with their
+        state interfaces)."""
         events, self._events = tuple(self._events), []
-        since_start = (tau - self._ref_start_ns) / NS_PER_S
         feedback = state
         if (state.velocities is not None and not self._has_vel_state) or (
             state.accelerations is not None and not self._has_acc_state
@@ -1236,7 +1252,7 @@ class JointTrajectoryController:
         controller_state = ControllerState(
             now_ns,
             desired,
-            since_start,
+            (tau_ns - self._ref_start_ns) / NS_PER_S,
             feedback,
             (now_ns - self._ref_start_wall_ns) / NS_PER_S,
             error,
@@ -1245,41 +1261,16 @@ class JointTrajectoryController:
             self._scale_target,
         )
         return UpdateResult(command, events, desired, error, controller_state)
-
-    # -- internals ----------------------------------------------------------------------------
 
     def _before_reference(self, now_ns: int, state: JointState, positions: F64) -> UpdateResult:
         """A cycle before the reference's ``state_before_ns`` (a clock that went back): upstream
         samples nothing there (section 4.3 step 3), so nothing is decided or commanded; the
         desired state reported is the reference's first."""
-        nan = self._nan
-        command = JointCommand(
-            nan if self._cmd_pos else None,
-            nan if self._cmd_vel else None,
-            nan if self._cmd_acc else None,
-            nan if self._cmd_eff else None,
-        )
         desired = self._ref.sample(self._ref.state_before_ns)
         error = self._error(desired, state, positions)
-        events, self._events = tuple(self._events), []
-        since_start = (self._tau_ns - self._ref_start_ns) / NS_PER_S
-        feedback = JointState(
-            positions,
-            state.velocities if self._has_vel_state else None,
-            state.accelerations if self._has_acc_state else None,
+        return self._result(
+            now_ns, self._tau_ns, self._nan_command(), desired, error, state, positions
         )
-        controller_state = ControllerState(
-            now_ns,
-            desired,
-            since_start,
-            feedback,
-            (now_ns - self._ref_start_wall_ns) / NS_PER_S,
-            error,
-            self._output,
-            self._scale,
-            self._scale_target,
-        )
-        return UpdateResult(command, events, desired, error, controller_state)
 
     def _checked_positions(self, state: JointState) -> F64:
         positions = state.positions

@@ -7,7 +7,6 @@ import os
 import shutil
 import socket
 import tempfile
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -25,24 +24,6 @@ pytestmark = pytest.mark.usefixtures("no_leaks")  # threads, sockets, resources
 S = 1_000_000_000
 
 
-
-
-@pytest.fixture
-def sock(tmp_path: Path) -> Path:
-    return tmp_path / "d.sock"
-
-
-@pytest.fixture
-def daemon(sock: Path) -> Iterator[ServerThread]:
-    srv = ServerThread(ServerSettings(socket=sock))
-    yield srv
-    srv.close()
-
-
-@pytest.fixture
-def client(daemon: ServerThread, sock: Path) -> Iterator[Client]:
-    with Client.connect(sock, timeout_s=5.0) as c:
-        yield c
 
 
 def trajectory(positions: tuple[float, float] = (0.5, -0.5), t: float = 1.0) -> JointTrajectory:

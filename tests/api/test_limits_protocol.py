@@ -42,22 +42,11 @@ def test_the_request_field_is_parsed_and_checked() -> None:
 
 
 @pytest.fixture
-def sock(tmp_path: Path) -> Path:
-    return tmp_path / "d.sock"
-
-
-@pytest.fixture
 def daemon(sock: Path) -> Iterator[ServerThread]:
     backend = FakeBackend(limits={"j1": {"velocity": 0.5}})
     srv = ServerThread(ServerSettings(socket=sock), backend)
     yield srv
     srv.close()
-
-
-@pytest.fixture
-def client(daemon: ServerThread, sock: Path) -> Iterator[Client]:
-    with Client.connect(sock, timeout_s=5.0) as c:
-        yield c
 
 
 def fast() -> JointTrajectory:

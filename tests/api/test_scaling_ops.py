@@ -4,7 +4,6 @@ stand-in backend (the real controller on a simulated clock)."""
 
 from __future__ import annotations
 
-from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -13,27 +12,8 @@ from helpers.fake_backend import ServerThread
 from jtc_hw.api import Client, RequestError
 from jtc_hw.api.protocol import SetSpeedScaling, parse_request
 from jtc_hw.cli import EXIT_OK, main
-from jtc_hw.daemon.server import ServerSettings
 
 pytestmark = pytest.mark.usefixtures("no_leaks")  # threads, sockets, resources
-
-
-@pytest.fixture
-def sock(tmp_path: Path) -> Path:
-    return tmp_path / "d.sock"
-
-
-@pytest.fixture
-def daemon(sock: Path) -> Iterator[ServerThread]:
-    srv = ServerThread(ServerSettings(socket=sock))
-    yield srv
-    srv.close()
-
-
-@pytest.fixture
-def client(daemon: ServerThread, sock: Path) -> Iterator[Client]:
-    with Client.connect(str(sock), timeout_s=5.0) as c:
-        yield c
 
 
 def test_requests_are_parsed_strictly() -> None:

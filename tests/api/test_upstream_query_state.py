@@ -5,7 +5,6 @@ warning in ``jtc-hw check``. The server runs the real controller on a simulated 
 
 from __future__ import annotations
 
-from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -17,7 +16,6 @@ from jtc_hw.api.client import Client
 from jtc_hw.cli import EXIT_OK, main
 from jtc_hw.daemon.backend import LoopBackend
 from jtc_hw.daemon.robot import load_robot
-from jtc_hw.daemon.server import ServerSettings
 
 from conftest import make_robot_config
 
@@ -25,18 +23,6 @@ pytestmark = pytest.mark.usefixtures("no_leaks")  # threads, sockets, resources
 
 S = 1_000_000_000
 MS = 1_000_000
-
-
-@pytest.fixture
-def sock(tmp_path: Path) -> Path:
-    return tmp_path / "d.sock"
-
-
-@pytest.fixture
-def daemon(sock: Path) -> Iterator[ServerThread]:
-    srv = ServerThread(ServerSettings(socket=sock))
-    yield srv
-    srv.close()
 
 
 def test_query_state_reply_carries_upstreams_success(daemon: ServerThread, sock: Path) -> None:

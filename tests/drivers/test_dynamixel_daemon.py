@@ -13,12 +13,11 @@ import os
 import signal
 import subprocess
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import pytest
-import yaml
 from helpers.daemon import (
     MS,
     WAIT_S,
@@ -28,6 +27,9 @@ from helpers.daemon import (
     next_state,
     settle,
     wait_gone,
+)
+from helpers.daemon import (
+    ConfiguredDaemon as DxlDaemon,
 )
 
 from jtc_hw import GoalRejected
@@ -70,14 +72,6 @@ def robot(socket_path: Path, device: str, interface: str = "position",
         goal_time=1.0, path_tolerance=PATH_TOL, goal_tolerance=GOAL_TOL,
         controller={"gains": {j: gains for j in JOINTS}} if gains is not None else None,
     )
-
-
-class DxlDaemon(DaemonProcess):
-    """The e2e daemon process with a Dynamixel robot configuration."""
-
-    def __init__(self, directory: Path, config: Callable[[Path], dict[str, Any]]) -> None:
-        super().__init__(directory)
-        self.config_path.write_text(yaml.safe_dump(config(self.socket), sort_keys=False))
 
 
 @pytest.fixture(scope="module")

@@ -16,8 +16,8 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-import yaml
 from helpers.daemon import WAIT_S, DaemonProcess, connect
+from helpers.daemon import ConfiguredDaemon as DxlDaemon
 
 from jtc_hw.cli import EXIT_NO_DAEMON, main
 from jtc_hw.cli_health import format_hardware, hardware_report
@@ -50,12 +50,6 @@ def robot(socket_path: Path, device: str) -> dict[str, Any]:
     }
     hardware = [{"name": "arm", "kind": "dynamixel", "joints": JOINTS, "params": params}]
     return make_robot_config(socket_path, JOINTS, hardware, update_rate=200)
-
-
-class DxlDaemon(DaemonProcess):
-    def __init__(self, directory: Path, config: Callable[[Path], dict[str, Any]]) -> None:
-        super().__init__(directory)
-        self.config_path.write_text(yaml.safe_dump(config(self.socket), sort_keys=False))
 
 
 @pytest.fixture(scope="module")

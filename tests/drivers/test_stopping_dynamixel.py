@@ -17,8 +17,8 @@ from typing import Any
 
 import numpy as np
 import pytest
-import yaml
-from helpers.daemon import STOP_TIMEOUT_S, DaemonProcess, connect, next_state
+from helpers.daemon import STOP_TIMEOUT_S, connect, next_state
+from helpers.daemon import ConfiguredDaemon as DxlDaemon
 
 from jtc_hw.api.client import ClientConnectionError
 from jtc_hw.drivers.dynamixel.emulator import DynamixelEmulator
@@ -62,16 +62,10 @@ def robot(socket_path: Path, device: str) -> dict[str, Any]:
                              controller=controller)
 
 
-class DxlDaemon(DaemonProcess):
-    def __init__(self, directory: Path, device: str) -> None:
-        super().__init__(directory)
-        self.config_path.write_text(yaml.safe_dump(robot(self.socket, device), sort_keys=False))
-
-
 @pytest.fixture
 def arm(tmp_path: Path) -> Iterator[tuple[DynamixelEmulator, DxlDaemon]]:
     with DynamixelEmulator(IDS, initial_positions=START) as emu:
-        d = DxlDaemon(tmp_path / "dxl", emu.device_path)
+        d = DxlDaemon(tmp_path / "dxl", lambda sock: robot(sock, emu.device_path))
         d.start()
         try:
             d.wait_ready()

@@ -285,3 +285,12 @@ def traj(positions: Sequence[float], t: float = 1.0, **extra: Any) -> dict[str, 
     }
 
 
+
+
+class ConfiguredDaemon(DaemonProcess):
+    """A daemon whose robot file is ``config(socket_path)``: a robot of the test's own (the
+    driver tests' emulated hardware)."""
+
+    def __init__(self, directory: Path, config: Callable[[Path], dict[str, Any]]) -> None:
+        super().__init__(directory)
+        self.config_path.write_text(yaml.safe_dump(config(self.socket), sort_keys=False))

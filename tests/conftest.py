@@ -211,6 +211,22 @@ def daemon_log_on_failure() -> Iterator[None]:
             print(f"--- daemon {d.config_path} stderr ---\n{new}")
 
 
+
+def pid_controller(command: str = "effort", **gains: Any) -> JointTrajectoryController:
+    """One joint ``j`` on a closed-loop command interface with ``gains`` (the rest 0), active
+    at t = 0 from rest."""
+    g = {"p": 0.0, "i": 0.0, "d": 0.0, "i_clamp": 0.0, "ff_velocity_scale": 0.0}
+    g.update(gains)
+    config = make_config(
+        joints=("j",),
+        command_interfaces=(command,),
+        gains={"j": g},
+        allow_nonzero_velocity_at_trajectory_end=True,
+    )
+    ctrl = JointTrajectoryController(config)
+    ctrl.activate(0, JointState([0.0], [0.0]))
+    return ctrl
+
 # -- a socket server on a fake backend (tests/helpers/fake_backend.py), for the api tests --------
 
 

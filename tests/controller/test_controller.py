@@ -26,7 +26,7 @@ from jtc_hw import (
 )
 from jtc_hw.errors import StalePlan
 
-from conftest import MS, Rig, S, make_config
+from conftest import MS, Rig, S, make_config, pid_controller
 
 NAMES = ("j1", "j2")
 
@@ -450,20 +450,6 @@ def test_query_state_has_no_side_effects() -> None:
 
 
 # -- control laws -------------------------------------------------------------------------------
-
-
-def pid_controller(command: str = "effort", **gains: Any) -> JointTrajectoryController:
-    g = {"p": 0.0, "i": 0.0, "d": 0.0, "i_clamp": 0.0, "ff_velocity_scale": 0.0}
-    g.update(gains)
-    config = make_config(
-        joints=("j",),
-        command_interfaces=(command,),
-        gains={"j": g},
-        allow_nonzero_velocity_at_trajectory_end=True,
-    )
-    ctrl = JointTrajectoryController(config)
-    ctrl.activate(0, JointState([0.0], [0.0]))
-    return ctrl
 
 
 def test_pid_proportional() -> None:

@@ -25,23 +25,9 @@ from jtc_hw import (
 )
 from jtc_hw.controller.pid import Pid
 
-from conftest import MS, S, make_config
+from conftest import MS, S, make_config, pid_controller
 
 PERIOD = 10 * MS
-
-
-def one_joint(command: str = "effort", **gains: Any) -> JointTrajectoryController:
-    g = {"p": 0.0, "i": 0.0, "d": 0.0, "i_clamp": 0.0, "ff_velocity_scale": 0.0}
-    g.update(gains)
-    config = make_config(
-        joints=("j",),
-        command_interfaces=(command,),
-        gains={"j": g},
-        allow_nonzero_velocity_at_trajectory_end=True,
-    )
-    ctrl = JointTrajectoryController(config)
-    ctrl.activate(0, JointState([0.0], [0.0]))
-    return ctrl
 
 
 # -- 10. the PID law ----------------------------------------------------------------------------
@@ -49,7 +35,7 @@ def one_joint(command: str = "effort", **gains: Any) -> JointTrajectoryControlle
 
 def test_integral_contribution_lags_one_call() -> None:
     """Section 12: the integral accumulated by a call only contributes from the next call."""
-    ctrl = one_joint(i=2.0, i_clamp=1.0)
+    ctrl = pid_controller(i=2.0, i_clamp=1.0)
     off = JointState([-0.1], [0.0])  # hold at 0, measured -0.1: e = +0.1
     first = ctrl.update(PERIOD, PERIOD, off).command.effort[0]
     second = ctrl.update(2 * PERIOD, PERIOD, off).command.effort[0]
@@ -59,7 +45,7 @@ def test_integral_contribution_lags_one_call() -> None:
 
 def test_zero_dt_returns_the_previous_output_and_changes_nothing() -> None:
     """Section 12: ``dt == 0`` returns the previous output, with no state change."""
-    ctrl = one_joint(p=10.0, i=5.0, i_clamp=1.0)
+    ctrl = pid_controller(p=10.0, i=5.0, i_clamp=1.0)
     u1 = ctrl.update(PERIOD, PERIOD, JointState([-0.1], [0.0])).command.effort[0]
     # A different error at dt = 0: the same output, and the integral did not move.
     u0 = ctrl.update(PERIOD, 0, JointState([-0.3], [0.0])).command.effort[0]
@@ -70,7 +56,7 @@ def test_zero_dt_returns_the_previous_output_and_changes_nothing() -> None:
 
 def test_non_finite_error_gives_nan_and_leaves_the_integral() -> None:
     """Section 12: a non-finite error (here the velocity error) gives NaN, no state change."""
-    ctrl = one_joint(p=1.0, i=2.0, i_clamp=1.0)
+    ctrl = pid_controller(p=1.0, i=2.0, i_clamp=1.0)
     off = JointState([-0.1], [0.0])
     ctrl.update(PERIOD, PERIOD, off)
     for k in range(2, 12):
@@ -114,7 +100,7 @@ def varying_goal(ctrl: JointTrajectoryController, **effort: Any) -> None:
 def test_velocity_feed_forward_comes_from_the_look_ahead_sample() -> None:
     """Section 12: with the closed-loop adapter, ``u = ff * command_next.v + PID(e at
     traj_time)``; command_next is sampled one period ahead."""
-    ctrl = one_joint("velocity", p=3.0, ff_velocity_scale=0.5)
+    ctrl = pid_controller("velocity", p=3.0, ff_velocity_scale=0.5)
     varying_goal(ctrl)
     t = 500 * MS
     desired = ctrl.query_state(t)
@@ -128,7 +114,7 @@ def test_velocity_feed_forward_comes_from_the_look_ahead_sample() -> None:
 
 def test_effort_feed_forward_comes_from_the_look_ahead_sample() -> None:
     """Section 12: effort-only: ``u = ff * command_next.v + command_next.effort + PID``."""
-    ctrl = one_joint("effort", d=2.0, ff_velocity_scale=1.5)
+    ctrl = pid_controller("effort", d=2.0, ff_velocity_scale=1.5)
     varying_goal(ctrl, effort=[4.0])
     t = 500 * MS
     desired = ctrl.query_state(t)
@@ -240,7 +226,7 @@ def test_activation_does_not_seed_with_a_subset_of_command_joints() -> None:
 
 def test_state_reference_and_feedback_carry_time_from_start() -> None:
     """Section 16: reference and feedback tfs = time - start of the trajectory followed."""
-    ctrl = one_joint("position")
+    ctrl = pid_controller("position")
     t0 = 3 * S
     ctrl.update(t0 - PERIOD, PERIOD, JointState([0.0], [0.0]))
     ctrl.send_goal(t0, JointTrajectory(("j",), [TrajectoryPoint(1.0, [1.0])]))

@@ -153,6 +153,23 @@ class Rig:
         ]
 
 
+@pytest.fixture(scope="session", autouse=True)
+def private_lock_directory(tmp_path_factory: pytest.TempPathFactory) -> Iterator[None]:
+    """The daemons this session starts take their device locks in a directory of its own, not
+    the machine's ``/run/lock/jtc-hw``: a real daemon on a developer's robot computer must not
+    see tests as rivals (nor they it), and two test sessions run side by side (``.ci/run``
+    runs the suite on two Pythons at once) must not refuse each other's emulated buses."""
+    from jtc_hw.daemon.locks import LOCK_DIR_ENV
+
+    saved = os.environ.get(LOCK_DIR_ENV)
+    os.environ[LOCK_DIR_ENV] = str(tmp_path_factory.mktemp("locks"))
+    yield
+    if saved is None:
+        os.environ.pop(LOCK_DIR_ENV, None)
+    else:
+        os.environ[LOCK_DIR_ENV] = saved
+
+
 @pytest.fixture
 def two_joint_config() -> ControllerConfig:
     return make_config()

@@ -154,20 +154,28 @@ class Rig:
 
 
 @pytest.fixture(scope="session", autouse=True)
-def private_lock_directory(tmp_path_factory: pytest.TempPathFactory) -> Iterator[None]:
+def private_lock_and_state_directories(tmp_path_factory: pytest.TempPathFactory) -> Iterator[None]:
     """The daemons this session starts take their device locks in a directory of its own, not
     the machine's ``/run/lock/jtc-hw``: a real daemon on a developer's robot computer must not
     see tests as rivals (nor they it), and two test sessions run side by side (``.ci/run``
     runs the suite on two Pythons at once) must not refuse each other's emulated buses."""
     from jtc_hw.daemon.locks import LOCK_DIR_ENV
 
-    saved = os.environ.get(LOCK_DIR_ENV)
-    os.environ[LOCK_DIR_ENV] = str(tmp_path_factory.mktemp("locks"))
+    private = {
+        LOCK_DIR_ENV: str(tmp_path_factory.mktemp("locks")),
+        # Likewise the flight recorder's default directory: a test daemon's bags are not the
+        # user's (robot.py: $STATE_DIRECTORY, else $XDG_STATE_HOME/jtc-hw/flight).
+        "XDG_STATE_HOME": str(tmp_path_factory.mktemp("state")),
+    }
+    saved = {key: os.environ.get(key) for key in (*private, "STATE_DIRECTORY")}
+    os.environ.update(private)
+    os.environ.pop("STATE_DIRECTORY", None)
     yield
-    if saved is None:
-        os.environ.pop(LOCK_DIR_ENV, None)
-    else:
-        os.environ[LOCK_DIR_ENV] = saved
+    for key, value in saved.items():
+        if value is None:
+            os.environ.pop(key, None)
+        else:
+            os.environ[key] = value
 
 
 @pytest.fixture

@@ -361,10 +361,11 @@ class ZenohInterface:
         self._events_pub.put(encode(build(*args)))
         self.published += 1
 
-    @staticmethod
-    def _reply(query: Any, data: bytes) -> None:
+    def _reply(self, query: Any, data: bytes) -> None:
         try:
-            query.reply(query.key_expr, data)
+            # Our own key: the query's may have wildcards (jtc/**/rpc/get_status, a fleet's).
+            op = str(query.key_expr).rsplit("/", 1)[-1]
+            query.reply(f"{self.prefix}/rpc/{op}", data)
         finally:
             query.drop()  # the querier's get ends with this (its last reply)
 
@@ -394,6 +395,10 @@ class ZenohInterface:
         """Zenoh's thread: hand the query to the event loop (or answer ``busy``)."""
         try:
             op = str(query.key_expr).rsplit("/", 1)[-1]
+            if any(c in op for c in "*$"):
+                # The query names no operation (``jtc/**``): not a request to this daemon.
+                query.drop()
+                return
             payload = query.payload
             body = b"" if payload is None else payload.to_bytes()
             with self._lock:

@@ -7,7 +7,8 @@ socket server. Key expressions (protocol version :data:`ZENOH_PROTOCOL_VERSION`,
 docs/zenoh.md)::
 
     <prefix>            liveliness token: the daemon is up
-    <prefix>/state      the socket's ``state`` event, each one the loop publishes
+    <prefix>/state      the socket's ``state`` event, each one the loop publishes, with
+                        ``seq``: its number (a gap: a state lost on the way)
     <prefix>/events     goal ``feedback`` and ``result`` events (with ``goal_id``), and
                         ``fault`` events (the controller's fault set or cleared)
     <prefix>/rpc/<op>   a queryable per socket operation: the query's payload is the socket's
@@ -238,6 +239,7 @@ class ZenohInterface:
         self._fault_task: asyncio.Task[None] | None = None
         self._fault: object = None
         self._dropped_since_state = 0
+        self._state_seq = 0  # states this interface has had from the loop (a gap: a loss)
         self.published = 0
         self.busy = 0
 
@@ -330,8 +332,9 @@ class ZenohInterface:
         outbox = self._outbox
         if outbox is None:
             return
+        self._state_seq += 1
         message = {"event": "state", **snapshot, "dropped": self._dropped_since_state,
-                   "dropped_total": outbox.dropped}
+                   "dropped_total": outbox.dropped, "seq": self._state_seq}
         if outbox.offer(partial(self._put_state, message)):
             self._dropped_since_state = 0
         else:

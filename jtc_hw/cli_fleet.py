@@ -200,11 +200,15 @@ def cmd_fleet(args: argparse.Namespace) -> int:
 
     Raises:
         ClientConnectionError: eclipse-zenoh is missing or no session can be opened.
-        ValueError: an unreadable Zenoh configuration.
+        ConfigurationError: an unreadable Zenoh configuration.
     """
     from .api.zenoh_client import open_session
+    from .errors import ConfigurationError
 
-    session = open_session(args.zenoh_config)
+    try:
+        session = open_session(args.zenoh_config)
+    except ValueError as exc:  # an unreadable configuration: bad input, said as such
+        raise ConfigurationError(str(exc), "--zenoh-config") from None
     fleet = _Fleet()
     pattern = args.prefix.rstrip("/")
     try:

@@ -449,6 +449,8 @@ class ZenohInterface:
         except asyncio.CancelledError:
             query.drop()
             raise
+        except Exception:  # answer_remote never raises; Zenoh's drop might
+            log.exception("zenoh: query %d failed", conn.number)
         finally:
             with self._lock:
                 self._inflight -= 1

@@ -154,10 +154,19 @@ def measure(args: argparse.Namespace, note: Any) -> dict[str, Any]:
         try:
             receiver = Receiver()
             sub = session.declare_subscriber("jtc/bench/*/state", receiver.on_state)
-            live = {str(r.ok.key_expr) for r in session.liveliness().get("jtc/bench/*",
-                                                                         timeout=5.0) if r.ok}
-            if len(live) != args.robots:
-                raise RuntimeError(f"the client sees {len(live)} of {args.robots} daemons")
+            live: set[str] = set()
+            seen = threading.Condition()
+
+            def up(sample: Any) -> None:
+                with seen:
+                    live.add(str(sample.key_expr))
+                    seen.notify_all()
+
+            tokens = session.liveliness().declare_subscriber("jtc/bench/*", up, history=True)
+            with seen:
+                if not seen.wait_for(lambda: len(live) == args.robots, START_TIMEOUT_S):
+                    raise RuntimeError(f"the client sees {len(live)} of {args.robots} daemons")
+            tokens.undeclare()
             time.sleep(WARM_UP_S)  # a benchmark's warm-up: subscriptions settle
             note(f"measuring {args.duration:g} s")
             cpu0, wall0 = time.process_time(), time.monotonic()

@@ -28,6 +28,7 @@ import json
 import logging
 import os
 import threading
+import time
 from collections.abc import Mapping
 from typing import Any, Final
 
@@ -122,9 +123,30 @@ def open_session(zenoh_config: ZenohConfigLike | None = None) -> Any:
     zenoh = _zenoh()
     config = client_config(zenoh_config)
     try:
-        return zenoh.open(config)
+        session = zenoh.open(config)
     except Exception as exc:
         raise ClientConnectionError(f"cannot open a Zenoh session: {exc}") from None
+    endpoints = json.loads(config.get_json("connect/endpoints")) or []
+    _wait_connected(session, len(endpoints), CONNECT_WAIT_S)
+    return session
+
+
+CONNECT_WAIT_S: Final = 1.0
+"""How long a new client session waits for its connect endpoints' links (open returns while
+some are still being set up; a query sent then would not reach their daemons)."""
+
+
+def _wait_connected(session: Any, expected: int, timeout_s: float) -> None:
+    """Until the session has ``expected`` peers or routers, or ``timeout_s`` has passed (an
+    endpoint that is down: the caller's own check, e.g. the liveliness token, says so)."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        info = session.info
+        if len(info.peers_zid()) + len(info.routers_zid()) >= expected:
+            return
+        if time.monotonic() >= deadline:
+            return
+        time.sleep(0.01)  # Zenoh's Python API has no wait for a link: polled, bounded
 
 
 class ZenohClient(Client):

@@ -70,53 +70,62 @@ class Fleet:
 
     def __init__(self, robots: int, update_rate: int, state_rate: float) -> None:
         self._tmp = tempfile.TemporaryDirectory(prefix="jtc-hw-fleet-")
-        tmp = Path(self._tmp.name)
-        env = dict(os.environ, PYTHONPATH=os.pathsep.join(
+        self.dir = Path(self._tmp.name)
+        self.update_rate, self.state_rate = update_rate, state_rate
+        self.env = dict(os.environ, PYTHONPATH=os.pathsep.join(
             filter(None, [str(ROOT), os.environ.get("PYTHONPATH")])))
-        self.endpoints: list[str] = []
-        self.logs: list[Path] = []
-        self.processes: list[subprocess.Popen[bytes]] = []
+        self.endpoints: list[str] = [""] * robots
+        self.logs = [self.dir / f"r{i}.log" for i in range(robots)]
+        self.processes: list[subprocess.Popen[bytes] | None] = [None] * robots
         for i in range(robots):
-            endpoint = f"tcp/127.0.0.1:{free_port()}"
-            config = demo_config(str(tmp / f"r{i}.sock"), update_rate=update_rate)
-            config["joint_trajectory_controller"]["ros__parameters"][
-                "state_publish_rate"] = state_rate
-            config["daemon"].update({
-                "flight_recorder_s": 0,
-                "zenoh": {"prefix": f"jtc/bench/r{i}", "listen": [endpoint]},
-            })
-            path = tmp / f"r{i}.yaml"
-            path.write_text(yaml.safe_dump(config))
-            log = tmp / f"r{i}.log"
-            with open(log, "wb") as out:
-                self.processes.append(subprocess.Popen(
-                    [sys.executable, "-m", "jtc_hw", "run", str(path)], stdout=out,
-                    stderr=subprocess.STDOUT, env=env))
-            self.endpoints.append(endpoint)
-            self.logs.append(log)
+            self._spawn(i)
+
+    def _spawn(self, i: int) -> None:
+        """Start daemon ``i`` on a port free now."""
+        endpoint = f"tcp/127.0.0.1:{free_port()}"
+        config = demo_config(str(self.dir / f"r{i}.sock"), update_rate=self.update_rate)
+        config["joint_trajectory_controller"]["ros__parameters"][
+            "state_publish_rate"] = self.state_rate
+        config["daemon"].update({
+            "flight_recorder_s": 0,
+            "zenoh": {"prefix": f"jtc/bench/r{i}", "listen": [endpoint]},
+        })
+        path = self.dir / f"r{i}.yaml"
+        path.write_text(yaml.safe_dump(config))
+        with open(self.logs[i], "wb") as out:
+            self.processes[i] = subprocess.Popen(
+                [sys.executable, "-m", "jtc_hw", "run", str(path)], stdout=out,
+                stderr=subprocess.STDOUT, env=self.env)
+        self.endpoints[i] = endpoint
 
     def wait_ready(self) -> None:
-        """Until every daemon serves on Zenoh.
+        """Until every daemon serves on Zenoh; one whose port was taken meanwhile (by another
+        process on this shared machine) is started again on another.
 
         Raises:
-            RuntimeError: one exited or did not start in time (its log is quoted).
+            RuntimeError: one exited otherwise or did not start in time (its log is quoted).
         """
         deadline = time.monotonic() + START_TIMEOUT_S
         waiting = set(range(len(self.processes)))
         while waiting:
             for i in list(waiting):
-                if "zenoh: serving under" in self.logs[i].read_text(errors="replace"):
+                log = self.logs[i].read_text(errors="replace")
+                process = self.processes[i]
+                assert process is not None
+                if "zenoh: serving under" in log:
                     waiting.discard(i)
-                elif self.processes[i].poll() is not None or time.monotonic() > deadline:
-                    raise RuntimeError(f"daemon r{i} did not start:\n"
-                                       f"{self.logs[i].read_text(errors='replace')[-2000:]}")
+                elif process.poll() is not None and "Address already in use" in log:
+                    self._spawn(i)
+                elif process.poll() is not None or time.monotonic() > deadline:
+                    raise RuntimeError(f"daemon r{i} did not start:\n{log[-2000:]}")
             time.sleep(0.1)  # polling the daemons' logs for their start-up line
 
     def close(self) -> None:
-        for p in self.processes:
+        live = [p for p in self.processes if p is not None]
+        for p in live:
             if p.poll() is None:
                 p.send_signal(signal.SIGTERM)
-        for p in self.processes:
+        for p in live:
             try:
                 p.wait(timeout=30)
             except subprocess.TimeoutExpired:

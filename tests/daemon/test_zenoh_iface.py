@@ -23,7 +23,16 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from helpers.daemon import JOINTS, WAIT_S, DaemonProcess, daemon_env, next_state, traj
+import yaml
+from helpers.daemon import (
+    JOINTS,
+    WAIT_S,
+    DaemonProcess,
+    daemon_env,
+    next_state,
+    robot_config,
+    traj,
+)
 
 zenoh = pytest.importorskip("zenoh", reason="the Zenoh interface needs jtc_hw[zenoh]")
 
@@ -71,23 +80,45 @@ class ZenohDaemon(DaemonProcess):
 
     def __init__(self, directory: Path, name: str) -> None:
         directory.mkdir(parents=True, exist_ok=True)
-        self.endpoint = f"tcp/127.0.0.1:{free_port()}"
         self.prefix = f"jtc/test/{name}"
-        quiet = directory / "zenoh.json5"
-        quiet.write_text(json.dumps(QUIET))
-        super().__init__(directory, zenoh={
-            "prefix": self.prefix, "listen": [self.endpoint], "config": str(quiet)})
+        self.quiet = directory / "zenoh.json5"
+        self.quiet.write_text(json.dumps(QUIET))
+        super().__init__(directory)
+        self.choose_port()
+
+    def choose_port(self) -> None:
+        """A free port now (and the robot file naming it)."""
+        self.endpoint = f"tcp/127.0.0.1:{free_port()}"
+        self.config_path.write_text(yaml.safe_dump(robot_config(self.socket, zenoh={
+            "prefix": self.prefix, "listen": [self.endpoint], "config": str(self.quiet)}),
+            sort_keys=False))
 
     def client(self) -> Client:
         return Client.connect(f"zenoh:{self.prefix}", timeout_s=WAIT_S,
                               zenoh_config=session_config(self.endpoint))
 
 
+PORT_ATTEMPTS = 3
+
+
 def started(d: ZenohDaemon) -> ZenohDaemon:
-    d.start()
-    d.wait_ready()
-    d.wait_log("zenoh: serving under")
-    return d
+    """Start ``d`` and wait until it serves on Zenoh. The port was free when chosen; on this
+    shared machine another process may take it before the daemon binds it: then the daemon
+    exits saying so, and it is started again on another port."""
+    for _attempt in range(PORT_ATTEMPTS):
+        d.start()
+        assert d.proc is not None
+        deadline = time.monotonic() + WAIT_S * 3
+        while "zenoh: serving under" not in d.log() and d.proc.poll() is None:
+            assert time.monotonic() < deadline, f"the daemon did not start:\n{d.log()}"
+            time.sleep(0.02)  # polling another process's log file, with a deadline
+        if d.proc.poll() is None:
+            d.wait_ready()
+            return d
+        assert "Address already in use" in d.log(), d.log()
+        assert d.wait_exit() == 2
+        d.choose_port()
+    raise AssertionError(f"no free port in {PORT_ATTEMPTS} attempts:\n{d.log()}")
 
 
 @pytest.fixture

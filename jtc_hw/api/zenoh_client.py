@@ -200,7 +200,8 @@ class ZenohClient(Client):
             zenoh_config: see :data:`ZenohConfigLike` (not with ``session``).
             session: an open Zenoh session to share (it stays open on ``close``).
             timeout_s: for finding the daemon and the default for every request.
-            hello: say ``hello`` (and fill ``info``).
+            hello: fill ``info`` with the ``hello`` reply (the request is always made: see
+                below).
 
         Raises:
             ClientConnectionError: eclipse-zenoh is missing, the session cannot be opened,
@@ -229,9 +230,12 @@ class ZenohClient(Client):
                     f"{timeout_s:g} s. Is it running with daemon.zenoh.prefix {prefix}, and "
                     "does the Zenoh configuration reach it (connect endpoints, router)? "
                     "'jtc-hw fleet' lists the daemons this session sees")
+            # Always a round trip: the daemon has this session's subscriptions (declared on
+            # the same link before the query) once it answers, so no event of a goal sent
+            # next can miss them. ``hello=False`` only leaves ``info`` empty.
+            info = client._request("hello", {"protocol_version": PROTOCOL_VERSION}, timeout_s)
             if hello:
-                client.info = client._request(
-                    "hello", {"protocol_version": PROTOCOL_VERSION}, timeout_s)
+                client.info = info
         except BaseException:
             client.close()
             raise

@@ -34,12 +34,12 @@ from helpers.daemon import (
     traj,
 )
 
-zenoh = pytest.importorskip("zenoh", reason="the Zenoh interface needs jtc_hw[zenoh]")
+pytest.importorskip("zenoh", reason="the Zenoh interface needs jtc_hw[zenoh]")
 
 pytestmark = pytest.mark.usefixtures("no_leaks")  # threads, sockets, resources
 
 from jtc_hw.api.client import Client, ClientConnectionError  # noqa: E402
-from jtc_hw.api.zenoh_client import ZenohClient  # noqa: E402
+from jtc_hw.api.zenoh_client import ZenohClient, open_session  # noqa: E402
 
 from conftest import ROOT  # noqa: E402
 
@@ -134,10 +134,13 @@ class Events:
     """A plain Zenoh session recording every message on ``<prefix>/events``, in order."""
 
     def __init__(self, d: ZenohDaemon) -> None:
-        self.session = zenoh.open(_zconfig(session_config(d.endpoint)))
+        self.session = open_session(session_config(d.endpoint))
         self.cond = threading.Condition()
         self.messages: list[dict[str, Any]] = []
         self.sub = self.session.declare_subscriber(f"{d.prefix}/events", self._on)
+        # A query after the declaration, on the same link: once its reply is here, the daemon
+        # has the subscription, and no later event can miss it.
+        assert _zenoh_reply(self.session, d, "hello", b"")["ok"]
 
     def _on(self, sample: Any) -> None:
         with self.cond:
@@ -158,13 +161,6 @@ class Events:
     def close(self) -> None:
         self.sub.undeclare()
         self.session.close()
-
-
-def _zconfig(values: dict[str, Any]) -> Any:
-    config = zenoh.Config()
-    for key, value in values.items():
-        config.insert_json5(key, json.dumps(value))
-    return config
 
 
 def _result(goal_id: int) -> Any:
@@ -320,7 +316,7 @@ def _zenoh_reply(session: Any, d: ZenohDaemon, op: str, body: bytes) -> dict[str
 ])
 def test_malformed_request_gets_the_sockets_error(daemon: ZenohDaemon, op: str,
                                                   body: bytes) -> None:
-    session = zenoh.open(_zconfig(session_config(daemon.endpoint)))
+    session = open_session(session_config(daemon.endpoint))
     try:
         got = _zenoh_reply(session, daemon, op, body)
     finally:
@@ -336,7 +332,7 @@ def test_malformed_request_gets_the_sockets_error(daemon: ZenohDaemon, op: str,
 
 
 def test_op_in_the_body_must_match_the_key(daemon: ZenohDaemon) -> None:
-    session = zenoh.open(_zconfig(session_config(daemon.endpoint)))
+    session = open_session(session_config(daemon.endpoint))
     try:
         got = _zenoh_reply(session, daemon, "get_status", b'{"id": 1, "op": "stop"}')
         moving = _zenoh_reply(session, daemon, "subscribe_state", b"")

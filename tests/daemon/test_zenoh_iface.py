@@ -280,6 +280,21 @@ def test_daemon_stopping_gives_the_goal_its_result_then_goes_away(tmp_path: Path
         assert d.wait_exit() == 0
 
 
+def test_a_fault_and_its_rearm_are_published_on_events(daemon: ZenohDaemon) -> None:
+    events = Events(daemon)
+    client = daemon.client()
+    try:
+        client.sim("arm", fault="injected read fault")
+        fault = events.wait_for(lambda m: m.get("event") == "fault" and m["fault"])
+        assert "injected read fault" in fault["fault"]
+        assert client.rearm()["rearmed"] is True
+        cleared = events.wait_for(lambda m: m.get("event") == "fault" and m["fault"] is None)
+        assert cleared["time_ns"] > fault["time_ns"]
+    finally:
+        client.close()
+        events.close()
+
+
 # -- errors -----------------------------------------------------------------------------------
 
 

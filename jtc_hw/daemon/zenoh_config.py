@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import ipaddress
 import json
+import multiprocessing
 import os
 import re
 import socket
@@ -140,8 +141,17 @@ def check_prefix(prefix: str, path: str = "daemon.zenoh.prefix") -> str:
     return prefix
 
 
+LOOP_PROCESS: Final = "jtc-hw-loop"
+"""``jtc_hw.daemon.loop.LOOP_PROCESS_NAME``, the loop process's ``multiprocessing`` name
+(not imported: this module is imported by the robot file's loader, the loop's too)."""
+
+
 def zenoh_settings(values: Mapping[str, Any], base_dir: str) -> ZenohSettings:
     """Settings of a validated ``daemon.zenoh`` mapping, checked against the security rule.
+
+    In the loop process the configuration file is not read again: reading it loads
+    eclipse-zenoh, whose native library starts a thread, and the loop process must have none
+    (``loop_main``); the daemon's API process checked the same file before starting it.
 
     Raises:
         ConfigurationError: a bad prefix, a missing configuration file, no endpoint at all,
@@ -175,7 +185,8 @@ def zenoh_settings(values: Mapping[str, Any], base_dir: str) -> ZenohSettings:
                 f"{endpoint!r} is not a Zenoh endpoint: write <protocol>/<address>:<port>, "
                 "e.g. tcp/127.0.0.1:7447", "daemon.zenoh.connect" if index < len(
                     settings.connect) else "daemon.zenoh.listen", endpoint)
-    check_security(settings)
+    if settings.config is None or multiprocessing.current_process().name != LOOP_PROCESS:
+        check_security(settings)
     return settings
 
 

@@ -87,3 +87,10 @@ def test_the_files_own_listen_endpoints_are_checked(tmp_path: Path) -> None:
     assert z is not None and z.config == str(tls)
     # Our section's listen replaces the file's.
     assert robot(tmp_path, config=str(wide), listen=["tcp/127.0.0.1:0"]).daemon.zenoh
+
+
+def test_the_loop_process_name_is_the_loops() -> None:
+    from jtc_hw.daemon.loop import LOOP_PROCESS_NAME
+    from jtc_hw.daemon.zenoh_config import LOOP_PROCESS
+
+    assert LOOP_PROCESS == LOOP_PROCESS_NAME

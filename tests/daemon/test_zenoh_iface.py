@@ -29,6 +29,7 @@ from helpers.daemon import (
     WAIT_S,
     DaemonProcess,
     daemon_env,
+    loop_process,
     next_state,
     robot_config,
     traj,
@@ -293,6 +294,19 @@ def test_a_fault_and_its_rearm_are_published_on_events(daemon: ZenohDaemon) -> N
     finally:
         client.close()
         events.close()
+
+
+def test_the_loop_process_never_loads_zenoh(daemon: ZenohDaemon) -> None:
+    """The robot file names a Zenoh configuration file (``ZenohDaemon``): the API process
+    reads it with eclipse-zenoh; the loop process, which loads the same robot file, must not
+    (the library starts a thread, and the loop process has none)."""
+    library = f"{os.sep}zenoh{os.sep}zenoh."  # site-packages/zenoh/zenoh.abi3.so
+
+    def maps(pid: int) -> str:
+        return Path(f"/proc/{pid}/maps").read_text()
+
+    assert library in maps(daemon.pid)  # the check below can see the library
+    assert library not in maps(loop_process(daemon))
 
 
 # -- errors -----------------------------------------------------------------------------------

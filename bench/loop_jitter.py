@@ -41,9 +41,13 @@ chosen freely) and a viewer (``websockets``, the protocol by hand) subscribes to
 and reads every message throughout idle and loaded, as Foxglove would: the figures then include
 the view's cost, for docs/benchmarks.md's side-by-side comparison.
 
+With ``--zenoh`` the daemon is also on Zenoh (``daemon.zenoh``, listening on a free loopback
+port) and a Zenoh session of this process subscribes to its state stream and events throughout
+(needs jtc_hw[zenoh]): the same comparison for the Zenoh interface (issue 14).
+
 Usage:  python bench/loop_jitter.py [--duration S] [--rates 500 1000]
             [--scenarios [bare] idle loaded] [--priority N] [--cpu N] [--lock-memory]
-            [--live-view] [--json]
+            [--live-view] [--zenoh] [--json]
 Target: at 1 kHz, p99 lateness < 300 us and no overruns, idle and loaded.
 """
 
@@ -113,6 +117,15 @@ def ctx_switches(pid: int) -> tuple[int, int]:
     return int(values["voluntary_ctxt_switches"]), int(values["nonvoluntary_ctxt_switches"])
 
 
+
+
+def free_port() -> int:
+    """A TCP port free on the loopback interface now."""
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
 
 
 class Daemon:
@@ -271,6 +284,28 @@ class Viewer:
     def close(self) -> None:
         self.ws.close()
         self._thread.join(timeout=10)
+
+
+class ZenohViewer:
+    """A Zenoh session subscribed to the daemon's state and events (``--zenoh``)."""
+
+    def __init__(self, endpoint: str, prefix: str) -> None:
+        from jtc_hw.api.zenoh_client import open_session
+
+        self.session = open_session({"connect/endpoints": [endpoint],
+                                     "scouting/gossip/enabled": False})
+        self.messages = 0
+        self.subs = [self.session.declare_subscriber(f"{prefix}/{key}", self._count)
+                     for key in ("state", "events")]
+
+    def _count(self, sample: Any) -> None:
+        json.loads(sample.payload.to_bytes())  # as a client would, to use it
+        self.messages += 1
+
+    def close(self) -> None:
+        for sub in self.subs:
+            sub.undeclare()
+        self.session.close()
 
 
 # -- the load ---------------------------------------------------------------------------------
@@ -584,23 +619,33 @@ def measure_rate(
     }
     if args.live_view:
         settings["foxglove"] = {"port": 0}
+    endpoint, prefix = f"tcp/127.0.0.1:{free_port()}", "jtc/bench/jitter"
+    if args.zenoh:
+        settings["zenoh"] = {"prefix": prefix, "listen": [endpoint]}
     with Daemon(rate_hz, args.priority, args.cpu, args.lock_memory, settings) as daemon:
         client = daemon.connect()
         viewer = Viewer(daemon) if args.live_view else None
+        zviewer = ZenohViewer(endpoint, prefix) if args.zenoh else None
         try:
             scheduling = daemon.scheduling()
             note(f"{rate_hz:g} Hz: daemon {daemon.pid}, loop {daemon.loop_pid}: {scheduling}")
             for scenario in (s for s in args.scenarios if s != "bare"):
                 note(f"{rate_hz:g} Hz {scenario}: measuring {args.duration:g} s")
                 seen = viewer.messages if viewer is not None else 0
+                zseen = zviewer.messages if zviewer is not None else 0
                 row = run_scenario(daemon, client, rate_hz, scenario, args.duration)
                 if viewer is not None:
                     row["live_view_messages"] = viewer.messages - seen
+                if zviewer is not None:
+                    row["zenoh_messages"] = zviewer.messages - zseen
                 rows.append(row)
-            rows = [dict(row, scheduling=scheduling, live_view=args.live_view) for row in rows]
+            rows = [dict(row, scheduling=scheduling, live_view=args.live_view, zenoh=args.zenoh)
+                    for row in rows]
         finally:
             if viewer is not None:
                 viewer.close()
+            if zviewer is not None:
+                zviewer.close()
             client.close()
             if daemon.process.poll() is not None:
                 note(f"the daemon died:\n{daemon.log_tail()}")
@@ -636,8 +681,8 @@ def print_table(
     )
     print(
         f"asked: --priority {args.priority} --cpu {'any' if args.cpu is None else args.cpu} "
-        f"--lock-memory {args.lock_memory} --live-view {args.live_view}; the loop process ran "
-        "with:"
+        f"--lock-memory {args.lock_memory} --live-view {args.live_view} --zenoh {args.zenoh}; "
+        "the loop process ran with:"
     )
     for rate, how in schedulings.items():
         print(f"  {rate:g} Hz: {how}")
@@ -677,6 +722,9 @@ def print_table(
         if "live_view_messages" in r:
             print(f"    live view: {r['live_view_messages']} messages to the viewer "
                   f"({r['live_view_messages'] / r['duration_s']:.0f}/s, warm-up included)")
+        if "zenoh_messages" in r:
+            print(f"    zenoh: {r['zenoh_messages']} state and event messages to the subscriber "
+                  f"({r['zenoh_messages'] / r['duration_s']:.0f}/s, warm-up included)")
         if r["scenario"] == "loaded":
             print(
                 f"    goals: accepted in p50 {r['accept_ms_p50']:.0f} ms, max "
@@ -734,6 +782,12 @@ def main(argv: list[str] | None = None) -> int:
         action="store_true",
         help="daemon.foxglove on, with a viewer subscribed to every channel (needs "
         "jtc_hw[foxglove] and websockets)",
+    )
+    parser.add_argument(
+        "--zenoh",
+        action="store_true",
+        help="daemon.zenoh on (loopback), with a Zenoh subscriber to its state and events "
+        "(needs jtc_hw[zenoh])",
     )
     parser.add_argument(
         "--flight-recorder-s",

@@ -65,10 +65,12 @@ Drive robot joints with ROS 2 joint_trajectory_controller semantics, without ROS
                                change a controller parameter while the daemon runs
                                ('jtc-hw param get' lists them)
   jtc-hw emulate dynamixel     emulated servos on a pseudo-terminal (no robot needed)
+  jtc-hw fleet --watch         the daemons on Zenoh, one line each (docs/zenoh.md)
 
 Client commands find the daemon's socket from --socket, else --config's daemon.socket,
 else $JTC_HW_SOCKET, else the default path (see 'jtc-hw check' for a config's path). A socket
 at the default path is used only if it and the process behind it belong to you or root.
+With --zenoh PREFIX (and --zenoh-config FILE) they reach the daemon at that Zenoh prefix.
 """
 
 
@@ -179,6 +181,10 @@ def _socket(args: argparse.Namespace) -> tuple[str, bool]:
 def _connect(args: argparse.Namespace, hello: bool = True) -> Any:
     from .api.client import UNTRUSTED, Client, ClientConnectionError
 
+    if getattr(args, "zenoh", None):
+        from .cli_fleet import connect_zenoh
+
+        return connect_zenoh(args, hello, _NoDaemon)
     path, named = _socket(args)
     try:
         return Client.connect(path, timeout_s=args.timeout, hello=hello, check_owner=not named)
@@ -316,6 +322,9 @@ def cmd_check(args: argparse.Namespace) -> int:
         f"Foxglove WebSocket ws://{view.host}:{view.port}, "
         f"{f'{view.rate:g} Hz' if view.rate else 'every state'}" if view else
         "off (daemon.foxglove)"))
+    from .cli_fleet import check_line  # the Zenoh interface (docs/zenoh.md)
+
+    print(check_line(d, c.name))
     from .rec.cli import check_lines  # flight recorder, record (issue 13, rec)
 
     for line in check_lines(d):
@@ -875,6 +884,11 @@ def build_parser() -> argparse.ArgumentParser:
     def client_options(p: argparse.ArgumentParser) -> None:
         p.add_argument("--socket", help="the daemon's Unix socket path")
         p.add_argument("--config", help="find the socket path in this robot configuration")
+        p.add_argument("--zenoh", metavar="PREFIX",
+                       help="reach the daemon over Zenoh at this key prefix (docs/zenoh.md)")
+        p.add_argument("--zenoh-config", metavar="FILE",
+                       help="Zenoh configuration for --zenoh (default: connect to a router "
+                       "on tcp/127.0.0.1:7447)")
         p.add_argument(
             "--timeout",
             type=float,
@@ -1171,6 +1185,9 @@ Exit status: 0 done; 2 unknown or read-only parameter, or a bad value; 3 no daem
     from .rec.cli import add_parsers as add_rec_parsers  # record, plot (issue 13, rec)
 
     add_rec_parsers(sub, client_options)
+    from .cli_fleet import add_parser as add_fleet_parser
+
+    add_fleet_parser(sub)
     for name, command in sub.choices.items():
         # Every subcommand's --help states its exit statuses (unless its description does).
         if "Exit status" not in (command.description or ""):

@@ -147,12 +147,14 @@ class Client:
         timeout_s: float = DEFAULT_TIMEOUT_S,
         hello: bool = True,
         check_owner: bool | None = None,
+        zenoh_config: Any = None,
     ) -> Client:
         """Connect, authenticate (TCP), and say ``hello``.
 
         Args:
             path: the daemon's unix socket (default: ``default_socket_path()``); not with
-                ``tcp``.
+                ``tcp``. ``"zenoh:<prefix>"``: the daemon at that Zenoh key prefix, through a
+                Zenoh session (``jtc_hw.api.zenoh_client``; needs ``jtc_hw[zenoh]``).
             tcp: ``(host, port)`` of the daemon's loopback TCP endpoint.
             token: the TCP token.
             timeout_s: for connecting and the default for every request.
@@ -165,6 +167,9 @@ class Client:
                 ``path``, no ``$JTC_HW_SOCKET``): that path is guessable, so another local
                 user could have put a socket there first. A path named explicitly is trusted
                 as named (e.g. a daemon of another user whose group may use it).
+            zenoh_config: with ``zenoh:``, the Zenoh configuration (a JSON5 file, a mapping
+                of keys to values, or a ``zenoh.Config``; default: connect to a router on
+                ``tcp/127.0.0.1:7447``).
 
         Raises:
             ValueError: both ``path`` and ``tcp``, or ``tcp`` without ``token``.
@@ -177,6 +182,11 @@ class Client:
         """
         if path is not None and tcp is not None:
             raise ValueError("give either a unix socket path or tcp=(host, port), not both")
+        if isinstance(path, str) and path.startswith("zenoh:"):
+            from .zenoh_client import ZenohClient
+
+            return ZenohClient.open(path.removeprefix("zenoh:"), zenoh_config=zenoh_config,
+                                    timeout_s=timeout_s, hello=hello)
         address: str | tuple[str, int]
         if tcp is not None:
             if not token:

@@ -23,6 +23,7 @@ layout); this module adds two top-level sections that ``load_config`` skips::
       flight_recorder_dir: /var/lib/jtc-hw/flight
       flight_recorder_keep: 20
       record: /var/lib/jtc-hw/runs   # optional: record every run from its start
+      zenoh: {prefix: jtc/lab/arm1, connect: [tcp/10.0.0.2:7447]}  # off when absent
 
 The keys, types, defaults and ranges of both sections live in the schema tables below
 (:data:`HARDWARE_KEYS`, :data:`DAEMON_PARAMETERS`, :data:`TCP_PARAMETERS`,
@@ -59,6 +60,7 @@ from ..hardware import (
     param_table,
     validate_params,
 )
+from .zenoh_config import ZENOH_PARAMETERS, ZenohSettings, zenoh_settings
 
 __all__ = [
     "DAEMON_PARAMETERS",
@@ -216,6 +218,9 @@ DAEMON_PARAMETERS: Final[Mapping[str, ParamSpec]] = param_table(
     ParamSpec("record", ParamKind.STRING, None,
               "directory where each run of the daemon is recorded as a bag from its start "
               "(default: not recorded)", nullable=True),
+    ParamSpec("zenoh", ParamKind.SECTION, None,
+              "the daemon on a Zenoh network (off when absent; needs jtc_hw[zenoh]; "
+              "docs/zenoh.md)", nullable=True, fields=ZENOH_PARAMETERS),
 )
 """``daemon.*``."""
 
@@ -358,6 +363,7 @@ class DaemonSettings:
         flight_recorder_dir: absolute directory of its bags.
         flight_recorder_keep: how many of its bags are kept.
         record: absolute directory where each run is recorded from its start, or ``None``.
+        zenoh: the Zenoh interface, or None (off).
 
     Raises:
         ConfigurationError: the socket path is relative, empty or too long, or
@@ -378,6 +384,7 @@ class DaemonSettings:
     flight_recorder_dir: str = field(default_factory=default_flight_recorder_dir)
     flight_recorder_keep: int = 20
     record: str | None = None
+    zenoh: ZenohSettings | None = None
 
     def __post_init__(self) -> None:
         if not isinstance(self.socket, str) or not os.path.isabs(self.socket):
@@ -528,6 +535,7 @@ def _parse_daemon(raw: Any, base_dir: str) -> DaemonSettings:
         flight_recorder_keep=values["flight_recorder_keep"],
         record=None if values["record"] is None else _directory(values["record"], base_dir,
                                                                  "daemon.record"),
+        zenoh=None if values["zenoh"] is None else zenoh_settings(values["zenoh"], base_dir),
     )
 
 

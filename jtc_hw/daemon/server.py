@@ -599,6 +599,27 @@ class Server:
             return encode(self._error(conn, item, error, logged=True))
         return encode(self._error(conn, item, error))
 
+    async def answer_remote(self, conn: Connection, item: Request | RequestError) -> bytes:
+        """Execute one request of a transport without a stream of its own (a Zenoh query,
+        ``jtc_hw.daemon.zenoh_iface``) through the socket's own dispatch, so that replies and
+        errors are exactly the socket's: its encoded reply. ``conn`` stands for the querier;
+        the reply to ``send_goal`` is the first message it is sent (``conn.send``), and the
+        goal's events are routed to it afterwards.
+
+        Raises:
+            Nothing: a failure is an error reply, logged.
+        """
+        conn.requests += 1
+        if isinstance(item, RequestError):
+            return encode(self._error(conn, None, item))
+        answer = await self._answer(conn, item)
+        if answer is not None:
+            return answer
+        sent = conn.queue.popleft() if conn.queue else None
+        if sent is None:  # pragma: no cover - _dispatch returns None only after conn.send
+            return encode(error_reply(item.id, INTERNAL, f"{item.op}: no reply"))
+        return sent
+
     def _authenticate(self, conn: Connection, item: Request | RequestError) -> None:
         if isinstance(item, Auth) and self._token_ok(item.token):
             conn.authenticated = True

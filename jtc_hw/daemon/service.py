@@ -72,6 +72,7 @@ class Daemon:
         self._reason = "daemon stopping"
         self._failed = False
         self.live_view: Any = None  # the LiveView while daemon.foxglove serves one
+        self.zenoh: Any = None  # the ZenohInterface while daemon.zenoh is on
 
     def request_stop(self, reason: str, failed: bool = False) -> None:
         """Begin an orderly shutdown (idempotent)."""
@@ -140,6 +141,13 @@ class Daemon:
             await server.close()
             await self.backend.stop("start-up failed")
             return 2
+        zenoh = await self._start_zenoh(server)
+        if zenoh is False:
+            if live is not None:
+                await live.close()
+            await server.close()
+            await self.backend.stop("start-up failed")
+            return 2
         c = self.robot.controller
         kinds = ", ".join(sorted({h.kind for h in self.robot.hardware}))
         status = f"{len(c.joints)} joints at {c.update_rate:g} Hz on {kinds}; socket {server.path}"
@@ -156,6 +164,8 @@ class Daemon:
             code = await self.backend.stop(self._reason)
             if live is not None:
                 await live.close()
+            if zenoh is not None:
+                await zenoh.close()  # after the loop's stop: its last results are published
             await server.close()
             # asyncio restores the default (fatal) handlers when its loop closes: a second
             # SIGTERM now must not turn a clean stop into death by signal.
@@ -185,6 +195,25 @@ class Daemon:
         self.backend.add_tap(live)
         self.live_view = live
         return live
+
+    async def _start_zenoh(self, server: Any) -> Any:
+        """The Zenoh interface if ``daemon.zenoh`` asks for one (None: off; False: it could
+        not start, which is logged)."""
+        settings = self.robot.daemon.zenoh
+        if settings is None:
+            return None
+        from .zenoh_iface import ZenohInterface
+
+        iface = ZenohInterface(settings, self.robot.controller.name, server, self.backend.status)
+        try:
+            await iface.start()
+        except JtcHwError as exc:
+            log.error("cannot start: %s", exc)
+            await iface.close()
+            return False
+        self.backend.add_tap(iface)
+        self.zenoh = iface
+        return iface
 
     async def _loop_death(self) -> None:
         """Exit (non-zero) as soon as the loop process ends without being asked to: the

@@ -1,0 +1,333 @@
+"""The ``daemon.zenoh`` section: settings, the Zenoh session configuration, the security rule.
+
+``daemon.zenoh`` (absent: no Zenoh) puts the daemon on a Zenoh network (docs/zenoh.md)::
+
+    daemon:
+      zenoh:
+        prefix: jtc/lab/arm1          # default: jtc/<hostname>/<controller name>
+        mode: peer                    # or client (through a router)
+        connect: [tcp/192.168.1.10:7447]
+        listen: [tcp/127.0.0.1:7447]  # default: none
+        config: /etc/jtc-hw/zenoh.json5   # optional Zenoh configuration file, passed as is
+        multicast_scouting: false     # discovery by multicast: off unless set here or in config
+
+The Zenoh configuration is the file (if any) with this section's keys applied on top; what the
+section does not give is left to the file: ``listen`` (when absent, and the file sets no
+listen endpoint, the daemon listens nowhere: a Zenoh peer's default is every interface),
+multicast scouting (off unless the file or ``multicast_scouting`` turns it on), and the
+session lease (:data:`LEASE_MS` / :data:`KEEP_ALIVE` unless the file sets another).
+
+Security rule (the TCP listener's, on the network): a listen endpoint that is not loopback
+needs TLS (a ``tls/`` or ``quic/`` locator, with ``transport.link.tls.listen_certificate`` and
+``listen_private_key``) or authentication (``transport.auth.usrpwd`` or ``transport.auth.pubkey``)
+in the configuration file; otherwise the configuration is refused at load, so ``jtc-hw check``
+says it too. Reading a configuration file needs the ``eclipse-zenoh`` package (its parser
+is the reference for its JSON5); a section without one is checked without it.
+"""
+
+from __future__ import annotations
+
+import ipaddress
+import json
+import multiprocessing
+import os
+import re
+import socket
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any, Final
+
+from ..errors import ConfigurationError
+from ..hardware import ParamKind, ParamSpec, param_table
+
+__all__ = [
+    "INSTALL_HINT",
+    "KEEP_ALIVE",
+    "LEASE_MS",
+    "MODES",
+    "ZENOH_PARAMETERS",
+    "ZenohSettings",
+    "default_prefix",
+    "endpoint_is_loopback",
+    "session_config",
+    "zenoh_settings",
+]
+
+INSTALL_HINT: Final = "pip install 'jtc_hw[zenoh]'"
+MODES: Final = ("peer", "client")
+LEASE_MS: Final = 1000
+"""Zenoh session lease the daemon announces (Zenoh's default: 10 s): a peer that hears
+nothing from the daemon for this long (its machine powered off, its cable pulled) closes the
+session, and the daemon's liveliness token disappears. A daemon that dies with its machine
+still up is noticed at once: its TCP connections are closed by the kernel."""
+KEEP_ALIVE: Final = 4
+"""Keep-alive messages per lease (Zenoh's default), so the lease survives a lost one."""
+
+_KEY_CHUNK = re.compile(r"[^/*$?#]+")
+
+ZENOH_PARAMETERS: Final[Mapping[str, ParamSpec]] = param_table(
+    ParamSpec("prefix", ParamKind.STRING, None,
+              "key expression under which the daemon appears (default: "
+              "jtc/<hostname>/<controller name>)", nullable=True),
+    ParamSpec("mode", ParamKind.STRING, None,
+              "Zenoh session mode: peer, or client of a router (default: the configuration "
+              "file's, else peer)", nullable=True, choices=MODES),
+    ParamSpec("connect", ParamKind.STRINGS, (),
+              "Zenoh endpoints to connect to (a router, a peer), e.g. tcp/10.0.0.2:7447"),
+    ParamSpec("listen", ParamKind.STRINGS, None,
+              "Zenoh endpoints to listen on (default: the configuration file's, else none); "
+              "a non-loopback one needs TLS or authentication in config", nullable=True),
+    ParamSpec("config", ParamKind.STRING, None,
+              "Zenoh configuration file (JSON5), passed through: TLS, authentication, access "
+              "control", nullable=True),
+    ParamSpec("multicast_scouting", ParamKind.BOOL, False,
+              "discover peers by UDP multicast (off: only connect/listen endpoints)"),
+)
+"""``daemon.zenoh.*``."""
+
+
+@dataclass(frozen=True)
+class ZenohSettings:
+    """``daemon.zenoh``: the daemon's Zenoh interface (``jtc_hw.daemon.zenoh_iface``).
+
+    Attributes:
+        prefix: key expression of this daemon, or ``None`` for :func:`default_prefix`.
+        mode: ``peer`` or ``client``, or ``None`` (the configuration file's, else peer).
+        connect: endpoints to connect to.
+        listen: endpoints to listen on, or ``None`` (the file's, else none).
+        config: absolute path of a Zenoh configuration file, or ``None``.
+        multicast_scouting: discover peers by multicast.
+    """
+
+    prefix: str | None = None
+    mode: str | None = None
+    connect: tuple[str, ...] = ()
+    listen: tuple[str, ...] | None = None
+    config: str | None = None
+    multicast_scouting: bool = False
+
+    def resolved_prefix(self, controller: str) -> str:
+        """The prefix in effect for a daemon of controller ``controller``."""
+        return self.prefix if self.prefix is not None else default_prefix(controller)
+
+
+def default_prefix(controller: str) -> str:
+    """``jtc/<hostname>/<controller>``, with characters a key expression cannot hold in a
+    chunk (``/ * $ ? #``) replaced by ``_``.
+
+    Raises:
+        Nothing.
+    """
+    host = socket.gethostname().split(".")[0] or "localhost"
+    return "/".join(("jtc", *(re.sub(r"[/*$?#\s]", "_", c) for c in (host, controller))))
+
+
+def check_prefix(prefix: str, path: str = "daemon.zenoh.prefix") -> str:
+    """A prefix as a concrete key expression: chunks separated by ``/``, none empty, no
+    wildcard or reserved character.
+
+    Raises:
+        ConfigurationError: names the offending chunk.
+    """
+    if not prefix or prefix.startswith("/") or prefix.endswith("/"):
+        raise ConfigurationError(
+            f"{prefix!r} is not a key expression: give chunks separated by '/', without a "
+            "leading or trailing '/' (e.g. jtc/lab/arm1)", path, prefix)
+    for chunk in prefix.split("/"):
+        if not _KEY_CHUNK.fullmatch(chunk):
+            raise ConfigurationError(
+                f"{prefix!r}: chunk {chunk!r} is empty or holds one of * $ ? # (wildcards "
+                "are for subscribers; a daemon's prefix names one robot)", path, prefix)
+    return prefix
+
+
+LOOP_PROCESS: Final = "jtc-hw-loop"
+"""``jtc_hw.daemon.loop.LOOP_PROCESS_NAME``, the loop process's ``multiprocessing`` name
+(not imported: this module is imported by the robot file's loader, the loop's too)."""
+
+
+def zenoh_settings(values: Mapping[str, Any], base_dir: str) -> ZenohSettings:
+    """Settings of a validated ``daemon.zenoh`` mapping, checked against the security rule.
+
+    In the loop process the configuration file is not read again: reading it loads
+    eclipse-zenoh, whose native library starts a thread, and the loop process must have none
+    (``loop_main``); the daemon's API process checked the same file before starting it.
+
+    Raises:
+        ConfigurationError: a bad prefix, a missing configuration file, no endpoint at all,
+            or a non-loopback listen endpoint without TLS or authentication (the message
+            says what to set); ``eclipse-zenoh`` missing when a configuration file must be
+            read.
+    """
+    prefix = values["prefix"]
+    if prefix is not None:
+        check_prefix(prefix)
+    config = values["config"]
+    if config is not None:
+        if not config.strip():
+            raise ConfigurationError("is empty; give a file, or remove the key",
+                                     "daemon.zenoh.config", config)
+        config = os.path.normpath(os.path.join(base_dir, os.path.expanduser(config)))
+        if not os.path.isfile(config):
+            raise ConfigurationError(f"{config} is not a file", "daemon.zenoh.config", config)
+    listen = values["listen"]
+    settings = ZenohSettings(
+        prefix=prefix,
+        mode=values["mode"],
+        connect=tuple(values["connect"]),
+        listen=None if listen is None else tuple(listen),
+        config=config,
+        multicast_scouting=values["multicast_scouting"],
+    )
+    for index, endpoint in enumerate((*settings.connect, *(settings.listen or ()))):
+        if "/" not in endpoint:
+            raise ConfigurationError(
+                f"{endpoint!r} is not a Zenoh endpoint: write <protocol>/<address>:<port>, "
+                "e.g. tcp/127.0.0.1:7447", "daemon.zenoh.connect" if index < len(
+                    settings.connect) else "daemon.zenoh.listen", endpoint)
+    if settings.config is None or multiprocessing.current_process().name != LOOP_PROCESS:
+        check_security(settings)
+    return settings
+
+
+# -- the session configuration ------------------------------------------------------------------
+
+
+def _json(config: Any, key: str) -> Any:
+    return json.loads(config.get_json(key))
+
+
+def session_config(settings: ZenohSettings) -> Any:
+    """The ``zenoh.Config`` of the daemon's session (module docstring: what comes from where).
+
+    Raises:
+        ConfigurationError: ``eclipse-zenoh`` is missing, or the configuration file cannot be
+            read as a Zenoh configuration.
+    """
+    try:
+        import zenoh
+    except ImportError:
+        raise ConfigurationError(
+            f"needs the eclipse-zenoh package: {INSTALL_HINT}, or remove daemon.zenoh",
+            "daemon.zenoh",
+        ) from None
+    default = zenoh.Config()
+    if settings.config is not None:
+        try:
+            config = zenoh.Config.from_file(settings.config)
+        except Exception as exc:  # zenoh raises its own ZError with the parser's message
+            raise ConfigurationError(
+                f"{settings.config} is not a valid Zenoh configuration: {exc}",
+                "daemon.zenoh.config",
+                settings.config,
+            ) from None
+    else:
+        config = zenoh.Config()
+    if settings.mode is not None or _json(config, "mode") is None:
+        config.insert_json5("mode", json.dumps(settings.mode or "peer"))
+    if settings.connect:
+        config.insert_json5("connect/endpoints", json.dumps(list(settings.connect)))
+    if settings.listen is not None:
+        config.insert_json5("listen/endpoints", json.dumps(list(settings.listen)))
+    elif _json(config, "listen/endpoints") == _json(default, "listen/endpoints"):
+        # Zenoh's default for a peer is tcp/[::]:0, every interface: never by default.
+        config.insert_json5("listen/endpoints", "[]")
+    if settings.multicast_scouting:
+        config.insert_json5("scouting/multicast/enabled", "true")
+    elif _json(config, "scouting/multicast/enabled") is None:
+        config.insert_json5("scouting/multicast/enabled", "false")
+    if _json(config, "transport/link/tx/lease") == _json(default, "transport/link/tx/lease"):
+        config.insert_json5("transport/link/tx/lease", str(LEASE_MS))
+        config.insert_json5("transport/link/tx/keep_alive", str(KEEP_ALIVE))
+    return config
+
+
+# -- security -----------------------------------------------------------------------------------
+
+
+def endpoint_is_loopback(endpoint: str) -> bool:
+    """Whether a Zenoh endpoint (``tcp/127.0.0.1:7447``, ``tls/[::1]:0#iface=lo``) can only be
+    reached from this machine: a loopback address, ``localhost``, or a Unix socket.
+
+    Raises:
+        Nothing: anything unreadable counts as reachable from elsewhere.
+    """
+    protocol, _, rest = endpoint.partition("/")
+    if protocol.startswith("unixsock"):
+        return True
+    address = re.split(r"[?#]", rest, maxsplit=1)[0]
+    host = address.rsplit(":", 1)[0] if ":" in address else address
+    host = host.strip("[]")
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+def _listen_endpoints(settings: ZenohSettings) -> tuple[list[str], Any]:
+    """The listen endpoints in effect, and the parsed file (``None`` without one)."""
+    if settings.config is None:
+        return list(settings.listen or ()), None
+    config = session_config(settings)
+    endpoints = _json(config, "listen/endpoints")
+    if isinstance(endpoints, dict):  # per mode (Zenoh's own layout)
+        mode = _json(config, "mode") or "peer"
+        endpoints = endpoints.get(mode) or []
+    return [str(e) for e in endpoints or ()], config
+
+
+def _secured(endpoint: str, config: Any) -> bool:
+    if config is None:
+        return False
+    auth = _json(config, "transport/auth")
+    usrpwd = auth.get("usrpwd") or {}
+    pubkey = auth.get("pubkey") or {}
+    if (usrpwd.get("user") and usrpwd.get("password")) or usrpwd.get("dictionary_file"):
+        return True
+    if any(pubkey.get(k) for k in ("private_key_pem", "private_key_file")):
+        return True
+    tls = _json(config, "transport/link/tls")
+    return endpoint.split("/", 1)[0] in ("tls", "quic") and bool(
+        tls.get("listen_certificate") and tls.get("listen_private_key"))
+
+
+def check_security(settings: ZenohSettings) -> None:
+    """The security rule (module docstring), and that the daemon can reach someone.
+
+    Raises:
+        ConfigurationError: a non-loopback listen endpoint without TLS or authentication;
+            no endpoint and no scouting (the daemon would reach nobody).
+    """
+    endpoints, config = _listen_endpoints(settings)
+    for endpoint in endpoints:
+        if endpoint_is_loopback(endpoint) or _secured(endpoint, config):
+            continue
+        raise ConfigurationError(
+            f"{endpoint} is reachable from other machines and the Zenoh configuration sets "
+            "neither TLS nor authentication: anyone on the network could command the robot. "
+            "Either listen on a tls/ endpoint with transport.link.tls.listen_certificate and "
+            "listen_private_key, or set transport.auth.usrpwd (user, password or "
+            "dictionary_file), in the file named by daemon.zenoh.config (docs/zenoh.md has "
+            "examples); or listen on 127.0.0.1 only",
+            "daemon.zenoh.listen",
+            endpoint,
+        )
+    connect = settings.connect
+    if config is not None and not connect:
+        connect = tuple(_json(config, "connect/endpoints") or ())
+    if not endpoints and not connect and not settings.multicast_scouting and not (
+        config is not None and _json(config, "scouting/multicast/enabled")
+    ):
+        raise ConfigurationError(
+            "no connect or listen endpoint and multicast scouting off: the daemon would reach "
+            "nobody; set connect (a router or peer, e.g. [tcp/10.0.0.2:7447]) or listen "
+            "(e.g. [tcp/127.0.0.1:7447])",
+            "daemon.zenoh",
+        )
+
+
+def endpoints_json(endpoints: Sequence[str]) -> str:
+    """A JSON list of endpoints (for ``zenoh.Config.insert_json5``)."""
+    return json.dumps(list(endpoints))

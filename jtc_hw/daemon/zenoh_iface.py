@@ -1,0 +1,506 @@
+"""The daemon on Zenoh: state, events and the socket's operations under a key prefix (API process).
+
+Theory of operation
+-------------------
+``daemon.zenoh`` (``jtc_hw.daemon.zenoh_config``) starts a :class:`ZenohInterface` next to the
+socket server. Key expressions (protocol version :data:`ZENOH_PROTOCOL_VERSION`,
+docs/zenoh.md)::
+
+    <prefix>            liveliness token: the daemon is up
+    <prefix>/state      the socket's ``state`` event, each one the loop publishes, with
+                        ``seq``: its number (a gap: a state lost on the way)
+    <prefix>/events     goal ``feedback`` and ``result`` events (with ``goal_id``), and
+                        ``fault`` events (the controller's fault set or cleared)
+    <prefix>/rpc/<op>   a queryable per socket operation: the query's payload is the socket's
+                        request body (``op`` may be left out), the reply the socket's reply
+
+It is a tap on the backend (state snapshots and goal events, in the asyncio thread, like the
+live view); the loop process knows nothing of it. A query is executed by the socket server's
+own dispatch (``Server.answer_remote``), so replies and errors are byte for byte the
+socket's. A goal sent over Zenoh has its ``accepted`` reply as the query's reply; its feedback
+and its one result are published on ``events``, as are those of every goal (a socket client's
+too), so a querier that vanishes leaves nothing waiting on it and the result is never lost.
+
+Threads: Zenoh's Python API is synchronous and calls back in its own threads. A query callback
+only hands the query to the event loop (``call_soon_threadsafe``; at most
+:data:`MAX_QUERIES` in flight, more are answered ``busy`` at once). Everything sent to Zenoh
+(publications and replies) goes through one bounded outbox drained by a thread of ours, so the
+event loop never waits on Zenoh: ``state`` and ``feedback`` are dropped when
+:data:`OUTBOX_SIZE` messages wait (counted in the next state's ``dropped``), replies, results
+and faults only beyond :data:`OUTBOX_HARD_CAP` (logged). A Zenoh failure is logged; it never
+reaches the loop.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import collections
+import logging
+import threading
+import time
+from collections.abc import Callable
+from functools import partial
+from typing import TYPE_CHECKING, Any, Final, cast
+
+from ..api.framing import (
+    BAD_REQUEST,
+    BUSY,
+    MessageDecoder,
+    RequestError,
+    encode,
+    error_reply,
+)
+from ..api.protocol import Request, feedback_event, parse_request, result_event
+from ..controller.goals import GoalFeedback, GoalResult
+from ..controller.trajectory import JointTrajectory
+from ..errors import ConfigurationError
+from .connection import Connection, ServerSettings
+from .zenoh_config import INSTALL_HINT, session_config
+
+if TYPE_CHECKING:
+    from .server import Server
+    from .zenoh_config import ZenohSettings
+
+log = logging.getLogger("jtc_hw.zenoh")
+
+__all__ = [
+    "MAX_QUERIES",
+    "NOT_OVER_ZENOH",
+    "OUTBOX_HARD_CAP",
+    "OUTBOX_SIZE",
+    "ZENOH_PROTOCOL_VERSION",
+    "ZenohInterface",
+    "keys",
+]
+
+ZENOH_PROTOCOL_VERSION: Final = 1
+"""Version of the key-expression layout (docs/zenoh.md); the payloads are the socket protocol's
+(``protocol_version`` in ``rpc/hello``)."""
+MAX_QUERIES: Final = 64
+"""Queries executing at once; more are answered ``busy``."""
+OUTBOX_SIZE: Final = 256
+"""Waiting messages above which ``state`` and ``feedback`` are dropped."""
+OUTBOX_HARD_CAP: Final = 4096
+"""Waiting messages above which even replies and results are dropped (and logged)."""
+FAULT_POLL_S: Final = 0.5
+"""How often the controller's fault is looked at (the status is refreshed at 2 Hz)."""
+CLOSE_FLUSH_S: Final = 1.0
+"""How long closing waits for the outbox to drain (the last results)."""
+DECODE_IN_WORKER_BYTES: Final = 64 * 1024
+"""Request bodies at least this long are decoded in a worker thread (as on the socket)."""
+NOT_OVER_ZENOH: Final = {
+    "auth": "Zenoh sessions authenticate in the Zenoh configuration (docs/zenoh.md)",
+    "subscribe_state": "subscribe to <prefix>/state instead",
+    "unsubscribe_state": "subscribe to <prefix>/state instead",
+}
+"""Socket operations that have no meaning over Zenoh, and what to do instead."""
+
+
+def keys(prefix: str) -> dict[str, str]:
+    """The key expressions of a daemon at ``prefix``.
+
+    Raises:
+        Nothing.
+    """
+    return {
+        "liveliness": prefix,
+        "state": f"{prefix}/state",
+        "events": f"{prefix}/events",
+        "rpc": f"{prefix}/rpc/*",
+    }
+
+
+class QueryConnection(Connection):
+    """The querier of one Zenoh query, as the socket server sees a client: the first message it
+    is sent is the query's reply; what is routed to it later (the goal's feedback and result)
+    is already on ``<prefix>/events`` and is dropped here."""
+
+    def __init__(self, number: int, settings: ServerSettings, peer: str) -> None:
+        # No stream: nothing reads or writes through reader/writer (send and abort below).
+        super().__init__(number, "zenoh", peer, cast(Any, None), cast(Any, None), settings)
+        self._replied = False
+
+    @property
+    def label(self) -> str:
+        return f"zenoh query {self.number} ({self.peer})"
+
+    def send(self, data: bytes) -> bool:
+        if not self._replied:
+            self._replied = True
+            self.queue.append(data)
+        return True
+
+    def offer(self, data: bytes) -> bool:
+        return True
+
+    def abort(self, reason: str) -> None:
+        self.gone = True
+        self.close_reason = reason
+
+
+class _Outbox:
+    """Actions for Zenoh, run in order by one thread: droppable ones (state, feedback) beyond
+    ``size`` waiting, the others beyond ``hard_cap``."""
+
+    def __init__(self, size: int, hard_cap: int) -> None:
+        self._items: collections.deque[Callable[[], None]] = collections.deque()
+        self._cond = threading.Condition()
+        self._size = size
+        self._hard_cap = hard_cap
+        self._closed = False
+        self.dropped = 0
+        self.lost = 0
+        self.errors = 0
+        self._thread = threading.Thread(target=self._run, name="jtc_hw-zenoh-out", daemon=True)
+        self._thread.start()
+
+    def offer(self, action: Callable[[], None]) -> bool:
+        with self._cond:
+            if self._closed or len(self._items) >= self._size:
+                self.dropped += 1
+                return False
+            self._items.append(action)
+            self._cond.notify()
+        return True
+
+    def put(self, action: Callable[[], None]) -> bool:
+        with self._cond:
+            if self._closed or len(self._items) >= self._hard_cap:
+                self.lost += 1
+                if self.lost <= 3 or self.lost % 1000 == 0:
+                    log.error("zenoh: %d messages waiting; a reply or result was lost (%d so "
+                              "far)", len(self._items), self.lost)
+                return False
+            self._items.append(action)
+            self._cond.notify()
+        return True
+
+    def close(self, timeout_s: float) -> None:
+        """Run what is waiting (for up to ``timeout_s``), then stop the thread."""
+        with self._cond:
+            self._closed = True
+            self._cond.notify()
+        self._thread.join(timeout_s)
+        with self._cond:
+            self._items.clear()  # not sent in time: the session closes now
+            self._cond.notify()
+        self._thread.join()
+
+    def _run(self) -> None:
+        while True:
+            with self._cond:
+                while not self._items and not self._closed:
+                    self._cond.wait()
+                if not self._items:
+                    return
+                action = self._items.popleft()
+            try:
+                action()
+            except Exception:
+                self.errors += 1
+                if self.errors <= 3:
+                    log.exception("zenoh: cannot send; skipped")
+
+
+class ZenohInterface:
+    """The daemon's Zenoh session (module docstring).
+
+    Args:
+        settings: ``daemon.zenoh``.
+        controller: the controller's name (the default prefix's last chunk).
+        server: the socket server, whose dispatch executes the queries.
+        status: the backend's ``status`` (polled for faults).
+    """
+
+    def __init__(
+        self,
+        settings: ZenohSettings,
+        controller: str,
+        server: Server,
+        status: Callable[[], dict[str, Any]],
+    ) -> None:
+        self.settings = settings
+        self.prefix = settings.resolved_prefix(controller)
+        self.keys = keys(self.prefix)
+        self._server = server
+        self._status = status
+        self._joint_names = list(getattr(server.backend, "joint_names", ()))
+        self._max_bytes = server.settings.max_message_bytes
+        self._session: Any = None
+        self._declared: list[Any] = []
+        self._state_pub: Any = None
+        self._events_pub: Any = None
+        self._outbox: _Outbox | None = None
+        self._aio: asyncio.AbstractEventLoop | None = None
+        self._tasks: set[asyncio.Task[None]] = set()
+        self._inflight = 0
+        self._lock = threading.Lock()  # _inflight, from Zenoh's threads and ours
+        self._queries = 0
+        self._fault_task: asyncio.Task[None] | None = None
+        self._fault: object = None
+        self._dropped_since_state = 0
+        self._state_seq = 0  # states this interface has had from the loop (a gap: a loss)
+        self.published = 0
+        self.busy = 0
+
+    # -- lifecycle ----------------------------------------------------------------------------
+
+    async def start(self) -> None:
+        """Open the session and declare the token, publishers and the queryable.
+
+        Raises:
+            ConfigurationError: ``eclipse-zenoh`` is missing (the message says what to
+                install), the configuration is unusable, or the session cannot be opened
+                (e.g. a listen endpoint is in use).
+        """
+        try:
+            import zenoh
+        except ImportError:
+            raise ConfigurationError(
+                f"needs the eclipse-zenoh package: {INSTALL_HINT}, or remove daemon.zenoh",
+                "daemon.zenoh",
+            ) from None
+        config = session_config(self.settings)
+        self._aio = asyncio.get_running_loop()
+        try:
+            # Opening connects and binds: not in the event loop's thread.
+            self._session = await self._aio.run_in_executor(None, zenoh.open, config)
+        except Exception as exc:  # zenoh's ZError: a bind or connect failure
+            raise ConfigurationError(
+                f"cannot open the Zenoh session: {exc}; check the endpoints (a port in use?)",
+                "daemon.zenoh",
+            ) from None
+        session = self._session
+        self._outbox = _Outbox(OUTBOX_SIZE, OUTBOX_HARD_CAP)
+        self._state_pub = session.declare_publisher(
+            self.keys["state"], congestion_control=zenoh.CongestionControl.DROP,
+            priority=zenoh.Priority.DATA)
+        self._events_pub = session.declare_publisher(
+            self.keys["events"], congestion_control=zenoh.CongestionControl.BLOCK,
+            priority=zenoh.Priority.DATA_HIGH)
+        self._declared = [
+            self._state_pub,
+            self._events_pub,
+            session.declare_queryable(self.keys["rpc"], self._on_query),
+            # Last: clients that see the token find the rest declared.
+            session.liveliness().declare_token(self.keys["liveliness"]),
+        ]
+        self._fault_task = self._aio.create_task(self._watch_fault())
+        log.info("zenoh: serving under %s (mode %s, listen %s, connect %s)", self.prefix,
+                 self.settings.mode or "peer", list(self.settings.listen or ()) or "none",
+                 list(self.settings.connect) or "none")
+
+    async def close(self) -> None:
+        """Withdraw the token, send what is waiting (the last results) and close the session
+        (idempotent).
+
+        Raises:
+            Nothing: errors while closing are logged.
+        """
+        session, self._session = self._session, None
+        if session is None:
+            return
+        if self._fault_task is not None:
+            self._fault_task.cancel()
+        for task in list(self._tasks):
+            task.cancel()
+        if self._tasks:
+            await asyncio.gather(*self._tasks, return_exceptions=True)
+        aio = asyncio.get_running_loop()
+        outbox, self._outbox = self._outbox, None
+
+        def finish() -> None:
+            if outbox is not None:
+                outbox.close(CLOSE_FLUSH_S)
+            for entity in reversed(self._declared):
+                try:
+                    entity.undeclare()
+                except Exception:
+                    log.debug("zenoh: undeclare failed", exc_info=True)
+            session.close()
+
+        try:
+            await aio.run_in_executor(None, finish)
+        except Exception:
+            log.exception("zenoh: closing the session failed")
+        self._declared.clear()
+
+    # -- taps (the backend calls them in the asyncio thread; they never block nor raise) ------
+
+    def on_state(self, snapshot: dict[str, Any]) -> None:
+        """Publish the socket's ``state`` event on ``<prefix>/state``."""
+        outbox = self._outbox
+        if outbox is None:
+            return
+        self._state_seq += 1
+        message = {"event": "state", **snapshot, "dropped": self._dropped_since_state,
+                   "dropped_total": outbox.dropped, "seq": self._state_seq}
+        if outbox.offer(partial(self._put_state, message)):
+            self._dropped_since_state = 0
+        else:
+            self._dropped_since_state += 1
+
+    def on_goal_event(self, event: GoalResult | GoalFeedback) -> None:
+        """Publish a goal's feedback (droppable) or result (never dropped) on ``events``."""
+        outbox = self._outbox
+        if outbox is None:
+            return
+        if isinstance(event, GoalResult):
+            outbox.put(partial(self._put_event, result_event, event))
+        elif not outbox.offer(partial(self._put_event, feedback_event, event,
+                                      self._joint_names)):
+            self._dropped_since_state += 1
+
+    def on_command(self, traj: JointTrajectory, goal_id: int | None) -> None:
+        """Accepted commands are not published over Zenoh."""
+
+    # -- in the outbox's thread ---------------------------------------------------------------
+
+    def _put_state(self, message: dict[str, Any]) -> None:
+        self._state_pub.put(encode(message))
+        self.published += 1
+
+    def _put_event(self, build: Callable[..., dict[str, Any]], *args: Any) -> None:
+        self._events_pub.put(encode(build(*args)))
+        self.published += 1
+
+    def _reply(self, query: Any, data: bytes) -> None:
+        try:
+            # Our own key: the query's may have wildcards (jtc/**/rpc/get_status, a fleet's).
+            op = str(query.key_expr).rsplit("/", 1)[-1]
+            query.reply(f"{self.prefix}/rpc/{op}", data)
+        finally:
+            query.drop()  # the querier's get ends with this (its last reply)
+
+    # -- faults -------------------------------------------------------------------------------
+
+    async def _watch_fault(self) -> None:
+        while True:
+            try:
+                controller = self._status().get("controller") or {}
+                fault = controller.get("fault")
+            except Exception:
+                log.debug("zenoh: no status", exc_info=True)
+                fault = self._fault
+            if fault != self._fault:
+                self._fault = fault
+                message = {"event": "fault", "fault": fault, "time_ns": time.monotonic_ns()}
+                if self._outbox is not None:
+                    self._outbox.put(partial(self._put_fault, message))
+            await asyncio.sleep(FAULT_POLL_S)
+
+    def _put_fault(self, message: dict[str, Any]) -> None:
+        self._events_pub.put(encode(message))
+
+    # -- queries ------------------------------------------------------------------------------
+
+    def _on_query(self, query: Any) -> None:
+        """Zenoh's thread: hand the query to the event loop (or answer ``busy``)."""
+        try:
+            op = str(query.key_expr).rsplit("/", 1)[-1]
+            if any(c in op for c in "*$"):
+                # The query names no operation (``jtc/**``): not a request to this daemon.
+                query.drop()
+                return
+            payload = query.payload
+            body = b"" if payload is None else payload.to_bytes()
+            with self._lock:
+                busy = self._inflight >= MAX_QUERIES or self._aio is None
+                if not busy:
+                    self._inflight += 1
+            if busy:
+                self.busy += 1
+                self._reply(query, encode(error_reply(
+                    None, BUSY, f"the daemon is executing {MAX_QUERIES} Zenoh queries; "
+                    "try again later")))
+                return
+            assert self._aio is not None
+            self._aio.call_soon_threadsafe(self._start_query, query, op, body)
+        except RuntimeError:  # the event loop is closed: the daemon is exiting
+            with self._lock:
+                self._inflight -= 1
+            query.drop()
+        except Exception:
+            log.exception("zenoh: cannot take a query")
+            query.drop()
+
+    def _start_query(self, query: Any, op: str, body: bytes) -> None:
+        if self._session is None:  # closing
+            query.drop()
+            with self._lock:
+                self._inflight -= 1
+            return
+        task = asyncio.get_running_loop().create_task(self._execute(query, op, body))
+        self._tasks.add(task)
+        task.add_done_callback(self._tasks.discard)
+
+    async def _execute(self, query: Any, op: str, body: bytes) -> None:
+        self._queries += 1
+        conn = QueryConnection(self._queries, self._server.settings, "zenoh")
+        try:
+            if len(body) >= DECODE_IN_WORKER_BYTES:
+                item = await asyncio.get_running_loop().run_in_executor(
+                    None, self.decode, op, body, self._max_bytes)
+            else:
+                item = self.decode(op, body, self._max_bytes)
+            data = await self._server.answer_remote(conn, item)
+            if self._outbox is None or not self._outbox.put(partial(self._reply, query, data)):
+                query.drop()
+        except asyncio.CancelledError:
+            query.drop()
+            raise
+        except Exception:  # answer_remote never raises; Zenoh's drop might
+            log.exception("zenoh: query %d failed", conn.number)
+        finally:
+            with self._lock:
+                self._inflight -= 1
+
+    @staticmethod
+    def decode(op: str, body: bytes, max_message_bytes: int) -> Request | RequestError:
+        """A query's request: the body read as a socket message (the same errors), with the
+        key expression's ``op``.
+
+        Raises:
+            Nothing: every problem is returned as a value.
+        """
+        if not body.strip():
+            obj: dict[str, Any] | RequestError = {}
+        else:
+            # One message: JSON allows a newline wherever it allows a space (and nowhere
+            # else), so the body is one NDJSON line once its newlines are spaces.
+            items = MessageDecoder(max_message_bytes).feed(
+                body.replace(b"\r", b" ").replace(b"\n", b" ") + b"\n")
+            obj = items[0] if items else {}
+        if isinstance(obj, RequestError):
+            return obj
+        rid = obj.get("id") if isinstance(obj.get("id"), (int, str)) else None
+        if "op" in obj and obj["op"] != op:
+            return RequestError(
+                BAD_REQUEST,
+                f"op: the body says {obj['op']!r}, the key expression rpc/{op}; leave op out "
+                "of the body",
+                rid,
+            )
+        if op in NOT_OVER_ZENOH:
+            return RequestError(BAD_REQUEST, f"{op} is not served over Zenoh: "
+                                f"{NOT_OVER_ZENOH[op]}", rid)
+        try:
+            return parse_request({**obj, "op": op})
+        except RequestError as exc:
+            return exc
+
+    def stats(self) -> dict[str, Any]:
+        """Counters for logs and tests.
+
+        Raises:
+            Nothing.
+        """
+        outbox = self._outbox
+        return {
+            "prefix": self.prefix,
+            "queries": self._queries,
+            "busy": self.busy,
+            "published": self.published,
+            "dropped": 0 if outbox is None else outbox.dropped,
+            "lost": 0 if outbox is None else outbox.lost,
+        }

@@ -629,10 +629,16 @@ class LoopBackend:
             f": {result.details}" if result.details else "",
         )
 
-    def _record_command(self, traj: JointTrajectory) -> None:
+    def _record_command(self, traj: JointTrajectory, goal_id: int | None = None) -> None:
         """An accepted command, as received, for ``/<controller>/joint_trajectory`` (converted
         to a message in the recorders' worker threads: a large goal costs the event loop
-        nothing here)."""
+        nothing here), and for the socket's subscribers of commands (``jtc-hw record``)."""
+        on_command = getattr(self._listener, "on_command", None)
+        if on_command is not None:
+            try:
+                on_command(traj, goal_id)
+            except Exception:  # a listener must never fail a goal that the loop accepted
+                log.exception("sending an accepted command to the subscribers failed")
         now = time.monotonic_ns()
         if self.flight is not None:
             self.flight.on_command(traj, now)
@@ -804,7 +810,7 @@ class LoopBackend:
         result = await self._plan_and_commit(make, len(traj.points))
         assert result is not None
         self._tap("on_command", sent, int(result))
-        self._record_command(sent)
+        self._record_command(sent, int(result))
         return AcceptedGoal(int(result), made[-1].time_scaling)
 
     async def send_trajectory(

@@ -78,7 +78,7 @@ from ..errors import (
     HardwareError,
     JtcHwError,
 )
-from .cyclering import READ_PERIOD_S, RING_S, CycleRing
+from .cyclering import READ_PERIOD_S, RING_S, CycleRing, remove_stale
 from .pipe import Inbox, PlanWriter
 from .robot import RobotConfig, joint_position_limits
 
@@ -292,6 +292,8 @@ class LoopBackend:
         if self.flight.available:
             # Every cycle's row, for the flight recorder (see .cyclering): created here, the
             # owner, and removed by _close once the loop has ended.
+            for name in remove_stale():
+                log.info("removed %s, the cycle ring of a daemon that was killed", name)
             try:
                 self._ring = CycleRing.create(
                     len(self.joint_names), max(64, math.ceil(RING_S * self.config.update_rate)))

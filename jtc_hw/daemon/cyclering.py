@@ -25,7 +25,9 @@ fixed-size row of float64 per cycle into a single-producer/single-consumer ring 
 - **Ownership**: the API process creates the segment (``jtc_hw_<pid>_<random>`` in
   ``/dev/shm``) before it starts the loop process, which attaches by name; the API process
   unlinks it when the loop has ended (the daemon's stop, SIGTERM included). If the API process
-  dies without that, multiprocessing's resource tracker unlinks it.
+  dies without that, multiprocessing's resource tracker unlinks it; if the tracker dies too
+  (SIGKILL of the whole process group), the next daemon to start removes every
+  ``jtc_hw_<pid>_*`` segment whose process no longer exists (:func:`remove_stale`).
 
 Ordering: the reader trusts a row once the count and its sequence number say it is complete.
 On x86-64 stores become visible in program order; on weaker memory models (aarch64) a reader
@@ -73,6 +75,43 @@ BLOCKS = (
     "reference_effort",
     "output_positions", "output_velocities", "output_accelerations", "output_effort",
 )
+
+
+SHM_DIR = "/dev/shm"
+"""Where POSIX shared memory segments appear on Linux (for :func:`remove_stale`)."""
+
+
+def remove_stale(directory: str = SHM_DIR) -> list[str]:
+    """Remove the cycle rings left by daemons that no longer run (killed with their resource
+    tracker); the names removed.
+
+    Raises:
+        Nothing: a directory that cannot be listed (not Linux) or a segment that cannot be
+            removed (another user's) is left alone.
+    """
+    try:
+        names = os.listdir(directory)
+    except OSError:
+        return []
+    removed = []
+    for name in names:
+        parts = name.split("_")
+        if len(parts) != 4 or parts[:2] != ["jtc", "hw"] or not parts[2].isdigit():
+            continue
+        pid = int(parts[2])
+        try:
+            os.kill(pid, 0)
+            continue  # its daemon runs (or the pid was reused: then it stays, harmlessly)
+        except ProcessLookupError:
+            pass
+        except PermissionError:
+            continue  # another user's process
+        try:
+            os.unlink(os.path.join(directory, name))
+        except OSError:
+            continue
+        removed.append(name)
+    return removed
 
 
 @dataclass(frozen=True)

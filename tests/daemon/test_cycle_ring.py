@@ -10,6 +10,8 @@ from __future__ import annotations
 import math
 import multiprocessing
 import os
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -17,7 +19,7 @@ import pytest
 
 from jtc_hw.controller.joints import JointCommand, JointState
 from jtc_hw.controller.trajectory import TrajectorySample
-from jtc_hw.daemon.cyclering import CycleRing
+from jtc_hw.daemon.cyclering import CycleRing, remove_stale
 from jtc_hw.errors import JtcHwError
 
 JOINTS = 3
@@ -114,3 +116,15 @@ def test_the_owner_removes_the_segment_and_attaching_to_a_missing_one_says_so() 
     assert not shm.exists()
     with pytest.raises(JtcHwError, match="cannot attach the cycle ring"):
         CycleRing.attach(name)
+
+
+def test_a_killed_daemons_ring_is_removed_by_the_next_one(tmp_path: Path) -> None:
+    done = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"],
+                          capture_output=True, text=True, check=True)
+    dead = int(done.stdout)  # a process that has exited (reaped): its pid runs nothing now
+    for name in (f"jtc_hw_{dead}_0badc0de", f"jtc_hw_{os.getpid()}_0badc0de", "other_1_2",
+                 f"jtc_hw_{dead}"):
+        (tmp_path / name).write_bytes(b"")
+    assert remove_stale(str(tmp_path)) == [f"jtc_hw_{dead}_0badc0de"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(
+        [f"jtc_hw_{os.getpid()}_0badc0de", "other_1_2", f"jtc_hw_{dead}"])

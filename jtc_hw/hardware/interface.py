@@ -184,6 +184,11 @@ HEALTH_FIELDS: Final[tuple[str, ...]] = (
 """The keys of one motor's entry in :meth:`HardwareInterface.health` (``None``: unknown)."""
 
 
+MONITOR_RETRY_NS = 1_000_000_000
+"""After a failed :meth:`HardwareInterface.monitor` (a device silent while faulted), how long the
+next attempt waits, ns."""
+
+
 def health_params(
     temperature_warn_c: float, voltage_range: tuple[float, float] | None
 ) -> tuple[ParamSpec, ...]:
@@ -355,6 +360,7 @@ class HardwareInterface(ABC):
         self._write_errors = 0
         self._activations = 0
         self._health_warnings: dict[tuple[str, str], str] = {}
+        self._monitor_retry_ns: int | None = None  # after a failed monitor(): not before this
 
     @classmethod
     def schema(cls) -> Mapping[str, ParamSpec]:
@@ -518,16 +524,21 @@ class HardwareInterface(ABC):
             The joints' measured state if the driver read it, else ``None``.
 
         Raises:
-            Nothing: a failed read is counted (``read_errors``) and gives ``None``; the next
-            activation is what decides about the device.
+            Nothing: a failed read is counted (``read_errors``) and gives ``None``, and the
+            next attempt waits ``MONITOR_RETRY_NS`` (a silent device would otherwise cost every
+            cycle its reply timeout); the next activation is what decides about the device.
         """
         if self._state is not LifecycleState.INACTIVE:
+            return None
+        if self._monitor_retry_ns is not None and now_ns < self._monitor_retry_ns:
             return None
         try:
             result = self._monitor(now_ns)
         except Exception:  # noqa: BLE001 - counted; a faulted component stays faulted
             self._read_errors += 1
+            self._monitor_retry_ns = now_ns + MONITOR_RETRY_NS
             return None
+        self._monitor_retry_ns = None
         if result is None or result.positions.shape != self._shape:
             return None
         return result

@@ -652,10 +652,15 @@ class LoopBackend:
         comes (a faulted loop publishes none)."""
         path: str | None = self.flight.trigger(reason, now_ns)
         if path is not None:
-            flight = self.flight
-            asyncio.get_running_loop().call_later(
-                FLIGHT_AFTER_S + 0.05, lambda: flight.poll(time.monotonic_ns()))
+            asyncio.get_running_loop().call_later(FLIGHT_AFTER_S + 0.05, self._flight_due)
         return path
+
+    def _flight_due(self) -> None:
+        """A trigger's second has passed: take the cycles written since the last read of the
+        ring (up to 100 ms of them), then let the flight recorder write what is due."""
+        self._read_ring(again=False)
+        if self.flight is not None:
+            self.flight.poll(time.monotonic_ns())
 
     def _flight_result(self, result: GoalResult) -> GoalResult:
         """Record the result; an abort triggers the flight recorder and its details name the

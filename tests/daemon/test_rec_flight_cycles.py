@@ -92,6 +92,21 @@ def test_a_bag_of_every_cycle_before_and_after_the_trigger(tmp_path: Path) -> No
     assert [(e["event"], e["goal_id"]) for e in events] == [("goal_started", 4),
                                                              ("goal_ended", 4)]
 
+    # jtc-hw plot reads it: the desired line ends at the fault, the measured one goes on.
+    pytest.importorskip("matplotlib")
+    from PIL import Image
+
+    from jtc_hw.rec.plot import plot_bag, read_series
+
+    series = read_series(path, "joint_trajectory_controller")
+    assert series["ref_pos"].shape == series["act_pos"].shape == (len(ks), 2)
+    assert np.isnan(series["ref_pos"][-1]).all() and not np.isnan(series["act_pos"]).any()
+    out = plot_bag(path, tmp_path / "fault.png")
+    with Image.open(out) as image:
+        assert image.format == "PNG" and image.size[0] >= 400
+        colors = image.convert("RGB").getcolors(maxcolors=1 << 20)
+    assert colors is not None and len(colors) > 50  # lines, labels, grid: not blank
+
 
 def test_rows_lost_in_the_ring_are_counted(tmp_path: Path) -> None:
     from jtc_hw.rec.flight import FlightRecorder

@@ -39,7 +39,9 @@ Where the figures come from:
 With ``--live-view`` the daemon also serves the Foxglove live view (``daemon.foxglove``, port
 chosen freely) and a viewer (``websockets``, the protocol by hand) subscribes to every channel
 and reads every message throughout idle and loaded, as Foxglove would: the figures then include
-the view's cost, for docs/benchmarks.md's side-by-side comparison.
+the view's cost, for docs/benchmarks.md's side-by-side comparison. ``--flight-recorder-s``
+(default 10: the daemon's default, its full-rate cycle ring included; 0 off) and ``--record``
+(``daemon.record`` into a temporary directory) do the same for the recorders.
 
 With ``--zenoh`` the daemon is also on Zenoh (``daemon.zenoh``, listening on a free loopback
 port) and a Zenoh session of this process subscribes to its state stream and events throughout
@@ -47,7 +49,7 @@ port) and a Zenoh session of this process subscribes to its state stream and eve
 
 Usage:  python bench/loop_jitter.py [--duration S] [--rates 500 1000]
             [--scenarios [bare] idle loaded] [--priority N] [--cpu N] [--lock-memory]
-            [--live-view] [--zenoh] [--json]
+            [--live-view] [--zenoh] [--flight-recorder-s S] [--record] [--json]
 Target: at 1 kHz, p99 lateness < 300 us and no overruns, idle and loaded.
 """
 
@@ -57,6 +59,7 @@ import argparse
 import json
 import math
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -622,6 +625,10 @@ def measure_rate(
     endpoint, prefix = f"tcp/127.0.0.1:{free_port()}", "jtc/bench/jitter"
     if args.zenoh:
         settings["zenoh"] = {"prefix": prefix, "listen": [endpoint]}
+    record_dir = None
+    if args.record:
+        record_dir = tempfile.mkdtemp(prefix="jtc-hw-jitter-record-")
+        settings["record"] = record_dir
     with Daemon(rate_hz, args.priority, args.cpu, args.lock_memory, settings) as daemon:
         client = daemon.connect()
         viewer = Viewer(daemon) if args.live_view else None
@@ -639,7 +646,8 @@ def measure_rate(
                 if zviewer is not None:
                     row["zenoh_messages"] = zviewer.messages - zseen
                 rows.append(row)
-            rows = [dict(row, scheduling=scheduling, live_view=args.live_view, zenoh=args.zenoh)
+            rows = [dict(row, scheduling=scheduling, live_view=args.live_view, zenoh=args.zenoh,
+                         record=args.record, flight_recorder_s=args.flight_recorder_s)
                     for row in rows]
         finally:
             if viewer is not None:
@@ -649,6 +657,8 @@ def measure_rate(
             client.close()
             if daemon.process.poll() is not None:
                 note(f"the daemon died:\n{daemon.log_tail()}")
+    if record_dir is not None:
+        shutil.rmtree(record_dir, ignore_errors=True)
     return scheduling, rows
 
 
@@ -795,6 +805,12 @@ def main(argv: list[str] | None = None) -> int:
         default=10.0,
         metavar="S",
         help="daemon.flight_recorder_s (default 10, the daemon's default; 0: off)",
+    )
+    parser.add_argument(
+        "--record",
+        action="store_true",
+        help="daemon.record on (every run recorded from its start, into a temporary "
+        "directory removed afterwards; needs jtc_hw[record])",
     )
     parser.add_argument("--json", action="store_true", help="one JSON object per run")
     args = parser.parse_args(argv)

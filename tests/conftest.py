@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import gc
 import os
+import signal
 import sys
 import threading
 import warnings
@@ -202,15 +203,31 @@ def _socket_fds() -> set[str]:
     return out
 
 
+def _shared_memory() -> set[str]:
+    """The cycle rings (``/dev/shm/jtc_hw_<pid>_*``) of this process and of the daemons it
+    started (other engineers' test runs on the machine have their own pids)."""
+    helpers = sys.modules.get("helpers.daemon")
+    pids = {os.getpid()} | {d.pid for d in (helpers._DAEMONS if helpers else [])
+                            if d.proc is not None}
+    try:
+        names = os.listdir("/dev/shm")
+    except OSError:
+        return set()
+    return {n for n in names if n.startswith("jtc_hw_")
+            and n.split("_")[2:3] and n.split("_")[2].isdigit() and int(n.split("_")[2]) in pids}
+
+
 @pytest.fixture
 def no_leaks() -> Iterator[None]:
-    """Fail a test that leaves threads running, sockets open, or unclosed resources behind.
+    """Fail a test that leaves threads running, sockets open, unclosed resources or shared
+    memory segments (a daemon's cycle ring) behind.
 
     Modules that start threads, sockets or processes opt in with
     ``pytestmark = pytest.mark.usefixtures("no_leaks")``.
     """
     threads = set(threading.enumerate())
     sockets = _socket_fds()
+    segments = _shared_memory()
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", ResourceWarning)
         yield
@@ -221,6 +238,20 @@ def no_leaks() -> Iterator[None]:
     assert not leaked_threads, f"threads left running: {leaked_threads}"
     assert not leaked_sockets, f"sockets left open: {sorted(leaked_sockets)}"
     assert not unclosed, f"unclosed resources: {unclosed}"
+    # Of the daemons started during the test: those still running keep theirs; one killed with
+    # SIGKILL (its resource tracker too) leaves it to the next daemon's start
+    # (cyclering.remove_stale, tests/daemon/test_cycle_ring_daemon.py), done here instead.
+    daemons = [d for d in getattr(sys.modules.get("helpers.daemon"), "_DAEMONS", [])
+               if d.proc is not None]
+    running = tuple(f"jtc_hw_{d.pid}_" for d in daemons if d.proc.poll() is None)
+    killed = tuple(f"jtc_hw_{d.pid}_" for d in daemons if d.proc.returncode == -signal.SIGKILL)
+    leaked_segments = []
+    for name in sorted(_shared_memory() - segments):
+        if name.startswith(killed):
+            os.unlink(os.path.join("/dev/shm", name))
+        elif not name.startswith(running):
+            leaked_segments.append(name)
+    assert not leaked_segments, f"shared memory left in /dev/shm: {leaked_segments}"
 
 
 @pytest.fixture(autouse=True)

@@ -21,6 +21,7 @@ from conftest import ROOT
     [
         ("update_cost.py", ["--cycles", "50", "--joints", "6"], "case"),
         ("stop_cost.py", ["--repeat", "1", "--joints", "6"], "kind"),
+        ("ring_write.py", ["--cycles", "300", "--joints", "6"], "write_median_us"),
     ],
 )
 def test_bench_runs_and_prints_json_lines(script: str, args: list[str], key: str) -> None:

@@ -371,6 +371,9 @@ class DynamixelHardware(HardwareInterface):
         # them until recover(), as a latched error); servos found tripped at configure that this
         # instance never armed (a previous daemon's): activate clears those, with a warning.
         self._armed = False
+        # Servos whose watchdog the last deactivation could not disarm (a broken bus): while
+        # any is, nothing is sent while faulted (_monitor).
+        self._left_armed: set[int] = set()
         self._tripped: set[int] = set()
         self._leftover_trips: set[int] = set()
         self._last_fault_by_servo: dict[int, str] = {}
@@ -845,6 +848,10 @@ class DynamixelHardware(HardwareInterface):
             if error & ERROR_ALERT:
                 flags = self._read_register(servo_id, "hardware_error_status")
                 raise self._motor_fault(servo_id, flags or 0)
+        return self._state_from(result)
+
+    def _state_from(self, result: SyncReadResult) -> JointState:
+        """The joints' state from a Sync Read of the present block (every servo answered)."""
         data = result.data
         raw = np.frombuffer(b"".join([data[i] for i in self.ids]), dtype=_PRESENT_DTYPE)
         # Only now, with every servo's data good, does the state change.
@@ -879,6 +886,21 @@ class DynamixelHardware(HardwareInterface):
             self._check_silence()
             self._sync_write_goal(self._goal_name, goals)
         self._read_health(now_ns)
+
+    def _monitor(self, now_ns: int) -> JointState | None:
+        """While faulted (INACTIVE): the health block due, then the present state, as a cycle
+        reads them; alert bits are reported by the health block's hardware error status, not
+        raised. Nothing at all while a servo's Bus Watchdog may still be armed
+        (``_left_armed``): every instruction packet on the bus would feed it, keeping that
+        servo on its last goal instead of stopping by itself.
+
+        Raises:
+            CommunicationError: a servo did not answer the present state's Sync Read.
+        """
+        if self._bus is None or self._left_armed:
+            return None
+        self._read_health(now_ns)
+        return self._state_from(self._sync_read_present())
 
     def _read_health(self, now_ns: int) -> None:
         """Every health slot, one Sync Read of the next health block of every servo.
@@ -979,13 +1001,19 @@ class DynamixelHardware(HardwareInterface):
         # clearing is the rearm's, together with a goal that keeps it still. Unread states
         # (a broken bus) are not guessed at: disarming might clear a trip; left armed, a servo
         # still holding stops and holds by itself, which is the same.
+        left_armed: set[int] = set()
         for servo_id in self.ids:
-            if values is None or servo_id in tripped:
+            if servo_id in tripped:
+                continue
+            if values is None:
+                left_armed.add(servo_id)
                 continue
             try:
                 self._write_register(servo_id, "bus_watchdog", 0)
             except HardwareError as exc:
                 errors.append(exc)
+                left_armed.add(servo_id)
+        self._left_armed = left_armed
         self._armed = False
         if errors:
             first = errors[0]

@@ -387,24 +387,27 @@ class Client:
         return self._request("query_state", fields, timeout_s)
 
     def subscribe_state(
-        self, *, timeout_s: float | None = None, maxlen: int = 100
+        self, *, timeout_s: float | None = None, maxlen: int = 100, commands: bool = False
     ) -> StateSubscription:
         """Receive ``state`` events until the subscription is closed.
 
         Args:
             timeout_s: for the reply, and the default wait of each ``get``/iteration.
             maxlen: messages buffered here; older ones are discarded beyond it.
+            commands: also receive a ``command`` event for every command the daemon accepts
+                (any client's), in order with the states (their ``event`` field tells them
+                apart).
 
         Raises:
             TimeoutError: no reply within the timeout.
             ClientConnectionError: the connection is lost.
         """
         timeout = self.timeout_s if timeout_s is None else timeout_s
-        subscription = StateSubscription(self, timeout, maxlen)
+        subscription = StateSubscription(self, timeout, maxlen, commands)
         with self._lock:
             self._subscriptions.append(subscription)
         try:
-            self._request("subscribe_state", {}, timeout)
+            self._request("subscribe_state", {"commands": True} if commands else {}, timeout)
         except BaseException:
             with self._lock:
                 self._subscriptions.remove(subscription)
@@ -683,11 +686,12 @@ class Client:
         pending.done.set()
 
     def _dispatch_event(self, event: str, message: dict[str, Any]) -> None:
-        if event == "state":
+        if event == "state" or event == "command":
             with self._lock:
                 subscriptions = list(self._subscriptions)
             for subscription in subscriptions:
-                subscription._add(message)
+                if event == "state" or subscription.commands:
+                    subscription._add(message)
             return
         goal_id = message.get("goal_id")
         if not isinstance(goal_id, int):

@@ -174,8 +174,11 @@ class StateSubscription:
             keeps the newest ``maxlen``); each message's ``dropped`` counts the daemon's side.
     """
 
-    def __init__(self, client: Client, timeout_s: float, maxlen: int) -> None:
+    def __init__(self, client: Client, timeout_s: float, maxlen: int,
+                 commands: bool = False) -> None:
         self.timeout_s = timeout_s
+        self.commands = commands
+        """Whether ``command`` events come too (``subscribe_state(commands=True)``)."""
         self.dropped_locally = 0
         self._client = client
         self._maxlen = maxlen

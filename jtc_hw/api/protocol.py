@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import difflib
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from itertools import chain, compress, repeat
 from operator import is_not, methodcaller
@@ -239,10 +239,12 @@ class QueryState:
 
 @dataclass(frozen=True)
 class SubscribeState:
-    """``subscribe_state``: receive ``state`` events."""
+    """``subscribe_state``: receive ``state`` events; with ``commands``, also a ``command``
+    event for every command the daemon accepts (any client's goals and topic trajectories)."""
 
     op: ClassVar[str] = "subscribe_state"
     id: RequestId = None
+    commands: bool = False
 
 
 @dataclass(frozen=True)
@@ -349,7 +351,7 @@ _OP_FIELDS: dict[str, tuple[str, ...]] = {
     "send_trajectory": ("trajectory", "time_scaling"),
     "stop": (),
     "query_state": ("time_ns", "in"),
-    "subscribe_state": (),
+    "subscribe_state": ("commands",),
     "unsubscribe_state": (),
     "get_config": (),
     "get_status": (),
@@ -757,6 +759,8 @@ def parse_request(obj: Any) -> Request:
         gtt = _seconds(o.get("goal_time_tolerance", 0.0), "goal_time_tolerance", rid)
         _ns(gtt, "goal_time_tolerance", rid)
         return SendGoal(rid, traj, path_tol, goal_tol, gtt, _time_scaling(f))
+    if op == "subscribe_state":
+        return SubscribeState(rid, f.has("commands") and f.boolean("commands", o["commands"]))
     if op == "cancel_goal":
         goal_id = f.integer("goal_id", f.required("goal_id", "the goal to cancel"), 0, MAX_NS)
         return CancelGoal(rid, goal_id)
@@ -817,7 +821,6 @@ def parse_request(obj: Any) -> Request:
         return SetSpeedScaling(rid, factor)
     simple: dict[str, type[Request]] = {
         "stop": Stop,
-        "subscribe_state": SubscribeState,
         "unsubscribe_state": UnsubscribeState,
         "get_config": GetConfig,
         "get_status": GetStatus,
@@ -936,6 +939,34 @@ def feedback_event(feedback: GoalFeedback, joint_names: Sequence[str]) -> dict[s
             "accelerations": error[2],
         },
     }
+
+
+def command_event(trajectory: JointTrajectory, goal_id: int | None,
+                  time_ns: int) -> dict[str, Any]:
+    """The ``command`` event: a command the daemon accepted at ``time_ns`` (daemon clock), as
+    received (``trajectory_to_json``; ``start_time_ns`` absent: "start now"); ``goal_id`` null
+    for a topic trajectory (an empty one: a stop).
+
+    Raises:
+        Nothing.
+    """
+    return {"event": "command", "time_ns": time_ns, "goal_id": goal_id,
+            "trajectory": trajectory_to_json(trajectory)}
+
+
+def trajectory_from_json(obj: Mapping[str, Any]) -> JointTrajectory:
+    """A ``JointTrajectory`` back from ``trajectory_to_json``'s form (a ``command`` event's
+    ``trajectory``; ``start_in`` is not resolved: give ``start_time_ns``).
+
+    Raises:
+        KeyError, TypeError, ValueError: not that form.
+    """
+    return JointTrajectory(
+        obj["joint_names"],
+        [TrajectoryPoint(float(p["time_from_start"]), p.get("positions"), p.get("velocities"),
+                         p.get("accelerations"), p.get("effort")) for p in obj["points"]],
+        int(obj.get("start_time_ns", 0)),
+    )
 
 
 def trajectory_to_json(

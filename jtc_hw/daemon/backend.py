@@ -33,6 +33,7 @@ import asyncio
 import dataclasses
 import itertools
 import logging
+import math
 import multiprocessing
 import os
 import signal
@@ -77,6 +78,7 @@ from ..errors import (
     HardwareError,
     JtcHwError,
 )
+from .cyclering import READ_PERIOD_S, RING_S, CycleRing, remove_stale
 from .pipe import Inbox, PlanWriter
 from .robot import RobotConfig, joint_position_limits
 
@@ -265,6 +267,9 @@ class LoopBackend:
         """The flight recorder (``jtc_hw.rec.flight.FlightRecorder``), made by ``start``."""
         self.recording: Any = None
         """``daemon.record``'s recorder (``jtc_hw.rec.continuous``), made by ``start``."""
+        self._ring: CycleRing | None = None  # every cycle's row, from the loop (start)
+        self._ring_next = 0  # the ring's next row to copy
+        self._ring_timer: asyncio.TimerHandle | None = None
 
     # -- process ------------------------------------------------------------------------------
 
@@ -281,7 +286,21 @@ class LoopBackend:
         tolerances = {joint: {"path": c.trajectory, "goal": c.goal}
                       for joint, c in self.config.constraints.joints.items()}
         self.flight = FlightRecorder(d.flight_recorder_dir, d.flight_recorder_s,
-                                     d.flight_recorder_keep, self.config.name, tolerances)
+                                     d.flight_recorder_keep, self.config.name, tolerances,
+                                     cycle_rate_hz=self.config.update_rate,
+                                     joint_names=self.joint_names)
+        if self.flight.available:
+            # Every cycle's row, for the flight recorder (see .cyclering): created here, the
+            # owner, and removed by _close once the loop has ended.
+            for name in remove_stale():
+                log.info("removed %s, the cycle ring of a daemon that was killed", name)
+            try:
+                self._ring = CycleRing.create(
+                    len(self.joint_names), max(64, math.ceil(RING_S * self.config.update_rate)))
+            except OSError as exc:
+                log.warning("flight recorder: no shared memory for every cycle (%s); it keeps "
+                            "the published states instead", exc)
+                self.flight.cycle_rate_hz = None
         if d.record is not None:
             from ..rec.continuous import ContinuousRecorder
 
@@ -303,7 +322,8 @@ class LoopBackend:
         self._exited = aio.create_future()
         self._process = ctx.Process(
             target=loop_main,
-            args=(self._source, self.config.name, child),
+            args=(self._source, self.config.name, child,
+                  None if self._ring is None else self._ring.name),
             name="jtc-hw-loop",
             daemon=True,
         )
@@ -313,6 +333,8 @@ class LoopBackend:
         self._writer = PlanWriter(parent)
         aio.add_reader(parent.fileno(), self._readable)
         aio.add_reader(self._process.sentinel, self._process_ended)
+        if self._ring is not None:
+            self._ring_timer = aio.call_later(READ_PERIOD_S, self._read_ring)
         waiters: set[asyncio.Future[Any]] = {self._ready, self._exited}
         done, _ = await asyncio.wait(
             waiters, timeout=START_TIMEOUT_S, return_when=asyncio.FIRST_COMPLETED
@@ -340,6 +362,7 @@ class LoopBackend:
     async def stop(self, reason: str) -> int:
         """Ask the loop to finish (goal result, hold, safe action) and wait for it to exit."""
         if self._process is None or self._exited is None:
+            self._close_ring()
             return 0
         self._stopping = True
         if self.flight is not None and not self._exited.done():
@@ -360,6 +383,7 @@ class LoopBackend:
         await asyncio.get_running_loop().run_in_executor(None, self._process.join, 5.0)
         if not self._exited.done():  # its sentinel was not seen (yet): settle the goals now
             self._loop_ended(self._process.exitcode)
+        self._read_ring(again=False)  # the loop's last cycles
         if self.flight is not None:  # the shutdown's bag, with what came after the trigger
             await asyncio.get_running_loop().run_in_executor(None, self.flight.close)
         if self.recording is not None:
@@ -367,8 +391,31 @@ class LoopBackend:
         self._close()
         return self.exit_code or 0
 
+    def _read_ring(self, again: bool = True) -> None:
+        """Copy the cycles the loop wrote since the last time into the flight recorder;
+        again in ``READ_PERIOD_S`` unless ``again`` is False."""
+        ring = self._ring
+        if ring is None:
+            return
+        rows, self._ring_next, lost = ring.read(self._ring_next)
+        if self.flight is not None:
+            self.flight.on_cycles(rows, ring.layout, lost)
+        if again and self._ring_timer is not None:
+            self._ring_timer = asyncio.get_running_loop().call_later(
+                READ_PERIOD_S, self._read_ring)
+
+    def _close_ring(self) -> None:
+        """Stop reading the cycle ring and remove it (the loop process has ended)."""
+        if self._ring_timer is not None:
+            self._ring_timer.cancel()
+            self._ring_timer = None
+        if self._ring is not None:
+            self._ring.close()
+            self._ring = None
+
     def _close(self) -> None:
         aio = asyncio.get_running_loop()
+        self._close_ring()
         if self._process is not None:
             try:
                 aio.remove_reader(self._process.sentinel)
@@ -507,8 +554,8 @@ class LoopBackend:
                 or self.recording is not None
             ):
                 snapshot = self._snapshot(message[1])
-                if self.flight is not None:
-                    self.flight.on_state(snapshot)
+                if self.flight is not None and self._ring is None:
+                    self.flight.on_state(snapshot)  # (with the ring, it has every cycle)
                 if self.recording is not None:
                     self.recording.on_state(snapshot)
                 if self._listener is not None:
@@ -584,10 +631,16 @@ class LoopBackend:
             f": {result.details}" if result.details else "",
         )
 
-    def _record_command(self, traj: JointTrajectory) -> None:
+    def _record_command(self, traj: JointTrajectory, goal_id: int | None = None) -> None:
         """An accepted command, as received, for ``/<controller>/joint_trajectory`` (converted
         to a message in the recorders' worker threads: a large goal costs the event loop
-        nothing here)."""
+        nothing here), and for the socket's subscribers of commands (``jtc-hw record``)."""
+        on_command = getattr(self._listener, "on_command", None)
+        if on_command is not None:
+            try:
+                on_command(traj, goal_id)
+            except Exception:  # a listener must never fail a goal that the loop accepted
+                log.exception("sending an accepted command to the subscribers failed")
         now = time.monotonic_ns()
         if self.flight is not None:
             self.flight.on_command(traj, now)
@@ -599,10 +652,15 @@ class LoopBackend:
         comes (a faulted loop publishes none)."""
         path: str | None = self.flight.trigger(reason, now_ns)
         if path is not None:
-            flight = self.flight
-            asyncio.get_running_loop().call_later(
-                FLIGHT_AFTER_S + 0.05, lambda: flight.poll(time.monotonic_ns()))
+            asyncio.get_running_loop().call_later(FLIGHT_AFTER_S + 0.05, self._flight_due)
         return path
+
+    def _flight_due(self) -> None:
+        """A trigger's second has passed: take the cycles written since the last read of the
+        ring (up to 100 ms of them), then let the flight recorder write what is due."""
+        self._read_ring(again=False)
+        if self.flight is not None:
+            self.flight.poll(time.monotonic_ns())
 
     def _flight_result(self, result: GoalResult) -> GoalResult:
         """Record the result; an abort triggers the flight recorder and its details name the
@@ -759,7 +817,7 @@ class LoopBackend:
         result = await self._plan_and_commit(make, len(traj.points))
         assert result is not None
         self._tap("on_command", sent, int(result))
-        self._record_command(sent)
+        self._record_command(sent, int(result))
         return AcceptedGoal(int(result), made[-1].time_scaling)
 
     async def send_trajectory(

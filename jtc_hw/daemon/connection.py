@@ -225,6 +225,7 @@ class Connection:
         self.wake = asyncio.Event()
         self.authenticated = kind == "unix"
         self.subscribed = False
+        self.commands = False  # subscribed with commands: also every accepted command
         self.closing = False  # reading stopped: flush the queue, then close
         self.gone = False  # the transport is closed: nothing can be sent any more
         self.close_reason = "closed by the client"

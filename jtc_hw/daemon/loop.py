@@ -51,6 +51,7 @@ from __future__ import annotations
 import collections
 import gc
 import logging
+import math
 import os
 import signal
 import sys
@@ -66,6 +67,7 @@ from ..controller.joints import JointCommand, JointState
 from ..errors import HardwareError, JtcHwError, StalePlan
 from ..hardware import HardwareSet, LifecycleState
 from .clock import Ticker
+from .cyclering import CycleRing
 from .locks import DeviceLock, lock_devices
 from .loopstats import LoopStats
 from .pipe import Inbox, Outbox
@@ -95,9 +97,12 @@ safe action, as without decelerating stops."""
 class ControlLoop:
     """Owns the hardware and the controller; one instance per loop process."""
 
-    def __init__(self, robot: RobotConfig, outbox: Outbox) -> None:
+    def __init__(self, robot: RobotConfig, outbox: Outbox, ring: CycleRing | None = None
+                 ) -> None:
         self.robot = robot
         self.outbox = outbox
+        self.ring = ring
+        """Every cycle's row goes here (the flight recorder's full-rate feed), if given."""
         self.config = robot.controller
         self.period_ns = round(1e9 / self.config.update_rate)
         self.ctrl = JointTrajectoryController(self.config)
@@ -405,6 +410,8 @@ class ControlLoop:
         """One read -> update -> write at deadline ``now_ns``."""
         self.handle_inbox(inbox, now_ns)
         if self.fault is not None or not self.ctrl.active:
+            if self.fault is not None:
+                self._monitor(now_ns)
             return
         try:
             state = self.hardware.read(now_ns)
@@ -417,6 +424,12 @@ class ControlLoop:
             return
         self._report_reference()
         self._send_events(out.events)
+        ring = self.ring
+        if ring is not None:
+            cs = out.state
+            ring.write(now_ns, self.ctrl.active_goal, self.ctrl.holding, False,
+                       cs.speed_scaling_factor, cs.reference_time_from_start,
+                       cs.feedback_time_from_start, cs.feedback, out.desired, cs.output)
         if now_ns >= self._next_state_ns:
             self._next_state_ns = now_ns + self.state_every_ns
             cs = out.state
@@ -442,6 +455,20 @@ class ControlLoop:
                     self.ctrl.trajectory_time_ns,
                 ),
             )
+
+    def _monitor(self, now_ns: int) -> None:
+        """While faulted: what the hardware can read without commanding anything (its motors'
+        health, the joints' positions, see ``HardwareInterface.monitor``), so that the status
+        and the cycle ring (the flight recorder's second after the fault) stay current.
+
+        Raises:
+            Nothing: ``monitor`` never raises.
+        """
+        measured = self.hardware.monitor(now_ns)
+        ring = self.ring
+        if ring is not None and measured is not None:
+            ring.write(now_ns, None, False, True, self.ctrl.speed_scaling_factor, math.nan,
+                       math.nan, measured, None, None)
 
     def status(self) -> dict[str, Any]:
         """The loop's statistics (``outbox``: how its messages to the API process fare, see
@@ -605,8 +632,12 @@ LOOP_PROCESS_NAME = "jtc-hw-loop"
 """The loop process's name in ``ps``/``top``/``/proc/<pid>/comm``."""
 
 
-def loop_main(source: str | dict[str, Any], controller_name: str | None, conn: Connection) -> None:
+def loop_main(source: str | dict[str, Any], controller_name: str | None, conn: Connection,
+              ring_name: str | None = None) -> None:
     """Entry point of the loop process (``multiprocessing`` spawn target).
+
+    ``ring_name``: the API process's :class:`~.cyclering.CycleRing` to write every cycle into
+    (None: none).
 
     Never raises: failures are reported as ``("exit", code)`` with a log line first.
     """
@@ -632,9 +663,11 @@ def loop_main(source: str | dict[str, Any], controller_name: str | None, conn: C
     outbox = Outbox(conn, OUTBOX_CAPACITY_BYTES)
     code = 0
     loop: ControlLoop | None = None
+    ring: CycleRing | None = None
     try:
         robot = load_robot(source, controller_name)
-        loop = ControlLoop(robot, outbox)  # creates the components: no I/O yet
+        ring = None if ring_name is None else CycleRing.attach(ring_name)
+        loop = ControlLoop(robot, outbox, ring)  # creates the components: no I/O yet
         # One daemon per hardware: before anything is sent to a device. The owner recorded is
         # the daemon (our parent), the process a user would stop.
         loop.locks = lock_devices(
@@ -683,6 +716,9 @@ def loop_main(source: str | dict[str, Any], controller_name: str | None, conn: C
         if loop is not None:
             for lock in loop.locks:
                 lock.release()
+            loop.ring = None
+        if ring is not None:
+            ring.close()
     outbox.put(("exit", code))
     if not outbox.drain(EXIT_DRAIN_S) and not outbox.closed:
         log.error("the API process did not take the loop's last messages within %g s",

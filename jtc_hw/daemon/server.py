@@ -87,12 +87,14 @@ from ..api.protocol import (
     Stop,
     SubscribeState,
     UnsubscribeState,
+    command_event,
     feedback_event,
     result_event,
     sample_to_json,
 )
 from ..controller.goals import GoalFeedback, GoalResult
 from ..controller.limits_check import scaling_fields
+from ..controller.trajectory import JointTrajectory
 from ..errors import (
     ConfigurationError,
     ControllerStateError,
@@ -757,9 +759,10 @@ class Server:
                 )
             case SubscribeState():
                 conn.subscribed = True
-                return reply(req.id, subscribed=True)
+                conn.commands = conn.commands or req.commands
+                return reply(req.id, subscribed=True, commands=conn.commands)
             case UnsubscribeState():
-                conn.subscribed = False
+                conn.subscribed = conn.commands = False
                 return reply(req.id, subscribed=False)
             case GetConfig():
                 return reply(req.id, config=backend.config_dict())
@@ -891,6 +894,28 @@ class Server:
             events = self._early[event.goal_id] = []
         if isinstance(event, GoalResult) or len(events) < EARLY_EVENTS:
             events.append(event)
+
+    def on_command(self, trajectory: JointTrajectory, goal_id: int | None) -> None:
+        """Send an accepted command (a goal's trajectory, a topic trajectory; empty: a stop)
+        to every client subscribed with ``commands`` (``jtc-hw record``). Not droppable: a
+        recording must have every command; a client that stops reading is disconnected at the
+        queue's hard cap, as for results.
+
+        Raises:
+            Nothing: a command that cannot be encoded is logged and skipped.
+        """
+        if self._closed:
+            return
+        subscribers = [c for c in self._conns.values() if c.commands and not c.gone]
+        if not subscribers:
+            return
+        try:
+            data = encode(command_event(trajectory, goal_id, self.backend.now_ns()))
+        except (TypeError, ValueError):
+            log.exception("cannot encode an accepted command; skipped")
+            return
+        for conn in subscribers:
+            conn.send(data)
 
     def on_state(self, snapshot: dict[str, Any]) -> None:
         """Send a state snapshot to every subscribed client whose queue has room.

@@ -243,6 +243,31 @@ class HardwareSet:
                 accelerations[index] = part.accelerations
         return JointState(positions, velocities, accelerations)
 
+    def monitor(self, now_ns: int) -> JointState | None:
+        """Each INACTIVE component's :meth:`HardwareInterface.monitor` (the loop, while
+        faulted); the state in the controller's joint order, NaN for joints not read, or
+        ``None`` if none was.
+
+        Raises:
+            Nothing.
+        """
+        parts = [(comp.monitor(now_ns), index) for comp, index in self._pairs]
+        if all(part is None for part, _ in parts):
+            return None
+        n = self._n
+        positions = np.full(n, np.nan)
+        velocities = np.full(n, np.nan) if self._velocity_state else None
+        accelerations = np.full(n, np.nan) if self._acceleration_state else None
+        for part, index in parts:
+            if part is None:
+                continue
+            positions[index] = part.positions
+            if velocities is not None and part.velocities is not None:
+                velocities[index] = part.velocities
+            if accelerations is not None and part.accelerations is not None:
+                accelerations[index] = part.accelerations
+        return JointState(positions, velocities, accelerations)
+
     def write(self, now_ns: int, command: JointCommand) -> None:
         """Split the command by component and write each once.
 

@@ -184,6 +184,11 @@ HEALTH_FIELDS: Final[tuple[str, ...]] = (
 """The keys of one motor's entry in :meth:`HardwareInterface.health` (``None``: unknown)."""
 
 
+MONITOR_RETRY_NS = 1_000_000_000
+"""After a failed :meth:`HardwareInterface.monitor` (a device silent while faulted), how long the
+next attempt waits, ns."""
+
+
 def health_params(
     temperature_warn_c: float, voltage_range: tuple[float, float] | None
 ) -> tuple[ParamSpec, ...]:
@@ -355,6 +360,7 @@ class HardwareInterface(ABC):
         self._write_errors = 0
         self._activations = 0
         self._health_warnings: dict[tuple[str, str], str] = {}
+        self._monitor_retry_ns: int | None = None  # after a failed monitor(): not before this
 
     @classmethod
     def schema(cls) -> Mapping[str, ParamSpec]:
@@ -503,6 +509,39 @@ class HardwareInterface(ABC):
             self._write_errors += 1
             raise self._wrapped("write", exc) from exc
         self._writes += 1
+
+    def monitor(self, now_ns: int) -> JointState | None:
+        """While INACTIVE (after a fault, the safe action applied): read what the driver can
+        read without commanding anything, refreshing :meth:`health`; the loop calls it every
+        cycle while faulted.
+
+        Drivers decide what is safe to send (``_monitor``): a Dynamixel bus is read only when
+        no servo's Bus Watchdog may still be armed, since any instruction packet would feed it;
+        CAN drivers, whose frames are commands or whose answers need the drive active, read
+        nothing (the default).
+
+        Returns:
+            The joints' measured state if the driver read it, else ``None``.
+
+        Raises:
+            Nothing: a failed read is counted (``read_errors``) and gives ``None``, and the
+            next attempt waits ``MONITOR_RETRY_NS`` (a silent device would otherwise cost every
+            cycle its reply timeout); the next activation is what decides about the device.
+        """
+        if self._state is not LifecycleState.INACTIVE:
+            return None
+        if self._monitor_retry_ns is not None and now_ns < self._monitor_retry_ns:
+            return None
+        try:
+            result = self._monitor(now_ns)
+        except Exception:  # noqa: BLE001 - counted; a faulted component stays faulted
+            self._read_errors += 1
+            self._monitor_retry_ns = now_ns + MONITOR_RETRY_NS
+            return None
+        self._monitor_retry_ns = None
+        if result is None or result.positions.shape != self._shape:
+            return None
+        return result
 
     def deactivate(self, now_ns: int) -> None:
         """Stop taking commands and perform the ``safe_action`` (hold, or torque off).
@@ -708,6 +747,11 @@ class HardwareInterface(ABC):
 
     def _deactivate(self, now_ns: int, action: SafeAction) -> None:  # noqa: B027
         """Perform ``action`` (hold the position, or torque off). Default: nothing to do."""
+
+    def _monitor(self, now_ns: int) -> JointState | None:
+        """While INACTIVE: read health (and state) without commanding anything (see
+        :meth:`monitor`). Default: no I/O, ``None``."""
+        return None
 
     def _recover(self) -> None:  # noqa: B027 - optional primitive, no-op by default
         """Clear latched device faults (reboot, fault reset). Default: nothing to do."""

@@ -29,9 +29,12 @@ import json
 import math
 from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from ..errors import ConfigurationError
+
+if TYPE_CHECKING:
+    from ..daemon.cyclering import CycleLayout
 
 RECORD_HINT = "recording needs the rosbags library: pip install 'jtc_hw[record]'"
 
@@ -216,7 +219,71 @@ class BagRecorder:
             multi_dof_error=empty, multi_dof_output=empty,
             speed_scaling_factor=float(1.0 if scaling is None else scaling),
         ))
-        goal = event.get("active_goal")
+        self._goal_change(event.get("active_goal"), time_ns)
+
+    def cycle(self, layout: CycleLayout, row: Any, names: Sequence[str]) -> None:
+        """Record one cycle's row of the loop's cycle ring (``jtc_hw.daemon.cyclering``):
+        ``/joint_states``, ``controller_state`` and goal changes, as :meth:`state` does for a
+        published state. A per-joint block that is all NaN (an interface not configured, no
+        reference while faulted) is recorded as an empty array, as ROS leaves such fields."""
+        import numpy as np
+
+        time_ns = int(row[layout.column("time_ns"):layout.column("time_ns") + 1]
+                      .view(np.int64)[0])
+
+        def block(name: str) -> Any:
+            values = row[layout.block(name)]
+            return values if not np.isnan(values).all() else np.zeros(0, dtype=np.float64)
+
+        types = self._store.types
+        Point = types["trajectory_msgs/msg/JointTrajectoryPoint"]
+        Duration = types["builtin_interfaces/msg/Duration"]
+
+        def point(prefix: str, t: float, effort: bool = True) -> Any:
+            t_ns = 0 if math.isnan(t) else round(t * 1e9)
+            return Point(
+                positions=block(f"{prefix}_positions"),
+                velocities=block(f"{prefix}_velocities"),
+                accelerations=block(f"{prefix}_accelerations"),
+                effort=block(f"{prefix}_effort") if effort else np.zeros(0, dtype=np.float64),
+                time_from_start=Duration(sec=t_ns // 1_000_000_000,
+                                         nanosec=t_ns % 1_000_000_000))
+
+        ref_t = float(row[layout.column("reference_time_from_start")])
+        fb_t = float(row[layout.column("feedback_time_from_start")])
+        feedback = point("measured", fb_t, effort=False)
+        reference = point("reference", ref_t)
+        empty = np.zeros(0, dtype=np.float64)
+
+        def difference(a: Any, b: Any) -> Any:
+            return a - b if len(a) and len(a) == len(b) else empty
+
+        error = Point(
+            positions=difference(reference.positions, feedback.positions),
+            velocities=difference(reference.velocities, feedback.velocities),
+            accelerations=difference(reference.accelerations, feedback.accelerations),
+            effort=empty, time_from_start=reference.time_from_start)
+        JointState = types["sensor_msgs/msg/JointState"]
+        self._write("/joint_states", time_ns, JointState(
+            header=self._header(time_ns), name=list(names), position=feedback.positions,
+            velocity=feedback.velocities, effort=empty))
+        scaling = float(row[layout.column("speed_scaling")])
+        State = types[CONTROLLER_STATE_TYPE]
+        multi = self._multi_dof_point()
+        self._write(f"/{self.controller}/controller_state", time_ns, State(
+            header=self._header(time_ns), joint_names=list(names),
+            reference=reference, feedback=feedback, error=error,
+            output=point("output", ref_t),
+            multi_dof_joint_names=[],
+            multi_dof_reference=multi, multi_dof_feedback=multi,
+            multi_dof_error=multi, multi_dof_output=multi,
+            speed_scaling_factor=1.0 if math.isnan(scaling) else scaling,
+        ))
+        raw_goal = float(row[layout.column("active_goal")])
+        self._goal_change(None if math.isnan(raw_goal) else int(raw_goal), time_ns)
+
+    def _goal_change(self, goal: Any, time_ns: int) -> None:
+        """``goal_started`` / ``goal_ended`` events when the active goal changes."""
         if goal != self._last_goal:
             if self._last_goal is not None:
                 self.goal_event({"event": "goal_ended", "goal_id": self._last_goal,

@@ -1,10 +1,11 @@
 """The ``jtc-hw record`` and ``jtc-hw plot`` commands (registered by ``jtc_hw.cli``).
 
 ``record`` is a client of a running daemon: it subscribes to the ``state`` stream (every
-``state_publish_rate`` tick), asks ``get_status`` once a second for ``/diagnostics``, and writes a
-rosbag2/MCAP directory with ``BagRecorder``. Nothing runs in the loop process. It stops after
-``--duration`` seconds of daemon time (counted from the first state it receives), or on
-Ctrl-C/SIGTERM, and always finishes the bag so that it opens.
+``state_publish_rate`` tick) with every accepted command (``command`` events), asks
+``get_status`` once a second for ``/diagnostics``, and writes a rosbag2/MCAP directory with
+``BagRecorder``. Nothing runs in the loop process. It stops after ``--duration`` seconds of
+daemon time (counted from the first state it receives), or on Ctrl-C/SIGTERM, and always
+finishes the bag so that it opens.
 """
 
 from __future__ import annotations
@@ -18,6 +19,9 @@ from typing import Any
 
 DEFAULT_CONTROLLER = "joint_trajectory_controller"
 DIAGNOSTICS_PERIOD_NS = 1_000_000_000
+DRAIN_TIMEOUT_S = 2.0
+"""After Ctrl-C: how long the recorder waits for the daemon's reply that says it has every
+message sent before."""
 EXIT_OK, EXIT_BAD_INPUT = 0, 2
 
 
@@ -27,11 +31,12 @@ def add_parsers(sub: Any, client_options: Any) -> None:
         "record",
         help="record the robot's state into a ROS 2 bag (rosbag2, MCAP storage)",
         description=(
-            "Record /joint_states, /<controller>/controller_state, /<controller>/goal_events and "
-            "/diagnostics from a running daemon into the rosbag2 directory OUT (MCAP storage; "
-            "opens in ros2 bag info/play, Foxglove, PlotJuggler). Stops after --duration "
-            "seconds, or on Ctrl-C. Needs pip install 'jtc_hw[record]'. Exit codes: 0 recorded, "
-            "2 bad input (OUT exists, library missing), 3 no daemon."
+            "Record /joint_states, /<controller>/controller_state, /<controller>/joint_trajectory "
+            "(every accepted command), /<controller>/goal_events and /diagnostics from a running "
+            "daemon into the rosbag2 directory OUT (MCAP storage; opens in ros2 bag info/play, "
+            "Foxglove, PlotJuggler). Stops after --duration seconds, or on Ctrl-C. Needs pip "
+            "install 'jtc_hw[record]'. Exit codes: 0 recorded, 2 bad input (OUT exists, "
+            "library missing), 3 no daemon."
         ),
     )
     p.add_argument("out", metavar="OUT", help="bag directory to create (must not exist)")
@@ -123,28 +128,50 @@ def cmd_record(args: argparse.Namespace) -> int:
 
 
 def _record(client: Any, recorder: Any, args: argparse.Namespace) -> None:
-    subscription = client.subscribe_state(maxlen=1_000_000)
+    from ..api.protocol import trajectory_from_json
+
+    subscription = client.subscribe_state(maxlen=1_000_000, commands=True)
     print(f"recording to {recorder.path}", flush=True)
     end_ns: int | None = None
     next_diagnostics_ns: int | None = None
+
+    def take(message: dict[str, Any]) -> bool:
+        """Write one message; False once past ``--duration``."""
+        nonlocal end_ns, next_diagnostics_ns
+        if message.get("event") == "command":
+            # Accepted before the end (states lag the acceptance by a plan's lead).
+            if end_ns is None or int(message["time_ns"]) <= end_ns:
+                recorder.command(trajectory_from_json(message["trajectory"]),
+                                 int(message["time_ns"]))
+            return True
+        t = int(message["time_ns"])
+        if end_ns is None and args.duration is not None:
+            end_ns = t + round(args.duration * 1e9)
+        if end_ns is not None and t > end_ns:
+            return False
+        recorder.state(message)
+        if next_diagnostics_ns is None:
+            next_diagnostics_ns = t
+        if t >= next_diagnostics_ns:
+            recorder.diagnostics(client.get_status(), t)
+            # On a 1 s grid from the first state: a late state does not shift the next.
+            while next_diagnostics_ns <= t:
+                next_diagnostics_ns += DIAGNOSTICS_PERIOD_NS
+        return True
+
     try:
-        while True:
-            state = subscription.get(timeout_s=args.timeout)
-            t = int(state["time_ns"])
-            if end_ns is None and args.duration is not None:
-                end_ns = t + round(args.duration * 1e9)
-            if end_ns is not None and t > end_ns:
-                return
-            recorder.state(state)
-            if next_diagnostics_ns is None:
-                next_diagnostics_ns = t
-            if t >= next_diagnostics_ns:
-                recorder.diagnostics(client.get_status(), t)
-                # On a 1 s grid from the first state: a late state does not shift the next.
-                while next_diagnostics_ns <= t:
-                    next_diagnostics_ns += DIAGNOSTICS_PERIOD_NS
+        while take(subscription.get(timeout_s=args.timeout)):
+            pass
     except KeyboardInterrupt:
-        return
+        # What the daemon had sent before the interrupt is written too: its reply to a request
+        # comes after every event it queued before on this connection, so once get_status has
+        # answered, all of it is in the subscription's buffer.
+        try:
+            client.get_status(timeout_s=DRAIN_TIMEOUT_S)
+            while take(subscription.get(timeout_s=0)):
+                pass
+        except (Exception, KeyboardInterrupt):  # noqa: BLE001 - buffer empty, or gone: done
+            pass
     finally:
         try:
             subscription.close()

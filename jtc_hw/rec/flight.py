@@ -2,9 +2,13 @@
 
 Theory of operation
 -------------------
-Runs in the API process (``LoopBackend`` feeds it; the loop never does). It keeps the state
-snapshots the loop publishes (at ``state_publish_rate``) and the goal events of the last
-``flight_recorder_s`` seconds plus one, in memory. ``trigger(reason)`` (an abort, a hardware fault,
+Runs in the API process (``LoopBackend`` feeds it; the loop never does). It keeps every
+cycle's state (rows of the loop's cycle ring, ``jtc_hw.daemon.cyclering``, copied in by
+:meth:`FlightRecorder.on_cycles` into a preallocated array of ``flight_recorder_s`` + 1.5 seconds
+at the cycle rate), the accepted commands and the goal events of the last ``flight_recorder_s``
+seconds plus one, in memory. Fed published states instead (:meth:`FlightRecorder.on_state`, at
+``state_publish_rate``), it keeps those: that is what a recorder made without a cycle rate
+does. ``trigger(reason)`` (an abort, a hardware fault,
 a rearm, SIGTERM) chooses the bag's name at once, so that the goal's result can name it, and
 writes the bag once a state one second after the trigger has arrived (``flush`` writes at once,
 for a shutdown): the bag covers ``flight_recorder_s`` before and a second after. Writing happens
@@ -20,19 +24,26 @@ from __future__ import annotations
 
 import collections
 import logging
+import math
 import re
 import shutil
 import threading
 import time
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from ..daemon.cyclering import CycleLayout
 
 log = logging.getLogger("jtc_hw.flight_recorder")
 
 AFTER_NS = 1_000_000_000
 """How long after a trigger the bag goes on."""
+
+CYCLE_MARGIN_S = 0.5
+"""Seconds of cycles kept beyond the window and the second after (rows arrive in batches)."""
 
 NAME_PATTERN = re.compile(r"^\d{8}T\d{6}\.\d{3}Z-[a-z_]+$")
 """A flight recorder bag's directory name: UTC time of the trigger, reason."""
@@ -59,8 +70,18 @@ class FlightRecorder:
 
     def __init__(self, directory: str | Path, seconds: float, keep: int,
                  controller: str = "joint_trajectory_controller",
-                 tolerances: Mapping[str, Mapping[str, float]] | None = None) -> None:
+                 tolerances: Mapping[str, Mapping[str, float]] | None = None,
+                 cycle_rate_hz: float | None = None,
+                 joint_names: Sequence[str] = ()) -> None:
         self.directory = Path(directory)
+        self.cycle_rate_hz = cycle_rate_hz
+        self.joint_names = list(joint_names)
+        # Every cycle's row (on_cycles): a circular array, allocated with the first rows.
+        self._layout: CycleLayout | None = None
+        self._cycles: Any = None
+        self._cycles_stored = 0  # rows ever stored; the next goes at this modulo capacity
+        self.lost_cycles = 0
+        """Rows the API process could not copy out of the loop's ring in time (overruns)."""
         self.tolerances = tolerances
         self.window_ns = round(seconds * 1e9)
         self.keep = keep
@@ -91,6 +112,62 @@ class FlightRecorder:
             return
         t = int(snapshot["time_ns"])
         self._states.append(dict(snapshot))
+        self._trim(t)
+        self.poll(t)
+
+    def on_cycles(self, rows: Any, layout: CycleLayout, lost: int = 0) -> None:
+        """Keep every cycle's row (an array of rows of the cycle ring, in order); ``lost``:
+        rows that were overwritten in the ring before they could be copied. Writes the bags
+        whose second after has now passed.
+
+        Raises:
+            ValueError: rows of another layout than the first ones (a programming error).
+        """
+        if not self.available:
+            return
+        self.lost_cycles += lost
+        if lost:
+            log.warning("flight recorder: %d cycles lost (the API process read the loop's "
+                        "cycle ring too late)", lost)
+        n = len(rows)
+        if n == 0:
+            return
+        if self._cycles is None:
+            import numpy as np
+
+            rate = self.cycle_rate_hz or 1000.0
+            capacity = max(16, math.ceil((self.window_ns + AFTER_NS) / 1e9 * rate
+                                         + CYCLE_MARGIN_S * rate))
+            self._layout = layout
+            self._cycles = np.full((capacity, layout.width), np.nan)
+        capacity = len(self._cycles)
+        if n > capacity:
+            rows, n = rows[-capacity:], capacity
+        start = self._cycles_stored % capacity
+        first = min(n, capacity - start)
+        self._cycles[start:start + first] = rows[:first]
+        if first < n:
+            self._cycles[:n - first] = rows[first:]
+        self._cycles_stored += n
+        assert self._layout is not None
+        last = int(self._layout.times(rows[-1:])[0])
+        self._trim(last)
+        self.poll(last)
+
+    def _cycle_window(self, start_ns: int, end_ns: int) -> Any:
+        """A copy of the rows kept with ``start_ns <= time <= end_ns``, in order."""
+        import numpy as np
+
+        assert self._layout is not None
+        capacity = len(self._cycles)
+        stored = min(self._cycles_stored, capacity)
+        head = self._cycles_stored % capacity
+        rows = (self._cycles[:stored] if self._cycles_stored <= capacity
+                else np.concatenate((self._cycles[head:], self._cycles[:head])))
+        times = self._layout.times(rows)
+        return rows[(times >= start_ns) & (times <= end_ns)].copy()
+
+    def _trim(self, t: int) -> None:
         horizon = t - self.window_ns - AFTER_NS
         while self._states and self._states[0]["time_ns"] < horizon:
             self._states.popleft()
@@ -98,7 +175,6 @@ class FlightRecorder:
             self._events.popleft()
         while self._commands and self._commands[0][0] < horizon:
             self._commands.popleft()
-        self.poll(t)
 
     def poll(self, now_ns: int) -> None:
         """Write the bags whose second after has passed at ``now_ns`` (daemon clock). Called
@@ -156,6 +232,10 @@ class FlightRecorder:
             return {
                 "enabled": self.available,
                 "seconds": self.window_ns / 1e9,
+                # "cycles": every cycle (at cycle_rate_hz); "states": the published ones
+                "source": "cycles" if self.cycle_rate_hz else "states",
+                "cycle_rate_hz": self.cycle_rate_hz,
+                "lost_cycles": self.lost_cycles,
                 "directory": str(self.directory),
                 "keep": self.keep,
                 "last_file": self.last_file,
@@ -164,33 +244,54 @@ class FlightRecorder:
             }
 
     def _submit(self, path: Path, end_ns: int | None) -> None:
-        last = self._states[-1]["time_ns"] if self._states else 0
+        cycles = None
+        if self._layout is not None:
+            last = int(self._layout.times(self._cycles[
+                (self._cycles_stored - 1) % len(self._cycles):][:1])[0])
+        else:
+            last = self._states[-1]["time_ns"] if self._states else 0
         end = last if end_ns is None else end_ns
         start = end - AFTER_NS - self.window_ns
-        states = [s for s in self._states if start <= s["time_ns"] <= end]
+        if self._layout is not None:
+            cycles = self._cycle_window(start, end)  # a copy: the worker owns it
+            states: list[dict[str, Any]] = []
+        else:
+            states = [s for s in self._states if start <= s["time_ns"] <= end]
         events = [e for e in self._events if start <= e["time_ns"] <= end]
         commands = [(t, c) for t, c in self._commands if start <= t <= end]
-        future: Future[None] = self._writer.submit(self._write, path, states, events, commands)
+        future: Future[None] = self._writer.submit(self._write, path, states, events, commands,
+                                                   cycles)
         del future  # errors are logged and counted by _write
 
     def _write(self, path: Path, states: list[dict[str, Any]],
-               events: list[dict[str, Any]], commands: list[tuple[int, Any]]) -> None:
+               events: list[dict[str, Any]], commands: list[tuple[int, Any]],
+               cycles: Any = None) -> None:
         from .bag import BagRecorder
 
-        if not states and not events:  # e.g. a fault before the first state: nothing to show
+        layout = self._layout
+        n_cycles = 0 if cycles is None else len(cycles)
+        if not states and not events and not n_cycles:  # e.g. a fault before the first state
             log.info("flight recorder: nothing recorded before %s; no bag written", path.name)
             return
         try:
             self.directory.mkdir(parents=True, exist_ok=True)
             recorder = BagRecorder(path, self.controller, self.offset_ns, self.tolerances)
             try:
-                merged = sorted([(s["time_ns"], 0, s) for s in states]
-                                + [(e["time_ns"], 1, e) for e in events]
-                                + [(t, 2, c) for t, c in commands],
-                                key=lambda item: (item[0], item[1]))
+                items: list[tuple[int, int, Any]] = [(s["time_ns"], 0, s) for s in states]
+                if n_cycles:
+                    assert layout is not None
+                    items += [(int(t), 0, row) for t, row in zip(
+                        layout.times(cycles).tolist(), cycles, strict=True)]
+                items += [(e["time_ns"], 1, e) for e in events]
+                items += [(t, 2, c) for t, c in commands]
+                merged = sorted(items, key=lambda item: (item[0], item[1]))
                 for t, kind, message in merged:
                     if kind == 0:
-                        recorder.state(message)
+                        if isinstance(message, dict):
+                            recorder.state(message)
+                        else:
+                            assert layout is not None
+                            recorder.cycle(layout, message, self.joint_names)
                     elif kind == 1:
                         recorder.goal_event(message)
                     else:
@@ -205,7 +306,8 @@ class FlightRecorder:
         with self._lock:
             self.last_file = str(path)
             self.written.append(str(path))
-        log.info("flight recorder: wrote %s (%d states, %d events)", path, len(states),
+        log.info("flight recorder: wrote %s (%d %s, %d events)", path,
+                 n_cycles if n_cycles else len(states), "cycles" if n_cycles else "states",
                  len(events))
         self._prune()
 

@@ -93,8 +93,13 @@ def read_series(bag: str | Path, controller: str) -> dict[str, Any]:
         "waypoints": [((at - t0) / 1e9, name, value) for at, name, value in raw_waypoints],
     }
     for key, values in rows.items():
-        width = min(len(v) for v in values)
-        series[key] = np.array([v[:width] for v in values], dtype=np.float64)
+        # A sample without values (a flight recorder's cycles while faulted have no reference)
+        # is NaN, which the plot leaves out; a field no sample has gives 0 columns.
+        width = max(len(v) for v in values)
+        table = np.full((len(values), width), np.nan)
+        for i, v in enumerate(values):
+            table[i, :len(v)] = v[:width]
+        series[key] = table
     return series
 
 

@@ -33,6 +33,7 @@ pytestmark = pytest.mark.usefixtures("no_leaks")
 CONTROLLER = "joint_trajectory_controller"
 BEFORE_S = 2.0
 STATE_PERIOD_NS = 20 * MS
+CYCLE_PERIOD_NS = 5 * MS  # update_rate 200 Hz (test_dynamixel_daemon.robot)
 
 
 @pytest.fixture(scope="module")
@@ -72,6 +73,11 @@ def read_bag(bag: Path) -> tuple[int, list[tuple[str, Any]]]:
                         for _, channel, _, decoded in reader.iter_decoded_messages()]
 
 
+def shm_segments(d: DxlDaemon) -> list[Path]:
+    """The daemon's shared memory segments (its cycle ring), named by its pid."""
+    return sorted(Path("/dev/shm").glob(f"jtc_hw_{d.pid}_*"))
+
+
 def stamp_ns(msg: Any) -> int:
     return int(msg.header.stamp.sec) * 1_000_000_000 + int(msg.header.stamp.nanosec)
 
@@ -99,22 +105,38 @@ def test_an_abort_writes_the_seconds_before_it_named_in_the_result(
         status = client.get_status()["flight_recorder"]
         assert status["last_file"] == str(bag) and status["enabled"] is True
         assert status["seconds"] == BEFORE_S and status["errors"] == 0
+        assert status["source"] == "cycles" and status["cycle_rate_hz"] == 200
+        assert status["lost_cycles"] == 0
     assert f"flight recorder: fault; writing {bag}" in daemon.log()
 
     offset, messages = read_bag(bag)
     states = [m for topic, m in messages if topic == f"/{CONTROLLER}/controller_state"]
+    joint_states = [m for topic, m in messages if topic == "/joint_states"]
     times = [stamp_ns(m) - offset for m in states]
     abort_ns = result["time_ns"]
-    # The window: BEFORE_S before the trigger (a few state periods of slack), up to the fault:
-    # a faulted loop publishes no state, so the second after holds none here.
+    # Every cycle, not the published states: stamps on the 200 Hz deadline grid, consecutive
+    # ones one period apart except where the loop skipped a deadline (a loaded machine).
+    steps = [b - a for a, b in zip(times, times[1:])]
+    assert all(step > 0 and step % CYCLE_PERIOD_NS == 0 for step in steps)
+    assert steps.count(CYCLE_PERIOD_NS) >= 0.9 * len(steps)
+    assert [stamp_ns(m) - offset for m in joint_states] == times
+    # The window: BEFORE_S before the trigger (the fault, a cycle or so before the abort) ...
     assert abort_ns - round(BEFORE_S * 1e9) - 3 * STATE_PERIOD_NS <= times[0]
     assert times[0] <= abort_ns - round(BEFORE_S * 1e9) + 3 * STATE_PERIOD_NS
-    assert abort_ns - 3 * STATE_PERIOD_NS <= times[-1] <= abort_ns
-    assert all(b - a >= STATE_PERIOD_NS for a, b in zip(times, times[1:]))
-    assert len(times) >= 0.8 * BEFORE_S * 1e9 / STATE_PERIOD_NS
+    before = [t for t in times if t <= abort_ns]
+    assert len(before) >= 0.9 * BEFORE_S * 1e9 / CYCLE_PERIOD_NS
+    # ... and the second after: while faulted the loop keeps reading the joints (nothing is
+    # commanded: no reference, no output), at the cycle rate too.
+    assert times[-1] >= abort_ns + 800 * MS
+    after = [m for m, t in zip(states, times) if t > abort_ns + 10 * MS]
+    assert len(after) >= 0.5 / (CYCLE_PERIOD_NS / 1e9)
+    assert all(len(m.reference.positions) == 0 and len(m.output.positions) == 0
+               for m in after)
+    assert all(len(m.feedback.positions) == len(p0) for m in after)
     assert len({topic for topic, _ in messages}) >= 3
     # The goal's motion before the fault is in it: the reference moved away from p0.
-    moved = [abs(a - b) for a, b in zip(states[-1].reference.positions, p0)]
+    last_controlled = [m for m, t in zip(states, times) if len(m.reference.positions)][-1]
+    moved = [abs(a - b) for a, b in zip(last_controlled.reference.positions, p0)]
     assert max(moved) > 0.02  # 0.4 s into a 2 s cubic move of 0.4 rad: about 0.04
     # The aborted goal's command is in it.
     (command,) = [m for topic, m in messages if topic == f"/{CONTROLLER}/joint_trajectory"]
@@ -129,7 +151,10 @@ def test_an_abort_writes_the_seconds_before_it_named_in_the_result(
 
 def test_sigterm_writes_a_bag(daemon: DxlDaemon) -> None:
     directory = Path(daemon.config_path).parent / "bags"
+    segments = shm_segments(daemon)
     assert daemon.stop() == 0, daemon.log()
+    # The cycle ring's shared memory was there while it ran, and is gone after SIGTERM.
+    assert len(segments) == 1 and not segments[0].exists()
     shutdown = [p for p in directory.iterdir() if p.name.endswith("-shutdown")]
     assert len(shutdown) == 1, sorted(directory.iterdir())
     _, messages = read_bag(shutdown[0])

@@ -123,6 +123,7 @@ def test_bag_has_the_ros2_topics_and_types(recording: Any) -> None:
         f"/{CONTROLLER}/controller_state": "control_msgs/msg/JointTrajectoryControllerState",
         f"/{CONTROLLER}/goal_events": "std_msgs/msg/String",
         "/diagnostics": "diagnostic_msgs/msg/DiagnosticArray",
+        f"/{CONTROLLER}/joint_trajectory": "trajectory_msgs/msg/JointTrajectory",  # the goal
     }
     messages = read_bag(bag)
     assert {(topic, schema) for topic, schema, _, _ in messages} == set(types.items())

@@ -358,6 +358,9 @@ class ZenohClient(Client):
         if not isinstance(message, dict):
             return
         event, goal_id = message.get("event"), message.get("goal_id")
+        if event == "command":  # to subscriptions opened with commands=True, as on the socket
+            self._dispatch_event("command", message)
+            return
         if event not in ("feedback", "result") or not isinstance(goal_id, int):
             return  # fault events: for monitors (jtc-hw fleet)
         with self._events_lock:

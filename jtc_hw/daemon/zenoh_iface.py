@@ -50,7 +50,13 @@ from ..api.framing import (
     encode,
     error_reply,
 )
-from ..api.protocol import Request, feedback_event, parse_request, result_event
+from ..api.protocol import (
+    Request,
+    command_event,
+    feedback_event,
+    parse_request,
+    result_event,
+)
 from ..controller.goals import GoalFeedback, GoalResult
 from ..controller.trajectory import JointTrajectory
 from ..errors import ConfigurationError
@@ -352,7 +358,13 @@ class ZenohInterface:
             self._dropped_since_state += 1
 
     def on_command(self, traj: JointTrajectory, goal_id: int | None) -> None:
-        """Accepted commands are not published over Zenoh."""
+        """Publish an accepted command on ``events`` as the socket sends it to a subscriber
+        with ``commands`` (``jtc-hw record --zenoh``); never dropped, as results."""
+        outbox = self._outbox
+        if outbox is None:
+            return
+        outbox.put(partial(self._put_event, command_event, traj, goal_id,
+                           self._server.backend.now_ns()))
 
     # -- in the outbox's thread ---------------------------------------------------------------
 

@@ -236,6 +236,29 @@ def test_state_stream_arrives_at_its_rate(daemon: ZenohDaemon) -> None:
         assert after["seq"] - before["seq"] - 1 == after["dropped"], (before, after)
 
 
+def test_accepted_commands_reach_a_subscription_that_asks_for_them(daemon: ZenohDaemon) -> None:
+    """``subscribe_state(commands=True)`` over Zenoh gets a ``command`` event for every accepted
+    command, as on the socket (what ``jtc-hw record --zenoh`` writes to joint_trajectory);
+    a plain subscription gets states only."""
+    client = daemon.client()
+    try:
+        with client.subscribe_state(commands=True) as sub, client.subscribe_state() as plain:
+            goal = client.send_goal(traj([0.3] * 6, t=0.3))
+            command = next(m for m in iter(lambda: sub.get(timeout_s=WAIT_S), None)
+                           if m["event"] == "command")
+            assert goal.wait(timeout_s=WAIT_S)["status"] == "succeeded"
+            assert command["goal_id"] == goal.goal_id
+            assert command["trajectory"]["joint_names"] == JOINTS
+            assert command["trajectory"]["points"][-1]["positions"] == [0.3] * 6
+            # The plain subscription, read up to a state stamped after the command: no command.
+            seen = [plain.get(timeout_s=WAIT_S)]
+            while seen[-1]["event"] != "state" or seen[-1]["time_ns"] <= command["time_ns"]:
+                seen.append(plain.get(timeout_s=WAIT_S))
+            assert all(m["event"] == "state" for m in seen)
+    finally:
+        client.close()
+
+
 def test_a_vanished_clients_goal_still_gets_its_one_result(daemon: ZenohDaemon) -> None:
     events = Events(daemon)
     client = daemon.client()

@@ -282,6 +282,7 @@ def vcan_missing(channels: Sequence[str] = ("vcan0",)) -> str | None:
     return None
 
 
+@pytest.hookimpl(tryfirst=True)  # before the fixtures (the emulators, the daemon) are set up
 def pytest_runtest_setup(item: pytest.Item) -> None:
     """Skip a `vcan` test (``@pytest.mark.vcan`` or ``@pytest.mark.vcan("vcan0", "vcan1")``:
     the devices it needs) where the devices are missing, saying why; fail it instead under

@@ -9,10 +9,11 @@ tests skip, saying why; ``tools/vcan-hil`` runs them in a VM with a stock kernel
 ``JTC_HW_VCAN_REQUIRED``: there a skip is a failure).
 
 Timing allowances. In that VM the machine is emulated in software (no KVM): roughly ten
-times slower than the host, and the load of the other processes varies. So these tests run
-the loop at 100 Hz, allow 0.25 rad of path error and a 0.5 s feedback timeout, and wait up
-to a minute for a message -- figures chosen for the emulated machine, not for what the driver
-achieves (the host-side tests in ``test_can_mit_daemon.py`` and ``test_can_cia402_daemon.py``
+times slower than the host, and a process of it may stall for a second when the host is
+busy. So these tests run the loop at 100 Hz, allow 0.5 rad of path error, a 2 s feedback
+timeout (a 3 s heartbeat for the CiA 402 drives), and wait up to a minute for a message
+(four for the daemon's start) -- figures chosen for the emulated machine, not for what the
+driver achieves (the host-side tests in ``test_can_mit_daemon.py`` and ``test_can_cia402_daemon.py``
 keep their tight tolerances). Nothing here measures time.
 """
 
@@ -22,9 +23,9 @@ import json
 import subprocess
 import sys
 import threading
-from collections.abc import Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import can
 import pytest
@@ -35,17 +36,15 @@ from jtc_hw.api.framing import RequestError
 
 from conftest import ROOT, make_robot_config
 
-pytestmark = pytest.mark.usefixtures("no_leaks")  # threads, sockets, resources
-
 MS = 1_000_000
 WAIT_S = 60.0
 """Any wait for a message: generous for the software-emulated VM (see the module docstring)."""
-START_S = 180.0
+START_S = 240.0
 """The daemon's start: the interpreter and numpy load ten times slower in the VM."""
 UPDATE_RATE = 100
-PATH_TOL = 0.25
+PATH_TOL = 0.5
 GOAL_TOL = 0.01
-FEEDBACK_TIMEOUT_S = 0.5
+FEEDBACK_TIMEOUT_S = 2.0
 
 
 # -- the emulator in its own process -------------------------------------------------------------
@@ -163,9 +162,10 @@ def mit_robot(socket_path: Path, buses: dict[str, list[int]]) -> dict[str, Any]:
                              goal_time=2.0, path_tolerance=PATH_TOL, goal_tolerance=GOAL_TOL)
 
 
-def start_daemon(directory: Path, config: dict[str, Any]) -> DaemonProcess:
+def start_daemon(directory: Path, config: Callable[[Path], dict[str, Any]]) -> DaemonProcess:
+    """The daemon on the robot ``config(socket path)``, started and accepting connections."""
     daemon = DaemonProcess(directory)
-    daemon.config_path.write_text(yaml.safe_dump(config, sort_keys=False))
+    daemon.config_path.write_text(yaml.safe_dump(config(daemon.socket), sort_keys=False))
     daemon.start()
     try:
         daemon.wait_ready(timeout_s=START_S)
@@ -187,8 +187,14 @@ def trajectory(joints: Sequence[str], positions: Sequence[float], t: float) -> d
 
 
 def here(client: RecordingClient) -> list[float]:
+    """Where the joints are, once no goal is active."""
     with client.subscribe_state() as sub:
-        state = next_state(sub, lambda s: s["active_goal"] is None, timeout_s=WAIT_S)
+        try:
+            state = next_state(sub, lambda s: s["active_goal"] is None, timeout_s=WAIT_S)
+        except TimeoutError:
+            # A stopped loop publishes no state: say why it stopped.
+            fault = client.get_status().get("controller", {}).get("fault")
+            raise AssertionError(f"no state within {WAIT_S} s; fault: {fault}") from None
     return list(state["actual"]["positions"])
 
 
@@ -219,6 +225,12 @@ def ip(*args: str) -> None:
     assert done.returncode == 0, f"ip {' '.join(args)}: {done.stderr.strip()}"
 
 
+def tc(*args: str) -> None:
+    """``tc ...`` (root in the VM); fails the test with tc's own message."""
+    done = subprocess.run(["tc", *args], capture_output=True, text=True, check=False)
+    assert done.returncode == 0, f"tc {' '.join(args)}: {done.stderr.strip()}"
+
+
 def details(client: RecordingClient) -> dict[str, Any]:
     (component,) = client.get_status()["hardware"]["components"]
     return dict(component["details"])
@@ -227,6 +239,7 @@ def details(client: RecordingClient) -> dict[str, Any]:
 # -- tests ---------------------------------------------------------------------------------------
 
 
+@pytest.mark.usefixtures("no_leaks")
 def test_the_emulator_names_a_missing_socketcan_device() -> None:
     """(Runs everywhere.) A device that does not exist: exit status 2 and what to do."""
     done = subprocess.run(
@@ -239,160 +252,8 @@ def test_the_emulator_names_a_missing_socketcan_device() -> None:
     assert "ip link" in done.stderr and "Traceback" not in done.stderr
 
 
-@pytest.mark.vcan("vcan0", "vcan1")
-def test_mit_goal_on_two_buses_between_processes(tmp_path: Path) -> None:
-    """The daemon and an emulator process exchange frames over vcan0 and vcan1 (a third
-    socket sees them), two buses driven in parallel, and a goal succeeds."""
-    buses = {"vcan0": [1, 2], "vcan1": [3, 4]}
-    emulator = EmulatorProcess("mit", buses)
-    sniffers = {ch: Sniffer(ch) for ch in buses}
-    daemon: DaemonProcess | None = None
-    try:
-        emulator.start()
-        daemon = start_daemon(tmp_path / "d", mit_robot(tmp_path / "d" / "s", buses))
-        emulator.wait_enabled([1, 2, 3, 4])
-        with connect(daemon) as client:
-            move_by(client, ["joint1", "joint2", "joint3", "joint4"], 0.3)
-            info = details(client)
-            assert {info["buses"][ch]["state"] for ch in buses} == {"active"}
-        for channel, ids in buses.items():
-            frames = sniffers[channel].drain()
-            commands = {m.arbitration_id for m in frames if m.arbitration_id != 0}
-            # AK replies come on the master id 0, data[0] naming the motor.
-            replies = {m.data[0] for m in frames if m.arbitration_id == 0}
-            assert commands == set(ids), (channel, commands)
-            assert replies == set(ids), (channel, replies)
-    finally:
-        if daemon is not None:
-            daemon.shutdown()
-        emulator.close()
-        for sniffer in sniffers.values():
-            sniffer.close()
-
-
 @pytest.mark.vcan
-def test_mit_silent_motor_aborts_and_rearm_recovers(tmp_path: Path) -> None:
-    """Motor 3 in a process of its own: killed mid-goal, it falls silent (one ABORTED result
-    naming it); started again (power-cycled: out of motor mode), the re-arm enables it."""
-    rest = EmulatorProcess("mit", {"vcan0": [1, 2]})
-    third = EmulatorProcess("mit", {"vcan0": [3]})
-    joints = ["joint1", "joint2", "joint3"]
-    daemon: DaemonProcess | None = None
-    try:
-        rest.start()
-        third.start()
-        daemon = start_daemon(tmp_path / "d", mit_robot(tmp_path / "d" / "s",
-                                                        {"vcan0": [1, 2, 3]}))
-        with connect(daemon) as client:
-            goal = mid_goal(client, joints)
-            third.kill()
-            result = goal.wait(timeout_s=WAIT_S)
-            assert (result["status"], result["error_code"]) == ("aborted", -1), result
-            assert "no feedback from motor 3 (joint 'joint3')" in result["error_string"]
-            assert "check its power" in result["error_string"]  # not a full queue
-            third.start()
-            assert client.rearm(timeout_s=WAIT_S)["rearmed"] is True
-            third.wait_enabled([3])
-            move_by(client, joints, -0.2)
-            assert len(client.received("result", goal.goal_id)) == 1
-    finally:
-        if daemon is not None:
-            daemon.shutdown()
-        rest.close()
-        third.close()
-
-
-@pytest.mark.vcan
-def test_interface_down_mid_goal_is_a_bus_loss_then_rearm_after_up(tmp_path: Path) -> None:
-    """``ip link set vcan0 down`` mid-goal: the kernel refuses the daemon's frames (ENETDOWN),
-    one ABORTED result says the bus is lost; re-arm fails while it is down, works once up."""
-    emulator = EmulatorProcess("mit", {"vcan0": [1, 2, 3]})
-    joints = ["joint1", "joint2", "joint3"]
-    daemon: DaemonProcess | None = None
-    try:
-        emulator.start()
-        daemon = start_daemon(tmp_path / "d", mit_robot(tmp_path / "d" / "s",
-                                                        {"vcan0": [1, 2, 3]}))
-        with connect(daemon) as client:
-            goal = mid_goal(client, joints)
-            try:
-                ip("link", "set", "vcan0", "down")
-                result = goal.wait(timeout_s=WAIT_S)
-                assert (result["status"], result["error_code"]) == ("aborted", -1), result
-                message = result["error_string"]
-                assert "bus 'vcan0' (socketcan vcan0" in message, message
-                assert "Network is down" in message, message
-                assert "\n" not in message and "Traceback" not in message
-                motors = details(client)["motors"]
-                assert all(motors[j]["fault"] for j in joints), motors  # the whole bus
-                with pytest.raises(RequestError) as refused:
-                    client.rearm(timeout_s=WAIT_S)
-                assert "Network is down" in str(refused.value), refused.value
-            finally:
-                ip("link", "set", "vcan0", "up")
-            assert client.rearm(timeout_s=WAIT_S)["rearmed"] is True
-            move_by(client, joints, -0.2)
-            assert len(client.received("result", goal.goal_id)) == 1
-    finally:
-        if daemon is not None:
-            daemon.shutdown()
-        emulator.close()
-
-
-@pytest.mark.vcan
-def test_full_transmit_queue_is_reported_not_a_silent_stall(tmp_path: Path) -> None:
-    """vcan0 made slow: a token-bucket queue that lets out about 8 frames/s and holds one
-    (vcan has no queue of its own: ``txqueuelen 1`` alone never fills), and a flood from this
-    process keeping it full. The kernel refuses the daemon's frames (ENOBUFS); the goal
-    aborts and the error names the full transmit queue, the status counts the refusals."""
-    emulator = EmulatorProcess("mit", {"vcan0": [1, 2, 3]})
-    joints = ["joint1", "joint2", "joint3"]
-    daemon: DaemonProcess | None = None
-    flooding = threading.Event()
-    flood_bus = can.Bus(interface="socketcan", channel="vcan0")
-
-    def flood() -> None:
-        junk = can.Message(arbitration_id=0x6F0, data=bytes(8), is_extended_id=False)
-        while flooding.is_set():
-            try:
-                flood_bus.send(junk, timeout=0.001)
-            except can.CanOperationError:
-                pass  # full: that is the point
-
-    flooder = threading.Thread(target=flood, name="flood")
-    try:
-        emulator.start()
-        daemon = start_daemon(tmp_path / "d", mit_robot(tmp_path / "d" / "s",
-                                                        {"vcan0": [1, 2, 3]}))
-        with connect(daemon) as client:
-            goal = mid_goal(client, joints)
-            try:
-                ip("link", "set", "vcan0", "txqueuelen", "1")
-                subprocess.run(["tc", "qdisc", "add", "dev", "vcan0", "root", "tbf", "rate",
-                                "1kbit", "burst", "16", "limit", "16"], check=True)
-                flooding.set()
-                flooder.start()
-                result = goal.wait(timeout_s=WAIT_S)
-            finally:
-                flooding.clear()
-                if flooder.is_alive():
-                    flooder.join(WAIT_S)
-                subprocess.run(["tc", "qdisc", "del", "dev", "vcan0", "root"], check=False)
-            assert (result["status"], result["error_code"]) == ("aborted", -1), result
-            message = result["error_string"]
-            assert "the transmit queue of bus 'vcan0' (socketcan vcan0" in message, message
-            assert "is full" in message
-            assert details(client)["buses"]["vcan0"]["tx_overflows"] > 0
-            assert client.rearm(timeout_s=WAIT_S)["rearmed"] is True
-            move_by(client, joints, -0.2)
-    finally:
-        if daemon is not None:
-            daemon.shutdown()
-        emulator.close()
-        flood_bus.shutdown()
-
-
-@pytest.mark.vcan
+@pytest.mark.usefixtures("no_leaks")
 def test_cia402_goal_drive_fault_and_rearm(tmp_path: Path) -> None:
     """The canopen-based driver over socketcan: NMT, SDO set-up and PDO mapping, then SYNC
     and CSP; a goal succeeds, a drive fault aborts naming the drive, the re-arm resets it.
@@ -414,17 +275,16 @@ def test_cia402_goal_drive_fault_and_rearm(tmp_path: Path) -> None:
                                "receive_timeout": 0.002, "setup_timeout": 2.0}},
             "node_id": nodes,
             "feedback_timeout_s": FEEDBACK_TIMEOUT_S,
-            "watchdog_s": 1.0,  # the heartbeat the drives expect: the VM may stall for long
+            "watchdog_s": 3.0,  # the heartbeat the drives expect: the VM may stall for long
         },
     }]
     daemon: DaemonProcess | None = None
     try:
         for d in drives.values():
             d.start()
-        config = make_robot_config(tmp_path / "d" / "s", joints, hardware,
-                                   update_rate=UPDATE_RATE, goal_time=2.0,
-                                   path_tolerance=PATH_TOL, goal_tolerance=GOAL_TOL)
-        daemon = start_daemon(tmp_path / "d", config)
+        daemon = start_daemon(tmp_path / "d", lambda sock: make_robot_config(
+            sock, joints, hardware, update_rate=UPDATE_RATE, goal_time=2.0,
+            path_tolerance=PATH_TOL, goal_tolerance=GOAL_TOL))
         with connect(daemon) as client:
             assert here(client) == pytest.approx([0.1, 0.2], abs=1e-3)
             move_by(client, joints, 0.2)
@@ -447,3 +307,169 @@ def test_cia402_goal_drive_fault_and_rearm(tmp_path: Path) -> None:
             for d in drives.values():
                 d.stop()
             bus.shutdown()
+
+
+class MitRig:
+    """One daemon for the MIT tests (its start is the slow part in the VM), driving motors
+    1-3 on vcan0 and 4 on vcan1: motors 1, 2 and 4 in one emulator process, motor 3 in
+    another (so that it can fall silent alone). Each test leaves it re-armed and holding.
+    The CiA 402 test comes before the first use: both drive vcan0, and a second daemon on a
+    device is refused."""
+
+    BUSES: ClassVar[dict[str, list[int]]] = {"vcan0": [1, 2, 3], "vcan1": [4]}
+    JOINTS: ClassVar[list[str]] = ["joint1", "joint2", "joint3", "joint4"]
+
+    def __init__(self, directory: Path) -> None:
+        self.main = EmulatorProcess("mit", {"vcan0": [1, 2], "vcan1": [4]})
+        self.third = EmulatorProcess("mit", {"vcan0": [3]})
+        self.directory = directory
+        self.daemon: DaemonProcess | None = None
+
+    def start(self) -> None:
+        self.main.start()
+        self.third.start()
+        self.daemon = start_daemon(self.directory, lambda s: mit_robot(s, self.BUSES))
+        self.main.wait_enabled([1, 2, 4])
+        self.third.wait_enabled([3])
+
+    def connect(self) -> RecordingClient:
+        assert self.daemon is not None
+        client = connect(self.daemon)
+        # (Right after the start the loop's status has not reached the API process yet.)
+        if client.get_status().get("controller", {}).get("fault") is not None:
+            client.rearm(timeout_s=WAIT_S)  # a test before failed
+        return client
+
+    def close(self) -> None:
+        try:
+            if self.daemon is not None:
+                self.daemon.shutdown()
+        finally:
+            self.main.close()
+            self.third.close()
+
+
+@pytest.fixture(scope="module")
+def mit(tmp_path_factory: pytest.TempPathFactory) -> Iterator[MitRig]:
+    # Shared by the tests, so no per-test leak check: the rig checks its own threads.
+    threads = set(threading.enumerate())
+    rig = MitRig(tmp_path_factory.mktemp("mit") / "d")
+    try:
+        rig.start()
+        yield rig
+    finally:
+        rig.close()
+    left = [t.name for t in threading.enumerate() if t not in threads and t.is_alive()]
+    assert not left, f"threads left running: {left}"
+
+
+@pytest.mark.vcan("vcan0", "vcan1")
+def test_mit_goal_on_two_buses_between_processes(mit: MitRig) -> None:
+    """The daemon and the emulator processes exchange frames over vcan0 and vcan1 (a third
+    socket sees them), two buses driven in parallel, and a goal succeeds."""
+    sniffers = {ch: Sniffer(ch) for ch in mit.BUSES}
+    try:
+        with mit.connect() as client:
+            move_by(client, mit.JOINTS, 0.3)
+            info = details(client)
+            assert {info["buses"][ch]["state"] for ch in mit.BUSES} == {"active"}
+        for channel, ids in mit.BUSES.items():
+            frames = sniffers[channel].drain()
+            commands = {m.arbitration_id for m in frames if m.arbitration_id != 0}
+            # AK replies come on the master id 0, data[0] naming the motor.
+            replies = {m.data[0] for m in frames if m.arbitration_id == 0}
+            assert commands == set(ids), (channel, commands)
+            assert replies == set(ids), (channel, replies)
+    finally:
+        for sniffer in sniffers.values():
+            sniffer.close()
+
+
+@pytest.mark.vcan("vcan0", "vcan1")
+def test_mit_silent_motor_aborts_and_rearm_recovers(mit: MitRig) -> None:
+    """Motor 3's process killed mid-goal: it falls silent (one ABORTED result naming it);
+    started again (power-cycled: out of motor mode), the re-arm enables it."""
+    with mit.connect() as client:
+        goal = mid_goal(client, mit.JOINTS)
+        mit.third.kill()
+        result = goal.wait(timeout_s=WAIT_S)
+        assert (result["status"], result["error_code"]) == ("aborted", -1), result
+        assert "no feedback from motor 3 (joint 'joint3')" in result["error_string"]
+        assert "check its power" in result["error_string"]  # not a full queue
+        mit.third.start()
+        assert client.rearm(timeout_s=WAIT_S)["rearmed"] is True
+        mit.third.wait_enabled([3])
+        move_by(client, mit.JOINTS, -0.2)
+        assert len(client.received("result", goal.goal_id)) == 1
+
+
+@pytest.mark.vcan("vcan0", "vcan1")
+def test_interface_down_mid_goal_is_a_bus_loss_then_rearm_after_up(mit: MitRig) -> None:
+    """``ip link set vcan0 down`` mid-goal: the kernel refuses the daemon's frames (ENETDOWN),
+    one ABORTED result says the bus is lost; re-arm fails while it is down, works once up."""
+    with mit.connect() as client:
+        goal = mid_goal(client, mit.JOINTS)
+        try:
+            ip("link", "set", "vcan0", "down")
+            result = goal.wait(timeout_s=WAIT_S)
+            assert (result["status"], result["error_code"]) == ("aborted", -1), result
+            message = result["error_string"]
+            assert "bus 'vcan0' (socketcan vcan0" in message, message
+            assert "Network is down" in message, message
+            assert "\n" not in message and "Traceback" not in message
+            motors = details(client)["motors"]
+            # Every motor of the bus is marked (the re-arm re-seeds them), none of the other.
+            assert all(motors[j]["fault"] for j in mit.JOINTS[:3]), motors
+            assert motors["joint4"]["fault"] is None, motors
+            with pytest.raises(RequestError) as refused:
+                client.rearm(timeout_s=WAIT_S)
+            assert "Network is down" in str(refused.value), refused.value
+        finally:
+            ip("link", "set", "vcan0", "up")
+        assert client.rearm(timeout_s=WAIT_S)["rearmed"] is True
+        move_by(client, mit.JOINTS, -0.2)
+        assert len(client.received("result", goal.goal_id)) == 1
+
+
+@pytest.mark.vcan("vcan0", "vcan1")
+def test_full_transmit_queue_is_reported_not_a_silent_stall(mit: MitRig) -> None:
+    """vcan0 made slow: a token-bucket queue that lets out about one frame a second and holds
+    one (vcan has no queue of its own: ``txqueuelen 1`` alone never fills it), and a flood
+    from this process keeping it full. The kernel refuses the daemon's frames (ENOBUFS); the
+    goal aborts, the error names the full transmit queue, the status counts the refusals."""
+    flooding = threading.Event()
+    flood_bus = can.Bus(interface="socketcan", channel="vcan0")
+
+    def flood() -> None:
+        junk = can.Message(arbitration_id=0x6F0, data=bytes(8), is_extended_id=False)
+        while flooding.is_set():
+            try:
+                flood_bus.send(junk, timeout=0.0)
+            except can.CanOperationError:
+                flooding.wait(0.001)  # full, as it should be: try again soon
+
+    flooder = threading.Thread(target=flood, name="flood")
+    try:
+        with mit.connect() as client:
+            goal = mid_goal(client, mit.JOINTS)
+            try:
+                ip("link", "set", "vcan0", "txqueuelen", "1")
+                tc("qdisc", "add", "dev", "vcan0", "root", "tbf", "rate", "128bit",
+                   "burst", "16", "limit", "16")
+                flooding.set()
+                flooder.start()
+                result = goal.wait(timeout_s=WAIT_S)
+                assert details(client)["buses"]["vcan0"]["tx_overflows"] > 0
+            finally:
+                flooding.clear()
+                if flooder.is_alive():
+                    flooder.join(WAIT_S)
+                tc("qdisc", "del", "dev", "vcan0", "root")
+            assert (result["status"], result["error_code"]) == ("aborted", -1), result
+            message = result["error_string"]
+            assert "the transmit queue of bus 'vcan0' (socketcan vcan0" in message, message
+            assert "is full" in message, message
+            assert client.rearm(timeout_s=WAIT_S)["rearmed"] is True
+            move_by(client, mit.JOINTS, -0.2)
+    finally:
+        flood_bus.shutdown()

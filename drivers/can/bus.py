@@ -45,6 +45,8 @@ Per cycle:
   ``socketcand`` client turns ``< error >`` into error frames). :meth:`BusHealth.check`
   raises ``CommunicationError`` on bus-off; the recovery action is closing and reopening
   the bus (:func:`reopen`) on the client's re-arm.
+* :func:`full_queue` ``(health)``: the explanation of a full transmit queue (frames refused
+  since the last one it took), or ``None``; drivers append it to a no-feedback fault.
 * :func:`flush` ``(bus)``: discard every queued received frame and the transmit queue (where
   the interface can): used on stop/activate so stale frames are never replayed.
 
@@ -65,6 +67,7 @@ blocking (``recv(timeout=0)``) except while waiting, bounded, for replies the cy
 
 from __future__ import annotations
 
+import errno
 import functools
 import logging
 import socket
@@ -93,6 +96,7 @@ __all__ = [
     "collect_until",
     "drain_latest",
     "flush",
+    "full_queue",
     "joint_bus_param",
     "joint_buses",
     "open_bus",
@@ -365,6 +369,8 @@ class BusHealth:
     bus_offs: int = 0
     error_passives: int = 0
     stale_flushed: int = 0
+    unsent: int = 0
+    """Frames refused by a full transmit queue since the last one it took (0: not full)."""
 
     def note_error_frame(self, msg: can.Message) -> None:
         """Update the state from a SocketCAN-style error frame."""
@@ -421,6 +427,7 @@ class BusHealth:
             "bus_offs": self.bus_offs,
             "error_passives": self.error_passives,
             "stale_flushed": self.stale_flushed,
+            "unsent": self.unsent,
         }
 
 
@@ -520,25 +527,39 @@ def collect_until(
     return result
 
 
+_GONE_ERRNOS: Final = frozenset({
+    errno.ENETDOWN, errno.ENODEV, errno.ENXIO, errno.EBADF, errno.EPIPE, errno.ECONNRESET,
+})
+"""Send errors that mean the interface is gone, not full (SocketCAN: ``ip link set can0
+down``, an unplugged USB adapter); python-can raises them as ``CanOperationError`` too."""
+
+
 def send(bus: can.BusABC, msg: can.Message, health: BusHealth | None = None) -> bool:
     """Transmit one frame without waiting for room in the queue.
 
-    A full transmit buffer (``can.CanOperationError``) means frames are queued faster than
-    the wire carries them (or nobody acknowledges them): the queued, now stale, frames are
-    flushed so they are never sent late, and ``False`` is returned.
+    A full transmit buffer (``can.CanOperationError``; SocketCAN: ``ENOBUFS`` from the
+    interface's queue) means frames are queued faster than the wire carries them (or nobody
+    acknowledges them): the queued, now stale, frames are flushed so they are never sent
+    late, it is counted in ``health.tx_overflows`` (and ``health.unsent``, until a frame is
+    queued again), and ``False`` is returned.
 
     Returns:
         ``True`` when the frame was queued.
 
     Raises:
-        can.CanError: another interface failure (the hardware wraps it).
+        can.CanError: another interface failure, among them an interface that is down or
+            gone (``ENETDOWN``, ``ENODEV``, ...: a bus loss, not a full queue); the hardware
+            wraps it.
     """
     try:
         bus.send(msg, timeout=0.0)
     except can.CanOperationError as exc:
+        if exc.error_code in _GONE_ERRNOS:
+            raise
         count = 1
         if health is not None:
             health.tx_overflows += 1
+            health.unsent += 1
             count = health.tx_overflows
         if count == 1 or count % 1000 == 0:  # a jammed bus must not flood the log
             _log.warning("transmit buffer full on %s (%s; %d times): flushing stale frames",
@@ -547,7 +568,20 @@ def send(bus: can.BusABC, msg: can.Message, health: BusHealth | None = None) -> 
         return False
     if health is not None:
         health.tx_frames += 1
+        health.unsent = 0
     return True
+
+
+def full_queue(health: BusHealth) -> str | None:
+    """Why frames do not get out, when the transmit queue refuses them (``None``: it does
+    not): the end of a no-feedback fault's message, so that a jammed queue is named as the
+    cause instead of the motors."""
+    if not health.unsent:
+        return None
+    return (f"the transmit queue of {health.settings.describe()} is full ({health.unsent} "
+            f"frames refused in a row, {health.tx_overflows} in all): the bus carries fewer "
+            "frames than are sent; check that the other nodes acknowledge (power, bitrate, "
+            "termination), the bus load, and the interface's queue (txqueuelen, qdisc)")
 
 
 def _flush_tx(bus: can.BusABC) -> None:

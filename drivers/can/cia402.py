@@ -1077,10 +1077,10 @@ class Cia402Hardware(HardwareInterface):
                 f"sent no TPDO for {age:.3f} s (feedback_timeout_s {self._feedback_timeout_s:g}; "
                 f"{d.late} late, {d.missed} missed answers)"
             )
-        message = (
-            f"{self._owner()}: {d.who()} {what}; check its power, CAN wiring and "
-            f"termination, node id and bit rate ({b.settings.bitrate} bit/s)"
-        )
+        why = canbus.full_queue(b.health)
+        message = f"{self._owner()}: {d.who()} {what}; " + (why or (
+            f"check its power, CAN wiring and termination, node id and bit rate "
+            f"({b.settings.bitrate} bit/s)"))
         self._last_fault_by_node[d.node_id] = message
         return CommunicationError(message)
 

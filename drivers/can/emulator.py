@@ -47,7 +47,9 @@ replies, the drive temperature and a Damiao error code (``"damiao"`` reply forma
 (an error frame with ``CAN_ERR_BUSOFF``, then silence until :meth:`MitBusEmulator.clear_bus_off`).
 
 ``main(argv)`` runs emulators in a process, behind a socketcand server (default) so that other
-processes reach them with python-can's stock ``socketcand`` interface, until SIGINT/SIGTERM.
+processes reach them with python-can's stock ``socketcand`` interface, or on the kernel's
+SocketCAN devices (``--interface socketcan --channel vcan0``: every process on the host
+reaches them there), until SIGINT/SIGTERM.
 With ``--events`` it prints, after its connect line, one JSON line per motor event
 (``{"event": "enabled"|"disabled"|"timeout", "channel": ..., "id": ..., "t": ...}``, ``t`` on
 the system-wide monotonic clock, so another process can compare it with its own times), and
@@ -63,6 +65,7 @@ no thread hand-over.
 from __future__ import annotations
 
 import argparse
+import errno
 import heapq
 import json
 import math
@@ -498,7 +501,15 @@ class MitBusEmulator:
                     continue
                 timeout = min(_IDLE_POLL_S, _IDLE_POLL_S if next_due is None
                               else next_due - now - self._early.early_s)
-                msg = self.bus.recv(timeout=timeout)
+                try:
+                    msg = self.bus.recv(timeout=timeout)
+                except can.CanOperationError as exc:
+                    if exc.error_code != errno.ENETDOWN:
+                        raise
+                    # SocketCAN: the network device shared with the driver went down (`ip
+                    # link set vcan0 down`); motors on a wire would not notice: keep
+                    # listening, frames come again once it is up.
+                    continue
                 if msg is not None:
                     self._handle(msg, self._sent_at(msg))
                 elif next_due is not None:
@@ -757,7 +768,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="jtc-hw emulate can",
         description="Emulate CAN motors (MIT mode or CiA 402 drives) and serve them over "
-        "socketcand on 127.0.0.1 (or on an in-process python-can virtual bus).",
+        "socketcand on 127.0.0.1, on SocketCAN devices (vcan0, ...), or on an in-process "
+        "python-can virtual bus.",
     )
     parser.add_argument("--protocol", choices=("mit", "cia402"), default="mit")
     parser.add_argument("--ids", action="append", default=None,
@@ -769,8 +781,11 @@ def build_parser() -> argparse.ArgumentParser:
                         help="deliver replies no earlier than the wire at --bitrate would")
     parser.add_argument("--socketcand-port", type=int, default=0,
                         help="TCP port of the socketcand server (0: any free port)")
-    parser.add_argument("--interface", choices=("socketcand", "virtual"), default="socketcand",
-                        help="socketcand: serve over TCP; virtual: in-process bus only")
+    parser.add_argument("--interface", choices=("socketcand", "virtual", "socketcan"),
+                        default="socketcand",
+                        help="socketcand: serve over TCP; virtual: in-process bus only; "
+                        "socketcan: join the kernel's CAN network devices named by --channel "
+                        "(vcan0, can0; other processes reach the motors there)")
     parser.add_argument("--channel", action="append", default=None,
                         help="bus channel name (repeatable; default can0)")
     parser.add_argument("--one-thread", action="store_true",
@@ -837,7 +852,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         factory = Cia402DriveEmulator
 
     tag = uuid.uuid4().hex[:8]
-    virtual = {ch: (ch if args.interface == "virtual" else f"emu-{tag}-{ch}") for ch, _ in pairs}
+    # The python-can channel each bus opens: a private virtual one behind socketcand, else
+    # the name given (a virtual channel, or a SocketCAN device).
+    virtual = {ch: (f"emu-{tag}-{ch}" if args.interface == "socketcand" else ch)
+               for ch, _ in pairs}
+    bus_interface = "socketcan" if args.interface == "socketcan" else "virtual"
     buses: list[can.BusABC] = []
     emulators: list[Any] = []
     server = None
@@ -853,9 +872,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     print_lock = threading.Lock()
     try:
         for ch, ids in pairs:
+            try:
+                bus = can.Bus(interface=bus_interface, channel=virtual[ch])
+            except (OSError, can.CanError) as exc:  # SocketCAN: no such device, no AF_CAN
+                print(f"jtc-hw emulate can: cannot open {bus_interface} channel {ch!r} "
+                      f"({exc}); check `ip link show {ch}` (a vcan: modprobe vcan; ip link "
+                      f"add dev {ch} type vcan; ip link set up {ch})", file=sys.stderr)
+                return 2
+            buses.append(bus)
             if args.protocol == "mit":
-                bus = can.Bus(interface="virtual", channel=virtual[ch])
-                buses.append(bus)
                 emulators.append(MitBusEmulator(
                     bus, ids, args.model, bitrate=args.bitrate, pace=args.pace,
                     master_id=args.master_id,
@@ -863,8 +888,6 @@ def main(argv: Sequence[str] | None = None) -> int:
             else:
                 # One bus object per channel: its drives share one receive thread and one
                 # modelled wire, as drives on one cable do.
-                bus = can.Bus(interface="virtual", channel=virtual[ch])
-                buses.append(bus)
                 pace = args.bitrate if args.pace else None
                 # 0.5 ms physics sub-steps, as for the MIT motors (a quarter of the default's
                 # CPU, stable at these gains).
@@ -894,7 +917,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             print(f"interface=socketcand host={server.host} port={server.port} "
                   f"channel={','.join(virtual)}", flush=True)
         else:
-            print(f"interface=virtual channel={','.join(virtual)}", flush=True)
+            print(f"interface={args.interface} channel={','.join(virtual)}", flush=True)
         ready.set()
         if events:
             # An expired CAN timeout needs no frame to happen: look for them regularly (the

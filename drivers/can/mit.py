@@ -19,7 +19,9 @@ per motor" and a motor is heard from only when it is spoken to.
   fault.
 * Bus-off (``bus.state`` where the interface reports it, or a SocketCAN bus-off error frame)
   is a fault; error-passive is counted and logged. A full transmit buffer flushes the stale
-  queue (the motor then misses one cycle, which its ``feedback_timeout`` tolerates). Stale
+  queue (the motor then misses one cycle, which its ``feedback_timeout`` tolerates); a queue
+  that stays full starves the motors, and their no-feedback fault names the full queue as
+  the cause. A send error saying the interface is down or gone is a bus loss. Stale
   received frames are flushed on configure, activate and deactivate, and the transmit queue
   on deactivate, so nothing queued before a stop is replayed.
 
@@ -111,6 +113,7 @@ from .bus import (
     collect_until,
     drain_latest,
     flush,
+    full_queue,
     joint_bus_param,
     joint_buses,
     open_settings,
@@ -808,10 +811,11 @@ class MitHardware(HardwareInterface):
                     f"{self._max_temp[i]:g}; let it cool, then re-arm")
             elif stale[i]:
                 age = now_ns - int(self._rx_ns[i])
+                why = full_queue(self._links[self._bus_of[i]].health)
                 error = CommunicationError(
                     f"{self._owner()}: no feedback from {where} for {age / 1e6:.0f} ms "
-                    f"(feedback_timeout {self._timeout_ns[i] / 1e6:g} ms); check its power, "
-                    "CAN id and wiring")
+                    f"(feedback_timeout {self._timeout_ns[i] / 1e6:g} ms); "
+                    + (why or "check its power, CAN id and wiring"))
             if error is not None:
                 self._faults[joint] = str(error)
                 first = first or error

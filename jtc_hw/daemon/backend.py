@@ -93,7 +93,10 @@ _LOOP_ERRORS: dict[str, type[JtcHwError]] = {
     "CommunicationError": HardwareError,
     "MotorFault": HardwareError,
 }
-START_TIMEOUT_S = 30.0
+# The loop process's start (a spawned interpreter importing numpy and the drivers, then the
+# hardware's configure and activate). JTC_HW_LOOP_START_TIMEOUT_S raises it where a machine
+# is known to be far slower, as tools/vcan-hil's software-emulated VM (issue 15).
+START_TIMEOUT_S = float(os.environ.get("JTC_HW_LOOP_START_TIMEOUT_S", "30"))
 REQUEST_TIMEOUT_S = 5.0
 REAP_TIMEOUT_S = 5.0
 """Bound on reaping the loop process once its sentinel says it ended (microseconds in practice)."""

@@ -1,8 +1,9 @@
 """The daemon (a subprocess) drives MIT emulators living in this test process.
 
 Across processes the daemon uses python-can's stock ``socketcand`` interface to reach a
-:class:`SocketcandServer` bridging to the emulators' virtual bus; the same tests run on
-``socketcan`` / ``vcan0`` where the kernel has it (skipped otherwise, with the reason).
+:class:`SocketcandServer` bridging to the emulators' virtual bus. The same driver over the
+kernel's SocketCAN (``vcan0``) is tested by ``test_vcan_hil.py`` (marked ``vcan``; run in a VM
+by ``tools/vcan-hil``).
 """
 
 from __future__ import annotations
@@ -50,18 +51,6 @@ IDS = [1, 2, 3, 4, 5, 6]
 WATCHDOG_S = 0.3
 
 
-def _has_vcan0() -> str | None:
-    """Why the socketcan variant cannot run here (``None``: it can)."""
-    if not os.path.exists("/sys/class/net/vcan0"):
-        return "no vcan0 network device (needs a kernel with SocketCAN: modprobe vcan; " \
-               "ip link add dev vcan0 type vcan; ip link set up vcan0)"
-    try:
-        can.Bus(interface="socketcan", channel="vcan0").shutdown()
-    except OSError as exc:
-        return f"cannot open socketcan vcan0: {exc}"
-    return None
-
-
 def write_config(daemon: DaemonProcess, bus_params: dict[str, Any], model: str,
                  master_id: int) -> None:
     config = robot_config(daemon.socket)
@@ -91,17 +80,13 @@ class CanWorld:
     def __init__(self, transport: str, directory: Path, model: str = "AK80-9",
                  master_id: int = 0) -> None:
         self.transport = transport
-        self.server: SocketcandServer | None = None
-        if transport == "socketcand":
-            channel = f"daemon-{uuid.uuid4().hex}"
-            self.bus = can.Bus(interface="virtual", channel=channel)
-            self.server = SocketcandServer(port=0, channels={"can0": channel})
-            self.server.start()
-            bus_params: dict[str, Any] = {"interface": "socketcand", "host": "127.0.0.1",
-                                          "port": self.server.port, "channel": "can0"}
-        else:
-            self.bus = can.Bus(interface="socketcan", channel="vcan0")
-            bus_params = {"interface": "socketcan", "channel": "vcan0"}
+        assert transport == "socketcand"  # SocketCAN: test_vcan_hil.py
+        channel = f"daemon-{uuid.uuid4().hex}"
+        self.bus = can.Bus(interface="virtual", channel=channel)
+        self.server: SocketcandServer | None = SocketcandServer(port=0, channels={"can0": channel})
+        self.server.start()
+        bus_params: dict[str, Any] = {"interface": "socketcand", "host": "127.0.0.1",
+                                      "port": self.server.port, "channel": "can0"}
         self.emulator = MitBusEmulator(self.bus, IDS, model, master_id=master_id)
         self.emulator.start()
         self.daemon = DaemonProcess(directory)
@@ -117,13 +102,9 @@ class CanWorld:
             self.bus.shutdown()
 
 
-@pytest.fixture(params=["socketcand", "socketcan"])
-def world(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[CanWorld]:
-    if request.param == "socketcan":
-        reason = _has_vcan0()
-        if reason:
-            pytest.skip(reason)
-    w = CanWorld(request.param, tmp_path)
+@pytest.fixture
+def world(tmp_path: Path) -> Iterator[CanWorld]:
+    w = CanWorld("socketcand", tmp_path)
     try:
         w.daemon.start()
         w.daemon.wait_ready()

@@ -103,7 +103,10 @@ def cmd_record(args: argparse.Namespace) -> int:
         print(f"error: --duration must be a positive number of seconds, not {args.duration}",
               file=sys.stderr)
         return EXIT_BAD_INPUT
-    previous = signal.signal(signal.SIGTERM, _terminate)
+    # SIGINT too, explicitly: Python turns it into KeyboardInterrupt only when it was not
+    # ignored at start, and a shell starts background jobs (`jtc-hw record out &` in a script)
+    # with SIGINT ignored; Ctrl-C or `kill -INT` must still finish the bag.
+    previous = {sig: signal.signal(sig, _terminate) for sig in (signal.SIGTERM, signal.SIGINT)}
     try:
         with _connect(args) as client:
             before = time.time_ns()
@@ -124,7 +127,8 @@ def cmd_record(args: argparse.Namespace) -> int:
             print(f"wrote {recorder.path} ({counts})", flush=True)
             return EXIT_OK
     finally:
-        signal.signal(signal.SIGTERM, previous)
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
 
 
 def _record(client: Any, recorder: Any, args: argparse.Namespace) -> None:

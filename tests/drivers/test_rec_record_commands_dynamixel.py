@@ -11,6 +11,7 @@ with deadlines; nothing asserts a duration.
 
 from __future__ import annotations
 
+import signal
 import subprocess
 import sys
 from collections.abc import Iterator
@@ -66,9 +67,12 @@ def test_record_has_every_accepted_command_of_every_client(
     daemon: DxlDaemon, tmp_path: Path
 ) -> None:
     bag = tmp_path / "commands"
+    # Started with SIGINT ignored, as a shell starts a background job (`jtc-hw record out &`):
+    # its Ctrl-C below must still finish the bag.
     recorder = subprocess.Popen(
         [sys.executable, "-m", "jtc_hw", "record", str(bag), "--socket", str(daemon.socket)],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=daemon_env())
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=daemon_env(),
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
     try:
         assert recorder.stdout is not None
         line = recorder.stdout.readline()  # printed once subscribed

@@ -94,7 +94,8 @@ class FlightRecorder:
             except ImportError:
                 self.available = False
                 log.warning("flight recorder off: it needs the rosbags library "
-                            "(pip install 'jtc_hw[record]')")
+                            "(pip install 'jtc_hw[record]'; or daemon.flight_recorder_s: 0 "
+                            "to run without it and without this warning)")
         self._states: collections.deque[dict[str, Any]] = collections.deque()
         self._events: collections.deque[dict[str, Any]] = collections.deque()
         self._commands: collections.deque[tuple[int, Any]] = collections.deque()

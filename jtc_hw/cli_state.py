@@ -215,6 +215,25 @@ def status_lines(status: dict[str, Any]) -> list[str]:
                 )
             if comp.get("last_fault"):
                 lines.append(f"    last fault  {comp['last_fault']}")
+    flight = status.get("flight_recorder") or {}
+    if flight:
+        if not flight.get("enabled"):
+            lines.append("flight rec    off")
+        else:
+            rate = flight.get("cycle_rate_hz")
+            every = f"every cycle ({_num(rate, ' Hz')})" if rate else "published states"
+            lines.append(
+                f"flight rec    last {_num(flight.get('seconds'), ' s')} of {every}, "
+                f"lost cycles {_num(flight.get('lost_cycles'))}, write errors "
+                f"{_num(flight.get('errors'))}; last bag {flight.get('last_file') or '-'}"
+            )
+    zenoh = status.get("zenoh") or {}
+    if zenoh:
+        lines.append(
+            f"zenoh         {zenoh.get('prefix', '?')}: queries {_num(zenoh.get('queries'))}, "
+            f"busy {_num(zenoh.get('busy'))}, published {_num(zenoh.get('published'))}, "
+            f"dropped {_num(zenoh.get('dropped'))}, lost {_num(zenoh.get('lost'))}"
+        )
     if server:
         clients = server.get("clients", [])
         lines.append(

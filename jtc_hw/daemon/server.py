@@ -45,7 +45,7 @@ import collections
 import hmac
 import logging
 import time
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from concurrent.futures import ThreadPoolExecutor
 from functools import partial
 from pathlib import Path
@@ -177,6 +177,9 @@ class Server:
         self._over_limit = {"unix": 0, "tcp": 0}  # connections over the limit, being served
         self._stops_over_limit = 0
         self._results_discarded = 0
+        self.status_sections: dict[str, Callable[[], dict[str, Any]]] = {}
+        """More sections of ``get_status`` by name (an add-on's counters: ``zenoh``); each is
+        called in the event loop and must not block nor raise."""
         self._socket_identity: tuple[int, int] | None = None
         self._started = False
         self._closed = False
@@ -767,7 +770,9 @@ class Server:
             case GetConfig():
                 return reply(req.id, config=backend.config_dict())
             case GetStatus():
-                return self._merge(req.id, backend.status(), {"server": self.stats(conn)})
+                sections = {name: get() for name, get in self.status_sections.items()}
+                return self._merge(req.id, backend.status(),
+                                   {**sections, "server": self.stats(conn)})
             case Sim():
                 await backend.sim(req.component, req.freeze, req.fault)
                 if req.fault is not None:

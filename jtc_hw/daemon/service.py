@@ -212,6 +212,7 @@ class Daemon:
             await iface.close()
             return False
         self.backend.add_tap(iface)
+        server.status_sections["zenoh"] = iface.stats
         self.zenoh = iface
         return iface
 

@@ -28,6 +28,7 @@ from helpers.daemon import (
     JOINTS,
     WAIT_S,
     DaemonProcess,
+    connect,
     daemon_env,
     loop_process,
     next_state,
@@ -257,6 +258,29 @@ def test_accepted_commands_reach_a_subscription_that_asks_for_them(daemon: Zenoh
             assert all(m["event"] == "state" for m in seen)
     finally:
         client.close()
+
+
+def test_status_counts_the_zenoh_queries_on_the_socket_and_in_the_table(
+    daemon: ZenohDaemon,
+) -> None:
+    """``get_status`` (any transport) carries the Zenoh interface's counters, and ``jtc-hw
+    status`` prints them: queries answered grow with each query over Zenoh."""
+    remote = daemon.client()
+    try:
+        remote.get_status()
+        remote.get_status()
+    finally:
+        remote.close()
+    with connect(daemon) as local:
+        zenoh = local.get_status()["zenoh"]
+    assert zenoh["prefix"] == daemon.prefix
+    assert zenoh["queries"] >= 3  # hello and the two get_status, over Zenoh
+    assert zenoh["busy"] == 0 and zenoh["lost"] == 0
+    table = subprocess.run(
+        [sys.executable, "-m", "jtc_hw", "status", "--socket", str(daemon.socket)],
+        capture_output=True, text=True, timeout=60, env=daemon_env(), check=True).stdout
+    line = next(x for x in table.splitlines() if x.startswith("zenoh"))
+    assert daemon.prefix in line and "queries" in line, table
 
 
 def test_a_vanished_clients_goal_still_gets_its_one_result(daemon: ZenohDaemon) -> None:

@@ -49,6 +49,7 @@ __all__ = [
     "ZenohSettings",
     "default_prefix",
     "endpoint_is_loopback",
+    "import_zenoh",
     "session_config",
     "zenoh_settings",
 ]
@@ -197,12 +198,11 @@ def _json(config: Any, key: str) -> Any:
     return json.loads(config.get_json(key))
 
 
-def session_config(settings: ZenohSettings) -> Any:
-    """The ``zenoh.Config`` of the daemon's session (module docstring: what comes from where).
+def import_zenoh() -> Any:
+    """The ``zenoh`` module (imported on first use: the loop process never loads it).
 
     Raises:
-        ConfigurationError: ``eclipse-zenoh`` is missing, or the configuration file cannot be
-            read as a Zenoh configuration.
+        ConfigurationError: ``eclipse-zenoh`` is missing; the message says what to install.
     """
     try:
         import zenoh
@@ -211,6 +211,17 @@ def session_config(settings: ZenohSettings) -> Any:
             f"needs the eclipse-zenoh package: {INSTALL_HINT}, or remove daemon.zenoh",
             "daemon.zenoh",
         ) from None
+    return zenoh
+
+
+def session_config(settings: ZenohSettings) -> Any:
+    """The ``zenoh.Config`` of the daemon's session (module docstring: what comes from where).
+
+    Raises:
+        ConfigurationError: ``eclipse-zenoh`` is missing, or the configuration file cannot be
+            read as a Zenoh configuration.
+    """
+    zenoh = import_zenoh()
     default = zenoh.Config()
     if settings.config is not None:
         try:

@@ -61,7 +61,7 @@ from ..controller.goals import GoalFeedback, GoalResult
 from ..controller.trajectory import JointTrajectory
 from ..errors import ConfigurationError
 from .connection import Connection, ServerSettings
-from .zenoh_config import INSTALL_HINT, session_config
+from .zenoh_config import import_zenoh, session_config
 
 if TYPE_CHECKING:
     from .server import Server
@@ -259,13 +259,7 @@ class ZenohInterface:
                 install), the configuration is unusable, or the session cannot be opened
                 (e.g. a listen endpoint is in use).
         """
-        try:
-            import zenoh
-        except ImportError:
-            raise ConfigurationError(
-                f"needs the eclipse-zenoh package: {INSTALL_HINT}, or remove daemon.zenoh",
-                "daemon.zenoh",
-            ) from None
+        zenoh = import_zenoh()
         config = session_config(self.settings)
         self._aio = asyncio.get_running_loop()
         try:

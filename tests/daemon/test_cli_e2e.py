@@ -29,13 +29,8 @@ def demo(tmp_path_factory: pytest.TempPathFactory) -> Iterator[DaemonProcess]:
     """The daemon ``jtc-hw demo`` starts (its configuration, simulated joints)."""
     d = DaemonProcess(tmp_path_factory.mktemp("cli"))
     d.config_path.write_text(yaml.safe_dump(demo_config(str(d.socket)), sort_keys=False))
-    d.start()
-    try:
-        d.wait_ready()
+    with d.serving():
         yield d
-    finally:
-        code = d.shutdown()
-    assert code == 0, f"the daemon exited with {code}:\n{d.log()}"
 
 
 def jtc_hw(*args: str) -> subprocess.CompletedProcess[str]:

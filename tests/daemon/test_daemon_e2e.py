@@ -92,13 +92,8 @@ RESULT_KEYS = {"event", "goal_id", "status", "error_code", "error_string", "deta
 def daemon(tmp_path_factory: pytest.TempPathFactory) -> Iterator[DaemonProcess]:
     """The shared daemon (``max_message_bytes`` small enough to test ``too_large``)."""
     d = DaemonProcess(tmp_path_factory.mktemp("e2e"), max_message_bytes=MAX_MESSAGE_BYTES)
-    d.start()
-    try:
-        d.wait_ready()
+    with d.serving():
         yield d
-    finally:
-        code = d.shutdown()
-    assert code == 0, f"the shared daemon exited with {code}:\n{d.log()}"
     assert "stopped cleanly" in d.log()
 
 

@@ -25,13 +25,8 @@ def daemon(tmp_path_factory: pytest.TempPathFactory) -> Iterator[DaemonProcess]:
     robot = yaml.safe_load(d.config_path.read_text())
     robot["limits"] = {JOINTS[0]: {"velocity": LIMIT, "acceleration": 4.0}}
     d.config_path.write_text(yaml.safe_dump(robot, sort_keys=False))
-    d.start()
-    try:
-        d.wait_ready()
+    with d.serving():
         yield d
-    finally:
-        code = d.shutdown()
-    assert code == 0, f"the daemon exited with {code}:\n{d.log()}"
 
 
 def overshooting(target: float) -> dict[str, object]:

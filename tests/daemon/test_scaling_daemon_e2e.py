@@ -22,13 +22,8 @@ pytestmark = pytest.mark.usefixtures("no_leaks")  # threads, sockets, resources
 @pytest.fixture(scope="module")
 def daemon(tmp_path_factory: pytest.TempPathFactory) -> Iterator[DaemonProcess]:
     d = DaemonProcess(tmp_path_factory.mktemp("scaling"))
-    d.start()
-    try:
-        d.wait_ready()
+    with d.serving():
         yield d
-    finally:
-        code = d.shutdown()
-    assert code == 0, f"the daemon exited with {code}:\n{d.log()}"
 
 
 def test_a_goal_sent_while_paused_waits_then_resume_completes_it(daemon: DaemonProcess) -> None:

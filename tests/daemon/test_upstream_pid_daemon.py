@@ -53,13 +53,8 @@ def subset_arm(tmp_path_factory: pytest.TempPathFactory) -> Iterator[DaemonProce
     """A daemon whose controller commands joint1-3 and only monitors joint4-6."""
     d = DaemonProcess(tmp_path_factory.mktemp("subset"))
     d.config_path.write_text(yaml.safe_dump(subset_config(d.socket, COMMANDED), sort_keys=False))
-    d.start()
-    try:
-        d.wait_ready()
+    with d.serving():
         yield d
-    finally:
-        code = d.shutdown()
-    assert code == 0, f"the daemon exited with {code}:\n{d.log()}"
 
 
 def test_subset_of_command_joints_moves_only_those(subset_arm: DaemonProcess) -> None:

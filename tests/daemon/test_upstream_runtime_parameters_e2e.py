@@ -24,13 +24,8 @@ pytestmark = pytest.mark.usefixtures("no_leaks")  # threads, sockets, resources
 @pytest.fixture(scope="module")
 def daemon(tmp_path_factory: pytest.TempPathFactory) -> Iterator[DaemonProcess]:
     d = DaemonProcess(tmp_path_factory.mktemp("params"))
-    d.start()
-    try:
-        d.wait_ready()
+    with d.serving():
         yield d
-    finally:
-        code = d.shutdown()
-    assert code == 0, f"the daemon exited with {code}:\n{d.log()}"
 
 
 def test_a_change_reaches_the_loop_the_planner_and_the_config(

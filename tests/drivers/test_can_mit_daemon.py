@@ -8,12 +8,8 @@ by ``tools/vcan-hil``).
 
 from __future__ import annotations
 
-import json
 import os
 import signal
-import subprocess
-import sys
-import threading
 import time
 import uuid
 from collections.abc import Callable, Iterator
@@ -23,6 +19,7 @@ from typing import Any
 import can
 import pytest
 import yaml
+from helpers.can_emulator import EmulatorProcess
 from helpers.daemon import (
     GOAL_TOL,
     JOINTS,
@@ -30,7 +27,6 @@ from helpers.daemon import (
     WAIT_S,
     DaemonProcess,
     connect,
-    daemon_env,
     loop_process,
     next_state,
     robot_config,
@@ -42,8 +38,6 @@ from jtc_hw.api.client import Client
 from jtc_hw.api.framing import RequestError
 from jtc_hw.drivers.can.emulator import MitBusEmulator
 from jtc_hw.drivers.can.socketcand import SocketcandServer
-
-from conftest import ROOT
 
 pytestmark = pytest.mark.usefixtures("no_leaks")  # threads, sockets, resources
 
@@ -237,71 +231,22 @@ def test_damiao_drive_fault_then_rearm_clears_it(damiao_world: CanWorld) -> None
 # -- fail-safe: bus loss, power cycle, re-arm; the loop killed ------------------------------------
 
 
-class EmulatorProcess:
-    """``jtc-hw emulate can --events`` as a process (kill -9 is a bus loss, starting it again
-    on the same port a motor power cycle), and the motor events it prints."""
+class MitEmulatorProcess(EmulatorProcess):
+    """``jtc-hw emulate can --events`` over socketcand as a process (kill -9 is a bus loss,
+    starting it again on the same port a motor power cycle), and the motor events it prints."""
 
     def __init__(self, model: str, master_id: int) -> None:
+        super().__init__()
         self.model = model
         self.master_id = master_id
         self.port = 0
-        self.proc: subprocess.Popen[str] | None = None
-        self._reader: threading.Thread | None = None
-        self._changed = threading.Condition()
-        self._enabled: dict[int, bool] = {}
-        self._connect: str | None = None
 
     def start(self, ids: str = "1-6") -> None:
         """Start (on the port of the previous start, if any); wait for its connect line."""
-        self._enabled = {}
-        self._connect = None
-        self.proc = subprocess.Popen(
-            [sys.executable, "-m", "jtc_hw.drivers.can.emulator", "--ids", ids,
-             "--model", self.model, "--master-id", str(self.master_id),
-             "--socketcand-port", str(self.port), "--events"],
-            stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, stdin=subprocess.DEVNULL,
-            text=True, cwd=ROOT, env=daemon_env(),
-        )
-        self._reader = threading.Thread(target=self._read, args=(self.proc,),
-                                        name="emulator-events")
-        self._reader.start()
-        with self._changed:
-            if not self._changed.wait_for(lambda: self._connect is not None, WAIT_S):
-                raise AssertionError("the emulator process did not start")
-        assert self._connect is not None
-        self.port = int(dict(kv.split("=", 1) for kv in self._connect.split())["port"])
-
-    def _read(self, proc: subprocess.Popen[str]) -> None:
-        assert proc.stdout is not None
-        for line in proc.stdout:
-            with self._changed:
-                if self._connect is None:
-                    self._connect = line
-                else:
-                    event = json.loads(line)
-                    if event["event"] in ("enabled", "disabled"):
-                        self._enabled[event["id"]] = event["event"] == "enabled"
-                self._changed.notify_all()
-
-    def wait_enabled(self, ids: list[int]) -> None:
-        """Until every motor of ``ids`` reported it is in motor mode (since this start)."""
-        with self._changed:
-            if not self._changed.wait_for(
-                    lambda: all(self._enabled.get(i) for i in ids), WAIT_S):
-                raise AssertionError(f"motors enabled: {self._enabled}, expected {ids}")
-
-    def kill(self) -> None:
-        """SIGKILL, as a crash or a cut cable: no goodbye on the bus."""
-        assert self.proc is not None and self._reader is not None and self.proc.stdout
-        self.proc.kill()
-        self.proc.wait(timeout=WAIT_S)
-        self._reader.join(WAIT_S)
-        self.proc.stdout.close()
-        self.proc = None
-
-    def close(self) -> None:
-        if self.proc is not None:
-            self.kill()
+        connect = self.spawn(["--ids", ids, "--model", self.model, "--master-id",
+                              str(self.master_id), "--socketcand-port", str(self.port),
+                              "--events"])
+        self.port = int(dict(kv.split("=", 1) for kv in connect.split())["port"])
 
 
 def _wait_fault(client: Client) -> str:
@@ -324,7 +269,7 @@ def test_bus_loss_power_cycle_rearm_enables_every_motor(
     emulator says so), the status is truthful, and a small goal succeeds."""
     if not hasattr(Client, "rearm"):
         pytest.skip("jtc_hw.api.client.Client has no rearm() yet")
-    emulator = EmulatorProcess(model, master_id)
+    emulator = MitEmulatorProcess(model, master_id)
     daemon = DaemonProcess(tmp_path)
     try:
         emulator.start()

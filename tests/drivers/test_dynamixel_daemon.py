@@ -86,13 +86,8 @@ def position_daemon(
 ) -> Iterator[DxlDaemon]:
     d = DxlDaemon(tmp_path_factory.mktemp("dxl"),
                   lambda sock: robot(sock, emulator.device_path))
-    d.start()
-    try:
-        d.wait_ready()
+    with d.serving():
         yield d
-    finally:
-        code = d.shutdown()
-    assert code == 0, f"the daemon exited with {code}:\n{d.log()}"
 
 
 def traj(positions: list[float], t: float) -> dict[str, Any]:

@@ -64,13 +64,8 @@ def daemon(
 ) -> Iterator[DxlDaemon]:
     d = DxlDaemon(tmp_path_factory.mktemp("health"),
                   lambda sock: robot(sock, emulator.device_path))
-    d.start()
-    try:
-        d.wait_ready()
+    with d.serving():
         yield d
-    finally:
-        code = d.shutdown()
-    assert code == 0, f"the daemon exited with {code}:\n{d.log()}"
 
 
 def motor_health(status: dict[str, Any], servo_id: int) -> dict[str, Any]:

@@ -45,13 +45,8 @@ def daemon(
 ) -> Iterator[DxlDaemon]:
     d = DxlDaemon(tmp_path_factory.mktemp("faulted"),
                   lambda sock: robot(sock, emulator.device_path))
-    d.start()
-    try:
-        d.wait_ready()
+    with d.serving():
         yield d
-    finally:
-        code = d.shutdown()
-    assert code == 0, f"the daemon exited with {code}:\n{d.log()}"
 
 
 def test_health_is_read_while_faulted_and_the_fault_is_shown(

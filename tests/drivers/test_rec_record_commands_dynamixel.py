@@ -44,13 +44,8 @@ def daemon(tmp_path_factory: pytest.TempPathFactory,
            emulator: DynamixelEmulator) -> Iterator[DxlDaemon]:
     d = DxlDaemon(tmp_path_factory.mktemp("reccmd"),
                   lambda sock: robot(sock, emulator.device_path))
-    d.start()
-    try:
-        d.wait_ready()
+    with d.serving():
         yield d
-    finally:
-        code = d.shutdown()
-    assert code == 0, f"the daemon exited with {code}:\n{d.log()}"
 
 
 def read_commands(bag: Path) -> list[tuple[str, int, Any]]:

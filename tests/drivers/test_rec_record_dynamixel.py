@@ -48,13 +48,8 @@ def emulator() -> Iterator[DynamixelEmulator]:
 def daemon(tmp_path_factory: pytest.TempPathFactory,
            emulator: DynamixelEmulator) -> Iterator[DxlDaemon]:
     d = DxlDaemon(tmp_path_factory.mktemp("rec"), lambda sock: robot(sock, emulator.device_path))
-    d.start()
-    try:
-        d.wait_ready()
+    with d.serving():
         yield d
-    finally:
-        code = d.shutdown()
-    assert code == 0, f"the daemon exited with {code}:\n{d.log()}"
 
 
 def jtc_hw(*args: str) -> subprocess.Popen[str]:

@@ -46,13 +46,8 @@ def daemon(
         return cfg
 
     d = DxlDaemon(tmp_path_factory.mktemp("dxl-scaling"), config)
-    d.start()
-    try:
-        d.wait_ready()
+    with d.serving():
         yield d
-    finally:
-        code = d.shutdown()
-    assert code == 0, f"the daemon exited with {code}:\n{d.log()}"
 
 
 def goal(p0: list[float]) -> dict[str, Any]:

@@ -19,7 +19,6 @@ keep their tight tolerances). Nothing here measures time.
 
 from __future__ import annotations
 
-import json
 import subprocess
 import sys
 import threading
@@ -30,6 +29,7 @@ from typing import Any, ClassVar
 import can
 import pytest
 import yaml
+from helpers.can_emulator import EmulatorProcess
 from helpers.daemon import DaemonProcess, RecordingClient, daemon_env, next_state, settle
 
 from jtc_hw.api.framing import RequestError
@@ -50,69 +50,21 @@ FEEDBACK_TIMEOUT_S = 2.0
 # -- the emulator in its own process -------------------------------------------------------------
 
 
-class EmulatorProcess:
+class SocketcanEmulator(EmulatorProcess):
     """``python -m jtc_hw.drivers.can.emulator --interface socketcan ... --events``: motors in
     their own process, on the kernel's bus; their enable/disable events as it prints them."""
 
-    def __init__(self, protocol: str, buses: dict[str, list[int]]) -> None:
-        self.protocol = protocol
+    def __init__(self, buses: dict[str, list[int]]) -> None:
+        super().__init__()
         self.buses = buses
-        self.proc: subprocess.Popen[str] | None = None
-        self._reader: threading.Thread | None = None
-        self._changed = threading.Condition()
-        self._lines: list[str] = []
-        self._enabled: dict[int, bool] = {}
 
     def start(self) -> None:
         """Start; wait for its connect line (it has joined the buses)."""
-        argv = [sys.executable, "-m", "jtc_hw.drivers.can.emulator", "--protocol",
-                self.protocol, "--interface", "socketcan"]
+        args = ["--protocol", "mit", "--interface", "socketcan", "--events"]
         for channel, ids in self.buses.items():
-            argv += ["--channel", channel, "--ids", ",".join(map(str, ids))]
-        if self.protocol == "mit":
-            argv.append("--events")
-        self._lines, self._enabled = [], {}
-        self.proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL,
-                                     stdin=subprocess.DEVNULL, text=True, cwd=ROOT,
-                                     env=daemon_env())
-        self._reader = threading.Thread(target=self._read, args=(self.proc,),
-                                        name="emulator-events")
-        self._reader.start()
-        with self._changed:
-            if not self._changed.wait_for(lambda: self._lines, WAIT_S):
-                raise AssertionError("the emulator process did not start")
-        assert self._lines[0].split()[0] == "interface=socketcan", self._lines[0]
-
-    def _read(self, proc: subprocess.Popen[str]) -> None:
-        assert proc.stdout is not None
-        for line in proc.stdout:
-            with self._changed:
-                if self._lines:
-                    event = json.loads(line)
-                    if event["event"] in ("enabled", "disabled"):
-                        self._enabled[event["id"]] = event["event"] == "enabled"
-                self._lines.append(line)
-                self._changed.notify_all()
-
-    def wait_enabled(self, ids: Sequence[int]) -> None:
-        """Until every motor of ``ids`` reported it is in motor mode (since this start)."""
-        with self._changed:
-            if not self._changed.wait_for(
-                    lambda: all(self._enabled.get(i) for i in ids), WAIT_S):
-                raise AssertionError(f"motors enabled: {self._enabled}, expected {ids}")
-
-    def kill(self) -> None:
-        """SIGKILL: the motors fall silent at once, without a goodbye on the bus."""
-        assert self.proc is not None and self._reader is not None and self.proc.stdout
-        self.proc.kill()
-        self.proc.wait(timeout=WAIT_S)
-        self._reader.join(WAIT_S)
-        self.proc.stdout.close()
-        self.proc = None
-
-    def close(self) -> None:
-        if self.proc is not None:
-            self.kill()
+            args += ["--channel", channel, "--ids", ",".join(map(str, ids))]
+        connect = self.spawn(args)
+        assert connect.split()[0] == "interface=socketcan", connect
 
 
 class Sniffer:
@@ -320,8 +272,8 @@ class MitRig:
     JOINTS: ClassVar[list[str]] = ["joint1", "joint2", "joint3", "joint4"]
 
     def __init__(self, directory: Path) -> None:
-        self.main = EmulatorProcess("mit", {"vcan0": [1, 2], "vcan1": [4]})
-        self.third = EmulatorProcess("mit", {"vcan0": [3]})
+        self.main = SocketcanEmulator({"vcan0": [1, 2], "vcan1": [4]})
+        self.third = SocketcanEmulator({"vcan0": [3]})
         self.directory = directory
         self.daemon: DaemonProcess | None = None
 

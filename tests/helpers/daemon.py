@@ -14,7 +14,8 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -214,6 +215,18 @@ class DaemonProcess:
             if not left or time.monotonic() > deadline:
                 return left
             time.sleep(0.02)  # polling /proc for processes of another parent to exit
+
+    @contextmanager
+    def serving(self) -> Iterator[None]:
+        """Started and ready inside the block; afterwards stopped, nothing of it left, and its
+        exit status 0 (a module's shared daemon: ``with d.serving(): yield d``)."""
+        self.start()
+        try:
+            self.wait_ready()
+            yield
+        finally:
+            code = self.shutdown()
+        assert code == 0, f"the daemon exited with {code}:\n{self.log()}"
 
     def shutdown(self) -> int | None:
         """Stop if still running and make sure nothing of it is left; the exit status."""

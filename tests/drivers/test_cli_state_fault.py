@@ -16,6 +16,7 @@ from pathlib import Path
 import pytest
 import yaml
 from helpers.daemon import WAIT_S, DaemonProcess, connect, daemon_env
+from helpers.dynamixel import DAEMON_TEST_TIMEOUT_MS
 
 from jtc_hw.drivers.dynamixel.control_table import HardwareError
 from jtc_hw.drivers.dynamixel.emulator import DynamixelEmulator
@@ -36,7 +37,7 @@ def faulted(tmp_path: Path) -> Iterator[tuple[DaemonProcess, DynamixelEmulator]]
             "port": emulator.device_path, "baud_rate": 4_000_000, "ids": IDS,
             "model": "XM430-W350", "offset": -math.pi,
             # The emulator shares this process: allow for its thread being starved.
-            "timeout_ms": 100.0, "max_retries": 1, "latency_timer_warn": False,
+            "timeout_ms": DAEMON_TEST_TIMEOUT_MS, "max_retries": 1, "latency_timer_warn": False,
             "watchdog_s": 1.0,
         }
         hardware = [{"name": "arm", "kind": "dynamixel", "joints": JOINTS, "params": params}]

@@ -31,6 +31,7 @@ from helpers.daemon import (
 from helpers.daemon import (
     ConfiguredDaemon as DxlDaemon,
 )
+from helpers.dynamixel import DAEMON_TEST_TIMEOUT_MS
 
 from jtc_hw import GoalRejected
 from jtc_hw.api.client import Client
@@ -59,7 +60,7 @@ def robot(socket_path: Path, device: str, interface: str = "position",
         "offset": -math.pi,
         # The emulator shares the test process: allow for its thread being starved on a loaded
         # machine (a missed reply here is a fault that the next test would inherit).
-        "timeout_ms": 100.0,
+        "timeout_ms": DAEMON_TEST_TIMEOUT_MS,
         "max_retries": 1,
         "latency_timer_warn": False,
         # Long unless a test is about it: a loaded machine pausing the daemon must not trip

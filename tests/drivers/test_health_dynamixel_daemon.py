@@ -18,6 +18,7 @@ from typing import Any
 import pytest
 from helpers.daemon import WAIT_S, DaemonProcess, connect
 from helpers.daemon import ConfiguredDaemon as DxlDaemon
+from helpers.dynamixel import DAEMON_TEST_TIMEOUT_MS
 
 from jtc_hw.cli import EXIT_NO_DAEMON, main
 from jtc_hw.cli_health import format_hardware, hardware_report
@@ -39,7 +40,7 @@ def robot(socket_path: Path, device: str) -> dict[str, Any]:
         "ids": IDS,
         "offset": -math.pi,
         # The emulator shares the test process: allow for its thread being starved.
-        "timeout_ms": 100.0,
+        "timeout_ms": DAEMON_TEST_TIMEOUT_MS,
         "latency_timer_warn": False,
         "watchdog_s": 1.0,
         "health_period_s": 0.2,

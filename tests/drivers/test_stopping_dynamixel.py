@@ -19,6 +19,7 @@ import numpy as np
 import pytest
 from helpers.daemon import STOP_TIMEOUT_S, connect, next_state
 from helpers.daemon import ConfiguredDaemon as DxlDaemon
+from helpers.dynamixel import DAEMON_TEST_TIMEOUT_MS
 
 from jtc_hw.api.client import ClientConnectionError
 from jtc_hw.drivers.dynamixel.emulator import DynamixelEmulator
@@ -42,7 +43,7 @@ def robot(socket_path: Path, device: str) -> dict[str, Any]:
         "ids": IDS,
         "model": "XM430-W350",
         "offset": -math.pi,
-        "timeout_ms": 100.0,  # the emulator shares the test process: allow for a busy machine
+        "timeout_ms": DAEMON_TEST_TIMEOUT_MS,
         "max_retries": 1,
         "latency_timer_warn": False,
         "watchdog_s": 1.0,

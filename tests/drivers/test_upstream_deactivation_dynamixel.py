@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from helpers.dynamixel import IDS, JOINTS, OFFSET, START
+from helpers.dynamixel import DAEMON_TEST_TIMEOUT_MS, IDS, JOINTS, OFFSET, START
 
 from jtc_hw.controller.goals import ErrorCode, GoalResult, GoalStatus
 from jtc_hw.controller.trajectory import JointTrajectory, TrajectoryPoint
@@ -48,7 +48,7 @@ def test_deactivation_writes_goal_velocity_zero_before_the_torque_goes_off(
         "ids": IDS,
         "model": "XM430-W350",
         "offset": OFFSET,
-        "timeout_ms": 100.0,  # the emulator shares this process
+        "timeout_ms": DAEMON_TEST_TIMEOUT_MS,
         "max_retries": 1,
         "latency_timer_warn": False,
         "watchdog_s": 1.0,

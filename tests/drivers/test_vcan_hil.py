@@ -55,7 +55,7 @@ class SocketcanEmulator(EmulatorProcess):
     their own process, on the kernel's bus; their enable/disable events as it prints them."""
 
     def __init__(self, buses: dict[str, list[int]]) -> None:
-        super().__init__()
+        super().__init__(WAIT_S)  # this module's: the VM is slow to start a Python
         self.buses = buses
 
     def start(self) -> None:

@@ -18,7 +18,9 @@ from conftest import ROOT
 class EmulatorProcess:
     """One emulator process at a time; :meth:`spawn` again after :meth:`kill` restarts it."""
 
-    def __init__(self) -> None:
+    def __init__(self, wait_s: float = WAIT_S) -> None:
+        self.wait_s = wait_s
+        """How long to wait for its lines and its exit (longer in an emulated machine)."""
         self.proc: subprocess.Popen[str] | None = None
         self._reader: threading.Thread | None = None
         self._changed = threading.Condition()
@@ -29,7 +31,7 @@ class EmulatorProcess:
         """Start the emulator with ``args``; wait for its first line, and return it.
 
         Raises:
-            AssertionError: it printed nothing within the tests' wait.
+            AssertionError: it printed nothing within ``wait_s``.
         """
         self._first_line, self._enabled = None, {}
         self.proc = subprocess.Popen(
@@ -41,7 +43,7 @@ class EmulatorProcess:
                                         name="emulator-events")
         self._reader.start()
         with self._changed:
-            if not self._changed.wait_for(lambda: self._first_line is not None, WAIT_S):
+            if not self._changed.wait_for(lambda: self._first_line is not None, self.wait_s):
                 raise AssertionError("the emulator process did not start")
             assert self._first_line is not None
             return self._first_line
@@ -62,15 +64,15 @@ class EmulatorProcess:
         """Until every motor of ``ids`` reported it is in motor mode (since this start)."""
         with self._changed:
             if not self._changed.wait_for(
-                    lambda: all(self._enabled.get(i) for i in ids), WAIT_S):
+                    lambda: all(self._enabled.get(i) for i in ids), self.wait_s):
                 raise AssertionError(f"motors enabled: {self._enabled}, expected {ids}")
 
     def kill(self) -> None:
         """SIGKILL, as a crash or a cut cable: the motors fall silent, no goodbye on the bus."""
         assert self.proc is not None and self._reader is not None and self.proc.stdout
         self.proc.kill()
-        self.proc.wait(timeout=WAIT_S)
-        self._reader.join(WAIT_S)
+        self.proc.wait(timeout=self.wait_s)
+        self._reader.join(self.wait_s)
         self.proc.stdout.close()
         self.proc = None
 

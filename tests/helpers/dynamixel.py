@@ -18,6 +18,14 @@ START = {1: math.pi + 0.2, 2: math.pi - 0.3, 3: math.pi + 0.5}  # motor rad
 WAIT_S = 10.0
 
 
+DAEMON_TEST_TIMEOUT_MS = 250.0
+"""``timeout_ms`` of a daemon driving the emulator of a test: the emulator is a thread of the
+test's process, and ``.ci/run`` runs two suites side by side on 2 cores, so a reply may wait
+for that thread to be scheduled (100 ms once timed out twice in a row there, faulting a shared
+daemon and the tests after it). Real servos answer within the 5 ms default; no test here is
+about how soon a silent servo is noticed."""
+
+
 def now_ns() -> int:
     return time.monotonic_ns()
 

@@ -27,11 +27,18 @@ def rings(d: DaemonProcess) -> list[Path]:
     return sorted(SHM.glob(f"jtc_hw_{d.pid}_*"))
 
 
+def foreign_rings(*ours: DaemonProcess) -> list[Path]:
+    """Rings of daemons this test did not start (another test session on the machine)."""
+    pids = {d.pid for d in ours}
+    return [p for p in SHM.glob("jtc_hw_*_*") if p.name.split("_")[2] not in map(str, pids)]
+
+
 def test_a_killed_daemons_ring_is_removed_when_the_next_one_starts(tmp_path: Path) -> None:
     first = DaemonProcess(tmp_path / "d", flight_recorder_dir=str(tmp_path / "bags"))
     first.start()
     try:
         first.wait_ready()
+        others = foreign_rings(first)
         left = rings(first)
         assert len(left) == 1, sorted(SHM.iterdir())
         os.killpg(first.pid, signal.SIGKILL)  # API process, loop, resource tracker: all
@@ -46,7 +53,12 @@ def test_a_killed_daemons_ring_is_removed_when_the_next_one_starts(tmp_path: Pat
     try:
         second.wait_ready()
         assert not left[0].exists()
-        assert "the cycle ring of a daemon that was killed" in second.log()
+        # Which daemon removed it: this one, unless another session's daemon ran meanwhile
+        # (.ci/run runs two suites side by side; any starting daemon removes every stale ring,
+        # which is the design). Such a daemon's ring is seen here or above.
+        others += foreign_rings(first, second)
+        if not others:
+            assert "the cycle ring of a daemon that was killed" in second.log()
         own = rings(second)
         assert len(own) == 1
     finally:

@@ -14,6 +14,8 @@ Configuration:
 * :func:`joint_bus_param` -- the per-joint ``bus`` ParamSpec (which bus a joint is on; may be
   omitted when there is one bus).
 * :class:`BusSettings` -- one bus's validated settings (frozen dataclass).
+* :meth:`BusSettings.device_names` / :func:`bus_keys` -- the canonical device-lock names of a
+  bus and of what is unique on it (motor ids, the CANopen master), for ``devices()``.
 * :func:`joint_buses` -- resolve the per-joint ``bus`` values against the buses (errors name
   ``params.bus.<joint>``).
 
@@ -69,7 +71,9 @@ from __future__ import annotations
 
 import errno
 import functools
+import ipaddress
 import logging
+import os
 import socket
 import time
 from collections.abc import Callable, Iterable, Mapping, MutableMapping
@@ -80,7 +84,7 @@ from typing import Any, Final
 import can
 
 from jtc_hw.errors import CommunicationError, ConfigurationError
-from jtc_hw.hardware import ParamKind, ParamSpec, param_table, validate_params
+from jtc_hw.hardware import DeviceName, ParamKind, ParamSpec, param_table, validate_params
 
 __all__ = [
     "BUS_FIELDS",
@@ -91,6 +95,9 @@ __all__ = [
     "BusHealth",
     "BusSettings",
     "DrainResult",
+    "THIS_HOST",
+    "bus_keys",
+    "canonical_hosts",
     "buses_param",
     "close_bus",
     "collect_until",
@@ -166,12 +173,111 @@ class BusSettings:
             where = f"{self.channel} at {self.host}:{self.port}"
         return f"bus {self.name!r} ({self.interface} {where} @ {self.bitrate // 1000} kbit/s)"
 
-    def lock_name(self) -> str:
-        """The device lock name (``HardwareInterface.devices``): ``can:<interface>:<channel>``,
-        for socketcand ``can:socketcand:<host>:<port>:<channel>``."""
-        if self.interface == "socketcand":
-            return f"can:socketcand:{self.host}:{self.port}:{self.channel}"
-        return f"can:{self.interface}:{self.channel}"
+    def device_names(self, things: Mapping[str, str]) -> tuple[DeviceName, ...]:
+        """The device locks of ``things`` on this bus (``HardwareInterface.devices``).
+
+        ``things`` maps what must be unique on the bus to its label, e.g. ``{"mit:3": "motor
+        3"}``; each becomes ``<bus key>:<thing>``, where the bus key is canonical
+        (:func:`bus_keys`), and is labelled ``<describe()> <label>``. A socketcand host that
+        resolves to several addresses gives one name per address.
+
+        Raises:
+            HardwareError: the bus cannot be named (see :func:`bus_keys`).
+        """
+        where = self.describe()
+        return tuple(
+            DeviceName(f"{bus}:{thing}", f"{where} {label}")
+            for bus in bus_keys(self) for thing, label in things.items()
+        )
+
+
+THIS_HOST: Final = "this-host"
+"""The socketcand lock key's host for every address of this machine (see :func:`bus_keys`)."""
+
+
+def bus_keys(settings: BusSettings) -> tuple[str, ...]:
+    """The canonical names of the bus ``settings`` reaches, for device locks.
+
+    Two configurations that reach one bus get the same key, whatever they spell:
+
+    * ``socketcan``: the kernel's interface index (``can:socketcan:#3``), which an
+      alternative name (``ip link property add ... altname``) or a rename does not change.
+      An interface that does not exist is an error now (it could not be opened anyway, and
+      the lock must not be keyed on a name that may later name another interface).
+    * ``socketcand``: ``can:socketcand:<host>:<port>:<channel>``, the port a number and the
+      host resolved (``getaddrinfo``), one key per address. Every address of this machine
+      (loopback ``127.0.0.0/8`` and ``::1``, and any address a socket can bind to here) is
+      :data:`THIS_HOST`: ``localhost``, ``127.0.0.1``, ``::1`` and the machine's own name
+      reach one listener when socketcand listens on all addresses, its usual setup. A
+      server that listens on one loopback address only, next to another server on another
+      with the same port, is thereby taken for the same device: a refusal to start, never
+      two daemons on one bus. A remote server is its address: ``robot.lan`` and
+      ``10.0.0.5`` meet there; daemons on different machines do not see each other's locks
+      at all.
+    * any other interface: ``can:<interface>:<channel>``, the channel as given, except a
+      path (slcan's ``/dev/ttyACM0``), which is resolved as a serial port is.
+
+    Raises:
+        CommunicationError: the host does not resolve, or the SocketCAN interface does not
+            exist (names the bus and what to check).
+    """
+    if settings.interface == "socketcan":
+        try:
+            index = socket.if_nametoindex(settings.channel)
+        except OSError:
+            raise CommunicationError(
+                f"{settings.describe()}: no network interface {settings.channel!r} (see "
+                f"'ip link show'); bring it up before starting the daemon"
+            ) from None
+        return (f"can:socketcan:#{index}",)
+    if settings.interface == "socketcand":
+        return tuple(
+            f"can:socketcand:{host}:{settings.port}:{settings.channel}"
+            for host in canonical_hosts(settings.host, settings.port, settings.describe())
+        )
+    channel = settings.channel
+    if channel.startswith("/"):
+        channel = os.path.realpath(channel)
+    return (f"can:{settings.interface}:{channel}",)
+
+
+def canonical_hosts(host: str, port: int, what: str) -> tuple[str, ...]:
+    """``host``'s addresses as lock keys: :data:`THIS_HOST` for this machine's, else the
+    address (IPv4-mapped IPv6 as IPv4); sorted, without repeats.
+
+    Raises:
+        CommunicationError: ``host`` does not resolve (``what`` names the bus).
+    """
+    try:
+        infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)
+    except (socket.gaierror, UnicodeError) as exc:
+        reason = exc.strerror if isinstance(exc, socket.gaierror) else "not a host name"
+        raise CommunicationError(
+            f"{what}: host {host!r} does not resolve ({reason}); check the bus's host"
+        ) from None
+    keys = set()
+    for family, _, _, _, sockaddr in infos:
+        try:
+            address = ipaddress.ip_address(str(sockaddr[0]).split("%")[0])
+        except ValueError:
+            continue
+        if isinstance(address, ipaddress.IPv6Address) and address.ipv4_mapped is not None:
+            address = address.ipv4_mapped
+        if address.is_loopback or _assigned_here(family, sockaddr):
+            keys.add(THIS_HOST)
+        else:
+            keys.add(str(address))
+    return tuple(sorted(keys))
+
+
+def _assigned_here(family: int, sockaddr: tuple[Any, ...]) -> bool:
+    """Whether ``sockaddr`` is an address of this machine: a socket binds to it (port 0)."""
+    try:
+        with socket.socket(family, socket.SOCK_STREAM) as probe:
+            probe.bind((sockaddr[0], 0, *sockaddr[2:]))
+    except OSError:
+        return False
+    return True
 
 
 def _coerce_buses(value: Any, path: str) -> Mapping[str, BusSettings]:

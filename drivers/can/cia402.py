@@ -80,6 +80,7 @@ from jtc_hw.errors import CommunicationError, ConfigurationError, HardwareError,
 from jtc_hw.hardware import (
     JOINT_MAPPING_PARAMS,
     WATCHDOG_PARAM,
+    DeviceName,
     DeviceWatchdog,
     HardwareInterface,
     JointCommand,
@@ -783,9 +784,28 @@ class Cia402Hardware(HardwareInterface):
             f"and applies 0x6007 = {int(self._reaction)}, {_REACTION_TEXT[self._reaction]}",
         )
 
-    def devices(self) -> tuple[str, ...]:
-        """The buses the drives are on (``BusSettings.lock_name``); no I/O."""
-        return tuple(dict.fromkeys(b.settings.lock_name() for b in self._buses.values()))
+    def devices(self) -> tuple[DeviceName, ...]:
+        """Per bus, the CANopen master role, then one lock per drive's node id
+        (``BusSettings.device_names``).
+
+        The master role is exclusive on a bus (CiA 301): this driver is the NMT master (it
+        resets and starts nodes), the SYNC producer (COB-ID 0x80; a second producer would
+        double the rate every synchronous PDO follows) and the heartbeat producer the drives'
+        consumers watch (``master_node_id``: another daemon's heartbeat would keep a dead
+        daemon's drives enabled). So two CiA 402 daemons never share a bus; the node ids
+        also keep a daemon of another kind off these drives' ids.
+
+        Raises:
+            CommunicationError: a bus cannot be named (unknown interface, unresolved host).
+        """
+        return tuple(dict.fromkeys(
+            name
+            for b in self._buses.values()
+            for name in b.settings.device_names({
+                "canopen-master": "CANopen master (NMT, SYNC, heartbeat)",
+                **{f"canopen-node:{d.node_id}": f"drive node {d.node_id}" for d in b.drives},
+            })
+        ))
 
     def _recover(self) -> None:
         for d in self._drives:

@@ -93,6 +93,7 @@ from jtc_hw.errors import CommunicationError, ConfigurationError, HardwareError,
 from jtc_hw.hardware import (
     JOINT_MAPPING_PARAMS,
     WATCHDOG_PARAM,
+    DeviceName,
     DeviceWatchdog,
     HardwareInterface,
     JointCommand,
@@ -354,9 +355,21 @@ class MitHardware(HardwareInterface):
             mechanism += "; AK motors have none and keep their last command"
         return DeviceWatchdog(self._watchdog_s, mechanism, unprotected)
 
-    def devices(self) -> tuple[str, ...]:
-        """The buses this component drives, as lock names (``BusSettings.lock_name``)."""
-        return tuple(link.settings.lock_name() for link in self._links.values())
+    def devices(self) -> tuple[DeviceName, ...]:
+        """One lock per motor id on each bus (``BusSettings.device_names``): a motor listens
+        to the frames of its id, so two daemons may share a bus with different ids, never one
+        id. Nothing else on the bus is exclusive: replies carry the motor id (AK) or come to a
+        master id that only filters (Damiao), and each driver keeps only its own motors'.
+
+        Raises:
+            CommunicationError: a bus cannot be named (unknown interface, unresolved host).
+        """
+        return tuple(
+            name
+            for link in self._links.values()
+            for name in link.settings.device_names(
+                {f"mit:{motor_id}": f"motor {motor_id}" for motor_id in link.ids})
+        )
 
     # -- primitives ---------------------------------------------------------------------------
 

@@ -83,6 +83,7 @@ from jtc_hw.errors import (
 from jtc_hw.hardware import (
     JOINT_MAPPING_PARAMS,
     WATCHDOG_PARAM,
+    DeviceName,
     DeviceWatchdog,
     HardwareInterface,
     JointCommand,
@@ -492,10 +493,13 @@ class DynamixelHardware(HardwareInterface):
             "goals are refused until a rearm",
         )
 
-    def devices(self) -> tuple[str, ...]:
+    def devices(self) -> tuple[DeviceName, ...]:
         """The serial port, resolved (``/dev/serial/by-id/...`` and ``/dev/ttyUSB0`` are one
-        device)."""
-        return (os.path.realpath(self.params["port"]),)
+        device). The whole port, not per servo id: the bus is half duplex with one master,
+        so a second daemon's packets would collide with this one's whatever ids they name."""
+        port = self.params["port"]
+        real = os.path.realpath(port)
+        return (DeviceName(real, real if real == port else f"{port} ({real})"),)
 
     # -- lifecycle primitives -------------------------------------------------------------------
 

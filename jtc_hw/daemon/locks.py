@@ -3,27 +3,52 @@
 Theory of operation
 -------------------
 Before the loop process configures any hardware it locks every device its components name
-(``HardwareInterface.devices()``: a serial port's resolved path, ``can:<interface>:<channel>``);
-before the API process starts the loop it locks its socket path. A lock is ``flock(LOCK_EX |
-LOCK_NB)`` on a lock file, so it is held exactly as long as the process that took it lives
-(the kernel releases it when the process dies, even by SIGKILL: no stale lock can block a
-restart), and the file records the holder (the daemon's pid and its configuration file) for
-the error a second daemon prints: "/dev/ttyUSB0 is already driven by pid 4242
-(/etc/jtc-hw/robot.yaml)". A second daemon stops there, before it has sent anything.
+(``HardwareInterface.devices()``); before the API process starts the loop it locks its socket
+path. A lock is ``flock(LOCK_EX | LOCK_NB)`` on a lock file, so it is held exactly as long as
+the process that took it lives (the kernel releases it when the process dies, even by
+SIGKILL: no stale lock can block a restart), and the file records the holder (the daemon's
+pid and its configuration file) for the error a second daemon prints: "/dev/ttyUSB0 is
+already driven by pid 4242 (/etc/jtc-hw/robot.yaml), user jtc-hw; stop that daemon first".
+A second daemon stops there, before it has sent anything. If the file does not name the
+holder (it could not write it), the holder is found in ``/proc/locks`` (the pid holding the
+file's inode) and its user from ``/proc/<pid>``; failing that, the file's owner is named.
 
-Where the files are:
+What a lock names: the device, not its spelling. A :class:`~jtc_hw.hardware.DeviceName` has
+a canonical ``key`` (a serial port's real path, a SocketCAN interface's index, a socketcand
+server's resolved address and port; on a CAN bus one key per motor id or node id, and one
+for a bus-wide role such as the CANopen master: see the drivers' ``devices()``) that names
+the file, and a ``label`` for messages. A plain string is both.
 
-- devices: ``/run/lock/jtc-hw/`` (``/run/lock`` is the FHS place for lock files: a tmpfs that
-  every user may write on common distributions, emptied at boot), created mode 1777 so that
-  daemons of different users see each other's locks. If it cannot be used (``/run/lock`` not
-  writable by this user), the fallback is ``jtc-hw-lock`` in the temporary directory, with a
-  warning: daemons that use different directories do not see each other, so give the service
-  ``/run/lock/jtc-hw`` (tmpfiles.d ``d /run/lock/jtc-hw 1777 root root -`` and
-  ``ReadWritePaths=/run/lock/jtc-hw`` under ``ProtectSystem=strict``). ``JTC_HW_LOCK_DIR``
-  overrides both (all daemons of a machine must agree on it). A file is named after its device
-  (:func:`lock_file_name`): ``/dev/ttyUSB0`` -> ``dev-ttyUSB0.lock``.
+Where the files are, and who may use them
+-----------------------------------------
+Two things matter: (a) two daemons on one device never both run, whoever runs them, and (b)
+a stranger (a user who runs no daemon) cannot deny a start. A directory that every user may
+write to (the old ``/run/lock/jtc-hw``, mode 1777) fails (b): anyone could create a device's
+lock file first and hold its ``flock``. So the directory is the daemons' only:
+
+- devices: ``/run/jtc-hw-locks`` (:data:`LOCK_DIR`). ``/run`` is root's, so nobody else can
+  create it first (in ``/run/lock``, mode 1777, a stranger could); the systemd unit creates it
+  as root, mode 1770 (``ExecStartPre=+``); where daemons of several users share the machine,
+  give it their group: ``install -d -m 3770 -g jtc-hw /run/jtc-hw-locks`` (or tmpfiles.d
+  ``d /run/jtc-hw-locks 3770 root jtc-hw -``); the setgid bit gives every lock file that
+  group, so each member can take over a file another left behind. A daemon that finds it
+  missing creates it itself (mode 3770, its own user and group). If ``/run`` is not writable
+  by this user and the directory does not exist (a workstation, no service installed), the
+  fallback is ``jtc-hw-lock`` in the temporary directory, with a warning: daemons that use
+  different directories do not see each other. A directory that exists but cannot be used is
+  an error, never a reason to fall back (another daemon may hold its locks there).
+  ``JTC_HW_LOCK_DIR`` overrides both (all daemons of a machine must agree on it).
+- Every start checks the directory before it locks anything (:func:`check_directory`): it and
+  each directory above it must belong to root or to this daemon's user; the lock directory
+  must grant others nothing (so nobody outside its owner and group can open, let alone
+  ``flock``, a file in it) and, if its group may write, be sticky (so one member cannot remove
+  another's held lock file and let a third daemon in); a directory above it that others may
+  write must be sticky (``/tmp``). Otherwise the start is refused, naming the directory, its
+  owner and its mode. Lock files are created mode 0660.
+- A file is named after its device's key (:func:`lock_file_name`): ``/dev/ttyUSB0`` ->
+  ``dev-ttyUSB0.lock``.
 - the socket: next to it, ``<socket>.lock``: whoever can use the socket path can use its
-  directory, which is the socket's own (``RuntimeDirectory=`` under systemd).
+  directory, which is the socket's own (``RuntimeDirectory=`` under systemd, mode 0750).
 
 Not done: ``flock`` on the serial device itself (pyserial's ``exclusive=True``, which other
 tools honour) would need the second daemon to *open* the port to find out, and opening a tty
@@ -38,8 +63,10 @@ from __future__ import annotations
 
 import errno
 import fcntl
+import grp
 import logging
 import os
+import pwd
 import stat
 import tempfile
 from collections.abc import Sequence
@@ -47,6 +74,7 @@ from dataclasses import dataclass
 from typing import Final
 
 from ..errors import HardwareError
+from ..hardware import DeviceName
 
 __all__ = [
     "LOCK_DIR",
@@ -54,6 +82,7 @@ __all__ = [
     "DeviceBusy",
     "DeviceLock",
     "acquire",
+    "check_directory",
     "lock_devices",
     "lock_directory",
     "lock_file_name",
@@ -62,10 +91,14 @@ __all__ = [
 
 log = logging.getLogger("jtc_hw.locks")
 
-LOCK_DIR: Final = "/run/lock/jtc-hw"
+LOCK_DIR: Final = "/run/jtc-hw-locks"
 """Where device lock files live (see the module docstring for the fallback)."""
 LOCK_DIR_ENV: Final = "JTC_HW_LOCK_DIR"
 """Environment variable overriding :data:`LOCK_DIR` (every daemon of a machine must agree)."""
+LOCK_DIR_MODE: Final = 0o3770
+"""The mode a daemon creates the lock directory with: owner and group only, sticky, setgid."""
+LOCK_FILE_MODE: Final = 0o660
+"""The mode of a lock file: its group's daemons take over a file another left behind."""
 _SAFE = frozenset("abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ0123456789_.+@,=")
 
 
@@ -73,22 +106,27 @@ class DeviceBusy(HardwareError):
     """A device or socket is locked by another process.
 
     Attributes:
-        name: the device (lock name) or socket path.
-        pid: the holder's pid as its lock file records it, if it does.
+        name: the device (its label) or socket path.
+        pid: the holder's pid as its lock file records it, or as ``/proc/locks`` shows it.
         config: the holder's configuration file as recorded, if any.
+        user: the holder's user name (or uid), if found.
     """
 
-    def __init__(self, message: str, name: str, pid: int | None, config: str | None) -> None:
+    def __init__(self, message: str, name: str, pid: int | None, config: str | None,
+                 user: str | None = None) -> None:
         super().__init__(message)
         self.name = name
         self.pid = pid
         self.config = config
+        self.user = user
 
 
 @dataclass(frozen=True)
 class _Owner:
     pid: int | None
     config: str | None
+    user: str | None = None
+    user_is_file_owner: bool = False
 
 
 def lock_file_name(name: str) -> str:
@@ -127,59 +165,128 @@ def lock_file_name(name: str) -> str:
 
 
 def lock_directory() -> str:
-    """The directory for device lock files, created (mode 1777) if missing.
+    """The directory for device lock files, created (mode 3770) if missing, and checked.
 
     Raises:
-        HardwareError: ``JTC_HW_LOCK_DIR`` names a directory that cannot be used, or none of
-            the candidates can (names them and what to check).
+        HardwareError: ``JTC_HW_LOCK_DIR`` or :data:`LOCK_DIR` names a directory that cannot
+            be used or that another user could use to deny a start (:func:`check_directory`),
+            or no candidate can be created (names them and what to do).
     """
     override = os.environ.get(LOCK_DIR_ENV)
     if override:
-        problem = _usable(override)
-        if problem:
-            raise HardwareError(f"{LOCK_DIR_ENV}={override}: {problem}")
+        _prepare(override, f"{LOCK_DIR_ENV}={override}")
         return override
-    problem = _usable(LOCK_DIR)
-    if not problem:
+    try:
+        _prepare(LOCK_DIR, LOCK_DIR)
+    except _CannotCreate as exc:
+        problem = str(exc)
+    else:
         return LOCK_DIR
     fallback = os.path.join(tempfile.gettempdir(), "jtc-hw-lock")
-    second = _usable(fallback)
-    if second:
+    try:
+        _prepare(fallback, fallback)
+    except _CannotCreate as exc:
         raise HardwareError(
-            f"no directory for the device locks: {LOCK_DIR}: {problem}; {fallback}: {second}; "
-            f"create {LOCK_DIR} (mode 1777) or set {LOCK_DIR_ENV}"
-        )
+            f"no directory for the device locks: {problem}; {exc}; create {LOCK_DIR} "
+            f"(install -d -m 3770 -g <the daemons' group> {LOCK_DIR}) or set {LOCK_DIR_ENV}"
+        ) from None
     log.warning(
-        "device locks in %s: %s %s; daemons using %s do not see these locks (create it with "
-        "mode 1777, e.g. tmpfiles.d 'd %s 1777 root root -')",
-        fallback, LOCK_DIR, problem, LOCK_DIR, LOCK_DIR,
+        "device locks in %s: %s; daemons using %s do not see these locks (create it, e.g. "
+        "tmpfiles.d 'd %s 3770 root jtc-hw -')",
+        fallback, problem, LOCK_DIR, LOCK_DIR,
     )
     return fallback
 
 
-def _usable(directory: str) -> str | None:
-    """Why ``directory`` cannot hold lock files (created if missing), or ``None``."""
+class _CannotCreate(HardwareError):
+    """The lock directory does not exist and cannot be created: the one case that falls back."""
+
+
+def _prepare(directory: str, what: str) -> None:
+    """Create ``directory`` (:data:`LOCK_DIR_MODE`) if missing, then :func:`check_directory`.
+
+    Raises:
+        _CannotCreate: it does not exist and cannot be created.
+        HardwareError: it exists but cannot be used, or is not safe.
+    """
     try:
-        os.mkdir(directory, 0o777)
+        os.mkdir(directory, 0o700)
     except FileExistsError:
         pass
     except OSError as exc:
-        return f"cannot create it ({exc.strerror})"
+        raise _CannotCreate(f"{what}: cannot create it ({exc.strerror})") from None
     else:
         try:
-            # The umask narrowed the mode; other users' daemons must add their files too.
-            os.chmod(directory, 0o1777)
-        except OSError:
-            pass
+            os.chmod(directory, LOCK_DIR_MODE)  # the umask narrowed it; mkdir drops S_ISVTX
+        except OSError as exc:
+            raise HardwareError(f"{what}: cannot set its mode ({exc.strerror})") from None
+    problem = check_directory(directory)
+    if problem:
+        raise HardwareError(f"{what}: {problem}")
+
+
+def check_directory(directory: str) -> str | None:
+    """Why ``directory`` cannot hold device locks, or ``None``: the safety rules of the
+    module docstring (owner root or this user up the whole path; the directory grants others
+    nothing; group-writable only with the sticky bit; a directory above that others may write
+    is sticky), then that this user may write it.
+
+    Raises:
+        Nothing: a problem is the returned text, naming the directory, its owner and mode.
+    """
+    uid = os.geteuid()
+    path = os.path.abspath(directory)
     try:
-        st = os.stat(directory)
+        st = os.stat(path)
     except OSError as exc:
         return f"cannot read it ({exc.strerror})"
     if not stat.S_ISDIR(st.st_mode):
         return "is not a directory"
-    if not os.access(directory, os.W_OK | os.X_OK):
-        return "is not writable by this user"
+    mode = stat.S_IMODE(st.st_mode)
+    if st.st_uid not in (0, uid):
+        return (f"belongs to user {_user_name(st.st_uid)} (mode {mode:04o}), who could deny or "
+                f"allow any start: it must be root's or this user's ({_user_name(uid)})")
+    if mode & 0o007:
+        return (f"mode {mode:04o} lets every user in (any of them could lock a device's file "
+                f"and deny a start): chmod o= {path}")
+    if mode & stat.S_IWGRP and not mode & stat.S_ISVTX:
+        return (f"mode {mode:04o}: a group-writable lock directory must be sticky (else one "
+                f"daemon's user can remove another's held lock file): chmod +t {path}")
+    parent = os.path.dirname(path)
+    while True:
+        try:
+            up = os.stat(parent)
+        except OSError as exc:
+            return f"cannot read {parent} ({exc.strerror})"
+        up_mode = stat.S_IMODE(up.st_mode)
+        if up.st_uid not in (0, uid):
+            return (f"{parent} belongs to user {_user_name(up.st_uid)}, who could replace "
+                    f"the lock directory: use a directory under root's or this user's")
+        if up_mode & (stat.S_IWGRP | stat.S_IWOTH) and not up_mode & stat.S_ISVTX:
+            return (f"{parent} (mode {up_mode:04o}) lets other users replace the lock "
+                    "directory: use a directory under one they cannot write")
+        if parent == "/":
+            break
+        parent = os.path.dirname(parent)
+    if not os.access(path, os.W_OK | os.X_OK):
+        return (f"is not writable by this user ({_user_name(uid)}; it is "
+                f"{_user_name(st.st_uid)}:{_group_name(st.st_gid)} {mode:04o}): add the "
+                f"daemon's user to group {_group_name(st.st_gid)}")
     return None
+
+
+def _user_name(uid: int) -> str:
+    try:
+        return pwd.getpwuid(uid).pw_name
+    except KeyError:
+        return str(uid)
+
+
+def _group_name(gid: int) -> str:
+    try:
+        return grp.getgrgid(gid).gr_name
+    except KeyError:
+        return str(gid)
 
 
 def socket_lock_path(socket_path: str) -> str:
@@ -241,7 +348,7 @@ def acquire(name: str, path: str, *, config: str | None, pid: int | None = None,
 
     Raises:
         DeviceBusy: another process holds the lock; the message names its pid and
-            configuration as recorded.
+            configuration as recorded (else the pid ``/proc/locks`` shows) and its user.
         HardwareError: the lock file cannot be created or opened (names it and why).
     """
     while True:
@@ -249,16 +356,21 @@ def acquire(name: str, path: str, *, config: str | None, pid: int | None = None,
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
-            owner = _read_owner(fd)
+            owner = _find_owner(fd)
             os.close(fd)
             by = f"pid {owner.pid}" if owner.pid is not None else "another process"
             where = f" ({owner.config})" if owner.config else ""
+            who = ""
+            if owner.user is not None:
+                who = (f", lock file owned by user {owner.user}" if owner.user_is_file_owner
+                       else f", user {owner.user}")
             raise DeviceBusy(
-                f"{name} is already {what} by {by}{where}; stop that daemon first (lock file "
-                f"{path})",
+                f"{name} is already {what} by {by}{where}{who}; stop that daemon first (lock "
+                f"file {path})",
                 name,
                 owner.pid,
                 owner.config,
+                owner.user,
             ) from None
         except OSError as exc:
             os.close(fd)
@@ -283,26 +395,31 @@ def acquire(name: str, path: str, *, config: str | None, pid: int | None = None,
     return DeviceLock(name, path, fd)
 
 
-def lock_devices(names: Sequence[str], *, config: str | None, pid: int | None = None
-                 ) -> list[DeviceLock]:
-    """Lock every device of ``names`` (duplicates once) in :func:`lock_directory`.
+def lock_devices(names: Sequence[DeviceName | str], *, config: str | None,
+                 pid: int | None = None) -> list[DeviceLock]:
+    """Lock every device of ``names`` (the same key once) in :func:`lock_directory`.
 
-    All or nothing: if one is busy, those already locked are released before raising.
+    A :class:`~jtc_hw.hardware.DeviceName`'s key names the file and its label the messages; a
+    plain string is both. All or nothing: if one is busy, those already locked are released
+    before raising.
 
     Raises:
-        DeviceBusy: a device is locked by another daemon (the message names it, its pid and
-            configuration).
+        DeviceBusy: a device is locked by another daemon (the message names it, its pid, user
+            and configuration).
         HardwareError: no usable lock directory, or a lock file cannot be opened.
     """
-    unique = list(dict.fromkeys(names))
+    unique: dict[str, str] = {}
+    for entry in names:
+        key, label = (entry, entry) if isinstance(entry, str) else (entry.key, entry.label)
+        unique.setdefault(key, label)
     if not unique:
         return []
     directory = lock_directory()
     held: list[DeviceLock] = []
     try:
-        for name in unique:
+        for key, label in unique.items():
             held.append(
-                acquire(name, os.path.join(directory, lock_file_name(name)), config=config,
+                acquire(label, os.path.join(directory, lock_file_name(key)), config=config,
                         pid=pid)
             )
     except BaseException:
@@ -330,14 +447,15 @@ def _open(name: str, path: str) -> int:
         else:
             raise HardwareError(f"{name}: cannot open the lock file {path}: permission denied")
         try:
-            fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_EXCL | flags, 0o666)
+            fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_EXCL | flags, LOCK_FILE_MODE)
         except FileExistsError:
             continue  # created meanwhile by another daemon: open that one
         except OSError as exc:
             raise HardwareError(f"{name}: cannot create the lock file {path}: "
                                 f"{exc.strerror}") from None
         try:
-            os.fchmod(fd, 0o666)  # whoever locks it next records its own pid, whatever the umask
+            # Whoever of its group locks it next records its own pid, whatever the umask.
+            os.fchmod(fd, LOCK_FILE_MODE)
         except OSError:
             pass
         return fd
@@ -352,6 +470,53 @@ def _same_file(fd: int, path: str) -> bool:
         raise
     own = os.fstat(fd)
     return (st.st_dev, st.st_ino) == (own.st_dev, own.st_ino)
+
+
+def _find_owner(fd: int) -> _Owner:
+    """Who holds the lock on ``fd``'s file: the pid and configuration it recorded, else the
+    pid ``/proc/locks`` shows; the user owning that process, else the file's owner."""
+    recorded = _read_owner(fd)
+    pid = recorded.pid
+    if pid is None:
+        pid = _flock_holder(fd)
+    if pid is not None:
+        try:
+            uid = os.stat(f"/proc/{pid}").st_uid
+        except OSError:
+            pass  # gone meanwhile, or hidden (ProtectProc=invisible)
+        else:
+            return _Owner(pid, recorded.config, _user_name(uid))
+    try:
+        file_owner = os.fstat(fd).st_uid
+    except OSError:
+        return _Owner(pid, recorded.config)
+    return _Owner(pid, recorded.config, _user_name(file_owner), user_is_file_owner=True)
+
+
+def _flock_holder(fd: int) -> int | None:
+    """The pid holding a ``flock`` on ``fd``'s file, from ``/proc/locks``, if listed.
+
+    A line reads ``1: FLOCK  ADVISORY  WRITE 4242 fd:01:131090 0 EOF`` (the device's major
+    and minor in hex, then the inode); a waiter's has ``->`` after the number.
+    """
+    try:
+        st = os.fstat(fd)
+        with open("/proc/locks", encoding="ascii", errors="replace") as table:
+            lines = table.read().splitlines()
+    except OSError:
+        return None
+    want = (os.major(st.st_dev), os.minor(st.st_dev), st.st_ino)
+    for line in lines:
+        fields = line.split()
+        if len(fields) < 6 or fields[1] != "FLOCK":
+            continue
+        try:
+            major, minor, inode = fields[5].split(":")
+            if (int(major, 16), int(minor, 16), int(inode)) == want:
+                return int(fields[4])
+        except ValueError:
+            continue
+    return None
 
 
 def _read_owner(fd: int) -> _Owner:

@@ -54,6 +54,7 @@ __all__ = [
     "MIN_WATCHDOG_PERIODS",
     "NO_DEVICE_WATCHDOG",
     "WATCHDOG_PARAM",
+    "DeviceName",
     "DeviceWatchdog",
     "HEALTH_FIELDS",
     "health_params",
@@ -249,6 +250,21 @@ class DeviceWatchdog:
 NO_DEVICE_WATCHDOG: Final = DeviceWatchdog(
     None, "no device-side watchdog: motors keep their last command if the daemon dies"
 )
+
+
+@dataclass(frozen=True)
+class DeviceName:
+    """One thing a daemon must drive alone, as the device lock knows it.
+
+    Attributes:
+        key: canonical: the same string for every spelling that reaches the same device (a
+            serial port's real path, a resolved host and port, a network interface's index)
+            and different for different devices; it names the lock file.
+        label: what a user recognises, for messages ("bus 'can0' (socketcan can0) motor 3").
+    """
+
+    key: str
+    label: str
 
 
 # --------------------------------------------------------------------------------------------
@@ -709,13 +725,23 @@ class HardwareInterface(ABC):
         """
         return NO_DEVICE_WATCHDOG
 
-    def devices(self) -> tuple[str, ...]:
-        """The devices this component drives, as lock names: the daemon takes an exclusive
-        lock on each before ``configure`` so that a second daemon never touches them.
+    def devices(self) -> tuple[DeviceName, ...]:
+        """The devices this component drives: the daemon takes an exclusive lock on each
+        before ``configure`` so that a second daemon never touches them.
 
-        One string per device, the same for every configuration that reaches it: a serial
-        port's resolved path (``/dev/ttyUSB0``), ``can:<interface>:<channel>`` (socketcand:
-        ``can:socketcand:<host>:<port>:<channel>``). No I/O. Default: none (simulated).
+        One :class:`DeviceName` per device, its ``key`` the same for every configuration that
+        reaches it however it is spelt: a serial port by its real path (``os.path.realpath``:
+        ``/dev/serial/by-id/...`` and ``/dev/ttyUSB0`` are one port); a network peer by its
+        resolved address and port number; a SocketCAN interface by its kernel index. Where a
+        wire is shared by design (CAN: one bus, many motor ids), one name per thing that must
+        be unique on it (each motor id, a bus-wide role such as the CANopen master), so that
+        daemons driving different motors of one bus may run side by side. May resolve names
+        (``realpath``, ``getaddrinfo``, ``if_nametoindex``) but never touches the device
+        itself. Default: none (simulated).
+
+        Raises:
+            HardwareError: a name cannot be resolved (a host that does not resolve, a network
+                interface that does not exist); the message names it.
         """
         return ()
 

@@ -120,9 +120,9 @@ def test_lock_devices_is_all_or_nothing(lock_dir: Path) -> None:
     assert lock_devices([], config=None) == []
 
 
-def test_the_lock_directory_is_created_for_every_user(lock_dir: Path) -> None:
+def test_the_lock_directory_is_created_for_its_owner_and_group_only(lock_dir: Path) -> None:
     assert locks.lock_directory() == str(lock_dir)
-    assert lock_dir.stat().st_mode & 0o7777 == 0o1777
+    assert lock_dir.stat().st_mode & 0o7777 == 0o3770  # sticky, setgid, others nothing
 
 
 def test_an_unusable_lock_directory_is_named(tmp_path: Path,

@@ -232,7 +232,10 @@ def test_device_watchdog_and_devices(rig: Rig) -> None:
     assert "0x1016" in watchdog.mechanism and "node 100" in watchdog.mechanism
     assert "0x8130" in watchdog.mechanism and "0x6007 = 1" in watchdog.mechanism
     assert "\n" not in watchdog.mechanism
-    assert hw.devices() == (f"can:virtual:{rig.channel}",)
+    bus = f"can:virtual:{rig.channel}"
+    assert [d.key for d in hw.devices()] == [
+        f"{bus}:canopen-master", *(f"{bus}:canopen-node:{n}" for n in rig.drives)]
+    assert hw.devices()[0].label.endswith("CANopen master (NMT, SYNC, heartbeat)")
 
 
 def test_the_heartbeat_follows_the_sync_at_a_quarter_of_the_watchdog_time(rig: Rig) -> None:

@@ -507,7 +507,10 @@ def test_devices_and_device_watchdog_per_model(rig: Rig) -> None:
     rig.emulate("can1", [1, 2], "DM4310", master_id=0x11)
     ak = rig.make(joints=["a", "b"], ids=[1, 2], bus=["can0"] * 2)
     # Only the buses its motors are on (can1 is declared, unused: not driven, not locked).
-    assert ak.devices() == ("can:virtual:" + rig.channels["can0"],)
+    bus0 = "can:virtual:" + rig.channels["can0"]
+    assert [d.key for d in ak.devices()] == [f"{bus0}:mit:1", f"{bus0}:mit:2"]
+    assert ak.devices()[1].label.endswith(f"(virtual {rig.channels['can0']} @ 1000 kbit/s) "
+                                          "motor 2")
     watchdog = ak.device_watchdog()
     assert watchdog.timeout_s is None and watchdog.unprotected == ("a", "b")
     assert "no device-side watchdog: motors keep their last command if the daemon dies" in (
@@ -520,8 +523,9 @@ def test_devices_and_device_watchdog_per_model(rig: Rig) -> None:
     mixed = rig.make(joints=["a", "b", "c", "d"], ids=[1, 2, 1, 2],
                      bus=["can0", "can0", "can1", "can1"],
                      model=["AK80-9", "AK80-9", "DM4310", "DM4310"], master_id=[0, 0, 0x11, 0x11])
-    assert mixed.devices() == ("can:virtual:" + rig.channels["can0"],
-                               "can:virtual:" + rig.channels["can1"])
+    bus1 = "can:virtual:" + rig.channels["can1"]
+    assert [d.key for d in mixed.devices()] == [f"{bus0}:mit:1", f"{bus0}:mit:2",
+                                                f"{bus1}:mit:1", f"{bus1}:mit:2"]
     watchdog = mixed.device_watchdog()
     assert watchdog.timeout_s == 1.0 and watchdog.unprotected == ("a", "b")
     assert not watchdog.complete and "AK motors have none" in watchdog.mechanism

@@ -101,7 +101,9 @@ def test_device_watchdog_and_devices_describe_the_bus(tmp_path: Path) -> None:
     watchdog = hw.device_watchdog()  # no I/O: the component is not even configured
     assert watchdog.timeout_s == pytest.approx(0.06) and watchdog.complete
     assert "Bus Watchdog 60 ms" in watchdog.mechanism
-    assert hw.devices() == (os.path.realpath("/dev/null"),)
+    (device,) = hw.devices()
+    assert device.key == os.path.realpath("/dev/null")
+    assert device.label == f"{link} ({os.path.realpath('/dev/null')})"
 
 
 # -- arming and disarming -------------------------------------------------------------------------

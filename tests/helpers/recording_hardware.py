@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Any, ClassVar
 
 from jtc_hw.controller.joints import JointCommand
-from jtc_hw.hardware import SafeAction
+from jtc_hw.hardware import DeviceName, SafeAction
 from jtc_hw.hardware.mirror import MirrorHardware
 from jtc_hw.hardware.params import ParamKind, ParamSpec, param_table
 
@@ -38,8 +38,9 @@ class RecordingHardware(MirrorHardware):
                   required=True),
     )
 
-    def devices(self) -> tuple[str, ...]:
-        return (str(self.params["device"]),)
+    def devices(self) -> tuple[DeviceName, ...]:
+        device = str(self.params["device"])
+        return (DeviceName(device, device),)
 
     def _note(self, step: str) -> None:
         with open(self.params["journal"], "a", encoding="utf-8") as journal:

@@ -72,14 +72,14 @@ class CanWorld:
     """Emulated motors reachable from another process, and a daemon driving them."""
 
     def __init__(self, transport: str, directory: Path, model: str = "AK80-9",
-                 master_id: int = 0) -> None:
+                 master_id: int = 0, host: str = "127.0.0.1") -> None:
         self.transport = transport
         assert transport == "socketcand"  # SocketCAN: test_vcan_hil.py
         channel = f"daemon-{uuid.uuid4().hex}"
         self.bus = can.Bus(interface="virtual", channel=channel)
         self.server: SocketcandServer | None = SocketcandServer(port=0, channels={"can0": channel})
         self.server.start()
-        bus_params: dict[str, Any] = {"interface": "socketcand", "host": "127.0.0.1",
+        bus_params: dict[str, Any] = {"interface": "socketcand", "host": host,
                                       "port": self.server.port, "channel": "can0"}
         self.emulator = MitBusEmulator(self.bus, IDS, model, master_id=master_id)
         self.emulator.start()
@@ -332,3 +332,50 @@ def test_killing_the_loop_lets_the_damiao_timeouts_stop_the_motors(
         assert set(expired) == set(IDS)
         assert not any(world.emulator.enabled(i) for i in IDS)
         assert all(world.emulator.error_code(i) == 0xD for i in IDS)
+
+
+def test_a_second_daemon_on_another_spelling_of_the_bus_is_refused_before_it_sends(
+    tmp_path: Path,
+) -> None:
+    """Issue 21: a daemon on ``localhost:PORT`` and one on ``127.0.0.1:PORT`` drive one bus;
+    the second must exit before it connects, and the first one's goal must not notice."""
+    world = CanWorld("socketcand", tmp_path / "first", host="localhost")
+    second = DaemonProcess(tmp_path / "second")
+    try:
+        world.daemon.start()
+        world.daemon.wait_ready()
+        assert world.server is not None
+        with connect(world.daemon) as client, client.subscribe_state() as sub:
+            p0 = next_state(sub, lambda s: s["active_goal"] is None)["actual"]["positions"]
+            target = [p + 0.4 for p in p0]
+            goal = client.send_goal(traj(target, 6.0))
+            for feedback in goal.feedback(timeout_s=WAIT_S):
+                if feedback["time_from_start"] >= 0.2:
+                    break
+            connections = world.server.connections
+            write_config(second, {"interface": "socketcand", "host": "127.0.0.1",
+                                  "port": world.server.port, "channel": "can0"}, "AK80-9", 0)
+            second.start()
+            assert second.wait_exit() == 2
+            log = second.log()
+            lines = [line for line in log.splitlines() if "cannot start:" in line]
+            assert len(lines) == 1, log
+            assert (
+                f"cannot start: bus 'can0' (socketcand can0 at 127.0.0.1:{world.server.port} "
+                f"@ 1000 kbit/s) motor 1 is already driven by pid {world.daemon.pid} "
+                f"({world.daemon.config_path}), user "
+            ) in lines[0], log
+            assert "Traceback" not in log
+            assert second.leftovers() == {}
+            assert world.server.connections == connections  # it never even connected
+            result = goal.wait(timeout_s=WAIT_S)
+            assert result["status"] == "succeeded", result
+            for motor_id in IDS:
+                assert world.emulator.enabled(motor_id)
+            state = settle(sub, result["time_ns"] + 100 * MS)
+            assert state["actual"]["positions"] == pytest.approx(target, abs=GOAL_TOL)
+    finally:
+        try:
+            second.shutdown()
+        finally:
+            world.close()

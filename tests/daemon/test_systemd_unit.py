@@ -58,9 +58,9 @@ REQUIRED_SERVICE = {
     "LimitRTPRIO": "90",
     "LimitMEMLOCK": "infinity",
     "AmbientCapabilities": "CAP_SYS_NICE CAP_IPC_LOCK",
-    # the device locks' directory, shared by every user, writable under ProtectSystem=strict
-    "ExecStartPre": "+/usr/bin/install -d -m 1777 /run/lock/jtc-hw",
-    "ReadWritePaths": "-/run/lock/jtc-hw",
+    # the device locks' directory, the daemons' only, writable under ProtectSystem=strict
+    "ExecStartPre": "+/usr/bin/install -d -m 3770 /run/jtc-hw-locks",
+    "ReadWritePaths": "-/run/jtc-hw-locks",
 }
 
 
@@ -69,6 +69,20 @@ def test_the_unit_opens_the_directory_the_daemon_locks_devices_in() -> None:
 
     assert REQUIRED_SERVICE["ReadWritePaths"] == f"-{LOCK_DIR}"
     assert REQUIRED_SERVICE["ExecStartPre"].endswith(f" {LOCK_DIR}")
+
+
+def test_the_units_lock_directory_is_one_the_daemon_accepts(tmp_path: Path) -> None:
+    """The mode the unit creates it with passes the daemon's check (no other user can use
+    it to deny a start), as created by root, the unit's ``+``."""
+    from jtc_hw.daemon.locks import check_directory
+
+    words = REQUIRED_SERVICE["ExecStartPre"].split()
+    mode = int(words[words.index("-m") + 1], 8)
+    assert mode & 0o007 == 0  # others: nothing
+    directory = tmp_path / "locks"
+    directory.mkdir()
+    directory.chmod(mode)
+    assert check_directory(str(directory)) is None
 
 
 @pytest.mark.parametrize(("key", "value"), sorted(REQUIRED_SERVICE.items()))

@@ -15,6 +15,12 @@ rest after its watchdog's brake; CiA 402, the drive at rest after its quick stop
 timeout's expiry, when the motor disables itself (torque off: the device's documented reaction,
 it does not brake). ``missed_deadlines`` is null for these: the loop is dead or frozen.
 
+``second_daemon`` (MIT motors on socketcand): a daemon on ``host: localhost`` runs a goal and a
+second ``jtc-hw run`` with ``host: 127.0.0.1`` and the same motor ids is started (issue 21):
+``exit_ms`` is the time from its start to its exit, which must be status 2 with nothing sent
+(``connections``: TCP connections it opened to the socketcand server, must be 0) while the
+first daemon's goal succeeds.
+
 ``api_sigstop`` (mirror hardware, 1 kHz): the API process is stopped for 3 s during a goal. The
 loop must not wait for it: ``missed_deadlines`` is the loop's overrun count during the stall,
 next to ``baseline_missed`` for the same length of time without one (the machine's own noise);
@@ -298,6 +304,63 @@ def api_stall_run(stall_s: float, priority: int) -> dict[str, Any]:
             "cycles": after[0] - before[0], "stall_s": stall_s}
 
 
+def second_daemon_run() -> dict[str, Any]:
+    """``second_daemon``: see the module docstring."""
+    ids = [1, 2, 3, 4, 5, 6]
+    joints = [f"joint{i}" for i in ids]
+    channel = f"failsafe-{uuid.uuid4().hex[:8]}"
+    bus = can.Bus(interface="virtual", channel=channel)
+    server = SocketcandServer(port=0, channels={"can0": channel})
+    emu = MitBusEmulator(bus, ids, "AK80-9")
+    try:
+        emu.start()
+        server.start()
+
+        def config(host: str) -> dict[str, Any]:
+            config = controller(joints, 250, "position")
+            config["hardware"] = [{"name": "leg", "kind": "can-mit", "joints": joints,
+                                   "params": {"buses": {"can0": {
+                                       "interface": "socketcand", "host": host,
+                                       "port": server.port, "channel": "can0",
+                                       "receive_timeout": 0.001}},
+                                       "ids": ids, "kp": 40.0, "kd": 1.0,
+                                       "feedback_timeout": 0.1}}]
+            return config
+
+        with tempfile.TemporaryDirectory(prefix="jtc-hw-failsafe-") as tmp:
+            first_dir, second_dir = Path(tmp, "first"), Path(tmp, "second")
+            first_dir.mkdir()
+            second_dir.mkdir()
+            first = DaemonRun(config("localhost"), first_dir)
+            try:
+                with first.connect() as client:
+                    with client.subscribe_state() as sub:
+                        start = sub.get(timeout_s=WAIT_S)["actual"]["positions"]
+                    goal = client.send_goal({"joint_names": joints, "points": [
+                        {"time_from_start": 6.0, "positions": [p + 0.4 for p in start]}]})
+                    connections = server.connections
+                    t0 = time.monotonic()
+                    second = DaemonRun(config("127.0.0.1"), second_dir)
+                    try:
+                        code = second.process.wait(timeout=START_TIMEOUT_S)
+                        exit_ms = (time.monotonic() - t0) * 1e3
+                    finally:
+                        second.close()
+                    opened = server.connections - connections
+                    result = goal.wait(timeout_s=WAIT_S + 6.0)
+            finally:
+                first.close()
+            refusal = [line for line in (second_dir / "daemon.log").read_text().splitlines()
+                       if "cannot start:" in line]
+    finally:
+        server.stop()
+        emu.stop()
+        bus.shutdown()
+    return {"hardware": "can-mit", "failure": "second_daemon", "stop_ms": None,
+            "exit_ms": round(exit_ms, 1), "exit_code": code, "connections": opened,
+            "first_goal": result["status"], "refusal": refusal[0] if refusal else None}
+
+
 def loop_counts(client: Client, after: tuple[int, int] | None = None) -> tuple[int, int]:
     """(cycles, overruns) from a status the loop published after ``after``'s (2 Hz)."""
     deadline = time.monotonic() + WAIT_S
@@ -317,13 +380,17 @@ def summarise(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
     for hardware, failure in keys:
         runs = [r for r in rows if (r["hardware"], r["failure"]) == (hardware, failure)]
         row: dict[str, Any] = {"hardware": hardware, "failure": failure, "runs": len(runs)}
-        for field in ("stop_ms", "missed_deadlines", "baseline_missed"):
+        for field in ("stop_ms", "missed_deadlines", "baseline_missed", "exit_ms"):
             values = [r[field] for r in runs if r.get(field) is not None]
             if field in runs[0]:
                 row[field] = statistics.median(values) if values else None
                 if values and len(values) > 1:
                     row[f"{field}_range"] = [min(values), max(values)]
-        if any(r.get("stop_ms") is None for r in runs) and failure != "api_sigstop":
+        if failure == "second_daemon":
+            row["refused_cleanly"] = sum(r["exit_code"] == 2 and r["connections"] == 0
+                                         and r["first_goal"] == "succeeded" for r in runs)
+            row["refusal"] = runs[-1]["refusal"]
+        elif any(r.get("stop_ms") is None for r in runs) and failure != "api_sigstop":
             row["not_stopped_runs"] = sum(r.get("stop_ms") is None for r in runs)
         out.append(row)
     return out
@@ -332,8 +399,9 @@ def summarise(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--hardware", nargs="+", choices=HARDWARE, default=list(HARDWARE))
-    parser.add_argument("--failure", nargs="+", choices=(*FAILURES, "api_sigstop"),
-                        default=[*FAILURES, "api_sigstop"])
+    parser.add_argument("--failure", nargs="+",
+                        choices=(*FAILURES, "api_sigstop", "second_daemon"),
+                        default=[*FAILURES, "api_sigstop", "second_daemon"])
     parser.add_argument("--runs", type=int, default=3, help="runs per row (median reported)")
     parser.add_argument("--stall-s", type=float, default=3.0, help="api_sigstop: stall length")
     parser.add_argument("--priority", type=int, default=80,
@@ -342,10 +410,12 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     rows: list[dict[str, Any]] = []
     for failure in args.failure:
-        for hardware in (args.hardware if failure != "api_sigstop" else ["mirror"]):
+        one_rig = {"api_sigstop": ["mirror"], "second_daemon": ["can-mit"]}
+        for hardware in one_rig.get(failure, args.hardware):
             for run in range(args.runs):
                 print(f"# {hardware} {failure} run {run + 1}/{args.runs}", file=sys.stderr)
                 rows.append(api_stall_run(args.stall_s, args.priority) if failure == "api_sigstop"
+                            else second_daemon_run() if failure == "second_daemon"
                             else watchdog_run(hardware, failure))
     summary = summarise(rows)
     if args.json:
@@ -355,6 +425,14 @@ def main(argv: list[str] | None = None) -> int:
     print(f"{'hardware':<12} {'failure':<15} {'stop_ms':>10} {'range':>15} "
           f"{'missed':>7} {'baseline':>9} {'runs':>5}  verdict")
     for row in summary:
+        if row["failure"] == "second_daemon":
+            span = row.get("exit_ms_range")
+            ok = row["refused_cleanly"] == row["runs"]
+            print(f"{row['hardware']:<12} {row['failure']:<15} {'exit_ms':>10} "
+                  f"{row['exit_ms']:>7.1f} {'' if span is None else f'{span[0]:.1f}-{span[1]:.1f}'}"
+                  f" {row['runs']:>5}  {'ok' if ok else 'FAILED'} (exit 2, nothing sent, the "
+                  f"first goal succeeded: {row['refused_cleanly']}/{row['runs']})")
+            continue
         stop = row.get("stop_ms")
         span = row.get("stop_ms_range")
         verdict = ""

@@ -24,6 +24,7 @@ from helpers.daemon import (
     GOAL_TOL,
     JOINTS,
     MS,
+    START_TIMEOUT_S,
     WAIT_S,
     DaemonProcess,
     connect,
@@ -356,7 +357,7 @@ def test_a_second_daemon_on_another_spelling_of_the_bus_is_refused_before_it_sen
             write_config(second, {"interface": "socketcand", "host": "127.0.0.1",
                                   "port": world.server.port, "channel": "can0"}, "AK80-9", 0)
             second.start()
-            assert second.wait_exit() == 2
+            assert second.wait_exit(START_TIMEOUT_S) == 2  # a bound: it starts an interpreter
             log = second.log()
             lines = [line for line in log.splitlines() if "cannot start:" in line]
             assert len(lines) == 1, log

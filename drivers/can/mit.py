@@ -148,6 +148,12 @@ NS_PER_S = 1_000_000_000
 DISABLED = 0  # Damiao state code of a motor out of motor mode (as after a power-up)
 ENABLED = 1  # Damiao state code of an enabled motor
 COMMUNICATION_LOST = 0xD  # Damiao state code of an expired CAN timeout
+# The health readings each reply format carries (unknown while the reply is stale).
+_REPLY_READINGS = {
+    "damiao": ["mode", "torque_enabled", "temperature_c", "drive_temperature_c",
+               "rotor_temperature_c", "state"],
+    "ak": [],
+}
 
 
 
@@ -568,10 +574,10 @@ class MitHardware(HardwareInterface):
 
         Every reading comes from the motor's newest reply; ``age_s`` is that reply's age. A
         reply older than ``feedback_timeout`` (``stale``: true), or none yet, shows every
-        reading as unknown (``None``) rather than the last one heard: after a bus loss the
-        motor may have lost power. ``torque_enabled`` is the Damiao reply's state ("enabled");
-        an AK reply does not say, so it is always unknown there (``commanded_mode`` says what
-        the driver asked for).
+        reading as unknown (``None``, listed in ``unknown``) rather than the last one heard:
+        after a bus loss the motor may have lost power. ``torque_enabled`` is the Damiao
+        reply's state ("enabled"); an AK reply does not say, so it is always unknown there
+        (``commanded_mode`` says what the driver asked for).
         """
         now = time.monotonic_ns()
         motors: list[dict[str, Any]] = []
@@ -598,6 +604,7 @@ class MitHardware(HardwareInterface):
                 "state": None if code is None else DAMIAO_STATES.get(code, f"{code:#x}"),
                 "age_s": None if age is None else round(age, 3),
                 "stale": not fresh,
+                "unknown": [] if fresh else _REPLY_READINGS[self._limits[i].reply],
                 "errors": errors,
                 "last_fault": self._faults.get(joint),
             })

@@ -17,6 +17,12 @@ per motor" and a motor is heard from only when it is spoken to.
   request. Replies are drained without blocking and only the newest per motor is kept; a
   motor whose newest feedback is older than its ``feedback_timeout`` is a communication
   fault.
+* Every Damiao reply says whether the motor is enabled (state nibble ``1``) or disabled
+  (``0``, as after a power-up). A motor the driver enabled that answers disabled has reset --
+  a supply dip shorter than ``feedback_timeout`` restarts its firmware, which comes back out
+  of motor mode, limp -- and is a fault ("motor 3 ... reset: answers disabled ..."), cleared
+  by the re-arm, which enables it again. An AK reply carries no mode: an AK reset shorter
+  than ``feedback_timeout`` cannot be seen (docs/can.md, "Motor reset").
 * Bus-off (``bus.state`` where the interface reports it, or a SocketCAN bus-off error frame)
   is a fault; error-passive is counted and logged. A full transmit buffer flushes the stale
   queue (the motor then misses one cycle, which its ``feedback_timeout`` tolerates); a queue

@@ -21,6 +21,12 @@ second ``jtc-hw run`` with ``host: 127.0.0.1`` and the same motor ids is started
 (``connections``: TCP connections it opened to the socketcand server, must be 0) while the
 first daemon's goal succeeds.
 
+``motor_reset`` (``can-mit``, Damiao DM4310 only): motor 3 browns out mid-goal for 20 ms (less
+than ``feedback_timeout``, 0.1 s) and restarts, answering disabled. ``detect_ms`` is the time
+from the emulator's first reply after the restart (its record, on the monotonic clock) to the
+loop cycle that reported the fault (the aborted goal's ``time_ns``: that cycle's deadline on
+the loop's clock, the same monotonic clock). ``stop_ms`` is null: a reset motor is limp.
+
 ``api_sigstop`` (mirror hardware, 1 kHz): the API process is stopped for 3 s during a goal. The
 loop must not wait for it: ``missed_deadlines`` is the loop's overrun count during the stall,
 next to ``baseline_missed`` for the same length of time without one (the machine's own noise);
@@ -275,6 +281,56 @@ def watchdog_run(hardware: str, failure: str) -> dict[str, Any]:
             "missed_deadlines": None, "watchdog_ms": WATCHDOG_S * 1e3}
 
 
+def motor_reset_run(hardware: str) -> dict[str, Any]:
+    """A Damiao motor browns out mid-goal and restarts disabled: how soon the loop faults."""
+    ids = [1, 2, 3, 4, 5, 6]
+    joints = [f"joint{i}" for i in ids]
+    channel = f"failsafe-{uuid.uuid4().hex[:8]}"
+    bus = can.Bus(interface="virtual", channel=channel)
+    server = SocketcandServer(port=0, channels={"can0": channel})
+    emu = MitBusEmulator(bus, ids, "DM4310", master_id=0x11)
+    detect_ms = None
+    try:
+        emu.start()
+        server.start()
+        config = controller(joints, 250, "position")
+        config["hardware"] = [{"name": "leg", "kind": "can-mit", "joints": joints, "params": {
+            "buses": {"can0": {"interface": "socketcand", "host": "127.0.0.1",
+                               "port": server.port, "channel": "can0", "bitrate": 1_000_000,
+                               "receive_timeout": 0.001}},
+            "ids": ids, "model": "DM4310", "master_id": 0x11, "kp": 40.0, "kd": 1.0,
+            "feedback_timeout": 0.1, "watchdog_s": WATCHDOG_S}}]
+        with tempfile.TemporaryDirectory(prefix="jtc-hw-failsafe-") as tmp:
+            daemon = DaemonRun(config, Path(tmp))
+            try:
+                with daemon.connect() as client:
+                    with client.subscribe_state() as sub:
+                        start = sub.get(timeout_s=WAIT_S)["actual"]["positions"]
+                    goal = client.send_goal({"joint_names": joints, "points": [
+                        {"time_from_start": 4.0, "positions": [p + 0.8 for p in start],
+                         "velocities": [0.0] * len(start)}]})
+                    for feedback in goal.feedback(timeout_s=WAIT_S):
+                        if feedback["time_from_start"] >= 0.5:
+                            break
+                    emu.brown_out(3, 0.02)
+                    result = goal.wait(timeout_s=WAIT_S)
+                    replies = emu.first_replies_after_reset(3)
+                    if result["status"] == "aborted" and "reset" in result["error_string"] \
+                            and replies:
+                        detect_ms = round((result["time_ns"] / 1e9 - replies[0]) * 1e3, 1)
+                    else:
+                        print(f"# motor_reset: not detected as a reset: {result}",
+                              file=sys.stderr)
+            finally:
+                daemon.close()
+    finally:
+        server.stop()
+        emu.stop()
+        bus.shutdown()
+    return {"hardware": hardware, "failure": "motor_reset", "stop_ms": None,
+            "detect_ms": detect_ms, "missed_deadlines": None, "watchdog_ms": WATCHDOG_S * 1e3}
+
+
 def api_stall_run(stall_s: float, priority: int) -> dict[str, Any]:
     joints = [f"joint{i}" for i in range(1, 7)]
     config = controller(joints, 1000, "position")
@@ -380,7 +436,7 @@ def summarise(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
     for hardware, failure in keys:
         runs = [r for r in rows if (r["hardware"], r["failure"]) == (hardware, failure)]
         row: dict[str, Any] = {"hardware": hardware, "failure": failure, "runs": len(runs)}
-        for field in ("stop_ms", "missed_deadlines", "baseline_missed", "exit_ms"):
+        for field in ("stop_ms", "missed_deadlines", "baseline_missed", "exit_ms", "detect_ms"):
             values = [r[field] for r in runs if r.get(field) is not None]
             if field in runs[0]:
                 row[field] = statistics.median(values) if values else None
@@ -390,18 +446,27 @@ def summarise(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
             row["refused_cleanly"] = sum(r["exit_code"] == 2 and r["connections"] == 0
                                          and r["first_goal"] == "succeeded" for r in runs)
             row["refusal"] = runs[-1]["refusal"]
-        elif any(r.get("stop_ms") is None for r in runs) and failure != "api_sigstop":
+        elif any(r.get("stop_ms") is None for r in runs) and failure not in (
+                "api_sigstop", "motor_reset"):
             row["not_stopped_runs"] = sum(r.get("stop_ms") is None for r in runs)
         out.append(row)
     return out
+
+
+# The failures measured on one rig only (not once per --hardware).
+ONE_RIG: dict[str, list[str]] = {
+    "api_sigstop": ["mirror"],
+    "second_daemon": ["can-mit"],
+    "motor_reset": ["can-mit"],  # a Damiao reply says "disabled"; others' resets look silent
+}
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--hardware", nargs="+", choices=HARDWARE, default=list(HARDWARE))
     parser.add_argument("--failure", nargs="+",
-                        choices=(*FAILURES, "api_sigstop", "second_daemon"),
-                        default=[*FAILURES, "api_sigstop", "second_daemon"])
+                        choices=(*FAILURES, *ONE_RIG),
+                        default=[*FAILURES, *ONE_RIG])
     parser.add_argument("--runs", type=int, default=3, help="runs per row (median reported)")
     parser.add_argument("--stall-s", type=float, default=3.0, help="api_sigstop: stall length")
     parser.add_argument("--priority", type=int, default=80,
@@ -410,12 +475,12 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     rows: list[dict[str, Any]] = []
     for failure in args.failure:
-        one_rig = {"api_sigstop": ["mirror"], "second_daemon": ["can-mit"]}
-        for hardware in one_rig.get(failure, args.hardware):
+        for hardware in ONE_RIG.get(failure, args.hardware):
             for run in range(args.runs):
                 print(f"# {hardware} {failure} run {run + 1}/{args.runs}", file=sys.stderr)
                 rows.append(api_stall_run(args.stall_s, args.priority) if failure == "api_sigstop"
                             else second_daemon_run() if failure == "second_daemon"
+                            else motor_reset_run(hardware) if failure == "motor_reset"
                             else watchdog_run(hardware, failure))
     summary = summarise(rows)
     if args.json:
@@ -436,7 +501,12 @@ def main(argv: list[str] | None = None) -> int:
         stop = row.get("stop_ms")
         span = row.get("stop_ms_range")
         verdict = ""
-        if row["failure"] != "api_sigstop":
+        if row["failure"] == "motor_reset":
+            detect, spread = row.get("detect_ms"), row.get("detect_ms_range")
+            verdict = ("fault NOT reported" if detect is None else
+                       f"fault {detect:.1f} ms after the first reply after the reset"
+                       + ("" if spread is None else f" ({spread[0]:.1f}-{spread[1]:.1f})"))
+        elif row["failure"] != "api_sigstop":
             ok = stop is not None and not row.get("not_stopped_runs") and (
                 span is None or span[1] <= TARGET_MS)
             verdict = f"{'ok' if ok else 'MISSED'} (<= {TARGET_MS:g} ms)"

@@ -6,6 +6,11 @@ only formats it: a table per component (model, firmware, mode, torque, temperatu
 errors, last fault; the bus counters in the component's heading), then the warnings that the
 limits ``temperature_warn_c`` and ``voltage_range`` raise. ``--json`` prints the health as it
 came, one object with a ``components`` list.
+
+A motor whose readings are stale (``stale``: its newest reply is older than the driver's
+feedback timeout, e.g. after a bus loss) has them reported as unknown (``None``, their keys
+listed in ``unknown``); they are printed as ``? (2.3 s old)`` with the age of that reply
+(``age_s``), never as the last value heard. A reading the kind does not report is ``-``.
 """
 
 from __future__ import annotations
@@ -44,8 +49,11 @@ def hardware_report(status: Mapping[str, Any]) -> dict[str, Any]:
     return {"components": components, "fault": fault}
 
 
-def _cell(key: str, value: Any) -> str:
+def _cell(key: str, value: Any, motor: Mapping[str, Any]) -> str:
     if value is None:
+        if key in (motor.get("unknown") or ()):
+            age = motor.get("age_s")
+            return "? (never heard)" if age is None else f"? ({age:.1f} s old)"
         return "-"
     if key == "torque_enabled":
         return "on" if value else "off"
@@ -74,12 +82,15 @@ def format_hardware(report: Mapping[str, Any]) -> str:
         heading = f"{comp['name']} ({comp['kind']}, {comp['state']})"
         bus = comp["bus"]
         if bus:
-            heading += (f"  bus: {bus.get('transactions', 0)} transactions, "
-                        f"{bus.get('timeouts', 0)} timeouts, {bus.get('crc_errors', 0)} CRC "
-                        f"errors, {bus.get('retries', 0)} retries")
+            count = {key: "-" if bus.get(key) is None else bus[key]
+                     for key in ("transactions", "timeouts", "crc_errors", "retries")}
+            heading += (f"  bus: {count['transactions']} transactions, "
+                        f"{count['timeouts']} timeouts, {count['crc_errors']} CRC "
+                        f"errors, {count['retries']} retries")
         lines.append(heading)
         rows = [[title for _, title in _COLUMNS]]
-        rows += [[_cell(key, motor.get(key)) for key, _ in _COLUMNS] for motor in comp["motors"]]
+        rows += [[_cell(key, motor.get(key), motor) for key, _ in _COLUMNS]
+                 for motor in comp["motors"]]
         lines += _table(rows)
         if comp["last_fault"]:
             lines.append(f"  last fault: {comp['last_fault']}")

@@ -84,7 +84,14 @@ from typing import Any, Final
 import can
 
 from jtc_hw.errors import CommunicationError, ConfigurationError
-from jtc_hw.hardware import DeviceName, ParamKind, ParamSpec, param_table, validate_params
+from jtc_hw.hardware import (
+    DeviceName,
+    ParamKind,
+    ParamSpec,
+    one_line,
+    param_table,
+    validate_params,
+)
 
 __all__ = [
     "BUS_FIELDS",
@@ -407,9 +414,10 @@ def open_bus(interface: str, channel: str, bitrate: int, **options: Any) -> can.
                    "modules or use another interface"
         elif interface == "socketcan" and exc.errno == 19:
             hint = f": no network device {channel!r}; check `ip link show {channel}`"
-        raise CommunicationError(f"{what}: cannot open the bus ({exc}){hint}") from exc
+        raise CommunicationError(f"{what}: cannot open the bus ({one_line(exc)}){hint}") from exc
     except (can.CanError, ImportError, TimeoutError, ValueError) as exc:
-        raise CommunicationError(f"{what}: cannot open the bus: {exc}") from exc
+        # (python-can's socketcand client puts a whole traceback in some of its errors.)
+        raise CommunicationError(f"{what}: cannot open the bus: {one_line(exc)}") from exc
 
 
 def open_settings(settings: BusSettings) -> can.BusABC:

@@ -89,6 +89,7 @@ from jtc_hw.hardware import (
     ParamKind,
     ParamSpec,
     SafeAction,
+    one_line,
     param_table,
 )
 
@@ -456,10 +457,11 @@ class Cia402Hardware(HardwareInterface):
         if isinstance(exc, SdoAbortedError):
             return HardwareError(
                 f"{self._owner()}: {d.who()} refused {what}: SDO abort 0x{exc.code:08X} "
-                f"({exc}); check that the drive supports it (EDS: {self._eds})"
+                f"({one_line(exc)}); check that the drive supports it (EDS: {self._eds})"
             )
         return CommunicationError(
-            f"{self._owner()}: {d.who()} did not answer while {what} ({exc}); check the "
+            f"{self._owner()}: {d.who()} did not answer while {what} ({one_line(exc)}); "
+            "check the "
             "drive's power and wiring"
         )
 
@@ -760,10 +762,12 @@ class Cia402Hardware(HardwareInterface):
                             try:
                                 self._write_consumer(d, nodes[d.node_id], 0)
                             except (SdoAbortedError, SdoCommunicationError) as exc:
-                                failures.append(f"{d.who()} did not confirm ({exc})")
+                                failures.append(f"{d.who()} did not confirm "
+                                                f"({one_line(exc)})")
                         done.add(d.node_id)
             except (HardwareError, can.CanError, OSError) as exc:
-                failures.extend(f"{d.who()}: {b.settings.describe()} failed ({exc})"
+                failures.extend(f"{d.who()}: {b.settings.describe()} failed "
+                                f"({one_line(exc)})"
                                 for d in b.drives if d.node_id not in done)
         self._armed = self._feeding = False
         self._disarm_failures = failures
@@ -937,14 +941,20 @@ class Cia402Hardware(HardwareInterface):
             raise CommunicationError(f"{self._owner()}: {b.settings.describe()} is not open")
         return b.bus
 
+    def _bus_error(self, b: _Bus, what: str, exc: BaseException) -> CommunicationError:
+        """A failure of bus ``b`` as a whole, in one line: what failed, on which bus, the
+        drives it leaves unreachable, and the library's reason cut to its first line
+        (python-can's socketcand client appends a whole traceback to its errors)."""
+        drives = ", ".join(f"node {d.node_id} ({d.joint!r})" for d in b.drives)
+        return CommunicationError(
+            f"{self._owner()}: {what} on {b.settings.describe()} failed, drives {drives} "
+            f"unreachable: {one_line(exc)}; check the interface and its connection")
+
     def _send(self, b: _Bus, msg: can.Message) -> bool:
         try:
             return canbus.send(self._bus_of(b), msg, b.health)
         except can.CanError as exc:
-            raise CommunicationError(
-                f"{self._owner()}: sending on {b.settings.describe()} failed: {exc}; check "
-                "the interface and the bus"
-            ) from exc
+            raise self._bus_error(b, "sending", exc) from exc
 
     def _send_cycle(self, buses: Sequence[_Bus], *, send_rpdo: bool) -> None:
         """Every drive's RPDO1 (optionally), one SYNC and, when due, the daemon's heartbeat,
@@ -989,9 +999,7 @@ class Cia402Hardware(HardwareInterface):
         try:
             result = canbus.collect_until(self._bus_of(b), latest, want, deadline, b.key)
         except can.CanError as exc:
-            raise CommunicationError(
-                f"{self._owner()}: receiving on {b.settings.describe()} failed: {exc}"
-            ) from exc
+            raise self._bus_error(b, "receiving", exc) from exc
         self._take(b, latest, result)
         for d in b.drives:
             if not d.fresh:
@@ -1024,7 +1032,7 @@ class Cia402Hardware(HardwareInterface):
             except Exception as exc:  # noqa: BLE001 - a garbled frame is a protocol fault
                 raise CommunicationError(
                     f"{self._owner()}: {d.who()} sent a frame the configured mapping cannot "
-                    f"decode ({exc}); another master may have remapped its PDOs"
+                    f"decode ({one_line(exc)}); another master may have remapped its PDOs"
                 ) from exc
 
     def _take_sdo(self, d: _Drive, data: bytes) -> None:
@@ -1048,9 +1056,7 @@ class Cia402Hardware(HardwareInterface):
         try:
             result = canbus.drain_latest(self._bus_of(b), latest, b.key)
         except can.CanError as exc:
-            raise CommunicationError(
-                f"{self._owner()}: receiving on {b.settings.describe()} failed: {exc}"
-            ) from exc
+            raise self._bus_error(b, "receiving", exc) from exc
         self._take(b, latest, result)
         for cob in latest:
             d, which = b.keys[cob]
@@ -1063,9 +1069,7 @@ class Cia402Hardware(HardwareInterface):
         try:
             b.health.stale_flushed += canbus.flush(b.bus)
         except can.CanError as exc:
-            raise CommunicationError(
-                f"{self._owner()}: flushing {b.settings.describe()} failed: {exc}"
-            ) from exc
+            raise self._bus_error(b, "flushing", exc) from exc
         b.sync_outstanding = False
 
     def _exchange(self, *, send_rpdo: bool, strict: bool = True) -> None:
@@ -1124,27 +1128,42 @@ class Cia402Hardware(HardwareInterface):
 
     def _health(self) -> tuple[list[dict[str, Any]], dict[str, Any] | None]:
         """Statusword and error code from the TPDOs of every cycle, the error register from
-        the low-rate SDO reads; CiA 402 has no standard temperature or supply objects."""
+        the low-rate SDO reads; CiA 402 has no standard temperature or supply objects.
+
+        ``age_s`` is the age of the drive's newest TPDO1. Older than ``feedback_timeout_s``
+        (``stale``: true, e.g. after a bus loss), or none yet, the drive's readings are shown
+        as unknown (``None``, listed in ``unknown``), not as the last ones heard: a drive
+        that lost power is not "enabled". ``mode`` is the configured mode of operation."""
+        now = time.monotonic()
         motors: list[dict[str, Any]] = []
         for d in self._drives:
+            heard = d.rx1_at != 0.0
+            fresh = heard and now - d.rx1_at <= self._feedback_timeout_s
             errors = []
-            if d.error_code:
+            if fresh and d.error_code:
                 errors.append(f"error code 0x{d.error_code:04X}: {c4.describe_error(d.error_code)}")
-            if d.error_register:
+            if fresh and d.error_register:
                 errors.append(f"error register 0x{d.error_register:02X}")
             if d.heartbeat_lost:
                 errors.append("lost the daemon's heartbeat")
+            state = d.state if fresh else None
+            statusword = d.statusword if fresh else None
+            error_register = d.error_register if fresh else None
             motors.append({
                 "motor": d.node_id,
                 "joint": d.joint,
                 "mode": self.mode.name.lower(),
-                "torque_enabled": (None if d.state is None
-                                   else d.state is c4.State.OPERATION_ENABLED),
-                "state": None if d.state is None else d.state.value,
-                "statusword": None if d.statusword is None else f"0x{d.statusword:04X}",
-                "error_code": f"0x{d.error_code:04X}",
-                "error_register": None if d.error_register is None
-                else f"0x{d.error_register:02X}",
+                "torque_enabled": (None if state is None
+                                   else state is c4.State.OPERATION_ENABLED),
+                "state": None if state is None else state.value,
+                "statusword": None if statusword is None else f"0x{statusword:04X}",
+                "error_code": f"0x{d.error_code:04X}" if fresh else None,
+                "error_register": None if error_register is None
+                else f"0x{error_register:02X}",
+                "age_s": round(now - d.rx1_at, 3) if heard else None,
+                "stale": not fresh,
+                "unknown": [] if fresh else ["torque_enabled", "state", "statusword",
+                                             "error_code", "error_register"],
                 "errors": errors,
                 "last_fault": self._last_fault_by_node.get(d.node_id),
             })

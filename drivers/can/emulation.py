@@ -1,9 +1,11 @@
-"""What the CAN emulators and the socketcand server share: pacing and push delivery.
+"""What the CAN emulators and the socketcand server share: pacing, push delivery, control.
 
 - :class:`WakeEarly`: when a paced emulator thread wakes before a frame's due time.
 - :class:`PushSink` and :func:`attach_sink`: frames other peers send on a python-can virtual
   channel are handed to an emulator at once, in the sender's thread, instead of queued.
 - :class:`Timer`: frames due at set times, released by a one-thread socketcand server.
+- :class:`ControlSocket`: fault commands to an emulator process, one line each, on a unix
+  socket (what a test or an operator in another process uses to brown a motor out).
 
 The MIT-mode emulator, the CiA 402 emulator and the socketcand server all import this module
 and none imports another's, so there is no import circle among them.
@@ -11,14 +13,18 @@ and none imports another's, so there is no import circle among them.
 
 from __future__ import annotations
 
+import contextlib
+import os
 import queue
+import socket
+import threading
 import time
 from collections.abc import Callable
 from typing import Any, Protocol
 
 import can
 
-__all__ = ["PushSink", "Timer", "WakeEarly", "attach_sink"]
+__all__ = ["ControlSocket", "PushSink", "Timer", "WakeEarly", "attach_sink"]
 
 
 class WakeEarly:
@@ -119,3 +125,58 @@ def attach_sink(bus: can.BusABC, sink: Any) -> None:
         index = receivers.index(bus.queue)  # type: ignore[attr-defined]
         receivers[index] = sink
         bus.queue = sink  # type: ignore[attr-defined]
+
+
+class ControlSocket:
+    """A unix stream socket taking one-line commands, each answered with one line.
+
+    One thread accepts connections and serves them one at a time (commands are rare: a test
+    or an operator injecting a fault). Each line is given to ``handle``, whose return value
+    is the answer (``"ok"``, or ``"error: ..."``); a ``ValueError`` or ``KeyError`` it
+    raises is answered ``error: <text>``.
+
+    Raises:
+        OSError: the socket cannot be bound at ``path`` (an existing file is replaced).
+    """
+
+    def __init__(self, path: str, handle: Callable[[str], str]) -> None:
+        self.path = path
+        self._handle = handle
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(path)
+        self._sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        self._sock.bind(path)
+        self._sock.listen(4)
+        self._sock.settimeout(0.2)  # how often the thread looks at its stop flag
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._serve, name="emulator-control",
+                                        daemon=True)
+        self._thread.start()
+
+    def _serve(self) -> None:
+        while not self._stop.is_set():
+            try:
+                conn, _ = self._sock.accept()
+            except TimeoutError:
+                continue
+            except OSError:
+                return  # closed
+            with conn, conn.makefile("rw", encoding="utf-8", newline="\n") as stream:
+                conn.settimeout(None)
+                for line in stream:
+                    if not line.strip():
+                        continue
+                    try:
+                        answer = self._handle(line.strip())
+                    except (ValueError, KeyError) as exc:
+                        answer = f"error: {exc}"
+                    stream.write(answer.replace("\n", " ") + "\n")
+                    stream.flush()
+
+    def close(self) -> None:
+        """Stop serving and remove the socket file."""
+        self._stop.set()
+        self._sock.close()
+        self._thread.join(2.0)
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(self.path)

@@ -43,8 +43,12 @@ rest, so that wake-up latency does not delay the release.
 
 Fault injection (thread-safe setters): a silent motor, dropping the next N replies, delaying
 replies, the drive temperature and a Damiao error code (``"damiao"`` reply format only: the
-``"ak"`` reply has no fault field, so an AK "drive fault" is emulated as silence), and bus-off
-(an error frame with ``CAN_ERR_BUSOFF``, then silence until :meth:`MitBusEmulator.clear_bus_off`).
+``"ak"`` reply has no fault field, so an AK "drive fault" is emulated as silence), bus-off
+(an error frame with ``CAN_ERR_BUSOFF``, then silence until :meth:`MitBusEmulator.clear_bus_off`)
+and a brown-out (:meth:`MitBusEmulator.brown_out`: a supply dip restarts the motor; it is
+deaf and silent for a given time, then answers again out of motor mode -- a Damiao reply's
+state nibble says ``0``, disabled; an AK reply carries no state and looks as before -- as the
+firmware does after a power cycle).
 
 ``main(argv)`` runs emulators in a process, behind a socketcand server (default) so that other
 processes reach them with python-can's stock ``socketcand`` interface, or on the kernel's
@@ -54,6 +58,11 @@ With ``--events`` it prints, after its connect line, one JSON line per motor eve
 (``{"event": "enabled"|"disabled"|"timeout", "channel": ..., "id": ..., "t": ...}``, ``t`` on
 the system-wide monotonic clock, so another process can compare it with its own times), and
 looks for expired timeouts every 5 ms.
+A running process takes fault commands on a unix socket (``--control PATH``): one line per
+command, answered with one line (``ok`` or ``error: ...``); ``brownout ID OFF_S [CHANNEL]``
+browns motor ``ID`` out for ``OFF_S`` seconds (the channel may be left out when there is
+one). ``--fault brownout:ID:OFF_S@AFTER_S`` schedules the same ``AFTER_S`` seconds after the
+connect line.
 With ``--one-thread`` the emulators start no threads (``start(push=True, thread=False)``; CiA
 402 drives ``start(push=True)``): the server's single thread reads every client, the frames
 reach the emulators in it, and it releases every bus's due replies (each emulator keeps its
@@ -84,7 +93,7 @@ from jtc_hw.hardware.timing import reduce_timer_slack
 
 from ..motor_model import Motor, MotorParams
 from .bus import CAN_ERR_BUSOFF, wire_time_s
-from .emulation import PushSink, WakeEarly, attach_sink
+from .emulation import ControlSocket, PushSink, WakeEarly, attach_sink
 from .frames import (
     DAMIAO_TIMEOUT_RID,
     DAMIAO_TIMEOUT_UNIT_S,
@@ -114,9 +123,10 @@ _FREE = MitCommand(0.0, 0.0, 0.0, 0.0, 0.0)
 
 
 class EmulatorEvent(NamedTuple):
-    """A change of a motor's state: ``kind`` is ``"enabled"``, ``"disabled"`` or
-    ``"timeout"`` (its CAN timeout expired: it disabled itself); ``t`` is when, on the
-    monotonic clock (the modelled instant, not when it was noticed)."""
+    """A change of a motor's state: ``kind`` is ``"enabled"``, ``"disabled"``,
+    ``"timeout"`` (its CAN timeout expired: it disabled itself) or ``"reset"`` (it restarted
+    after a brown-out, out of motor mode); ``t`` is when, on the monotonic clock (the
+    modelled instant, not when it was noticed)."""
 
     kind: str
     motor_id: int
@@ -147,6 +157,11 @@ class _MotorSlot:
     timeout_s: float = 0.0
     last_rx: float | None = None
     expiries: list[float] = field(default_factory=list)
+    # A brown-out: unpowered (deaf, silent, coasting) until this instant, then restarted.
+    off_until: float | None = None
+    restarts: list[float] = field(default_factory=list)
+    first_replies: list[float] = field(default_factory=list)  # the first after each restart
+    awaiting_reply: bool = False
 
 
 class MitBusEmulator:
@@ -460,13 +475,52 @@ class MitBusEmulator:
             for key in self._slots if motor_id is None else (motor_id,):
                 slot = self._slots[key]
                 self._advance(slot, now)
-                self._set_enabled(slot, False, now)
-                slot.command = _FREE
-                if not slot.persistent_error:
-                    slot.error_code = 0
-                self._load_flash(slot)
-                slot.last_rx = None
+                self._restart(slot, now)
         self._emit()
+
+    def _restart(self, slot: _MotorSlot, t: float) -> None:
+        """The firmware starting up at ``t``: see :meth:`power_cycle`. Under the lock."""
+        self._set_enabled(slot, False, t)
+        slot.command = _FREE
+        if not slot.persistent_error:
+            slot.error_code = 0
+        self._load_flash(slot)
+        slot.last_rx = None
+
+    def brown_out(self, motor_id: int, off_s: float) -> None:
+        """A supply dip: the motor loses power now (torque off: it coasts; it hears and
+        answers nothing) and restarts ``off_s`` later as after a power cycle
+        (:meth:`power_cycle`): out of motor mode, answering "disabled" (Damiao state ``0``;
+        an AK reply has no state and looks as before).
+
+        The restart takes effect at its modelled instant whenever the motor is next looked at
+        (a frame, an inspection); it is recorded (:meth:`restarts`), reported to ``on_event``
+        as ``"reset"``, and the instant of the first reply after it is recorded
+        (:meth:`first_replies_after_reset`).
+
+        Raises:
+            ValueError: ``off_s`` is not positive.
+        """
+        if not off_s > 0.0:
+            raise ValueError(f"a brown-out lasts a positive time, got {off_s!r} s")
+        now = time.monotonic()
+        with self._lock:
+            slot = self._slots[motor_id]
+            self._advance(slot, now)
+            self._set_enabled(slot, False, now)
+            slot.off_until = now + off_s
+        self._emit()
+
+    def restarts(self, motor_id: int) -> list[float]:
+        """The instants (monotonic) the motor restarted after a brown-out, oldest first."""
+        self.check_timeouts()
+        with self._lock:
+            return list(self._slots[motor_id].restarts)
+
+    def first_replies_after_reset(self, motor_id: int) -> list[float]:
+        """When (monotonic) the motor's first reply after each restart went on the bus."""
+        with self._lock:
+            return list(self._slots[motor_id].first_replies)
 
     def bus_off(self) -> None:
         """Send a bus-off error frame and go silent until :meth:`clear_bus_off`."""
@@ -567,7 +621,17 @@ class MitBusEmulator:
 
     def _advance(self, slot: _MotorSlot, now: float) -> None:
         """Run the motor's physics up to ``now``; an expired CAN timeout takes effect at its
-        modelled instant (PD until then, coasting after). Under the lock."""
+        modelled instant (PD until then, coasting after), as does the restart after a
+        brown-out. Under the lock."""
+        if slot.off_until is not None and slot.off_until <= now:
+            restart = slot.off_until
+            if slot.t is not None and restart > slot.t:
+                self._step(slot, restart)  # coasting while unpowered
+            slot.off_until = None
+            self._restart(slot, restart)
+            slot.restarts.append(restart)
+            slot.awaiting_reply = True
+            self._events.append(EmulatorEvent("reset", slot.motor_id, restart))
         if slot.t is not None and now > slot.t:
             deadline = self._deadline(slot)
             if deadline is not None and deadline < now:
@@ -642,6 +706,8 @@ class MitBusEmulator:
         if slot is None:
             return None
         self._advance(slot, now)
+        if slot.off_until is not None:
+            return None  # unpowered: hears nothing
         slot.last_rx = now  # any frame addressed to the motor feeds its CAN timeout
         slot.commands += 1
         if register:
@@ -662,6 +728,9 @@ class MitBusEmulator:
             due = self._wire_free
         due += slot.delay_s
         slot.replies += 1
+        if slot.awaiting_reply:
+            slot.awaiting_reply = False
+            slot.first_replies.append(due)
         if due <= now:
             return reply
         self._seq += 1
@@ -797,7 +866,55 @@ def build_parser() -> argparse.ArgumentParser:
                         help="MIT: after the connect line, print one JSON line per motor "
                         "event: {\"event\": \"enabled\"|\"disabled\"|\"timeout\", "
                         "\"channel\": ..., \"id\": ..., \"t\": monotonic s}")
+    parser.add_argument("--control", metavar="PATH", default=None,
+                        help="MIT: take fault commands on this unix socket, one line each, "
+                        "answered ok or error: ...: 'brownout ID OFF_S [CHANNEL]' (the motor "
+                        "loses power for OFF_S s, then restarts disabled, out of motor mode)")
+    parser.add_argument("--fault", action="append", default=[], metavar="SPEC",
+                        help="MIT: schedule a fault, e.g. brownout:3:0.05@2 (motor 3 browns "
+                        "out for 0.05 s, 2 s after the connect line); repeatable")
     return parser
+
+
+def control_command(line: str, emulators: Mapping[str, MitBusEmulator]) -> str:
+    """Apply one control command to the emulators by channel; the answer line.
+
+    Raises:
+        ValueError: not a known command, a bad value, an unknown channel or motor.
+    """
+    words = line.split()
+    if not words or words[0] != "brownout" or len(words) not in (3, 4):
+        raise ValueError(f"unknown command {line!r}; expected: brownout ID OFF_S [CHANNEL]")
+    if len(words) == 4:
+        channel = words[3]
+    elif len(emulators) == 1:
+        (channel,) = emulators
+    else:
+        raise ValueError(f"give the channel, one of {', '.join(emulators)}")
+    if channel not in emulators:
+        raise ValueError(f"unknown channel {channel!r}; known: {', '.join(emulators)}")
+    emulator = emulators[channel]
+    motor_id = int(words[1], 0)
+    if motor_id not in emulator.ids:
+        raise ValueError(f"no motor {motor_id} on channel {channel!r}")
+    emulator.brown_out(motor_id, float(words[2]))
+    return "ok"
+
+
+def _scheduled_faults(specs: Sequence[str]) -> list[tuple[float, str]]:
+    """``brownout:ID:OFF_S@AFTER_S`` -> ``(after_s, "brownout ID OFF_S")``, soonest first.
+
+    Raises:
+        ValueError: not of that form.
+    """
+    faults = []
+    for spec in specs:
+        what, _, after = spec.partition("@")
+        parts = what.split(":")
+        if parts[0] != "brownout" or len(parts) not in (3, 4) or not after:
+            raise ValueError(f"--fault {spec!r}: expected brownout:ID:OFF_S[:CHANNEL]@AFTER_S")
+        faults.append((float(after), " ".join(parts)))
+    return sorted(faults)
 
 
 def _pairs(
@@ -841,6 +958,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         parser.error(str(exc))
     if args.protocol == "mit" and args.model not in MODEL_PRESETS:
         parser.error(f"unknown --model {args.model!r}; known: {', '.join(MODEL_PRESETS)}")
+    try:
+        scheduled = _scheduled_faults(args.fault)
+    except ValueError as exc:
+        parser.error(str(exc))
+    if (scheduled or args.control) and args.protocol != "mit":
+        parser.error("--fault and --control are for MIT motors (--protocol mit)")
     factory: Any = None
     if args.protocol == "cia402":
         try:
@@ -859,7 +982,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     bus_interface = "socketcan" if args.interface == "socketcan" else "virtual"
     buses: list[can.BusABC] = []
     emulators: list[Any] = []
+    by_channel: dict[str, MitBusEmulator] = {}
     server = None
+    control: ControlSocket | None = None
     stop = threading.Event()
 
     def on_signal(signum: int, frame: object) -> None:
@@ -881,10 +1006,11 @@ def main(argv: Sequence[str] | None = None) -> int:
                 return 2
             buses.append(bus)
             if args.protocol == "mit":
-                emulators.append(MitBusEmulator(
+                by_channel[ch] = MitBusEmulator(
                     bus, ids, args.model, bitrate=args.bitrate, pace=args.pace,
                     master_id=args.master_id,
-                    on_event=_event_printer(ch, ready, print_lock) if events else None))
+                    on_event=_event_printer(ch, ready, print_lock) if events else None)
+                emulators.append(by_channel[ch])
             else:
                 # One bus object per channel: its drives share one receive thread and one
                 # modelled wire, as drives on one cable do.
@@ -918,16 +1044,26 @@ def main(argv: Sequence[str] | None = None) -> int:
                   f"channel={','.join(virtual)}", flush=True)
         else:
             print(f"interface={args.interface} channel={','.join(virtual)}", flush=True)
+        if args.control:
+            control = ControlSocket(args.control,
+                                    lambda line: control_command(line, by_channel))
         ready.set()
-        if events:
-            # An expired CAN timeout needs no frame to happen: look for them regularly (the
-            # events carry the modelled instant, not when they were noticed).
-            while not stop.wait(_EVENTS_POLL_S):
+        started = time.monotonic()
+        while not stop.wait(_EVENTS_POLL_S if events or scheduled else None):
+            while scheduled and time.monotonic() - started >= scheduled[0][0]:
+                _, command = scheduled.pop(0)
+                try:
+                    control_command(command, by_channel)
+                except ValueError as exc:
+                    print(f"jtc-hw emulate can: --fault: {exc}", file=sys.stderr)
+            if events:
+                # An expired CAN timeout needs no frame to happen: look for them regularly
+                # (the events carry the modelled instant, not when they were noticed).
                 for emulator in emulators:
                     emulator.check_timeouts()
-        else:
-            stop.wait()
     finally:
+        if control is not None:
+            control.close()
         if server is not None:
             server.stop()
         for emulator in emulators:

@@ -17,6 +17,12 @@ per motor" and a motor is heard from only when it is spoken to.
   request. Replies are drained without blocking and only the newest per motor is kept; a
   motor whose newest feedback is older than its ``feedback_timeout`` is a communication
   fault.
+* Every Damiao reply says whether the motor is enabled (state nibble ``1``) or disabled
+  (``0``, as after a power-up). A motor the driver enabled that answers disabled has reset --
+  a supply dip shorter than ``feedback_timeout`` restarts its firmware, which comes back out
+  of motor mode, limp -- and is a fault ("motor 3 ... reset: answers disabled ..."), cleared
+  by the re-arm, which enables it again. An AK reply carries no mode: an AK reset shorter
+  than ``feedback_timeout`` cannot be seen (docs/can.md, "Motor reset").
 * Bus-off (``bus.state`` where the interface reports it, or a SocketCAN bus-off error frame)
   is a fault; error-passive is counted and logged. A full transmit buffer flushes the stale
   queue (the motor then misses one cycle, which its ``feedback_timeout`` tolerates); a queue
@@ -146,8 +152,15 @@ __all__ = ["MitHardware"]
 _log = logging.getLogger(__name__)
 F64 = NDArray[np.float64]
 NS_PER_S = 1_000_000_000
+DISABLED = 0  # Damiao state code of a motor out of motor mode (as after a power-up)
 ENABLED = 1  # Damiao state code of an enabled motor
 COMMUNICATION_LOST = 0xD  # Damiao state code of an expired CAN timeout
+# The health readings each reply format carries (unknown while the reply is stale).
+_REPLY_READINGS = {
+    "damiao": ["mode", "torque_enabled", "temperature_c", "drive_temperature_c",
+               "rotor_temperature_c", "state"],
+    "ak": [],
+}
 
 
 
@@ -576,24 +589,41 @@ class MitHardware(HardwareInterface):
     def _health(self) -> tuple[list[dict[str, Any]], dict[str, Any] | None]:
         """From the replies the cycle collects anyway (no extra frame): Damiao's state code and
         drive / rotor temperatures; AK replies carry neither. The warning temperature is the
-        hotter of the two."""
+        hotter of the two.
+
+        Every reading comes from the motor's newest reply; ``age_s`` is that reply's age. A
+        reply older than ``feedback_timeout`` (``stale``: true), or none yet, shows every
+        reading as unknown (``None``, listed in ``unknown``) rather than the last one heard:
+        after a bus loss the motor may have lost power. ``torque_enabled`` is the Damiao
+        reply's state ("enabled"); an AK reply does not say, so it is always unknown there
+        (``commanded_mode`` says what the driver asked for).
+        """
+        now = time.monotonic_ns()
         motors: list[dict[str, Any]] = []
         for i, joint in enumerate(self.joints):
-            code = self._state_code[i]
-            temps = [t for t in (self._temperature[i], self._rotor_temperature[i])
-                     if t is not None]
+            heard = int(self._rx_ns[i])
+            age = (now - heard) / NS_PER_S if heard else None
+            fresh = bool(heard) and now - heard <= int(self._timeout_ns[i])
+            code = self._state_code[i] if fresh else None
+            drive_t = self._temperature[i] if fresh else None
+            rotor_t = self._rotor_temperature[i] if fresh else None
+            temps = [t for t in (drive_t, rotor_t) if t is not None]
             errors = ([DAMIAO_STATES.get(code, f"error code {code:#x}")]
                       if code is not None and code >= 8 else [])
             motors.append({
                 "motor": self._ids[i],
                 "joint": joint,
                 "model": self.params["model"][i],
-                "mode": "mit" if self._motor_mode[i] else "off",
-                "torque_enabled": bool(self._motor_mode[i]),
+                "mode": None if code is None else ("mit" if code == ENABLED else "off"),
+                "commanded_mode": "mit" if self._motor_mode[i] else "off",
+                "torque_enabled": None if code is None else code == ENABLED,
                 "temperature_c": max(temps) if temps else None,
-                "drive_temperature_c": self._temperature[i],
-                "rotor_temperature_c": self._rotor_temperature[i],
+                "drive_temperature_c": drive_t,
+                "rotor_temperature_c": rotor_t,
                 "state": None if code is None else DAMIAO_STATES.get(code, f"{code:#x}"),
+                "age_s": None if age is None else round(age, 3),
+                "stale": not fresh,
+                "unknown": [] if fresh else _REPLY_READINGS[self._limits[i].reply],
                 "errors": errors,
                 "last_fault": self._faults.get(joint),
             })
@@ -822,6 +852,13 @@ class MitHardware(HardwareInterface):
                 error = MotorFault(
                     f"{self._owner()}: {where} is at {temp} degC, above max_temperature_c "
                     f"{self._max_temp[i]:g}; let it cool, then re-arm")
+            elif code == DISABLED and self._motor_mode[i] and not stale[i]:
+                # Enabled by us, disabled by itself without an error: the firmware restarted
+                # (a supply dip, a power cycle) and came back out of motor mode, limp.
+                error = MotorFault(
+                    f"{self._owner()}: {where} reset: answers disabled (out of motor mode) "
+                    "while it should be enabled, so it holds no torque; it lost power or "
+                    "restarted: check its supply and connectors, then re-arm")
             elif stale[i]:
                 age = now_ns - int(self._rx_ns[i])
                 why = full_queue(self._links[self._bus_of[i]].health)

@@ -360,6 +360,22 @@ class SocketcandServer:
             return channel
         return self.channels.get(channel)
 
+    def send_raw(self, data: bytes) -> int:
+        """Write ``data`` as is to every connected client: fault injection, a peer sending
+        what a client cannot decode (e.g. bytes that are not ASCII). Returns how many
+        clients it was written to."""
+        with self._lock:
+            clients = list(self._clients)
+        written = 0
+        for client in clients:
+            with client.send_lock:
+                try:
+                    client.conn.sendall(data)
+                except OSError:
+                    continue
+            written += 1
+        return written
+
     @property
     def clients(self) -> int:
         """Connected clients."""

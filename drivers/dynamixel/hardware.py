@@ -67,6 +67,7 @@ import math
 import os
 import time
 from collections.abc import Mapping, Sequence
+from types import MappingProxyType
 from typing import Any, ClassVar, Final
 
 import numpy as np
@@ -153,6 +154,11 @@ _HEALTH_BLOCKS: Final = (
 #: inside the 12 V X models' recommended 10 .. 14.8 V at the top, and their 9.5 .. 16 V Min/Max
 #: Voltage Limit defaults, at which the servo itself raises its Input Voltage Error).
 _SUPPLY_WARN: Final = (0.85, 1.25)
+#: Health key of each register read in _HEALTH_BLOCKS (the hardware error goes to ``errors``).
+_HEALTH_KEYS: Final = MappingProxyType({
+    "torque_enable": "torque_enabled", "moving": "moving", "moving_status": "moving_status",
+    "present_input_voltage": "voltage_v", "present_temperature": "temperature_c",
+})
 _POSITION_FAMILY: Final = (
     OperatingMode.POSITION, OperatingMode.EXTENDED_POSITION, OperatingMode.CURRENT_BASED_POSITION
 )
@@ -382,6 +388,10 @@ class DynamixelHardware(HardwareInterface):
         # Health: read in turn, one block per slot (see _read_health), kept per servo.
         self._firmware: dict[int, int] = {}
         self._health_values: dict[int, dict[str, int]] = {i: {} for i in self.ids}
+        # When each health block was last read, per servo (monotonic ns): older than two
+        # health periods, its values are reported unknown (see _health).
+        self._health_at: dict[int, dict[int, int]] = {i: {} for i in self.ids}
+        self._health_stale_ns = 2 * round(p["health_period_s"] * 1e9)
         self._health_slot_ns = max(1, round(p["health_period_s"] * 1e9 / len(_HEALTH_BLOCKS)))
         self._next_health_ns: int | None = None
         self._health_block = 0
@@ -918,7 +928,8 @@ class DynamixelHardware(HardwareInterface):
         if now_ns < self._next_health_ns:
             return
         self._next_health_ns = now_ns + self._health_slot_ns
-        first, last = _HEALTH_BLOCKS[self._health_block]
+        block_index = self._health_block
+        first, last = _HEALTH_BLOCKS[block_index]
         self._health_block = (self._health_block + 1) % len(_HEALTH_BLOCKS)
         model = self.models[0]
         start = model.register(first).address
@@ -930,8 +941,10 @@ class DynamixelHardware(HardwareInterface):
         except ServoCommunicationError:
             self._health_errors += 1
             return
+        read_at = time.monotonic_ns()
         for i, servo_id in enumerate(self.ids):
             block = result.data[servo_id]
+            self._health_at[servo_id][block_index] = read_at
             values = self._health_values[servo_id]
             for name in (first, last):
                 reg = self.models[i].register(name)
@@ -1105,9 +1118,20 @@ class DynamixelHardware(HardwareInterface):
         }
 
     def _health(self) -> tuple[list[dict[str, Any]], dict[str, Any] | None]:
+        """The servos' health as last read. A block read more than two ``health_period_s``
+        ago (the bus lost, the health reads failing, nothing read while a watchdog may be
+        armed), or never, gives unknown values (``None``, listed in ``unknown``; ``stale``
+        true), not the last ones heard; ``age_s`` is the age of the servo's oldest block."""
+        now = time.monotonic_ns()
         motors: list[dict[str, Any]] = []
         for servo_id, joint, model in zip(self.ids, self.joints, self.models, strict=True):
-            v = self._health_values[servo_id]
+            read_at = self._health_at[servo_id]
+            fresh = {k for k, t in read_at.items() if now - t <= self._health_stale_ns}
+            v = {name: value for name, value in self._health_values[servo_id].items()
+                 if any(name in _HEALTH_BLOCKS[k] for k in fresh)}
+            unknown = [_HEALTH_KEYS[name] for k, names in enumerate(_HEALTH_BLOCKS)
+                       if k not in fresh for name in names if name in _HEALTH_KEYS]
+            oldest = min(read_at.values()) if len(read_at) == len(_HEALTH_BLOCKS) else None
             errors: list[str] = []
             flags = v.get("hardware_error_status", self._latched.get(servo_id, 0))
             if flags:
@@ -1130,6 +1154,9 @@ class DynamixelHardware(HardwareInterface):
                 "voltage_range_v": list(supply),
                 "moving": None if "moving" not in v else bool(v["moving"]),
                 "moving_status": v.get("moving_status"),
+                "age_s": None if oldest is None else round((now - oldest) / 1e9, 3),
+                "stale": bool(unknown),
+                "unknown": unknown,
                 "errors": errors,
                 "last_fault": self._last_fault_by_servo.get(servo_id),
             })

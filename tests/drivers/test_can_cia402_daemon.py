@@ -24,6 +24,7 @@ from helpers.daemon import WAIT_S, DaemonProcess, connect, loop_process, next_st
 
 from jtc_hw.api.client import Client
 from jtc_hw.api.framing import RequestError
+from jtc_hw.cli_health import format_hardware, hardware_report
 
 from conftest import make_robot_config
 
@@ -186,6 +187,34 @@ def test_rearm_is_refused_in_one_line_while_a_drive_cannot_stay_enabled(
         assert back["status"] == "succeeded", back
 
 
+
+
+def test_a_socketcand_receive_error_is_one_line_in_result_status_and_hardware(
+    daemon: DaemonProcess, drives: Drives
+) -> None:
+    """Issue 21, point 6: the socketcand peer sends bytes python-can cannot decode (not
+    ASCII); its client raises an error whose text carries a whole traceback. The goal's
+    result, the status and the hardware report say in one line what failed, on which bus,
+    and which drives it leaves unreachable."""
+    with connect(daemon) as client:
+        goal = client.send_goal(traj([0.3, 0.0], 1.5))
+        for feedback in goal.feedback(timeout_s=WAIT_S):
+            if feedback["time_from_start"] >= 0.2:
+                break
+        assert drives.server.send_raw(b"\xff\xfe< frame 183 0.0 >") == 1
+        result = goal.wait(timeout_s=WAIT_S)
+        assert result["status"] == "aborted", result
+        status = client.get_status()
+        (component,) = status["hardware"]["components"]
+        texts = [result["error_string"], status["controller"]["fault"],
+                 component["last_fault"]]
+        for text in texts:
+            assert "\n" not in text and "Traceback" not in text, text
+            assert "receiving on bus 'can0'" in text, text
+            assert "node 3 ('shoulder')" in text and "node 7 ('elbow')" in text, text
+            assert "Failed to receive" in text, text  # python-can's reason, its first line
+        report = format_hardware(hardware_report(status))
+        assert "Traceback" not in report and "None" not in report, report
 
 
 @pytest.fixture

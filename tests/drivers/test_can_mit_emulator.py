@@ -16,10 +16,12 @@ import threading
 import time
 import uuid
 from collections.abc import Iterator
+from pathlib import Path
 from typing import Any
 
 import can
 import pytest
+from helpers.can_emulator import control
 from helpers.daemon import WAIT_S, daemon_env
 
 from jtc_hw.drivers.can.emulator import EmulatorEvent, MitBusEmulator
@@ -310,3 +312,84 @@ def test_emulate_process_prints_events_with_the_modelled_expiry() -> None:
         proc.stderr.close()
         assert proc.stdout is not None
         proc.stdout.close()
+
+
+def _until_answered(host: Host, motor_id: int, data: bytes) -> can.Message:
+    """Send ``data`` until the motor answers (it is browned out meanwhile)."""
+    deadline = time.monotonic() + WAIT_S
+    while (reply := host.send(motor_id, data)) is None:
+        assert time.monotonic() < deadline, f"motor {motor_id} never answered again"
+    return reply
+
+
+def test_brown_out_silences_the_motor_then_it_answers_disabled(damiao: Host) -> None:
+    emulator = damiao.emulator
+    for motor_id in (1, 2):
+        assert damiao.motor(motor_id, ENTER_MOTOR_MODE).data[0] >> 4 == 1
+    damiao.register(RegisterFrame(1, REGISTER_WRITE, 9, timeout_register_value(2.0)))
+    before = time.monotonic()
+    emulator.brown_out(1, 0.5)
+    assert damiao.send(1, hold()) is None  # unpowered: deaf and silent
+    assert damiao.motor(2, hold()).data[0] >> 4 == 1  # the other motor is not affected
+    reply = _until_answered(damiao, 1, hold())
+    # Back as after a power-up: the state nibble says disabled, the set-point was not taken.
+    assert reply.data[0] >> 4 == 0 and reply.data[0] & 0x0F == 1
+    assert not emulator.enabled(1) and emulator.enabled(2)
+    assert emulator.timeout_s(1) == 0.0  # the RAM value is gone: the stored one (none)
+    (restart,) = emulator.restarts(1)
+    assert restart >= before + 0.5
+    (first,) = emulator.first_replies_after_reset(1)
+    assert first >= restart
+    assert [(e.kind, e.motor_id) for e in damiao.events if e.motor_id == 1][-2:] == [
+        ("disabled", 1), ("reset", 1)]
+    assert damiao.motor(1, ENTER_MOTOR_MODE).data[0] >> 4 == 1  # a re-arm enables it
+    with pytest.raises(ValueError, match="positive"):
+        emulator.brown_out(1, 0.0)
+
+
+def test_ak_brown_out_answers_as_before_but_out_of_motor_mode(ak: Host) -> None:
+    ak.motor(1, ENTER_MOTOR_MODE)
+    assert ak.emulator.enabled(1)
+    ak.emulator.brown_out(1, 0.3)
+    reply = _until_answered(ak, 1, encode_command(MitCommand(0.0, 0.0, 30.0, 1.0, 0.0), AK))
+    # The AK reply has no state field: nothing in it tells the reset apart.
+    assert len(reply.data) == 6 and reply.data[0] == 1
+    assert not ak.emulator.enabled(1) and len(ak.emulator.restarts(1)) == 1
+
+
+def test_emulate_process_browns_out_on_its_control_socket_and_on_fault(
+    tmp_path: Path,
+) -> None:
+    path = tmp_path / "emulator.sock"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "jtc_hw.drivers.can.emulator", "--model", "DM4310", "--ids", "1,2",
+         "--master-id", "0x11", "--socketcand-port", "0", "--events", "--control", str(path),
+         "--fault", "brownout:2:0.05@0"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, stdin=subprocess.DEVNULL, text=True,
+        cwd=ROOT, env=daemon_env(),
+    )
+    lines = Lines(proc)
+    try:
+        lines.next()  # the connect line
+        first = json.loads(lines.next())  # the scheduled one
+        assert (first["event"], first["id"]) == ("reset", 2)
+        assert control(path, "brownout 9 0.05").startswith("error: no motor 9")
+        assert control(path, "reboot 1").startswith("error: unknown command")
+        before = time.monotonic()
+        assert control(path, "brownout 1 0.05") == "ok"
+        event = json.loads(lines.next())
+        assert (event["event"], event["channel"], event["id"]) == ("reset", "can0", 1)
+        assert event["t"] >= before + 0.05 - 1e-3  # the modelled instant of the restart
+    finally:
+        proc.terminate()
+        try:
+            proc.wait(timeout=WAIT_S)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+        lines.join()
+        assert proc.stderr is not None
+        proc.stderr.close()
+        assert proc.stdout is not None
+        proc.stdout.close()
+    assert not path.exists()  # removed on exit

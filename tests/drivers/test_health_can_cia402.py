@@ -91,3 +91,22 @@ def test_error_register_is_read_by_sdo_without_a_cycle_waiting_for_it(
     assert int(elbow["error_register"], 16) == drives[7].error_register
     assert any("0x4310" in e for e in elbow["errors"])
     assert any("error register" in w for w in health["warnings"])
+
+
+def test_after_the_drives_fall_silent_health_no_longer_says_torque_enabled(
+    rig: tuple[can.BusABC, dict[int, Cia402DriveEmulator], Cia402Hardware],
+) -> None:
+    """Issue 21: the drives stop answering (a bus loss, their supply gone): health shows
+    their readings as unknown with the age of the last TPDO, not "operation enabled"."""
+    _, drives, hw = rig
+    hw.configure()
+    hw.activate(time.monotonic_ns())
+    health = cycle_until(hw, lambda h: all(m["torque_enabled"] for m in h["motors"]))
+    assert all(m["stale"] is False and m["age_s"] is not None for m in health["motors"])
+    for d in drives.values():
+        d.stop()
+    health = cycle_until(hw, lambda h: all(m["stale"] for m in h["motors"]))
+    for motor in health["motors"]:
+        assert motor["torque_enabled"] is None and motor["state"] is None, motor
+        assert motor["statusword"] is None and motor["error_code"] is None, motor
+        assert motor["age_s"] > 0.3 and "torque_enabled" in motor["unknown"], motor

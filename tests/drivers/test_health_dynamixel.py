@@ -9,6 +9,7 @@ clock, so "a health period later" is a count of cycles, not a wait.
 from __future__ import annotations
 
 import logging
+import time
 from collections.abc import Callable, Iterator
 from typing import Any
 
@@ -20,6 +21,7 @@ from jtc_hw.drivers.dynamixel.control_table import HardwareError
 from jtc_hw.drivers.dynamixel.emulator import DynamixelEmulator
 from jtc_hw.drivers.dynamixel.hardware import DynamixelHardware
 from jtc_hw.errors import ConfigurationError
+from jtc_hw.errors import HardwareError as DriverError
 
 MS = 1_000_000
 PERIOD_NS = 5 * MS
@@ -193,3 +195,28 @@ def test_a_kind_without_health_reports_its_joints_with_nothing_known() -> None:
     assert set(HEALTH_FIELDS) <= set(health["motors"][0])
     assert health["motors"][0]["temperature_c"] is None
     assert health["bus"] is None and health["warnings"] == []
+
+
+def test_health_of_servos_no_longer_heard_is_unknown_not_the_last_reading(
+    make_hw: Callable[..., DynamixelHardware], emulator: DynamixelEmulator,
+) -> None:
+    """Issue 21: the servos stop answering (a bus loss, their supply gone): once their health
+    blocks are older than two health periods, health shows them as unknown with their age,
+    not "torque on" as last read."""
+    cycles = Cycles(make_hw(health_period_s=0.1))
+    deadline = time.monotonic() + 10.0
+    while cycles.motor(1)["stale"]:
+        cycles.run(1)
+        assert time.monotonic() < deadline, cycles.motor(1)
+    assert cycles.motor(1)["torque_enabled"] is True and cycles.motor(1)["age_s"] >= 0.0
+    for servo_id in IDS:
+        emulator.set_silent(servo_id, True)
+    while not (motor := cycles.motor(1))["stale"]:
+        try:
+            cycles.run(1)
+        except DriverError:
+            pass  # the silent servos: what this test is about is the health afterwards
+        assert time.monotonic() < deadline, motor
+    assert motor["torque_enabled"] is None and motor["temperature_c"] is None, motor
+    assert motor["voltage_v"] is None and "torque_enabled" in motor["unknown"], motor
+    assert motor["age_s"] > 0.2, motor  # older than two health periods

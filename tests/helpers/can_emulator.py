@@ -5,10 +5,12 @@ with ``--events``. Killing it is a bus loss (no goodbye on the bus)."""
 from __future__ import annotations
 
 import json
+import socket
 import subprocess
 import sys
 import threading
 from collections.abc import Sequence
+from pathlib import Path
 
 from helpers.daemon import WAIT_S, daemon_env
 
@@ -79,3 +81,14 @@ class EmulatorProcess:
     def close(self) -> None:
         if self.proc is not None:
             self.kill()
+
+
+def control(path: Path, line: str, timeout_s: float = WAIT_S) -> str:
+    """Send one command to an emulator's ``--control`` socket; its one-line answer."""
+    with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as sock:
+        sock.settimeout(timeout_s)
+        sock.connect(str(path))
+        with sock.makefile("rw", encoding="utf-8", newline="\n") as stream:
+            stream.write(line + "\n")
+            stream.flush()
+            return stream.readline().strip()

@@ -1087,7 +1087,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="set the speed scaling factor (1: as planned, 0.5: half speed, 0: pause)",
         description=f"Set the speed scaling factor. {scaling_help}",
     )
-    p.add_argument("factor", type=float, help="the factor, >= 0 (values above 1 speed up)")
+    p.add_argument(
+        "factor",
+        type=float,
+        help="the factor, in [0, 1] (up to speed_scaling.max_scaling_factor where the "
+        "configuration raises it: above 1 speeds up)",
+    )
     client_options(p)
     p.set_defaults(func=cmd_speed)
 

@@ -897,7 +897,7 @@ class LoopBackend:
             ``{"factor": in force now, "target": what it ramps to}``.
 
         Raises:
-            ConfigurationError: not a finite number >= 0.
+            ConfigurationError: not a number in ``[0, speed_scaling.max_scaling_factor]``.
             HardwareError: the control loop did not answer.
         """
         value: dict[str, float] = await self._request("set_speed_scaling", {"factor": factor})

@@ -368,6 +368,7 @@ REFERENCE_DEFAULTS: dict[str, Any] = {
     },
     "speed_scaling": {
         "initial_scaling_factor": 1.0,
+        "max_scaling_factor": 1.0,
         "state_interface": "",
         "command_interface": "",
         "ramp_time": 0.5,

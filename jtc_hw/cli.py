@@ -91,11 +91,13 @@ def load_goal_file(path: str) -> dict[str, Any]:
     Raises:
         ConfigurationError: unreadable file or malformed content, naming the line/field.
     """
+    from .controller.parsing import decode_text
+
     p = Path(path)
     try:
-        text = p.read_text()
+        text = decode_text(p.read_bytes(), path)
     except OSError as exc:
-        raise ConfigurationError(f"cannot read the trajectory file: {exc.strerror}", path) from exc
+        raise ConfigurationError(f"cannot read the trajectory file: {exc.strerror}", path) from None
     if p.suffix.lower() == ".csv":
         return {"trajectory": _csv_trajectory(text, path)}
     if p.suffix.lower() == ".json":

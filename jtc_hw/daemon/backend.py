@@ -748,7 +748,8 @@ class LoopBackend:
             status["flight_recorder"] = self.flight.status()
         if self.recording is not None:
             status["recording"] = {"file": str(self.recording.path),
-                                   "errors": self.recording.errors}
+                                   "errors": self.recording.errors,
+                                   "stopped": self.recording.stopped}
         return status
 
     def query_state(self, time_ns: int) -> QueriedState:

@@ -104,7 +104,11 @@ def load_goal_file(path: str) -> dict[str, Any]:
         try:
             data = json.loads(text)
         except ValueError as exc:
-            raise ConfigurationError(f"not valid JSON: {exc}", path) from exc
+            raise ConfigurationError(f"not valid JSON: {exc}", path) from None
+        except RecursionError:
+            raise ConfigurationError(
+                "not valid JSON: nested too deeply for the interpreter's stack; flatten it", path
+            ) from None
     else:
         from .api.goal_files import split_documents
         from .controller.parsing import load_yaml

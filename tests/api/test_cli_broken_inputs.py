@@ -151,6 +151,10 @@ def test_every_command_answers_broken_inputs_in_one_line(inputs: Path) -> None:
         lines = stderr.splitlines()
         if len(lines) != 1 or "Traceback" in stderr or code != expected:
             failures.append(f"{shown}: exit {code} (expected {expected}), stderr:\n{stderr}")
+        elif args[0] in ("run", "check") and not args[1].endswith("missing.yaml") and (
+            f"configuration file {args[1]}, line " not in stderr
+        ):
+            failures.append(f"{shown}: the line does not name the file and position: {stderr}")
         elif not documented(parsers[args[0]], code):
             failures.append(f"{shown}: exit {code} is not in 'jtc-hw {args[0]} --help'")
     assert not failures, f"{len(failures)} of {len(todo)}:\n" + "\n".join(failures)

@@ -7,7 +7,9 @@ temporary directory), opens one unix connection and pipelines ``--messages`` lin
 ``tests/helpers/fuzz.py`` (seeded: ``--seed`` replays a run), while reading what comes back.
 Lines cover every operation of ``docs/protocol.md``: plausible requests, wrong and extreme
 values (types, lone surrogate escapes, times at and beyond int64, values near the float64
-range), missing and unknown fields, byte-level mutations, malformed JSON, over-long lines. Goals
+range), missing and unknown fields, byte-level mutations, malformed JSON, over-long lines,
+speed factors out of range (1e308, -1, NaN, infinity, huge integers, strings) and parameter
+changes of every family with huge, NaN, negative or ill-typed values. Goals
 really run (and preempt each other, get canceled, stopped, aborted by a ``sim`` freeze or
 fault, re-armed).
 

@@ -91,18 +91,24 @@ def load_goal_file(path: str) -> dict[str, Any]:
     Raises:
         ConfigurationError: unreadable file or malformed content, naming the line/field.
     """
+    from .controller.parsing import decode_text
+
     p = Path(path)
     try:
-        text = p.read_text()
+        text = decode_text(p.read_bytes(), path)
     except OSError as exc:
-        raise ConfigurationError(f"cannot read the trajectory file: {exc.strerror}", path) from exc
+        raise ConfigurationError(f"cannot read the trajectory file: {exc.strerror}", path) from None
     if p.suffix.lower() == ".csv":
         return {"trajectory": _csv_trajectory(text, path)}
     if p.suffix.lower() == ".json":
         try:
             data = json.loads(text)
         except ValueError as exc:
-            raise ConfigurationError(f"not valid JSON: {exc}", path) from exc
+            raise ConfigurationError(f"not valid JSON: {exc}", path) from None
+        except RecursionError:
+            raise ConfigurationError(
+                "not valid JSON: nested too deeply for the interpreter's stack; flatten it", path
+            ) from None
     else:
         from .api.goal_files import split_documents
         from .controller.parsing import load_yaml
@@ -1087,7 +1093,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="set the speed scaling factor (1: as planned, 0.5: half speed, 0: pause)",
         description=f"Set the speed scaling factor. {scaling_help}",
     )
-    p.add_argument("factor", type=float, help="the factor, >= 0 (values above 1 speed up)")
+    p.add_argument(
+        "factor",
+        type=float,
+        help="the factor, in [0, 1] (up to speed_scaling.max_scaling_factor where the "
+        "configuration raises it: above 1 speeds up)",
+    )
     client_options(p)
     p.set_defaults(func=cmd_speed)
 

@@ -19,6 +19,8 @@ import threading
 import time
 from typing import Any, Final
 
+from .errors import ConfigurationError
+
 __all__ = ["STATUS_REFRESH_S", "add_parser", "check_line", "cmd_fleet", "connect_zenoh"]
 
 STATUS_REFRESH_S: Final = 5.0
@@ -30,15 +32,18 @@ def connect_zenoh(args: argparse.Namespace, hello: bool, no_daemon: type[Excepti
     """A client command's connection with ``--zenoh PREFIX`` (``--zenoh-config FILE``).
 
     Raises:
-        no_daemon: no daemon at the prefix, eclipse-zenoh missing, or an unreadable
-            configuration (the message says what to do).
+        no_daemon: no daemon at the prefix, or eclipse-zenoh missing (the message says what
+            to do).
+        ConfigurationError: the ``--zenoh-config`` file cannot be read (bad input, exit 2).
     """
     from .api.client import Client, ClientConnectionError
 
     try:
         return Client.connect(f"zenoh:{args.zenoh}", zenoh_config=args.zenoh_config,
                               timeout_s=args.timeout, hello=hello)
-    except (ClientConnectionError, ValueError, TimeoutError) as exc:
+    except ValueError as exc:  # an unreadable configuration: bad input, said as such
+        raise ConfigurationError(str(exc), "--zenoh-config") from None
+    except (ClientConnectionError, TimeoutError) as exc:
         raise no_daemon(f"{exc}") from exc
 
 

@@ -537,7 +537,9 @@ class Client:
 
         Raises:
             ValueError: neither or both of ``factor`` and ``resume`` given.
-            RequestError: a factor below 0 or not a number (``bad_request``).
+            RequestError: a factor out of [0, max] (max: the daemon's
+                ``speed_scaling.max_scaling_factor``, 1 by default) or not a number
+                (``bad_request``, naming the range).
             TimeoutError: no reply within the timeout.
             ClientConnectionError: the connection is lost.
         """

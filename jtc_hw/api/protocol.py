@@ -808,15 +808,18 @@ def parse_request(obj: Any) -> Request:
         resume = f.has("resume") and f.boolean("resume", o["resume"])
         if f.has("factor") == resume:
             raise f.error(
-                "give exactly one of 'factor' (a number >= 0: 1 full speed, 0.5 half, 0 pause) "
-                f"or 'resume': true{'; both were given' if resume else ''}"
+                "give exactly one of 'factor' (a number in [0, 1]: 1 full speed, 0.5 half, "
+                f"0 pause) or 'resume': true{'; both were given' if resume else ''}"
             )
         if resume:
             return SetSpeedScaling(rid, None, True)
         factor = f.number("factor", o["factor"])
         if factor < 0.0:
             raise f.error(
-                f"must be >= 0 (1: full speed, 0: pause), got {factor!r}", "factor"
+                f"must be in [0, 1] (1: full speed, 0: pause; up to "
+                f"speed_scaling.max_scaling_factor where the daemon's configuration raises it), "
+                f"got {factor!r}",
+                "factor",
             )
         return SetSpeedScaling(rid, factor)
     simple: dict[str, type[Request]] = {

@@ -27,6 +27,7 @@ import itertools
 import json
 import logging
 import os
+import re
 import threading
 import time
 from collections.abc import Mapping
@@ -95,7 +96,9 @@ def client_config(zenoh_config: ZenohConfigLike | None = None) -> Any:
         try:
             config = zenoh.Config.from_file(os.fspath(zenoh_config))
         except Exception as exc:
-            raise ValueError(f"{os.fspath(zenoh_config)}: not a Zenoh configuration: {exc}"
+            # zenoh's message ends with the Rust source line it came from: not for users.
+            reason = re.sub(r"\s+at \S+\.rs:\d+\.?$", "", " ".join(str(exc).split()))
+            raise ValueError(f"{os.fspath(zenoh_config)}: not a Zenoh configuration: {reason}"
                              ) from None
 
     def get(key: str, of: Any = config) -> Any:

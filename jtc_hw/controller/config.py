@@ -57,6 +57,7 @@ __all__ = [
     "JointConstraints",
     "Kind",
     "LIMITS_PARAMETERS",
+    "MAX_SCALING_CEILING",
     "PARAMETERS",
     "Param",
     "SPEED_SCALING_PARAMETERS",
@@ -139,6 +140,7 @@ class Param:
         default: default value (a tuple for string arrays).
         description: one-line description, from the reference.
         minimum: inclusive lower bound for numbers, if any.
+        maximum: inclusive upper bound for numbers, if any.
         choices: allowed values for strings / string-array elements, if restricted.
         required: the parameter must be given (no usable default).
         unique: string array without duplicates.
@@ -153,6 +155,7 @@ class Param:
     default: float | bool | str | tuple[str, ...]
     description: str
     minimum: float | None = None
+    maximum: float | None = None
     choices: tuple[str, ...] = ()
     required: bool = False
     unique: bool = False
@@ -254,10 +257,21 @@ LIMITS_PARAMETERS: Final[Mapping[str, Param]] = _table(
 """``limits.*`` parameters other than the per-joint limits (not upstream's: upstream does not
 check goals against limits)."""
 
+MAX_SCALING_CEILING: Final = 10.0
+"""The largest ``speed_scaling.max_scaling_factor`` a configuration may give: a factor runs
+trajectories that much faster than their author planned them, so the range stays small and
+finite (an unbounded factor once made every later goal fail with an overflow, issue 21)."""
+
 SPEED_SCALING_PARAMETERS: Final[Mapping[str, Param]] = _table(
     Param("initial_scaling_factor", _F, 1.0,
-          "speed scaling factor at activation (1: as planned, 0: paused)", minimum=0.0,
-          read_only=True),
+          "speed scaling factor at activation (1: as planned, 0: paused), in "
+          "[0, max_scaling_factor]", minimum=0.0, read_only=True),
+    # Not upstream's: upstream's factor is in [0, 1]; a robot whose goals are planned slow may
+    # allow more here (read-only: a client cannot raise its own bound).
+    Param("max_scaling_factor", _F, 1.0,
+          "largest speed scaling factor accepted (1: upstream's bound; above 1 lets "
+          "set_speed_scaling run trajectories faster than planned)", minimum=1.0,
+          maximum=MAX_SCALING_CEILING, read_only=True),
     # Upstream names a controller manager's interface here; the daemon has none (only "" is
     # accepted, see _validate), and the factor is set through set_speed_scaling instead.
     Param("state_interface", _S, "", "interface the factor is read from (\"\": none)",
@@ -382,6 +396,7 @@ class SpeedScaling:
     initial_scaling_factor: float = _float_default(
         SPEED_SCALING_PARAMETERS, "initial_scaling_factor"
     )
+    max_scaling_factor: float = _float_default(SPEED_SCALING_PARAMETERS, "max_scaling_factor")
     state_interface: str = _str_default(SPEED_SCALING_PARAMETERS, "state_interface")
     command_interface: str = _str_default(SPEED_SCALING_PARAMETERS, "command_interface")
     ramp_time: float = _float_default(SPEED_SCALING_PARAMETERS, "ramp_time")
@@ -508,6 +523,13 @@ def _coerce(param: Param, value: Any, path: str) -> Any:
             number = math.inf
         if not math.isfinite(number):
             raise ConfigurationError(f"expected a finite number, got {value!r}", path, value)
+        low = -math.inf if param.minimum is None else param.minimum
+        if param.maximum is not None and not low <= number <= param.maximum:
+            raise ConfigurationError(
+                f"must be in [{low:g}, {param.maximum:g}], got {value!r}",
+                path,
+                value,
+            )
         if param.minimum is not None and number < param.minimum:
             raise ConfigurationError(
                 f"must be >= {param.minimum:g}, got {value!r}", path, value
@@ -783,6 +805,14 @@ def _validate(cfg: ControllerConfig) -> None:
                 f"speed_scaling.{name}",
                 checked_scaling[name],
             )
+    initial, most = checked_scaling["initial_scaling_factor"], checked_scaling["max_scaling_factor"]
+    if initial > most:
+        raise ConfigurationError(
+            f"must be in [0, {most:g}] (speed_scaling.max_scaling_factor allows more, up to "
+            f"{MAX_SCALING_CEILING:g}), got {initial!r}",
+            "speed_scaling.initial_scaling_factor",
+            initial,
+        )
     put("speed_scaling", SpeedScaling(**checked_scaling))
 
 

@@ -50,7 +50,7 @@ from ..errors import (
     HardwareError,
     StalePlan,
 )
-from .config import ControllerConfig
+from .config import MAX_SCALING_CEILING, ControllerConfig
 from .config_io import ParameterChange, get_parameters, read_only_differences, set_parameters
 from .goals import (
     ErrorCode,
@@ -953,7 +953,8 @@ class JointTrajectoryController:
 
     def set_speed_scaling(self, factor: float) -> None:
         """Set the speed scaling factor's target: the trajectory time advances by the elapsed
-        time times the factor (1: as planned, 0.5: half speed, 0: paused; above 1: faster).
+        time times the factor (1: as planned, 0.5: half speed, 0: paused; above 1, where
+        ``speed_scaling.max_scaling_factor`` allows it: faster).
 
         The factor ramps toward the target from the next ``update``, as fast as the
         acceleration limits allow (``config.limits``; a joint's acceleration
@@ -968,17 +969,23 @@ class JointTrajectoryController:
             ctrl.resume_speed_scaling()   # back to the factor before the pause
 
         Raises:
-            ConfigurationError: ``factor`` is not a finite number >= 0.
+            ConfigurationError: ``factor`` is not a number in ``[0, max_scaling_factor]``
+                (upstream's ``[0, 1]`` by default); the message names the range.
         """
+        most = self.config.speed_scaling.max_scaling_factor
         if (
             isinstance(factor, bool)
             or not isinstance(factor, (int, float))
-            or not math.isfinite(factor)
-            or factor < 0.0
+            or not 0.0 <= factor <= most  # False for NaN
         ):
+            wider = (
+                f"; speed_scaling.max_scaling_factor allows up to {MAX_SCALING_CEILING:g}"
+                if most < MAX_SCALING_CEILING
+                else ""
+            )
             raise ConfigurationError(
-                f"the speed scaling factor must be a finite number >= 0 (1: full speed, "
-                f"0: pause), got {factor!r}",
+                f"the speed scaling factor must be a number in [0, {most:g}] (1: full speed, "
+                f"0: pause{wider}), got {factor!r}",
                 "factor",
                 factor,
             )

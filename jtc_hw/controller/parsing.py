@@ -7,7 +7,13 @@ that every configuration error reads the same way: the key path, what was found,
 YAML is read with a safe loader that refuses a key given twice and bounds what aliases may
 add: a few lines of nested anchors (``&a``) and aliases (``*a``) can stand for a billion nodes
 (an "alias bomb"), which anything walking the result, down to an error message quoting it,
-would expand. Such a document is refused before it is built.
+would expand. Such a document is refused before it is built. So is one nested deeper than
+:data:`MAX_DEPTH` (the composer and the constructor recurse once per level: 5,000 levels of
+``[`` would exhaust the interpreter's stack), refused where the limit is crossed.
+
+Every error is one line that names the file and, where known, the line and column
+(``robot.yaml, line 3, column 7: ...``): a text that is not UTF-8 (the offset of the first bad
+byte), a character YAML refuses, a syntax error, too deep a nesting, an alias bomb.
 """
 
 from __future__ import annotations
@@ -30,12 +36,18 @@ __all__ = [
     "fmt_list",
     "load_yaml",
     "MAX_ALIAS_NODES",
+    "MAX_DEPTH",
+    "decode_text",
     "read_source",
 ]
 
 MAX_ALIAS_NODES = 1_000_000
 """Most nodes that aliases may add to a YAML document, counted as if each alias were a copy of
 what it names (a 10,000-point goal file that repeats one velocity list by alias adds 70,000)."""
+
+MAX_DEPTH = 100
+"""Most levels of nesting (mappings and lists inside each other) a YAML document may have: a
+robot file or a goal file needs fewer than ten; the parser recurses once per level."""
 
 
 def describe(value: Any) -> str:
@@ -150,9 +162,28 @@ def _check_alias_expansion(root: yaml.Node, limit: int = MAX_ALIAS_NODES) -> Non
         )
 
 
+class NestingError(yaml.MarkedYAMLError):
+    """A YAML document nested deeper than ``MAX_DEPTH`` (``problem_mark``: where)."""
+
+
 class _StrictLoader(yaml.SafeLoader):
-    """Safe YAML loader that refuses a key given twice in one mapping, and a document whose
-    aliases expand it beyond ``MAX_ALIAS_NODES`` nodes."""
+    """Safe YAML loader that refuses a key given twice in one mapping, a document whose
+    aliases expand it beyond ``MAX_ALIAS_NODES`` nodes, and one nested deeper than
+    ``MAX_DEPTH``."""
+
+    _depth = 0
+
+    def compose_node(self, parent: yaml.Node | None, index: Any) -> yaml.Node | None:
+        self._depth += 1
+        try:
+            if self._depth > MAX_DEPTH:
+                raise NestingError(
+                    problem=f"nested more than {MAX_DEPTH} levels deep; flatten it",
+                    problem_mark=self.peek_event().start_mark,  # type: ignore[no-untyped-call]
+                )
+            return super().compose_node(parent, index)
+        finally:
+            self._depth -= 1
 
     def construct_document(self, node: yaml.Node) -> Any:
         _check_alias_expansion(node)
@@ -180,25 +211,96 @@ _StrictLoader.add_constructor(
 )
 
 
+def _one_line(text: str) -> str:
+    return " ".join(text.split())
+
+
+def _yaml_problem(exc: yaml.YAMLError, text: str) -> tuple[str, str]:
+    """Where a YAML error is in ``text`` (``", line L, column C"`` or ``""``) and what it
+    is, one line."""
+    if isinstance(exc, yaml.MarkedYAMLError):
+        mark = exc.problem_mark or exc.context_mark
+        where = "" if mark is None else f", line {mark.line + 1}, column {mark.column + 1}"
+        what = "; ".join(_one_line(p) for p in (exc.context, exc.problem) if p)
+        if not isinstance(exc, NestingError):
+            what = f"not valid YAML: {what}"
+        return where, what
+    if isinstance(exc, yaml.reader.ReaderError):
+        line = text.count("\n", 0, exc.position) + 1
+        column = exc.position - (text.rfind("\n", 0, exc.position) + 1) + 1
+        return (
+            f", line {line}, column {column}",
+            f"not valid YAML: the character #x{exc.character:04x} is not allowed in YAML "
+            "(a binary file?)"
+            if isinstance(exc.character, int)
+            else f"not valid YAML: {_one_line(str(exc))}",
+        )
+    if isinstance(exc, AliasExpansionError):
+        return "", _one_line(str(exc))
+    return "", f"not valid YAML: {_one_line(str(exc))}"
+
+
+def decode_text(data: bytes, name: str) -> str:
+    """``data`` as UTF-8 text.
+
+    Raises:
+        ConfigurationError: not UTF-8; the message names ``name``, the line and column
+            (counted in bytes) of the first bad byte, and says what to do.
+    """
+    try:
+        return data.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        line = data.count(b"\n", 0, exc.start) + 1
+        column = exc.start - (data.rfind(b"\n", 0, exc.start) + 1) + 1
+        raise ConfigurationError(
+            f"{name}, line {line}, column {column}: not UTF-8 text (byte "
+            f"0x{data[exc.start]:02x} at offset {exc.start}; a binary file?); save it as UTF-8"
+        ) from None
+
+
+def _load(text: str) -> Any:
+    """One document with :class:`_StrictLoader`.
+
+    Raises:
+        yaml.YAMLError: any refusal, including a stack exhausted anyway (a
+            :class:`NestingError` without a position).
+    """
+    try:
+        return yaml.load(text, Loader=_StrictLoader)  # noqa: S506 - a SafeLoader
+    except RecursionError:
+        raise NestingError(
+            problem="nested too deeply for the interpreter's stack; flatten it"
+        ) from None
+
+
 def load_yaml(text: str, name: str) -> Any:
-    """Parse one YAML document strictly (no duplicate keys, alias expansion bounded).
+    """Parse one YAML document strictly (no duplicate keys, alias expansion and nesting
+    bounded).
 
     Args:
         text: the document.
         name: what it is, for errors (a file name).
 
     Raises:
-        ConfigurationError: not valid YAML, or an alias bomb; the path is ``name``.
+        ConfigurationError: not valid YAML, an alias bomb or nested too deep; one line, the
+            path is ``name`` and the position follows it where known.
     """
     try:
-        return yaml.load(text, Loader=_StrictLoader)  # noqa: S506 - a SafeLoader
-    except AliasExpansionError as exc:
-        raise ConfigurationError(str(exc), name) from None
+        return _load(text)
     except yaml.YAMLError as exc:
-        raise ConfigurationError(f"not valid YAML: {exc}", name) from None
+        where, what = _yaml_problem(exc, text)
+        raise ConfigurationError(what, f"{name}{where}") from None
 
 
 def read_source(source: str | os.PathLike[str] | Mapping[str, Any]) -> Mapping[Any, Any]:
+    """The mapping ``source`` holds: itself, or the YAML file it names, read strictly.
+
+    Raises:
+        ConfigurationError: the file cannot be read, is not UTF-8, not valid YAML (nested
+            deeper than :data:`MAX_DEPTH`, an alias bomb, ...), empty or not a mapping; one
+            line naming the file and, where known, the line and column.
+        TypeError: ``source`` is neither a path nor a mapping.
+    """
     if isinstance(source, Mapping):
         return source
     if not isinstance(source, (str, os.PathLike)):
@@ -207,18 +309,20 @@ def read_source(source: str | os.PathLike[str] | Mapping[str, Any]) -> Mapping[A
         )
     filename = os.fspath(source)
     try:
-        with open(filename, encoding="utf-8") as stream:
-            data = yaml.load(stream, Loader=_StrictLoader)  # noqa: S506 - a SafeLoader
+        with open(filename, "rb") as stream:
+            raw = stream.read()
     except OSError as exc:
         raise ConfigurationError(
             f"cannot read configuration file {filename}: {exc.strerror or exc}", "", filename
-        ) from exc
-    except AliasExpansionError as exc:
-        raise ConfigurationError(f"configuration file {filename}: {exc}", "", filename) from None
+        ) from None
+    text = decode_text(raw, f"configuration file {filename}")
+    try:
+        data = _load(text)
     except yaml.YAMLError as exc:
+        where, what = _yaml_problem(exc, text)
         raise ConfigurationError(
-            f"configuration file {filename} is not valid YAML: {exc}", "", filename
-        ) from exc
+            f"configuration file {filename}{where}: {what}", "", filename
+        ) from None
     if data is None:
         raise ConfigurationError(f"configuration file {filename} is empty", "", filename)
     if not isinstance(data, Mapping):

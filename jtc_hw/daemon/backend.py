@@ -748,7 +748,8 @@ class LoopBackend:
             status["flight_recorder"] = self.flight.status()
         if self.recording is not None:
             status["recording"] = {"file": str(self.recording.path),
-                                   "errors": self.recording.errors}
+                                   "errors": self.recording.errors,
+                                   "stopped": self.recording.stopped}
         return status
 
     def query_state(self, time_ns: int) -> QueriedState:
@@ -897,7 +898,7 @@ class LoopBackend:
             ``{"factor": in force now, "target": what it ramps to}``.
 
         Raises:
-            ConfigurationError: not a finite number >= 0.
+            ConfigurationError: not a number in ``[0, speed_scaling.max_scaling_factor]``.
             HardwareError: the control loop did not answer.
         """
         value: dict[str, float] = await self._request("set_speed_scaling", {"factor": factor})

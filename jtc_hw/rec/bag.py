@@ -19,6 +19,19 @@ wall time once, with the offset measured when the recording starts (``clock_offs
 consecutive messages keep the loop's exact spacing. The offset is stored in the bag's
 ``metadata.yaml`` (``custom_data: jtc_hw.clock_offset_ns``) so a reader can recover daemon times.
 
+A full disk: the bag keeps what was written before it, readable. Three things make that
+possible. The ``.mcap`` file is written unbuffered, so every write reaches the file system (or
+fails) when rosbags makes it, and the offset after the last complete chunk is known (``_safe``).
+Chunks are closed every :data:`CHUNK_BYTES` (rosbags' own is 1 MiB), which bounds what a retry
+needs. And a reserve file of :data:`RESERVE_BYTES` (growing with the chunk index that the summary
+will hold) is allocated next to the ``.mcap`` when the bag is created. When a write fails
+(``OSError``: ENOSPC, EIO, EFBIG...), the recorder deletes the reserve, cuts the ``.mcap`` back to
+the last complete chunk, writes the failed chunk again, then the MCAP summary and
+``metadata.yaml``, and raises :class:`RecordingFailed`: one line saying what failed, where, and
+how many messages the bag holds. Every later call is a no-op (the bag is closed). Without
+room even then, the chunk is dropped or the bag is left without its summary, and the message
+says so.
+
 ``rosbags`` is imported lazily: without it ``BagRecorder`` raises ``RecordingUnavailable`` with
 the install hint.
 """
@@ -27,11 +40,12 @@ from __future__ import annotations
 
 import json
 import math
-from collections.abc import Mapping, Sequence
+import os
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from ..errors import ConfigurationError
+from ..errors import ConfigurationError, JtcHwError
 
 if TYPE_CHECKING:
     from ..daemon.cyclering import CycleLayout
@@ -66,8 +80,54 @@ TOLERANCES_KEY = "jtc_hw.tolerances"
 DIAGNOSTIC_OK, DIAGNOSTIC_WARN, DIAGNOSTIC_ERROR = 0, 1, 2
 
 
+CHUNK_BYTES = 64 * 1024
+"""An MCAP chunk is written once it holds this much: the most rows a full disk can cost (when
+even the reserve cannot take the chunk again), and part of what the reserve holds."""
+
+RESERVE_BYTES = 256 * 1024
+"""Space set aside when a bag is created, freed to finish it when the disk fills: a chunk
+written again, the schemas, the MCAP summary and ``metadata.yaml`` (a few tens of kB)."""
+
+RESERVE_PER_CHUNK = 256
+"""Bytes the reserve grows by per chunk written (its entry in the summary's chunk index)."""
+
+RESERVE_NAME = ".jtc_hw-reserve"
+"""The reserve's file name, in the bag directory while it is written."""
+
+
 class RecordingUnavailable(ConfigurationError):
     """The optional recording library is not installed (the CLI exits 2 with the hint)."""
+
+
+class RecordingFailed(JtcHwError):
+    """Writing a bag failed (a full disk...); it was closed with what was written before, and
+    the message says so in one line. ``jtc-hw record`` exits 4; the daemon stops recording."""
+
+
+class _UnbufferedFile:
+    """The ``.mcap`` file without a write buffer: a write reaches the file system or raises
+    before the next begins (a short write is completed), so the file's length is always known.
+    Stands in for the buffered file rosbags opens (``write``, ``tell``, ``close``)."""
+
+    def __init__(self, raw: Any) -> None:
+        self._raw = raw
+
+    def write(self, data: Any) -> int:
+        view = memoryview(data).cast("B")
+        done = 0
+        while done < len(view):
+            done += self._raw.write(view[done:])
+        return done
+
+    def tell(self) -> int:
+        return int(self._raw.tell())
+
+    def truncate(self, size: int) -> None:
+        self._raw.truncate(size)
+        self._raw.seek(size)
+
+    def close(self) -> None:
+        self._raw.close()
 
 
 def topics(controller: str) -> dict[str, str]:
@@ -144,6 +204,20 @@ class BagRecorder:
         self.counts: dict[str, int] = {}
         self._writer = Writer(self.path, version=8, storage_plugin=StoragePlugin.MCAP)
         self._writer.open()
+        self._closed = False
+        self._failure: str | None = None
+        self._storage: Any = None  # rosbags' MCAP writer, when its file could be taken over
+        self._reserve: int | None = None  # the reserve's descriptor
+        self._reserved = 0
+        self._safe = 0  # the .mcap's length after the last complete chunk
+        self._chunks = 0
+        try:
+            self._take_over_storage()
+            self._reserve = os.open(self.path / RESERVE_NAME,
+                                    os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_CLOEXEC, 0o644)
+            self._grow_reserve(RESERVE_BYTES)
+        except OSError as exc:
+            self._salvage(exc, "creating")
         self._writer.set_custom_data(CLOCK_OFFSET_KEY, str(clock_offset_ns))
         if tolerances:
             self._writer.set_custom_data(TOLERANCES_KEY, json.dumps(
@@ -154,7 +228,93 @@ class BagRecorder:
         }
         self._last_goal: Any = None
         self._command_connection: Any = None  # created with the first command
-        self._closed = False
+
+    # -- a full disk (see the module docstring) ------------------------------------------------
+
+    def _take_over_storage(self) -> None:
+        """Swap rosbags' buffered ``.mcap`` file for an unbuffered one; without the attributes
+        this relies on (another rosbags version), the bag is written as rosbags does, and a
+        full disk leaves it without its summary."""
+        storage: Any = self._writer.storage  # rosbags' McapWriter
+        bio = getattr(storage, "bio", None)
+        chunk = getattr(storage, "chunk", None)
+        if bio is None or chunk is None or not hasattr(storage, "close_chunk"):
+            return
+        bio.flush()
+        storage.bio = _UnbufferedFile(bio.detach())
+        self._storage = storage
+        self._safe = storage.bio.tell()
+
+    def _grow_reserve(self, size: int) -> None:
+        if self._reserve is not None and size > self._reserved:
+            os.posix_fallocate(self._reserve, 0, size)
+            self._reserved = size
+
+    def _release_reserve(self) -> None:
+        if self._reserve is not None:
+            os.close(self._reserve)
+            self._reserve = None
+            (self.path / RESERVE_NAME).unlink(missing_ok=True)
+
+    def _close_chunk(self) -> None:
+        """Write the pending chunk (if any); ``_safe`` is the file's length before it."""
+        storage = self._storage
+        if storage is None or not storage.chunk.bio.tell():
+            return
+        self._safe = storage.bio.tell()
+        storage.close_chunk()
+        self._safe = storage.bio.tell()
+        self._chunks += 1
+        self._grow_reserve(RESERVE_BYTES + RESERVE_PER_CHUNK * self._chunks)
+
+    def _guard(self, what: str, action: Callable[[], None]) -> None:
+        """Run ``action``; an ``OSError`` closes the bag with what it holds and raises
+        :class:`RecordingFailed`."""
+        if self._failure is not None:
+            return
+        try:
+            action()
+        except OSError as exc:
+            self._salvage(exc, what)
+
+    def _salvage(self, exc: OSError, what: str) -> None:
+        """Finish the bag after ``exc`` in the room the reserve leaves (see the module docstring).
+
+        Raises:
+            RecordingFailed: always; one line: what failed, where, what the bag holds.
+        """
+        self._closed = True
+        reason = exc.strerror or str(exc)
+        self._release_reserve()
+        storage, kept, lost = self._storage, "", ""
+        try:
+            if storage is not None:
+                storage.bio.truncate(self._safe)  # the failed write's partial bytes
+                try:
+                    self._close_chunk()
+                except OSError:
+                    storage.bio.truncate(self._safe)
+                    storage.chunk = type(storage.chunk)(2**63 - 1, 0, type(storage.chunk.bio)(),
+                                                       type(storage.chunk.msgs)(list))
+                    lost = f"; the last {CHUNK_BYTES // 1024} kB of rows are lost"
+            self._writer.close()
+            kept = "it is closed and readable"
+        except Exception as again:  # noqa: BLE001 - no room even now: leave what is on disk
+            try:
+                self._writer.abort()
+            except Exception:  # noqa: BLE001 - the file is closed either way
+                pass
+            kept = (f"it could not be finished ({getattr(again, 'strerror', None) or again}): "
+                    "the .mcap has no summary or metadata.yaml")
+        count = sum(self.counts.values())
+        self._failure = (f"writing the bag {self.path} failed while {what}: {reason}; {kept}, "
+                         f"with {count} messages{lost}")
+        raise RecordingFailed(self._failure) from None
+
+    @property
+    def failure(self) -> str | None:
+        """Why the bag was closed early (:class:`RecordingFailed`'s message), or None."""
+        return self._failure
 
     def _stamp(self, time_ns: int) -> Any:
         wall = time_ns + self.offset_ns
@@ -166,10 +326,23 @@ class BagRecorder:
         return Header(stamp=self._stamp(time_ns), frame_id="")
 
     def _write(self, topic: str, time_ns: int, message: Any) -> None:
+        """Serialise and write one message.
+
+        Raises:
+            RecordingFailed: the file system refused it (see :meth:`_salvage`).
+        """
+        if self._closed:
+            return
         connection = self._connections[topic]
         data = self._store.serialize_cdr(message, connection.msgtype)
-        self._writer.write(connection, time_ns + self.offset_ns, data)
-        self.counts[topic] = self.counts.get(topic, 0) + 1
+
+        def write() -> None:
+            self._writer.write(connection, time_ns + self.offset_ns, data)
+            self.counts[topic] = self.counts.get(topic, 0) + 1
+            if self._storage is not None and self._storage.chunk.bio.tell() >= CHUNK_BYTES:
+                self._close_chunk()
+
+        self._guard(f"writing {topic}", write)
 
     def _point(self, values: Mapping[str, Any] | None) -> Any:
         Point = self._store.types["trajectory_msgs/msg/JointTrajectoryPoint"]
@@ -367,7 +540,20 @@ class BagRecorder:
         return out
 
     def close(self) -> None:
-        """Finish the bag (writes ``metadata.yaml`` and the MCAP summary)."""
-        if not self._closed:
+        """Finish the bag (writes ``metadata.yaml`` and the MCAP summary); a no-op once closed
+        (also after :class:`RecordingFailed`).
+
+        Raises:
+            RecordingFailed: the file system refused the last chunk or the summary (the bag is
+                closed with the rows before, see :meth:`_salvage`).
+        """
+        if self._closed:
+            return
+
+        def finish() -> None:
+            self._close_chunk()
+            self._writer.close()  # without room for it, _salvage frees the reserve and retries
             self._closed = True
-            self._writer.close()
+            self._release_reserve()
+
+        self._guard("closing it", finish)

@@ -5,7 +5,8 @@
 ``get_status`` once a second for ``/diagnostics``, and writes a rosbag2/MCAP directory with
 ``BagRecorder``. Nothing runs in the loop process. It stops after ``--duration`` seconds of
 daemon time (counted from the first state it receives), or on Ctrl-C/SIGTERM, and always
-finishes the bag so that it opens.
+finishes the bag so that it opens. A write that fails (a full disk) ends the recording: the bag
+is closed with what it holds (``jtc_hw.rec.bag``), one line says so, exit status 4.
 """
 
 from __future__ import annotations
@@ -22,7 +23,7 @@ DIAGNOSTICS_PERIOD_NS = 1_000_000_000
 DRAIN_TIMEOUT_S = 2.0
 """After Ctrl-C: how long the recorder waits for the daemon's reply that says it has every
 message sent before."""
-EXIT_OK, EXIT_BAD_INPUT = 0, 2
+EXIT_OK, EXIT_BAD_INPUT, EXIT_WRITE_FAILED = 0, 2, 4
 
 
 def add_parsers(sub: Any, client_options: Any) -> None:
@@ -35,8 +36,9 @@ def add_parsers(sub: Any, client_options: Any) -> None:
             "(every accepted command), /<controller>/goal_events and /diagnostics from a running "
             "daemon into the rosbag2 directory OUT (MCAP storage; opens in ros2 bag info/play, "
             "Foxglove, PlotJuggler). Stops after --duration seconds, or on Ctrl-C. Needs pip "
-            "install 'jtc_hw[record]'. Exit codes: 0 recorded, 2 bad input (OUT exists, "
-            "library missing), 3 no daemon."
+            "install 'jtc_hw[record]'. Exit status: 0 recorded, 2 bad input (OUT exists, "
+            "library missing), 3 no daemon, 4 writing the bag failed (a full disk: the bag is "
+            "closed with the rows written before, readable)."
         ),
     )
     p.add_argument("out", metavar="OUT", help="bag directory to create (must not exist)")
@@ -97,7 +99,7 @@ def cmd_record(args: argparse.Namespace) -> int:
         RecordingUnavailable: rosbags is not installed (the CLI prints its hint, exit 2).
     """
     from ..cli import _connect
-    from .bag import BagRecorder, tolerances_from_constraints
+    from .bag import BagRecorder, RecordingFailed, tolerances_from_constraints
 
     if args.duration is not None and not args.duration > 0:
         print(f"error: --duration must be a positive number of seconds, not {args.duration}",
@@ -119,10 +121,20 @@ def cmd_record(args: argparse.Namespace) -> int:
             except FileExistsError as exc:
                 print(f"error: {exc}", file=sys.stderr)
                 return EXIT_BAD_INPUT
+            except (RecordingFailed, OSError) as exc:
+                print(f"error: cannot create the bag {args.out}: {exc}", file=sys.stderr)
+                return EXIT_WRITE_FAILED
             try:
-                _record(client, recorder, args)
-            finally:
-                recorder.close()
+                try:
+                    _record(client, recorder, args)
+                finally:
+                    recorder.close()
+            except RecordingFailed as exc:
+                print(f"error: {exc}", file=sys.stderr)
+                return EXIT_WRITE_FAILED
+            if recorder.failure is not None:  # failed while draining after Ctrl-C
+                print(f"error: {recorder.failure}", file=sys.stderr)
+                return EXIT_WRITE_FAILED
             counts = ", ".join(f"{topic}: {n}" for topic, n in sorted(recorder.counts.items()))
             print(f"wrote {recorder.path} ({counts})", flush=True)
             return EXIT_OK

@@ -18,6 +18,9 @@ kept in ``flight_recorder_dir``.
 Time: daemon clock (CLOCK_MONOTONIC) mapped to wall time by one offset measured at start.
 
 Without ``rosbags`` the recorder is off (``available`` is False) and says so once in the log.
+A bag whose writing fails (a full disk) is closed with what it holds (``jtc_hw.rec.bag``), one
+line in the log says so and ``errors`` counts it; the next trigger tries again (the disk may
+have room by then). Nothing of it reaches the loop, which never waits for the recorder.
 """
 
 from __future__ import annotations
@@ -267,7 +270,7 @@ class FlightRecorder:
     def _write(self, path: Path, states: list[dict[str, Any]],
                events: list[dict[str, Any]], commands: list[tuple[int, Any]],
                cycles: Any = None) -> None:
-        from .bag import BagRecorder
+        from .bag import BagRecorder, RecordingFailed
 
         layout = self._layout
         n_cycles = 0 if cycles is None else len(cycles)
@@ -299,6 +302,11 @@ class FlightRecorder:
                         recorder.command(message, t)
             finally:
                 recorder.close()
+        except RecordingFailed as exc:  # the message names the bag and what it holds
+            with self._lock:
+                self.errors += 1
+            log.error("flight recorder: %s", exc)
+            return
         except Exception as exc:  # noqa: BLE001 - a full disk must not take the daemon down
             with self._lock:
                 self.errors += 1

@@ -9,6 +9,7 @@ from pathlib import Path
 import pytest
 from helpers.fake_backend import ServerThread
 
+from jtc_hw import JointTrajectory, TrajectoryPoint
 from jtc_hw.api import Client, RequestError
 from jtc_hw.api.protocol import SetSpeedScaling, parse_request
 from jtc_hw.cli import EXIT_OK, main
@@ -28,7 +29,7 @@ def test_requests_are_parsed_strictly() -> None:
         ({"op": "set_speed_scaling"}, "give exactly one of 'factor'"),
         ({"op": "set_speed_scaling", "resume": False}, "give exactly one of 'factor'"),
         ({"op": "set_speed_scaling", "factor": 1, "resume": True}, "both were given"),
-        ({"op": "set_speed_scaling", "factor": -0.1}, "factor: must be >= 0"),
+        ({"op": "set_speed_scaling", "factor": -0.1}, r"factor: must be in \[0, 1\]"),
         ({"op": "set_speed_scaling", "factor": "1"}, "factor: expected a number"),
         ({"op": "set_speed_scaling", "factor": True}, "factor: expected a number"),
         ({"op": "set_speed_scaling", "resume": "yes"}, "resume: expected true or false"),
@@ -78,8 +79,30 @@ def test_cli_refuses_a_negative_factor_with_the_daemons_reason(
     code = main(["speed", "--socket", str(sock), "--", "-1"])
     assert code != EXIT_OK
     err = capsys.readouterr().err
-    assert "must be >= 0" in err and "Traceback" not in err
+    assert "must be in [0, 1]" in err and "Traceback" not in err
     assert daemon.backend.ctrl.speed_scaling_target == 1.0
+
+
+def test_a_huge_factor_is_refused_with_the_range_and_goals_still_succeed(
+    client: Client, daemon: ServerThread, sock: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Issue 21 point 4: ``set_speed_scaling 1e308`` is ``bad_request`` naming the range (it
+    was accepted, and every later goal failed with an ``internal`` overflow)."""
+    for factor, message in [
+        (1e308, r"must be a number in \[0, 1\]"),
+        (1.5, r"must be a number in \[0, 1\]"),
+        (10**400, "factor: .* out of the range of a float64"),
+    ]:
+        with pytest.raises(RequestError, match=message) as refused:
+            client.set_speed_scaling(factor)
+        assert refused.value.code == "bad_request"
+    assert daemon.backend.ctrl.speed_scaling_target == 1.0
+    assert main(["speed", "--socket", str(sock), "1e308"]) != EXIT_OK
+    err = capsys.readouterr().err
+    assert len(err.splitlines()) == 1 and "[0, 1]" in err, err
+    handle = client.send_goal(JointTrajectory(["j1", "j2"], [TrajectoryPoint(0.5, [0.1, 0.1])]))
+    daemon.call(daemon.backend.step, 2.0)
+    assert handle.wait(timeout_s=10.0)["status"] == "succeeded"
 
 
 @pytest.mark.parametrize("command", ["speed", "pause", "resume"])

@@ -368,6 +368,7 @@ REFERENCE_DEFAULTS: dict[str, Any] = {
     },
     "speed_scaling": {
         "initial_scaling_factor": 1.0,
+        "max_scaling_factor": 1.0,
         "state_interface": "",
         "command_interface": "",
         "ramp_time": 0.5,
@@ -895,7 +896,48 @@ def test_missing_file(tmp_path: Path) -> None:
 def test_invalid_yaml(tmp_path: Path) -> None:
     file = tmp_path / "bad.yaml"
     file.write_text("joints: [j1\n")
-    assert "is not valid YAML" in str(error_of(file))
+    message = str(error_of(file))
+    assert "bad.yaml, line 2, column 1: not valid YAML: " in message  # one line, the position
+    assert "\n" not in message
+
+
+@pytest.mark.parametrize(
+    ("content", "where", "what"),
+    [
+        (b"joints: [j1]\nname: caf\xe9\n", "line 2, column 10", "not UTF-8 text (byte 0xe9"),
+        (b"\x89PNG\r\n\x1a\n\x00\x00", "line 1, column 1", "not UTF-8 text (byte 0x89"),
+        (b"joints: [j1]\nx: \x00\x01\n", "line 2, column 4", "the character #x0000 is not"),
+        (b"[" * 5000 + b"]" * 5000, "line 1, column 101", "nested more than 100 levels"),
+        (
+            b"".join(b"  " * i + b"a:\n" for i in range(5000)),
+            "line 100, column 199",
+            "nested more than 100 levels",
+        ),
+    ],
+    ids=["latin-1", "binary", "control-character", "deep-flow", "deep-block"],
+)
+def test_an_unreadable_file_is_one_configuration_error_with_its_position(
+    tmp_path: Path, content: bytes, where: str, what: str
+) -> None:
+    """Issue 21 point 7: not UTF-8, a binary file, YAML nested 5,000 levels deep raised
+    UnicodeDecodeError and RecursionError out of load_config; now one line naming the file
+    and the position."""
+    file = tmp_path / "robot.yaml"
+    file.write_bytes(content)
+    message = str(error_of(file))
+    assert f"configuration file {file}, {where}: " in message and what in message, message
+    assert "\n" not in message
+
+
+def test_nesting_up_to_the_limit_is_read(tmp_path: Path) -> None:
+    from jtc_hw.controller.parsing import MAX_DEPTH, load_yaml
+
+    deep = load_yaml("[" * MAX_DEPTH + "]" * MAX_DEPTH, "x")
+    for _ in range(MAX_DEPTH - 1):
+        deep = deep[0]
+    assert deep == []
+    with pytest.raises(ConfigurationError, match="x, line 1, column 101: nested more than"):
+        load_yaml("[" * (MAX_DEPTH + 1) + "]" * (MAX_DEPTH + 1), "x")
 
 
 def test_duplicate_yaml_key(tmp_path: Path) -> None:

@@ -236,7 +236,7 @@ def test_ramp_time_zero_steps_as_upstream() -> None:
 
 
 def test_a_goal_sent_while_paused_waits_for_resume() -> None:
-    run = Run(config("position"))
+    run = Run(config("position", speed_scaling={"max_scaling_factor": 2.0}))
     run.ctrl.set_speed_scaling(0.0)
     run.step()
     gid = run.ctrl.send_goal(run.now, goal())
@@ -249,7 +249,7 @@ def test_a_goal_sent_while_paused_waits_for_resume() -> None:
         run.step()
     np.testing.assert_allclose(run.mirror.p, first)
     assert run.results() == []
-    run.ctrl.set_speed_scaling(2.0)  # above 1: faster than planned (upstream accepts it)
+    run.ctrl.set_speed_scaling(2.0)  # above 1: faster than planned (the bound allows it)
     run.until(lambda out: bool(run.results()))
     assert [r.goal_id for r in run.results()] == [gid]
     assert run.results()[0].status is GoalStatus.SUCCEEDED
@@ -274,12 +274,50 @@ def test_a_stamped_goal_starts_at_its_stamp_while_slowed() -> None:
     assert run.results()[0].status is GoalStatus.SUCCEEDED
 
 
-@pytest.mark.parametrize("bad", [-0.1, float("nan"), float("inf"), True, "1"])
+@pytest.mark.parametrize(
+    "bad", [-0.1, float("nan"), float("inf"), True, "1", 1.5, 1e308, 10**400, -(10**400)]
+)
 def test_a_bad_factor_is_refused_by_name(bad: Any) -> None:
     run = Run(make_config(NAMES))
-    with pytest.raises(ConfigurationError, match="finite number >= 0"):
+    with pytest.raises(ConfigurationError, match=r"factor: .*must be a number in \[0, 1\]"):
         run.ctrl.set_speed_scaling(bad)
     assert run.ctrl.speed_scaling_target == 1.0
+
+
+def test_the_factor_is_bounded_by_max_scaling_factor() -> None:
+    """Issue 21 point 4: upstream's [0, 1] by default; ``max_scaling_factor`` (read-only, at
+    most 10) allows more. A refused factor leaves the controller as it was: an unbounded one
+    used to make every later goal fail with an overflow."""
+    run = Run(config("position"))
+    with pytest.raises(ConfigurationError, match="max_scaling_factor allows up to 10"):
+        run.ctrl.set_speed_scaling(1e308)
+    gid = run.ctrl.send_goal(run.now, goal())
+    run.until(lambda out: bool(run.results()))
+    assert [(r.goal_id, r.status) for r in run.results()] == [(gid, GoalStatus.SUCCEEDED)]
+
+    run = Run(config("position", speed_scaling={"max_scaling_factor": 3.0}))
+    run.ctrl.set_speed_scaling(3.0)
+    assert run.ctrl.speed_scaling_target == 3.0
+    with pytest.raises(ConfigurationError, match=r"must be a number in \[0, 3\]"):
+        run.ctrl.set_speed_scaling(3.5)
+    assert run.ctrl.speed_scaling_target == 3.0
+    with pytest.raises(ConfigurationError, match="read-only"):
+        run.ctrl.set_parameters({"speed_scaling.max_scaling_factor": 1e308})
+    for bad, message in [
+        ({"max_scaling_factor": 1e308}, r"max_scaling_factor: must be in \[1, 10\]"),
+        ({"max_scaling_factor": 0.5}, r"max_scaling_factor: must be in \[1, 10\]"),
+        ({"max_scaling_factor": float("nan")}, "max_scaling_factor: expected a finite number"),
+        ({"initial_scaling_factor": 2.0}, r"initial_scaling_factor: must be in \[0, 1\]"),
+        (
+            {"initial_scaling_factor": 4.0, "max_scaling_factor": 3.0},
+            r"initial_scaling_factor: must be in \[0, 3\]",
+        ),
+    ]:
+        with pytest.raises(ConfigurationError, match=message):
+            make_config(NAMES, speed_scaling=bad)
+    both = {"initial_scaling_factor": 2, "max_scaling_factor": 2}
+    faster = make_config(NAMES, speed_scaling=both)
+    assert faster.speed_scaling.initial_scaling_factor == 2.0
 
 
 def test_resume_goes_back_to_the_factor_before_the_pause() -> None:
@@ -353,7 +391,8 @@ def test_upstreams_parameters_are_read_only_and_the_ramp_time_changes_next_cycle
     assert run.ctrl.get_parameters(["speed_scaling.initial_scaling_factor"]) == {
         "speed_scaling.initial_scaling_factor": 1.0
     }
-    for name in ("initial_scaling_factor", "state_interface", "command_interface"):
+    for name in ("initial_scaling_factor", "max_scaling_factor", "state_interface",
+                 "command_interface"):
         with pytest.raises(ConfigurationError, match="read-only"):
             run.ctrl.set_parameters({f"speed_scaling.{name}": 0.5})
     change = run.ctrl.set_parameters({"speed_scaling.ramp_time": 1.0})

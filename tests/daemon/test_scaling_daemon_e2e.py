@@ -16,12 +16,16 @@ from helpers.daemon import (
     traj,
 )
 
+from jtc_hw.api import RequestError
+
 pytestmark = pytest.mark.usefixtures("no_leaks")  # threads, sockets, resources
 
 
 @pytest.fixture(scope="module")
 def daemon(tmp_path_factory: pytest.TempPathFactory) -> Iterator[DaemonProcess]:
-    d = DaemonProcess(tmp_path_factory.mktemp("scaling"))
+    # Factors above 1 (1.7 below) need the bound raised: upstream's is 1.
+    scaling = {"speed_scaling": {"max_scaling_factor": 2.0}}
+    d = DaemonProcess(tmp_path_factory.mktemp("scaling"), controller=scaling)
     with d.serving():
         yield d
 
@@ -78,3 +82,23 @@ def test_goals_planned_while_the_factor_ramps_and_lags_are_committed(
         # planned now is still committed without a step and finishes.
         handle = client.send_goal(traj(p0, 0.4))
         assert handle.wait(timeout_s=WAIT_S)["status"] == "succeeded"
+
+
+def test_an_out_of_range_factor_is_refused_by_the_loop_and_goals_still_succeed(
+    daemon: DaemonProcess,
+) -> None:
+    """Issue 21 point 4 through the real loop process: ``1e308`` (accepted before, after which
+    every goal failed with an ``internal`` overflow) and anything above this daemon's
+    ``max_scaling_factor`` (2) are ``bad_request`` naming the range; the factor in force stays
+    and the next goal succeeds."""
+    with connect(daemon) as client, client.subscribe_state() as sub:
+        p0 = next_state(sub, lambda s: s["active_goal"] is None)["actual"]["positions"]
+        for factor in (1e308, 2.5):
+            with pytest.raises(RequestError, match=r"must be a number in \[0, 2\]") as refused:
+                client.set_speed_scaling(factor)
+            assert refused.value.code == "bad_request"
+        assert client.get_status()["controller"]["speed_scaling"]["target"] == 1.0
+        handle = client.send_goal(traj([p + 0.05 for p in p0], 0.3))
+        assert handle.wait(timeout_s=WAIT_S)["status"] == "succeeded", daemon.log()
+        handle = client.send_goal(traj(p0, 0.3))
+        assert handle.wait(timeout_s=WAIT_S)["status"] == "succeeded", daemon.log()

@@ -47,11 +47,14 @@ STOP_TIMEOUT_S = 20.0
 WAIT_S = 10.0  # generous bound on waiting for a message that should come promptly
 
 
-def robot_config(socket_path: Path, **daemon: Any) -> dict[str, Any]:
-    """Six joints at 500 Hz on ideal simulated hardware, path and goal tolerances set."""
+def robot_config(
+    socket_path: Path, controller: dict[str, Any] | None = None, **daemon: Any
+) -> dict[str, Any]:
+    """Six joints at 500 Hz on ideal simulated hardware, path and goal tolerances set;
+    ``controller`` adds controller parameters."""
     hardware = [{"name": "arm", "kind": "mirror", "joints": JOINTS, "params": {"lag_s": 0.0}}]
     return make_robot_config(socket_path, JOINTS, hardware, path_tolerance=PATH_TOL,
-                             goal_tolerance=GOAL_TOL, **daemon)
+                             goal_tolerance=GOAL_TOL, controller=controller, **daemon)
 
 
 def daemon_env(**extra: str) -> dict[str, str]:
@@ -110,13 +113,17 @@ _DAEMONS: list[DaemonProcess] = []
 class DaemonProcess:
     """``python -m jtc_hw run`` in its own session, stderr to a file."""
 
-    def __init__(self, directory: Path, **daemon_settings: Any) -> None:
+    def __init__(
+        self, directory: Path, controller: dict[str, Any] | None = None, **daemon_settings: Any
+    ) -> None:
         directory.mkdir(parents=True, exist_ok=True)
         self.socket = directory / "d.sock"
         assert len(os.fsencode(self.socket)) < 100, f"socket path too long: {self.socket}"
         self.config_path = directory / "robot.yaml"
         self.config_path.write_text(
-            yaml.safe_dump(robot_config(self.socket, **daemon_settings), sort_keys=False)
+            yaml.safe_dump(
+                robot_config(self.socket, controller, **daemon_settings), sort_keys=False
+            )
         )
         self.stderr_path = directory / "daemon.stderr"
         self.proc: subprocess.Popen[bytes] | None = None

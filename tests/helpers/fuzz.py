@@ -9,7 +9,10 @@ A line is built from a plausible request of a random op and then, at random, lef
 given wrong or extreme values (types, surrogate escapes, times at and beyond int64, positions
 near the float64 range, unknown or missing fields), mutated byte by byte, or replaced by a
 known troublemaker (``NaN`` tokens, duplicate keys, deep nesting, huge integers, non-objects,
-over-long lines).
+over-long lines). Speed factors out of range (above ``max_scaling_factor``, 1e308, negative,
+NaN and infinity tokens, huge integers, strings) and parameter changes of every family of the
+schema (top level, ``constraints``, per joint constraints and gains, ``limits``,
+``speed_scaling``) with huge, NaN, negative and ill-typed values are among them (issue 21).
 """
 
 from __future__ import annotations
@@ -21,6 +24,14 @@ from dataclasses import dataclass
 from typing import Any
 
 from jtc_hw.api.protocol import OPS
+from jtc_hw.controller.config import (
+    CONSTRAINT_PARAMETERS,
+    GAIN_PARAMETERS,
+    JOINT_CONSTRAINT_PARAMETERS,
+    LIMITS_PARAMETERS,
+    PARAMETERS,
+    SPEED_SCALING_PARAMETERS,
+)
 
 MAX_NS = 2**63 - 1
 
@@ -31,8 +42,25 @@ EDGE_FLOATS = [0.0, -0.0, 1e-9, 5e-324, 0.5, -0.5, 1.0, 3.0, 1e6, -1e6, 1e6 + 1,
                9223372036.854776, 9223372036.0, 1e18, 1e300, 1e308, -1e308, 1.7976931348623157e308]
 EDGE_STRINGS = ["", " ", "j1", "joint1", "mirror", "arm", "\ud800", "x\udc00y", "\ud83d\ude00",
                 "é", "\u0000", "\n", "\\", '"', "a" * 300, "\u202e", "NaN", "null"]
+# Speed factors outside [0, max_scaling_factor] or not numbers.
+BAD_FACTORS = [1e308, -1e308, 1.7976931348623157e308, -1, -0.5, -5e-324, 1.5, 10.0, 10.000001,
+               1e6, 10**30, 2**63, 2**64, -(2**64), 10**400, "1", "nan", "inf", "", None, [],
+               {}, True, [1.0]]
+# Parameter values out of every range, or of the wrong type.
+BAD_PARAMETER_VALUES = [1e308, -1e308, 5e-324, -5e-324, -1, -1e-9, 0, 10**30, 2**64, -(2**64),
+                        10**400, "x", "", "nan", "1.0", [], ["j1"], ["j1", "j1"], {},
+                        {"a": 1}, None, True, False]
 # Raw JSON text that Python's json reads but the protocol refuses, or that stresses the parser.
 TROUBLE = [
+    b'{"op": "set_speed_scaling", "id": 1, "factor": NaN}',
+    b'{"op": "set_speed_scaling", "id": 1, "factor": Infinity}',
+    b'{"op": "set_speed_scaling", "id": 1, "factor": -Infinity}',
+    b'{"op": "set_speed_scaling", "id": 1, "factor": 1e400}',
+    b'{"op": "set_speed_scaling", "id": 1, "factor": ' + b"9" * 400 + b"}",
+    b'{"op": "set_parameters", "id": 1, "parameters": {"gains.joint1.p": NaN}}',
+    b'{"op": "set_parameters", "id": 1, "parameters": {"constraints.goal_time": Infinity}}',
+    b'{"op": "set_parameters", "id": 1, "parameters": {"speed_scaling.ramp_time": 1e400}}',
+    b'{"op": "set_parameters", "id": 1, "parameters": {"state_publish_rate": -Infinity}}',
     b'{"op": "hello", "id": NaN}',
     b'{"op": "query_state", "in": Infinity}',
     b'{"op": "query_state", "in": -Infinity}',
@@ -262,8 +290,10 @@ class Fuzzer:
                 fields["parameters"] = self.any_value()
         elif op == "set_speed_scaling":
             roll = r.random()
-            if roll < 0.6:  # mostly near full speed: keep goals finishing
-                fields["factor"] = r.choice([1.0, 1.0, 0.8, 1.5, 0.0, -0.5, 1e308, "1", None])
+            if roll < 0.5:  # mostly near full speed: keep goals finishing
+                fields["factor"] = r.choice([1.0, 1.0, 0.8, 1.0, 0.0, 0.5])
+            elif roll < 0.6:
+                fields["factor"] = r.choice(BAD_FACTORS)
             elif roll < 0.8:
                 fields["resume"] = r.choice([True, True, False, "true", 1])
             elif roll < 0.9:
@@ -275,12 +305,22 @@ class Fuzzer:
     def parameter_name(self) -> Any:
         r = self.random
         joint = r.choice(self.joints + EDGE_STRINGS[:6])
+        if r.random() < 0.5:  # any parameter of any family of the schema
+            return r.choice([
+                *PARAMETERS,
+                *(f"constraints.{name}" for name in CONSTRAINT_PARAMETERS),
+                *(f"constraints.{joint}.{name}" for name in JOINT_CONSTRAINT_PARAMETERS),
+                *(f"gains.{joint}.{name}" for name in GAIN_PARAMETERS),
+                *(f"limits.{name}" for name in LIMITS_PARAMETERS),
+                *(f"speed_scaling.{name}" for name in SPEED_SCALING_PARAMETERS),
+            ])
         return r.choice([
             "cmd_timeout", "constraints.goal_time", "constraints.stopped_velocity_tolerance",
             f"constraints.{joint}.goal", f"constraints.{joint}.trajectory",
             f"gains.{joint}.p", f"gains.{joint}.i_clamp", "allow_partial_joints_goal",
             "state_publish_rate", "joints", "update_rate", "interpolation_method",
-            "gains", f"gains.{joint}", "constraints.", r.choice(EDGE_STRINGS),
+            "gains", f"gains.{joint}", "constraints.", f"limits.{joint}.velocity",
+            "speed_scaling.max_scaling_factor", r.choice(EDGE_STRINGS),
         ])
 
     def parameter_value(self) -> Any:
@@ -288,6 +328,8 @@ class Fuzzer:
         roll = r.random()
         if roll < 0.6:  # mostly loose tolerances and small values: goals keep succeeding
             return r.choice([0.0, 0.5, 1.0, 2.0, 10.0, True, False])
+        if roll < 0.8:
+            return r.choice(BAD_PARAMETER_VALUES)
         return self.any_value()
 
     def mutate(self, obj: dict[str, Any]) -> dict[str, Any]:

@@ -156,8 +156,17 @@ TCP_PARAMETERS: Final[Mapping[str, ParamSpec]] = param_table(
               f"shared secret clients must present (at least {MIN_TOKEN_LENGTH} characters)",
               required=True),
     ParamSpec("max_clients", ParamKind.INT, 8,
-              "simultaneous TCP connections, authenticated or not (the unix socket has its own)",
+              "simultaneous authenticated TCP connections (the unix socket has its own)",
               minimum=1),
+    ParamSpec("max_unauthenticated", ParamKind.INT, 16,
+              "TCP connections that may wait to authenticate at once, apart from max_clients "
+              "(a newcomer beyond it replaces the one waiting longest)", minimum=1),
+    ParamSpec("auth_timeout_s", ParamKind.FLOAT, 1.0,
+              "a TCP connection is closed unless it authenticates this long after opening, s",
+              minimum=0.05, maximum=60.0),
+    ParamSpec("auth_failure_delay_s", ParamKind.FLOAT, 0.5,
+              "failed authentications are answered at most one per this long per address, s",
+              minimum=0.0, maximum=60.0),
 )
 """``daemon.tcp.*``."""
 
@@ -262,6 +271,9 @@ class TcpSettings:
     port: int = 0
     token: str = field(default="", repr=False)
     max_clients: int = 8
+    max_unauthenticated: int = 16
+    auth_timeout_s: float = 1.0
+    auth_failure_delay_s: float = 0.5
 
     def __post_init__(self) -> None:
         if not isinstance(self.host, str) or not _is_loopback(self.host):

@@ -388,7 +388,7 @@ def test_the_daemon_settings_reach_the_server(tmp_path: Path) -> None:
     settings = ServerSettings.coerce(daemon)
     assert (settings.max_clients, settings.idle_timeout_s) == (3, 30.0)
     assert settings.tcp is not None and settings.tcp.max_clients == 5
-    assert settings.auth_timeout_s == 2.0
+    assert settings.tcp.auth_timeout_s == 1.0 and settings.tcp.max_unauthenticated == 16
 
 
 BOMB = """\

@@ -694,7 +694,7 @@ def test_tcp_with_token(tmp_path: Path, logs: LogWatch) -> None:
 def test_tcp_client_that_never_authenticates_is_closed(logs: LogWatch) -> None:
     async def main() -> None:
         settings = ServerSettings(
-            socket=None, tcp=TcpEndpoint("127.0.0.1", 0, TOKEN), auth_timeout_s=0.2
+            socket=None, tcp=TcpEndpoint("127.0.0.1", 0, TOKEN, auth_timeout_s=0.2)
         )
         async with Server(FakeBackend(), settings) as server:
             assert server.tcp_address is not None

@@ -81,6 +81,8 @@ class ServerSettings:
         socket: the unix socket file (``None``: TCP only); its parent directory is created if
             missing.
         socket_mode: permission bits of the socket file (who may connect).
+        socket_group: group (name or gid) given the socket file and a directory made for
+            it; ``None``: the daemon's own.
         tcp: the optional loopback TCP endpoint (with its own ``max_clients``).
         max_clients: simultaneous unix socket connections; ``RESERVED_UNIX_CLIENTS`` more are
             allowed to the daemon's user and root. More get ``busy``, unless their request is
@@ -96,6 +98,7 @@ class ServerSettings:
 
     socket: str | os.PathLike[str] | None = None
     socket_mode: int = 0o660
+    socket_group: str | int | None = None
     tcp: TcpEndpoint | None = None
     max_clients: int = 16
     max_message_bytes: int = DEFAULT_MAX_MESSAGE_BYTES

@@ -197,6 +197,10 @@ DAEMON_PARAMETERS: Final[Mapping[str, ParamSpec]] = param_table(
               nullable=True),
     ParamSpec("socket_mode", ParamKind.INT, 0o660, "permissions of the socket file",
               coerce=_parse_socket_mode),
+    ParamSpec("socket_group", ParamKind.STRING, None,
+              "group of the socket file (a name or gid; default: the daemon's): its members "
+              "may connect (socket_mode 0660), and clients given this file trust a daemon "
+              "run by one of them", nullable=True),
     ParamSpec("tcp", ParamKind.SECTION, None, "optional TCP endpoint on a loopback address",
               nullable=True, fields=TCP_PARAMETERS),
     ParamSpec("max_clients", ParamKind.INT, 16,
@@ -361,6 +365,7 @@ class DaemonSettings:
     Attributes:
         socket: absolute path of the Unix socket.
         socket_mode: permission bits of the socket file.
+        socket_group: group of the socket file (name or gid), or ``None``: the daemon's.
         tcp: the optional TCP endpoint.
         max_clients: simultaneous unix socket connections (and 2 more for the daemon's user
             and root).
@@ -384,6 +389,7 @@ class DaemonSettings:
 
     socket: str = field(default_factory=default_socket_path)
     socket_mode: int = 0o660
+    socket_group: str | None = None
     tcp: TcpSettings | None = None
     max_clients: int = 16
     idle_timeout_s: float = 300.0
@@ -534,6 +540,7 @@ def _parse_daemon(raw: Any, base_dir: str) -> DaemonSettings:
     return DaemonSettings(
         socket=socket,
         socket_mode=values["socket_mode"],
+        socket_group=values["socket_group"],
         tcp=None if tcp is None else TcpSettings(**tcp),
         max_clients=values["max_clients"],
         idle_timeout_s=values["idle_timeout_s"],

@@ -224,7 +224,9 @@ class Server:
         self.backend.set_listener(self)
         try:
             if self.path is not None:
-                sock, self._socket_identity = bind_unix(self.path, self.settings.socket_mode)
+                sock, self._socket_identity = bind_unix(
+                    self.path, self.settings.socket_mode, self.settings.socket_group
+                )
                 self._servers.append(
                     await asyncio.start_unix_server(partial(self._accept, "unix"), sock=sock)
                 )

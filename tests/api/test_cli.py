@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 from helpers.fake_backend import TOKEN, ServerThread
 
-from jtc_hw.cli import EXIT_NO_DAEMON, EXIT_OK, load_goal_file, main
+from jtc_hw.cli import EXIT_BAD_INPUT, EXIT_OK, load_goal_file, main
 from jtc_hw.controller.trajectory import JointTrajectory, TrajectoryPoint
 from jtc_hw.daemon.server import ServerSettings
 from jtc_hw.errors import ConfigurationError
@@ -61,7 +61,7 @@ def test_client_commands_refuse_a_squatted_default_socket(
         capsys.readouterr()
         os.chown(runtime / "jtc-hw.sock", 65534, -1)
         for command in (["stop"], ["status"], ["rearm"]):
-            assert main(command) == EXIT_NO_DAEMON
+            assert main(command) == EXIT_BAD_INPUT
             err = capsys.readouterr().err
             assert err.startswith(f"error: refusing the daemon socket {runtime}/jtc-hw.sock: ")
             assert "belongs to uid 65534" in err and "--socket PATH" in err

@@ -645,16 +645,32 @@ def _foxglove_warnings(robot: RobotConfig) -> list[str]:
 
 def security_warnings(robot: RobotConfig) -> list[str]:
     """What in ``robot``'s file is exposed to other users (``jtc-hw check`` and ``run`` print
-    it): a TCP token in a file that group or others may read; a live view (which has no
-    authentication) on a non-loopback address.
+    it): a socket mode that lets every user connect; a TCP token in a file that group or
+    others may read; a live view (which has no authentication) on a non-loopback address.
 
     Raises:
         Nothing: a file that cannot be examined gives no warning.
     """
-    live = _foxglove_warnings(robot)
+    return [*_socket_mode_warnings(robot), *_token_warnings(robot), *_foxglove_warnings(robot)]
+
+
+def _socket_mode_warnings(robot: RobotConfig) -> list[str]:
+    """The socket's mode is its only lock: any bit for others lets every local user in. The
+    group's bits are the intended door (0660, ``daemon.socket_group``)."""
+    mode = robot.daemon.socket_mode
+    if not mode & 0o007:
+        return []
+    return [
+        f"daemon.socket_mode {mode:04o} lets every user of this machine connect to the "
+        f"daemon's socket ({robot.daemon.socket}) and command the robot. Use 0660 and let "
+        "in those who may, through the socket's group (daemon.socket_group)"
+    ]
+
+
+def _token_warnings(robot: RobotConfig) -> list[str]:
     path = robot.source_path
     if robot.daemon.tcp is None or path is None:
-        return live
+        return []
     try:
         mode = stat.S_IMODE(os.stat(path).st_mode)
     except OSError:
@@ -665,7 +681,6 @@ def security_warnings(robot: RobotConfig) -> list[str]:
         name for bit, name in ((0o040, "its group"), (0o004, "every user")) if mode & bit
     )
     return [
-        *live,
         f"{path} holds the TCP token (daemon.tcp.token) and is readable by {who} (mode "
         f"{mode:04o}): whoever reads it can command the robot over TCP. Make it private: "
         f"chmod 600 {path} (owned by the daemon's user)"

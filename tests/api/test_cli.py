@@ -109,6 +109,20 @@ def test_check_and_run_warn_of_a_token_others_can_read(
     # (run prints the same warning to its log: tests/daemon/test_failsafe_e2e.py)
 
 
+def test_check_warns_of_a_socket_mode_that_lets_every_user_in(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    path = tmp_path / "robot.yaml"
+    path.write_text(CONFIG + f"daemon: {{socket: {tmp_path}/d.sock, socket_mode: 0o777}}\n")
+    assert main(["check", str(path)]) == EXIT_OK
+    out = capsys.readouterr().out
+    assert "warning: daemon.socket_mode 0777 lets every user of this machine connect" in out
+    path.write_text(CONFIG + f"daemon: {{socket: {tmp_path}/d.sock, socket_mode: 0o660}}\n")
+    assert main(["check", str(path)]) == EXIT_OK
+    assert "socket_mode" not in capsys.readouterr().out
+    # (run prints the same warning to its log: tests/daemon/test_failsafe_e2e.py)
+
+
 def test_check_says_what_stops_each_components_motors(
     capsys: pytest.CaptureFixture[str],
 ) -> None:

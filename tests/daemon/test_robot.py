@@ -497,3 +497,24 @@ def test_watchdog_shorter_than_three_loop_periods_is_refused(tmp_path: Path) -> 
         assert "shorter than 3 loop periods (30 ms at 100 Hz)" in str(caught.value)
     finally:
         unregister_hardware("watched-test")
+
+
+def test_a_socket_mode_that_lets_every_user_in_gets_a_warning(tmp_path: Path) -> None:
+    from jtc_hw.daemon.robot import security_warnings
+
+    def warnings(mode: str) -> list[str]:
+        path = tmp_path / "robot.yaml"
+        path.write_text(
+            "joints: [j1]\ncommand_interfaces: [position]\nstate_interfaces: [position]\n"
+            f"daemon: {{socket: {tmp_path}/d.sock, socket_mode: '{mode}'}}\n"
+        )
+        return security_warnings(load_robot(path))
+
+    assert warnings("0777") == [
+        f"daemon.socket_mode 0777 lets every user of this machine connect to the daemon's "
+        f"socket ({tmp_path}/d.sock) and command the robot. Use 0660 and let in those who "
+        "may, through the socket's group (daemon.socket_group)"
+    ]
+    assert "socket_mode 0606" in warnings("0606")[0]  # any bit for others
+    assert warnings("0604") != [] and warnings("0601") != []
+    assert warnings("0660") == [] and warnings("0600") == []  # the group is the door

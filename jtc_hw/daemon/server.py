@@ -298,8 +298,8 @@ class Server:
         conn = Connection(number, kind, peer, reader, writer, self.settings, uid, now, host)
         task = asyncio.current_task()
         assert task is not None
-        if kind == "tcp" and not await self._wait_to_authenticate(conn, now):
-            return
+        if kind == "tcp":
+            self._wait_to_authenticate(conn, now)
         admitted = self._admit(conn)
         if admitted is None:
             self._tasks[number] = task
@@ -324,34 +324,16 @@ class Server:
         finally:
             await self._finish(conn, writer_task)
 
-    async def _wait_to_authenticate(self, conn: Connection, now: float) -> bool:
-        """Let a TCP connection into the handshake room, closing those it replaces; False if
-        it was refused (the room is at its hard cap)."""
+    def _wait_to_authenticate(self, conn: Connection, now: float) -> None:
+        """Let a TCP connection into the handshake room, closing those it replaces."""
         assert self._door is not None
-        dropped = self._door.enter(conn, now)
-        if dropped is None:
-            self._refused_busy += 1
-            log.warning(
-                "%s refused: %d connections wait to authenticate (tcp.max_unauthenticated "
-                "%d), all of them opened in the last moment",
-                conn.label,
-                self._door.waiting,
-                self._door.max_unauthenticated,
-            )
-            message = (
-                f"{self._door.waiting} connections are waiting to authenticate "
-                "(tcp.max_unauthenticated); authenticate as soon as you connect, and try again"
-            )
-            await self._write_and_close(conn.writer, [encode(error_reply(None, BUSY, message))])
-            return False
-        for old in dropped:
+        for old in self._door.enter(conn, now):
             if isinstance(old, Connection):
                 old.abort(
                     "unauthorized: closed to make room for a newer connection "
                     f"({self._door.max_unauthenticated} waited to authenticate, "
                     "tcp.max_unauthenticated)"
                 )
-        return True
 
     def _limit(self, kind: str) -> tuple[int, str]:
         """A transport's connection limit and the setting that says so."""

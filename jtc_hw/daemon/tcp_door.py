@@ -9,7 +9,8 @@ token holder reaches the second room, so strangers can fill the first one only::
 
     connect --> [ handshake: at most max_unauthenticated waiting ] --auth--> [ max_clients ]
                   | full: the oldest waiting connection (open for at
-                  |       least HANDSHAKE_GRACE_S) is dropped for the newcomer
+                  |       least HANDSHAKE_GRACE_S) is dropped for the newcomer;
+                  |       nobody is refused at the door
                   | failed handshake: answered after the peer's delay, then closed
                   | no auth within auth_timeout_s: closed
 
@@ -18,8 +19,9 @@ waiting longest goes (it had the most time to authenticate), never one younger t
 ``HANDSHAKE_GRACE_S``. A client with the token sends ``auth`` as it connects, so it is read
 before it can become the oldest: however many strangers connect, the operator's ``stop`` gets
 in. Only when every waiting connection is younger than the grace (a burst) does the room grow
-past ``max_unauthenticated``, up to ``HANDSHAKE_HARD_CAP`` times it; beyond that a newcomer is
-refused ``busy`` at once.
+past ``max_unauthenticated``, up to ``HANDSHAKE_HARD_CAP`` times it; there the oldest goes
+whatever its age. A newcomer is never refused: refusing would let a flood keep the operator out
+for as long as it lasts, whereas dropping the oldest only shortens the strangers' wait.
 
 **Wrong tokens are slowed per peer** (its IP address): the answer to a failed handshake
 (a wrong token, or a first request that is not ``auth``) is sent ``tcp.auth_failure_delay_s``
@@ -53,7 +55,7 @@ HANDSHAKE_GRACE_S = 0.25
 it connected, is read first."""
 HANDSHAKE_HARD_CAP = 4
 """The handshake room grows past ``max_unauthenticated`` (only with connections younger than
-``HANDSHAKE_GRACE_S``) up to this many times it; then newcomers get ``busy`` at once."""
+``HANDSHAKE_GRACE_S``) up to this many times it; there the oldest goes, however young."""
 FAILURE_LOG_EVERY_S = 10.0
 """Failed handshakes of one address are logged at most once per this many seconds."""
 _PEERS_KEPT = 256
@@ -91,30 +93,27 @@ class TcpDoor:
         self._waiting: collections.OrderedDict[int, Waiting] = collections.OrderedDict()
         self._failures: dict[str, _Failures] = {}
         self.dropped = 0  # waiting connections dropped to make room
-        self.refused = 0  # newcomers refused: the room at its hard cap
         self.failed = 0  # failed handshakes, every address
 
     @property
     def waiting(self) -> int:
         return len(self._waiting)
 
-    def enter(self, conn: Waiting, now: float) -> list[Waiting] | None:
+    def enter(self, conn: Waiting, now: float) -> list[Waiting]:
         """Let ``conn`` wait to authenticate: the connections to drop for it (the caller
-        closes them), or ``None`` if it must be refused (``HANDSHAKE_HARD_CAP``).
+        closes them).
 
         Raises:
             Nothing.
         """
         out: list[Waiting] = []
+        hard_cap = HANDSHAKE_HARD_CAP * self.max_unauthenticated
         while len(self._waiting) >= self.max_unauthenticated:
             oldest = next(iter(self._waiting.values()))
-            if now - oldest.opened < HANDSHAKE_GRACE_S:
+            if now - oldest.opened < HANDSHAKE_GRACE_S and len(self._waiting) < hard_cap:
                 break
             del self._waiting[oldest.number]
             out.append(oldest)
-        if len(self._waiting) >= HANDSHAKE_HARD_CAP * self.max_unauthenticated:
-            self.refused += 1
-            return None
         self.dropped += len(out)
         self._waiting[conn.number] = conn
         return out
@@ -177,7 +176,6 @@ class TcpDoor:
             "max_unauthenticated": self.max_unauthenticated,
             "waiting": len(self._waiting),
             "dropped_waiting": self.dropped,
-            "refused_waiting": self.refused,
             "failed_auth": self.failed,
             "auth_failure_delay_s": self.auth_failure_delay_s,
         }

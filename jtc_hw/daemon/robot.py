@@ -11,7 +11,9 @@ layout); this module adds two top-level sections that ``load_config`` skips::
     daemon:                   # optional, every key optional
       socket: /run/jtc-hw/jtc-hw.sock
       socket_mode: 0o660
-      tcp: {host: 127.0.0.1, port: 0, token: "at least sixteen characters", max_clients: 8}
+      socket_group: robot     # default: the daemon's group
+      tcp: {host: 127.0.0.1, port: 0, token: "at least sixteen characters", max_clients: 8,
+            max_unauthenticated: 16, auth_timeout_s: 1.0, auth_failure_delay_s: 0.5}
       max_clients: 16
       idle_timeout_s: 300
       max_message_bytes: 4194304

@@ -103,8 +103,9 @@ def test_jtc_hw_stop_gets_through_a_tcp_flood_and_full_unix_slots(daemon: Daemon
     holders: list[RecordingClient] = []
     flood = TcpFlood(("127.0.0.1", port))
     try:
-        # Unauthenticated connections are dropped within 2 s, and re-opened at once: a
-        # full round of them has been through the daemon.
+        # Unauthenticated connections are dropped within 1 s (tcp.auth_timeout_s), or sooner
+        # to make room for newer ones, and re-opened at once: a full round of them has been
+        # through the daemon.
         flood.wait_reopened(FLOOD)
         for _ in range(UNIX_SLOTS):
             holders.append(connect(daemon))

@@ -71,7 +71,9 @@ Drive robot joints with ROS 2 joint_trajectory_controller semantics, without ROS
 
 Client commands find the daemon's socket from --socket, else --config's daemon.socket,
 else $JTC_HW_SOCKET, else the default path (see 'jtc-hw check' for a config's path). A socket
-at the default path is used only if it and the process behind it belong to you or root.
+is used only if the process behind it runs as you, root, or a member of --config's
+daemon.socket_group; at the default path the file must be yours or root's too. With --tcp
+[HOST:PORT] they reach the TCP endpoint, with --config's token (or $JTC_HW_TOKEN).
 With --zenoh PREFIX (and --zenoh-config FILE) they reach the daemon at that Zenoh prefix.
 """
 

@@ -383,9 +383,12 @@ def test_the_daemon_settings_reach_the_server(tmp_path: Path) -> None:
 
     daemon = load_robot(robot(daemon={
         "socket": str(tmp_path / "d.sock"), "max_clients": 3, "idle_timeout_s": 30,
-        "tcp": {"token": TOKEN, "max_clients": 5},
+        "tcp": {"token": TOKEN, "max_clients": 5, "auth_failure_delay_s": 0.25},
+        "socket_group": "robot",
     })).daemon
     settings = ServerSettings.coerce(daemon)
+    assert settings.socket_group == "robot" and settings.tcp is not None
+    assert settings.tcp.auth_failure_delay_s == 0.25
     assert (settings.max_clients, settings.idle_timeout_s) == (3, 30.0)
     assert settings.tcp is not None and settings.tcp.max_clients == 5
     assert settings.tcp.auth_timeout_s == 1.0 and settings.tcp.max_unauthenticated == 16

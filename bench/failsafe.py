@@ -33,6 +33,11 @@ next to ``baseline_missed`` for the same length of time without one (the machine
 ``stop_ms`` is null (the loop keeps commanding; it aborts the goal after ``api_stall_s`` and
 holds).
 
+``stop_slots_full`` (mirror hardware): 30 TCP connections that never authenticate are held
+open (each re-opened as soon as the daemon drops it) while a goal runs; ``stop_ms`` is the time
+from the operator's stop over TCP (connect, ``auth`` with the token, ``stop``: what
+``jtc-hw stop --tcp`` does) to its answer.
+
 Usage::
 
     python bench/failsafe.py                    # every driver and failure, 3 runs each
@@ -50,11 +55,14 @@ import contextlib
 import json
 import math
 import os
+import selectors
 import signal
+import socket
 import statistics
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 import uuid
 from collections.abc import Callable, Iterator
@@ -417,6 +425,72 @@ def second_daemon_run() -> dict[str, Any]:
             "first_goal": result["status"], "refusal": refusal[0] if refusal else None}
 
 
+STRANGERS = 30
+
+
+def stop_slots_full_run() -> dict[str, Any]:
+    joints = [f"joint{i}" for i in range(1, 7)]
+    config = controller(joints, 500, "position")
+    config["hardware"] = [{"name": "arm", "kind": "mirror", "joints": joints,
+                           "params": {"lag_s": 0.0}}]
+    with socket.socket() as probe:  # a free port (the daemon binds it a moment later)
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    token = uuid.uuid4().hex
+    config["daemon"] = {"tcp": {"host": "127.0.0.1", "port": port, "token": token}}
+    done = threading.Event()
+    selector = selectors.DefaultSelector()
+
+    def open_one() -> None:
+        sock = socket.create_connection(("127.0.0.1", port), timeout=WAIT_S)
+        sock.setblocking(False)
+        selector.register(sock, selectors.EVENT_READ)
+
+    def strangers() -> None:  # re-open each connection the daemon drops
+        while not done.is_set():
+            for key, _ in selector.select(timeout=0.1):
+                sock = key.fileobj
+                assert isinstance(sock, socket.socket)
+                try:
+                    data = sock.recv(65536)
+                except OSError:
+                    data = b""
+                if not data:
+                    selector.unregister(sock)
+                    sock.close()
+                    open_one()
+
+    with tempfile.TemporaryDirectory(prefix="jtc-hw-failsafe-") as tmp:
+        daemon = DaemonRun(config, Path(tmp))
+        thread = threading.Thread(target=strangers)
+        try:
+            with daemon.connect() as client:
+                moving_goal(client, duration_s=30.0)
+                for _ in range(STRANGERS):
+                    open_one()
+                thread.start()
+                time.sleep(1.5)  # the strangers fill the door and churn (not a measured wait)
+                t_stop = time.monotonic()
+                with Client.connect(tcp=("127.0.0.1", port), token=token, hello=False,
+                                    timeout_s=WAIT_S) as operator:
+                    stopped = operator.stop(timeout_s=WAIT_S)["stopped"]
+                t_answer = time.monotonic()
+                door = client.get_status()["server"]["tcp"]
+        finally:
+            done.set()
+            if thread.is_alive():
+                thread.join(WAIT_S)
+            for key in list(selector.get_map().values()):
+                selector.unregister(key.fileobj)
+                key.fileobj.close()  # type: ignore[union-attr]
+            selector.close()
+            daemon.close()
+    return {"hardware": "mirror", "failure": "stop_slots_full",
+            "stop_ms": round((t_answer - t_stop) * 1e3, 1) if stopped else None,
+            "missed_deadlines": None, "strangers": STRANGERS,
+            "dropped_waiting": door["dropped_waiting"]}
+
+
 def loop_counts(client: Client, after: tuple[int, int] | None = None) -> tuple[int, int]:
     """(cycles, overruns) from a status the loop published after ``after``'s (2 Hz)."""
     deadline = time.monotonic() + WAIT_S
@@ -458,7 +532,21 @@ ONE_RIG: dict[str, list[str]] = {
     "api_sigstop": ["mirror"],
     "second_daemon": ["can-mit"],
     "motor_reset": ["can-mit"],  # a Damiao reply says "disabled"; others' resets look silent
+    "stop_slots_full": ["mirror"],
 }
+
+
+def run_one(hardware: str, failure: str, args: argparse.Namespace) -> dict[str, Any]:
+    """One run of ``failure`` on ``hardware``: its row."""
+    if failure == "api_sigstop":
+        return api_stall_run(args.stall_s, args.priority)
+    if failure == "second_daemon":
+        return second_daemon_run()
+    if failure == "motor_reset":
+        return motor_reset_run(hardware)
+    if failure == "stop_slots_full":
+        return stop_slots_full_run()
+    return watchdog_run(hardware, failure)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -478,10 +566,7 @@ def main(argv: list[str] | None = None) -> int:
         for hardware in ONE_RIG.get(failure, args.hardware):
             for run in range(args.runs):
                 print(f"# {hardware} {failure} run {run + 1}/{args.runs}", file=sys.stderr)
-                rows.append(api_stall_run(args.stall_s, args.priority) if failure == "api_sigstop"
-                            else second_daemon_run() if failure == "second_daemon"
-                            else motor_reset_run(hardware) if failure == "motor_reset"
-                            else watchdog_run(hardware, failure))
+                rows.append(run_one(hardware, failure, args))
     summary = summarise(rows)
     if args.json:
         for row in summary:

@@ -1,8 +1,9 @@
 """``jtc-hw``: run the daemon, check a configuration, and talk to a running daemon.
 
 Exit status: 0 success; 1 a goal ended without success (aborted, canceled); 2 bad input
-(configuration, trajectory file) or the daemon answered and refused (rejected goal, bad
-request, not active); 3 only when no daemon answers (none running, refused socket, no reply).
+(configuration, trajectory file), a socket whose listener is not trusted, or the daemon
+answered and refused (rejected goal, bad request, not active); 3 only when no daemon answers
+(none running, no reply).
 """
 
 from __future__ import annotations
@@ -30,7 +31,8 @@ EXIT_OK, EXIT_GOAL_FAILED, EXIT_BAD_INPUT, EXIT_NO_DAEMON = 0, 1, 2, 3
 
 EXIT_CODES_HELP = (
     "Exit status: 0 success; 1 the goal aborted or was canceled; 2 bad input, or the daemon "
-    "answered and refused the request (rejected goal, bad request); 3 no daemon answers."
+    "answered and refused the request (rejected goal, bad request), or the socket is not "
+    "served by a daemon you trust; 3 no daemon answers."
 )
 """The exit statuses of client commands, in every such command's ``--help``."""
 
@@ -69,7 +71,9 @@ Drive robot joints with ROS 2 joint_trajectory_controller semantics, without ROS
 
 Client commands find the daemon's socket from --socket, else --config's daemon.socket,
 else $JTC_HW_SOCKET, else the default path (see 'jtc-hw check' for a config's path). A socket
-at the default path is used only if it and the process behind it belong to you or root.
+is used only if the process behind it runs as you, root, or a member of --config's
+daemon.socket_group; at the default path the file must be yours or root's too. With --tcp
+[HOST:PORT] they reach the TCP endpoint, with --config's token (or $JTC_HW_TOKEN).
 With --zenoh PREFIX (and --zenoh-config FILE) they reach the daemon at that Zenoh prefix.
 """
 
@@ -184,6 +188,47 @@ def _socket(args: argparse.Namespace) -> tuple[str, bool]:
     return default_socket_path(), bool(os.environ.get("JTC_HW_SOCKET"))
 
 
+def _trusted_group(args: argparse.Namespace) -> str | None:
+    """``daemon.socket_group`` of ``--config``: the group whose members' daemons are
+    trusted (a service user's)."""
+    if not getattr(args, "config", None):
+        return None
+    from .daemon.robot import load_robot
+
+    return load_robot(args.config).daemon.socket_group
+
+
+def _tcp(args: argparse.Namespace) -> tuple[tuple[str, int], str]:
+    """``--tcp``'s address (else ``--config``'s ``daemon.tcp``) and the token (``--config``'s,
+    else ``$JTC_HW_TOKEN``).
+
+    Raises:
+        ConfigurationError: no address or port, or no token; names what to give.
+    """
+    tcp = None
+    if getattr(args, "config", None):
+        from .daemon.robot import load_robot
+
+        tcp = load_robot(args.config).daemon.tcp
+    host, port = (tcp.host, tcp.port) if tcp is not None else ("127.0.0.1", 0)
+    if args.tcp:
+        host, _, number = str(args.tcp).rpartition(":")
+        if not host or not number.isdigit() or not 0 < int(number) < 65536:
+            raise ConfigurationError(f"--tcp {args.tcp}: expected HOST:PORT, e.g. 127.0.0.1:7400")
+        host, port = host.strip("[]"), int(number)
+    if not port:
+        raise ConfigurationError(
+            "--tcp: no port: give --tcp HOST:PORT (the daemon logs 'listening on tcp ...'), or "
+            "--config of a daemon whose daemon.tcp.port is set"
+        )
+    token = tcp.token if tcp is not None else os.environ.get("JTC_HW_TOKEN", "")
+    if not token:
+        raise ConfigurationError(
+            "--tcp: no token: give --config FILE (its daemon.tcp.token) or set JTC_HW_TOKEN"
+        )
+    return (host, port), token
+
+
 def _connect(args: argparse.Namespace, hello: bool = True) -> Any:
     from .api.client import UNTRUSTED, Client, ClientConnectionError
 
@@ -191,12 +236,19 @@ def _connect(args: argparse.Namespace, hello: bool = True) -> Any:
         from .cli_fleet import connect_zenoh
 
         return connect_zenoh(args, hello, _NoDaemon)
+    if getattr(args, "tcp", None) is not None:
+        address, token = _tcp(args)
+        try:
+            return Client.connect(tcp=address, token=token, timeout_s=args.timeout, hello=hello)
+        except ClientConnectionError as exc:
+            raise _NoDaemon(str(exc)) from exc
     path, named = _socket(args)
     try:
-        return Client.connect(path, timeout_s=args.timeout, hello=hello, check_owner=not named)
+        return Client.connect(path, timeout_s=args.timeout, hello=hello, check_owner=not named,
+                              trusted_group=_trusted_group(args))
     except ClientConnectionError as exc:
         if exc.code == UNTRUSTED:
-            raise _NoDaemon(str(exc)) from exc
+            raise ConfigurationError(str(exc)) from exc
         # The client's message ends with its own "is the daemon running?": say it once.
         reason = str(exc).removesuffix("; is the daemon running?")
         raise _NoDaemon(
@@ -890,6 +942,9 @@ def build_parser() -> argparse.ArgumentParser:
     def client_options(p: argparse.ArgumentParser) -> None:
         p.add_argument("--socket", help="the daemon's Unix socket path")
         p.add_argument("--config", help="find the socket path in this robot configuration")
+        p.add_argument("--tcp", nargs="?", const="", metavar="HOST:PORT",
+                       help="reach the daemon over its TCP endpoint (default: --config's "
+                       "daemon.tcp), with --config's token or $JTC_HW_TOKEN")
         p.add_argument("--zenoh", metavar="PREFIX",
                        help="reach the daemon over Zenoh at this key prefix (docs/zenoh.md)")
         p.add_argument("--zenoh-config", metavar="FILE",

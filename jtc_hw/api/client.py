@@ -47,7 +47,7 @@ __all__ = [
     "default_socket_path",
 ]
 from .paths import default_socket_path as daemon_default
-from .paths import socket_problem, trusted_uid
+from .paths import listener_problem, socket_problem
 from .protocol import tolerances_to_json, trajectory_to_json
 
 log = logging.getLogger("jtc_hw.client")
@@ -148,6 +148,7 @@ class Client:
         hello: bool = True,
         check_owner: bool | None = None,
         zenoh_config: Any = None,
+        trusted_group: str | int | None = None,
     ) -> Client:
         """Connect, authenticate (TCP), and say ``hello``.
 
@@ -161,12 +162,15 @@ class Client:
             hello: say ``hello`` (and fill ``info``); without it the first request is the
                 caller's, e.g. a ``stop`` that must get through a daemon with every client
                 slot taken (it is served over the limit; ``hello`` would get ``busy``).
-            check_owner: before trusting the unix socket, check that the file and the process
-                listening on it (``SO_PEERCRED``) belong to this user or root, and that its
-                directory is theirs alone. Default: when the path is the default one (no
-                ``path``, no ``$JTC_HW_SOCKET``): that path is guessable, so another local
-                user could have put a socket there first. A path named explicitly is trusted
-                as named (e.g. a daemon of another user whose group may use it).
+            check_owner: before trusting the unix socket, check that the file belongs to this
+                user or root and that its directory is theirs alone. Default: when the path
+                is the default one (no ``path``, no ``$JTC_HW_SOCKET``): that path is
+                guessable, so another local user could have put a socket there first.
+                Whatever the path, the process listening on it (``SO_PEERCRED``) must run as
+                this user, root, or a member of ``trusted_group``.
+            trusted_group: a group (name or gid) whose members' daemons are trusted: the
+                configuration's ``daemon.socket_group`` (a service user's daemon whose group
+                may connect). ``None``: only this user's and root's.
             zenoh_config: with ``zenoh:``, the Zenoh configuration (a JSON5 file, a mapping
                 of keys to values, or a ``zenoh.Config``; default: connect to a router on
                 ``tcp/127.0.0.1:7447``).
@@ -174,8 +178,9 @@ class Client:
         Raises:
             ValueError: both ``path`` and ``tcp``, or ``tcp`` without ``token``.
             ClientConnectionError: nobody listens, the daemon is busy (``code`` ``busy``),
-                the socket failed the owner check (``code`` ``untrusted``; the message says
-                why and what to do), or the connection dropped.
+                the socket or its listener failed the owner check (``code`` ``untrusted``;
+                the message names the socket, the listener's pid and uid, and what to do), or
+                the connection dropped.
             RequestError: the daemon refused the token (``unauthorized``) or the ``hello``.
             ProtocolError: the daemon speaks another protocol version.
             TimeoutError: no answer within ``timeout_s``.
@@ -212,9 +217,9 @@ class Client:
             raise ClientConnectionError(
                 f"cannot connect to the daemon at {label}: {exc.strerror or exc}{hint}"
             ) from None
-        if family == socket.AF_UNIX and check_owner:
+        if family == socket.AF_UNIX:
             try:
-                _refuse_untrusted(str(address), _peer_problem(sock))
+                _refuse_untrusted(str(address), _peer_problem(sock, trusted_group), listener=True)
             except BaseException:
                 sock.close()
                 raise
@@ -728,19 +733,28 @@ UNTRUSTED = "untrusted"
 """``ClientConnectionError.code`` of a socket that failed the owner check."""
 
 
-def _refuse_untrusted(path: str, problem: str | None) -> None:
+def _refuse_untrusted(path: str, problem: str | None, listener: bool = False) -> None:
+    """Raise the refusal of ``path`` for ``problem`` (of the file or directory; with
+    ``listener``, of the process listening), if any, with what to do."""
     if problem is None:
         return
-    raise ClientConnectionError(
-        f"refusing the daemon socket {path}: {problem}. If it is stale, remove it; if you "
-        "trust that daemon, name its socket explicitly (--socket PATH, or JTC_HW_SOCKET=PATH)",
-        UNTRUSTED,
-    )
+    if listener:
+        hint = (
+            "If that daemon's user is trusted, name its group in the configuration "
+            "(daemon.socket_group) and pass it (--config FILE)"
+        )
+    else:
+        hint = (
+            "If it is stale, remove it; if you trust that daemon, name its socket explicitly "
+            "(--socket PATH, or JTC_HW_SOCKET=PATH)"
+        )
+    raise ClientConnectionError(f"refusing the daemon socket {path}: {problem}. {hint}", UNTRUSTED)
 
 
-def _peer_problem(sock: socket.socket) -> str | None:
-    """Whether the process listening on ``sock`` is this user's or root's (``SO_PEERCRED``:
-    recorded by the kernel when it called ``listen``, it cannot be forged)."""
+def _peer_problem(sock: socket.socket, group: str | int | None) -> str | None:
+    """Whether the process listening on ``sock`` is this user's, root's or ``group``'s
+    (``SO_PEERCRED``: recorded by the kernel when it called ``listen``, it cannot be
+    forged)."""
     peercred = getattr(socket, "SO_PEERCRED", None)
     if peercred is None:  # pragma: no cover - not Linux: the file owner check stands alone
         return None
@@ -750,12 +764,8 @@ def _peer_problem(sock: socket.socket) -> str | None:
         )
     except OSError as exc:
         return f"the listening process cannot be identified ({exc})"
-    if trusted_uid(uid):
-        return None
-    return (
-        f"the process listening on it (pid {pid}) runs as uid {uid}, not as uid "
-        f"{os.geteuid()} or root: it is not your daemon"
-    )
+    problem = listener_problem(pid, uid, group)
+    return None if problem is None else f"{problem}: it is not your daemon"
 
 
 def _error(message: dict[str, Any]) -> Exception:

@@ -7,11 +7,20 @@ and have clients talk to it ("squatting"): ``$RUNTIME_DIRECTORY`` (systemd's
 for root, else a private directory ``/tmp/jtc-hw-<uid>/`` that the daemon creates 0700 and
 that both sides check (owner, mode) before use. The checks here do not raise: they return what
 is wrong, and the daemon and the client each turn it into their own error.
+
+Whatever the path, named or found, a client talks only to a daemon it can trust: the process
+listening (``SO_PEERCRED``, the kernel's record of who called ``listen``, which cannot be
+forged) must run as the client's own user, as root, or as a member of the group the robot's
+configuration names (``daemon.socket_group``: the service user's group, whose members may
+connect). A socket named in a directory anyone can write, such as ``/tmp``, is otherwise
+anyone's (:func:`listener_problem`).
 """
 
 from __future__ import annotations
 
+import grp
 import os
+import pwd
 import stat
 from collections.abc import Mapping
 from typing import Final
@@ -21,6 +30,8 @@ __all__ = [
     "SOCKET_NAME",
     "default_socket_path",
     "directory_problem",
+    "group_id",
+    "listener_problem",
     "private_fallback_dir",
     "socket_problem",
     "trusted_uid",
@@ -74,6 +85,57 @@ def trusted_uid(owner: int, uid: int | None = None) -> bool:
         Nothing.
     """
     return owner in (0, os.geteuid() if uid is None else uid)
+
+
+def group_id(group: str | int) -> int | None:
+    """The gid of ``group`` (a name, or a number as an int or a string), or ``None`` if this
+    system has no such group.
+
+    Raises:
+        Nothing.
+    """
+    if isinstance(group, int) or group.isdigit():
+        try:
+            return grp.getgrgid(int(group)).gr_gid
+        except (KeyError, OverflowError):
+            return None
+    try:
+        return grp.getgrnam(group).gr_gid
+    except KeyError:
+        return None
+
+
+def _in_group(uid: int, gid: int) -> bool:
+    try:
+        user = pwd.getpwuid(uid)
+    except KeyError:
+        return False
+    if user.pw_gid == gid:
+        return True
+    try:
+        return user.pw_name in grp.getgrgid(gid).gr_mem
+    except KeyError:
+        return False
+
+
+def listener_problem(
+    pid: int, uid: int, group: str | int | None = None, me: int | None = None
+) -> str | None:
+    """What makes the process ``pid`` (running as ``uid``) listening on a socket
+    untrustworthy for user ``me``, or ``None``: it must run as ``me``, as root, or as a member
+    of ``group`` (``daemon.socket_group``; a member by its primary group or the group's list).
+
+    Raises:
+        Nothing: a group unknown here trusts nobody.
+    """
+    me = os.geteuid() if me is None else me
+    if trusted_uid(uid, me):
+        return None
+    gid = None if group is None else group_id(group)
+    if gid is not None and _in_group(uid, gid):
+        return None
+    who = f"uid {me} or root" if group is None else f"uid {me}, root or a member of group {group}"
+    return f"the process listening on it (pid {pid}) runs as uid {uid}, not as {who}"
 
 
 def directory_problem(directory: str, uid: int | None = None) -> str | None:

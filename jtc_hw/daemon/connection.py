@@ -53,14 +53,24 @@ class TcpEndpoint:
         host: a loopback address (``127.0.0.1``, ``::1`` or ``localhost``).
         port: TCP port (0: any free port, see ``Server.tcp_address``).
         token: every TCP client must first send ``{"op": "auth", "token": ...}`` with it.
-        max_clients: simultaneous TCP connections, authenticated or not (the unix socket has
-            its own limit); more get ``busy`` unless their request is ``stop``.
+        max_clients: simultaneous authenticated TCP connections (the unix socket has its own
+            limit); more get ``busy`` unless their request, after ``auth``, is ``stop``.
+        max_unauthenticated: connections that may wait to authenticate at once, apart from
+            ``max_clients``; a newcomer beyond it takes the place of the one waiting longest
+            (``jtc_hw.daemon.tcp_door``).
+        auth_timeout_s: how long a connection may take, from its opening, to authenticate
+            (sending bytes without completing a request does not extend it).
+        auth_failure_delay_s: failed authentications are answered at most one per this long
+            per peer address, each at least this long after it came.
     """
 
     host: str = "127.0.0.1"
     port: int = 0
     token: str = field(default="", repr=False)
     max_clients: int = 8
+    max_unauthenticated: int = 16
+    auth_timeout_s: float = 1.0
+    auth_failure_delay_s: float = 0.5
 
 
 @dataclass(frozen=True)
@@ -71,6 +81,8 @@ class ServerSettings:
         socket: the unix socket file (``None``: TCP only); its parent directory is created if
             missing.
         socket_mode: permission bits of the socket file (who may connect).
+        socket_group: group (name or gid) given the socket file and a directory made for
+            it; ``None``: the daemon's own.
         tcp: the optional loopback TCP endpoint (with its own ``max_clients``).
         max_clients: simultaneous unix socket connections; ``RESERVED_UNIX_CLIENTS`` more are
             allowed to the daemon's user and root. More get ``busy``, unless their request is
@@ -80,21 +92,19 @@ class ServerSettings:
             ``feedback`` events are dropped for that client.
         client_queue_hard_cap: queued messages at which a client is disconnected as too slow.
         close_timeout_s: how long a closing connection may take to read its last messages.
-        auth_timeout_s: how long a TCP connection may take, from its opening, to
-            authenticate (a connection without the token must not hold a client slot).
         idle_timeout_s: a connection without a request for this long, with no subscription
             and no goal running, is closed (``idle``); 0: never.
     """
 
     socket: str | os.PathLike[str] | None = None
     socket_mode: int = 0o660
+    socket_group: str | int | None = None
     tcp: TcpEndpoint | None = None
     max_clients: int = 16
     max_message_bytes: int = DEFAULT_MAX_MESSAGE_BYTES
     client_queue_size: int = 256
     client_queue_hard_cap: int = 4096
     close_timeout_s: float = 1.0
-    auth_timeout_s: float = 2.0
     idle_timeout_s: float = 300.0
 
     @classmethod
@@ -114,9 +124,7 @@ class ServerSettings:
             values = _pick(settings, names, "")
             tcp = values.get("tcp")
             if tcp is not None and not isinstance(tcp, TcpEndpoint):
-                values["tcp"] = TcpEndpoint(
-                    **_pick(tcp, ["host", "port", "token", "max_clients"], "tcp.")
-                )
+                values["tcp"] = TcpEndpoint(**_pick(tcp, _TCP_FIELDS, "tcp."))
             out = cls(**values)
         out.check()
         return out
@@ -143,9 +151,16 @@ class ServerSettings:
             port = self.tcp.port
             if isinstance(port, bool) or not isinstance(port, int) or not 0 <= port <= 65535:
                 raise ConfigurationError("expected a port 0..65535", "tcp.port", port)
-            limit = self.tcp.max_clients
-            if isinstance(limit, bool) or not isinstance(limit, int) or limit < 1:
-                raise ConfigurationError("expected an integer >= 1", "tcp.max_clients", limit)
+            for name in ("max_clients", "max_unauthenticated"):
+                limit = getattr(self.tcp, name)
+                if isinstance(limit, bool) or not isinstance(limit, int) or limit < 1:
+                    raise ConfigurationError("expected an integer >= 1", f"tcp.{name}", limit)
+            for name in ("auth_timeout_s", "auth_failure_delay_s"):
+                value = getattr(self.tcp, name)
+                if isinstance(value, bool) or not isinstance(value, (int, float)) or not (
+                    value > 0 or (value == 0 and name == "auth_failure_delay_s")
+                ):
+                    raise ConfigurationError("expected seconds > 0", f"tcp.{name}", value)
         for name in ("max_clients", "max_message_bytes", "client_queue_size"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
@@ -156,13 +171,16 @@ class ServerSettings:
                 "client_queue_hard_cap",
                 self.client_queue_hard_cap,
             )
-        for name in ("close_timeout_s", "auth_timeout_s", "idle_timeout_s"):
+        for name in ("close_timeout_s", "idle_timeout_s"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, float)):
                 raise ConfigurationError("expected a number of seconds", name, value)
             if not (value > 0 or (value == 0 and name == "idle_timeout_s")):
                 what = "seconds >= 0 (0: never)" if name == "idle_timeout_s" else "seconds > 0"
                 raise ConfigurationError(f"expected {what}", name, value)
+
+
+_TCP_FIELDS = [f.name for f in fields(TcpEndpoint)]
 
 
 def _pick(source: object, names: Sequence[str], prefix: str) -> dict[str, Any]:
@@ -209,13 +227,18 @@ class Connection:
         settings: ServerSettings,
         uid: int | None = None,
         now: float = 0.0,
+        host: str = "",
     ) -> None:
         self.number = number
         self.kind = kind
         self.peer = peer
         self.uid = uid
+        self.host = host  # TCP: the peer's address (failed authentications are slowed per host)
+        self.opened = now
         self.reserved = False  # admitted to one of the slots reserved for the daemon's user
-        self.auth_deadline = now + settings.auth_timeout_s
+        self.stop_only = False  # authenticated over tcp.max_clients: one stop, then closed
+        auth_s = settings.tcp.auth_timeout_s if settings.tcp is not None else 0.0
+        self.auth_deadline = now + auth_s  # on TCP; after auth over the limit: the stop's
         self.last_activity = now  # the last request, or the end of the last goal
         self.reader = reader
         self.writer = writer
@@ -301,9 +324,9 @@ class Connection:
         }
 
 
-def peer_identity(kind: str, writer: asyncio.StreamWriter) -> tuple[str, int | None]:
-    """A label for the log and, on the unix socket, the peer's uid (``SO_PEERCRED``: the
-    kernel's record of who connected, which the peer cannot forge).
+def peer_identity(kind: str, writer: asyncio.StreamWriter) -> tuple[str, int | None, str]:
+    """A label for the log; on the unix socket, the peer's uid (``SO_PEERCRED``: the
+    kernel's record of who connected, which the peer cannot forge); on TCP, its address.
 
     Raises:
         Nothing: an unknown peer is labelled by its transport, its uid ``None``.
@@ -311,17 +334,19 @@ def peer_identity(kind: str, writer: asyncio.StreamWriter) -> tuple[str, int | N
     sock = writer.get_extra_info("socket")
     if kind == "tcp":
         address = writer.get_extra_info("peername")
-        return (f"tcp {address[0]}:{address[1]}" if address else "tcp"), None
+        if not address:
+            return "tcp", None, ""
+        return f"tcp {address[0]}:{address[1]}", None, str(address[0])
     peercred = getattr(socket, "SO_PEERCRED", None)
     if sock is not None and peercred is not None:
         try:
             pid, uid, _gid = struct.unpack(
                 "3i", sock.getsockopt(socket.SOL_SOCKET, peercred, struct.calcsize("3i"))
             )
-            return f"unix pid {pid} uid {uid}", uid
+            return f"unix pid {pid} uid {uid}", uid, ""
         except OSError:
             pass
-    return "unix", None
+    return "unix", None, ""
 
 
 def is_privileged(uid: int | None) -> bool:

@@ -11,7 +11,9 @@ layout); this module adds two top-level sections that ``load_config`` skips::
     daemon:                   # optional, every key optional
       socket: /run/jtc-hw/jtc-hw.sock
       socket_mode: 0o660
-      tcp: {host: 127.0.0.1, port: 0, token: "at least sixteen characters", max_clients: 8}
+      socket_group: robot     # default: the daemon's group
+      tcp: {host: 127.0.0.1, port: 0, token: "at least sixteen characters", max_clients: 8,
+            max_unauthenticated: 16, auth_timeout_s: 1.0, auth_failure_delay_s: 0.5}
       max_clients: 16
       idle_timeout_s: 300
       max_message_bytes: 4194304
@@ -156,8 +158,17 @@ TCP_PARAMETERS: Final[Mapping[str, ParamSpec]] = param_table(
               f"shared secret clients must present (at least {MIN_TOKEN_LENGTH} characters)",
               required=True),
     ParamSpec("max_clients", ParamKind.INT, 8,
-              "simultaneous TCP connections, authenticated or not (the unix socket has its own)",
+              "simultaneous authenticated TCP connections (the unix socket has its own)",
               minimum=1),
+    ParamSpec("max_unauthenticated", ParamKind.INT, 16,
+              "TCP connections that may wait to authenticate at once, apart from max_clients "
+              "(a newcomer beyond it replaces the one waiting longest)", minimum=1),
+    ParamSpec("auth_timeout_s", ParamKind.FLOAT, 1.0,
+              "a TCP connection is closed unless it authenticates this long after opening, s",
+              minimum=0.05, maximum=60.0),
+    ParamSpec("auth_failure_delay_s", ParamKind.FLOAT, 0.5,
+              "failed authentications are answered at most one per this long per address, s",
+              minimum=0.0, maximum=60.0),
 )
 """``daemon.tcp.*``."""
 
@@ -188,6 +199,10 @@ DAEMON_PARAMETERS: Final[Mapping[str, ParamSpec]] = param_table(
               nullable=True),
     ParamSpec("socket_mode", ParamKind.INT, 0o660, "permissions of the socket file",
               coerce=_parse_socket_mode),
+    ParamSpec("socket_group", ParamKind.STRING, None,
+              "group of the socket file (a name or gid; default: the daemon's): its members "
+              "may connect (socket_mode 0660), and clients given this file trust a daemon "
+              "run by one of them", nullable=True),
     ParamSpec("tcp", ParamKind.SECTION, None, "optional TCP endpoint on a loopback address",
               nullable=True, fields=TCP_PARAMETERS),
     ParamSpec("max_clients", ParamKind.INT, 16,
@@ -262,6 +277,9 @@ class TcpSettings:
     port: int = 0
     token: str = field(default="", repr=False)
     max_clients: int = 8
+    max_unauthenticated: int = 16
+    auth_timeout_s: float = 1.0
+    auth_failure_delay_s: float = 0.5
 
     def __post_init__(self) -> None:
         if not isinstance(self.host, str) or not _is_loopback(self.host):
@@ -349,6 +367,7 @@ class DaemonSettings:
     Attributes:
         socket: absolute path of the Unix socket.
         socket_mode: permission bits of the socket file.
+        socket_group: group of the socket file (name or gid), or ``None``: the daemon's.
         tcp: the optional TCP endpoint.
         max_clients: simultaneous unix socket connections (and 2 more for the daemon's user
             and root).
@@ -372,6 +391,7 @@ class DaemonSettings:
 
     socket: str = field(default_factory=default_socket_path)
     socket_mode: int = 0o660
+    socket_group: str | None = None
     tcp: TcpSettings | None = None
     max_clients: int = 16
     idle_timeout_s: float = 300.0
@@ -522,6 +542,7 @@ def _parse_daemon(raw: Any, base_dir: str) -> DaemonSettings:
     return DaemonSettings(
         socket=socket,
         socket_mode=values["socket_mode"],
+        socket_group=values["socket_group"],
         tcp=None if tcp is None else TcpSettings(**tcp),
         max_clients=values["max_clients"],
         idle_timeout_s=values["idle_timeout_s"],
@@ -626,16 +647,32 @@ def _foxglove_warnings(robot: RobotConfig) -> list[str]:
 
 def security_warnings(robot: RobotConfig) -> list[str]:
     """What in ``robot``'s file is exposed to other users (``jtc-hw check`` and ``run`` print
-    it): a TCP token in a file that group or others may read; a live view (which has no
-    authentication) on a non-loopback address.
+    it): a socket mode that lets every user connect; a TCP token in a file that group or
+    others may read; a live view (which has no authentication) on a non-loopback address.
 
     Raises:
         Nothing: a file that cannot be examined gives no warning.
     """
-    live = _foxglove_warnings(robot)
+    return [*_socket_mode_warnings(robot), *_token_warnings(robot), *_foxglove_warnings(robot)]
+
+
+def _socket_mode_warnings(robot: RobotConfig) -> list[str]:
+    """The socket's mode is its only lock: any bit for others lets every local user in. The
+    group's bits are the intended door (0660, ``daemon.socket_group``)."""
+    mode = robot.daemon.socket_mode
+    if not mode & 0o007:
+        return []
+    return [
+        f"daemon.socket_mode {mode:04o} lets every user of this machine connect to the "
+        f"daemon's socket ({robot.daemon.socket}) and command the robot. Use 0660 and let "
+        "in those who may, through the socket's group (daemon.socket_group)"
+    ]
+
+
+def _token_warnings(robot: RobotConfig) -> list[str]:
     path = robot.source_path
     if robot.daemon.tcp is None or path is None:
-        return live
+        return []
     try:
         mode = stat.S_IMODE(os.stat(path).st_mode)
     except OSError:
@@ -646,7 +683,6 @@ def security_warnings(robot: RobotConfig) -> list[str]:
         name for bit, name in ((0o040, "its group"), (0o004, "every user")) if mode & bit
     )
     return [
-        *live,
         f"{path} holds the TCP token (daemon.tcp.token) and is readable by {who} (mode "
         f"{mode:04o}): whoever reads it can command the robot over TCP. Make it private: "
         f"chmod 600 {path} (owned by the daemon's user)"

@@ -31,11 +31,15 @@ client that vanishes): the goal runs on to its result, which is logged and disca
 
 Admission (a stop always gets through): the unix socket and TCP have separate limits
 (``max_clients``, ``tcp.max_clients``); ``RESERVED_UNIX_CLIENTS`` more unix connections are
-admitted for peers whose ``SO_PEERCRED`` uid is the daemon's or root's. A connection over its
-limit is served by ``_serve_over_limit``: one ``stop`` (after ``auth`` on TCP) within
-``OVER_LIMIT_DEADLINE_S``, else ``busy``; then it is closed. Admitted connections are closed by
-their deadlines: a TCP connection that has not authenticated ``auth_timeout_s`` after opening,
-and a connection idle (no request, no subscription, no goal running) for ``idle_timeout_s``.
+admitted for peers whose ``SO_PEERCRED`` uid is the daemon's or root's. A unix connection over
+its limit is served by ``_serve_over_limit``: one ``stop`` within ``OVER_LIMIT_DEADLINE_S``,
+else ``busy``; then it is closed. A TCP connection first waits to authenticate in a room of its
+own (``TcpDoor``: at most ``tcp.max_unauthenticated``, the longest waiting dropped for a
+newcomer, failed handshakes answered slowly per address), so strangers never take
+``tcp.max_clients`` slots; authenticated over that limit, it may send one ``stop`` (``stop_only``).
+Admitted connections are closed by their deadlines: a TCP connection that has not authenticated
+``tcp.auth_timeout_s`` after opening, and a connection idle (no request, no subscription, no
+goal running) for ``idle_timeout_s``.
 """
 
 from __future__ import annotations
@@ -113,6 +117,7 @@ from .connection import (
     is_privileged,
     peer_identity,
 )
+from .tcp_door import TcpDoor
 from .unix_socket import bind_unix, remove_socket_file
 
 __all__ = [
@@ -186,6 +191,10 @@ class Server:
         self._tcp_address: tuple[str, int] | None = None
         self._token = b"" if self.settings.tcp is None else self.settings.tcp.token.encode()
         self._decoding: ThreadPoolExecutor | None = None  # created on the first long line
+        tcp = self.settings.tcp
+        self._door = (
+            None if tcp is None else TcpDoor(tcp.max_unauthenticated, tcp.auth_failure_delay_s)
+        )
 
     # -- lifecycle ----------------------------------------------------------------------------
 
@@ -215,7 +224,9 @@ class Server:
         self.backend.set_listener(self)
         try:
             if self.path is not None:
-                sock, self._socket_identity = bind_unix(self.path, self.settings.socket_mode)
+                sock, self._socket_identity = bind_unix(
+                    self.path, self.settings.socket_mode, self.settings.socket_group
+                )
                 self._servers.append(
                     await asyncio.start_unix_server(partial(self._accept, "unix"), sock=sock)
                 )
@@ -279,14 +290,16 @@ class Server:
     ) -> None:
         self._number += 1
         number = self._number
-        peer, uid = peer_identity(kind, writer)
+        peer, uid, host = peer_identity(kind, writer)
         if self._closed:
             writer.transport.abort()
             return
         now = time.monotonic()
-        conn = Connection(number, kind, peer, reader, writer, self.settings, uid, now)
+        conn = Connection(number, kind, peer, reader, writer, self.settings, uid, now, host)
         task = asyncio.current_task()
         assert task is not None
+        if kind == "tcp":
+            self._wait_to_authenticate(conn, now)
         admitted = self._admit(conn)
         if admitted is None:
             self._tasks[number] = task
@@ -311,6 +324,17 @@ class Server:
         finally:
             await self._finish(conn, writer_task)
 
+    def _wait_to_authenticate(self, conn: Connection, now: float) -> None:
+        """Let a TCP connection into the handshake room, closing those it replaces."""
+        assert self._door is not None
+        for old in self._door.enter(conn, now):
+            if isinstance(old, Connection):
+                old.abort(
+                    "unauthorized: closed to make room for a newer connection "
+                    f"({self._door.max_unauthenticated} waited to authenticate, "
+                    "tcp.max_unauthenticated)"
+                )
+
     def _limit(self, kind: str) -> tuple[int, str]:
         """A transport's connection limit and the setting that says so."""
         if kind == "tcp":
@@ -320,7 +344,10 @@ class Server:
 
     def _admit(self, conn: Connection) -> bool | None:
         """Whether ``conn`` gets a slot: ``False`` an ordinary one, ``True`` a reserved one,
-        ``None`` none (it is over its transport's limit)."""
+        ``None`` none (it is over its transport's limit). A TCP connection is let in to
+        authenticate; its slot is decided by ``_authenticate``."""
+        if conn.kind == "tcp":
+            return False
         count = sum(1 for c in self._conns.values() if c.kind == conn.kind)
         limit, _ = self._limit(conn.kind)
         if count < limit:
@@ -332,17 +359,17 @@ class Server:
 
     def _busy_message(self, kind: str) -> str:
         limit, setting = self._limit(kind)
-        first = "an auth request, then " if kind == "tcp" else ""
+        since = "its auth request" if kind == "tcp" else "connecting"
         return (
             f"the daemon already serves {limit} {kind} clients ({setting}); over the limit a "
-            f"connection may only send {first}a 'stop' request, within "
-            f"{OVER_LIMIT_DEADLINE_S:g} s of connecting; try again later"
+            f"connection may only send a 'stop' request, within {OVER_LIMIT_DEADLINE_S:g} s "
+            f"of {since}; try again later"
         )
 
     async def _serve_over_limit(self, conn: Connection) -> None:
-        """Serve a connection over its transport's limit: its first request (after ``auth``
-        on TCP), if it comes within ``OVER_LIMIT_DEADLINE_S`` and is ``stop``, is executed
-        and answered; anything else is answered ``busy``. Then the connection is closed.
+        """Serve a unix connection over the limit: its first request, if it comes within
+        ``OVER_LIMIT_DEADLINE_S`` and is ``stop``, is executed and answered; anything else is
+        answered ``busy``. Then the connection is closed (TCP: ``Connection.stop_only``).
 
         A stop must get through when every slot is taken (by forgotten clients, or by
         someone holding them on purpose); the deadline and ``OVER_LIMIT_CLIENTS`` bound what
@@ -385,19 +412,6 @@ class Server:
             for item in decoder.feed(data) if data else decoder.end():
                 conn.requests += 1
                 rid = item.request_id if isinstance(item, RequestError) else item.id
-                if not conn.authenticated:
-                    if isinstance(item, Auth) and self._token_ok(item.token):
-                        conn.authenticated = True
-                        conn.writer.write(encode(reply(item.id, authenticated=True)))
-                        continue
-                    message = (
-                        "wrong token; closing the connection"
-                        if isinstance(item, Auth)
-                        else 'the first request on a TCP connection must be {"op": "auth", '
-                        '"token": ...}; closing the connection'
-                    )
-                    out.append(encode(error_reply(rid, UNAUTHORIZED, message)))
-                    return out
                 if isinstance(item, RequestError):
                     # Say what is wrong with it (e.g. a stop without its newline is not run).
                     out.append(encode(self._error(conn, None, item)))
@@ -442,6 +456,8 @@ class Server:
                 conn.writer.transport.abort()
         self._conns.pop(conn.number, None)
         self._tasks.pop(conn.number, None)
+        if self._door is not None:
+            self._door.leave(conn)
         running = sorted(conn.goals)
         extra = ""
         if running:
@@ -463,7 +479,7 @@ class Server:
 
     def _read_timeout(self, conn: Connection, now: float) -> float | None:
         """How long the next read may wait before the connection's deadline is looked at."""
-        if not conn.authenticated:
+        if not conn.authenticated or conn.stop_only:
             return max(0.0, conn.auth_deadline - now)
         idle = self.settings.idle_timeout_s
         if not idle:
@@ -474,10 +490,15 @@ class Server:
 
     def _timed_out(self, conn: Connection, now: float) -> bool:
         """After a read timed out: whether the connection must close (and why, queued)."""
+        if conn.stop_only:
+            self._reject(conn, None, RequestError(BUSY, self._busy_message(conn.kind)))
+            conn.close_reason = "over the limit: no stop in time"
+            return True
         if not conn.authenticated:
+            assert self.settings.tcp is not None
             message = (
-                f"no auth request within {self.settings.auth_timeout_s:g} s of connecting; "
-                "closing the connection"
+                f"no auth request within {self.settings.tcp.auth_timeout_s:g} s of "
+                "connecting; closing the connection"
             )
             self._reject(conn, None, RequestError(UNAUTHORIZED, message))
             conn.close_reason = "unauthorized (no auth request in time)"
@@ -570,7 +591,10 @@ class Server:
         conn.requests += 1
         conn.last_activity = time.monotonic()
         if not conn.authenticated:
-            self._authenticate(conn, item)
+            await self._authenticate(conn, item)
+            return
+        if conn.stop_only:
+            await self._stop_only(conn, item)
             return
         if isinstance(item, RequestError):
             self._reject(conn, None, item)
@@ -625,12 +649,31 @@ class Server:
             return encode(error_reply(item.id, INTERNAL, f"{item.op}: no reply"))
         return sent
 
-    def _authenticate(self, conn: Connection, item: Request | RequestError) -> None:
+    async def _authenticate(self, conn: Connection, item: Request | RequestError) -> None:
+        """The handshake's one request: ``auth`` with the token takes a TCP slot (over
+        ``tcp.max_clients``: a stop-only one); anything else is answered ``unauthorized``
+        after the peer's delay (``TcpDoor.failure``) and the connection is closed."""
+        assert self._door is not None
         if isinstance(item, Auth) and self._token_ok(item.token):
+            self._door.leave(conn)
             conn.authenticated = True
-            log.info("%s authenticated", conn.label)
+            limit, _ = self._limit("tcp")
+            held = sum(
+                1 for c in self._conns.values()
+                if c.kind == "tcp" and c.authenticated and not c.stop_only and c is not conn
+            )
+            if held >= limit:
+                conn.stop_only = True
+                conn.auth_deadline = time.monotonic() + OVER_LIMIT_DEADLINE_S
+                self._refused_busy += 1
+                log.info("%s authenticated, over the limit: serving only a stop", conn.label)
+            else:
+                log.info("%s authenticated", conn.label)
             conn.send(encode(reply(item.id, authenticated=True)))
             return
+        delay = self._door.failure(conn.host, time.monotonic())
+        if delay > 0:
+            await asyncio.sleep(delay)  # the rate limit of failures, not a wait for anything
         if isinstance(item, Auth):
             message = "wrong token; closing the connection"
         else:
@@ -645,6 +688,23 @@ class Server:
             RequestError(UNAUTHORIZED, message, rid),
         )
         conn.close_reason = "unauthorized"
+        conn.closing = True
+        conn.wake.set()
+
+    async def _stop_only(self, conn: Connection, item: Request | RequestError) -> None:
+        """An authenticated TCP connection over ``tcp.max_clients``: a ``stop`` is executed
+        and answered, anything else gets ``busy``; either way the connection then closes."""
+        if isinstance(item, Stop):
+            self._stops_over_limit += 1
+            log.info("%s: stop (over the limit)", conn.label)
+            answer = await self._answer(conn, item)
+            assert answer is not None  # only send_goal sends its own reply
+            conn.send(answer)
+        else:
+            request = None if isinstance(item, RequestError) else item
+            rid = item.request_id if isinstance(item, RequestError) else item.id
+            self._reject(conn, request, RequestError(BUSY, self._busy_message(conn.kind), rid))
+        conn.close_reason = "over the limit: served one request"
         conn.closing = True
         conn.wake.set()
 
@@ -697,7 +757,7 @@ class Server:
                 return self._merge(req.id, backend.hello(), ours)
             case Auth():
                 if conn.kind == "tcp" and not self._token_ok(req.token):
-                    self._authenticate(conn, req)
+                    await self._authenticate(conn, req)
                     return None
                 return reply(req.id, authenticated=True)
             case SendGoal():
@@ -827,6 +887,7 @@ class Server:
             "reserved_clients": RESERVED_UNIX_CLIENTS,
             "tcp_max_clients": None if self.settings.tcp is None else self.settings.tcp.max_clients,
             "idle_timeout_s": self.settings.idle_timeout_s,
+            "tcp": None if self._door is None else self._door.stats(),
             "clients": [c.stats() for c in self._conns.values()],
             "you": None if conn is None else conn.number,
             "connections_total": self._number,

@@ -15,7 +15,7 @@ import socket
 import stat
 from pathlib import Path
 
-from ..api.paths import default_socket_path, directory_problem
+from ..api.paths import default_socket_path, directory_problem, group_id
 from ..errors import ConfigurationError
 
 __all__ = ["bind_unix", "directory_mode", "remove_socket_file"]
@@ -37,7 +37,7 @@ def directory_mode(socket_mode: int) -> int:
     return mode
 
 
-def _make_directory(directory: Path, mode: int) -> None:
+def _make_directory(directory: Path, mode: int, gid: int) -> None:
     missing: list[Path] = []
     for d in (directory, *directory.parents):
         if os.path.lexists(d):
@@ -49,6 +49,8 @@ def _make_directory(directory: Path, mode: int) -> None:
                 os.mkdir(d, mode)
             except FileExistsError:
                 continue  # made meanwhile by someone else: examined below
+            if gid >= 0:
+                os.chown(d, -1, gid)  # the group socket_mode lets in may enter
             os.chmod(d, mode)  # mkdir's mode is reduced by the umask
             log.info("created the socket's directory %s (mode %04o)", d, mode)
     except OSError as exc:
@@ -58,15 +60,29 @@ def _make_directory(directory: Path, mode: int) -> None:
         ) from None
 
 
-def bind_unix(path: Path, socket_mode: int) -> tuple[socket.socket, SocketIdentity]:
-    """Bind (not listen) a unix stream socket at ``path`` with ``socket_mode``.
+def bind_unix(
+    path: Path, socket_mode: int, group: str | int | None = None
+) -> tuple[socket.socket, SocketIdentity]:
+    """Bind (not listen) a unix stream socket at ``path`` with ``socket_mode``, of ``group``
+    (``daemon.socket_group``; ``None``: the daemon's own).
 
     Raises:
-        ConfigurationError: the directory cannot be made or is untrustworthy (the default
-            place), a live daemon listens there, the path is not a socket, or binding fails;
-            each names the path and what to do.
+        ConfigurationError: the group is unknown, the directory cannot be made or is
+            untrustworthy (the default place), a live daemon listens there, the path is not a
+            socket, or binding (or giving it the group) fails; each names the path and what
+            to do.
     """
-    _make_directory(path.parent, directory_mode(socket_mode))
+    gid = -1
+    if group is not None:
+        found = group_id(group)
+        if found is None:
+            raise ConfigurationError(
+                f"there is no group {group!r} on this system (getent group {group})",
+                "socket_group",
+                group,
+            )
+        gid = found
+    _make_directory(path.parent, directory_mode(socket_mode), gid)
     if os.path.normpath(path) == os.path.normpath(default_socket_path()):
         # The default place: check that no other user could have prepared it for us.
         problem = directory_problem(str(path.parent))
@@ -82,8 +98,21 @@ def bind_unix(path: Path, socket_mode: int) -> tuple[socket.socket, SocketIdenti
     try:
         sock.bind(str(path))
         # Nobody can connect before listen(), which start_unix_server calls: no window.
+        if gid >= 0:
+            try:
+                os.chown(path, -1, gid)
+            except PermissionError:
+                raise ConfigurationError(
+                    f"cannot give the socket {path} the group {group}: the daemon's user is "
+                    "not a member of it (add it: usermod -aG GROUP USER)",
+                    "socket_group",
+                    group,
+                ) from None
         os.chmod(path, socket_mode)
         st = os.stat(path)
+    except ConfigurationError:
+        sock.close()
+        raise
     except OSError as exc:
         sock.close()
         raise ConfigurationError(

@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 from helpers.fake_backend import TOKEN, ServerThread
 
-from jtc_hw.cli import EXIT_NO_DAEMON, EXIT_OK, load_goal_file, main
+from jtc_hw.cli import EXIT_BAD_INPUT, EXIT_OK, load_goal_file, main
 from jtc_hw.controller.trajectory import JointTrajectory, TrajectoryPoint
 from jtc_hw.daemon.server import ServerSettings
 from jtc_hw.errors import ConfigurationError
@@ -61,7 +61,7 @@ def test_client_commands_refuse_a_squatted_default_socket(
         capsys.readouterr()
         os.chown(runtime / "jtc-hw.sock", 65534, -1)
         for command in (["stop"], ["status"], ["rearm"]):
-            assert main(command) == EXIT_NO_DAEMON
+            assert main(command) == EXIT_BAD_INPUT
             err = capsys.readouterr().err
             assert err.startswith(f"error: refusing the daemon socket {runtime}/jtc-hw.sock: ")
             assert "belongs to uid 65534" in err and "--socket PATH" in err
@@ -106,6 +106,20 @@ def test_check_and_run_warn_of_a_token_others_can_read(
     path.chmod(0o600)
     assert main(["check", str(path)]) == EXIT_OK
     assert "TCP token" not in capsys.readouterr().out
+    # (run prints the same warning to its log: tests/daemon/test_failsafe_e2e.py)
+
+
+def test_check_warns_of_a_socket_mode_that_lets_every_user_in(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    path = tmp_path / "robot.yaml"
+    path.write_text(CONFIG + f"daemon: {{socket: {tmp_path}/d.sock, socket_mode: 0o777}}\n")
+    assert main(["check", str(path)]) == EXIT_OK
+    out = capsys.readouterr().out
+    assert "warning: daemon.socket_mode 0777 lets every user of this machine connect" in out
+    path.write_text(CONFIG + f"daemon: {{socket: {tmp_path}/d.sock, socket_mode: 0o660}}\n")
+    assert main(["check", str(path)]) == EXIT_OK
+    assert "socket_mode" not in capsys.readouterr().out
     # (run prints the same warning to its log: tests/daemon/test_failsafe_e2e.py)
 
 

@@ -4,19 +4,29 @@ root)."""
 
 from __future__ import annotations
 
+import grp
 import os
+import pwd
+import shutil
 import socket
+import subprocess
+import sys
+import tempfile
 from pathlib import Path
 
 import pytest
+import yaml
 
 from jtc_hw.api.paths import (
     default_socket_path,
     directory_problem,
+    listener_problem,
     private_fallback_dir,
     socket_problem,
     trusted_uid,
 )
+
+from conftest import ROOT, make_robot_config
 
 NOBODY = 65534
 
@@ -87,3 +97,129 @@ def test_a_socket_is_trusted_only_if_it_is_ours_or_roots(tmp_path: Path) -> None
     os.chown(directory, NOBODY, -1)
     assert "belongs to uid 65534" in (socket_problem(str(path)) or "")
 
+
+
+def test_a_listener_is_trusted_if_it_runs_as_me_root_or_the_configured_group() -> None:
+    assert listener_problem(10, 1000, me=1000) is None
+    assert listener_problem(10, 0, me=1000) is None
+    assert listener_problem(10, NOBODY, me=1000) == (
+        f"the process listening on it (pid 10) runs as uid {NOBODY}, not as uid 1000 or root"
+    )
+    nogroup = grp.getgrgid(pwd.getpwuid(NOBODY).pw_gid).gr_name  # nobody's primary group
+    assert listener_problem(10, NOBODY, nogroup, me=1000) is None
+    assert listener_problem(10, NOBODY, str(grp.getgrnam(nogroup).gr_gid), me=1000) is None
+    assert listener_problem(10, NOBODY, "root", me=1000) == (
+        f"the process listening on it (pid 10) runs as uid {NOBODY}, not as uid 1000, root or "
+        "a member of group root"
+    )
+    assert listener_problem(10, NOBODY, "no-such-group-jtc", me=1000) is not None
+
+
+class ForeignListener:
+    """A unix socket listened on by a child process running as another user, in a directory
+    anyone can write (as /tmp): it accepts one connection and reports what it read until the
+    client closed (or 10 s passed), without ever answering."""
+
+    def __init__(self, directory: Path) -> None:
+        self.path = directory / "jtc-hw.sock"
+        self._report, child = socket.socketpair()
+        self.pid = os.fork()
+        if self.pid == 0:  # pragma: no cover - the child, as another user; never returns
+            status = 1
+            try:
+                self._report.close()
+                os.setgroups([])
+                os.setgid(NOBODY)
+                os.setuid(NOBODY)
+                listener = socket.socket(socket.AF_UNIX)
+                listener.bind(str(self.path))
+                listener.listen()
+                child.sendall(b"!")
+                listener.settimeout(10.0)
+                conn, _ = listener.accept()
+                conn.settimeout(10.0)
+                read = b""
+                try:
+                    while chunk := conn.recv(4096):
+                        read += chunk
+                except TimeoutError:
+                    pass
+                child.sendall(read)
+                status = 0
+            finally:
+                os._exit(status)
+        child.close()
+        assert self._report.recv(1) == b"!", "the other user's listener did not start"
+
+    def read(self) -> bytes:
+        """What the listener read (waits for the child to end)."""
+        data = b""
+        while chunk := self._report.recv(65536):
+            data += chunk
+        self._report.close()
+        _, status = os.waitpid(self.pid, 0)
+        assert os.waitstatus_to_exitcode(status) == 0
+        return data
+
+
+@as_root
+@pytest.mark.parametrize("named_by", ["--socket", "--config"])
+def test_jtc_hw_stop_refuses_a_socket_named_in_tmp_that_another_user_listens_on(
+    named_by: str, tmp_path: Path
+) -> None:
+    """`jtc-hw stop --socket X` (or --config naming X) where a stranger listens on X: one line,
+    exit 2, and the stranger never receives the stop."""
+    shared = Path(tempfile.mkdtemp(prefix="jtc-hw-stranger-"))  # pytest's tmp_path is private
+    shared.chmod(0o1777)  # like /tmp: anyone may create a socket here
+    try:
+        listener = ForeignListener(shared)
+        if named_by == "--socket":
+            target = str(listener.path)
+        else:
+            config = tmp_path / "robot.yaml"
+            config.write_text(yaml.safe_dump(make_robot_config(
+                listener.path, ["j1"], [{"name": "a", "kind": "mirror", "joints": ["j1"]}])))
+            target = str(config)
+        stop = subprocess.run(
+            [sys.executable, "-m", "jtc_hw", "stop", named_by, target, "--timeout", "5"],
+            capture_output=True, text=True, cwd=ROOT, timeout=60, stdin=subprocess.DEVNULL,
+            env={**os.environ, "PYTHONPATH": str(ROOT)},
+        )
+        read = listener.read()
+    finally:
+        shutil.rmtree(shared)
+    assert read == b""  # connected, identified, closed: not a byte sent
+    assert stop.returncode == 2, (stop.stdout, stop.stderr)
+    assert stop.stdout == ""
+    assert stop.stderr.count("\n") == 1 and "Traceback" not in stop.stderr
+    assert stop.stderr.startswith(
+        f"error: refusing the daemon socket {listener.path}: the process listening on it "
+        f"(pid {listener.pid}) runs as uid {NOBODY}, not as uid 0 or root: it is not your "
+        "daemon. "
+    )
+    assert "daemon.socket_group" in stop.stderr
+
+
+@as_root
+def test_a_config_naming_the_listeners_group_trusts_it(tmp_path: Path) -> None:
+    """The same stranger, but the configuration says its group is the daemon's
+    (daemon.socket_group): the stop is sent to it (it never answers: exit 3)."""
+    shared = Path(tempfile.mkdtemp(prefix="jtc-hw-service-"))
+    shared.chmod(0o1777)
+    group = grp.getgrgid(pwd.getpwuid(NOBODY).pw_gid).gr_name
+    try:
+        listener = ForeignListener(shared)
+        config = tmp_path / "robot.yaml"
+        config.write_text(yaml.safe_dump(make_robot_config(
+            listener.path, ["j1"], [{"name": "a", "kind": "mirror", "joints": ["j1"]}],
+            socket_group=group)))
+        stop = subprocess.run(
+            [sys.executable, "-m", "jtc_hw", "stop", "--config", str(config), "--timeout", "1"],
+            capture_output=True, text=True, cwd=ROOT, timeout=60, stdin=subprocess.DEVNULL,
+            env={**os.environ, "PYTHONPATH": str(ROOT)},
+        )
+        read = listener.read()
+    finally:
+        shutil.rmtree(shared)
+    assert b'"op":"stop"' in read.replace(b" ", b"")
+    assert stop.returncode == 3, (stop.stdout, stop.stderr)

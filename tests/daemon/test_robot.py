@@ -383,12 +383,15 @@ def test_the_daemon_settings_reach_the_server(tmp_path: Path) -> None:
 
     daemon = load_robot(robot(daemon={
         "socket": str(tmp_path / "d.sock"), "max_clients": 3, "idle_timeout_s": 30,
-        "tcp": {"token": TOKEN, "max_clients": 5},
+        "tcp": {"token": TOKEN, "max_clients": 5, "auth_failure_delay_s": 0.25},
+        "socket_group": "robot",
     })).daemon
     settings = ServerSettings.coerce(daemon)
+    assert settings.socket_group == "robot" and settings.tcp is not None
+    assert settings.tcp.auth_failure_delay_s == 0.25
     assert (settings.max_clients, settings.idle_timeout_s) == (3, 30.0)
     assert settings.tcp is not None and settings.tcp.max_clients == 5
-    assert settings.auth_timeout_s == 2.0
+    assert settings.tcp.auth_timeout_s == 1.0 and settings.tcp.max_unauthenticated == 16
 
 
 BOMB = """\
@@ -497,3 +500,24 @@ def test_watchdog_shorter_than_three_loop_periods_is_refused(tmp_path: Path) -> 
         assert "shorter than 3 loop periods (30 ms at 100 Hz)" in str(caught.value)
     finally:
         unregister_hardware("watched-test")
+
+
+def test_a_socket_mode_that_lets_every_user_in_gets_a_warning(tmp_path: Path) -> None:
+    from jtc_hw.daemon.robot import security_warnings
+
+    def warnings(mode: str) -> list[str]:
+        path = tmp_path / "robot.yaml"
+        path.write_text(
+            "joints: [j1]\ncommand_interfaces: [position]\nstate_interfaces: [position]\n"
+            f"daemon: {{socket: {tmp_path}/d.sock, socket_mode: '{mode}'}}\n"
+        )
+        return security_warnings(load_robot(path))
+
+    assert warnings("0777") == [
+        f"daemon.socket_mode 0777 lets every user of this machine connect to the daemon's "
+        f"socket ({tmp_path}/d.sock) and command the robot. Use 0660 and let in those who "
+        "may, through the socket's group (daemon.socket_group)"
+    ]
+    assert "socket_mode 0606" in warnings("0606")[0]  # any bit for others
+    assert warnings("0604") != [] and warnings("0601") != []
+    assert warnings("0660") == [] and warnings("0600") == []  # the group is the door

@@ -694,7 +694,7 @@ def test_tcp_with_token(tmp_path: Path, logs: LogWatch) -> None:
 def test_tcp_client_that_never_authenticates_is_closed(logs: LogWatch) -> None:
     async def main() -> None:
         settings = ServerSettings(
-            socket=None, tcp=TcpEndpoint("127.0.0.1", 0, TOKEN), auth_timeout_s=0.2
+            socket=None, tcp=TcpEndpoint("127.0.0.1", 0, TOKEN, auth_timeout_s=0.2)
         )
         async with Server(FakeBackend(), settings) as server:
             assert server.tcp_address is not None
@@ -738,3 +738,24 @@ def test_settings_validation_and_coercion(sock: Path) -> None:
     assert settings.socket == str(sock) and settings.socket_mode == 0o640
     assert settings.tcp == TcpEndpoint("::1", 0, TOKEN) and settings.max_clients == 3
     assert Server(FakeBackend(), daemon).path == sock
+
+
+@pytest.mark.skipif(os.geteuid() != 0, reason="gives a socket another group: needs root")
+def test_socket_group_is_given_to_the_socket_and_its_new_directory(tmp_path: Path) -> None:
+    import grp
+    import pwd
+
+    group = grp.getgrgid(pwd.getpwuid(65534).pw_gid)  # nobody's group, not root's
+    path = tmp_path / "run" / "d.sock"
+
+    async def main() -> None:
+        settings = ServerSettings(socket=path, socket_group=group.gr_name)
+        async with Server(FakeBackend(), settings):
+            assert path.stat().st_gid == group.gr_gid
+            assert path.parent.stat().st_gid == group.gr_gid
+            assert stat.S_IMODE(path.stat().st_mode) == 0o660
+        with pytest.raises(ConfigurationError, match="there is no group 'no-such-group-jtc'"):
+            await Server(FakeBackend(), ServerSettings(socket=path,
+                                                       socket_group="no-such-group-jtc")).start()
+
+    run(main())

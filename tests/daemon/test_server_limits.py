@@ -26,6 +26,7 @@ from helpers.fake_backend import TOKEN, FakeBackend
 from helpers.peers import LogWatch, Peer, goal_msg, run, watch_server_log
 
 from jtc_hw.daemon import server as server_module
+from jtc_hw.daemon import tcp_door
 from jtc_hw.daemon.connection import OVER_LIMIT_CLIENTS, RESERVED_UNIX_CLIENTS
 from jtc_hw.daemon.server import Server, ServerSettings, TcpEndpoint
 
@@ -263,11 +264,13 @@ def test_a_stop_gets_through_when_every_slot_is_taken(
 
 def test_tcp_has_its_own_limit_and_a_short_authentication_deadline(logs: LogWatch) -> None:
     async def main() -> None:
-        settings = {"tcp": TcpEndpoint("127.0.0.1", 0, TOKEN, max_clients=2)}
-        async with serving(None, auth_timeout_s=0.3, **settings) as (server, backend):
+        tcp = TcpEndpoint("127.0.0.1", 0, TOKEN, max_clients=2, auth_timeout_s=0.3,
+                          auth_failure_delay_s=0.0)
+        async with serving(None, tcp=tcp) as (server, backend):
             assert server.tcp_address is not None
-            squatters = [await Peer.tcp(server.tcp_address) for _ in range(2)]
-            await logs.wait_for("client 2 (tcp 127.0.0.1")
+            holders = [await Peer.tcp(server.tcp_address) for _ in range(2)]
+            for peer in holders:
+                assert (await peer.request("auth", token=TOKEN))["authenticated"] is True
             # Over the TCP limit: auth then stop is served; anything else is not.
             over = await Peer.tcp(server.tcp_address)
             assert (await over.request("auth", token=TOKEN))["authenticated"] is True
@@ -283,12 +286,15 @@ def test_tcp_has_its_own_limit_and_a_short_authentication_deadline(logs: LogWatc
             assert await garbage.eof() == b""
             busy = await Peer.tcp(server.tcp_address)
             assert (await busy.request("auth", token=TOKEN))["ok"]
-            assert (await busy.request("hello"))["error"]["code"] == "busy"
+            reply = await busy.request("hello")
+            assert reply["error"]["code"] == "busy"
+            assert "within 2 s of its auth request" in reply["error"]["message"]
             assert await busy.eof() == b""
-            # The squatters never authenticate: they go at the deadline, counted from their
+            # Squatters never authenticate: they go at the deadline, counted from their
             # opening, even while they trickle bytes (a request never completed). A byte
             # sent after the server closed may reset the connection before its last message
             # is read: the server's log says why it closed.
+            squatters = [await Peer.tcp(server.tcp_address) for _ in range(2)]
             for peer in squatters:
                 for _ in range(200):
                     try:
@@ -304,12 +310,89 @@ def test_tcp_has_its_own_limit_and_a_short_authentication_deadline(logs: LogWatc
                 else:
                     raise AssertionError("an unauthenticated connection trickling bytes was kept")
             await logs.wait_count("unauthorized (no auth request in time)", 2)
-            good = await Peer.tcp(server.tcp_address)  # the slots are free again
+            await holders[0].close()
+            await logs.wait_for("disconnected: closed by the client")
+            good = await Peer.tcp(server.tcp_address)  # a slot is free again
             assert (await good.request("auth", token=TOKEN))["ok"]
             assert (await good.request("hello"))["ok"]
-            for peer in (*squatters, over, no_auth, garbage, busy, good):
+            for peer in (*holders, *squatters, over, no_auth, garbage, busy, good):
                 await peer.close()
             assert backend.stops == 1
+
+    run(main())
+
+
+def test_strangers_waiting_to_authenticate_never_take_the_token_holders_slots(
+    logs: LogWatch, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """30 connections that never authenticate, held open, against 8 authenticated slots and
+    16 places to wait: the token holder is served in full (not only a stop), and the longest
+    waiting strangers are the ones dropped. (The grace that protects a just-opened connection
+    is off, so that which ones go does not depend on how fast this machine opens them.)"""
+    monkeypatch.setattr(tcp_door, "HANDSHAKE_GRACE_S", 0.0)
+
+    async def main() -> None:
+        tcp = TcpEndpoint("127.0.0.1", 0, TOKEN, auth_timeout_s=30.0)
+        async with serving(None, tcp=tcp) as (server, backend):
+            assert server.tcp_address is not None
+            strangers = [await Peer.tcp(server.tcp_address) for _ in range(30)]
+            await logs.wait_for("client 30 (tcp 127.0.0.1")
+            operator = await Peer.tcp(server.tcp_address)
+            assert (await operator.request("auth", token=TOKEN))["authenticated"] is True
+            assert (await operator.request("hello"))["ok"]
+            assert await operator.request("stop") == {"id": 3, "ok": True, "stopped": True}
+            assert backend.stops == 1
+            status = (await operator.request("get_status"))["server"]
+            clients = status["clients"]
+            assert [c["authenticated"] for c in clients].count(True) == 1
+            assert status["tcp"]["max_unauthenticated"] == 16
+            # 31 came, 16 could wait: the 15 longest waiting went (the operator, then
+            # authenticated, waits no more).
+            assert status["tcp"]["dropped_waiting"] == 15
+            assert status["tcp"]["waiting"] == 15
+            for peer in strangers[:15]:  # dropped without an answer
+                assert await peer.eof() == b""
+            assert not strangers[15].reader.at_eof()
+            for peer in (*strangers, operator):
+                await peer.close()
+
+    run(main())
+
+
+def test_failed_authentications_are_answered_slowly_per_address(logs: LogWatch) -> None:
+    """Each wrong token from one address is answered at least auth_failure_delay_s after the
+    previous one, however many connections try at once; the right token is not held back by
+    them; the address is logged once, not once per attempt."""
+    delay = 1.0  # long enough that the operator's auth is answered first on a busy machine
+    tries = 4
+
+    async def main() -> None:
+        tcp = TcpEndpoint("127.0.0.1", 0, TOKEN, auth_timeout_s=30.0, auth_failure_delay_s=delay)
+        async with serving(None, tcp=tcp) as (server, _):
+            assert server.tcp_address is not None
+            loop = asyncio.get_running_loop()
+            started = loop.time()
+            guessers = [await Peer.tcp(server.tcp_address) for _ in range(tries)]
+            for peer in guessers:
+                await peer.send({"id": 1, "op": "auth", "token": "guess-guess-guess"})
+            # Meanwhile the token holder on the same address gets in before any guesser's
+            # answer (the first is due `delay` after its failure).
+            operator = await Peer.tcp(server.tcp_address)
+            assert (await operator.request("auth", token=TOKEN))["authenticated"] is True
+            assert server.stats()["tcp"]["failed_auth"] == tries
+            for peer in guessers:  # nothing answered yet
+                assert not peer.reader.at_eof() and not peer.reader._buffer
+            answers = []
+            for peer in guessers:
+                answers.append(await peer.recv(timeout_s=tries * delay + 10.0))
+                assert await peer.eof() == b""
+            elapsed = loop.time() - started
+            assert all(a["error"]["code"] == "unauthorized" for a in answers)
+            # A lower bound: the answers were spaced by the delay.
+            assert elapsed >= tries * delay * 0.99, elapsed
+            assert logs.count("tcp 127.0.0.1: failed authentication") == 1
+            for peer in (*guessers, operator):
+                await peer.close()
 
     run(main())
 

@@ -70,7 +70,8 @@ Drive robot joints with ROS 2 joint_trajectory_controller semantics, without ROS
 Client commands find the daemon's socket from --socket, else --config's daemon.socket,
 else $JTC_HW_SOCKET, else the default path (see 'jtc-hw check' for a config's path). A socket
 at the default path is used only if it and the process behind it belong to you or root.
-With --zenoh PREFIX (and --zenoh-config FILE) they reach the daemon at that Zenoh prefix.
+With --zenoh PREFIX (and --zenoh-config FILE) they reach the daemon at that Zenoh prefix;
+commands there need its token (--zenoh-token-file FILE or $JTC_HW_ZENOH_TOKEN).
 """
 
 
@@ -889,6 +890,9 @@ def build_parser() -> argparse.ArgumentParser:
         p.add_argument("--zenoh-config", metavar="FILE",
                        help="Zenoh configuration for --zenoh (default: connect to a router "
                        "on tcp/127.0.0.1:7447)")
+        p.add_argument("--zenoh-token-file", metavar="FILE",
+                       help="file holding the daemon's daemon.zenoh.token, needed with --zenoh "
+                       "to command (default: $JTC_HW_ZENOH_TOKEN; watching needs none)")
         p.add_argument(
             "--timeout",
             type=float,

@@ -21,6 +21,19 @@ socket's. A goal sent over Zenoh has its ``accepted`` reply as the query's reply
 and its one result are published on ``events``, as are those of every goal (a socket client's
 too), so a querier that vanishes leaves nothing waiting on it and the result is never lost.
 
+Credentials: loopback is no door at all on a machine with other users, so every query of an
+operation in :data:`COMMANDS` (everything that moves the robot or changes its settings, ``stop``
+included) must carry ``daemon.zenoh.token`` as its attachment (the token's UTF-8 bytes). It is
+checked in Zenoh's thread before the payload is read or anything is dispatched: a query
+without an attachment is answered ``unauthorized`` at once (a forgotten token is no guess); a
+wrong one after :data:`WRONG_TOKEN_DELAY_S` (a guesser gets two tries a second per waiting
+slot), with at most :data:`MAX_REFUSALS_WAITING` refusals waiting (more are dropped without a
+reply, so refusals never take the slots of authorized queries); both are counted
+(``unauthorized`` in ``get_status``'s ``zenoh``) and logged (the first three, then one line
+per hundred, of each reason). Watching needs no token: ``hello``, ``get_status``,
+``query_state``, ``get_config``, ``get_parameters`` (as ``state`` and ``events``, which any
+peer can subscribe to).
+
 Threads: Zenoh's Python API is synchronous and calls back in its own threads. A query callback
 only hands the query to the event loop (``call_soon_threadsafe``; at most
 :data:`MAX_QUERIES` in flight, more are answered ``busy`` at once). Everything sent to Zenoh
@@ -35,6 +48,7 @@ from __future__ import annotations
 
 import asyncio
 import collections
+import hmac
 import logging
 import threading
 import time
@@ -45,6 +59,7 @@ from typing import TYPE_CHECKING, Any, Final, cast
 from ..api.framing import (
     BAD_REQUEST,
     BUSY,
+    UNAUTHORIZED,
     MessageDecoder,
     RequestError,
     encode,
@@ -70,16 +85,19 @@ if TYPE_CHECKING:
 log = logging.getLogger("jtc_hw.zenoh")
 
 __all__ = [
+    "COMMANDS",
     "MAX_QUERIES",
+    "MAX_REFUSALS_WAITING",
     "NOT_OVER_ZENOH",
     "OUTBOX_HARD_CAP",
     "OUTBOX_SIZE",
     "ZENOH_PROTOCOL_VERSION",
+    "WRONG_TOKEN_DELAY_S",
     "ZenohInterface",
     "keys",
 ]
 
-ZENOH_PROTOCOL_VERSION: Final = 1
+ZENOH_PROTOCOL_VERSION: Final = 2
 """Version of the key-expression layout (docs/zenoh.md); the payloads are the socket protocol's
 (``protocol_version`` in ``rpc/hello``)."""
 MAX_QUERIES: Final = 64
@@ -94,8 +112,19 @@ CLOSE_FLUSH_S: Final = 1.0
 """How long closing waits for the outbox to drain (the last results)."""
 DECODE_IN_WORKER_BYTES: Final = 64 * 1024
 """Request bodies at least this long are decoded in a worker thread (as on the socket)."""
+COMMANDS: Final = frozenset({
+    "send_goal", "cancel_goal", "send_trajectory", "stop", "set_parameters",
+    "set_speed_scaling", "rearm", "sim",
+})
+"""Operations a query may ask only with the token (module docstring); the others watch."""
+WRONG_TOKEN_DELAY_S: Final = 0.5
+"""How long a query with a wrong token waits for its ``unauthorized``."""
+MAX_REFUSALS_WAITING: Final = 16
+"""Wrong-token refusals waiting at once; more are dropped without a reply."""
+LOG_REFUSALS_EVERY: Final = 100
+"""After the first three, one log line per this many refused queries."""
 NOT_OVER_ZENOH: Final = {
-    "auth": "Zenoh sessions authenticate in the Zenoh configuration (docs/zenoh.md)",
+    "auth": "put the token (daemon.zenoh.token) in each query's attachment (docs/zenoh.md)",
     "subscribe_state": "subscribe to <prefix>/state instead",
     "unsubscribe_state": "subscribe to <prefix>/state instead",
 }
@@ -248,6 +277,10 @@ class ZenohInterface:
         self._state_seq = 0  # states this interface has had from the loop (a gap: a loss)
         self.published = 0
         self.busy = 0
+        self._token = settings.token.encode()
+        self.unauthorized = 0  # queries refused for a missing or wrong token
+        self._refusals_waiting = 0  # under _lock
+        self._refused: dict[str, int] = {}  # refusals by reason, for the log; under _lock
 
     # -- lifecycle ----------------------------------------------------------------------------
 
@@ -401,12 +434,15 @@ class ZenohInterface:
     # -- queries ------------------------------------------------------------------------------
 
     def _on_query(self, query: Any) -> None:
-        """Zenoh's thread: hand the query to the event loop (or answer ``busy``)."""
+        """Zenoh's thread: check the credential, hand the query to the event loop (or answer
+        ``busy``)."""
         try:
             op = str(query.key_expr).rsplit("/", 1)[-1]
             if any(c in op for c in "*$"):
                 # The query names no operation (``jtc/**``): not a request to this daemon.
                 query.drop()
+                return
+            if op in COMMANDS and not self._authorized(query, op):
                 return
             payload = query.payload
             body = b"" if payload is None else payload.to_bytes()
@@ -428,6 +464,55 @@ class ZenohInterface:
             query.drop()
         except Exception:
             log.exception("zenoh: cannot take a query")
+            query.drop()
+
+    def _authorized(self, query: Any, op: str) -> bool:
+        """Whether ``query`` carries the token; if not, its refusal is under way (module
+        docstring). Zenoh's thread."""
+        attachment = query.attachment
+        given = b"" if attachment is None else attachment.to_bytes()
+        if self._token and given and hmac.compare_digest(given, self._token):
+            return True
+        what = "a wrong token" if given else "no token"
+        with self._lock:
+            self.unauthorized += 1
+            self._refused[what] = count = self._refused.get(what, 0) + 1
+            wait = bool(given) and self._refusals_waiting < MAX_REFUSALS_WAITING
+            if wait:
+                self._refusals_waiting += 1
+        if count <= 3 or count % LOG_REFUSALS_EVERY == 0:
+            log.warning("zenoh: refused rpc/%s with %s (%d so far)", op, what, count)
+        message = (f"{op} needs the daemon's Zenoh token in the query's attachment "
+                   f"({what} given); pass --zenoh-token-file FILE or set $JTC_HW_ZENOH_TOKEN "
+                   "(Client.connect(..., token=...)); watching needs none")
+        data = encode(error_reply(None, UNAUTHORIZED, message))
+        aio = self._aio
+        if not given or aio is None:
+            self._send_reply(query, data)
+        elif not wait:
+            query.drop()  # too many guesses waiting: no reply at all
+        else:
+            try:
+                aio.call_soon_threadsafe(aio.call_later, WRONG_TOKEN_DELAY_S,
+                                         self._refuse_late, query, data)
+            except RuntimeError:  # the event loop is closed: the daemon is exiting
+                with self._lock:
+                    self._refusals_waiting -= 1
+                query.drop()
+        return False
+
+    def _refuse_late(self, query: Any, data: bytes) -> None:
+        with self._lock:
+            self._refusals_waiting -= 1
+        try:
+            self._send_reply(query, data)
+        except Exception:  # the session closed meanwhile: the querier gets no reply
+            log.debug("zenoh: cannot refuse a query", exc_info=True)
+
+    def _send_reply(self, query: Any, data: bytes) -> None:
+        """Reply through the outbox (never waiting on Zenoh), or drop the query."""
+        outbox = self._outbox
+        if outbox is None or not outbox.put(partial(self._reply, query, data)):
             query.drop()
 
     def _start_query(self, query: Any, op: str, body: bytes) -> None:
@@ -506,6 +591,7 @@ class ZenohInterface:
             "prefix": self.prefix,
             "queries": self._queries,
             "busy": self.busy,
+            "unauthorized": self.unauthorized,
             "published": self.published,
             "dropped": 0 if outbox is None else outbox.dropped,
             "lost": 0 if outbox is None else outbox.lost,

@@ -13,9 +13,12 @@ from jtc_hw.errors import ConfigurationError
 
 from conftest import make_robot_config
 
+TOKEN = "a token of the zenoh door"
+
 
 def robot(tmp_path: Path, **zenoh: Any) -> Any:
     hardware = [{"name": "m", "kind": "mirror", "joints": ["j1"]}]
+    zenoh = {"token": TOKEN, **zenoh}
     return load_robot(make_robot_config(tmp_path / "d.sock", ["j1"], hardware, zenoh=zenoh))
 
 

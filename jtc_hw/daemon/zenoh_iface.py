@@ -34,6 +34,15 @@ per hundred, of each reason). Watching needs no token: ``hello``, ``get_status``
 ``query_state``, ``get_config``, ``get_parameters`` (as ``state`` and ``events``, which any
 peer can subscribe to).
 
+Memory: Zenoh hands a query over only once it has the whole payload, reassembled in buffers
+its native library allocates with malloc in its own threads; freed, glibc keeps them (a 100 MB
+query left the API process ~100 MB larger for good). So a payload longer than
+``daemon.max_message_bytes`` is answered ``too_large`` from its length, never copied into
+Python, and every query of :data:`RELEASE_AFTER_BYTES` or more, answered or refused, is
+followed by releases of freed memory (``malloc_trim``, :data:`RELEASE_AFTER_S`).
+Zenoh's ``transport/link/rx/max_message_size`` would bound the peak too, but a query over it is
+dropped by the link: no reply at all (docs/zenoh.md, "Memory").
+
 Threads: Zenoh's Python API is synchronous and calls back in its own threads. A query callback
 only hands the query to the event loop (``call_soon_threadsafe``; at most
 :data:`MAX_QUERIES` in flight, more are answered ``busy`` at once). Everything sent to Zenoh
@@ -59,6 +68,7 @@ from typing import TYPE_CHECKING, Any, Final, cast
 from ..api.framing import (
     BAD_REQUEST,
     BUSY,
+    TOO_LARGE,
     UNAUTHORIZED,
     MessageDecoder,
     RequestError,
@@ -76,6 +86,7 @@ from ..controller.goals import GoalFeedback, GoalResult
 from ..controller.trajectory import JointTrajectory
 from ..errors import ConfigurationError
 from .connection import Connection, ServerSettings
+from .realtime import release_freed_memory
 from .zenoh_config import import_zenoh, session_config
 
 if TYPE_CHECKING:
@@ -88,6 +99,7 @@ __all__ = [
     "COMMANDS",
     "MAX_QUERIES",
     "MAX_REFUSALS_WAITING",
+    "RELEASE_AFTER_BYTES",
     "NOT_OVER_ZENOH",
     "OUTBOX_HARD_CAP",
     "OUTBOX_SIZE",
@@ -121,6 +133,12 @@ WRONG_TOKEN_DELAY_S: Final = 0.5
 """How long a query with a wrong token waits for its ``unauthorized``."""
 MAX_REFUSALS_WAITING: Final = 16
 """Wrong-token refusals waiting at once; more are dropped without a reply."""
+RELEASE_AFTER_BYTES: Final = 1 << 20
+"""A query whose payload is at least this long is followed by releases of freed memory."""
+RELEASE_AFTER_S: Final = (0.2, 1.0, 3.0)
+"""When, after such a query has ended, freed memory is released: at once (for a burst of large
+queries: one release covers them), and twice more for the buffers Zenoh frees late (measured:
+up to a third of a 100 MB query's, between 1 and 2 s after it ended)."""
 LOG_REFUSALS_EVERY: Final = 100
 """After the first three, one log line per this many refused queries."""
 NOT_OVER_ZENOH: Final = {
@@ -281,6 +299,8 @@ class ZenohInterface:
         self.unauthorized = 0  # queries refused for a missing or wrong token
         self._refusals_waiting = 0  # under _lock
         self._refused: dict[str, int] = {}  # refusals by reason, for the log; under _lock
+        self._release_pending = False  # under _lock
+        self.releases = 0  # releases of freed memory after large queries
 
     # -- lifecycle ----------------------------------------------------------------------------
 
@@ -409,7 +429,7 @@ class ZenohInterface:
             op = str(query.key_expr).rsplit("/", 1)[-1]
             query.reply(f"{self.prefix}/rpc/{op}", data)
         finally:
-            query.drop()  # the querier's get ends with this (its last reply)
+            self._end(query)  # the querier's get ends with this (its last reply)
 
     # -- faults -------------------------------------------------------------------------------
 
@@ -440,12 +460,10 @@ class ZenohInterface:
             op = str(query.key_expr).rsplit("/", 1)[-1]
             if any(c in op for c in "*$"):
                 # The query names no operation (``jtc/**``): not a request to this daemon.
-                query.drop()
+                self._end(query)
                 return
             if op in COMMANDS and not self._authorized(query, op):
                 return
-            payload = query.payload
-            body = b"" if payload is None else payload.to_bytes()
             with self._lock:
                 busy = self._inflight >= MAX_QUERIES or self._aio is None
                 if not busy:
@@ -457,14 +475,61 @@ class ZenohInterface:
                     "try again later")))
                 return
             assert self._aio is not None
-            self._aio.call_soon_threadsafe(self._start_query, query, op, body)
+            self._aio.call_soon_threadsafe(self._start_query, query, op, self._body(query))
         except RuntimeError:  # the event loop is closed: the daemon is exiting
             with self._lock:
                 self._inflight -= 1
-            query.drop()
+            self._end(query)
         except Exception:
             log.exception("zenoh: cannot take a query")
-            query.drop()
+            self._end(query)
+
+    def _body(self, query: Any) -> bytes | RequestError:
+        """The query's payload as bytes; ``too_large`` without copying it when it is longer
+        than ``daemon.max_message_bytes`` (the socket's message, byte for byte)."""
+        payload = query.payload
+        if payload is None:
+            return b""
+        if len(payload) > self._max_bytes:
+            return RequestError(TOO_LARGE, f"line 1: message longer than the limit of "
+                                f"{self._max_bytes} bytes; it was discarded up to its newline")
+        return bytes(payload.to_bytes())
+
+    def _end(self, query: Any) -> None:
+        """Drop ``query`` (its querier's ``get`` ends) and, if its payload was large, have
+        the memory Zenoh held for it given back to the system (module docstring)."""
+        payload = query.payload
+        large = payload is not None and len(payload) >= RELEASE_AFTER_BYTES
+        del payload
+        query.drop()
+        if large:
+            self._release_soon()
+
+    def _release_soon(self) -> None:
+        """Release freed memory at each of :data:`RELEASE_AFTER_S` from now, in a worker
+        thread (it walks the heap: milliseconds); a schedule under way covers every query
+        ended before its first release. Any thread."""
+        aio = self._aio
+        with self._lock:
+            if self._release_pending or aio is None:
+                return
+            self._release_pending = True
+        try:
+            aio.call_soon_threadsafe(self._schedule_releases)
+        except RuntimeError:  # the event loop is closed: the daemon is exiting
+            pass
+
+    def _schedule_releases(self) -> None:
+        aio = asyncio.get_running_loop()
+        for index, delay_s in enumerate(RELEASE_AFTER_S):
+            aio.call_later(delay_s, self._release, index == 0)
+
+    def _release(self, first: bool) -> None:
+        if first:
+            with self._lock:
+                self._release_pending = False
+        self.releases += 1
+        asyncio.get_running_loop().run_in_executor(None, release_freed_memory)
 
     def _authorized(self, query: Any, op: str) -> bool:
         """Whether ``query`` carries the token; if not, its refusal is under way (module
@@ -490,7 +555,7 @@ class ZenohInterface:
         if not given or aio is None:
             self._send_reply(query, data)
         elif not wait:
-            query.drop()  # too many guesses waiting: no reply at all
+            self._end(query)  # too many guesses waiting: no reply at all
         else:
             try:
                 aio.call_soon_threadsafe(aio.call_later, WRONG_TOKEN_DELAY_S,
@@ -498,7 +563,7 @@ class ZenohInterface:
             except RuntimeError:  # the event loop is closed: the daemon is exiting
                 with self._lock:
                     self._refusals_waiting -= 1
-                query.drop()
+                self._end(query)
         return False
 
     def _refuse_late(self, query: Any, data: bytes) -> None:
@@ -513,11 +578,11 @@ class ZenohInterface:
         """Reply through the outbox (never waiting on Zenoh), or drop the query."""
         outbox = self._outbox
         if outbox is None or not outbox.put(partial(self._reply, query, data)):
-            query.drop()
+            self._end(query)
 
-    def _start_query(self, query: Any, op: str, body: bytes) -> None:
+    def _start_query(self, query: Any, op: str, body: bytes | RequestError) -> None:
         if self._session is None:  # closing
-            query.drop()
+            self._end(query)
             with self._lock:
                 self._inflight -= 1
             return
@@ -525,20 +590,24 @@ class ZenohInterface:
         self._tasks.add(task)
         task.add_done_callback(self._tasks.discard)
 
-    async def _execute(self, query: Any, op: str, body: bytes) -> None:
+    async def _execute(self, query: Any, op: str, body: bytes | RequestError) -> None:
         self._queries += 1
         conn = QueryConnection(self._queries, self._server.settings, "zenoh")
         try:
-            if len(body) >= DECODE_IN_WORKER_BYTES:
+            item: Request | RequestError
+            if isinstance(body, RequestError):
+                item = body
+            elif len(body) >= DECODE_IN_WORKER_BYTES:
                 item = await asyncio.get_running_loop().run_in_executor(
                     None, self.decode, op, body, self._max_bytes)
             else:
                 item = self.decode(op, body, self._max_bytes)
+            del body
             data = await self._server.answer_remote(conn, item)
             if self._outbox is None or not self._outbox.put(partial(self._reply, query, data)):
-                query.drop()
+                self._end(query)
         except asyncio.CancelledError:
-            query.drop()
+            self._end(query)
             raise
         except Exception:  # answer_remote never raises; Zenoh's drop might
             log.exception("zenoh: query %d failed", conn.number)
@@ -592,6 +661,7 @@ class ZenohInterface:
             "queries": self._queries,
             "busy": self.busy,
             "unauthorized": self.unauthorized,
+            "releases": self.releases,
             "published": self.published,
             "dropped": 0 if outbox is None else outbox.dropped,
             "lost": 0 if outbox is None else outbox.lost,

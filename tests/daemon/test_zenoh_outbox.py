@@ -46,10 +46,21 @@ def test_outbox_drops_state_first_and_keeps_results_up_to_its_hard_cap() -> None
 TOKEN = "sixteen characters or more"
 
 
+class FakePayload:
+    def __init__(self, body: bytes) -> None:
+        self.body = body
+
+    def __len__(self) -> int:
+        return len(self.body)
+
+    def to_bytes(self) -> bytes:
+        return self.body
+
+
 class FakeQuery:
     def __init__(self, key: str, body: bytes = b"{}", token: str | None = None) -> None:
         self.key_expr = key
-        self.payload = SimpleNamespace(to_bytes=lambda: body)
+        self.payload = FakePayload(body)
         self.attachment = None if token is None else SimpleNamespace(
             to_bytes=lambda: token.encode())
         self.replies: list[tuple[str, dict[str, Any]]] = []

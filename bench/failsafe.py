@@ -21,6 +21,13 @@ next to ``baseline_missed`` for the same length of time without one (the machine
 ``stop_ms`` is null (the loop keeps commanding; it aborts the goal after ``api_stall_s`` and
 holds).
 
+``zenoh_no_credentials`` (mirror hardware, needs ``jtc_hw[zenoh]``; not in the default set):
+a daemon with ``daemon.zenoh`` on a loopback port runs a goal; a plain Zenoh session, as
+another local user would open one, sends ``stop`` without the token and then with a wrong one.
+``refusal_ms`` is the time from the query to its ``unauthorized`` reply (``wrong_token_ms``:
+with a wrong token, delayed on purpose), and the goal must run on to its result
+(``goal_survived``).
+
 Usage::
 
     python bench/failsafe.py                    # every driver and failure, 3 runs each
@@ -298,6 +305,52 @@ def api_stall_run(stall_s: float, priority: int) -> dict[str, Any]:
             "cycles": after[0] - before[0], "stall_s": stall_s}
 
 
+def zenoh_no_credentials_run() -> dict[str, Any]:
+    import secrets
+    import socket as sockets
+
+    from jtc_hw.api.zenoh_client import open_session
+
+    with sockets.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        endpoint = f"tcp/127.0.0.1:{s.getsockname()[1]}"
+    joints = [f"joint{i}" for i in range(1, 7)]
+    config = controller(joints, 500, "position")
+    config["hardware"] = [{"name": "arm", "kind": "mirror", "joints": joints,
+                           "params": {"lag_s": 0.0}}]
+    prefix = f"jtc/bench/{uuid.uuid4().hex[:8]}"
+    config["daemon"] = {"zenoh": {"prefix": prefix, "listen": [endpoint],
+                                  "token": secrets.token_hex(16)}}
+    with tempfile.TemporaryDirectory(prefix="jtc-hw-failsafe-") as tmp:
+        daemon = DaemonRun(config, Path(tmp))
+        try:
+            with daemon.connect() as client:
+                session = open_session({"connect/endpoints": [endpoint],
+                                        "scouting/multicast/enabled": False,
+                                        "scouting/gossip/enabled": False})
+                try:
+                    goal = client.send_goal({"joint_names": joints, "points": [
+                        {"time_from_start": 2.0, "positions": [0.5] * 6}]})
+                    times = []
+                    for token in (None, "a wrong token of sixteen+"):
+                        t0 = time.monotonic()
+                        replies = list(session.get(f"{prefix}/rpc/stop", payload=b"{}",
+                                                   attachment=token, timeout=WAIT_S))
+                        times.append((time.monotonic() - t0) * 1e3)
+                        reply = json.loads(replies[0].ok.payload.to_bytes())
+                        if reply.get("error", {}).get("code") != "unauthorized":
+                            raise RuntimeError(f"a stop without the token was not refused: "
+                                               f"{reply}")
+                    result = goal.wait(timeout_s=WAIT_S)
+                finally:
+                    session.close()
+        finally:
+            daemon.close()
+    return {"hardware": "mirror", "failure": "zenoh_no_credentials", "stop_ms": None,
+            "refusal_ms": round(times[0], 2), "wrong_token_ms": round(times[1], 1),
+            "goal_survived": result["status"] == "succeeded"}
+
+
 def loop_counts(client: Client, after: tuple[int, int] | None = None) -> tuple[int, int]:
     """(cycles, overruns) from a status the loop published after ``after``'s (2 Hz)."""
     deadline = time.monotonic() + WAIT_S
@@ -317,13 +370,16 @@ def summarise(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
     for hardware, failure in keys:
         runs = [r for r in rows if (r["hardware"], r["failure"]) == (hardware, failure)]
         row: dict[str, Any] = {"hardware": hardware, "failure": failure, "runs": len(runs)}
-        for field in ("stop_ms", "missed_deadlines", "baseline_missed"):
+        for field in ("stop_ms", "missed_deadlines", "baseline_missed", "refusal_ms",
+                      "wrong_token_ms"):
             values = [r[field] for r in runs if r.get(field) is not None]
             if field in runs[0]:
                 row[field] = statistics.median(values) if values else None
                 if values and len(values) > 1:
                     row[f"{field}_range"] = [min(values), max(values)]
-        if any(r.get("stop_ms") is None for r in runs) and failure != "api_sigstop":
+        if "goal_survived" in runs[0]:
+            row["goal_survived"] = all(r["goal_survived"] for r in runs)
+        if any(r.get("stop_ms") is None for r in runs) and failure in FAILURES:
             row["not_stopped_runs"] = sum(r.get("stop_ms") is None for r in runs)
         out.append(row)
     return out
@@ -332,7 +388,8 @@ def summarise(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--hardware", nargs="+", choices=HARDWARE, default=list(HARDWARE))
-    parser.add_argument("--failure", nargs="+", choices=(*FAILURES, "api_sigstop"),
+    parser.add_argument("--failure", nargs="+",
+                        choices=(*FAILURES, "api_sigstop", "zenoh_no_credentials"),
                         default=[*FAILURES, "api_sigstop"])
     parser.add_argument("--runs", type=int, default=3, help="runs per row (median reported)")
     parser.add_argument("--stall-s", type=float, default=3.0, help="api_sigstop: stall length")
@@ -342,9 +399,12 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     rows: list[dict[str, Any]] = []
     for failure in args.failure:
-        for hardware in (args.hardware if failure != "api_sigstop" else ["mirror"]):
+        for hardware in (args.hardware if failure in FAILURES else ["mirror"]):
             for run in range(args.runs):
                 print(f"# {hardware} {failure} run {run + 1}/{args.runs}", file=sys.stderr)
+                if failure == "zenoh_no_credentials":
+                    rows.append(zenoh_no_credentials_run())
+                    continue
                 rows.append(api_stall_run(args.stall_s, args.priority) if failure == "api_sigstop"
                             else watchdog_run(hardware, failure))
     summary = summarise(rows)
@@ -358,7 +418,11 @@ def main(argv: list[str] | None = None) -> int:
         stop = row.get("stop_ms")
         span = row.get("stop_ms_range")
         verdict = ""
-        if row["failure"] != "api_sigstop":
+        if row["failure"] == "zenoh_no_credentials":
+            verdict = (f"refused in {row['refusal_ms']:.1f} ms (wrong token: "
+                       f"{row['wrong_token_ms']:.0f} ms); goal "
+                       f"{'ran on' if row['goal_survived'] else 'STOPPED'}")
+        elif row["failure"] != "api_sigstop":
             ok = stop is not None and not row.get("not_stopped_runs") and (
                 span is None or span[1] <= TARGET_MS)
             verdict = f"{'ok' if ok else 'MISSED'} (<= {TARGET_MS:g} ms)"

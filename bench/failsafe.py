@@ -33,6 +33,13 @@ next to ``baseline_missed`` for the same length of time without one (the machine
 ``stop_ms`` is null (the loop keeps commanding; it aborts the goal after ``api_stall_s`` and
 holds).
 
+``zenoh_no_credentials`` (mirror hardware, needs ``jtc_hw[zenoh]``; not in the default set):
+a daemon with ``daemon.zenoh`` on a loopback port runs a goal; a plain Zenoh session, as
+another local user would open one, sends ``stop`` without the token and then with a wrong one.
+``refusal_ms`` is the time from the query to its ``unauthorized`` reply (``wrong_token_ms``:
+with a wrong token, delayed on purpose), and the goal must run on to its result
+(``goal_survived``).
+
 ``stop_slots_full`` (mirror hardware): 30 TCP connections that never authenticate are held
 open (each re-opened as soon as the daemon drops it) while a goal runs; ``stop_ms`` is the time
 from the operator's stop over TCP (connect, ``auth`` with the token, ``stop``: what
@@ -489,6 +496,50 @@ def stop_slots_full_run() -> dict[str, Any]:
             "stop_ms": round((t_answer - t_stop) * 1e3, 1) if stopped else None,
             "missed_deadlines": None, "strangers": STRANGERS,
             "dropped_waiting": door["dropped_waiting"]}
+def zenoh_no_credentials_run() -> dict[str, Any]:
+    import secrets
+    import socket as sockets
+
+    from jtc_hw.api.zenoh_client import open_session
+
+    with sockets.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        endpoint = f"tcp/127.0.0.1:{s.getsockname()[1]}"
+    joints = [f"joint{i}" for i in range(1, 7)]
+    config = controller(joints, 500, "position")
+    config["hardware"] = [{"name": "arm", "kind": "mirror", "joints": joints,
+                           "params": {"lag_s": 0.0}}]
+    prefix = f"jtc/bench/{uuid.uuid4().hex[:8]}"
+    config["daemon"] = {"zenoh": {"prefix": prefix, "listen": [endpoint],
+                                  "token": secrets.token_hex(16)}}
+    with tempfile.TemporaryDirectory(prefix="jtc-hw-failsafe-") as tmp:
+        daemon = DaemonRun(config, Path(tmp))
+        try:
+            with daemon.connect() as client:
+                session = open_session({"connect/endpoints": [endpoint],
+                                        "scouting/multicast/enabled": False,
+                                        "scouting/gossip/enabled": False})
+                try:
+                    goal = client.send_goal({"joint_names": joints, "points": [
+                        {"time_from_start": 2.0, "positions": [0.5] * 6}]})
+                    times = []
+                    for token in (None, "a wrong token of sixteen+"):
+                        t0 = time.monotonic()
+                        replies = list(session.get(f"{prefix}/rpc/stop", payload=b"{}",
+                                                   attachment=token, timeout=WAIT_S))
+                        times.append((time.monotonic() - t0) * 1e3)
+                        reply = json.loads(replies[0].ok.payload.to_bytes())
+                        if reply.get("error", {}).get("code") != "unauthorized":
+                            raise RuntimeError(f"a stop without the token was not refused: "
+                                               f"{reply}")
+                    result = goal.wait(timeout_s=WAIT_S)
+                finally:
+                    session.close()
+        finally:
+            daemon.close()
+    return {"hardware": "mirror", "failure": "zenoh_no_credentials", "stop_ms": None,
+            "refusal_ms": round(times[0], 2), "wrong_token_ms": round(times[1], 1),
+            "goal_survived": result["status"] == "succeeded"}
 
 
 def loop_counts(client: Client, after: tuple[int, int] | None = None) -> tuple[int, int]:
@@ -510,12 +561,15 @@ def summarise(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
     for hardware, failure in keys:
         runs = [r for r in rows if (r["hardware"], r["failure"]) == (hardware, failure)]
         row: dict[str, Any] = {"hardware": hardware, "failure": failure, "runs": len(runs)}
-        for field in ("stop_ms", "missed_deadlines", "baseline_missed", "exit_ms", "detect_ms"):
+        for field in ("stop_ms", "missed_deadlines", "baseline_missed", "exit_ms", "detect_ms",
+                      "refusal_ms", "wrong_token_ms"):
             values = [r[field] for r in runs if r.get(field) is not None]
             if field in runs[0]:
                 row[field] = statistics.median(values) if values else None
                 if values and len(values) > 1:
                     row[f"{field}_range"] = [min(values), max(values)]
+        if "goal_survived" in runs[0]:
+            row["goal_survived"] = all(r["goal_survived"] for r in runs)
         if failure == "second_daemon":
             row["refused_cleanly"] = sum(r["exit_code"] == 2 and r["connections"] == 0
                                          and r["first_goal"] == "succeeded" for r in runs)
@@ -533,6 +587,7 @@ ONE_RIG: dict[str, list[str]] = {
     "second_daemon": ["can-mit"],
     "motor_reset": ["can-mit"],  # a Damiao reply says "disabled"; others' resets look silent
     "stop_slots_full": ["mirror"],
+    "zenoh_no_credentials": ["mirror"],
 }
 
 
@@ -546,6 +601,8 @@ def run_one(hardware: str, failure: str, args: argparse.Namespace) -> dict[str, 
         return motor_reset_run(hardware)
     if failure == "stop_slots_full":
         return stop_slots_full_run()
+    if failure == "zenoh_no_credentials":
+        return zenoh_no_credentials_run()
     return watchdog_run(hardware, failure)
 
 
@@ -554,7 +611,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--hardware", nargs="+", choices=HARDWARE, default=list(HARDWARE))
     parser.add_argument("--failure", nargs="+",
                         choices=(*FAILURES, *ONE_RIG),
-                        default=[*FAILURES, *ONE_RIG])
+                        default=[*FAILURES, *(f for f in ONE_RIG if f != "zenoh_no_credentials")])
     parser.add_argument("--runs", type=int, default=3, help="runs per row (median reported)")
     parser.add_argument("--stall-s", type=float, default=3.0, help="api_sigstop: stall length")
     parser.add_argument("--priority", type=int, default=80,
@@ -591,6 +648,10 @@ def main(argv: list[str] | None = None) -> int:
             verdict = ("fault NOT reported" if detect is None else
                        f"fault {detect:.1f} ms after the first reply after the reset"
                        + ("" if spread is None else f" ({spread[0]:.1f}-{spread[1]:.1f})"))
+        elif row["failure"] == "zenoh_no_credentials":
+            verdict = (f"refused in {row['refusal_ms']:.1f} ms (wrong token: "
+                       f"{row['wrong_token_ms']:.0f} ms); goal "
+                       f"{'ran on' if row['goal_survived'] else 'STOPPED'}")
         elif row["failure"] != "api_sigstop":
             ok = stop is not None and not row.get("not_stopped_runs") and (
                 span is None or span[1] <= TARGET_MS)

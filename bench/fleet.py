@@ -34,6 +34,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import secrets
 import signal
 import socket
 import subprocess
@@ -88,7 +89,8 @@ class Fleet:
             "state_publish_rate"] = self.state_rate
         config["daemon"].update({
             "flight_recorder_s": 0,
-            "zenoh": {"prefix": f"jtc/bench/r{i}", "listen": [endpoint]},
+            "zenoh": {"prefix": f"jtc/bench/r{i}", "listen": [endpoint],
+                      "token": secrets.token_hex(16)},  # the bench only watches
         })
         path = self.dir / f"r{i}.yaml"
         path.write_text(yaml.safe_dump(config))

@@ -59,6 +59,7 @@ import argparse
 import json
 import math
 import os
+import secrets
 import shutil
 import signal
 import subprocess
@@ -624,7 +625,8 @@ def measure_rate(
         settings["foxglove"] = {"port": 0}
     endpoint, prefix = f"tcp/127.0.0.1:{free_port()}", "jtc/bench/jitter"
     if args.zenoh:
-        settings["zenoh"] = {"prefix": prefix, "listen": [endpoint]}
+        settings["zenoh"] = {"prefix": prefix, "listen": [endpoint],
+                             "token": secrets.token_hex(16)}  # the bench only watches
     record_dir = None
     if args.record:
         record_dir = tempfile.mkdtemp(prefix="jtc-hw-jitter-record-")

@@ -74,7 +74,8 @@ else $JTC_HW_SOCKET, else the default path (see 'jtc-hw check' for a config's pa
 is used only if the process behind it runs as you, root, or a member of --config's
 daemon.socket_group; at the default path the file must be yours or root's too. With --tcp
 [HOST:PORT] they reach the TCP endpoint, with --config's token (or $JTC_HW_TOKEN).
-With --zenoh PREFIX (and --zenoh-config FILE) they reach the daemon at that Zenoh prefix.
+With --zenoh PREFIX (and --zenoh-config FILE) they reach the daemon at that Zenoh prefix;
+commands there need its token (--zenoh-token-file FILE or $JTC_HW_ZENOH_TOKEN).
 """
 
 
@@ -950,6 +951,9 @@ def build_parser() -> argparse.ArgumentParser:
         p.add_argument("--zenoh-config", metavar="FILE",
                        help="Zenoh configuration for --zenoh (default: connect to a router "
                        "on tcp/127.0.0.1:7447)")
+        p.add_argument("--zenoh-token-file", metavar="FILE",
+                       help="file holding the daemon's daemon.zenoh.token, needed with --zenoh "
+                       "to command (default: $JTC_HW_ZENOH_TOKEN; watching needs none)")
         p.add_argument(
             "--timeout",
             type=float,

@@ -231,7 +231,8 @@ def status_lines(status: dict[str, Any]) -> list[str]:
     if zenoh:
         lines.append(
             f"zenoh         {zenoh.get('prefix', '?')}: queries {_num(zenoh.get('queries'))}, "
-            f"busy {_num(zenoh.get('busy'))}, published {_num(zenoh.get('published'))}, "
+            f"busy {_num(zenoh.get('busy'))}, unauthorized {_num(zenoh.get('unauthorized'))}, "
+            f"published {_num(zenoh.get('published'))}, "
             f"dropped {_num(zenoh.get('dropped'))}, lost {_num(zenoh.get('lost'))}"
         )
     if server:

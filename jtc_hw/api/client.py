@@ -157,7 +157,8 @@ class Client:
                 ``tcp``. ``"zenoh:<prefix>"``: the daemon at that Zenoh key prefix, through a
                 Zenoh session (``jtc_hw.api.zenoh_client``; needs ``jtc_hw[zenoh]``).
             tcp: ``(host, port)`` of the daemon's loopback TCP endpoint.
-            token: the TCP token.
+            token: the TCP token; with ``zenoh:``, the daemon's ``daemon.zenoh.token``
+                (without it the client may only watch: commands get ``unauthorized``).
             timeout_s: for connecting and the default for every request.
             hello: say ``hello`` (and fill ``info``); without it the first request is the
                 caller's, e.g. a ``stop`` that must get through a daemon with every client
@@ -191,7 +192,7 @@ class Client:
             from .zenoh_client import ZenohClient
 
             return ZenohClient.open(path.removeprefix("zenoh:"), zenoh_config=zenoh_config,
-                                    timeout_s=timeout_s, hello=hello)
+                                    timeout_s=timeout_s, hello=hello, token=token)
         address: str | tuple[str, int]
         if tcp is not None:
             if not token:

@@ -6,6 +6,8 @@ Theory of operation
 session instead of a socket; every public method is the socket client's. A request is a Zenoh
 query on ``<prefix>/rpc/<op>`` with the socket's request body as payload, waited for in the
 caller's thread (Zenoh's ``get`` with the request's timeout); its reply is the socket's reply.
+With a ``token``, every query carries it as its attachment (the daemon requires it for
+commands, ``jtc_hw.daemon.zenoh_iface``); without one, commands come back ``unauthorized``.
 
 Events come from two subscribers declared at connection, called in Zenoh's threads:
 ``<prefix>/events`` (goal feedback and results, for every goal of the daemon: those of this
@@ -161,7 +163,8 @@ class ZenohClient(Client):
         info: the ``hello`` reply received at connection.
     """
 
-    def __init__(self, session: Any, prefix: str, timeout_s: float, own_session: bool) -> None:
+    def __init__(self, session: Any, prefix: str, timeout_s: float, own_session: bool,
+                 token: str | None = None) -> None:
         # Not Client.__init__: no socket and no reader thread; the same state otherwise.
         self.timeout_s = timeout_s
         self.label = f"{ZENOH_SCHEME}{prefix}"
@@ -182,6 +185,7 @@ class ZenohClient(Client):
         self._sending_goals = 0
         self._session = session
         self._own_session = own_session
+        self._attachment = token.encode() if token else None
         self._state_sub: Any = None
         self._events_sub = session.declare_subscriber(f"{prefix}/events", self._on_event)
         self._alive_sub = session.liveliness().declare_subscriber(prefix, self._on_liveliness)
@@ -195,6 +199,7 @@ class ZenohClient(Client):
         session: Any = None,
         timeout_s: float = 5.0,
         hello: bool = True,
+        token: str | None = None,
     ) -> ZenohClient:
         """Connect to the daemon at ``prefix`` and say ``hello``.
 
@@ -205,6 +210,8 @@ class ZenohClient(Client):
             timeout_s: for finding the daemon and the default for every request.
             hello: fill ``info`` with the ``hello`` reply (the request is always made: see
                 below).
+            token: the daemon's ``daemon.zenoh.token``, sent with every query; without it
+                the client may watch (state, status) but commands are ``unauthorized``.
 
         Raises:
             ClientConnectionError: eclipse-zenoh is missing, the session cannot be opened,
@@ -221,7 +228,7 @@ class ZenohClient(Client):
         if own:
             session = open_session(zenoh_config)
         try:
-            client = cls(session, prefix, timeout_s, own)
+            client = cls(session, prefix, timeout_s, own, token)
         except BaseException:
             if own:
                 session.close()
@@ -287,7 +294,7 @@ class ZenohClient(Client):
     def _query(self, op: str, body: bytes, timeout: float) -> dict[str, Any]:
         try:
             replies = self._session.get(f"{self.prefix}/rpc/{op}", payload=body,
-                                        timeout=timeout)
+                                        attachment=self._attachment, timeout=timeout)
             for reply in replies:
                 sample = reply.ok if reply.ok is not None else reply.err
                 if sample is None:

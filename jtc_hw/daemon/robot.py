@@ -647,8 +647,8 @@ def _foxglove_warnings(robot: RobotConfig) -> list[str]:
 
 def security_warnings(robot: RobotConfig) -> list[str]:
     """What in ``robot``'s file is exposed to other users (``jtc-hw check`` and ``run`` print
-    it): a socket mode that lets every user connect; a TCP token in a file that group or
-    others may read; a live view (which has no authentication) on a non-loopback address.
+    it): a socket mode that lets every user connect; a TCP or Zenoh token in a file that group
+    or others may read; a live view (which has no authentication) on a non-loopback address.
 
     Raises:
         Nothing: a file that cannot be examined gives no warning.
@@ -671,7 +671,9 @@ def _socket_mode_warnings(robot: RobotConfig) -> list[str]:
 
 def _token_warnings(robot: RobotConfig) -> list[str]:
     path = robot.source_path
-    if robot.daemon.tcp is None or path is None:
+    doors = [name for name, on in (("TCP", robot.daemon.tcp is not None),
+                                   ("Zenoh", robot.daemon.zenoh is not None)) if on]
+    if not doors or path is None:
         return []
     try:
         mode = stat.S_IMODE(os.stat(path).st_mode)
@@ -683,8 +685,10 @@ def _token_warnings(robot: RobotConfig) -> list[str]:
         name for bit, name in ((0o040, "its group"), (0o004, "every user")) if mode & bit
     )
     return [
-        f"{path} holds the TCP token (daemon.tcp.token) and is readable by {who} (mode "
-        f"{mode:04o}): whoever reads it can command the robot over TCP. Make it private: "
+        f"{path} holds the {' and '.join(doors)} token"
+        f" ({', '.join(f'daemon.{d.lower()}.token' for d in doors)}) and is readable by {who}"
+        f" (mode {mode:04o}): whoever reads it can command the robot over"
+        f" {' and '.join(doors)}. Make it private: "
         f"chmod 600 {path} (owned by the daemon's user)"
     ]
 

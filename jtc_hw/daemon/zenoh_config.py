@@ -10,12 +10,19 @@
         listen: [tcp/127.0.0.1:7447]  # default: none
         config: /etc/jtc-hw/zenoh.json5   # optional Zenoh configuration file, passed as is
         multicast_scouting: false     # discovery by multicast: off unless set here or in config
+        token: "at least sixteen characters"  # required: commands carry it (below)
 
 The Zenoh configuration is the file (if any) with this section's keys applied on top; what the
 section does not give is left to the file: ``listen`` (when absent, and the file sets no
 listen endpoint, the daemon listens nowhere: a Zenoh peer's default is every interface),
 multicast scouting (off unless the file or ``multicast_scouting`` turns it on), and the
 session lease (:data:`LEASE_MS` / :data:`KEEP_ALIVE` unless the file sets another).
+
+Credential rule (the TCP door's token, for every Zenoh peer): ``token`` is required, at least
+:data:`MIN_TOKEN_LENGTH` characters; a section without one is refused at load, saying how to
+make one. Every query that commands the robot carries it in its attachment
+(``jtc_hw.daemon.zenoh_iface``); without it a peer may only watch. Loopback is no protection on
+a machine with other users: any of them reaches ``tcp/127.0.0.1``.
 
 Security rule (the TCP listener's, on the network): a listen endpoint that is not loopback
 needs TLS (a ``tls/`` or ``quic/`` locator, with ``transport.link.tls.listen_certificate`` and
@@ -34,7 +41,7 @@ import os
 import re
 import socket
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, Final
 
 from ..errors import ConfigurationError
@@ -44,6 +51,7 @@ __all__ = [
     "INSTALL_HINT",
     "KEEP_ALIVE",
     "LEASE_MS",
+    "MIN_TOKEN_LENGTH",
     "MODES",
     "ZENOH_PARAMETERS",
     "ZenohSettings",
@@ -64,6 +72,11 @@ still up is noticed at once: its TCP connections are closed by the kernel."""
 KEEP_ALIVE: Final = 4
 """Keep-alive messages per lease (Zenoh's default), so the lease survives a lost one."""
 
+MIN_TOKEN_LENGTH: Final = 16
+"""As ``daemon.tcp.token`` (``jtc_hw.daemon.robot.MIN_TOKEN_LENGTH``; not imported: the robot
+file's loader imports this module)."""
+TOKEN_HINT: Final = "generate one with: python -c 'import secrets; print(secrets.token_hex(16))'"
+
 _KEY_CHUNK = re.compile(r"[^/*$?#]+")
 
 ZENOH_PARAMETERS: Final[Mapping[str, ParamSpec]] = param_table(
@@ -83,6 +96,9 @@ ZENOH_PARAMETERS: Final[Mapping[str, ParamSpec]] = param_table(
               "control", nullable=True),
     ParamSpec("multicast_scouting", ParamKind.BOOL, False,
               "discover peers by UDP multicast (off: only connect/listen endpoints)"),
+    ParamSpec("token", ParamKind.STRING, None,
+              f"shared secret every commanding query carries in its attachment (required, at "
+              f"least {MIN_TOKEN_LENGTH} characters)", nullable=True),
 )
 """``daemon.zenoh.*``."""
 
@@ -98,6 +114,7 @@ class ZenohSettings:
         listen: endpoints to listen on, or ``None`` (the file's, else none).
         config: absolute path of a Zenoh configuration file, or ``None``.
         multicast_scouting: discover peers by multicast.
+        token: the secret a query must carry to command the robot (module docstring).
     """
 
     prefix: str | None = None
@@ -106,6 +123,7 @@ class ZenohSettings:
     listen: tuple[str, ...] | None = None
     config: str | None = None
     multicast_scouting: bool = False
+    token: str = field(default="", repr=False)
 
     def resolved_prefix(self, controller: str) -> str:
         """The prefix in effect for a daemon of controller ``controller``."""
@@ -142,6 +160,27 @@ def check_prefix(prefix: str, path: str = "daemon.zenoh.prefix") -> str:
     return prefix
 
 
+def check_token(token: object) -> str:
+    """``daemon.zenoh.token``: present, a string of at least :data:`MIN_TOKEN_LENGTH`.
+
+    Raises:
+        ConfigurationError: missing or too short; the message says how to make one and never
+            echoes the value.
+    """
+    if token is None or token == "":
+        raise ConfigurationError(
+            "is required: without it anyone who reaches the Zenoh network (on loopback: every "
+            "local user) could command the robot. Set daemon.zenoh.token and "
+            f"give it to the operators (--zenoh-token-file, $JTC_HW_ZENOH_TOKEN); {TOKEN_HINT}",
+            "daemon.zenoh.token", None)
+    if not isinstance(token, str) or len(token) < MIN_TOKEN_LENGTH:
+        raise ConfigurationError(
+            f"must be at least {MIN_TOKEN_LENGTH} characters long, got "
+            f"{len(token) if isinstance(token, str) else type(token).__name__}; {TOKEN_HINT}",
+            "daemon.zenoh.token", None)  # never echo a secret
+    return token
+
+
 LOOP_PROCESS: Final = "jtc-hw-loop"
 """``jtc_hw.daemon.loop.LOOP_PROCESS_NAME``, the loop process's ``multiprocessing`` name
 (not imported: this module is imported by the robot file's loader, the loop's too)."""
@@ -155,11 +194,12 @@ def zenoh_settings(values: Mapping[str, Any], base_dir: str) -> ZenohSettings:
     (``loop_main``); the daemon's API process checked the same file before starting it.
 
     Raises:
-        ConfigurationError: a bad prefix, a missing configuration file, no endpoint at all,
-            or a non-loopback listen endpoint without TLS or authentication (the message
-            says what to set); ``eclipse-zenoh`` missing when a configuration file must be
-            read.
+        ConfigurationError: no ``token`` or a short one; a bad prefix, a missing
+            configuration file, no endpoint at all, or a non-loopback listen endpoint without
+            TLS or authentication (the message says what to set); ``eclipse-zenoh`` missing
+            when a configuration file must be read.
     """
+    token = check_token(values.get("token"))
     prefix = values["prefix"]
     if prefix is not None:
         check_prefix(prefix)
@@ -179,6 +219,7 @@ def zenoh_settings(values: Mapping[str, Any], base_dir: str) -> ZenohSettings:
         listen=None if listen is None else tuple(listen),
         config=config,
         multicast_scouting=values["multicast_scouting"],
+        token=token,
     )
     for index, endpoint in enumerate((*settings.connect, *(settings.listen or ()))):
         if "/" not in endpoint:

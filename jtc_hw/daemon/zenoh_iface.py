@@ -21,6 +21,28 @@ socket's. A goal sent over Zenoh has its ``accepted`` reply as the query's reply
 and its one result are published on ``events``, as are those of every goal (a socket client's
 too), so a querier that vanishes leaves nothing waiting on it and the result is never lost.
 
+Credentials: loopback is no door at all on a machine with other users, so every query of an
+operation in :data:`COMMANDS` (everything that moves the robot or changes its settings, ``stop``
+included) must carry ``daemon.zenoh.token`` as its attachment (the token's UTF-8 bytes). It is
+checked in Zenoh's thread before the payload is read or anything is dispatched: a query
+without an attachment is answered ``unauthorized`` at once (a forgotten token is no guess); a
+wrong one after :data:`WRONG_TOKEN_DELAY_S` (a guesser gets two tries a second per waiting
+slot), with at most :data:`MAX_REFUSALS_WAITING` refusals waiting (more are dropped without a
+reply, so refusals never take the slots of authorized queries); both are counted
+(``unauthorized`` in ``get_status``'s ``zenoh``) and logged (the first three, then one line
+per hundred, of each reason). Watching needs no token: ``hello``, ``get_status``,
+``query_state``, ``get_config``, ``get_parameters`` (as ``state`` and ``events``, which any
+peer can subscribe to).
+
+Memory: Zenoh hands a query over only once it has the whole payload, reassembled in buffers
+its native library allocates with malloc in its own threads; freed, glibc keeps them (a 100 MB
+query left the API process ~100 MB larger for good). So a payload longer than
+``daemon.max_message_bytes`` is answered ``too_large`` from its length, never copied into
+Python, and every query of :data:`RELEASE_AFTER_BYTES` or more, answered or refused, is
+followed by releases of freed memory (``malloc_trim``, :data:`RELEASE_AFTER_S`).
+Zenoh's ``transport/link/rx/max_message_size`` would bound the peak too, but a query over it is
+dropped by the link: no reply at all (docs/zenoh.md, "Memory").
+
 Threads: Zenoh's Python API is synchronous and calls back in its own threads. A query callback
 only hands the query to the event loop (``call_soon_threadsafe``; at most
 :data:`MAX_QUERIES` in flight, more are answered ``busy`` at once). Everything sent to Zenoh
@@ -35,6 +57,7 @@ from __future__ import annotations
 
 import asyncio
 import collections
+import hmac
 import logging
 import threading
 import time
@@ -45,6 +68,8 @@ from typing import TYPE_CHECKING, Any, Final, cast
 from ..api.framing import (
     BAD_REQUEST,
     BUSY,
+    TOO_LARGE,
+    UNAUTHORIZED,
     MessageDecoder,
     RequestError,
     encode,
@@ -61,6 +86,7 @@ from ..controller.goals import GoalFeedback, GoalResult
 from ..controller.trajectory import JointTrajectory
 from ..errors import ConfigurationError
 from .connection import Connection, ServerSettings
+from .realtime import release_freed_memory, return_freed_memory_promptly
 from .zenoh_config import import_zenoh, session_config
 
 if TYPE_CHECKING:
@@ -70,16 +96,20 @@ if TYPE_CHECKING:
 log = logging.getLogger("jtc_hw.zenoh")
 
 __all__ = [
+    "COMMANDS",
     "MAX_QUERIES",
+    "MAX_REFUSALS_WAITING",
+    "RELEASE_AFTER_BYTES",
     "NOT_OVER_ZENOH",
     "OUTBOX_HARD_CAP",
     "OUTBOX_SIZE",
     "ZENOH_PROTOCOL_VERSION",
+    "WRONG_TOKEN_DELAY_S",
     "ZenohInterface",
     "keys",
 ]
 
-ZENOH_PROTOCOL_VERSION: Final = 1
+ZENOH_PROTOCOL_VERSION: Final = 2
 """Version of the key-expression layout (docs/zenoh.md); the payloads are the socket protocol's
 (``protocol_version`` in ``rpc/hello``)."""
 MAX_QUERIES: Final = 64
@@ -94,8 +124,25 @@ CLOSE_FLUSH_S: Final = 1.0
 """How long closing waits for the outbox to drain (the last results)."""
 DECODE_IN_WORKER_BYTES: Final = 64 * 1024
 """Request bodies at least this long are decoded in a worker thread (as on the socket)."""
+COMMANDS: Final = frozenset({
+    "send_goal", "cancel_goal", "send_trajectory", "stop", "set_parameters",
+    "set_speed_scaling", "rearm", "sim",
+})
+"""Operations a query may ask only with the token (module docstring); the others watch."""
+WRONG_TOKEN_DELAY_S: Final = 0.5
+"""How long a query with a wrong token waits for its ``unauthorized``."""
+MAX_REFUSALS_WAITING: Final = 16
+"""Wrong-token refusals waiting at once; more are dropped without a reply."""
+RELEASE_AFTER_BYTES: Final = 1 << 20
+"""A query whose payload is at least this long is followed by releases of freed memory."""
+RELEASE_AFTER_S: Final = (0.2, 1.0, 3.0)
+"""When, after such a query has ended, freed memory is released: at once (for a burst of large
+queries: one release covers them), and twice more for the buffers Zenoh frees late (measured:
+up to a third of a 100 MB query's, between 1 and 2 s after it ended)."""
+LOG_REFUSALS_EVERY: Final = 100
+"""After the first three, one log line per this many refused queries."""
 NOT_OVER_ZENOH: Final = {
-    "auth": "Zenoh sessions authenticate in the Zenoh configuration (docs/zenoh.md)",
+    "auth": "put the token (daemon.zenoh.token) in each query's attachment (docs/zenoh.md)",
     "subscribe_state": "subscribe to <prefix>/state instead",
     "unsubscribe_state": "subscribe to <prefix>/state instead",
 }
@@ -248,6 +295,12 @@ class ZenohInterface:
         self._state_seq = 0  # states this interface has had from the loop (a gap: a loss)
         self.published = 0
         self.busy = 0
+        self._token = settings.token.encode()
+        self.unauthorized = 0  # queries refused for a missing or wrong token
+        self._refusals_waiting = 0  # under _lock
+        self._refused: dict[str, int] = {}  # refusals by reason, for the log; under _lock
+        self._release_pending = False  # under _lock
+        self.releases = 0  # releases of freed memory after large queries
 
     # -- lifecycle ----------------------------------------------------------------------------
 
@@ -261,6 +314,7 @@ class ZenohInterface:
         """
         zenoh = import_zenoh()
         config = session_config(self.settings)
+        log.debug("zenoh: %s", return_freed_memory_promptly())
         self._aio = asyncio.get_running_loop()
         try:
             # Opening connects and binds: not in the event loop's thread.
@@ -376,7 +430,7 @@ class ZenohInterface:
             op = str(query.key_expr).rsplit("/", 1)[-1]
             query.reply(f"{self.prefix}/rpc/{op}", data)
         finally:
-            query.drop()  # the querier's get ends with this (its last reply)
+            self._end(query)  # the querier's get ends with this (its last reply)
 
     # -- faults -------------------------------------------------------------------------------
 
@@ -401,15 +455,16 @@ class ZenohInterface:
     # -- queries ------------------------------------------------------------------------------
 
     def _on_query(self, query: Any) -> None:
-        """Zenoh's thread: hand the query to the event loop (or answer ``busy``)."""
+        """Zenoh's thread: check the credential, hand the query to the event loop (or answer
+        ``busy``)."""
         try:
             op = str(query.key_expr).rsplit("/", 1)[-1]
             if any(c in op for c in "*$"):
                 # The query names no operation (``jtc/**``): not a request to this daemon.
-                query.drop()
+                self._end(query)
                 return
-            payload = query.payload
-            body = b"" if payload is None else payload.to_bytes()
+            if op in COMMANDS and not self._authorized(query, op):
+                return
             with self._lock:
                 busy = self._inflight >= MAX_QUERIES or self._aio is None
                 if not busy:
@@ -421,18 +476,114 @@ class ZenohInterface:
                     "try again later")))
                 return
             assert self._aio is not None
-            self._aio.call_soon_threadsafe(self._start_query, query, op, body)
+            self._aio.call_soon_threadsafe(self._start_query, query, op, self._body(query))
         except RuntimeError:  # the event loop is closed: the daemon is exiting
             with self._lock:
                 self._inflight -= 1
-            query.drop()
+            self._end(query)
         except Exception:
             log.exception("zenoh: cannot take a query")
-            query.drop()
+            self._end(query)
 
-    def _start_query(self, query: Any, op: str, body: bytes) -> None:
+    def _body(self, query: Any) -> bytes | RequestError:
+        """The query's payload as bytes; ``too_large`` without copying it when it is longer
+        than ``daemon.max_message_bytes`` (the socket's message, byte for byte)."""
+        payload = query.payload
+        if payload is None:
+            return b""
+        if len(payload) > self._max_bytes:
+            return RequestError(TOO_LARGE, f"line 1: message longer than the limit of "
+                                f"{self._max_bytes} bytes; it was discarded up to its newline")
+        return bytes(payload.to_bytes())
+
+    def _end(self, query: Any) -> None:
+        """Drop ``query`` (its querier's ``get`` ends) and, if its payload was large, have
+        the memory Zenoh held for it given back to the system (module docstring)."""
+        payload = query.payload
+        large = payload is not None and len(payload) >= RELEASE_AFTER_BYTES
+        del payload
+        query.drop()
+        if large:
+            self._release_soon()
+
+    def _release_soon(self) -> None:
+        """Release freed memory at each of :data:`RELEASE_AFTER_S` from now, in a worker
+        thread (it walks the heap: milliseconds); a schedule under way covers every query
+        ended before its first release. Any thread."""
+        aio = self._aio
+        with self._lock:
+            if self._release_pending or aio is None:
+                return
+            self._release_pending = True
+        try:
+            aio.call_soon_threadsafe(self._schedule_releases)
+        except RuntimeError:  # the event loop is closed: the daemon is exiting
+            pass
+
+    def _schedule_releases(self) -> None:
+        aio = asyncio.get_running_loop()
+        for index, delay_s in enumerate(RELEASE_AFTER_S):
+            aio.call_later(delay_s, self._release, index == 0)
+
+    def _release(self, first: bool) -> None:
+        if first:
+            with self._lock:
+                self._release_pending = False
+        self.releases += 1
+        asyncio.get_running_loop().run_in_executor(None, release_freed_memory)
+
+    def _authorized(self, query: Any, op: str) -> bool:
+        """Whether ``query`` carries the token; if not, its refusal is under way (module
+        docstring). Zenoh's thread."""
+        attachment = query.attachment
+        given = b"" if attachment is None else attachment.to_bytes()
+        if self._token and given and hmac.compare_digest(given, self._token):
+            return True
+        what = "a wrong token" if given else "no token"
+        with self._lock:
+            self.unauthorized += 1
+            self._refused[what] = count = self._refused.get(what, 0) + 1
+            wait = bool(given) and self._refusals_waiting < MAX_REFUSALS_WAITING
+            if wait:
+                self._refusals_waiting += 1
+        if count <= 3 or count % LOG_REFUSALS_EVERY == 0:
+            log.warning("zenoh: refused rpc/%s with %s (%d so far)", op, what, count)
+        message = (f"{op} needs the daemon's Zenoh token in the query's attachment "
+                   f"({what} given); pass --zenoh-token-file FILE or set $JTC_HW_ZENOH_TOKEN "
+                   "(Client.connect(..., token=...)); watching needs none")
+        data = encode(error_reply(None, UNAUTHORIZED, message))
+        aio = self._aio
+        if not given or aio is None:
+            self._send_reply(query, data)
+        elif not wait:
+            self._end(query)  # too many guesses waiting: no reply at all
+        else:
+            try:
+                aio.call_soon_threadsafe(aio.call_later, WRONG_TOKEN_DELAY_S,
+                                         self._refuse_late, query, data)
+            except RuntimeError:  # the event loop is closed: the daemon is exiting
+                with self._lock:
+                    self._refusals_waiting -= 1
+                self._end(query)
+        return False
+
+    def _refuse_late(self, query: Any, data: bytes) -> None:
+        with self._lock:
+            self._refusals_waiting -= 1
+        try:
+            self._send_reply(query, data)
+        except Exception:  # the session closed meanwhile: the querier gets no reply
+            log.debug("zenoh: cannot refuse a query", exc_info=True)
+
+    def _send_reply(self, query: Any, data: bytes) -> None:
+        """Reply through the outbox (never waiting on Zenoh), or drop the query."""
+        outbox = self._outbox
+        if outbox is None or not outbox.put(partial(self._reply, query, data)):
+            self._end(query)
+
+    def _start_query(self, query: Any, op: str, body: bytes | RequestError) -> None:
         if self._session is None:  # closing
-            query.drop()
+            self._end(query)
             with self._lock:
                 self._inflight -= 1
             return
@@ -440,20 +591,24 @@ class ZenohInterface:
         self._tasks.add(task)
         task.add_done_callback(self._tasks.discard)
 
-    async def _execute(self, query: Any, op: str, body: bytes) -> None:
+    async def _execute(self, query: Any, op: str, body: bytes | RequestError) -> None:
         self._queries += 1
         conn = QueryConnection(self._queries, self._server.settings, "zenoh")
         try:
-            if len(body) >= DECODE_IN_WORKER_BYTES:
+            item: Request | RequestError
+            if isinstance(body, RequestError):
+                item = body
+            elif len(body) >= DECODE_IN_WORKER_BYTES:
                 item = await asyncio.get_running_loop().run_in_executor(
                     None, self.decode, op, body, self._max_bytes)
             else:
                 item = self.decode(op, body, self._max_bytes)
+            del body
             data = await self._server.answer_remote(conn, item)
             if self._outbox is None or not self._outbox.put(partial(self._reply, query, data)):
-                query.drop()
+                self._end(query)
         except asyncio.CancelledError:
-            query.drop()
+            self._end(query)
             raise
         except Exception:  # answer_remote never raises; Zenoh's drop might
             log.exception("zenoh: query %d failed", conn.number)
@@ -506,6 +661,8 @@ class ZenohInterface:
             "prefix": self.prefix,
             "queries": self._queries,
             "busy": self.busy,
+            "unauthorized": self.unauthorized,
+            "releases": self.releases,
             "published": self.published,
             "dropped": 0 if outbox is None else outbox.dropped,
             "lost": 0 if outbox is None else outbox.lost,

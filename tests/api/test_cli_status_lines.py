@@ -22,7 +22,8 @@ def test_a_flight_recorder_that_is_off_says_so() -> None:
 
 def test_the_zenoh_line_has_its_prefix_and_counters_and_is_absent_without_zenoh() -> None:
     lines = status_lines({"zenoh": {"prefix": "jtc/lab/arm1", "queries": 12, "busy": 1,
-                                    "published": 400, "dropped": 2, "lost": 0}})
-    assert ("zenoh         jtc/lab/arm1: queries 12, busy 1, published 400, dropped 2, lost 0"
+                                    "unauthorized": 3, "published": 400, "dropped": 2, "lost": 0}})
+    assert (("zenoh         jtc/lab/arm1: queries 12, busy 1, unauthorized 3, published 400, "
+             "dropped 2, lost 0")
             in lines)
     assert not any(x.startswith(("zenoh", "flight rec")) for x in status_lines({}))

@@ -13,9 +13,12 @@ from jtc_hw.errors import ConfigurationError
 
 from conftest import make_robot_config
 
+TOKEN = "a token of the zenoh door"
+
 
 def robot(tmp_path: Path, **zenoh: Any) -> Any:
     hardware = [{"name": "m", "kind": "mirror", "joints": ["j1"]}]
+    zenoh = {"token": TOKEN, **zenoh}
     return load_robot(make_robot_config(tmp_path / "d.sock", ["j1"], hardware, zenoh=zenoh))
 
 
@@ -60,6 +63,8 @@ def test_defaults_and_prefix(tmp_path: Path) -> None:
     ({"config": "nowhere.json5", "listen": ["tcp/127.0.0.1:0"]}, "daemon.zenoh.config",
      "is not a file"),
     ({"listen": ["tcp/127.0.0.1:0"], "lease": 3}, "daemon.zenoh.lease", ""),
+    ({"listen": ["tcp/127.0.0.1:0"], "token": None}, "daemon.zenoh.token", "secrets.token_hex"),
+    ({"listen": ["tcp/127.0.0.1:0"], "token": "short"}, "daemon.zenoh.token", "at least 16"),
 ])
 def test_refused(tmp_path: Path, zenoh: dict[str, Any], path: str, words: str) -> None:
     with pytest.raises(ConfigurationError) as info:

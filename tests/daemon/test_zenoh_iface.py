@@ -23,7 +23,6 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-import yaml
 from helpers.daemon import (
     JOINTS,
     WAIT_S,
@@ -32,15 +31,23 @@ from helpers.daemon import (
     daemon_env,
     loop_process,
     next_state,
-    robot_config,
     traj,
+)
+from helpers.zenoh import (
+    QUIET,
+    TOKEN,
+    ZenohDaemon,
+    free_port,
+    session_config,
+    started,
+    write_config,
 )
 
 pytest.importorskip("zenoh", reason="the Zenoh interface needs jtc_hw[zenoh]")
 
 pytestmark = pytest.mark.usefixtures("no_leaks")  # threads, sockets, resources
 
-from jtc_hw.api.client import Client, ClientConnectionError  # noqa: E402
+from jtc_hw.api.client import ClientConnectionError  # noqa: E402
 from jtc_hw.api.zenoh_client import ZenohClient, open_session  # noqa: E402
 
 from conftest import ROOT  # noqa: E402
@@ -53,74 +60,6 @@ LOADED_MARGIN_S = 1.0
 once and the fleet redraws on the liveliness event, so the real delay is milliseconds; the
 margin is for this shared 2-core machine, where the fleet process may not be scheduled for a
 while under other engineers' test runs."""
-
-
-def free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
-QUIET = {"scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}}}
-"""Zenoh configuration of every test session: no multicast, no gossip (JSON is JSON5)."""
-
-
-def session_config(*connect: str) -> dict[str, Any]:
-    """A client configuration (``zenoh_config=``) connecting to ``connect`` only."""
-    return {"mode": "peer", "connect/endpoints": list(connect), "listen/endpoints": [],
-            "scouting/multicast/enabled": False, "scouting/gossip/enabled": False}
-
-
-def write_config(path: Path, *connect: str) -> Path:
-    path.write_text(json.dumps({**QUIET, "mode": "peer", "connect": {"endpoints": list(connect)},
-                                "listen": {"endpoints": []}}))
-    return path
-
-
-class ZenohDaemon(DaemonProcess):
-    """A daemon at ``jtc/test/<name>`` listening on its own loopback port."""
-
-    def __init__(self, directory: Path, name: str) -> None:
-        directory.mkdir(parents=True, exist_ok=True)
-        self.prefix = f"jtc/test/{name}"
-        self.quiet = directory / "zenoh.json5"
-        self.quiet.write_text(json.dumps(QUIET))
-        super().__init__(directory)
-        self.choose_port()
-
-    def choose_port(self) -> None:
-        """A free port now (and the robot file naming it)."""
-        self.endpoint = f"tcp/127.0.0.1:{free_port()}"
-        self.config_path.write_text(yaml.safe_dump(robot_config(self.socket, zenoh={
-            "prefix": self.prefix, "listen": [self.endpoint], "config": str(self.quiet)}),
-            sort_keys=False))
-
-    def client(self) -> Client:
-        return Client.connect(f"zenoh:{self.prefix}", timeout_s=WAIT_S,
-                              zenoh_config=session_config(self.endpoint))
-
-
-PORT_ATTEMPTS = 3
-
-
-def started(d: ZenohDaemon) -> ZenohDaemon:
-    """Start ``d`` and wait until it serves on Zenoh. The port was free when chosen; on this
-    shared machine another process may take it before the daemon binds it: then the daemon
-    exits saying so, and it is started again on another port."""
-    for _attempt in range(PORT_ATTEMPTS):
-        d.start()
-        assert d.proc is not None
-        deadline = time.monotonic() + WAIT_S * 3
-        while "zenoh: serving under" not in d.log() and d.proc.poll() is None:
-            assert time.monotonic() < deadline, f"the daemon did not start:\n{d.log()}"
-            time.sleep(0.02)  # polling another process's log file, with a deadline
-        if d.proc.poll() is None:
-            d.wait_ready()
-            return d
-        assert "Address already in use" in d.log(), d.log()
-        assert d.wait_exit() == 2
-        d.choose_port()
-    raise AssertionError(f"no free port in {PORT_ATTEMPTS} attempts:\n{d.log()}")
 
 
 @pytest.fixture
@@ -373,7 +312,8 @@ def _socket_reply(d: ZenohDaemon, line: bytes) -> dict[str, Any]:
 
 
 def _zenoh_reply(session: Any, d: ZenohDaemon, op: str, body: bytes) -> dict[str, Any]:
-    replies = list(session.get(f"{d.prefix}/rpc/{op}", payload=body, timeout=WAIT_S))
+    replies = list(session.get(f"{d.prefix}/rpc/{op}", payload=body, attachment=TOKEN,
+                               timeout=WAIT_S))
     assert len(replies) == 1 and replies[0].ok is not None, replies
     assert str(replies[0].ok.key_expr) == f"{d.prefix}/rpc/{op}"
     return dict(json.loads(replies[0].ok.payload.to_bytes()))
@@ -458,7 +398,8 @@ def test_two_daemons_listed_and_driven_independently(tmp_path: Path) -> None:
             cli = subprocess.run(
                 [sys.executable, "-m", "jtc_hw", "stop", "--zenoh", b.prefix,
                  "--zenoh-config", str(write_config(tmp_path / "b.json5", b.endpoint))],
-                capture_output=True, text=True, cwd=ROOT, env=daemon_env(), timeout=30)
+                capture_output=True, text=True, cwd=ROOT,
+                env=daemon_env(JTC_HW_ZENOH_TOKEN=TOKEN), timeout=30)
             assert cli.returncode == 0, cli.stderr
         finally:
             ca.close()
@@ -530,7 +471,7 @@ def _run(*args: str) -> subprocess.CompletedProcess[str]:
 
 
 def test_non_loopback_listen_without_tls_or_auth_refuses_to_start(tmp_path: Path) -> None:
-    d = DaemonProcess(tmp_path / "d", zenoh={"prefix": "jtc/test/open",
+    d = DaemonProcess(tmp_path / "d", zenoh={"prefix": "jtc/test/open", "token": TOKEN,
                                              "listen": [f"tcp/0.0.0.0:{free_port()}"]})
     for command in ("check", "run"):
         result = _run(command, str(d.config_path))
@@ -546,7 +487,7 @@ def test_non_loopback_listen_without_tls_or_auth_refuses_to_start(tmp_path: Path
     auth.write_text(json.dumps({**QUIET, "transport": {"auth": {"usrpwd": {
         "user": "robot", "password": "a long secret", "dictionary_file": None}}}}))
     secured = DaemonProcess(tmp_path / "s", zenoh={
-        "prefix": "jtc/test/secured", "listen": [f"tcp/0.0.0.0:{free_port()}"],
+        "prefix": "jtc/test/secured", "listen": [f"tcp/0.0.0.0:{free_port()}"], "token": TOKEN,
         "config": str(auth)})
     result = _run("check", str(secured.config_path))
     assert result.returncode == 0, result.stderr

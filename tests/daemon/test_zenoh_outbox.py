@@ -1,5 +1,6 @@
 """The Zenoh interface's bounds, without a Zenoh session: its outbox (what is dropped when
-Zenoh is slow) and its limit on queries executing at once (``busy``)."""
+Zenoh is slow), its limit on queries executing at once (``busy``) and on wrong-token refusals
+waiting (``unauthorized``)."""
 
 from __future__ import annotations
 
@@ -12,7 +13,13 @@ from typing import Any
 import pytest
 
 from jtc_hw.daemon.zenoh_config import ZenohSettings
-from jtc_hw.daemon.zenoh_iface import MAX_QUERIES, ZenohInterface, _Outbox
+from jtc_hw.daemon.zenoh_iface import (
+    MAX_QUERIES,
+    MAX_REFUSALS_WAITING,
+    WRONG_TOKEN_DELAY_S,
+    ZenohInterface,
+    _Outbox,
+)
 
 pytestmark = pytest.mark.usefixtures("no_leaks")
 
@@ -36,10 +43,26 @@ def test_outbox_drops_state_first_and_keeps_results_up_to_its_hard_cap() -> None
     assert ran[0] == "blocker" and "result" in ran and ran.index("result") > ran.index("state 1")
 
 
+TOKEN = "sixteen characters or more"
+
+
+class FakePayload:
+    def __init__(self, body: bytes) -> None:
+        self.body = body
+
+    def __len__(self) -> int:
+        return len(self.body)
+
+    def to_bytes(self) -> bytes:
+        return self.body
+
+
 class FakeQuery:
-    def __init__(self, key: str, body: bytes = b"{}") -> None:
+    def __init__(self, key: str, body: bytes = b"{}", token: str | None = None) -> None:
         self.key_expr = key
-        self.payload = SimpleNamespace(to_bytes=lambda: body)
+        self.payload = FakePayload(body)
+        self.attachment = None if token is None else SimpleNamespace(
+            to_bytes=lambda: token.encode())
         self.replies: list[tuple[str, dict[str, Any]]] = []
         self.dropped = False
 
@@ -53,8 +76,8 @@ class FakeQuery:
 def interface() -> ZenohInterface:
     server = SimpleNamespace(backend=SimpleNamespace(joint_names=["j1"]),
                              settings=SimpleNamespace(max_message_bytes=1024))
-    return ZenohInterface(ZenohSettings(prefix="jtc/t/a"), "c", server,  # type: ignore[arg-type]
-                          dict)
+    return ZenohInterface(ZenohSettings(prefix="jtc/t/a", token=TOKEN), "c",
+                          server, dict)  # type: ignore[arg-type]
 
 
 def test_queries_over_the_limit_are_answered_busy_at_once() -> None:
@@ -82,6 +105,47 @@ def test_a_query_naming_no_operation_is_not_answered() -> None:
         assert query.dropped and not query.replies and iface._inflight == 0
     finally:
         iface._aio.close()
+
+
+def test_a_missing_token_is_refused_at_once_a_wrong_one_late_and_bounded() -> None:
+    iface = interface()
+    aio = iface._aio = asyncio.new_event_loop()
+    iface._outbox = _Outbox(OUTBOX, OUTBOX)
+    try:
+        missing = FakeQuery("jtc/t/a/rpc/stop")
+        iface._on_query(missing)
+        iface._outbox.close(timeout_s=10)  # runs what waits: the refusal, sent at once
+        assert missing.dropped and [r["error"]["code"] for _, r in missing.replies] == [
+            "unauthorized"]
+        iface._outbox = _Outbox(OUTBOX, OUTBOX)
+        t0 = aio.time()
+        wrong = [FakeQuery("jtc/t/a/rpc/send_goal", token="x" * 16)
+                 for _ in range(MAX_REFUSALS_WAITING + 1)]
+        for query in wrong:
+            iface._on_query(query)
+        # Not one answered yet; the one beyond the bound is dropped without a reply.
+        assert not any(q.replies for q in wrong)
+        assert wrong[-1].dropped and all(not q.dropped for q in wrong[:-1])
+        assert iface._refusals_waiting == MAX_REFUSALS_WAITING and iface._inflight == 0
+        # The refusals are timers of the event loop, due after the delay.
+        aio.run_until_complete(asyncio.sleep(0))  # call_soon_threadsafe's callbacks ran
+        timers = sorted(h.when() for h in aio._scheduled)  # type: ignore[attr-defined]
+        assert len(timers) == MAX_REFUSALS_WAITING
+        assert timers[0] >= t0 + WRONG_TOKEN_DELAY_S  # on the loop's clock
+        aio.run_until_complete(asyncio.sleep(WRONG_TOKEN_DELAY_S + 0.1))  # the loop's clock
+        iface._outbox.close(timeout_s=10)
+        assert all(q.replies[0][1]["error"]["code"] == "unauthorized" for q in wrong[:-1])
+        assert iface._refusals_waiting == 0 and iface.unauthorized == len(wrong) + 1
+        # The right token goes on to the event loop, as before.
+        good = FakeQuery("jtc/t/a/rpc/stop", token=TOKEN)
+        iface._on_query(good)
+        assert iface._inflight == 1 and not good.replies and not good.dropped
+        iface._inflight = 0
+    finally:
+        aio.close()
+
+
+OUTBOX = 64
 
 
 @pytest.mark.parametrize(("op", "body", "code"), [

@@ -108,6 +108,7 @@ from jtc_hw.hardware import (
     ParamSpec,
     SafeAction,
     health_params,
+    miss_rate_param,
     one_line,
     param_table,
 )
@@ -243,6 +244,9 @@ class MitHardware(HardwareInterface):
         # Only Damiao replies carry temperatures (a warning before max_temperature_c's fault);
         # no MIT reply carries the supply voltage.
         *health_params(65.0, None),
+        # On a sound bus every set-point is answered within its wire time: a rate of missed
+        # replies that a `feedback_timeout` still tolerates is worth a warning before it is not.
+        miss_rate_param(0.01),
     )
 
     def __init__(

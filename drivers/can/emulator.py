@@ -63,6 +63,10 @@ command, answered with one line (``ok`` or ``error: ...``); ``brownout ID OFF_S 
 browns motor ``ID`` out for ``OFF_S`` seconds (the channel may be left out when there is
 one). ``--fault brownout:ID:OFF_S@AFTER_S`` schedules the same ``AFTER_S`` seconds after the
 connect line.
+The process runs at SCHED_FIFO priority 1 where permitted (``--priority N``; 0: normal
+scheduling), as the motors it stands for are not slowed down by a busy host: normally
+scheduled, its replies came late on a loaded machine and counted as missed
+(:func:`~jtc_hw.drivers.can.emulation.realtime_priority`).
 With ``--one-thread`` the emulators start no threads (``start(push=True, thread=False)``; CiA
 402 drives ``start(push=True)``): the server's single thread reads every client, the frames
 reach the emulators in it, and it releases every bus's due replies (each emulator keeps its
@@ -93,7 +97,14 @@ from jtc_hw.hardware.timing import reduce_timer_slack
 
 from ..motor_model import Motor, MotorParams
 from .bus import CAN_ERR_BUSOFF, wire_time_s
-from .emulation import ControlSocket, PushSink, WakeEarly, attach_sink
+from .emulation import (
+    DEFAULT_PRIORITY,
+    ControlSocket,
+    PushSink,
+    WakeEarly,
+    attach_sink,
+    realtime_priority,
+)
 from .frames import (
     DAMIAO_TIMEOUT_RID,
     DAMIAO_TIMEOUT_UNIT_S,
@@ -860,6 +871,11 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--one-thread", action="store_true",
                         help="socketcand: serve every channel, and release every emulator's "
                         "replies, from one thread (no threads of the emulators' own)")
+    parser.add_argument("--priority", type=int, default=None, metavar="N",
+                        help=f"SCHED_FIFO priority of the process, 1..99, 0: normal "
+                        f"scheduling (default: {DEFAULT_PRIORITY} where permitted, so that a "
+                        "busy host does not delay the replies as it would never delay real "
+                        "motors)")
     parser.add_argument("--master-id", type=lambda s: int(s, 0), default=0,
                         help="MIT reply arbitration id")
     parser.add_argument("--events", action="store_true",
@@ -964,6 +980,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         parser.error(str(exc))
     if (scheduled or args.control) and args.protocol != "mit":
         parser.error("--fault and --control are for MIT motors (--protocol mit)")
+    if args.priority is not None and not 0 <= args.priority <= 99:
+        parser.error(f"--priority must be 0..99, got {args.priority}")
+    # Before any thread starts: they inherit the policy.
+    refused = realtime_priority(DEFAULT_PRIORITY if args.priority is None else args.priority)
+    if refused is not None and args.priority is not None:  # asked for: say it was not given
+        print(f"jtc-hw emulate can: {refused}", file=sys.stderr)
     factory: Any = None
     if args.protocol == "cia402":
         try:

@@ -10,8 +10,11 @@ per motor" and a motor is heard from only when it is spoken to.
 * ``write`` encodes the held set-points (updated from the command's finite entries) and sends
   one frame per motor, on every bus, before anything is collected: buses transmit
   concurrently, so several buses cost the slowest one, not the sum.
-* ``read`` collects the replies to the last ``write`` (waiting for them at most the bus's
-  ``receive_timeout``; 0 never waits). When nothing was written since the previous read
+* ``read`` collects the replies to the last ``write``, waiting for them at most the bus's
+  ``receive_timeout`` (0: never waits) counted from when the wire could have carried every
+  set-point and its reply (worst-case stuffing), or from the read if that is later: a loop
+  catching up after a late cycle reads right after it wrote, while the replies are still on
+  the wire, and must not count them missed. When nothing was written since the previous read
   (inactive, or two reads in a row) it first sends each motor its held frame (the set-point
   in motor mode, ``exit motor mode`` otherwise) to get an answer -- MIT has no read-only
   request. Replies are drained without blocking and only the newest per motor is kept; a
@@ -108,6 +111,7 @@ from jtc_hw.hardware import (
     ParamSpec,
     SafeAction,
     health_params,
+    miss_rate_param,
     one_line,
     param_table,
 )
@@ -125,6 +129,7 @@ from .bus import (
     joint_buses,
     open_settings,
     send,
+    wire_bits,
 )
 from .frames import (
     CLEAR_ERROR,
@@ -178,6 +183,8 @@ class _Link:
     latest: dict[int, can.Message] = field(default_factory=dict)
     pending: set[int] = field(default_factory=set)
     index_of: dict[int, int] = field(default_factory=dict)  # motor id -> joint index
+    sent_at: float = 0.0  # monotonic time the last exchange's first frame was queued
+    exchange_s: float = 0.0  # wire time of a set-point and its reply, worst-case stuffing
 
     def key(self, msg: can.Message) -> int | None:
         if msg.arbitration_id not in self.reply_ids or msg.is_extended_id:
@@ -243,6 +250,9 @@ class MitHardware(HardwareInterface):
         # Only Damiao replies carry temperatures (a warning before max_temperature_c's fault);
         # no MIT reply carries the supply voltage.
         *health_params(65.0, None),
+        # On a sound bus every set-point is answered within its wire time: a rate of missed
+        # replies that a `feedback_timeout` still tolerates is worth a warning before it is not.
+        miss_rate_param(0.01),
     )
 
     def __init__(
@@ -290,6 +300,9 @@ class MitHardware(HardwareInterface):
             link = _Link(settings, members, ids, BusHealth(settings),
                          frozenset(p["master_id"][i] for i in members), formats.pop())
             link.index_of = {self._ids[i]: i for i in members}
+            link.exchange_s = 2 * wire_bits(
+                can.Message(arbitration_id=0x7FF, is_extended_id=False, data=bytes(8)),
+                "worst") / settings.bitrate
             self._links[bus_name] = link
         self._sign = np.array(p["direction"], dtype=np.float64)
         self._gear = np.array(p["gear_ratio"], dtype=np.float64)
@@ -692,6 +705,8 @@ class MitHardware(HardwareInterface):
             for link in links:
                 if k >= len(link.ids):
                     continue
+                if k == 0:
+                    link.sent_at = time.monotonic()
                 bus = link.bus
                 assert bus is not None  # checked above
                 motor_id, i = link.ids[k], link.joints[k]
@@ -718,7 +733,12 @@ class MitHardware(HardwareInterface):
             bus = link.bus
             assert bus is not None
             timeout = link.settings.setup_timeout if setup else link.settings.receive_timeout
-            deadline = time.monotonic() + timeout
+            # The replies cannot all be in before the wire has carried every frame sent and
+            # its reply: receive_timeout (the bound for stragglers) counts from then, or from
+            # now, whichever is later -- so a cycle that follows a late one closely (the
+            # loop catching up) does not count replies still on the wire as missed.
+            on_wire = link.sent_at + len(link.pending) * link.exchange_s
+            deadline = max(time.monotonic(), on_wire) + timeout
             try:
                 if link.pending:
                     result = collect_until(bus, link.latest, link.pending, deadline, link.key)

@@ -30,6 +30,7 @@ from .interface import (
     LifecycleState,
     SafeAction,
     health_params,
+    miss_rate_param,
     one_line,
 )
 from .params import ParamKind, ParamSpec, param_table, validate_params
@@ -72,6 +73,7 @@ __all__ = [
     "create_hardware",
     "hardware_class",
     "health_params",
+    "miss_rate_param",
     "one_line",
     "param_table",
     "register_hardware",

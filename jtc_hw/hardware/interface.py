@@ -58,6 +58,7 @@ __all__ = [
     "DeviceWatchdog",
     "HEALTH_FIELDS",
     "health_params",
+    "miss_rate_param",
     "HardwareInterface",
     "JOINT_MAPPING_PARAMS",
     "LifecycleState",
@@ -211,6 +212,22 @@ def health_params(
             "voltage_range", ParamKind.RANGE, tuple(float(v) for v in voltage_range),
             "[min, max] supply voltage, V: a motor reporting one outside raises a warning"))
     return tuple(rows)
+
+
+MISS_RATE_WINDOW: Final = 1000
+"""Transactions a miss rate is judged over (at least; the window closes at the first
+:meth:`HardwareInterface.health` call after that many): a few stragglers in a short window
+are not a trend, and a rate over the whole run would hide a recent one."""
+
+
+def miss_rate_param(default: float) -> ParamSpec:
+    """The ``miss_rate_warn`` row, for drivers whose bus counts ``transactions`` and
+    ``timeouts`` (replies that did not come in time), with the kind's default fraction."""
+    return ParamSpec(
+        "miss_rate_warn", ParamKind.FLOAT, float(default),
+        "fraction of transactions whose reply did not come in time above which a warning is "
+        "raised in status and the log, judged over windows of at least "
+        f"{MISS_RATE_WINDOW} transactions (0: never warn)", minimum=0.0, maximum=1.0)
 
 
 def one_line(exc: BaseException) -> str:
@@ -376,6 +393,10 @@ class HardwareInterface(ABC):
         self._write_errors = 0
         self._activations = 0
         self._health_warnings: dict[tuple[str, str], str] = {}
+        # The miss-rate window: the bus counters (transactions, timeouts) at its start, and
+        # the warning the last window left (kept until the next one closes).
+        self._miss_window: tuple[int, int] | None = None
+        self._miss_warning: str | None = None
         self._monitor_retry_ns: int | None = None  # after a failed monitor(): not before this
 
     @classmethod
@@ -683,12 +704,43 @@ class HardwareInterface(ABC):
             entry["errors"] = []
             entry.update(raw)
             motors.append(entry)
-        warnings = self._health_limits(motors)
+        warnings = self._health_limits(motors, bus)
         return {"motors": motors, "bus": bus, "warnings": warnings}
 
-    def _health_limits(self, motors: Sequence[Mapping[str, Any]]) -> list[str]:
-        """The warnings of ``motors`` against the kind's limits; logs the changes."""
+    def _miss_rate(self, bus: Mapping[str, Any] | None) -> str | None:
+        """The miss-rate warning (``None``: none), from ``bus``'s ``transactions`` and
+        ``timeouts`` over the last window of at least :data:`MISS_RATE_WINDOW` transactions,
+        against ``miss_rate_warn`` (kinds without that parameter never warn)."""
+        limit = self.params.get("miss_rate_warn")
+        if not limit or not bus:
+            return None
+        done, missed = bus.get("transactions"), bus.get("timeouts")
+        if not isinstance(done, int) or not isinstance(missed, int):
+            return None
+        start = self._miss_window or (0, 0)
+        if done < start[0] or missed < start[1]:  # counters reset
+            self._miss_window = (done, missed)
+            return self._miss_warning
+        count, lost = done - start[0], missed - start[1]
+        if count < MISS_RATE_WINDOW:
+            return self._miss_warning  # the window is still open: the last verdict stands
+        self._miss_window = (done, missed)
+        rate = lost / count
+        self._miss_warning = None if rate <= limit else (
+            f"{self._owner()}: {rate * 100:.2g} % of replies missed ({lost} of {count} "
+            f"transactions), above miss_rate_warn "
+            f"{limit * 100:g} %: replies come later than the bus's receive timeout allows; "
+            "check the bus load and wiring (or, with emulated motors, the load of their host)")
+        return self._miss_warning
+
+    def _health_limits(
+        self, motors: Sequence[Mapping[str, Any]], bus: Mapping[str, Any] | None = None
+    ) -> list[str]:
+        """The warnings of ``motors`` and ``bus`` against the kind's limits; logs the
+        changes."""
         current: dict[tuple[str, str], str] = {}
+        if (missing := self._miss_rate(bus)) is not None:
+            current[("bus", "miss_rate")] = missing
         hot = self.params.get("temperature_warn_c")
         for m in motors:
             label = f"{self._owner()}: motor {m['motor']} (joint {m['joint']!r})"

@@ -414,6 +414,26 @@ def test_dropped_and_late_replies_within_the_timeout_are_tolerated(rig: Rig) -> 
     assert hw.status()["details"]["motors"]["j2"]["missed_replies"] >= 3
 
 
+def test_a_read_right_after_a_write_waits_for_the_wire_before_counting_a_miss(rig: Rig) -> None:
+    """A loop catching up after a late cycle reads right after it wrote: the replies are still
+    on the wire. receive_timeout (the bound for stragglers) counts from when the wire could
+    have carried every set-point and its reply, so none of them is counted missed.
+
+    At 10 kbit/s six exchanges take ~150 ms of wire, three times receive_timeout (50 ms): a
+    deadline counted from the read would miss every reply of every cycle."""
+    rig.emulate("can0", IDS, pace=True, bitrate=10_000)
+    hw = rig.make(buses={"can0": {"interface": "virtual", "channel": rig.channels["can0"],
+                                  "bitrate": 10_000, "receive_timeout": 0.05}})
+    hw.configure()
+    hold = hw.activate(now())
+    for _ in range(3):
+        hw.write(now(), JointCommand(positions=hold.positions))
+        hw.read(now())
+    missed = {j: m["missed_replies"] for j, m in hw.status()["details"]["motors"].items()}
+    assert missed == dict.fromkeys(JOINTS, 0)
+    assert hw.health()["bus"]["timeouts"] == 0
+
+
 def test_full_transmit_buffer_is_counted_and_survived(rig: Rig) -> None:
     rig.emulate("can0", IDS)
     hw = rig.make()

@@ -16,6 +16,7 @@ import can
 import numpy as np
 import pytest
 
+from jtc_hw.cli_health import format_hardware, hardware_report
 from jtc_hw.controller.joints import JointCommand
 from jtc_hw.drivers.can.emulator import MitBusEmulator
 from jtc_hw.drivers.can.mit import MitHardware
@@ -92,6 +93,46 @@ def test_ak_health_reports_nothing_it_cannot_know(channel: str) -> None:
         assert motor["errors"] == [] and motor["torque_enabled"] is None
         assert motor["commanded_mode"] == "mit" and motor["stale"] is False
         assert "voltage_range" not in hw.params
+    finally:
+        hw.shutdown(time.monotonic_ns())
+        emulator.stop()
+        bus.shutdown()
+
+
+def test_a_miss_rate_above_miss_rate_warn_warns_once_and_clears(
+    channel: str, caplog: pytest.LogCaptureFixture
+) -> None:
+    """Replies that do not come in time, too few for a no-feedback fault, are a warning in
+    health (status, ``jtc-hw hardware``) once their rate over a window of at least
+    MISS_RATE_WINDOW transactions passes ``miss_rate_warn``; logged once per crossing."""
+    # The rig's receive_timeout (50 ms) is generous: only the dropped replies are missed.
+    bus, emulator, hw = rig(channel, "AK80-9")  # miss_rate_warn: its default, 1 %
+    try:
+        hw.configure()
+        hw.activate(time.monotonic_ns())
+        window = 1000 // 2  # cycles: MISS_RATE_WINDOW transactions, two motors a cycle
+        cycle(hw, window)
+        assert hw.health()["warnings"] == []
+        with caplog.at_level(logging.INFO, logger="jtc_hw.hardware"):
+            for _ in range(15):  # 15 of ~1000, one at a time: 1.5 %, never a fault
+                emulator.drop_replies(2, 1)
+                cycle(hw, window // 15)
+            cycle(hw, window % 15)
+            warned = hw.health()
+            cycle(hw, 10)
+            again = hw.health()  # the window is still open: the verdict stands, no new line
+        (warning,) = warned["warnings"]
+        assert "leg" in warning and "15 of" in warning and "miss_rate_warn 1 %" in warning
+        assert again["warnings"] == [warning]
+        assert [r.levelno for r in caplog.records] == [logging.WARNING]
+        report = hardware_report({"hardware": {"components": [
+            {"name": "leg", "kind": "can-mit", "state": "active", "health": warned}]}})
+        assert f"WARNING: {warning}" in format_hardware(report).splitlines()[-1]
+        caplog.clear()
+        with caplog.at_level(logging.INFO, logger="jtc_hw.hardware"):
+            cycle(hw, window)  # no miss in a whole window: cleared, one line
+            assert hw.health()["warnings"] == []
+        assert [r.getMessage().startswith("cleared: ") for r in caplog.records] == [True]
     finally:
         hw.shutdown(time.monotonic_ns())
         emulator.stop()

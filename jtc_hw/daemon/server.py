@@ -88,8 +88,8 @@ from ..api.protocol import (
     SubscribeState,
     UnsubscribeState,
     command_event,
-    record_event,
     feedback_event,
+    record_event,
     result_event,
     sample_to_json,
 )

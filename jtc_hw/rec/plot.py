@@ -10,11 +10,13 @@ not at the command's start plus T: with speed scaling (and while the factor ramp
 differ, by T x (1 - factor) at a steady factor. The controller's state says where the reference
 is: ``reference.time_from_start`` of ``controller_state`` is the trajectory time since the
 start of the trajectory being followed (the loop's own clock scaled by the factor, the ramp
-included). So for each command (in the order the bag holds them), the states that follow it
-are found -- from the first state at or after the command's log time whose
-``time_from_start`` falls back (the loop switched to the new trajectory; a command stamped in
-the future starts below zero) up to the next command -- and a waypoint is placed at the stamp
-where that time reaches T, interpolated linearly between the two states around it. Nothing is
+included). Where it falls back, the loop switched trajectories (a new command starts below zero: its
+start is ahead by the plan's lead, or at its stamp; a hold after a cancel, abort or fault
+starts at zero). The daemon logs a command once the loop has confirmed it, so the command's
+switch is the last one at or before its log time (or, with states published slower than the
+loop runs, the first one after). Its trajectory is followed from there to the next switch, and
+a waypoint is placed at the stamp where the trajectory time reaches T, interpolated linearly
+between the two states around it. Nothing is
 integrated, so no error accumulates, and a "start now" command needs no guess of when the loop
 started it. A waypoint the reference never reached (a goal preempted, aborted or cancelled
 before it, or a recording that ends first) is not drawn.
@@ -148,32 +150,38 @@ def executed_waypoints(
     Returns:
         (time, joint, position) of every waypoint the reference reached.
     """
+    import numpy as np
+
     out: list[tuple[float, str, float]] = []
     n = len(t)
-    starts = []
+    # Where the loop switched trajectories: the trajectory time falls back.
+    switches = np.flatnonzero(np.diff(tfs) < 0) + 1 if n > 1 else np.zeros(0, np.int64)
+    starts: list[int | None] = []
+    after = 0  # a command's switch comes after the previous command's
     for logged, _ in commands:
-        i = int(_searchsorted(t, logged))
-        # The loop takes the command at or after its log time: the first state whose
-        # trajectory time falls back is the first on the new trajectory.
-        while 0 < i < n and not tfs[i] < tfs[i - 1]:
-            i += 1
-        starts.append(i if 0 < i < n else (0 if i == 0 and n else None))
+        # The daemon logs a command once the loop confirmed it: its switch is the last one at
+        # or before the log time, or (states published slower than the loop runs) the first
+        # one after it.
+        candidates = switches[switches >= after]
+        before = candidates[t[candidates] <= logged]
+        later = candidates[t[candidates] > logged]
+        first = int(before[-1]) if len(before) else int(later[0]) if len(later) else None
+        starts.append(first)
+        if first is not None:
+            after = first + 1
     for k, (_, points) in enumerate(commands):
         first = starts[k]
         if first is None:
             continue  # never followed within the recording
-        end = next((s for s in starts[k + 1:] if s is not None), n)
+        # The trajectory is followed until the loop switches again (another command, or a
+        # hold after a cancel, an abort or a fault).
+        following = switches[switches > first]
+        end = int(following[0]) if len(following) else n
         for at, name, value in points:
             when = _reached(t, tfs, first, end, at)
             if when is not None:
                 out.append((when, name, value))
     return out
-
-
-def _searchsorted(values: Any, x: float) -> int:
-    import numpy as np
-
-    return int(np.searchsorted(values, x, side="left"))
 
 
 def _reached(t: Any, tfs: Any, first: int, end: int, at: float) -> float | None:

@@ -401,7 +401,8 @@ class Client:
             timeout_s: for the reply, and the default wait of each ``get``/iteration.
             maxlen: messages buffered here; older ones are discarded beyond it.
             commands: also receive a ``command`` event for every command the daemon accepts
-                (any client's), in order with the states (their ``event`` field tells them
+                (any client's) and a ``record`` event for every goal result, hardware fault
+                and re-arm, in order with the states (their ``event`` field tells them
                 apart).
 
         Raises:
@@ -694,7 +695,7 @@ class Client:
         pending.done.set()
 
     def _dispatch_event(self, event: str, message: dict[str, Any]) -> None:
-        if event == "state" or event == "command":
+        if event in ("state", "command", "record"):
             with self._lock:
                 subscriptions = list(self._subscriptions)
             for subscription in subscriptions:

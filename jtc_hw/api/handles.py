@@ -178,7 +178,8 @@ class StateSubscription:
                  commands: bool = False) -> None:
         self.timeout_s = timeout_s
         self.commands = commands
-        """Whether ``command`` events come too (``subscribe_state(commands=True)``)."""
+        """Whether ``command`` and ``record`` events come too (``subscribe_state(commands=
+        True)``)."""
         self.dropped_locally = 0
         self._client = client
         self._maxlen = maxlen

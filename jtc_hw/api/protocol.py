@@ -957,6 +957,17 @@ def command_event(trajectory: JointTrajectory, goal_id: int | None,
             "trajectory": trajectory_to_json(trajectory)}
 
 
+def record_event(event: Mapping[str, Any]) -> dict[str, Any]:
+    """The ``record`` event: a goal's result, a hardware fault or a re-arm, as the bags'
+    ``goal_events`` hold it (``{"event": "result" | "fault" | "rearm", ..., "time_ns"}``,
+    docs/recording.md), for connections subscribed with ``commands`` (``jtc-hw record``).
+
+    Raises:
+        Nothing.
+    """
+    return {"event": "record", "record": dict(event)}
+
+
 def trajectory_from_json(obj: Mapping[str, Any]) -> JointTrajectory:
     """A ``JointTrajectory`` back from ``trajectory_to_json``'s form (a ``command`` event's
     ``trajectory``; ``start_in`` is not resolved: give ``start_time_ns``).

@@ -570,8 +570,11 @@ class LoopBackend:
             log.log(message[1], "%s", message[2])
             if message[1] >= logging.ERROR:
                 self._last_error = message[2]
-                if self.flight is not None and str(message[2]).startswith("hardware fault"):
-                    self._flight_trigger("fault")
+                if str(message[2]).startswith("hardware fault"):
+                    self._record_event({"event": "fault", "text": str(message[2]),
+                                        "time_ns": time.monotonic_ns()})
+                    if self.flight is not None:
+                        self._flight_trigger("fault")
         elif kind == "ready":
             t0 = message[1]["t0_ns"]
             initial = self.config.speed_scaling.initial_scaling_factor
@@ -680,10 +683,23 @@ class LoopBackend:
             "error_code": int(result.error_code), "error_string": result.error_string,
             "details": result.details, "time_ns": result.time_ns,
         }
-        self.flight.on_event(event)
+        self._record_event(event)
+        return result
+
+    def _record_event(self, event: dict[str, Any]) -> None:
+        """A result, fault or re-arm (``goal_events``' JSON, docs/recording.md) for the
+        recorders: the flight recorder, ``daemon.record`` and the socket's subscribers of
+        commands (``jtc-hw record``)."""
+        if self.flight is not None:
+            self.flight.on_event(event)
         if self.recording is not None:
             self.recording.on_event(event)
-        return result
+        on_record = getattr(self._listener, "on_record", None)
+        if on_record is not None:
+            try:
+                on_record(event)
+            except Exception:  # a listener must never fail the loop's bookkeeping
+                log.exception("sending a recorded event to the subscribers failed")
 
     def _fail_waiting(self, reason: str) -> None:
         for future in self._waiting.values():
@@ -886,8 +902,12 @@ class LoopBackend:
             False if there was nothing to re-arm (no fault, the controller is running).
         """
         rearmed = bool(await self._request("rearm", {}))
-        if rearmed and self.flight is not None:
-            self._flight_trigger("rearm")
+        if rearmed:
+            self._record_event({"event": "rearm",
+                                "text": "re-armed: holding the measured position",
+                                "time_ns": time.monotonic_ns()})
+            if self.flight is not None:
+                self._flight_trigger("rearm")
         return rearmed
 
     async def set_speed_scaling(self, factor: float | None) -> dict[str, float]:

@@ -93,6 +93,7 @@ from ..api.protocol import (
     UnsubscribeState,
     command_event,
     feedback_event,
+    record_event,
     result_event,
     sample_to_json,
 )
@@ -979,6 +980,27 @@ class Server:
             data = encode(command_event(trajectory, goal_id, self.backend.now_ns()))
         except (TypeError, ValueError):
             log.exception("cannot encode an accepted command; skipped")
+            return
+        for conn in subscribers:
+            conn.send(data)
+
+    def on_record(self, event: dict[str, Any]) -> None:
+        """Send a result, fault or re-arm (a ``record`` event) to every client subscribed
+        with ``commands`` (``jtc-hw record`` writes them into its bag). Not droppable, as
+        commands.
+
+        Raises:
+            Nothing: an event that cannot be encoded is logged and skipped.
+        """
+        if self._closed:
+            return
+        subscribers = [c for c in self._conns.values() if c.commands and not c.gone]
+        if not subscribers:
+            return
+        try:
+            data = encode(record_event(event))
+        except (TypeError, ValueError):
+            log.exception("cannot encode a recorded event; skipped")
             return
         for conn in subscribers:
             conn.send(data)

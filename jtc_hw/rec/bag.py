@@ -10,7 +10,12 @@ Each becomes the ROS 2 message a ROS user expects on the topic of the same name:
 - ``/<controller>/controller_state`` (``control_msgs/msg/JointTrajectoryControllerState``, the
   current definition: reference, feedback, error, output, speed_scaling_factor);
 - ``/<controller>/goal_events`` (``std_msgs/msg/String`` holding one JSON object, schema in
-  ``docs/recording.md``);
+  ``docs/recording.md``): goal changes, results (status and text), faults and re-arms;
+- ``/<controller>/follow_joint_trajectory/_action/status`` (``action_msgs/msg/GoalStatusArray``,
+  the topic a ROS 2 action server publishes its goals' statuses on): each result's status;
+- ``/rosout`` (``rcl_interfaces/msg/Log``): each result's, fault's and re-arm's text, at the
+  level a ROS console shows it (results INFO/WARN/ERROR by status, a fault ERROR, a re-arm
+  INFO);
 - ``/diagnostics`` (``diagnostic_msgs/msg/DiagnosticArray``): loop statistics and each hardware
   component's status.
 
@@ -79,6 +84,16 @@ TOLERANCES_KEY = "jtc_hw.tolerances"
 
 DIAGNOSTIC_OK, DIAGNOSTIC_WARN, DIAGNOSTIC_ERROR = 0, 1, 2
 
+LOG_NAME = "jtc_hw"
+"""``rcl_interfaces/msg/Log.name`` of the recorded results, faults and re-arms."""
+
+GOAL_STATUS_CODES = {"succeeded": 4, "canceled": 5, "aborted": 6}
+"""``action_msgs/msg/GoalStatus`` codes of the socket's result statuses (STATUS_SUCCEEDED,
+STATUS_CANCELED, STATUS_ABORTED); another status is STATUS_UNKNOWN (0)."""
+
+LOG_LEVELS = {"succeeded": 20, "canceled": 30, "aborted": 40, "fault": 40, "rearm": 20}
+"""``rcl_interfaces/msg/Log`` levels (INFO 20, WARN 30, ERROR 40) by result status or event."""
+
 
 CHUNK_BYTES = 64 * 1024
 """An MCAP chunk is written once it holds this much: the most rows a full disk can cost (when
@@ -136,6 +151,8 @@ def topics(controller: str) -> dict[str, str]:
         "/joint_states": "sensor_msgs/msg/JointState",
         f"/{controller}/controller_state": CONTROLLER_STATE_TYPE,
         f"/{controller}/goal_events": "std_msgs/msg/String",
+        f"/{controller}/follow_joint_trajectory/_action/status": "action_msgs/msg/GoalStatusArray",
+        "/rosout": "rcl_interfaces/msg/Log",
         "/diagnostics": "diagnostic_msgs/msg/DiagnosticArray",
     }
 
@@ -496,10 +513,45 @@ class BagRecorder:
             header=header, joint_names=list(trajectory.joint_names), points=points))
 
     def goal_event(self, event: Mapping[str, Any]) -> None:
-        """Record a goal event (``result``, ``feedback``, ``goal_started``...) as JSON text."""
+        """Record a goal event (``result``, ``fault``, ``rearm``, ``goal_started``...) as JSON
+        text on ``goal_events``; a result's status also on the action's status topic, and a
+        result's, fault's or re-arm's text on ``/rosout``."""
+        time_ns = int(event["time_ns"])
         String = self._store.types["std_msgs/msg/String"]
-        self._write(f"/{self.controller}/goal_events", int(event["time_ns"]),
+        self._write(f"/{self.controller}/goal_events", time_ns,
                     String(data=json.dumps(dict(event), sort_keys=True, allow_nan=False)))
+        kind = event.get("event")
+        if kind == "result":
+            status = str(event.get("status", ""))
+            self._goal_status(int(event["goal_id"]), status, time_ns)
+            text = ": ".join([f"goal {event['goal_id']} {status} ({event.get('error_code', 0)})"]
+                             + [str(event[k]) for k in ("error_string", "details")
+                                if event.get(k)])
+            self._log(LOG_LEVELS.get(status, 30), text, time_ns)
+        elif kind in ("fault", "rearm"):
+            self._log(LOG_LEVELS[str(kind)], str(event.get("text") or kind), time_ns)
+
+    def _goal_status(self, goal_id: int, status: str, time_ns: int) -> None:
+        """A ``GoalStatusArray`` holding the one goal that just finished (a ROS action server
+        lists every goal it tracks; a bag reader wants the change). The goal's UUID is its id,
+        big-endian in the last 8 bytes."""
+        types = self._store.types
+        import numpy as np
+
+        uuid = np.frombuffer(bytes(8) + goal_id.to_bytes(8, "big", signed=False), np.uint8)
+        info = types["action_msgs/msg/GoalInfo"](
+            goal_id=types["unique_identifier_msgs/msg/UUID"](uuid=uuid.copy()),
+            stamp=self._stamp(time_ns))
+        entry = types["action_msgs/msg/GoalStatus"](
+            goal_info=info, status=GOAL_STATUS_CODES.get(status, 0))
+        self._write(f"/{self.controller}/follow_joint_trajectory/_action/status", time_ns,
+                    types["action_msgs/msg/GoalStatusArray"](status_list=[entry]))
+
+    def _log(self, level: int, text: str, time_ns: int) -> None:
+        Log = self._store.types["rcl_interfaces/msg/Log"]
+        self._write("/rosout", time_ns, Log(
+            stamp=self._stamp(time_ns), level=level, name=LOG_NAME, msg=text, file="",
+            function="", line=0))
 
     def diagnostics(self, status: Mapping[str, Any], time_ns: int) -> None:
         """Record a ``get_status`` reply as a ``DiagnosticArray`` (loop, controller, hardware)."""

@@ -1,7 +1,8 @@
 """The ``jtc-hw record`` and ``jtc-hw plot`` commands (registered by ``jtc_hw.cli``).
 
 ``record`` is a client of a running daemon: it subscribes to the ``state`` stream (every
-``state_publish_rate`` tick) with every accepted command (``command`` events), asks
+``state_publish_rate`` tick) with every accepted command (``command`` events) and every goal
+result, hardware fault and re-arm (``record`` events), asks
 ``get_status`` once a second for ``/diagnostics``, and writes a rosbag2/MCAP directory with
 ``BagRecorder``. Nothing runs in the loop process. It stops after ``--duration`` seconds of
 daemon time (counted from the first state it receives), or on Ctrl-C/SIGTERM, and always
@@ -154,6 +155,10 @@ def _record(client: Any, recorder: Any, args: argparse.Namespace) -> None:
     def take(message: dict[str, Any]) -> bool:
         """Write one message; False once past ``--duration``."""
         nonlocal end_ns, next_diagnostics_ns
+        if message.get("event") == "record":  # a result, fault or re-arm
+            if end_ns is None or int(message["record"]["time_ns"]) <= end_ns:
+                recorder.goal_event(message["record"])
+            return True
         if message.get("event") == "command":
             # Accepted before the end (states lag the acceptance by a plan's lead).
             if end_ns is None or int(message["time_ns"]) <= end_ns:

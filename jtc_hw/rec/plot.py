@@ -1,7 +1,28 @@
-"""Plot a recording: per joint, desired vs actual over time, goal events marked.
+"""Plot a recording: per joint, desired vs actual over time, waypoints and goal events marked.
 
 Reads the bag with ``rosbags``' reader and draws with matplotlib (Agg: no display needed). Both
 are optional extras, imported lazily; without them ``PlotUnavailable`` carries the install hint.
+
+Waypoints on the executed time base
+-----------------------------------
+A command's waypoint at ``time_from_start`` T is drawn when the reference actually reached it,
+not at the command's start plus T: with speed scaling (and while the factor ramps) the two
+differ, by T x (1 - factor) at a steady factor. The controller's state says where the reference
+is: ``reference.time_from_start`` of ``controller_state`` is the trajectory time since the
+start of the trajectory being followed (the loop's own clock scaled by the factor, the ramp
+included). Where it falls back, the loop switched trajectories (a new command starts below zero: its
+start is ahead by the plan's lead, or at its stamp; a hold after a cancel, abort or fault
+starts at zero). The daemon logs a command once the loop has confirmed it, so the command's
+switch is the last one at or before its log time (or, with states published slower than the
+loop runs, the first one after). Its trajectory is followed from there to the next switch, and
+a waypoint is placed at the stamp where the trajectory time reaches T, interpolated linearly
+between the two states around it. Nothing is
+integrated, so no error accumulates, and a "start now" command needs no guess of when the loop
+started it. A waypoint the reference never reached (a goal preempted, aborted or cancelled
+before it, or a recording that ends first) is not drawn.
+
+Results, faults and re-arms (``goal_events`` entries with a ``text``) are marked with their text,
+coloured by how they ended.
 """
 
 from __future__ import annotations
@@ -27,8 +48,10 @@ def read_series(bag: str | Path, controller: str) -> dict[str, Any]:
     Returns:
         ``t`` (seconds from the first state), ``joints``, ``ref_pos``/``act_pos``/``ref_vel``/
         ``act_vel`` (arrays of shape samples × joints; velocities may have 0 columns) and
-        ``events`` (a list of (t, text)), ``waypoints`` (a list of (t, joint, position) of the
-        recorded commands' points), ``tolerances`` (the configured ones, by joint).
+        ``events`` (a list of (t, label, kind): see :func:`_event_label`), ``waypoints`` (a
+        list of (t, joint, position) of the recorded commands' points, at the time the
+        reference reached them: :func:`executed_waypoints`), ``tolerances`` (the configured
+        ones, by joint), ``ref_time_from_start`` and ``speed_scaling`` (per state).
 
     Raises:
         RecordingUnavailable: rosbags is not installed.
@@ -42,10 +65,12 @@ def read_series(bag: str | Path, controller: str) -> dict[str, Any]:
     state_topic = f"/{controller}/controller_state"
     events_topic = f"/{controller}/goal_events"
     commands_topic = f"/{controller}/joint_trajectory"
-    # (wall ns, joint name, position) of every commanded waypoint that has positions
-    raw_waypoints: list[tuple[int, str, float]] = []
+    # (log time ns, [(time_from_start ns, joint name, position)]) of every command
+    raw_commands: list[tuple[int, list[tuple[int, str, float]]]] = []
     stamps: list[int] = []
     rows: dict[str, list[Any]] = {"ref_pos": [], "act_pos": [], "ref_vel": [], "act_vel": []}
+    ref_tfs: list[float] = []  # reference.time_from_start of every state, seconds
+    factors: list[float] = []
     joints: list[str] = []
     raw_events: list[tuple[int, str]] = []
     try:
@@ -59,13 +84,12 @@ def read_series(bag: str | Path, controller: str) -> dict[str, Any]:
         for connection, timestamp, data in reader.messages(connections=wanted):
             if connection.topic == commands_topic:
                 command: Any = reader.deserialize(data, "trajectory_msgs/msg/JointTrajectory")
-                stamp = command.header.stamp.sec * 1_000_000_000 + command.header.stamp.nanosec
-                start = stamp or timestamp  # 0: "start now", when the daemon accepted it
+                points = []
                 for point in command.points:
-                    at = start + point.time_from_start.sec * 1_000_000_000 \
-                        + point.time_from_start.nanosec
+                    at = point.time_from_start.sec * 1_000_000_000 + point.time_from_start.nanosec
                     for name, value in zip(command.joint_names, point.positions, strict=False):
-                        raw_waypoints.append((at, str(name), float(value)))
+                        points.append((at, str(name), float(value)))
+                raw_commands.append((timestamp, points))
                 continue
             if connection.topic == events_topic:
                 text: Any = reader.deserialize(data, "std_msgs/msg/String")
@@ -78,6 +102,9 @@ def read_series(bag: str | Path, controller: str) -> dict[str, Any]:
             rows["act_pos"].append(msg.feedback.positions)
             rows["ref_vel"].append(msg.reference.velocities)
             rows["act_vel"].append(msg.feedback.velocities)
+            tfs = msg.reference.time_from_start
+            ref_tfs.append(tfs.sec + tfs.nanosec / 1e9)
+            factors.append(float(msg.speed_scaling_factor))
     finally:
         reader.close()
     if not stamps:
@@ -85,12 +112,18 @@ def read_series(bag: str | Path, controller: str) -> dict[str, Any]:
             f"{bag} has no {state_topic} messages: record with 'jtc-hw record', or give "
             "--controller-name")
     t0 = stamps[0]
+    t = (np.array(stamps, dtype=np.int64) - t0) / 1e9
     series: dict[str, Any] = {
-        "t": (np.array(stamps, dtype=np.int64) - t0) / 1e9,
+        "t": t,
         "joints": joints,
         "tolerances": _tolerances(Path(bag)),
-        "events": [((ts - t0) / 1e9, _event_label(text)) for ts, text in raw_events],
-        "waypoints": [((at - t0) / 1e9, name, value) for at, name, value in raw_waypoints],
+        "events": [((ts - t0) / 1e9, *_event_label(text)) for ts, text in raw_events],
+        "waypoints": executed_waypoints(
+            t, np.array(ref_tfs), [((ts - t0) / 1e9, [(at / 1e9, name, value)
+                                                      for at, name, value in points])
+                                   for ts, points in raw_commands]),
+        "ref_time_from_start": np.array(ref_tfs),
+        "speed_scaling": np.array(factors),
     }
     for key, values in rows.items():
         # A sample without values (a flight recorder's cycles while faulted have no reference)
@@ -101,6 +134,73 @@ def read_series(bag: str | Path, controller: str) -> dict[str, Any]:
             table[i, :len(v)] = v[:width]
         series[key] = table
     return series
+
+
+def executed_waypoints(
+    t: Any, tfs: Any, commands: Sequence[tuple[float, Sequence[tuple[float, str, float]]]],
+) -> list[tuple[float, str, float]]:
+    """Each command's waypoints at the time the reference reached them (see the module
+    docstring).
+
+    Args:
+        t: the states' times (seconds, increasing).
+        tfs: the states' ``reference.time_from_start`` (seconds).
+        commands: (log time, [(time_from_start, joint, position)]) per command, in order.
+
+    Returns:
+        (time, joint, position) of every waypoint the reference reached.
+    """
+    import numpy as np
+
+    out: list[tuple[float, str, float]] = []
+    n = len(t)
+    # Where the loop switched trajectories: the trajectory time falls back.
+    switches = np.flatnonzero(np.diff(tfs) < 0) + 1 if n > 1 else np.zeros(0, np.int64)
+    starts: list[int | None] = []
+    after = 0  # a command's switch comes after the previous command's
+    for logged, _ in commands:
+        # The daemon logs a command once the loop confirmed it: its switch is the last one at
+        # or before the log time, or (states published slower than the loop runs) the first
+        # one after it.
+        candidates = switches[switches >= after]
+        before = candidates[t[candidates] <= logged]
+        later = candidates[t[candidates] > logged]
+        first = int(before[-1]) if len(before) else int(later[0]) if len(later) else None
+        starts.append(first)
+        if first is not None:
+            after = first + 1
+    for k, (_, points) in enumerate(commands):
+        first = starts[k]
+        if first is None:
+            continue  # never followed within the recording
+        # The trajectory is followed until the loop switches again (another command, or a
+        # hold after a cancel, an abort or a fault).
+        following = switches[switches > first]
+        end = int(following[0]) if len(following) else n
+        for at, name, value in points:
+            when = _reached(t, tfs, first, end, at)
+            if when is not None:
+                out.append((when, name, value))
+    return out
+
+
+def _reached(t: Any, tfs: Any, first: int, end: int, at: float) -> float | None:
+    """The time in ``t[first:end]`` where ``tfs`` reaches ``at`` (interpolated), None if it
+    does not. A waypoint before the first state's trajectory time (the loop took the command
+    between two states) is placed back from that state by its trajectory time, no earlier than
+    the state before."""
+    import numpy as np
+
+    after = np.flatnonzero(tfs[first:end] >= at)
+    if not len(after):
+        return None
+    j = first + int(after[0])
+    if j == first:
+        previous = t[first - 1] if first > 0 else t[first]
+        return float(max(previous, t[first] - (tfs[first] - at)))
+    span = tfs[j] - tfs[j - 1]
+    share = (at - tfs[j - 1]) / span if span > 0 else 1.0
+    return float(t[j - 1] + share * (t[j] - t[j - 1]))
 
 
 def _tolerances(bag: Path) -> dict[str, dict[str, float]]:
@@ -114,12 +214,37 @@ def _tolerances(bag: Path) -> dict[str, dict[str, float]]:
         return {}
 
 
-def _event_label(text: str) -> str:
+EVENT_COLOURS = {"info": "tab:gray", "ok": "tab:green", "warn": "tab:orange",
+                 "error": "tab:red"}
+"""How a marked event is drawn, by its kind (:func:`_event_label`)."""
+
+
+def _event_label(text: str) -> tuple[str, str]:
+    """A goal event's label and kind (a key of :data:`EVENT_COLOURS`): a result says its goal,
+    status and text, a fault or re-arm its text."""
     try:
         event = json.loads(text)
     except ValueError:
-        return text
-    return f"{event.get('event', '?')} {event.get('goal_id', '')}".strip()
+        return text, "info"
+    if not isinstance(event, dict):
+        return text, "info"
+    kind = str(event.get("event", "?"))
+    if kind == "result":
+        status = str(event.get("status", "?"))
+        words = [f"goal {event.get('goal_id', '?')} {status}"]
+        words += [str(event[k]) for k in ("error_string", "details") if event.get(k)]
+        return ": ".join(words), {"succeeded": "ok", "aborted": "error"}.get(status, "warn")
+    if kind in ("fault", "rearm"):
+        return str(event.get("text") or kind), "error" if kind == "fault" else "ok"
+    return f"{kind} {event.get('goal_id', '')}".strip(), "info"
+
+
+LABEL_CHARS = 90
+"""A mark's text is cut to this many characters (the whole text is in the bag)."""
+
+
+def _shorten(label: str) -> str:
+    return label if len(label) <= LABEL_CHARS else label[:LABEL_CHARS - 1] + "\u2026"
 
 
 def plot_bag(
@@ -133,12 +258,29 @@ def plot_bag(
         RecordingUnavailable: rosbags is not installed.
         ConfigurationError: not a bag, no controller state, or an unknown joint in ``joints``.
     """
+    fig = build_figure(bag, joints, controller)
+    out = Path(out)
+    fig.savefig(out, dpi=80)
+    return out
+
+
+def build_figure(
+    bag: str | Path, joints: Sequence[str] | None = None,
+    controller: str = "joint_trajectory_controller",
+) -> Any:
+    """The figure :func:`plot_bag` writes (a ``matplotlib.figure.Figure``, not registered with
+    pyplot): per joint a row of axes, position (and velocity); the waypoints are the line
+    labelled ``waypoints``, each event a vertical line and, in the first row, its text.
+
+    Raises:
+        PlotUnavailable: matplotlib is not installed.
+        RecordingUnavailable: rosbags is not installed.
+        ConfigurationError: not a bag, no controller state, or an unknown joint in ``joints``.
+    """
     try:
-        import matplotlib
+        from matplotlib.figure import Figure
     except ImportError as exc:
         raise PlotUnavailable(PLOT_HINT) from exc
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
 
     series = read_series(bag, controller)
     names: list[str] = series["joints"]
@@ -151,8 +293,8 @@ def plot_bag(
     velocity = series["ref_vel"].shape[1] == len(names) and series["act_vel"].shape[1] == len(
         names)
     columns = 2 if velocity else 1
-    fig, axes = plt.subplots(len(chosen), columns, sharex=True, squeeze=False,
-                             figsize=(6 * columns, 2.2 * len(chosen) + 0.6))
+    fig = Figure(figsize=(6 * columns, 2.2 * len(chosen) + 0.6))
+    axes = fig.subplots(len(chosen), columns, sharex=True, squeeze=False)
     t = series["t"]
     for row, joint in enumerate(chosen):
         i = names.index(joint)
@@ -172,18 +314,17 @@ def plot_bag(
             if what == "position" and marks:
                 ax.plot([m[0] for m in marks], [m[1] for m in marks], linestyle="none",
                         marker="o", color="tab:green", markersize=4, label="waypoints")
-            for when, label in series["events"]:
-                ax.axvline(when, color="tab:gray", linewidth=0.8)
+            for when, label, kind in series["events"]:
+                colour = EVENT_COLOURS[kind]
+                ax.axvline(when, color=colour, linewidth=0.8 if kind == "info" else 1.2)
                 if row == 0:
-                    ax.annotate(label, (when, 1.0), xycoords=("data", "axes fraction"),
-                                fontsize=7, rotation=90, va="top")
+                    ax.annotate(_shorten(label), (when, 1.0),
+                                xycoords=("data", "axes fraction"), fontsize=7, rotation=90,
+                                va="top", color=colour if kind != "info" else "black")
             ax.set_ylabel(f"{joint}\n{what}")
             ax.grid(True, alpha=0.3)
     axes[0][0].legend(loc="best", fontsize=8)
     for ax in axes[-1]:
         ax.set_xlabel("time (s)")
     fig.tight_layout()
-    out = Path(out)
-    fig.savefig(out, dpi=80)
-    plt.close(fig)
-    return out
+    return fig

@@ -119,6 +119,10 @@ def test_bag_has_the_ros2_topics_and_types(recording: Any) -> None:
         f"/{CONTROLLER}/goal_events": "std_msgs/msg/String",
         "/diagnostics": "diagnostic_msgs/msg/DiagnosticArray",
         f"/{CONTROLLER}/joint_trajectory": "trajectory_msgs/msg/JointTrajectory",  # the goal
+        # results (issue 22): the action's status topic and their text on /rosout
+        f"/{CONTROLLER}/follow_joint_trajectory/_action/status":
+            "action_msgs/msg/GoalStatusArray",
+        "/rosout": "rcl_interfaces/msg/Log",
     }
     messages = read_bag(bag)
     assert {(topic, schema) for topic, schema, _, _ in messages} == set(types.items())
@@ -177,8 +181,15 @@ def test_goal_events_and_diagnostics(recording: Any) -> None:
     messages = read_bag(bag)
     events = [json.loads(m.data) for topic, _, _, m in messages
               if topic == f"/{CONTROLLER}/goal_events"]
-    assert [(e["event"], e["goal_id"]) for e in events] == [
-        ("goal_started", result["goal_id"]), ("goal_ended", result["goal_id"])]
+    assert sorted((e["event"], e["goal_id"]) for e in events) == sorted([
+        ("goal_started", result["goal_id"]), ("result", result["goal_id"]),
+        ("goal_ended", result["goal_id"])])
+    # The result with its status and text (issue 22: record gets every result, any client's).
+    (recorded,) = [e for e in events if e["event"] == "result"]
+    assert (recorded["status"], recorded["error_string"]) == (
+        result["status"], result["error_string"])
+    logs = [m for topic, _, _, m in messages if topic == "/rosout"]
+    assert [m.msg.startswith(f"goal {result['goal_id']} succeeded") for m in logs] == [True]
     diagnostics = [m for topic, _, _, m in messages if topic == "/diagnostics"]
     # Once a second of daemon time, from the first state on (the last one only if a state
     # falls exactly on the recording's end).

@@ -41,8 +41,10 @@ _EXIT_HELP = {
     ),
     "check": "Exit status: 0 the configuration is valid; 2 it is not (the error names the key).",
     "demo": (
-        "Exit status: 0 the goal succeeded; 1 it aborted or was canceled; 2 bad configuration; "
-        "3 the daemon or emulator did not start or stopped with an error."
+        "Exit status: 0 the goal succeeded; 1 it aborted or was canceled; 2 bad configuration, "
+        "or --config's socket is already served by a running daemon (the demo sends nothing "
+        "to a daemon it did not start); 3 the daemon or emulator did not start or stopped "
+        "with an error."
     ),
     "emulate": "Exit status: 0 stopped by Ctrl-C/SIGTERM; 2 bad emulator options.",
 }
@@ -782,14 +784,28 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 
 def _demo(args: argparse.Namespace, hardware: list[dict[str, Any]] | None, rate: int) -> int:
-    from .api.client import Client
+    """Start a daemon, send the demo goal to it and to nothing else, stop it.
+
+    The demo moves only a robot it started: with ``--config``, a socket that a running daemon
+    already serves is refused before anything starts, and whatever the configuration, the
+    client checks that the process serving the socket is the daemon started here
+    (``SO_PEERCRED``) before it sends a request, so a daemon that took the path meanwhile
+    is never sent the wave either. Both refusals exit 2 (the configuration cannot be used
+    for a demo now), like ``run`` with a socket in use.
+    """
+    from .api.client import NOT_EXPECTED, Client, ClientConnectionError
 
     with tempfile.TemporaryDirectory(prefix="jtc-hw-demo-") as tmp:
         if args.config:
             config_path = args.config
+            from .daemon.locks import held_by, socket_lock_path
             from .daemon.robot import load_robot
 
             socket_path = load_robot(config_path).daemon.socket
+            busy = held_by(socket_path, socket_lock_path(socket_path), what="served")
+            if busy is not None:
+                print(f"error: {_demo_refusal(config_path, str(busy))}", file=sys.stderr)
+                return EXIT_BAD_INPUT
             goal = None
         else:
             socket_path = os.path.join(tmp, "jtc-hw.sock")
@@ -815,7 +831,17 @@ def _demo(args: argparse.Namespace, hardware: list[dict[str, Any]] | None, rate:
                 )
                 return EXIT_NO_DAEMON
             try:
-                client = Client.connect(socket_path, timeout_s=2.0)
+                client = Client.connect(socket_path, timeout_s=2.0, expect_pid=daemon.pid)
+            except ClientConnectionError as exc:
+                if exc.code == NOT_EXPECTED:  # another daemon took the path: not ours to move
+                    _stop_daemon(daemon)
+                    print(f"error: {_demo_refusal(config_path, str(exc))}", file=sys.stderr)
+                    return EXIT_BAD_INPUT
+                if time.monotonic() > deadline:
+                    daemon.terminate()
+                    print("the daemon did not open its socket in time", file=sys.stderr)
+                    return EXIT_NO_DAEMON
+                time.sleep(0.05)  # CLI polling for a socket to appear; not in library code
             except (OSError, JtcHwError):
                 if time.monotonic() > deadline:
                     daemon.terminate()
@@ -857,14 +883,29 @@ def _demo(args: argparse.Namespace, hardware: list[dict[str, Any]] | None, rate:
             )
         finally:
             client.close()
-            daemon.send_signal(signal.SIGTERM)
-            try:
-                status_code = daemon.wait(timeout=20)
-            except subprocess.TimeoutExpired:
-                daemon.kill()
-                status_code = daemon.wait()
+            status_code = _stop_daemon(daemon)
         print(f"daemon stopped (SIGTERM), exit status {status_code}")
         return code if status_code == 0 else EXIT_NO_DAEMON
+
+
+def _stop_daemon(daemon: subprocess.Popen[str]) -> int:
+    """SIGTERM the demo's daemon and wait for it (SIGKILL after 20 s); its exit status."""
+    if daemon.poll() is None:
+        daemon.send_signal(signal.SIGTERM)
+    try:
+        return daemon.wait(timeout=20)
+    except subprocess.TimeoutExpired:
+        daemon.kill()
+        return daemon.wait()
+
+
+def _demo_refusal(config_path: str, reason: str) -> str:
+    """The one line of a demo that will not send its goal: another daemon serves the socket."""
+    return (
+        f"jtc-hw demo --config {config_path} sends nothing: {reason}. The demo moves only a "
+        f"daemon it starts itself; to move the running one: 'jtc-hw send GOAL --config "
+        f"{config_path}'"
+    )
 
 
 # -- parser -----------------------------------------------------------------------------------

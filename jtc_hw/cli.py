@@ -509,7 +509,10 @@ def cmd_stop(args: argparse.Namespace) -> int:
 
 def cmd_rearm(args: argparse.Namespace) -> int:
     with _connect(args) as client:
-        fault = client.get_status().get("controller", {}).get("fault")
+        controller = client.get_status().get("controller", {})
+        # After a failed re-arm, "fault" says why that one failed; the fault being recovered
+        # from is "fault_cause" (a daemon before issue 22 sends only "fault").
+        fault = controller.get("fault_cause") or controller.get("fault")
         reply = client.rearm(timeout_s=args.timeout)
         if not reply.get("rearmed"):
             print("nothing to re-arm: the controller is running and no fault is latched")
@@ -671,10 +674,15 @@ def demo_config(
 DEMO_HARDWARE = ("mirror", "dynamixel", "can-mit", "can-cia402")
 
 
-def _start_emulator(kind: str, timeout_s: float) -> tuple[subprocess.Popen[str], str]:
-    """Start ``jtc-hw emulate`` for a demo hardware kind; return it and its connection line."""
+def _start_emulator(
+    kind: str, timeout_s: float
+) -> tuple[subprocess.Popen[str], str, threading.Thread]:
+    """Start ``jtc-hw emulate`` for a demo hardware kind; return it, its connection line and
+    the thread forwarding its stderr (join it once the emulator has exited: its last lines)."""
     if kind == "dynamixel":
-        argv = ["dynamixel", "--ids", "1-6", "--model", "XM430-W350", "--baud", "4000000"]
+        # Its statistics once, when it stops: live, they interleaved with the progress bar.
+        argv = ["dynamixel", "--ids", "1-6", "--model", "XM430-W350", "--baud", "4000000",
+                "--stats", "exit"]
     else:
         protocol = "mit" if kind == "can-mit" else "cia402"
         argv = ["can", "--protocol", protocol, "--ids", "1-6", "--pace",
@@ -687,7 +695,8 @@ def _start_emulator(kind: str, timeout_s: float) -> tuple[subprocess.Popen[str],
     )
     stdout, stderr = emulator.stdout, emulator.stderr
     assert stdout is not None and stderr is not None
-    threading.Thread(target=_forward, args=(stderr, "  emulator | "), daemon=True).start()
+    forward = threading.Thread(target=_forward, args=(stderr, "  emulator | "), daemon=True)
+    forward.start()
     found: list[str] = []
     reader = threading.Thread(target=lambda: found.append(stdout.readline()), daemon=True)
     reader.start()
@@ -697,7 +706,7 @@ def _start_emulator(kind: str, timeout_s: float) -> tuple[subprocess.Popen[str],
         emulator.kill()
         emulator.wait()
         raise JtcHwError(f"the {kind} emulator did not start (exit status {emulator.returncode})")
-    return emulator, line
+    return emulator, line, forward
 
 
 def demo_hardware(kind: str, line: str) -> tuple[list[dict[str, Any]], int]:
@@ -765,10 +774,11 @@ def _forward(stream: Any, prefix: str) -> None:
 
 def cmd_demo(args: argparse.Namespace) -> int:
     emulator = None
+    forward = None
     hardware = None
     update_rate = 500
     if args.hardware != "mirror" and not args.config:
-        emulator, line = _start_emulator(args.hardware, args.timeout)
+        emulator, line, forward = _start_emulator(args.hardware, args.timeout)
         print(f"jtc-hw demo: emulated {args.hardware} motors: {line}")
         hardware, update_rate = demo_hardware(args.hardware, line)
     try:
@@ -781,6 +791,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
             except subprocess.TimeoutExpired:
                 emulator.kill()
                 emulator.wait()
+        if forward is not None:
+            forward.join(5.0)  # its last lines (the statistics) after the demo's own
 
 
 def _demo(args: argparse.Namespace, hardware: list[dict[str, Any]] | None, rate: int) -> int:

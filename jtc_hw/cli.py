@@ -43,8 +43,10 @@ _EXIT_HELP = {
     ),
     "check": "Exit status: 0 the configuration is valid; 2 it is not (the error names the key).",
     "demo": (
-        "Exit status: 0 the goal succeeded; 1 it aborted or was canceled; 2 bad configuration; "
-        "3 the daemon or emulator did not start or stopped with an error."
+        "Exit status: 0 the goal succeeded; 1 it aborted or was canceled; 2 bad configuration, "
+        "or --config's socket is already served by a running daemon (the demo sends nothing "
+        "to a daemon it did not start); 3 the daemon or emulator did not start or stopped "
+        "with an error."
     ),
     "emulate": "Exit status: 0 stopped by Ctrl-C/SIGTERM; 2 bad emulator options.",
 }
@@ -560,7 +562,10 @@ def cmd_stop(args: argparse.Namespace) -> int:
 
 def cmd_rearm(args: argparse.Namespace) -> int:
     with _connect(args) as client:
-        fault = client.get_status().get("controller", {}).get("fault")
+        controller = client.get_status().get("controller", {})
+        # After a failed re-arm, "fault" says why that one failed; the fault being recovered
+        # from is "fault_cause" (a daemon before issue 22 sends only "fault").
+        fault = controller.get("fault_cause") or controller.get("fault")
         reply = client.rearm(timeout_s=args.timeout)
         if not reply.get("rearmed"):
             print("nothing to re-arm: the controller is running and no fault is latched")
@@ -722,10 +727,15 @@ def demo_config(
 DEMO_HARDWARE = ("mirror", "dynamixel", "can-mit", "can-cia402")
 
 
-def _start_emulator(kind: str, timeout_s: float) -> tuple[subprocess.Popen[str], str]:
-    """Start ``jtc-hw emulate`` for a demo hardware kind; return it and its connection line."""
+def _start_emulator(
+    kind: str, timeout_s: float
+) -> tuple[subprocess.Popen[str], str, threading.Thread]:
+    """Start ``jtc-hw emulate`` for a demo hardware kind; return it, its connection line and
+    the thread forwarding its stderr (join it once the emulator has exited: its last lines)."""
     if kind == "dynamixel":
-        argv = ["dynamixel", "--ids", "1-6", "--model", "XM430-W350", "--baud", "4000000"]
+        # Its statistics once, when it stops: live, they interleaved with the progress bar.
+        argv = ["dynamixel", "--ids", "1-6", "--model", "XM430-W350", "--baud", "4000000",
+                "--stats", "exit"]
     else:
         protocol = "mit" if kind == "can-mit" else "cia402"
         argv = ["can", "--protocol", protocol, "--ids", "1-6", "--pace",
@@ -738,7 +748,8 @@ def _start_emulator(kind: str, timeout_s: float) -> tuple[subprocess.Popen[str],
     )
     stdout, stderr = emulator.stdout, emulator.stderr
     assert stdout is not None and stderr is not None
-    threading.Thread(target=_forward, args=(stderr, "  emulator | "), daemon=True).start()
+    forward = threading.Thread(target=_forward, args=(stderr, "  emulator | "), daemon=True)
+    forward.start()
     found: list[str] = []
     reader = threading.Thread(target=lambda: found.append(stdout.readline()), daemon=True)
     reader.start()
@@ -748,7 +759,7 @@ def _start_emulator(kind: str, timeout_s: float) -> tuple[subprocess.Popen[str],
         emulator.kill()
         emulator.wait()
         raise JtcHwError(f"the {kind} emulator did not start (exit status {emulator.returncode})")
-    return emulator, line
+    return emulator, line, forward
 
 
 def demo_hardware(kind: str, line: str) -> tuple[list[dict[str, Any]], int]:
@@ -816,10 +827,11 @@ def _forward(stream: Any, prefix: str) -> None:
 
 def cmd_demo(args: argparse.Namespace) -> int:
     emulator = None
+    forward = None
     hardware = None
     update_rate = 500
     if args.hardware != "mirror" and not args.config:
-        emulator, line = _start_emulator(args.hardware, args.timeout)
+        emulator, line, forward = _start_emulator(args.hardware, args.timeout)
         print(f"jtc-hw demo: emulated {args.hardware} motors: {line}")
         hardware, update_rate = demo_hardware(args.hardware, line)
     try:
@@ -832,17 +844,33 @@ def cmd_demo(args: argparse.Namespace) -> int:
             except subprocess.TimeoutExpired:
                 emulator.kill()
                 emulator.wait()
+        if forward is not None:
+            forward.join(5.0)  # its last lines (the statistics) after the demo's own
 
 
 def _demo(args: argparse.Namespace, hardware: list[dict[str, Any]] | None, rate: int) -> int:
-    from .api.client import Client
+    """Start a daemon, send the demo goal to it and to nothing else, stop it.
+
+    The demo moves only a robot it started: with ``--config``, a socket that a running daemon
+    already serves is refused before anything starts, and whatever the configuration, the
+    client checks that the process serving the socket is the daemon started here
+    (``SO_PEERCRED``) before it sends a request, so a daemon that took the path meanwhile
+    is never sent the wave either. Both refusals exit 2 (the configuration cannot be used
+    for a demo now), like ``run`` with a socket in use.
+    """
+    from .api.client import NOT_EXPECTED, Client, ClientConnectionError
 
     with tempfile.TemporaryDirectory(prefix="jtc-hw-demo-") as tmp:
         if args.config:
             config_path = args.config
+            from .daemon.locks import held_by, socket_lock_path
             from .daemon.robot import load_robot
 
             socket_path = load_robot(config_path).daemon.socket
+            busy = held_by(socket_path, socket_lock_path(socket_path), what="served")
+            if busy is not None:
+                print(f"error: {_demo_refusal(config_path, str(busy))}", file=sys.stderr)
+                return EXIT_BAD_INPUT
             goal = None
         else:
             socket_path = os.path.join(tmp, "jtc-hw.sock")
@@ -868,7 +896,17 @@ def _demo(args: argparse.Namespace, hardware: list[dict[str, Any]] | None, rate:
                 )
                 return EXIT_NO_DAEMON
             try:
-                client = Client.connect(socket_path, timeout_s=2.0)
+                client = Client.connect(socket_path, timeout_s=2.0, expect_pid=daemon.pid)
+            except ClientConnectionError as exc:
+                if exc.code == NOT_EXPECTED:  # another daemon took the path: not ours to move
+                    _stop_daemon(daemon)
+                    print(f"error: {_demo_refusal(config_path, str(exc))}", file=sys.stderr)
+                    return EXIT_BAD_INPUT
+                if time.monotonic() > deadline:
+                    daemon.terminate()
+                    print("the daemon did not open its socket in time", file=sys.stderr)
+                    return EXIT_NO_DAEMON
+                time.sleep(0.05)  # CLI polling for a socket to appear; not in library code
             except (OSError, JtcHwError):
                 if time.monotonic() > deadline:
                     daemon.terminate()
@@ -910,14 +948,29 @@ def _demo(args: argparse.Namespace, hardware: list[dict[str, Any]] | None, rate:
             )
         finally:
             client.close()
-            daemon.send_signal(signal.SIGTERM)
-            try:
-                status_code = daemon.wait(timeout=20)
-            except subprocess.TimeoutExpired:
-                daemon.kill()
-                status_code = daemon.wait()
+            status_code = _stop_daemon(daemon)
         print(f"daemon stopped (SIGTERM), exit status {status_code}")
         return code if status_code == 0 else EXIT_NO_DAEMON
+
+
+def _stop_daemon(daemon: subprocess.Popen[str]) -> int:
+    """SIGTERM the demo's daemon and wait for it (SIGKILL after 20 s); its exit status."""
+    if daemon.poll() is None:
+        daemon.send_signal(signal.SIGTERM)
+    try:
+        return daemon.wait(timeout=20)
+    except subprocess.TimeoutExpired:
+        daemon.kill()
+        return daemon.wait()
+
+
+def _demo_refusal(config_path: str, reason: str) -> str:
+    """The one line of a demo that will not send its goal: another daemon serves the socket."""
+    return (
+        f"jtc-hw demo --config {config_path} sends nothing: {reason}. The demo moves only a "
+        f"daemon it starts itself; to move the running one: 'jtc-hw send GOAL --config "
+        f"{config_path}'"
+    )
 
 
 # -- parser -----------------------------------------------------------------------------------

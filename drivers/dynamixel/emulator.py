@@ -1485,6 +1485,14 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--link", default=None, help="also create this symlink to the pty")
     p.add_argument(
+        "--stats",
+        choices=("live", "exit"),
+        default="live",
+        help="packet statistics on stderr: live (a line whenever they changed, at most 5 a "
+        "second; the default) or exit (one line when it stops: a terminal that shows "
+        "something else meanwhile, such as the demo's progress bar, stays readable)",
+    )
+    p.add_argument(
         "--firmware",
         type=int,
         default=None,
@@ -1537,7 +1545,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             reported: set[tuple[int, float]] = set()
             while not stop.wait(0.2):
                 stats = emulator.stats()
-                if stats != last:
+                if stats != last and args.stats == "live":
                     print(
                         " ".join(f"{k}={v}" for k, v in stats.items()), file=sys.stderr, flush=True
                     )
@@ -1550,6 +1558,9 @@ def main(argv: Sequence[str] | None = None) -> int:
                         reported.add(key)
                         print("watchdog " + json.dumps(dataclasses.asdict(trip)),
                               file=sys.stderr, flush=True)
+            if args.stats == "exit":
+                print(" ".join(f"{k}={v}" for k, v in emulator.stats().items()),
+                      file=sys.stderr, flush=True)
     except OSError as exc:
         print(f"jtc-hw emulate dynamixel: {exc}", file=sys.stderr)
         return 2

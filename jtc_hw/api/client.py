@@ -43,6 +43,7 @@ __all__ = [
     "FeedbackCallback",
     "GoalHandle",
     "StateSubscription",
+    "NOT_EXPECTED",
     "UNTRUSTED",
     "default_socket_path",
 ]
@@ -149,6 +150,7 @@ class Client:
         check_owner: bool | None = None,
         zenoh_config: Any = None,
         trusted_group: str | int | None = None,
+        expect_pid: int | None = None,
     ) -> Client:
         """Connect, authenticate (TCP), and say ``hello``.
 
@@ -175,19 +177,26 @@ class Client:
             zenoh_config: with ``zenoh:``, the Zenoh configuration (a JSON5 file, a mapping
                 of keys to values, or a ``zenoh.Config``; default: connect to a router on
                 ``tcp/127.0.0.1:7447``).
+            expect_pid: the unix socket must be served by this process (``SO_PEERCRED``),
+                checked before any request is sent: a caller that started its own daemon
+                (``jtc-hw demo``) never talks to another one that serves the same path.
 
         Raises:
-            ValueError: both ``path`` and ``tcp``, or ``tcp`` without ``token``.
+            ValueError: both ``path`` and ``tcp``, or ``tcp`` without ``token``, or
+                ``expect_pid`` with anything but a unix socket.
             ClientConnectionError: nobody listens, the daemon is busy (``code`` ``busy``),
                 the socket or its listener failed the owner check (``code`` ``untrusted``;
-                the message names the socket, the listener's pid and uid, and what to do), or
-                the connection dropped.
+                the message names the socket, the listener's pid and uid, and what to do),
+                another process than ``expect_pid`` serves the socket (``code``
+                ``not_expected``, the message names it), or the connection dropped.
             RequestError: the daemon refused the token (``unauthorized``) or the ``hello``.
             ProtocolError: the daemon speaks another protocol version.
             TimeoutError: no answer within ``timeout_s``.
         """
         if path is not None and tcp is not None:
             raise ValueError("give either a unix socket path or tcp=(host, port), not both")
+        if expect_pid is not None and (tcp is not None or str(path).startswith("zenoh:")):
+            raise ValueError("expect_pid checks a unix socket's peer; it cannot check tcp or zenoh")
         if isinstance(path, str) and path.startswith("zenoh:"):
             from .zenoh_client import ZenohClient
 
@@ -224,6 +233,15 @@ class Client:
             except BaseException:
                 sock.close()
                 raise
+        if expect_pid is not None:
+            peer = _peer_pid(sock)
+            if peer != expect_pid:
+                sock.close()
+                by = "an unidentified process" if peer is None else f"pid {peer}"
+                raise ClientConnectionError(
+                    f"{label} is served by {by}, not by the expected pid {expect_pid}",
+                    NOT_EXPECTED,
+                )
         client = cls(sock, timeout_s, label)
         try:
             if tcp is not None:
@@ -733,6 +751,8 @@ class Client:
 
 UNTRUSTED = "untrusted"
 """``ClientConnectionError.code`` of a socket that failed the owner check."""
+NOT_EXPECTED = "not_expected"
+"""``ClientConnectionError.code`` of a socket served by another process than ``expect_pid``."""
 
 
 def _refuse_untrusted(path: str, problem: str | None, listener: bool = False) -> None:
@@ -751,6 +771,21 @@ def _refuse_untrusted(path: str, problem: str | None, listener: bool = False) ->
             "(--socket PATH, or JTC_HW_SOCKET=PATH)"
         )
     raise ClientConnectionError(f"refusing the daemon socket {path}: {problem}. {hint}", UNTRUSTED)
+
+
+def _peer_pid(sock: socket.socket) -> int | None:
+    """The pid of the process listening on the unix socket ``sock`` is connected to
+    (``SO_PEERCRED``, recorded by the kernel at its ``listen``), or None if not known."""
+    peercred = getattr(socket, "SO_PEERCRED", None)
+    if peercred is None:  # pragma: no cover - not Linux
+        return None
+    try:
+        pid, _uid, _gid = struct.unpack(
+            "3i", sock.getsockopt(socket.SOL_SOCKET, peercred, struct.calcsize("3i"))
+        )
+    except OSError:
+        return None
+    return int(pid)
 
 
 def _peer_problem(sock: socket.socket, group: str | int | None) -> str | None:

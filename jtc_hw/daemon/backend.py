@@ -261,6 +261,9 @@ class LoopBackend:
         self._trim: asyncio.TimerHandle | None = None  # a release of freed memory, scheduled
         self._stopping = False
         self._last_error: str | None = None  # the loop's last error log line
+        # An error the loop logged before "ready": why the start fails, said by start()'s
+        # exception (the daemon's "cannot start: ..."), logged here only if the start goes on.
+        self._start_error: tuple[int, str] | None = None
         self.death: str | None = None
         """Why the loop process ended without being asked to ("control loop died: ...")."""
         self.last_heard_ns = 0
@@ -345,12 +348,25 @@ class LoopBackend:
         if self._ready in done:
             self.info = self._ready.result()
             return self.info
-        if done:  # the loop exited; its last error says why (a busy device, a bad parameter)
+        if done and self._start_error is not None:
+            # The loop exited; its last error says why (a busy device, a bad parameter), once:
+            # in this exception, which the daemon logs.
+            self._start_error = None
+            raise HardwareError(self._last_error or "the control loop did not start")
+        self._log_start_error()
+        if done:
             raise HardwareError(self._last_error or "the control loop did not start (see the log "
                                 "above)")
         raise HardwareError(
             f"the control loop did not become ready within {START_TIMEOUT_S:.0f} s"
         )
+
+    def _log_start_error(self) -> None:
+        """Log the error the loop reported while starting, if the start did not end with it."""
+        if self._start_error is not None:
+            level, text = self._start_error
+            self._start_error = None
+            log.log(level, "%s", text)
 
     async def wait_exited(self) -> int:
         """Until the loop process has ended (asked to or not); its exit status.
@@ -362,13 +378,17 @@ class LoopBackend:
             raise ControllerStateError("the control loop was never started")
         return await asyncio.shield(self._exited)
 
-    async def stop(self, reason: str) -> int:
-        """Ask the loop to finish (goal result, hold, safe action) and wait for it to exit."""
+    async def stop(self, reason: str, record: bool = True) -> int:
+        """Ask the loop to finish (goal result, hold, safe action) and wait for it to exit.
+
+        ``record``: the flight recorder writes a ``shutdown`` bag (False for a start that
+        failed: nothing ran, nothing to look at; a bag per failed start under a restarting
+        service manager would push out the bags worth keeping)."""
         if self._process is None or self._exited is None:
             self._close_ring()
             return 0
         self._stopping = True
-        if self.flight is not None and not self._exited.done():
+        if self.flight is not None and not self._exited.done() and record:
             self.flight.trigger("shutdown")
         if not self._exited.done():
             stopping_s = 0.0  # a decelerating stop the loop finishes first (its bound)
@@ -567,7 +587,11 @@ class LoopBackend:
         elif kind == "status":
             self._status = message[1]
         elif kind == "log":
-            log.log(message[1], "%s", message[2])
+            if message[1] >= logging.ERROR and self._ready is not None and not self._ready.done():
+                self._log_start_error()  # an earlier one did not stop the start: say it
+                self._start_error = (message[1], message[2])
+            else:
+                log.log(message[1], "%s", message[2])
             if message[1] >= logging.ERROR:
                 self._last_error = message[2]
                 if str(message[2]).startswith("hardware fault"):
@@ -576,6 +600,7 @@ class LoopBackend:
                     if self.flight is not None:
                         self._flight_trigger("fault")
         elif kind == "ready":
+            self._log_start_error()
             t0 = message[1]["t0_ns"]
             initial = self.config.speed_scaling.initial_scaling_factor
             self._timebase = (t0, t0, initial, initial)  # activation: trajectory time = clock

@@ -83,6 +83,7 @@ __all__ = [
     "DeviceLock",
     "acquire",
     "check_directory",
+    "held_by",
     "lock_devices",
     "lock_directory",
     "lock_file_name",
@@ -358,20 +359,7 @@ def acquire(name: str, path: str, *, config: str | None, pid: int | None = None,
         except BlockingIOError:
             owner = _find_owner(fd)
             os.close(fd)
-            by = f"pid {owner.pid}" if owner.pid is not None else "another process"
-            where = f" ({owner.config})" if owner.config else ""
-            who = ""
-            if owner.user is not None:
-                who = (f", lock file owned by user {owner.user}" if owner.user_is_file_owner
-                       else f", user {owner.user}")
-            raise DeviceBusy(
-                f"{name} is already {what} by {by}{where}{who}; stop that daemon first (lock "
-                f"file {path})",
-                name,
-                owner.pid,
-                owner.config,
-                owner.user,
-            ) from None
+            raise _busy(name, path, what, owner) from None
         except OSError as exc:
             os.close(fd)
             raise HardwareError(f"{name}: cannot lock {path}: {exc.strerror}") from None
@@ -393,6 +381,49 @@ def acquire(name: str, path: str, *, config: str | None, pid: int | None = None,
     except OSError:
         pass  # opened read-only (another user's file): locked, owner not recorded
     return DeviceLock(name, path, fd)
+
+
+def held_by(name: str, path: str, *, what: str = "driven") -> DeviceBusy | None:
+    """Whether another process holds the lock ``path`` (as :func:`acquire` would find), without
+    locking, creating or changing anything: the busy error :func:`acquire` would raise, or None.
+
+    For a client that must not touch what a running daemon serves (``jtc-hw demo --config``):
+    it reads the holder from ``/proc/locks`` only, so a daemon starting at the same moment
+    never finds the file locked by the one who asked. Where ``/proc/locks`` does not list it
+    (not Linux), the answer is None: a check, not a guarantee; the caller must not rely on it
+    alone.
+
+    Raises:
+        Nothing: a file that is missing or cannot be opened is not held by anyone it can see.
+    """
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_CLOEXEC | os.O_NOFOLLOW)
+    except OSError:
+        return None
+    try:
+        if _flock_holder(fd) is None:
+            return None  # a file left by a daemon that was killed: free
+        return _busy(name, path, what, _find_owner(fd))
+    finally:
+        os.close(fd)
+
+
+def _busy(name: str, path: str, what: str, owner: _Owner) -> DeviceBusy:
+    """The error for ``name`` (lock file ``path``) held by ``owner``."""
+    by = f"pid {owner.pid}" if owner.pid is not None else "another process"
+    where = f" ({owner.config})" if owner.config else ""
+    who = ""
+    if owner.user is not None:
+        who = (f", lock file owned by user {owner.user}" if owner.user_is_file_owner
+               else f", user {owner.user}")
+    return DeviceBusy(
+        f"{name} is already {what} by {by}{where}{who}; stop that daemon first (lock "
+        f"file {path})",
+        name,
+        owner.pid,
+        owner.config,
+        owner.user,
+    )
 
 
 def lock_devices(names: Sequence[DeviceName | str], *, config: str | None,

@@ -115,6 +115,9 @@ class ControlLoop:
         self.stats = LoopStats(self.config.update_rate)
         self.state_every_ns = round(1e9 / self.config.state_publish_rate)
         self.fault: str | None = None
+        self.fault_cause: str | None = None
+        """The hardware fault that stopped the controller, kept while re-arms fail (``fault``
+        then says why the last re-arm failed): what a successful re-arm recovered from."""
         self.running = True
         self._version_sent = -1
         self._committed_plan: int | None = None
@@ -182,7 +185,7 @@ class ControlLoop:
         self._last_state = state
 
     def _enter_fault(self, now_ns: int, reason: str) -> None:
-        self.fault = reason
+        self.fault = self.fault_cause = reason
         log.error("hardware fault: %s; controller stopped, hardware safe action applied", reason)
         self.send("log", logging.ERROR, f"hardware fault: {reason}")
         events: tuple[Event, ...] = ()
@@ -254,7 +257,7 @@ class ControlLoop:
                 except JtcHwError:
                     pass
             raise
-        self.fault = None
+        self.fault = self.fault_cause = None
         log.info("re-armed: holding the measured position")
         self.send("status", self.status())
         return True
@@ -491,6 +494,7 @@ class ControlLoop:
                 "holding": self.ctrl.holding,
                 "active_goal": self.ctrl.active_goal,
                 "fault": self.fault,
+                "fault_cause": self.fault_cause,
                 "reference_version": self.ctrl.reference_version,
                 "speed_scaling": {
                     "factor": self.ctrl.speed_scaling_factor,
@@ -662,6 +666,7 @@ def loop_main(source: str | dict[str, Any], controller_name: str | None, conn: C
     sys.setswitchinterval(LOOP_SWITCH_INTERVAL_S)
     outbox = Outbox(conn, OUTBOX_CAPACITY_BYTES)
     code = 0
+    last_words: str | None = None  # the failure, logged by the API process (here if it cannot)
     loop: ControlLoop | None = None
     ring: CycleRing | None = None
     try:
@@ -703,8 +708,10 @@ def loop_main(source: str | dict[str, Any], controller_name: str | None, conn: C
         finally:
             inbox.close()
     except JtcHwError as exc:
-        log.error("%s", exc)
-        outbox.put(("log", logging.ERROR, str(exc)))
+        # Said once, by the API process (its log, or its "cannot start: ..." line): logging
+        # it here as well printed a missing serial port three times, from three modules.
+        last_words = str(exc)
+        outbox.put(("log", logging.ERROR, last_words))
         code = 2
     except Exception as exc:  # last resort: say what happened, never die silently
         log.exception("control loop crashed")
@@ -720,9 +727,12 @@ def loop_main(source: str | dict[str, Any], controller_name: str | None, conn: C
         if ring is not None:
             ring.close()
     outbox.put(("exit", code))
-    if not outbox.drain(EXIT_DRAIN_S) and not outbox.closed:
-        log.error("the API process did not take the loop's last messages within %g s",
-                  EXIT_DRAIN_S)
+    if not outbox.drain(EXIT_DRAIN_S):
+        if last_words is not None:
+            log.error("%s", last_words)  # nobody else will say it
+        if not outbox.closed:
+            log.error("the API process did not take the loop's last messages within %g s",
+                      EXIT_DRAIN_S)
     outbox.close()
 
 

@@ -127,26 +127,26 @@ class Daemon:
             await self.backend.start()
         except Exception as exc:
             log.error("cannot start: %s", exc)
-            await self.backend.stop("start-up failed")
+            await self.backend.stop("start-up failed", record=False)
             return 2
         server = Server(self.backend, settings)
         try:
             await server.start()
         except Exception as exc:
             log.error("cannot open the socket: %s", exc)
-            await self.backend.stop("start-up failed")
+            await self.backend.stop("start-up failed", record=False)
             return 2
         live = await self._start_live_view()
         if live is False:
             await server.close()
-            await self.backend.stop("start-up failed")
+            await self.backend.stop("start-up failed", record=False)
             return 2
         zenoh = await self._start_zenoh(server)
         if zenoh is False:
             if live is not None:
                 await live.close()
             await server.close()
-            await self.backend.stop("start-up failed")
+            await self.backend.stop("start-up failed", record=False)
             return 2
         c = self.robot.controller
         kinds = ", ".join(sorted({h.kind for h in self.robot.hardware}))

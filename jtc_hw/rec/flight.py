@@ -17,7 +17,11 @@ kept in ``flight_recorder_dir``.
 
 Time: daemon clock (CLOCK_MONOTONIC) mapped to wall time by one offset measured at start.
 
-Without ``rosbags`` the recorder is off (``available`` is False) and says so once in the log.
+Without ``rosbags`` the recorder is off (``available`` is False) and says so once in the log,
+at INFO: the plain install is a supported way to run, not a fault (``daemon.record``, which
+asks for recording, is refused without it). Log levels follow what happened: a trigger for
+something that went wrong (an abort, a fault) is a WARNING; a routine one
+(:data:`ROUTINE_TRIGGERS`: a normal shutdown) is INFO.
 A bag whose writing fails (a full disk) is closed with what it holds (``jtc_hw.rec.bag``), one
 line in the log says so and ``errors`` counts it; the next trigger tries again (the disk may
 have room by then). Nothing of it reaches the loop, which never waits for the recorder.
@@ -50,6 +54,10 @@ CYCLE_MARGIN_S = 0.5
 
 NAME_PATTERN = re.compile(r"^\d{8}T\d{6}\.\d{3}Z-[a-z_]+$")
 """A flight recorder bag's directory name: UTC time of the trigger, reason."""
+
+
+ROUTINE_TRIGGERS = frozenset({"shutdown"})
+"""Trigger reasons that are part of normal operation: their bag is announced at INFO."""
 
 
 def bag_name(wall_ns: int, reason: str) -> str:
@@ -96,9 +104,9 @@ class FlightRecorder:
                 import rosbags  # noqa: F401
             except ImportError:
                 self.available = False
-                log.warning("flight recorder off: it needs the rosbags library "
-                            "(pip install 'jtc_hw[record]'; or daemon.flight_recorder_s: 0 "
-                            "to run without it and without this warning)")
+                log.info("flight recorder off: it needs the rosbags library "
+                         "(pip install 'jtc_hw[record]'; or daemon.flight_recorder_s: 0 "
+                         "to run without it and without this line)")
         self._states: collections.deque[dict[str, Any]] = collections.deque()
         self._events: collections.deque[dict[str, Any]] = collections.deque()
         self._commands: collections.deque[tuple[int, Any]] = collections.deque()
@@ -213,7 +221,8 @@ class FlightRecorder:
                 return str(path)
         path = self.directory / bag_name(now + self.offset_ns, reason)
         self._pending.append((path, now + AFTER_NS, now))
-        log.warning("flight recorder: %s; writing %s", reason, path)
+        level = logging.INFO if reason in ROUTINE_TRIGGERS else logging.WARNING
+        log.log(level, "flight recorder: %s; writing %s", reason, path)
         return str(path)
 
     def flush(self, timeout_s: float = 10.0) -> None:

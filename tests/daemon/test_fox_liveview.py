@@ -350,3 +350,26 @@ def test_a_missing_sdk_names_the_extra_to_install(monkeypatch: pytest.MonkeyPatc
     assert "pip install 'jtc_hw[foxglove]'" in str(caught.value)
     assert "daemon.foxglove" in str(caught.value)
 
+
+
+def test_a_start_that_fails_on_a_taken_port_writes_no_flight_recorder_bag(
+    tmp_path: Path,
+) -> None:
+    """Issue 22, point 9: the live view's port is taken, so the daemon cannot start (exit 2);
+    the loop ran meanwhile, but nothing happened that a bag could explain: no bag, and no
+    ``flight recorder`` line in the log."""
+    import socket
+
+    pytest.importorskip("rosbags")  # the recorder is on only with it
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen(1)
+        d = DaemonProcess(tmp_path / "d", foxglove={"port": taken.getsockname()[1]})
+        d.start()
+        assert d.wait_exit() == 2
+    log = d.log()
+    assert "cannot start:" in log and "Traceback" not in log, log
+    assert "flight recorder" not in log, log
+    flight = tmp_path / "d" / "state" / "jtc-hw" / "flight"  # XDG_STATE_HOME of DaemonProcess
+    assert not flight.exists() or list(flight.iterdir()) == [], log
+    assert d.leftovers() == {}

@@ -149,3 +149,48 @@ def test_off_when_zero(tmp_path: Path) -> None:
     finally:
         recorder.close()
     assert not (tmp_path / "none").exists()
+
+
+def test_a_normal_shutdown_is_info_and_a_fault_a_warning(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """Issue 22, point 9: every clean stop logged ``flight recorder: shutdown; writing ...``
+    as a WARNING. What went wrong (an abort, a fault) stays a WARNING."""
+    pytest.importorskip("rosbags")
+    import logging
+
+    from jtc_hw.rec.flight import FlightRecorder
+
+    recorder = FlightRecorder(tmp_path, seconds=0.5, keep=5)
+    try:
+        with caplog.at_level(logging.INFO, logger="jtc_hw.flight_recorder"):
+            recorder.trigger("aborted", 1_000 * MS)
+            recorder.trigger("shutdown", 5_000 * MS)  # its own bag: 4 s later
+    finally:
+        recorder.close()
+    levels = {r.getMessage().split(";")[0]: r.levelname for r in caplog.records
+              if "; writing " in r.getMessage()}
+    assert levels == {"flight recorder: aborted": "WARNING",
+                      "flight recorder: shutdown": "INFO"}
+
+
+def test_without_rosbags_the_recorder_says_once_at_info_that_it_is_off(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    """The plain install is a supported way to run: it is off, said once, not a warning."""
+    import logging
+    import sys
+
+    from jtc_hw.rec.flight import FlightRecorder
+
+    monkeypatch.setitem(sys.modules, "rosbags", None)  # import rosbags -> ImportError
+    with caplog.at_level(logging.INFO, logger="jtc_hw.flight_recorder"):
+        recorder = FlightRecorder(tmp_path / "none", seconds=10.0, keep=2)
+        try:
+            assert recorder.trigger("shutdown", 0) is None
+        finally:
+            recorder.close()
+    assert recorder.available is False
+    said = [(r.levelname, r.getMessage()) for r in caplog.records]
+    assert len(said) == 1 and said[0][0] == "INFO", said
+    assert said[0][1].startswith("flight recorder off: it needs the rosbags library")

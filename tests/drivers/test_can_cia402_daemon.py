@@ -189,6 +189,44 @@ def test_rearm_is_refused_in_one_line_while_a_drive_cannot_stay_enabled(
 
 
 
+def test_a_rearm_after_a_failed_one_names_the_fault_it_recovered_from(
+    daemon: DaemonProcess, drives: Drives
+) -> None:
+    """Issue 22, point 9: after a failed re-arm, ``jtc-hw rearm`` said ``re-armed after:
+    re-arm failed: ...`` (why the previous attempt failed), not the drive fault it recovered
+    from. ``get_status`` keeps that fault as ``controller.fault_cause`` while re-arms fail."""
+    import subprocess
+    import sys
+
+    from helpers.daemon import daemon_env
+
+    with connect(daemon) as client:
+        goal = client.send_goal(traj([0.3, 0.0], 1.0))
+        for feedback in goal.feedback(timeout_s=WAIT_S):
+            if feedback["time_from_start"] >= 0.2:
+                break
+        drives.drives[7].inject_fault(0x4310)
+        assert goal.wait(timeout_s=WAIT_S)["status"] == "aborted"
+        cause = client.get_status()["controller"]["fault"]
+        assert "0x4310" in cause
+        drives.drives[7].lose_enable(1)
+        with pytest.raises(RequestError):
+            client.rearm()
+        controller = client.get_status()["controller"]
+        assert controller["fault"].startswith("re-arm failed: ")
+        assert controller["fault_cause"] == cause
+        drives.drives[7].lose_enable(None)
+    done = subprocess.run(
+        [sys.executable, "-m", "jtc_hw", "rearm", "--socket", str(daemon.socket)],
+        capture_output=True, text=True, env=daemon_env(), timeout=60, stdin=subprocess.DEVNULL,
+    )
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert done.stdout == f"re-armed after: {cause}; holding the measured position\n"
+    with connect(daemon) as client:
+        controller = client.get_status()["controller"]
+    assert (controller["fault"], controller["fault_cause"]) == (None, None)
+
+
 def test_a_socketcand_receive_error_is_one_line_in_result_status_and_hardware(
     daemon: DaemonProcess, drives: Drives
 ) -> None:

@@ -362,3 +362,19 @@ def test_sigkill_of_the_api_process_lets_the_loop_stop_the_servos_itself(
             assert time.monotonic() < deadline, "the servos did not come to rest"
             time.sleep(0.01)  # watching the emulated motors decelerate
         assert emu.watchdog_trips() == [], "the loop stopped the servos, not their watchdogs"
+
+
+def test_a_missing_serial_device_is_one_error_line(tmp_path: Path) -> None:
+    """Issue 22, point 9: a port that does not exist was reported three times, as ERROR lines
+    from the loop, the backend and the daemon. Once now: the daemon's ``cannot start``."""
+    missing = tmp_path / "ttyUSB-unplugged"
+    d = DxlDaemon(tmp_path / "d", lambda sock: robot(sock, str(missing)))
+    d.start()
+    assert d.wait_exit() == 2
+    log = d.log()
+    mentions = [line for line in log.splitlines() if str(missing) in line]
+    assert len(mentions) == 1, log
+    assert mentions[0].startswith("ERROR jtc_hw.daemon: cannot start: Dynamixel bus "), log
+    assert "cannot open the port" in mentions[0] and "Traceback" not in log
+    assert [line for line in log.splitlines() if line.startswith("ERROR")] == mentions, log
+    assert d.leftovers() == {}

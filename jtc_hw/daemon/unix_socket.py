@@ -18,7 +18,7 @@ from pathlib import Path
 from ..api.paths import default_socket_path, directory_problem
 from ..errors import ConfigurationError
 
-__all__ = ["bind_unix", "directory_mode", "remove_socket_file"]
+__all__ = ["bind_unix", "directory_mode", "make_socket_directory", "remove_socket_file"]
 
 log = logging.getLogger("jtc_hw.server")
 
@@ -37,7 +37,15 @@ def directory_mode(socket_mode: int) -> int:
     return mode
 
 
-def _make_directory(directory: Path, mode: int) -> None:
+def make_socket_directory(directory: Path, socket_mode: int) -> None:
+    """Create the socket's ``directory`` and its missing parents with
+    :func:`directory_mode` (``0710`` for the default ``0660``: nobody else can write it, nor
+    list it); leave a directory that exists as it is.
+
+    Raises:
+        ConfigurationError: a directory cannot be created; it names it and the reason.
+    """
+    mode = directory_mode(socket_mode)
     missing: list[Path] = []
     for d in (directory, *directory.parents):
         if os.path.lexists(d):
@@ -66,7 +74,7 @@ def bind_unix(path: Path, socket_mode: int) -> tuple[socket.socket, SocketIdenti
             place), a live daemon listens there, the path is not a socket, or binding fails;
             each names the path and what to do.
     """
-    _make_directory(path.parent, directory_mode(socket_mode))
+    make_socket_directory(path.parent, socket_mode)
     if os.path.normpath(path) == os.path.normpath(default_socket_path()):
         # The default place: check that no other user could have prepared it for us.
         problem = directory_problem(str(path.parent))

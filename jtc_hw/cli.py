@@ -32,7 +32,13 @@ EXIT_CODES_HELP = (
     "Exit status: 0 success; 1 the goal aborted or was canceled; 2 bad input, or the daemon "
     "answered and refused the request (rejected goal, bad request); 3 no daemon answers."
 )
-"""The exit statuses of client commands, in every such command's ``--help``."""
+"""The exit statuses of ``send``, the client command that waits for a goal's result."""
+
+CLIENT_EXIT_HELP = (
+    "Exit status: 0 success; 2 bad input (an unreadable --config or --zenoh-config), or the "
+    "daemon answered and refused the request; 3 no daemon answers."
+)
+"""The exit statuses of the client commands that start or wait for no goal (no exit 1)."""
 
 _EXIT_HELP = {
     "run": (
@@ -45,8 +51,14 @@ _EXIT_HELP = {
         "3 the daemon or emulator did not start or stopped with an error."
     ),
     "emulate": "Exit status: 0 stopped by Ctrl-C/SIGTERM; 2 bad emulator options.",
+    "send": EXIT_CODES_HELP,
+    "cancel": (
+        "Exit status: 0 the cancel was requested, or no goal is executing; 1 that goal is not "
+        "executing; 2 bad input, or the daemon answered and refused the request; 3 no daemon "
+        "answers."
+    ),
 }
-"""Exit statuses of the commands that are not clients of a running daemon."""
+"""Each command's exit statuses where they are not :data:`CLIENT_EXIT_HELP`'s."""
 
 DESCRIPTION = """\
 Drive robot joints with ROS 2 joint_trajectory_controller semantics, without ROS.
@@ -1027,8 +1039,7 @@ def build_parser() -> argparse.ArgumentParser:
         description=(
             "Print the controller state: per joint desired, actual and error positions and "
             "the velocity; the header shows this machine's wall time. During a hardware fault "
-            "(no state is published) it shows the fault and the held position instead. "
-            f"{EXIT_CODES_HELP}"
+            "(no state is published) it shows the fault and the held position instead."
         ),
     )
     p.add_argument("--watch", action="store_true", help="keep printing at state_publish_rate")
@@ -1184,7 +1195,7 @@ Exit status: 0 done; 2 unknown or read-only parameter, or a bad value; 3 no daem
         help="loop statistics, hardware and controller status",
         description=(
             "Show the daemon's status as a table: controller (and any fault), loop timing, "
-            f"hardware components, clients. {EXIT_CODES_HELP}"
+            "hardware components, clients."
         ),
     )
     p.add_argument("--json", action="store_true", help="print the daemon's full reply as JSON")
@@ -1202,7 +1213,7 @@ Exit status: 0 done; 2 unknown or read-only parameter, or a bad value; 3 no daem
     for name, command in sub.choices.items():
         # Every subcommand's --help states its exit statuses (unless its description does).
         if "Exit status" not in (command.description or ""):
-            command.epilog = _EXIT_HELP.get(name, EXIT_CODES_HELP)
+            command.epilog = _EXIT_HELP.get(name, CLIENT_EXIT_HELP)
     return parser
 
 

@@ -184,6 +184,7 @@ def _csv_trajectory(text: str, path: str) -> dict[str, Any]:
 def _socket(args: argparse.Namespace) -> tuple[str, bool]:
     """The daemon's socket, and whether it was named (not found by the default rule)."""
     from .api.client import default_socket_path
+    from .api.paths import client_socket_path
     from .api.paths import default_socket_path as default_rule
 
     if getattr(args, "socket", None):
@@ -192,7 +193,9 @@ def _socket(args: argparse.Namespace) -> tuple[str, bool]:
         from .daemon.robot import load_robot
 
         path = load_robot(args.config).daemon.socket
-        return path, path != default_rule()
+        if path == default_rule():  # not in the file: the default place, or the service's
+            return client_socket_path(), False
+        return path, True
     return default_socket_path(), bool(os.environ.get("JTC_HW_SOCKET"))
 
 
@@ -347,8 +350,11 @@ def cmd_check(args: argparse.Namespace) -> int:
 
     for line in check_lines(d):
         print(line)
+    from .daemon.systemd_units import private_tmp_warnings
+
     _print_warnings(
-        [*explain(c), *_limits_warnings(robot), *security_warnings(robot), *watchdog_warnings]
+        [*explain(c), *_limits_warnings(robot), *security_warnings(robot), *watchdog_warnings,
+         *private_tmp_warnings(args.config_file, d.socket)]
     )
     return EXIT_OK
 

@@ -46,8 +46,7 @@ __all__ = [
     "UNTRUSTED",
     "default_socket_path",
 ]
-from .paths import default_socket_path as daemon_default
-from .paths import socket_problem, trusted_uid
+from .paths import client_socket_path, service_uid, socket_problem, trusted_uid
 from .protocol import tolerances_to_json, trajectory_to_json
 
 log = logging.getLogger("jtc_hw.client")
@@ -62,7 +61,8 @@ ToleranceLike = JointTolerance | Mapping[str, Any]
 
 def default_socket_path() -> str:
     """``$JTC_HW_SOCKET`` if set, else where a daemon of this user puts its socket by default
-    (:func:`jtc_hw.api.paths.default_socket_path`).
+    (:func:`jtc_hw.api.paths.default_socket_path`), or the system service's if nothing is
+    there (:func:`jtc_hw.api.paths.client_socket_path`).
 
     Raises:
         Nothing.
@@ -70,7 +70,7 @@ def default_socket_path() -> str:
     explicit = os.environ.get("JTC_HW_SOCKET")
     if explicit:
         return explicit
-    return daemon_default()
+    return client_socket_path()
 
 
 class ClientConnectionError(ProtocolError):
@@ -214,7 +214,7 @@ class Client:
             ) from None
         if family == socket.AF_UNIX and check_owner:
             try:
-                _refuse_untrusted(str(address), _peer_problem(sock))
+                _refuse_untrusted(str(address), _peer_problem(sock, str(address)))
             except BaseException:
                 sock.close()
                 raise
@@ -738,9 +738,10 @@ def _refuse_untrusted(path: str, problem: str | None) -> None:
     )
 
 
-def _peer_problem(sock: socket.socket) -> str | None:
-    """Whether the process listening on ``sock`` is this user's or root's (``SO_PEERCRED``:
-    recorded by the kernel when it called ``listen``, it cannot be forged)."""
+def _peer_problem(sock: socket.socket, path: str) -> str | None:
+    """Whether the process listening on ``sock`` is this user's or root's, or the system
+    service's user's at its socket ``path`` (``SO_PEERCRED``: recorded by the kernel when it
+    called ``listen``, it cannot be forged)."""
     peercred = getattr(socket, "SO_PEERCRED", None)
     if peercred is None:  # pragma: no cover - not Linux: the file owner check stands alone
         return None
@@ -750,7 +751,7 @@ def _peer_problem(sock: socket.socket) -> str | None:
         )
     except OSError as exc:
         return f"the listening process cannot be identified ({exc})"
-    if trusted_uid(uid):
+    if trusted_uid(uid) or uid == service_uid(os.path.dirname(path)):
         return None
     return (
         f"the process listening on it (pid {pid}) runs as uid {uid}, not as uid "

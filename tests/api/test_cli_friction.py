@@ -4,10 +4,10 @@ example configuration with its own socket, third-party loggers quiet unless ``-v
 
 from __future__ import annotations
 
-import re
 import argparse
 import logging
 import os
+import re
 import subprocess
 import sys
 from collections.abc import Iterator

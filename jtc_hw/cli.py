@@ -34,7 +34,13 @@ EXIT_CODES_HELP = (
     "answered and refused the request (rejected goal, bad request), or the socket is not "
     "served by a daemon you trust; 3 no daemon answers."
 )
-"""The exit statuses of client commands, in every such command's ``--help``."""
+"""The exit statuses of ``send``, the client command that waits for a goal's result."""
+
+CLIENT_EXIT_HELP = (
+    "Exit status: 0 success; 2 bad input (an unreadable --config or --zenoh-config), or the "
+    "daemon answered and refused the request; 3 no daemon answers."
+)
+"""The exit statuses of the client commands that start or wait for no goal (no exit 1)."""
 
 _EXIT_HELP = {
     "run": (
@@ -49,8 +55,14 @@ _EXIT_HELP = {
         "with an error."
     ),
     "emulate": "Exit status: 0 stopped by Ctrl-C/SIGTERM; 2 bad emulator options.",
+    "send": EXIT_CODES_HELP,
+    "cancel": (
+        "Exit status: 0 the cancel was requested, or no goal is executing; 1 that goal is not "
+        "executing; 2 bad input, or the daemon answered and refused the request; 3 no daemon "
+        "answers."
+    ),
 }
-"""Exit statuses of the commands that are not clients of a running daemon."""
+"""Each command's exit statuses where they are not :data:`CLIENT_EXIT_HELP`'s."""
 
 DESCRIPTION = """\
 Drive robot joints with ROS 2 joint_trajectory_controller semantics, without ROS.
@@ -179,6 +191,7 @@ def _csv_trajectory(text: str, path: str) -> dict[str, Any]:
 def _socket(args: argparse.Namespace) -> tuple[str, bool]:
     """The daemon's socket, and whether it was named (not found by the default rule)."""
     from .api.client import default_socket_path
+    from .api.paths import client_socket_path
     from .api.paths import default_socket_path as default_rule
 
     if getattr(args, "socket", None):
@@ -187,7 +200,9 @@ def _socket(args: argparse.Namespace) -> tuple[str, bool]:
         from .daemon.robot import load_robot
 
         path = load_robot(args.config).daemon.socket
-        return path, path != default_rule()
+        if path == default_rule():  # not in the file: the default place, or the service's
+            return client_socket_path(), False
+        return path, True
     return default_socket_path(), bool(os.environ.get("JTC_HW_SOCKET"))
 
 
@@ -390,8 +405,11 @@ def cmd_check(args: argparse.Namespace) -> int:
 
     for line in check_lines(d):
         print(line)
+    from .daemon.systemd_units import private_tmp_warnings
+
     _print_warnings(
-        [*explain(c), *_limits_warnings(robot), *security_warnings(robot), *watchdog_warnings]
+        [*explain(c), *_limits_warnings(robot), *security_warnings(robot), *watchdog_warnings,
+         *private_tmp_warnings(args.config_file, d.socket)]
     )
     return EXIT_OK
 
@@ -1139,8 +1157,7 @@ def build_parser() -> argparse.ArgumentParser:
         description=(
             "Print the controller state: per joint desired, actual and error positions and "
             "the velocity; the header shows this machine's wall time. During a hardware fault "
-            "(no state is published) it shows the fault and the held position instead. "
-            f"{EXIT_CODES_HELP}"
+            "(no state is published) it shows the fault and the held position instead."
         ),
     )
     p.add_argument("--watch", action="store_true", help="keep printing at state_publish_rate")
@@ -1296,7 +1313,7 @@ Exit status: 0 done; 2 unknown or read-only parameter, or a bad value; 3 no daem
         help="loop statistics, hardware and controller status",
         description=(
             "Show the daemon's status as a table: controller (and any fault), loop timing, "
-            f"hardware components, clients. {EXIT_CODES_HELP}"
+            "hardware components, clients."
         ),
     )
     p.add_argument("--json", action="store_true", help="print the daemon's full reply as JSON")
@@ -1314,7 +1331,7 @@ Exit status: 0 done; 2 unknown or read-only parameter, or a bad value; 3 no daem
     for name, command in sub.choices.items():
         # Every subcommand's --help states its exit statuses (unless its description does).
         if "Exit status" not in (command.description or ""):
-            command.epilog = _EXIT_HELP.get(name, EXIT_CODES_HELP)
+            command.epilog = _EXIT_HELP.get(name, CLIENT_EXIT_HELP)
     return parser
 
 

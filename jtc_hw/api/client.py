@@ -47,8 +47,7 @@ __all__ = [
     "UNTRUSTED",
     "default_socket_path",
 ]
-from .paths import default_socket_path as daemon_default
-from .paths import listener_problem, socket_problem
+from .paths import client_socket_path, listener_problem, service_uid, socket_problem
 from .protocol import tolerances_to_json, trajectory_to_json
 
 log = logging.getLogger("jtc_hw.client")
@@ -63,7 +62,8 @@ ToleranceLike = JointTolerance | Mapping[str, Any]
 
 def default_socket_path() -> str:
     """``$JTC_HW_SOCKET`` if set, else where a daemon of this user puts its socket by default
-    (:func:`jtc_hw.api.paths.default_socket_path`).
+    (:func:`jtc_hw.api.paths.default_socket_path`), or the system service's if nothing is
+    there (:func:`jtc_hw.api.paths.client_socket_path`).
 
     Raises:
         Nothing.
@@ -71,7 +71,7 @@ def default_socket_path() -> str:
     explicit = os.environ.get("JTC_HW_SOCKET")
     if explicit:
         return explicit
-    return daemon_default()
+    return client_socket_path()
 
 
 class ClientConnectionError(ProtocolError):
@@ -229,7 +229,9 @@ class Client:
             ) from None
         if family == socket.AF_UNIX:
             try:
-                _refuse_untrusted(str(address), _peer_problem(sock, trusted_group), listener=True)
+                _refuse_untrusted(
+                    str(address), _peer_problem(sock, str(address), trusted_group), listener=True
+                )
             except BaseException:
                 sock.close()
                 raise
@@ -788,10 +790,10 @@ def _peer_pid(sock: socket.socket) -> int | None:
     return int(pid)
 
 
-def _peer_problem(sock: socket.socket, group: str | int | None) -> str | None:
-    """Whether the process listening on ``sock`` is this user's, root's or ``group``'s
-    (``SO_PEERCRED``: recorded by the kernel when it called ``listen``, it cannot be
-    forged)."""
+def _peer_problem(sock: socket.socket, path: str, group: str | int | None) -> str | None:
+    """Whether the process listening on ``sock`` is this user's, root's, ``group``'s, or the
+    system service's user's at its socket ``path`` (``SO_PEERCRED``: recorded by the kernel
+    when it called ``listen``, it cannot be forged)."""
     peercred = getattr(socket, "SO_PEERCRED", None)
     if peercred is None:  # pragma: no cover - not Linux: the file owner check stands alone
         return None
@@ -801,6 +803,8 @@ def _peer_problem(sock: socket.socket, group: str | int | None) -> str | None:
         )
     except OSError as exc:
         return f"the listening process cannot be identified ({exc})"
+    if uid == service_uid(os.path.dirname(path)):
+        return None
     problem = listener_problem(pid, uid, group)
     return None if problem is None else f"{problem}: it is not your daemon"
 

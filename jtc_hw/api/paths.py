@@ -14,6 +14,14 @@ forged) must run as the client's own user, as root, or as a member of the group 
 configuration names (``daemon.socket_group``: the service user's group, whose members may
 connect). A socket named in a directory anyone can write, such as ``/tmp``, is otherwise
 anyone's (:func:`listener_problem`).
+
+A client looks where a daemon of its own user would be, and when nothing is there, at the
+system service's socket ``/run/jtc-hw/jtc-hw.sock`` (config/jtc-hw.service's
+``RuntimeDirectory=jtc-hw``, docs/systemd.md): from a login shell ``$XDG_RUNTIME_DIR`` is set,
+so the per-user place alone would never find the service. That place cannot be squatted
+either: only root can create an entry in ``/run`` (root's, writable by nobody else), so the
+owner of ``/run/jtc-hw`` is the user root (systemd, for the unit's ``User=``) gave it to, and a
+client trusts that user's socket and daemon there besides its own and root's.
 """
 
 from __future__ import annotations
@@ -28,6 +36,7 @@ from typing import Final
 __all__ = [
     "ROOT_SOCKET_DIR",
     "SOCKET_NAME",
+    "client_socket_path",
     "default_socket_path",
     "directory_problem",
     "group_id",
@@ -38,8 +47,9 @@ __all__ = [
 ]
 
 SOCKET_NAME: Final = "jtc-hw.sock"
-ROOT_SOCKET_DIR: Final = "/run/jtc-hw"
-"""The default directory of a daemon run by root without a runtime directory."""
+ROOT_SOCKET_DIR = "/run/jtc-hw"
+"""The default directory of a daemon run by root without a runtime directory, and the systemd
+unit's ``RuntimeDirectory=`` (``$RUNTIME_DIRECTORY``): where clients look last."""
 
 
 def private_fallback_dir(uid: int | None = None) -> str:
@@ -76,6 +86,41 @@ def default_socket_path(environ: Mapping[str, str] | None = None, uid: int | Non
     if uid == 0:
         return os.path.join(ROOT_SOCKET_DIR, SOCKET_NAME)
     return os.path.join(private_fallback_dir(uid), SOCKET_NAME)
+
+
+def client_socket_path(environ: Mapping[str, str] | None = None, uid: int | None = None) -> str:
+    """Where a client looks when no socket is named: :func:`default_socket_path`, or the
+    system service's ``/run/jtc-hw/jtc-hw.sock`` when nothing is at the former and something
+    is at the latter (a login shell's ``$XDG_RUNTIME_DIR`` is not the service's directory).
+
+    Raises:
+        Nothing.
+    """
+    own = default_socket_path(environ, uid)
+    service = os.path.join(ROOT_SOCKET_DIR, SOCKET_NAME)
+    if own != service and not os.path.lexists(own) and os.path.lexists(service):
+        return service
+    return own
+
+
+def service_uid(directory: str) -> int | None:
+    """The owner of ``directory`` if it is the service's (:data:`ROOT_SOCKET_DIR`) and only
+    root could have made it: its parent is root's and nobody else can write there. That owner
+    was given it by root (systemd's ``RuntimeDirectory=`` with ``User=``). Else ``None``.
+
+    Raises:
+        Nothing: a directory that cannot be examined has no service owner.
+    """
+    if os.path.normpath(directory) != os.path.normpath(ROOT_SOCKET_DIR):
+        return None
+    try:
+        st = os.lstat(directory)
+        parent = os.stat(os.path.dirname(os.path.normpath(directory)))
+    except OSError:
+        return None
+    if not stat.S_ISDIR(st.st_mode) or parent.st_uid != 0 or parent.st_mode & 0o022:
+        return None
+    return st.st_uid
 
 
 def trusted_uid(owner: int, uid: int | None = None) -> bool:
@@ -141,9 +186,10 @@ def listener_problem(
 def directory_problem(directory: str, uid: int | None = None) -> str | None:
     """What makes ``directory`` unfit to hold the daemon's socket for ``uid``, or ``None``.
 
-    Fit: a real directory (not a symbolic link) owned by ``uid`` or root that no one else can
-    write. Anyone who can write it can replace the socket with their own. A missing directory
-    is fit (the daemon creates it, 0700).
+    Fit: a real directory (not a symbolic link) owned by ``uid`` or root (or the service's
+    directory, :func:`service_uid`) that no one else can write. Anyone who can write it can
+    replace the socket with their own. A missing directory is fit (the daemon creates it,
+    0700).
 
     Raises:
         Nothing: a directory that cannot be examined is reported as the problem.
@@ -159,7 +205,7 @@ def directory_problem(directory: str, uid: int | None = None) -> str | None:
         return f"{directory} is a symbolic link, not a directory of its own"
     if not stat.S_ISDIR(st.st_mode):
         return f"{directory} is not a directory"
-    if not trusted_uid(st.st_uid, uid):
+    if not trusted_uid(st.st_uid, uid) and st.st_uid != service_uid(directory):
         return (
             f"{directory} belongs to uid {st.st_uid}, not to uid {uid} or root: another user "
             "may have created it to put a socket of theirs in the daemon's place"
@@ -177,7 +223,8 @@ def socket_problem(path: str, uid: int | None = None) -> str | None:
     """What makes the socket file ``path`` untrustworthy for ``uid``, or ``None``.
 
     The file must be a socket owned by ``uid`` or root (the daemon's socket, made by a daemon
-    of this user or by a system service), in a directory fit for it (:func:`directory_problem`).
+    of this user or by a system service), or in the service's directory by its owner
+    (:func:`service_uid`), in a directory fit for it (:func:`directory_problem`).
     A missing file is not a problem here (connecting will say nobody listens).
 
     Raises:
@@ -195,7 +242,7 @@ def socket_problem(path: str, uid: int | None = None) -> str | None:
         return f"{path} cannot be examined: {exc.strerror or exc}"
     if not stat.S_ISSOCK(st.st_mode):
         return f"{path} is not a socket"
-    if not trusted_uid(st.st_uid, uid):
+    if not trusted_uid(st.st_uid, uid) and st.st_uid != service_uid(os.path.dirname(path)):
         return (
             f"the socket {path} belongs to uid {st.st_uid}, not to uid {uid} or root: another "
             "user may have created it to impersonate the daemon"

@@ -18,6 +18,7 @@ import logging
 import os
 import signal
 import sys
+from pathlib import Path
 from typing import Any
 
 from ..errors import JtcHwError
@@ -25,6 +26,7 @@ from .backend import LoopBackend
 from .locks import DeviceLock, acquire, socket_lock_path
 from .robot import RobotConfig, load_robot
 from .sdnotify import Notifier
+from .unix_socket import make_socket_directory
 
 log = logging.getLogger("jtc_hw.daemon")
 
@@ -108,14 +110,13 @@ class Daemon:
         Raises:
             DeviceBusy: another daemon holds it ("... is already served by pid N (config)").
             HardwareError: the lock file cannot be created.
+            ConfigurationError: the socket's directory cannot be created.
         """
         path = self.robot.daemon.socket
-        try:
-            os.makedirs(os.path.dirname(path), exist_ok=True)
-        except OSError as exc:
-            raise JtcHwError(
-                f"cannot create the socket's directory {os.path.dirname(path)}: {exc.strerror}"
-            ) from None
+        # The mode the server would give it (first come makes it): not world-listable.
+        make_socket_directory(
+            Path(path).parent, self.robot.daemon.socket_mode, self.robot.daemon.socket_group
+        )
         return acquire(path, socket_lock_path(path), config=self.robot.source_path,
                        what="served")
 

@@ -18,7 +18,7 @@ from pathlib import Path
 from ..api.paths import default_socket_path, directory_problem, group_id
 from ..errors import ConfigurationError
 
-__all__ = ["bind_unix", "directory_mode", "remove_socket_file"]
+__all__ = ["bind_unix", "directory_mode", "make_socket_directory", "remove_socket_file"]
 
 log = logging.getLogger("jtc_hw.server")
 
@@ -37,7 +37,38 @@ def directory_mode(socket_mode: int) -> int:
     return mode
 
 
-def _make_directory(directory: Path, mode: int, gid: int) -> None:
+def _gid(group: str | int | None) -> int:
+    """The gid of ``daemon.socket_group`` (``None``: -1, the daemon's own).
+
+    Raises:
+        ConfigurationError: there is no such group; it names it.
+    """
+    if group is None:
+        return -1
+    found = group_id(group)
+    if found is None:
+        raise ConfigurationError(
+            f"there is no group {group!r} on this system (getent group {group})",
+            "socket_group",
+            group,
+        )
+    return found
+
+
+def make_socket_directory(
+    directory: Path, socket_mode: int, group: str | int | None = None
+) -> None:
+    """Create the socket's ``directory`` and its missing parents with
+    :func:`directory_mode` (``0710`` for the default ``0660``: nobody else can write it, nor
+    list it), of ``group`` (``daemon.socket_group``) if given; leave a directory that exists
+    as it is.
+
+    Raises:
+        ConfigurationError: the group is unknown, or a directory cannot be created; it names
+            it and the reason.
+    """
+    mode = directory_mode(socket_mode)
+    gid = _gid(group)
     missing: list[Path] = []
     for d in (directory, *directory.parents):
         if os.path.lexists(d):
@@ -72,17 +103,8 @@ def bind_unix(
             socket, or binding (or giving it the group) fails; each names the path and what
             to do.
     """
-    gid = -1
-    if group is not None:
-        found = group_id(group)
-        if found is None:
-            raise ConfigurationError(
-                f"there is no group {group!r} on this system (getent group {group})",
-                "socket_group",
-                group,
-            )
-        gid = found
-    _make_directory(path.parent, directory_mode(socket_mode), gid)
+    gid = _gid(group)
+    make_socket_directory(path.parent, socket_mode, group)
     if os.path.normpath(path) == os.path.normpath(default_socket_path()):
         # The default place: check that no other user could have prepared it for us.
         problem = directory_problem(str(path.parent))

@@ -56,7 +56,7 @@ def add_parsers(sub: Any, client_options: Any) -> None:
         description=(
             "Plot a bag written by 'jtc-hw record': per joint, the reference (desired) and "
             "feedback (actual) position, and velocity where recorded, over time, with the goal "
-            "events marked. Needs pip install 'jtc_hw[plot]'. Exit codes: 0 written, 2 bad input."
+            "events marked. Needs pip install 'jtc_hw[plot]'. Exit status: 0 written; 2 bad input."
         ),
     )
     p.add_argument("bag", metavar="BAG", help="the bag directory")

@@ -131,6 +131,25 @@ def documented(parser: argparse.ArgumentParser, code: int) -> bool:
     return match is not None and re.search(rf"(^|[;,] ){code} ", match.group(1)) is not None
 
 
+GOAL_COMMANDS = {"send", "cancel", "demo"}
+"""The commands whose exit status says how a goal ended (1); no other exits 1 for a goal."""
+
+
+def test_each_command_help_gives_its_own_exit_statuses_once() -> None:
+    # One exit-status section per --help (a second one, appended by the parser, contradicted
+    # the first), and goal results only where the command runs or cancels a goal.
+    wrong = []
+    for name, parser in commands().items():
+        text = " ".join(f"{parser.description or ''} {parser.epilog or ''}".split())
+        sections = re.findall(r"Exit (?:status|codes): ", text)
+        if len(sections) != 1:
+            wrong.append(f"{name}: {len(sections)} exit-status sections")
+            continue
+        if ("goal" in text.split("Exit ", 1)[1]) != (name in GOAL_COMMANDS):
+            wrong.append(f"{name}: {text.split('Exit ', 1)[1]}")
+    assert not wrong, "\n".join(wrong)
+
+
 def run(args: list[str]) -> tuple[list[str], int, str]:
     done = subprocess.run([sys.executable, "-m", "jtc_hw", *args], capture_output=True,
                           text=True, timeout=120, cwd=ROOT, env=daemon_env(),

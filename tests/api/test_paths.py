@@ -16,8 +16,11 @@ from pathlib import Path
 
 import pytest
 import yaml
+from helpers.daemon import WAIT_S, DaemonProcess, robot_config
 
+from jtc_hw.api import paths
 from jtc_hw.api.paths import (
+    client_socket_path,
     default_socket_path,
     directory_problem,
     listener_problem,
@@ -25,6 +28,7 @@ from jtc_hw.api.paths import (
     socket_problem,
     trusted_uid,
 )
+from jtc_hw.cli import main
 
 from conftest import ROOT, make_robot_config
 
@@ -223,3 +227,82 @@ def test_a_config_naming_the_listeners_group_trusts_it(tmp_path: Path) -> None:
         shutil.rmtree(shared)
     assert b'"op":"stop"' in read.replace(b" ", b"")
     assert stop.returncode == 3, (stop.stdout, stop.stderr)
+
+
+# -- the system service's socket (config/jtc-hw.service, docs/systemd.md) --------------------
+
+
+@pytest.fixture
+def service(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
+    """``/run/jtc-hw`` in ``tmp_path``: ``run`` (root's, 0755, as /run) holds ``jtc-hw``; a
+    login shell's own runtime directory (``xdg``) is empty."""
+    run = tmp_path / "run"
+    run.mkdir()
+    run.chmod(0o755)
+    monkeypatch.setattr(paths, "ROOT_SOCKET_DIR", str(run / "jtc-hw"))
+    (tmp_path / "xdg").mkdir(0o700)
+    monkeypatch.setenv("XDG_RUNTIME_DIR", str(tmp_path / "xdg"))
+    monkeypatch.delenv("RUNTIME_DIRECTORY", raising=False)
+    monkeypatch.delenv("JTC_HW_SOCKET", raising=False)
+    return run / "jtc-hw"
+
+
+def test_a_client_looks_at_the_service_socket_when_its_own_place_is_empty(
+    service: Path, tmp_path: Path
+) -> None:
+    own = tmp_path / "xdg" / "jtc-hw.sock"
+    assert client_socket_path() == str(own)  # nothing anywhere: its own (error names it)
+    service.mkdir(0o750)
+    with socket.socket(socket.AF_UNIX) as daemon:
+        daemon.bind(str(service / "jtc-hw.sock"))
+        assert client_socket_path() == str(service / "jtc-hw.sock")
+        with socket.socket(socket.AF_UNIX) as mine:
+            mine.bind(str(own))  # a daemon of the user's own comes first
+            assert client_socket_path() == str(own)
+
+
+@as_root
+def test_the_service_users_socket_is_trusted_where_only_root_could_make_it(
+    service: Path, tmp_path: Path
+) -> None:
+    """systemd makes /run/jtc-hw for User=jtc-hw (RuntimeDirectoryMode=0750): a user in its
+    group trusts that daemon there, and nowhere else."""
+    service.mkdir(0o750)
+    os.chown(service, NOBODY, NOBODY)
+    path = service / "jtc-hw.sock"
+    with socket.socket(socket.AF_UNIX) as sock:
+        sock.bind(str(path))
+        os.chown(path, NOBODY, -1)
+        assert socket_problem(str(path), uid=1000) is None
+        service.parent.chmod(0o775)  # someone else could have made /run/jtc-hw
+        assert "belongs to uid 65534" in (socket_problem(str(path), uid=1000) or "")
+        service.parent.chmod(0o755)
+        service.chmod(0o770)  # its group could swap the socket
+        assert "mode 0770" in (socket_problem(str(path), uid=1000) or "")
+    elsewhere = tmp_path / "other"  # the same owner anywhere else is a stranger
+    elsewhere.mkdir(0o750)
+    os.chown(elsewhere, NOBODY, NOBODY)
+    assert "belongs to uid 65534" in (socket_problem(str(elsewhere / "x.sock"), uid=1000) or "")
+
+
+def test_cli_finds_the_service(service: Path, tmp_path: Path,
+                               capsys: pytest.CaptureFixture[str]) -> None:
+    """From a login shell (its own $XDG_RUNTIME_DIR) ``jtc-hw status`` reaches the daemon the
+    unit runs at /run/jtc-hw/jtc-hw.sock, with no option and with ``--config`` of a file
+    that names no socket (the real-robot examples)."""
+    service.mkdir(0o750)
+    daemon = DaemonProcess(tmp_path / "d")
+    daemon.socket = service / "jtc-hw.sock"
+    config = robot_config(daemon.socket)
+    daemon.config_path.write_text(yaml.safe_dump(config, sort_keys=False))
+    del config["daemon"]["socket"]
+    client_config = tmp_path / "robot.yaml"
+    client_config.write_text(yaml.safe_dump(config, sort_keys=False))
+    daemon.start()
+    try:
+        daemon.wait_ready()
+        for extra in ([], ["--config", str(client_config)]):
+            assert main(["status", "--timeout", str(WAIT_S), *extra]) == 0, capsys.readouterr()
+            assert "controller" in capsys.readouterr().out
+    finally:
+        daemon.shutdown()

@@ -17,6 +17,7 @@ import json
 import os
 import signal
 import socket
+import stat
 import subprocess
 import sys
 import time
@@ -710,6 +711,21 @@ def test_systemd_notify_ready_watchdog_stopping(
 
 
 # -- 10. SIGTERM during a goal -----------------------------------------------------------------
+
+
+def test_the_socket_directory_the_daemon_creates_is_not_listable(tmp_path: Path) -> None:
+    """docs/protocol.md: a socket directory the daemon creates is 0710 for the default
+    socket_mode 0660 (its group may enter, nobody else may write or list it), whichever part
+    of the daemon comes to it first (the socket lock is taken before the server binds)."""
+    d = DaemonProcess(tmp_path / "d")
+    d.socket = tmp_path / "run" / "d.sock"
+    d.config_path.write_text(yaml.safe_dump(robot_config(d.socket), sort_keys=False))
+    d.start()
+    try:
+        d.wait_ready()
+    finally:
+        d.shutdown()
+    assert oct(stat.S_IMODE(os.stat(d.socket.parent).st_mode)) == oct(0o710)
 
 
 def test_sigterm_mid_goal(fresh_daemon: Callable[..., DaemonProcess]) -> None:

@@ -92,6 +92,27 @@ def test_required_service_setting(
     assert unit["Service"].get(key) == [value]
 
 
+def test_the_documentation_is_installed_beside_the_executable(
+    unit: dict[str, dict[str, list[str]]],
+) -> None:
+    """Documentation= names a file that ``pip install`` puts in the prefix of ExecStart's
+    ``bin/jtc-hw`` (pyproject's data-files), so adjusting the one prefix keeps both true."""
+    if sys.version_info >= (3, 11):
+        import tomllib
+    else:  # pragma: no cover - Python 3.10
+        import tomli as tomllib
+
+    (doc,) = unit["Unit"]["Documentation"]
+    prefix = unit["Service"]["ExecStart"][0].split()[0].removesuffix("/bin/jtc-hw")
+    directory, _, name = doc.removeprefix(f"file://{prefix}/").rpartition("/")
+    assert doc.startswith(f"file://{prefix}/") and directory == "share/doc/jtc-hw", doc
+    pyproject = tomllib.loads((UNIT.parents[1] / "pyproject.toml").read_text(encoding="utf-8"))
+    installed = pyproject["tool"]["setuptools"].get("data-files", {}).get(directory, [])
+    (source,) = [f for f in installed if f.rpartition("/")[2] == name] or [None]
+    assert source is not None, f"pip installs no {name} to <prefix>/{directory}: {installed}"
+    assert (UNIT.parents[1] / source).is_file()
+
+
 def test_install_section(unit: dict[str, dict[str, list[str]]]) -> None:
     assert unit["Install"] == {"WantedBy": ["multi-user.target"]}
 
@@ -169,3 +190,59 @@ def test_verify_would_catch_a_bad_key(tmp_path: Path) -> None:
     # Guards the check above: a typo in the unit does show up in verify's output.
     _rc, output = verify(runnable_copy(tmp_path, extra="[Service]\nWatchdogSecc=2\n"))
     assert "WatchdogSecc" in output
+
+
+REAL_ROBOT_CONFIGS = ("dynamixel-arm.yaml", "can-mit-leg.yaml", "can-cia402-pair.yaml")
+
+
+@pytest.mark.parametrize("name", REAL_ROBOT_CONFIGS)
+def test_real_robot_examples_serve_where_clients_find_the_unit(
+    name: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Run by the unit (RUNTIME_DIRECTORY=/run/jtc-hw), a real robot's example serves the
+    socket a login shell's client falls back to, not one PrivateTmp would hide."""
+    from jtc_hw.api.paths import ROOT_SOCKET_DIR, SOCKET_NAME
+    from jtc_hw.daemon.robot import load_robot
+
+    (runtime,) = parse_unit(UNIT.read_text(encoding="utf-8"))["Service"]["RuntimeDirectory"]
+    monkeypatch.setenv("RUNTIME_DIRECTORY", f"/run/{runtime}")
+    socket_path = load_robot(str(UNIT.parent / name)).daemon.socket
+    assert socket_path == f"{ROOT_SOCKET_DIR}/{SOCKET_NAME}" == f"/run/{runtime}/{SOCKET_NAME}"
+
+
+def test_check_warns_of_a_tmp_socket_the_units_private_tmp_hides(tmp_path: Path) -> None:
+    from jtc_hw.daemon.systemd_units import private_tmp_warnings
+
+    config = tmp_path / "robot.yaml"
+    config.write_text("")
+    units = tmp_path / "system"
+    units.mkdir()
+    text = UNIT.read_text(encoding="utf-8").replace(
+        "run /etc/jtc-hw/robot.yaml", f"run {tmp_path}/./robot.yaml")
+    (units / "jtc-hw.service").write_text(text)
+    (warning,) = private_tmp_warnings(str(config), "/tmp/arm.sock", [str(units)])
+    assert "/tmp/arm.sock is under /tmp" in warning and "PrivateTmp=yes" in warning
+    assert private_tmp_warnings(str(config), "/run/jtc-hw/jtc-hw.sock", [str(units)]) == []
+    other = tmp_path / "other.yaml"
+    other.write_text("")
+    assert private_tmp_warnings(str(other), "/tmp/arm.sock", [str(units)]) == []
+    (units / "jtc-hw.service").write_text(text.replace("PrivateTmp=yes", "PrivateTmp=no"))
+    assert private_tmp_warnings(str(config), "/tmp/arm.sock", [str(units)]) == []
+
+
+def test_jtc_hw_check_prints_the_private_tmp_warning(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from jtc_hw.cli import main
+    from jtc_hw.daemon import systemd_units
+
+    config = tmp_path / "robot.yaml"
+    config.write_text((UNIT.parent / "mirror-arm.yaml").read_text(encoding="utf-8"))
+    units = tmp_path / "system"
+    units.mkdir()
+    (units / "jtc-hw.service").write_text(UNIT.read_text(encoding="utf-8").replace(
+        "run /etc/jtc-hw/robot.yaml", f"run {config}"))
+    monkeypatch.setattr(systemd_units, "UNIT_DIRS", (str(units),))
+    assert main(["check", str(config)]) == 0
+    assert "warning: daemon.socket /tmp/jtc-hw-mirror-arm.sock is under /tmp, but " in (
+        capsys.readouterr().out)

@@ -19,8 +19,8 @@ Every other command must be one this test runs: ``jtc-hw ...`` (or ``.venv/bin/j
 command needs ``jtc-hw run CONFIG`` earlier on the same page. A new command that breaks this
 rule fails ``test_every_command_runs_here_or_is_marked``, naming its file and line.
 
-``test_doc_commands_run_as_written`` runs a page's unmarked commands in order, as a user would
-with a second terminal at hand:
+``test_doc_commands_run_as_written`` runs a page's unmarked runnable commands (never another) in
+order, as a user would with a second terminal at hand:
 
 - ``jtc-hw run CONFIG`` and ``jtc-hw emulate ...`` start in the background (ready at the
   daemon's ``ready:`` log line, at the emulator's first line) and run until the end of the
@@ -144,6 +144,11 @@ def named_configs(argv: list[str]) -> list[str]:
     return names
 
 
+def runnable(text: str) -> bool:
+    """Whether this test may run the command: one of ours, no shell operator."""
+    return bool(RUNNABLE.match(text)) and not OPERATOR.search(text)
+
+
 def problems(commands: list[Command], root: Path = ROOT) -> list[str]:
     """One line per unmarked command that the test cannot run, and why."""
     found: list[str] = []
@@ -151,7 +156,7 @@ def problems(commands: list[Command], root: Path = ROOT) -> list[str]:
     for command in commands:
         if command.skip is not None:
             continue
-        if not RUNNABLE.match(command.text) or OPERATOR.search(command.text):
+        if not runnable(command.text):
             found.append(f"{command.where}: cannot run here; run-able commands are jtc-hw, "
                          "python bench/..., export; else end the line with '# needs: REASON'")
             continue
@@ -332,7 +337,10 @@ def check_exit(where: str, status: int, output: str) -> None:
 
 @pytest.mark.parametrize("path", DOCS, ids=page_name)
 def test_doc_commands_run_as_written(path: Path, workspace: Workspace) -> None:
-    commands = [c for c in extract(path, page_name(path)) if c.skip is None]
+    # Never anything else (an unmarked 'sudo ...' would run as whoever runs the suite): the
+    # test above names the commands that are neither runnable nor marked.
+    commands = [c for c in extract(path, page_name(path))
+                if c.skip is None and runnable(c.text)]
     env = dict(workspace.env)
     for index, command in enumerate(commands):
         text = command.text

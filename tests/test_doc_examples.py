@@ -362,17 +362,18 @@ def test_doc_commands_run_as_written(path: Path, workspace: Workspace) -> None:
                 pytest.fail(f"{command.where}: exited ({running.proc.returncode}) since "
                             f"{running.where} started it: {running.tail()}")
             continue
-        later = commands[index + 1] if index + 1 < len(commands) else None
-        if "--watch" in argv or (later is not None and "meanwhile" in later.comment):
+        later = commands[index + 1:index + 2]
+        meanwhile = [c for c in later if "meanwhile" in c.comment]
+        if "--watch" in argv or meanwhile:
             beside = Background(command.where, argv, workspace.cwd, env, "")
             beside.wait_ready()
             if "--watch" in argv:
                 beside.proc.send_signal(signal.SIGINT)
-            else:  # the next command runs while this one does; then this one must succeed
-                done = subprocess.run(argv_of(later.text, workspace), cwd=workspace.cwd,
+            for other in meanwhile:  # runs while this one does; then this one must succeed
+                done = subprocess.run(argv_of(other.text, workspace), cwd=workspace.cwd,
                                       env=env, text=True, capture_output=True,
                                       timeout=WAIT_S)
-                check_exit(later.where, done.returncode, done.stdout + done.stderr)
+                check_exit(other.where, done.returncode, done.stdout + done.stderr)
             check_exit(command.where, beside.join(), "".join(beside.output))
             continue
         if index > 0 and "meanwhile" in command.comment:

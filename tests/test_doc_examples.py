@@ -34,8 +34,9 @@ order, as a user would with a second terminal at hand:
 
 Isolation: the commands run in a copy of ``config/`` and ``examples/`` in the test's own
 directory, every ``/tmp/jtc-hw`` path (sockets, the emulator's link) moved under it in the
-copies and the commands alike, with ``XDG_RUNTIME_DIR`` and ``XDG_STATE_HOME`` there too, so
-that two suites side by side, or a user's daemon, never share a socket with the test.
+copies and the commands alike, with ``XDG_RUNTIME_DIR`` and ``XDG_STATE_HOME`` there too, and
+the emulated CAN configs' socketcand port 29536 replaced by a free one, so that two suites side
+by side, or a user's daemon, never share a socket or a port with the test.
 ``.venv/bin/`` and ``python`` are this test's interpreter's. Every wait is an upper bound.
 """
 
@@ -46,6 +47,7 @@ import re
 import shlex
 import shutil
 import signal
+import socket
 import subprocess
 import sys
 import threading
@@ -67,6 +69,7 @@ COMMAND_START = re.compile(
 RUNNABLE = re.compile(r"^(export \w+=\S+$|(\.venv/bin/)?jtc-hw(\s|$)|python3? bench/\S)")
 OPERATOR = re.compile(r"&&|\|\||[|;<>`]|\$\(")
 CLIENT_EXEMPT = {"check", "run", "demo", "emulate"}  # --config without a running daemon
+SOCKETCAND_PORT = "29536"  # the emulated CAN configs' port: each run takes a free one
 WAIT_S = 120.0  # upper bound on any one wait; never an assertion of speed
 
 
@@ -296,6 +299,7 @@ class Workspace:
 
     cwd: Path
     private: str  # what /tmp/jtc-hw becomes
+    port: str  # what SOCKETCAND_PORT becomes
     env: dict[str, str]
     running: dict[str, Background]
 
@@ -306,13 +310,17 @@ def workspace(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Workspace]:
     for name in ("config", "examples"):
         shutil.copytree(ROOT / name, cwd / name)
     private = str(cwd / "jtc-hw")
+    with socket.socket() as probe:  # free now; the emulator binds it within seconds
+        probe.bind(("127.0.0.1", 0))
+        port = str(probe.getsockname()[1])
     for config in (cwd / "config").glob("*.yaml"):
-        config.write_text(config.read_text().replace("/tmp/jtc-hw", private))
+        text = config.read_text().replace("/tmp/jtc-hw", private)
+        config.write_text(text.replace(SOCKETCAND_PORT, port))
     bindir = Path(sys.executable).parent
     env = dict(os.environ, XDG_RUNTIME_DIR=str(cwd), XDG_STATE_HOME=str(cwd / "state"),
                PATH=f"{bindir}{os.pathsep}{os.environ.get('PATH', '')}")
     env.pop("JTC_HW_SOCKET", None)
-    space = Workspace(cwd, private, env, {})
+    space = Workspace(cwd, private, port, env, {})
     try:
         yield space
     finally:
@@ -322,7 +330,8 @@ def workspace(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Workspace]:
 
 def argv_of(text: str, space: Workspace) -> list[str]:
     """The argument vector of a command as written, with this test's paths."""
-    argv = shlex.split(text.replace("/tmp/jtc-hw", space.private))
+    text = text.replace("/tmp/jtc-hw", space.private).replace(SOCKETCAND_PORT, space.port)
+    argv = shlex.split(text)
     if argv[0] in ("python", "python3"):
         argv[0] = sys.executable
     elif argv[0].startswith(".venv/bin/"):

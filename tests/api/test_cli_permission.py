@@ -10,7 +10,9 @@ CLI's modules before it drops.
 
 from __future__ import annotations
 
+import argparse
 import os
+import re
 import shutil
 import signal
 import socket
@@ -25,6 +27,7 @@ import yaml
 from helpers.daemon import WAIT_S, DaemonProcess, robot_config
 
 from jtc_hw.api import paths
+from jtc_hw.cli import build_parser
 
 NOBODY = 65534
 
@@ -249,3 +252,19 @@ def test_a_daemons_own_directory_keeps_out_a_stranger_and_lets_in_its_group(
         f"{daemon.socket.parent} (owner root, group root, mode 0710): {HINT}"), line
     assert member[0] == 0, member
     assert "controller" in member[1]
+
+
+def test_every_client_commands_help_says_exit_2_covers_permission_denied() -> None:
+    """The exit-status text of each client command's --help puts "permission denied" under
+    2, not under 3."""
+    parser = build_parser()
+    (sub,) = [a for a in parser._actions if isinstance(a, argparse._SubParsersAction)]
+    wrong = []
+    for name in CLIENTS:
+        command = sub.choices[name]
+        text = " ".join(f"{command.description or ''} {command.epilog or ''}".split())
+        section = text.split("Exit status: ", 1)[-1]
+        two = re.search(r"(?:^|[;,] )2 (.*?)[;,] 3 ", section)
+        if two is None or "permission denied" not in two.group(1):
+            wrong.append(f"{name}: {section}")
+    assert not wrong, "\n".join(wrong)

@@ -1,9 +1,9 @@
 """``jtc-hw``: run the daemon, check a configuration, and talk to a running daemon.
 
 Exit status: 0 success; 1 a goal ended without success (aborted, canceled); 2 bad input
-(configuration, trajectory file), a socket whose listener is not trusted, or the daemon
-answered and refused (rejected goal, bad request, not active); 3 only when no daemon answers
-(none running, no reply).
+(configuration, trajectory file), a socket whose listener is not trusted, a socket you may
+not connect to (permission denied), or the daemon answered and refused (rejected goal, bad
+request, not active); 3 only when no daemon answers (none running, no reply).
 """
 
 from __future__ import annotations
@@ -32,13 +32,15 @@ EXIT_OK, EXIT_GOAL_FAILED, EXIT_BAD_INPUT, EXIT_NO_DAEMON = 0, 1, 2, 3
 EXIT_CODES_HELP = (
     "Exit status: 0 success; 1 the goal aborted or was canceled; 2 bad input, or the daemon "
     "answered and refused the request (rejected goal, bad request), or the socket is not "
-    "served by a daemon you trust; 3 no daemon answers."
+    "served by a daemon you trust, or you may not connect to it (permission denied); 3 no "
+    "daemon answers."
 )
 """The exit statuses of ``send``, the client command that waits for a goal's result."""
 
 CLIENT_EXIT_HELP = (
-    "Exit status: 0 success; 2 bad input (an unreadable --config or --zenoh-config), or the "
-    "daemon answered and refused the request; 3 no daemon answers."
+    "Exit status: 0 success; 2 bad input (an unreadable --config or --zenoh-config), the "
+    "socket is not served by a daemon you trust or you may not connect to it (permission "
+    "denied), or the daemon answered and refused the request; 3 no daemon answers."
 )
 """The exit statuses of the client commands that start or wait for no goal (no exit 1)."""
 
@@ -58,8 +60,9 @@ _EXIT_HELP = {
     "send": EXIT_CODES_HELP,
     "cancel": (
         "Exit status: 0 the cancel was requested, or no goal is executing; 1 that goal is not "
-        "executing; 2 bad input, or the daemon answered and refused the request; 3 no daemon "
-        "answers."
+        "executing; 2 bad input, a socket you may not connect to (permission denied) or not "
+        "served by a daemon you trust, or the daemon answered and refused the request; 3 no "
+        "daemon answers."
     ),
 }
 """Each command's exit statuses where they are not :data:`CLIENT_EXIT_HELP`'s."""
@@ -248,7 +251,7 @@ def _tcp(args: argparse.Namespace) -> tuple[tuple[str, int], str]:
 
 
 def _connect(args: argparse.Namespace, hello: bool = True) -> Any:
-    from .api.client import UNTRUSTED, Client, ClientConnectionError
+    from .api.client import PERMISSION, UNTRUSTED, Client, ClientConnectionError
 
     if getattr(args, "zenoh", None):
         from .cli_fleet import connect_zenoh
@@ -265,7 +268,7 @@ def _connect(args: argparse.Namespace, hello: bool = True) -> Any:
         return Client.connect(path, timeout_s=args.timeout, hello=hello, check_owner=not named,
                               trusted_group=_trusted_group(args))
     except ClientConnectionError as exc:
-        if exc.code == UNTRUSTED:
+        if exc.code in (UNTRUSTED, PERMISSION):  # a daemon may run: not "is it running?"
             raise ConfigurationError(str(exc)) from exc
         # The client's message ends with its own "is the daemon running?": say it once.
         reason = str(exc).removesuffix("; is the daemon running?")
@@ -1279,7 +1282,8 @@ action_monitor_rate, open_loop_control, the wraparound flags) are refused: chang
 and restart. A change lasts until the daemon stops: write it in the
 configuration file to keep it.
 
-Exit status: 0 done; 2 unknown or read-only parameter, or a bad value; 3 no daemon.""",
+Exit status: 0 done; 2 unknown or read-only parameter, or a bad value, or a socket you
+may not connect to (permission denied) or not served by a daemon you trust; 3 no daemon.""",
     )
     p.add_argument("action", choices=("get", "set"), help="read, or change")
     p.add_argument(

@@ -124,8 +124,9 @@ def add_hardware_parser(
             "(transactions, timeouts, CRC errors, retries) and the warnings that the "
             "components' temperature_warn_c and voltage_range raise. The loop refreshes them "
             "at a low rate (status: 2 Hz; each driver reads its motors every health period). "
-            "Exit status: 0 printed; 2 bad input (an unreadable --config or --zenoh-config); 3 no "
-            "daemon answers."
+            "Exit status: 0 printed; 2 bad input (an unreadable --config or --zenoh-config), or "
+            "a socket you may not connect to (permission denied) or not served by a daemon you "
+            "trust; 3 no daemon answers."
         ),
     )
     client_options(p)

@@ -19,6 +19,7 @@ Example::
 
 from __future__ import annotations
 
+import errno
 import itertools
 import logging
 import os
@@ -44,10 +45,17 @@ __all__ = [
     "GoalHandle",
     "StateSubscription",
     "NOT_EXPECTED",
+    "PERMISSION",
     "UNTRUSTED",
     "default_socket_path",
 ]
-from .paths import client_socket_path, listener_problem, service_uid, socket_problem
+from .paths import (
+    client_socket_path,
+    listener_problem,
+    permission_problem,
+    service_uid,
+    socket_problem,
+)
 from .protocol import tolerances_to_json, trajectory_to_json
 
 log = logging.getLogger("jtc_hw.client")
@@ -79,7 +87,8 @@ class ClientConnectionError(ProtocolError):
 
     Attributes:
         code: the machine code of the error the daemon sent before closing (``busy``,
-            ``unauthorized``), if any.
+            ``unauthorized``), or of the client's own refusal (``untrusted``,
+            ``not_expected``, ``permission``), if any.
     """
 
     def __init__(self, message: str, code: str | None = None) -> None:
@@ -184,7 +193,10 @@ class Client:
         Raises:
             ValueError: both ``path`` and ``tcp``, or ``tcp`` without ``token``, or
                 ``expect_pid`` with anything but a unix socket.
-            ClientConnectionError: nobody listens, the daemon is busy (``code`` ``busy``),
+            ClientConnectionError: nobody listens, this user may not connect to the unix
+                socket (``code`` ``permission``; the message names the socket or the
+                directory that keeps them out, its owner, group and mode, and what to do),
+                the daemon is busy (``code`` ``busy``),
                 the socket or its listener failed the owner check (``code`` ``untrusted``;
                 the message names the socket, the listener's pid and uid, and what to do),
                 another process than ``expect_pid`` serves the socket (``code``
@@ -223,6 +235,12 @@ class Client:
             sock.settimeout(None)
         except OSError as exc:
             sock.close()
+            if family == socket.AF_UNIX and exc.errno in (errno.EACCES, errno.EPERM):
+                # The daemon may well run; this user is not let in (the socket's mode or its
+                # directory's): say whose it is and how to get in, not "is it running?".
+                raise ClientConnectionError(
+                    f"permission denied on {permission_problem(label)}", PERMISSION
+                ) from None
             hint = "" if isinstance(exc, TimeoutError) else "; is the daemon running?"
             raise ClientConnectionError(
                 f"cannot connect to the daemon at {label}: {exc.strerror or exc}{hint}"
@@ -755,6 +773,9 @@ UNTRUSTED = "untrusted"
 """``ClientConnectionError.code`` of a socket that failed the owner check."""
 NOT_EXPECTED = "not_expected"
 """``ClientConnectionError.code`` of a socket served by another process than ``expect_pid``."""
+PERMISSION = "permission"
+"""``ClientConnectionError.code`` of a unix socket this user may not connect to (its mode, or
+a directory on its way, keeps them out: ``EACCES``)."""
 
 
 def _refuse_untrusted(path: str, problem: str | None, listener: bool = False) -> None:

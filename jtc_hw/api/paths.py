@@ -22,6 +22,12 @@ so the per-user place alone would never find the service. That place cannot be s
 either: only root can create an entry in ``/run`` (root's, writable by nobody else), so the
 owner of ``/run/jtc-hw`` is the user root (systemd, for the unit's ``User=``) gave it to, and a
 client trusts that user's socket and daemon there besides its own and root's.
+
+A user the socket's mode keeps out (not its owner, not in its group) gets ``EACCES`` from
+``connect``, on the socket file (no write permission) or on a directory on its way (no search
+permission: the daemon's directory is ``0710``). :func:`permission_problem` finds which one and
+says whose it is and what would let the user in: joining its group, or a configuration that
+gives a group of theirs the socket.
 """
 
 from __future__ import annotations
@@ -41,6 +47,7 @@ __all__ = [
     "directory_problem",
     "group_id",
     "listener_problem",
+    "permission_problem",
     "private_fallback_dir",
     "socket_problem",
     "trusted_uid",
@@ -88,17 +95,31 @@ def default_socket_path(environ: Mapping[str, str] | None = None, uid: int | Non
     return os.path.join(private_fallback_dir(uid), SOCKET_NAME)
 
 
+def _may_exist(path: str) -> bool:
+    """Whether something may be at ``path``: it is there, or it cannot be seen for lack of
+    permission (a directory on its way that this user may not search)."""
+    try:
+        os.lstat(path)
+    except PermissionError:
+        return True
+    except OSError:
+        return False
+    return True
+
+
 def client_socket_path(environ: Mapping[str, str] | None = None, uid: int | None = None) -> str:
     """Where a client looks when no socket is named: :func:`default_socket_path`, or the
     system service's ``/run/jtc-hw/jtc-hw.sock`` when nothing is at the former and something
-    is at the latter (a login shell's ``$XDG_RUNTIME_DIR`` is not the service's directory).
+    is at the latter (a login shell's ``$XDG_RUNTIME_DIR`` is not the service's directory), or
+    may be: a user kept out of ``/run/jtc-hw`` is told so when connecting, not that nothing
+    listens at their own place.
 
     Raises:
         Nothing.
     """
     own = default_socket_path(environ, uid)
     service = os.path.join(ROOT_SOCKET_DIR, SOCKET_NAME)
-    if own != service and not os.path.lexists(own) and os.path.lexists(service):
+    if own != service and not os.path.lexists(own) and _may_exist(service):
         return service
     return own
 
@@ -225,7 +246,8 @@ def socket_problem(path: str, uid: int | None = None) -> str | None:
     The file must be a socket owned by ``uid`` or root (the daemon's socket, made by a daemon
     of this user or by a system service), or in the service's directory by its owner
     (:func:`service_uid`), in a directory fit for it (:func:`directory_problem`).
-    A missing file is not a problem here (connecting will say nobody listens).
+    A missing file is not a problem here (connecting will say nobody listens), nor one this
+    user may not see (connecting will say whose directory keeps them out).
 
     Raises:
         Nothing.
@@ -236,7 +258,9 @@ def socket_problem(path: str, uid: int | None = None) -> str | None:
         return problem
     try:
         st = os.lstat(path)
-    except FileNotFoundError:
+    except (FileNotFoundError, PermissionError):
+        # Nothing there, or the fit directory keeps this user out: connecting will say so
+        # (nobody listens; permission denied, :func:`permission_problem`).
         return None
     except OSError as exc:
         return f"{path} cannot be examined: {exc.strerror or exc}"
@@ -248,3 +272,81 @@ def socket_problem(path: str, uid: int | None = None) -> str | None:
             "user may have created it to impersonate the daemon"
         )
     return None
+
+
+def _name(number: int, group: bool) -> str:
+    try:
+        return grp.getgrgid(number).gr_name if group else pwd.getpwuid(number).pw_name
+    except KeyError:
+        return str(number)
+
+
+def _searchable(directory: str) -> bool:
+    effective = os.access in os.supports_effective_ids
+    return os.access(directory, os.X_OK, effective_ids=effective)
+
+
+def _writable(path: str) -> bool:
+    effective = os.access in os.supports_effective_ids
+    return os.access(path, os.W_OK, effective_ids=effective)
+
+
+def _ways_in(gid: int, group: str, uid: int | None = None) -> str:
+    """What lets user ``uid`` in through group ``gid`` (whose bit allows it): joining it, or,
+    already a member, a new login (a process's groups are fixed when the session starts)."""
+    uid = os.geteuid() if uid is None else uid
+    if _in_group(uid, gid) and gid != os.getegid() and gid not in os.getgroups():
+        return (
+            f"you are in group {group}, but this login is not yet: log in again "
+            f"(or run 'newgrp {group}')"
+        )
+    return (
+        f"join its group (sudo usermod -aG {group} $USER, then log in again), or set "
+        "daemon.socket_group (a group of yours, with daemon.socket_mode 0660) in the daemon's "
+        "configuration"
+    )
+
+
+def permission_problem(path: str) -> str:
+    """Why this process may not connect to the unix socket ``path`` (``connect`` said
+    ``EACCES``): the first directory on the way it may not search, else the socket file it may
+    not write, named with its owner, group and mode, and what would let this user in.
+
+    Returns, for example, ``"the daemon socket /run/jtc-hw/jtc-hw.sock (owner jtc-hw, group
+    jtc-hw, mode 0660): join its group (sudo usermod -aG jtc-hw $USER, then log in again),
+    or ..."``; without a cause in the file modes (a security module refused), what to check.
+
+    Raises:
+        Nothing: what cannot be examined is left out.
+    """
+    full = os.path.abspath(path)
+    ancestors = [os.path.dirname(full)]
+    while ancestors[-1] != os.path.dirname(ancestors[-1]):
+        ancestors.append(os.path.dirname(ancestors[-1]))
+    blocker, bit, intro = full, stat.S_IWGRP, f"the daemon socket {path}"
+    for directory in reversed(ancestors):
+        if not _searchable(directory):
+            blocker, bit = directory, stat.S_IXGRP
+            intro = f"the daemon socket {path}: its directory {directory}"
+            break
+    else:
+        if _writable(full):
+            return (
+                f"the daemon socket {path}: its file modes would let you in (a security "
+                "policy such as AppArmor or SELinux may refuse it; see the system log)"
+            )
+    try:
+        st = os.stat(blocker)
+    except OSError:
+        return f"{intro}: check its permissions (ls -ld {blocker})"
+    group = _name(st.st_gid, group=True)
+    what = (
+        f"{intro} (owner {_name(st.st_uid, group=False)}, group {group}, "
+        f"mode {stat.S_IMODE(st.st_mode):04o})"
+    )
+    if st.st_mode & bit:
+        return f"{what}: {_ways_in(st.st_gid, group)}"
+    return (
+        f"{what} lets no group in: set daemon.socket_group (a group of yours) and "
+        "daemon.socket_mode 0660 in the daemon's configuration, then join that group"
+    )

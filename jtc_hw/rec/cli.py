@@ -38,7 +38,8 @@ def add_parsers(sub: Any, client_options: Any) -> None:
             "daemon into the rosbag2 directory OUT (MCAP storage; opens in ros2 bag info/play, "
             "Foxglove, PlotJuggler). Stops after --duration seconds, or on Ctrl-C. Needs pip "
             "install 'jtc_hw[record]'. Exit status: 0 recorded, 2 bad input (OUT exists, "
-            "library missing), 3 no daemon, 4 writing the bag failed (a full disk: the bag is "
+            "library missing, a socket you may not connect to: permission denied), 3 no "
+            "daemon, 4 writing the bag failed (a full disk: the bag is "
             "closed with the rows written before, readable)."
         ),
     )

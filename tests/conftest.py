@@ -25,6 +25,14 @@ from jtc_hw.controller.config import ControllerConfig
 ROOT = Path(__file__).resolve().parents[1]
 """The repository checkout."""
 
+# A background job of a non-interactive shell (.ci/run starts both suites with '&') inherits
+# SIGINT ignored, and so would every process a test starts: a command the tests stop the way
+# a terminal's Ctrl-C does (``jtc-hw state --watch``, ``jtc-hw plot --live``) would then run on.
+# The tests model an operator at a terminal: SIGINT raises KeyboardInterrupt here, and the
+# processes started from here begin with its default action (exec resets a handled signal).
+if signal.getsignal(signal.SIGINT) == signal.SIG_IGN:
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+
 S = 1_000_000_000  # ns per second
 MS = 1_000_000
 

@@ -14,6 +14,7 @@ import socket
 import subprocess
 import sys
 import threading
+import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -51,8 +52,16 @@ def counters(d: DaemonProcess) -> dict[str, Any]:
     """What moves when a client sends a goal: the reference (bumped by every accepted
     command), the active goal, and the connections the daemon has ever accepted (this one
     included)."""
+    deadline = time.monotonic() + WAIT_S
     with Client.connect(d.socket, timeout_s=WAIT_S) as client:
         status = client.get_status()
+        # The loop's part of the status comes with its first report (2 Hz): until then the
+        # status has no "controller". Asked again on the same connection, so the count of
+        # connections moves by one per call.
+        while "controller" not in status:
+            assert time.monotonic() < deadline, f"no controller status within {WAIT_S} s"
+            time.sleep(0.05)  # polling the daemon's 2 Hz status report; nothing to block on
+            status = client.get_status()
     controller = status["controller"]
     return {
         "reference_version": controller["reference_version"],

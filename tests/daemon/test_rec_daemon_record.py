@@ -10,7 +10,7 @@ import json
 from pathlib import Path
 
 import pytest
-from helpers.daemon import WAIT_S, DaemonProcess, connect, traj
+from helpers.daemon import WAIT_S, DaemonProcess, connect, next_state, traj
 
 pytest.importorskip("rosbags")
 mcap_reader = pytest.importorskip("mcap.reader")
@@ -66,9 +66,14 @@ def test_plot_marks_the_commanded_waypoints(tmp_path: Path) -> None:
     d.start()
     try:
         d.wait_ready()
-        with connect(d) as client:
+        with connect(d) as client, client.subscribe_state() as sub:
             result = client.send_goal(traj([0.3] * 6, 0.5)).wait(timeout_s=WAIT_S)
             assert result["status"] == "succeeded", result
+            # The recording holds the states the loop published (50 Hz): stopping the daemon
+            # within a publication period of the result would leave out the state in which
+            # the reference reached the waypoint. One published past it was recorded too
+            # (the recorder is handed each state before the subscribers).
+            next_state(sub, lambda s: s["desired"]["time_from_start"] >= 0.5)
     finally:
         assert d.shutdown() == 0, d.log()
     (bag,) = runs.iterdir()

@@ -25,6 +25,7 @@ from helpers.daemon import (
     GOAL_TOL,
     JOINTS,
     MS,
+    PATH_TOL,
     START_TIMEOUT_S,
     WAIT_S,
     DaemonProcess,
@@ -152,12 +153,22 @@ def test_trajectory_succeeds_within_tolerance(world: CanWorld) -> None:
         assert info["motors"]["joint1"]["motor_mode"] is True
 
 
+FAULT_MOVE = 0.3
+"""How far each joint moves in the goal a fault interrupts (rad)."""
+FAULT_GOAL_S = 1.875 * FAULT_MOVE * 3 * FEEDBACK_TIMEOUT_S / PATH_TOL
+"""That goal's duration: slow enough that a silenced motor, its last position frozen while
+the set-point moves on, cannot break PATH_TOL before three feedback timeouts (peak speed of
+a rest-to-rest spline: at most 1.875 times the mean). At 0.5 rad in 2 s the path tolerance
+went first, 133 ms after the motor fell silent (issue 22); the fault aborts the goal long
+before its end."""
+
+
 def _fault_mid_goal(
     world: CanWorld | None, client: Any, inject: Callable[[], None]
 ) -> tuple[dict[str, Any], list[float]]:
     with client.subscribe_state() as sub:
         p0 = next_state(sub, lambda s: s["active_goal"] is None)["actual"]["positions"]
-    goal = client.send_goal(traj([p + 0.5 for p in p0], 2.0))
+    goal = client.send_goal(traj([p + FAULT_MOVE for p in p0], FAULT_GOAL_S))
     for feedback in goal.feedback(timeout_s=WAIT_S):
         if feedback["time_from_start"] >= 0.5:
             break

@@ -89,7 +89,8 @@ def assert_ramp(states: list[dict[str, Any]]) -> None:
     The state stream of a busy machine drops states (a slow reader gets the newest) and the
     loop may skip a deadline (skipped, not bunched: docs/decisions.md 8), so:
 
-    - the stop's first state desires the velocity measured in that cycle (upstream 11.3);
+    - the stop's first state desires the velocity measured in that cycle (upstream 11.3),
+      checked when it is known to be the first (one period after the last cruising state);
     - the commanded velocity (the desired one, the reference at each state's time) changes
       between any two states by at most DECEL times the time between them, and ends at 0 (into
       the stop too, unless the stop's reading came after a skipped deadline: docs/behaviour.md,
@@ -112,9 +113,14 @@ def assert_ramp(states: list[dict[str, Any]]) -> None:
     # the stop's first state desires that velocity. After a skipped deadline that reading is
     # not the cruise speed (the position servo caught up several periods in one), and the
     # desired velocity steps to it, as upstream's would; on time, it is the cruise speed.
-    j = int(np.argmax(np.abs(desired - CRUISE) > 1e-9))  # the stop's first state
+    j = int(np.argmax(np.abs(desired - CRUISE) > 1e-9))  # the first stopping state received
     assert j > 0, desired
-    assert abs(desired[j] - measured[j]) <= one_period, (desired[j], measured[j])
+    # It is the stop's first state when it came one period after the last cruising one: no
+    # cycle ran between them. A longer gap is a skipped deadline or states dropped on their
+    # way (at a load average of 10 the stop's first three were, and this one desired the
+    # ramp's third step, not the reading: issue 22); the ramp checks below hold either way.
+    if t_ns[j] - t_ns[j - 1] == period_ns:
+        assert abs(desired[j] - measured[j]) <= one_period, (desired[j], measured[j])
     allowed = DECEL * np.diff(t_ns) / 1e9 * (1 + 1e-6) + 1e-9
     checked = np.ones(len(allowed), dtype=bool)
     checked[j - 1] = bool(clean[j])  # into the stop: continuous when its reading was on time

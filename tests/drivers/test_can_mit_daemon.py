@@ -20,7 +20,7 @@ from typing import Any
 import can
 import pytest
 import yaml
-from helpers.can_emulator import EmulatorProcess, control, start_as_hardware
+from helpers.can_emulator import EmulatorProcess, control
 from helpers.daemon import (
     GOAL_TOL,
     JOINTS,
@@ -36,6 +36,7 @@ from helpers.daemon import (
     settle,
     traj,
 )
+from helpers.hardware_threads import start_as_hardware
 
 from jtc_hw.api.client import Client
 from jtc_hw.api.framing import RequestError

@@ -3,8 +3,8 @@ it prints once it serves (how to connect), and the motors' enable/disable events
 with ``--events``. Killing it is a bus loss (no goodbye on the bus).
 
 Emulators living in the test process instead (the daemon tests that inject faults by calling
-them) are started with :func:`start_as_hardware`: at the real-time priority the emulator
-process takes, so that a busy host does not delay the motors' replies (issue 22).
+them) are started with :func:`helpers.hardware_threads.start_as_hardware`, at the real-time
+priority the emulator process takes.
 """
 
 from __future__ import annotations
@@ -14,46 +14,12 @@ import socket
 import subprocess
 import sys
 import threading
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from pathlib import Path
 
 from helpers.daemon import START_TIMEOUT_S, WAIT_S, daemon_env
-from jtc_hw.drivers.can.emulation import DEFAULT_PRIORITY, realtime_priority
 
 from conftest import ROOT
-
-
-def start_as_hardware(*starts: Callable[[], None]) -> str | None:
-    """Call each of ``starts`` (an emulator's or a socketcand server's ``start``) in a helper
-    thread running at SCHED_FIFO :data:`DEFAULT_PRIORITY`, as ``jtc-hw emulate can`` runs its
-    whole process: the threads they start inherit that policy, so the emulated motors answer
-    as soon as a frame wakes them however busy the host is (motors do not slow down when the
-    host does), while the test's own thread and the daemon it forks keep normal scheduling.
-
-    Returns:
-        ``None``, or the line saying why the priority was refused (no CAP_SYS_NICE): the
-        emulators then run normally scheduled.
-
-    Raises:
-        BaseException: whatever a start raised.
-    """
-    outcome: list[str | None] = []
-    failure: list[BaseException] = []
-
-    def run() -> None:
-        try:
-            outcome.append(realtime_priority(DEFAULT_PRIORITY))
-            for start in starts:
-                start()
-        except BaseException as exc:  # handed to the caller
-            failure.append(exc)
-
-    helper = threading.Thread(target=run, name="start-as-hardware")
-    helper.start()
-    helper.join()
-    if failure:
-        raise failure[0]
-    return outcome[0] if outcome else None
 
 
 class EmulatorProcess:

@@ -79,6 +79,14 @@ def decelerating_daemon(tmp_path: Path) -> Iterator[DaemonProcess]:
         d.shutdown()
 
 
+def cruises(state: dict[str, Any]) -> bool:
+    """joint1's reference is at the cruise speed. Its measured speed is CRUISE only in a cycle
+    as far from the one before as that one from its own predecessor (the mirror reaches each
+    command one cycle later): on a busy host, with deadlines skipped and states dropped, no
+    state received in the whole second of cruise may show it (issue 22)."""
+    return bool(abs(state["desired"]["velocities"][0] - CRUISE) <= 1e-9)  # as assert_ramp
+
+
 def after(states: list[dict[str, Any]], t0_ns: int) -> list[dict[str, Any]]:
     return [s for s in states if s["time_ns"] >= t0_ns]
 
@@ -146,8 +154,7 @@ def test_sigterm_mid_goal_decelerates_to_rest(decelerating_daemon: DaemonProcess
         goal = client.send_goal(cruise_goal())
         cruising = next_state(
             sub,
-            lambda s: s["active_goal"] == goal.goal_id
-            and abs(s["actual"]["velocities"][0] - CRUISE) < 1e-6,
+            lambda s: s["active_goal"] == goal.goal_id and cruises(s),
         )
         os.kill(d.pid, signal.SIGTERM)
         result = goal.wait(timeout_s=STOP_TIMEOUT_S)
@@ -174,8 +181,7 @@ def test_stop_op_decelerates_and_the_daemon_serves_on(decelerating_daemon: Daemo
         goal = client.send_goal(cruise_goal())
         cruising = next_state(
             sub,
-            lambda s: s["active_goal"] == goal.goal_id
-            and abs(s["actual"]["velocities"][0] - CRUISE) < 1e-6,
+            lambda s: s["active_goal"] == goal.goal_id and cruises(s),
         )
         client.stop()
         result = goal.wait(timeout_s=WAIT_S)

@@ -534,11 +534,17 @@ class MitBusEmulator:
             return list(self._slots[motor_id].first_replies)
 
     def bus_off(self) -> None:
-        """Send a bus-off error frame and go silent until :meth:`clear_bus_off`."""
-        with self._lock:
-            self._bus_off = True
+        """Send a bus-off error frame and go silent until :meth:`clear_bus_off`.
+
+        The error frame goes first: a controller going bus-off reports it as it stops, so
+        the peer never sees the silence without the reason. Silent first, a caller
+        descheduled between the two (a busy host) let the driver's ``feedback_timeout``
+        expire before the frame came, and the bus-off read as silent motors (issue 22).
+        """
         self.bus.send(can.Message(arbitration_id=CAN_ERR_BUSOFF, is_error_frame=True,
                                   is_extended_id=True, data=bytes(8)))
+        with self._lock:
+            self._bus_off = True
 
     def clear_bus_off(self) -> None:
         """Answer again after :meth:`bus_off`."""

@@ -41,7 +41,8 @@ collection is disabled in the loop and run explicitly (generation 0) when a cycl
 Shutdown (the ``shutdown`` request: SIGTERM, SIGINT): the active goal gets its result, the
 controller is deactivated (velocity, acceleration and effort commands 0), the hardware applies
 its safe action and is released. With ``constraints.decelerate_on_cancel`` the loop first keeps
-cycling through the controller's decelerating stop until the joints are at rest, at most the
+cycling through the controller's decelerating stop until the joints are at rest (a cycle after
+the one that wrote the rest command has read them, also when deadlines were skipped), at most the
 stop's duration plus ``SHUTDOWN_STOP_MARGIN_S`` (and ``SHUTDOWN_STOP_MAX_S``), refusing new
 goals meanwhile.
 """
@@ -128,6 +129,7 @@ class ControlLoop:
         self._last_command: JointCommand | None = None
         self._shutdown_reason = "daemon stopping"
         self._stopping_until_ns: int | None = None  # a shutdown waiting for its stop: the cap
+        self._rest_written_ns: int | None = None  # that stop's cycle writing the rest command
         self.inbox_spare_ns = round(INBOX_SPARE * self.period_ns)
         self.api_stall_ns = round(robot.daemon.api_stall_s * 1e9)
         self.api_stalled = False
@@ -390,8 +392,18 @@ class ControlLoop:
         if self.ctrl.stop_pending:
             return False
         end = self.ctrl.stopping_until_ns
-        # One cycle past the end: the rest command was written and the joints read at rest.
-        return end is None or now_ns >= end + self.period_ns
+        if end is None:
+            return True
+        # One cycle past the end: the cycle at or after it wrote the rest command, and the
+        # next read the joints at rest. Counted in cycles, not time: after a skipped deadline
+        # the first cycle past ``end + period`` is the one writing it (a busy host ended the
+        # loop before the joints were read at rest: issue 22).
+        if now_ns < end:
+            return False
+        if self._rest_written_ns is None:
+            self._rest_written_ns = now_ns
+            return False
+        return now_ns > self._rest_written_ns
 
     # -- the cycle ----------------------------------------------------------------------------
 

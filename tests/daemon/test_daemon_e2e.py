@@ -340,9 +340,15 @@ def test_a_new_goal_preempts_the_active_one(arm: DaemonProcess) -> None:
         first.subscribe_state() as sub_first,
         second.subscribe_state() as sub_second,
     ):
-        a = first.send_goal(traj([0.6] * 6, 5.0))
+        # Gentle moves from where the shared arm stands: the mirror reaches each command at
+        # the next cycle, so a cycle that comes late by dt shows a path error of speed * dt.
+        # Peak speeds of 1.5 * 0.5 / 5 and 1.5 * 0.1 / 1 rad/s need a cycle 0.33 s late to
+        # reach PATH_TOL; B used to run up to 0.8 rad in 1 s (55 ms), which a normally
+        # scheduled loop on a busy host overran (issue 22). Preemption is what is tested.
+        p0 = next_state(sub_first, lambda s: s["active_goal"] is None)["actual"]["positions"]
+        a = first.send_goal(traj([p + 0.5 for p in p0], 5.0))
         next(a.feedback(timeout_s=WAIT_S))  # A is executing
-        b = second.send_goal(traj([-0.2] * 6, 1.0))
+        b = second.send_goal(traj([p - 0.1 for p in p0], 1.0))
         ra = a.wait(timeout_s=WAIT_S)
         assert (ra["status"], ra["error_code"], ra["error_string"]) == ("canceled", -1, PREEMPTED)
         rb = b.wait(timeout_s=WAIT_S)

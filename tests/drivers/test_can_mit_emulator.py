@@ -393,3 +393,45 @@ def test_emulate_process_browns_out_on_its_control_socket_and_on_fault(
         assert proc.stdout is not None
         proc.stdout.close()
     assert not path.exists()  # removed on exit
+
+
+def test_bus_off_puts_its_error_frame_on_the_bus_before_it_falls_silent() -> None:
+    """Issue 22: the host must never see the silence of a bus-off before its error frame, or
+    its feedback_timeout can expire first (a caller descheduled between the two on a busy
+    host) and the bus-off reads as silent motors. Observed where it cannot race: when the
+    emulator's bus is handed the error frame, the motor must still answer."""
+    channel = f"mit-emu-{uuid.uuid4().hex}"
+    host = can.Bus(interface="virtual", channel=channel)
+    answered_at_error_frame: list[bool] = []
+
+    class Wire(can.interfaces.virtual.VirtualBus):  # type: ignore[misc]
+        """The emulator's side of the bus, asking the motor once as the error frame leaves."""
+
+        def send(self, msg: can.Message, timeout: float | None = None) -> None:
+            if msg.is_error_frame:
+                host.send(can.Message(arbitration_id=1, is_extended_id=False, data=hold()))
+                reply = host.recv(timeout=WAIT_S)  # an upper bound on waiting only
+                answered_at_error_frame.append(reply is not None)
+            super().send(msg, timeout)
+
+    wire = Wire(channel=channel)
+    emulator = MitBusEmulator(wire, [1], "DM4310", master_id=MASTER)
+    emulator.start()
+    try:
+        host.send(can.Message(arbitration_id=1, is_extended_id=False, data=ENTER_MOTOR_MODE))
+        assert host.recv(timeout=WAIT_S) is not None
+        emulator.bus_off()
+        assert answered_at_error_frame == [True]
+        error = host.recv(timeout=WAIT_S)
+        assert error is not None and error.is_error_frame
+        # Then silent, until the bus is back.
+        host.send(can.Message(arbitration_id=1, is_extended_id=False, data=hold()))
+        assert host.recv(timeout=0.2) is None
+        emulator.clear_bus_off()
+        host.send(can.Message(arbitration_id=1, is_extended_id=False, data=hold()))
+        assert host.recv(timeout=WAIT_S) is not None
+    finally:
+        emulator.stop()
+        assert emulator.error is None, f"the emulator failed: {emulator.error!r}"
+        wire.shutdown()
+        host.shutdown()

@@ -1,6 +1,11 @@
 """The CAN emulator (``python -m jtc_hw.drivers.can.emulator``) in its own process: the line
 it prints once it serves (how to connect), and the motors' enable/disable events it prints
-with ``--events``. Killing it is a bus loss (no goodbye on the bus)."""
+with ``--events``. Killing it is a bus loss (no goodbye on the bus).
+
+Emulators living in the test process instead (the daemon tests that inject faults by calling
+them) are started with :func:`helpers.hardware_threads.start_as_hardware`, at the real-time
+priority the emulator process takes.
+"""
 
 from __future__ import annotations
 
@@ -12,7 +17,7 @@ import threading
 from collections.abc import Sequence
 from pathlib import Path
 
-from helpers.daemon import WAIT_S, daemon_env
+from helpers.daemon import START_TIMEOUT_S, WAIT_S, daemon_env
 
 from conftest import ROOT
 
@@ -33,7 +38,7 @@ class EmulatorProcess:
         """Start the emulator with ``args``; wait for its first line, and return it.
 
         Raises:
-            AssertionError: it printed nothing within ``wait_s``.
+            AssertionError: it printed nothing within ``wait_s`` (at least START_TIMEOUT_S).
         """
         self._first_line, self._enabled = None, {}
         self.proc = subprocess.Popen(
@@ -45,7 +50,10 @@ class EmulatorProcess:
                                         name="emulator-events")
         self._reader.start()
         with self._changed:
-            if not self._changed.wait_for(lambda: self._first_line is not None, self.wait_s):
+            # Its first line comes after an interpreter start and python-can's import: on a
+            # busy host that takes as long as a daemon's start (issue 22).
+            if not self._changed.wait_for(lambda: self._first_line is not None,
+                                          max(self.wait_s, START_TIMEOUT_S)):
                 raise AssertionError("the emulator process did not start")
             assert self._first_line is not None
             return self._first_line

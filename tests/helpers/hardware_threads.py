@@ -1,0 +1,52 @@
+"""Emulators living in the test process, scheduled as the hardware they stand for.
+
+A test that injects faults by calling an emulator runs it in its own process, beside the
+test's thread and a busy host. Normally scheduled, the emulator then answers late whenever
+the host is busy, and the driver counts a real motor's or servo's reply as missed (issue 22:
+the suite failed at a load average of 5-10). Real devices answer in microseconds whatever the
+host does, so their emulators' threads run at the SCHED_FIFO priority ``jtc-hw emulate`` takes
+for its whole process; the test's own thread, and the daemons it forks, keep normal
+scheduling.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Callable
+
+from jtc_hw.drivers.can.emulation import DEFAULT_PRIORITY, realtime_priority
+
+__all__ = ["start_as_hardware"]
+
+
+def start_as_hardware(*starts: Callable[[], None]) -> str | None:
+    """Call each of ``starts`` (an emulator's or a socketcand server's ``start``) in a helper
+    thread running at SCHED_FIFO :data:`DEFAULT_PRIORITY`, as ``jtc-hw emulate can`` runs its
+    whole process: the threads they start inherit that policy, so the emulated motors answer
+    as soon as a frame wakes them however busy the host is (motors do not slow down when the
+    host does), while the test's own thread and the daemon it forks keep normal scheduling.
+
+    Returns:
+        ``None``, or the line saying why the priority was refused (no CAP_SYS_NICE): the
+        emulators then run normally scheduled.
+
+    Raises:
+        BaseException: whatever a start raised.
+    """
+    outcome: list[str | None] = []
+    failure: list[BaseException] = []
+
+    def run() -> None:
+        try:
+            outcome.append(realtime_priority(DEFAULT_PRIORITY))
+            for start in starts:
+                start()
+        except BaseException as exc:  # handed to the caller
+            failure.append(exc)
+
+    helper = threading.Thread(target=run, name="start-as-hardware")
+    helper.start()
+    helper.join()
+    if failure:
+        raise failure[0]
+    return outcome[0] if outcome else None

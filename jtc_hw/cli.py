@@ -778,10 +778,12 @@ def demo_config(
     socket_path: str,
     hardware: list[dict[str, Any]] | None = None,
     update_rate: int = 500,
+    priority: int = 0,
 ) -> dict[str, Any]:
-    """A six-joint arm, by default on simulated (mirror) hardware at 500 Hz; its loop at
-    SCHED_FIFO :data:`DEMO_LOOP_PRIORITY` when this user may have it (:func:`fifo_permitted`),
-    else normally scheduled (no warning: a laptop's normal state)."""
+    """A six-joint arm, by default on simulated (mirror) hardware at 500 Hz, its loop at
+    SCHED_FIFO ``priority`` (0: normally scheduled). ``jtc-hw demo`` asks for
+    :data:`DEMO_LOOP_PRIORITY` when this user may have it (:func:`fifo_permitted`), else 0:
+    no warning, a laptop's normal state."""
     if hardware is None:
         hardware = [
             {"name": "arm", "kind": "mirror", "joints": DEMO_JOINTS, "params": {"lag_s": 0.005}}
@@ -805,9 +807,7 @@ def demo_config(
         "hardware": hardware,
         "daemon": {
             "socket": socket_path,
-            "realtime": {
-                "priority": DEMO_LOOP_PRIORITY if fifo_permitted(DEMO_LOOP_PRIORITY) else 0,
-            },
+            "realtime": {"priority": priority},
         },
     }
 
@@ -975,7 +975,8 @@ def _demo(args: argparse.Namespace, hardware: list[dict[str, Any]] | None, rate:
         else:
             socket_path = os.path.join(tmp, "jtc-hw.sock")
             config_path = os.path.join(tmp, "robot.yaml")
-            config = demo_config(socket_path, hardware, rate)
+            priority = DEMO_LOOP_PRIORITY if fifo_permitted(DEMO_LOOP_PRIORITY) else 0
+            config = demo_config(socket_path, hardware, rate, priority)
             Path(config_path).write_text(yaml.safe_dump(config))
             goal = demo_goal()
         print(f"jtc-hw demo: starting the daemon ({config_path})")

@@ -296,6 +296,25 @@ def settle(sub: StateSubscription, after_ns: int) -> dict[str, Any]:
     return next_state(sub, lambda s: s["time_ns"] >= after_ns)
 
 
+def skipped_deadlines_until_now(client: Client, timeout_s: float = WAIT_S) -> int:
+    """The deadlines the loop has skipped since it started (``loop.overruns``), from a status
+    report made after this call began: everything before now is counted.
+
+    The loop reports its statistics at 2 Hz, so the status at hand may predate a moment the
+    caller cares about; the next report that differs from it (the cycle count moved) was made
+    later. A test derives what a busy host may cost from this count (a skipped deadline is a
+    cycle that never ran) rather than from a fixed share.
+    """
+    deadline = time.monotonic() + timeout_s
+    first = client.get_status()["loop"]
+    while True:
+        loop = client.get_status()["loop"]
+        if loop["cycles"] != first["cycles"]:
+            return int(loop["overruns"])
+        assert time.monotonic() < deadline, f"no new loop statistics within {timeout_s} s"
+        time.sleep(0.05)  # polling the daemon's 2 Hz report; nothing to block on
+
+
 def traj(positions: Sequence[float], t: float = 1.0, **extra: Any) -> dict[str, Any]:
     """One point at ``t`` s, at rest."""
     return {

@@ -16,7 +16,7 @@ from pathlib import Path
 import pytest
 import yaml
 from helpers.daemon import WAIT_S, DaemonProcess, connect, daemon_env
-from helpers.dynamixel import DAEMON_TEST_TIMEOUT_MS
+from helpers.dynamixel import DAEMON_TEST_TIMEOUT_MS, servos_as_hardware
 
 from jtc_hw.drivers.dynamixel.control_table import HardwareError
 from jtc_hw.drivers.dynamixel.emulator import DynamixelEmulator
@@ -31,7 +31,7 @@ IDS = [1, 2, 3]
 
 @pytest.fixture
 def faulted(tmp_path: Path) -> Iterator[tuple[DaemonProcess, DynamixelEmulator]]:
-    with DynamixelEmulator(IDS, initial_positions={i: math.pi for i in IDS}) as emulator:
+    with servos_as_hardware(IDS, initial_positions={i: math.pi for i in IDS}) as emulator:
         d = DaemonProcess(tmp_path)
         params = {
             "port": emulator.device_path, "baud_rate": 4_000_000, "ids": IDS,

@@ -31,7 +31,7 @@ from helpers.daemon import (
 from helpers.daemon import (
     ConfiguredDaemon as DxlDaemon,
 )
-from helpers.dynamixel import DAEMON_TEST_TIMEOUT_MS
+from helpers.dynamixel import DAEMON_TEST_TIMEOUT_MS, servos_as_hardware
 
 from jtc_hw import GoalRejected
 from jtc_hw.api.client import Client
@@ -77,7 +77,7 @@ def robot(socket_path: Path, device: str, interface: str = "position",
 
 @pytest.fixture(scope="module")
 def emulator() -> Iterator[DynamixelEmulator]:
-    with DynamixelEmulator(IDS, initial_positions=START) as emu:
+    with servos_as_hardware(IDS, initial_positions=START) as emu:
         yield emu
 
 
@@ -230,7 +230,7 @@ def test_a_rearm_whose_servo_does_not_stay_enabled_fails_in_one_line(
 def test_velocity_and_current_mode_goals_succeed(
     tmp_path: Path, interface: str, gains: dict[str, float]
 ) -> None:
-    with DynamixelEmulator(IDS, initial_positions=START) as emu:
+    with servos_as_hardware(IDS, initial_positions=START) as emu:
         d = DxlDaemon(tmp_path / interface,
                       lambda sock: robot(sock, emu.device_path, interface, gains))
         d.start()
@@ -274,7 +274,7 @@ STOP_WAIT_S = 10.0
 def moving_arm(directory: Path) -> Iterator[tuple[DynamixelEmulator, DxlDaemon, Any, Any]]:
     """Emulated servos in velocity mode (Bus Watchdog 0.1 s), their daemon, a client and a goal
     half a second under way, the servos turning. On exit, whatever is left of the daemon ends."""
-    with DynamixelEmulator(IDS, initial_positions=START) as emu:
+    with servos_as_hardware(IDS, initial_positions=START) as emu:
         d = DxlDaemon(directory, lambda sock: robot(
             sock, emu.device_path, "velocity", {"p": 5.0, "ff_velocity_scale": 1.0},
             watchdog_s=0.1))

@@ -18,7 +18,7 @@ from typing import Any
 import pytest
 from helpers.daemon import WAIT_S, DaemonProcess, connect
 from helpers.daemon import ConfiguredDaemon as DxlDaemon
-from helpers.dynamixel import DAEMON_TEST_TIMEOUT_MS
+from helpers.dynamixel import DAEMON_TEST_TIMEOUT_MS, servos_as_hardware
 
 from jtc_hw.cli import EXIT_NO_DAEMON, main
 from jtc_hw.cli_health import format_hardware, hardware_report
@@ -55,7 +55,7 @@ def robot(socket_path: Path, device: str) -> dict[str, Any]:
 
 @pytest.fixture(scope="module")
 def emulator() -> Iterator[DynamixelEmulator]:
-    with DynamixelEmulator(IDS, initial_positions=START) as emu:
+    with servos_as_hardware(IDS, initial_positions=START) as emu:
         yield emu
 
 

@@ -21,6 +21,7 @@ from typing import Any
 import pytest
 from helpers.daemon import WAIT_S, connect
 from helpers.daemon import ConfiguredDaemon as DxlDaemon
+from helpers.dynamixel import servos_as_hardware
 from test_health_dynamixel_daemon import IDS, JOINTS, motor_health, robot, wait_status
 
 from jtc_hw.cli import main
@@ -35,7 +36,7 @@ START = {i: math.pi + 0.1 * (i - 2) for i in IDS}
 
 @pytest.fixture(scope="module")
 def emulator() -> Iterator[DynamixelEmulator]:
-    with DynamixelEmulator(IDS, initial_positions=START) as emu:
+    with servos_as_hardware(IDS, initial_positions=START) as emu:
         yield emu
 
 

@@ -19,6 +19,7 @@ from typing import Any
 import pytest
 import yaml
 from helpers.daemon import MS, WAIT_S, connect, next_state, skipped_deadlines_until_now
+from helpers.dynamixel import servos_as_hardware
 from test_dynamixel_daemon import IDS, START, DxlDaemon, robot, traj
 
 from jtc_hw.drivers.dynamixel.control_table import HardwareError
@@ -38,7 +39,7 @@ CYCLE_PERIOD_NS = 5 * MS  # update_rate 200 Hz (test_dynamixel_daemon.robot)
 
 @pytest.fixture(scope="module")
 def emulator() -> Iterator[DynamixelEmulator]:
-    with DynamixelEmulator(IDS, initial_positions=START) as emu:
+    with servos_as_hardware(IDS, initial_positions=START) as emu:
         yield emu
 
 

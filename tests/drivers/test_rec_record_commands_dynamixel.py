@@ -20,6 +20,7 @@ from typing import Any
 
 import pytest
 from helpers.daemon import MS, WAIT_S, connect, daemon_env
+from helpers.dynamixel import servos_as_hardware
 from test_dynamixel_daemon import IDS, JOINTS, START, DxlDaemon, robot, traj
 
 from jtc_hw.drivers.dynamixel.emulator import DynamixelEmulator
@@ -35,7 +36,7 @@ TOPIC = "/joint_trajectory_controller/joint_trajectory"
 
 @pytest.fixture(scope="module")
 def emulator() -> Iterator[DynamixelEmulator]:
-    with DynamixelEmulator(IDS, initial_positions=START) as emu:
+    with servos_as_hardware(IDS, initial_positions=START) as emu:
         yield emu
 
 

@@ -22,6 +22,7 @@ from typing import Any
 import pytest
 import yaml
 from helpers.daemon import MS, WAIT_S, connect, daemon_env, skipped_deadlines_until_now
+from helpers.dynamixel import servos_as_hardware
 from test_dynamixel_daemon import GOAL_TOL, IDS, JOINTS, PATH_TOL, START, DxlDaemon, robot, traj
 
 from jtc_hw.drivers.dynamixel.emulator import DynamixelEmulator
@@ -40,7 +41,7 @@ RECORD_S = 4.0
 
 @pytest.fixture(scope="module")
 def emulator() -> Iterator[DynamixelEmulator]:
-    with DynamixelEmulator(IDS, initial_positions=START) as emu:
+    with servos_as_hardware(IDS, initial_positions=START) as emu:
         yield emu
 
 

@@ -16,6 +16,7 @@ from typing import Any
 
 import pytest
 from helpers.daemon import WAIT_S, connect, next_state, settle
+from helpers.dynamixel import servos_as_hardware
 from test_dynamixel_daemon import GOAL_TOL, IDS, JOINTS, START, DxlDaemon, robot
 
 from jtc_hw.cli import EXIT_OK, main
@@ -30,7 +31,7 @@ TICK = 2 * math.pi / 4096
 
 @pytest.fixture(scope="module")
 def emulator() -> Iterator[DynamixelEmulator]:
-    with DynamixelEmulator(IDS, initial_positions=START) as emu:
+    with servos_as_hardware(IDS, initial_positions=START) as emu:
         yield emu
 
 

@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 from helpers.daemon import STOP_TIMEOUT_S, connect, next_state
 from helpers.daemon import ConfiguredDaemon as DxlDaemon
-from helpers.dynamixel import DAEMON_TEST_TIMEOUT_MS
+from helpers.dynamixel import DAEMON_TEST_TIMEOUT_MS, servos_as_hardware
 
 from jtc_hw.api.client import ClientConnectionError
 from jtc_hw.drivers.dynamixel.emulator import DynamixelEmulator
@@ -55,7 +55,11 @@ def robot(socket_path: Path, device: str) -> dict[str, Any]:
             "stopped_velocity_tolerance": 0.05,
             "goal_time": 1.0,
             "decelerate_on_cancel": True,
-            **{j: {"trajectory": 0.1, "goal": 0.02, "max_deceleration_on_cancel": DECEL}
+            # The path tolerance is wide: this test is about the stop, and a busy host that
+            # delays the daemon's loop 100 ms puts the servo 0.1 rad behind at 1 rad/s (CI,
+            # issue 22: the goal aborted at +0.103 before SIGTERM). Path aborts are tested
+            # in tests/controller/ and tests/daemon/test_upstream_deactivation.py.
+            **{j: {"trajectory": 0.5, "goal": 0.02, "max_deceleration_on_cancel": DECEL}
                for j in JOINTS},
         },
     }
@@ -65,7 +69,7 @@ def robot(socket_path: Path, device: str) -> dict[str, Any]:
 
 @pytest.fixture
 def arm(tmp_path: Path) -> Iterator[tuple[DynamixelEmulator, DxlDaemon]]:
-    with DynamixelEmulator(IDS, initial_positions=START) as emu:
+    with servos_as_hardware(IDS, initial_positions=START) as emu:
         d = DxlDaemon(tmp_path / "dxl", lambda sock: robot(sock, emu.device_path))
         d.start()
         try:

@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from helpers.dynamixel import DAEMON_TEST_TIMEOUT_MS, IDS, JOINTS, OFFSET, START
+from helpers.dynamixel import DAEMON_TEST_TIMEOUT_MS, IDS, JOINTS, OFFSET, START, servos_as_hardware
 
 from jtc_hw.controller.goals import ErrorCode, GoalResult, GoalStatus
 from jtc_hw.controller.trajectory import JointTrajectory, TrajectoryPoint
@@ -32,7 +32,7 @@ PERIOD_NS = 1_000_000_000 // RATE
 
 @pytest.fixture
 def emulator() -> Iterator[DynamixelEmulator]:
-    with DynamixelEmulator(IDS, initial_positions=START) as emu:
+    with servos_as_hardware(IDS, initial_positions=START) as emu:
         yield emu
 
 

@@ -162,9 +162,10 @@ def move_by(client: RecordingClient, joints: Sequence[str], delta: float,
     return result
 
 
-def mid_goal(client: RecordingClient, joints: Sequence[str], after_s: float = 0.3) -> Any:
-    """A 3 s goal, once ``after_s`` of it has run."""
-    goal = client.send_goal(trajectory(joints, [p + 0.5 for p in here(client)], 3.0))
+def mid_goal(client: RecordingClient, joints: Sequence[str], after_s: float = 0.3,
+             duration_s: float = 3.0) -> Any:
+    """A ``duration_s`` goal, once ``after_s`` of it has run."""
+    goal = client.send_goal(trajectory(joints, [p + 0.5 for p in here(client)], duration_s))
     for feedback in goal.feedback(timeout_s=WAIT_S):
         if feedback["time_from_start"] >= after_s:
             break
@@ -403,7 +404,9 @@ def test_full_transmit_queue_is_reported_not_a_silent_stall(mit: MitRig) -> None
     flooder = threading.Thread(target=flood, name="flood")
     try:
         with mit.connect() as client:
-            goal = mid_goal(client, mit.JOINTS)
+            # Long: the queue must fill while the goal runs, and in the emulated VM on a busy
+            # host `ip` and `tc` took longer than a 3 s goal's rest (it succeeded first).
+            goal = mid_goal(client, mit.JOINTS, duration_s=60.0)
             try:
                 ip("link", "set", "vcan0", "txqueuelen", "1")
                 tc("qdisc", "add", "dev", "vcan0", "root", "tbf", "rate", "128bit",
@@ -411,7 +414,7 @@ def test_full_transmit_queue_is_reported_not_a_silent_stall(mit: MitRig) -> None
                 flooding.set()
                 flooder.start()
                 result = goal.wait(timeout_s=WAIT_S)
-                assert details(client)["buses"]["vcan0"]["tx_overflows"] > 0
+                assert details(client)["buses"]["vcan0"]["tx_overflows"] > 0, result
             finally:
                 flooding.clear()
                 if flooder.is_alive():

@@ -11,6 +11,7 @@ scheduling.
 
 from __future__ import annotations
 
+import gc
 import threading
 from collections.abc import Callable
 
@@ -33,6 +34,13 @@ def start_as_hardware(*starts: Callable[[], None]) -> str | None:
     Raises:
         BaseException: whatever a start raised.
     """
+    # The test process's garbage collector holds the GIL, so an emulator thread cannot answer
+    # during a collection: a full one over the session's objects took 0.4-1 s on a busy
+    # machine, twice the daemon tests' reply timeout (CI, issue 22: a module's shared daemon
+    # faulted between two tests and the tests after it failed). Collect now, while nothing is
+    # served, and freeze the survivors so that later collections walk only newer objects.
+    gc.collect()
+    gc.freeze()
     outcome: list[str | None] = []
     failure: list[BaseException] = []
 

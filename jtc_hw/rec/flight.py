@@ -226,18 +226,28 @@ class FlightRecorder:
         return str(path)
 
     def flush(self, timeout_s: float = 10.0) -> None:
-        """Write every pending bag now (shutdown) and wait for the writer."""
-        pending, self._pending = self._pending, []
-        for path, _, _ in pending:
-            self._submit(path, None)
+        """Write every pending bag now and wait for the writer.
+
+        Raises:
+            TimeoutError: the writer is still busy after ``timeout_s`` (the bags go on).
+        """
+        self._submit_pending()
         self._writer.submit(lambda: None).result(timeout=timeout_s)
 
     def close(self) -> None:
-        """Flush and stop the writer thread."""
+        """Write every pending bag (the shutdown's) and stop the writer thread once they are
+        written, however long that takes: a machine busy enough took over 10 s for a
+        932-cycle bag, and a timeout here ended the daemon with a traceback instead of the bag.
+        The service manager's stop timeout bounds the wait."""
         try:
-            self.flush()
+            self._submit_pending()
         finally:
             self._writer.shutdown(wait=True)
+
+    def _submit_pending(self) -> None:
+        pending, self._pending = self._pending, []
+        for path, _, _ in pending:
+            self._submit(path, None)
 
     def status(self) -> dict[str, Any]:
         """For ``get_status``: settings, the newest bag, the bags kept, write errors."""

@@ -138,6 +138,52 @@ def test_only_the_newest_bags_are_kept(tmp_path: Path) -> None:
     assert recorder.status()["files"] == paths[-2:]
 
 
+def test_close_writes_the_shutdown_bag_however_long_the_writer_takes(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A busy machine took over 10 s to write a shutdown bag, and ``close`` gave up with a
+    TimeoutError: the daemon ended with a traceback (CI under load, issue 22). ``close`` now
+    waits for the writer. Here flush's own timeout is made tiny and the writer is held until
+    ``close`` has had that long: ``close`` must neither raise nor return before the bag is
+    written."""
+    pytest.importorskip("rosbags")
+    import threading
+
+    from jtc_hw.rec import flight
+
+    recorder = flight.FlightRecorder(tmp_path, seconds=0.5, keep=2)
+    release = threading.Event()
+    write = recorder._write
+
+    def slow_write(*args: Any, **kwargs: Any) -> Any:
+        release.wait(timeout=30.0)
+        return write(*args, **kwargs)
+
+    monkeypatch.setattr(recorder, "_write", slow_write)
+    real_flush = recorder.flush
+    monkeypatch.setattr(recorder, "flush", lambda timeout_s=0.01: real_flush(timeout_s))
+    for i in range(10):
+        recorder.on_state(state(1_000 * MS + i * 20 * MS, 0.0))
+    path = recorder.trigger("shutdown", 1_200 * MS)
+    assert path is not None
+    failures: list[BaseException] = []
+
+    def close() -> None:
+        try:
+            recorder.close()
+        except BaseException as exc:  # noqa: BLE001 - reported below
+            failures.append(exc)
+
+    closing = threading.Thread(target=close, name="close")
+    closing.start()
+    closing.join(timeout=0.2)  # well past flush's 0.01 s
+    assert closing.is_alive(), "close returned before the bag was written"
+    release.set()
+    closing.join(timeout=30.0)
+    assert not closing.is_alive() and not failures, failures
+    assert recorder.last_file == path and Path(path).is_dir()
+
+
 def test_off_when_zero(tmp_path: Path) -> None:
     from jtc_hw.rec.flight import FlightRecorder
 

@@ -112,6 +112,7 @@ import tty
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from types import TracebackType
 
+from ..can.emulation import DEFAULT_PRIORITY, realtime_priority
 from ..motor_model import Motor, MotorParams
 from .control_table import (
     BAUD_RATES,
@@ -1505,6 +1506,15 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         help="Return Delay Time in us (default: the servo's, 500)",
     )
+    p.add_argument(
+        "--priority",
+        type=int,
+        default=None,
+        metavar="N",
+        help=f"SCHED_FIFO priority of the process, 1..99, 0: normal scheduling (default: "
+        f"{DEFAULT_PRIORITY} where permitted, so that a busy host does not delay the replies "
+        "as it would never delay real servos)",
+    )
     return p
 
 
@@ -1512,6 +1522,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Run the emulator from the command line; 0 on a clean stop, 2 on bad options."""
     parser = build_parser()
     args = parser.parse_args(argv)
+    if args.priority is not None and not 0 <= args.priority <= 99:
+        parser.error(f"--priority must be 0..99, got {args.priority}")
+    # Before the serving thread starts: it inherits the policy. A normally scheduled emulator
+    # missed the daemon's 20 ms ping at configure on a busy machine (issue 22).
+    refused = realtime_priority(DEFAULT_PRIORITY if args.priority is None else args.priority)
+    if refused is not None and args.priority is not None:  # asked for: say it was not given
+        print(f"jtc-hw emulate dynamixel: {refused}", file=sys.stderr)
     try:
         ids = parse_ids(args.ids)
         emulator = DynamixelEmulator(

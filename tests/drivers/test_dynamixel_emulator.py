@@ -611,3 +611,41 @@ def test_current_and_current_based_position_modes(bus: Bus) -> None:
     assert bus.write(3, "goal_position", 2048 + 4096) == (sdk.COMM_SUCCESS, 0)  # multi-turn
     wait_for(lambda: bus.read(3, "present_velocity")[0] > 5)
     assert 0 < bus.read(3, "present_current")[0] <= 20
+
+
+def _fifo_permitted() -> bool:
+    probe = "import os; os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(1))"
+    return subprocess.run([sys.executable, "-c", probe], capture_output=True).returncode == 0
+
+
+@pytest.mark.parametrize("priority", [None, "0"])
+def test_the_command_line_emulator_answers_at_a_real_time_priority(
+    priority: str | None,
+) -> None:
+    """``jtc-hw emulate dynamixel`` runs its threads at SCHED_FIFO 1 where permitted, as
+    ``jtc-hw emulate can`` does (``--priority 0``: normal scheduling): normally scheduled on a
+    busy machine it missed a daemon's 20 ms ping at configure (issue 22)."""
+    if priority is None and not _fifo_permitted():
+        pytest.skip("this user may not have a SCHED_FIFO priority")
+    argv = [sys.executable, "-m", "jtc_hw", "emulate", "dynamixel", "--ids", "1"]
+    proc = subprocess.Popen(argv + ([] if priority is None else ["--priority", priority]),
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    try:
+        assert proc.stdout is not None
+        assert proc.stdout.readline().strip()  # serving: its threads have started
+        # The main thread and the newest, the serving thread it started once set (numpy's
+        # BLAS may have started idle threads at import, before; they serve nothing).
+        tids = sorted(int(t) for t in os.listdir(f"/proc/{proc.pid}/task"))
+        assert len(tids) > 1 and tids[0] == proc.pid
+        expected = os.SCHED_OTHER if priority == "0" else os.SCHED_FIFO
+        assert [os.sched_getscheduler(tid) for tid in (tids[0], tids[-1])] == [expected] * 2
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        proc.communicate(timeout=10)
+    assert proc.returncode == 0
+
+
+def test_a_priority_out_of_range_is_one_line() -> None:
+    done = subprocess.run([sys.executable, "-m", "jtc_hw", "emulate", "dynamixel",
+                           "--priority", "100"], capture_output=True, text=True, timeout=60)
+    assert done.returncode == 2 and "--priority must be 0..99, got 100" in done.stderr

@@ -1,6 +1,6 @@
 """One YAML file configures a robot: the controller, its hardware and the daemon.
 
-The controller's part is read by :func:`jtc_hw.controller.config_io.load_config` (either
+The controller's part is read by :func:`jtc_hw.config.reading.load_config` (either
 layout); this module adds two top-level sections that ``load_config`` skips::
 
     hardware:                 # optional; default: one mirror component with every joint
@@ -47,9 +47,9 @@ from types import MappingProxyType
 from typing import Any, Final
 
 from ..api.paths import SOCKET_NAME, default_socket_path
-from ..controller.config import ControllerConfig
-from ..controller.config_io import load_config
-from ..controller.parsing import describe, did_you_mean, fmt_list, read_source
+from ..config.controller import ControllerConfig
+from ..config.reading import load_config, read_source
+from ..config.values import describe, did_you_mean, fmt_list
 from ..errors import ConfigurationError
 from ..hardware import (
     MIN_WATCHDOG_PERIODS,
@@ -580,7 +580,7 @@ def load_robot(
 
     Args:
         source: path of a YAML file, or an already parsed mapping: a controller configuration
-            in either layout :func:`~jtc_hw.controller.config_io.load_config` reads, plus optional
+            in either layout :func:`~jtc_hw.config.reading.load_config` reads, plus optional
             top-level ``hardware`` and ``daemon`` sections (see the module docstring).
         controller_name: which controller section to use when there are several.
 
@@ -590,7 +590,7 @@ def load_robot(
         file's directory (the current directory for a mapping).
 
     Raises:
-        ConfigurationError: anything :func:`~jtc_hw.controller.config_io.load_config` rejects; a
+        ConfigurationError: anything :func:`~jtc_hw.config.reading.load_config` rejects; a
             ``hardware`` entry with an unknown or missing key, an unknown kind (the message
             lists the kinds), a joint that is not the controller's or is given twice, a
             controller joint no component provides; ``command_joints`` naming other joints

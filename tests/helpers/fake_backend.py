@@ -15,8 +15,9 @@ from typing import Any, TypeVar
 import numpy as np
 
 from jtc_hw import GoalFeedback, GoalResult, JointTrajectoryController, TrajectorySample
-from jtc_hw.controller.config_io import ParameterChange, config_to_dict, parameters_report
+from jtc_hw.config.controller_file import config_to_dict
 from jtc_hw.controller.limits_check import AcceptedGoal, TimeScaling
+from jtc_hw.controller.parameters import ParameterChange, parameters_report
 from jtc_hw.controller.tolerances import JointTolerance
 from jtc_hw.controller.trajectory import JointTrajectory
 from jtc_hw.daemon.server import BackendListener, Server, ServerSettings

@@ -2,10 +2,10 @@
 
 ``lint-imports`` (import-linter) reads the contracts from ``pyproject.toml``: the layers
 cli > daemon > api | hardware > controller > config > errors, a controller without I/O, clock
-or thread modules (nor the configuration's file reading), drivers that never import the daemon, the API or the CLI, and no import circle among
-the CAN emulators and their socketcand server. It runs here, so every
-test run (and CI) checks it; the second test plants a forbidden import in a copy of the tree to
-show that the check is not vacuous.
+or thread modules (nor the configuration's file reading), drivers that never import the daemon,
+the API or the CLI, and no import circle among the CAN emulators and their socketcand server.
+It runs here, so every test run (and CI) checks it; the second test plants a forbidden import
+in a copy of the tree to show that the check is not vacuous.
 """
 
 from __future__ import annotations

@@ -27,6 +27,7 @@ __all__ = [
     "Effect",
     "ParamKind",
     "ParamSpec",
+    "check_fields",
     "check_key",
     "check_value",
     "freeze",
@@ -377,6 +378,23 @@ def check_value(spec: ParamSpec, value: Any, path: str, joints: Sequence[str] = 
             return freeze(value)
         return validate_params(spec.fields, value, path, joints=joints)
     return _scalar(spec, value, path)
+
+
+def check_fields(obj: Any, schema: Mapping[str, ParamSpec], path: str) -> None:
+    """Check and normalise, in place, the fields of a frozen dataclass its table declares.
+
+    A settings dataclass calls it from ``__post_init__``, so that an instance built directly is
+    checked by the same rows, with the same messages, as one read from a file. A ``None`` of a
+    ``nullable`` row stays ``None``; a ``SECTION`` row holds a dataclass that checked itself.
+
+    Raises:
+        ConfigurationError: as :func:`check_value`; the path is ``path.<field>``.
+    """
+    for name, spec in schema.items():
+        value = getattr(obj, name)
+        if spec.kind is ParamKind.SECTION or (value is None and spec.nullable):
+            continue
+        object.__setattr__(obj, name, check_value(spec, value, join(path, name)))
 
 
 def _default(spec: ParamSpec, path: str, joints: Sequence[str]) -> Any:

@@ -28,7 +28,8 @@ from helpers.peers import LogWatch, Peer, goal_msg, run, watch_server_log
 from jtc_hw.daemon import server as server_module
 from jtc_hw.daemon import tcp_door
 from jtc_hw.daemon.connection import OVER_LIMIT_CLIENTS, RESERVED_UNIX_CLIENTS
-from jtc_hw.daemon.server import Server, ServerSettings, TcpEndpoint
+from jtc_hw.daemon.server import Server
+from jtc_hw.daemon.settings import DaemonSettings, TcpSettings
 
 pytestmark = pytest.mark.usefixtures("no_leaks")  # threads, sockets, resources
 
@@ -57,7 +58,7 @@ async def serving(
     path: Path | None, backend: FakeBackend | None = None, **settings: Any
 ) -> AsyncIterator[tuple[Server, FakeBackend]]:
     backend = backend or FakeBackend()
-    server = Server(backend, ServerSettings(socket=path, socket_mode=0o666, **settings))
+    server = Server(backend, DaemonSettings(socket=str(path), socket_mode=0o666, **settings))
     await server.start()
     try:
         yield server, backend
@@ -264,7 +265,7 @@ def test_a_stop_gets_through_when_every_slot_is_taken(
 
 def test_tcp_has_its_own_limit_and_a_short_authentication_deadline(logs: LogWatch) -> None:
     async def main() -> None:
-        tcp = TcpEndpoint("127.0.0.1", 0, TOKEN, max_clients=2, auth_timeout_s=0.3,
+        tcp = TcpSettings("127.0.0.1", 0, TOKEN, max_clients=2, auth_timeout_s=0.3,
                           auth_failure_delay_s=0.0)
         async with serving(None, tcp=tcp) as (server, backend):
             assert server.tcp_address is not None
@@ -332,7 +333,7 @@ def test_strangers_waiting_to_authenticate_never_take_the_token_holders_slots(
     monkeypatch.setattr(tcp_door, "HANDSHAKE_GRACE_S", 0.0)
 
     async def main() -> None:
-        tcp = TcpEndpoint("127.0.0.1", 0, TOKEN, auth_timeout_s=30.0)
+        tcp = TcpSettings("127.0.0.1", 0, TOKEN, auth_timeout_s=30.0)
         async with serving(None, tcp=tcp) as (server, backend):
             assert server.tcp_address is not None
             strangers = [await Peer.tcp(server.tcp_address) for _ in range(30)]
@@ -367,7 +368,7 @@ def test_failed_authentications_are_answered_slowly_per_address(logs: LogWatch) 
     tries = 4
 
     async def main() -> None:
-        tcp = TcpEndpoint("127.0.0.1", 0, TOKEN, auth_timeout_s=30.0, auth_failure_delay_s=delay)
+        tcp = TcpSettings("127.0.0.1", 0, TOKEN, auth_timeout_s=30.0, auth_failure_delay_s=delay)
         async with serving(None, tcp=tcp) as (server, _):
             assert server.tcp_address is not None
             loop = asyncio.get_running_loop()
@@ -401,7 +402,7 @@ def test_tcp_connections_do_not_take_unix_slots(tmp_path: Path) -> None:
     path = tmp_path / "d.sock"
 
     async def main() -> None:
-        tcp = TcpEndpoint("127.0.0.1", 0, TOKEN, max_clients=3)
+        tcp = TcpSettings("127.0.0.1", 0, TOKEN, max_clients=3)
         async with serving(path, max_clients=1, tcp=tcp) as (server, _):
             assert server.tcp_address is not None
             remote = [await Peer.tcp(server.tcp_address) for _ in range(3)]

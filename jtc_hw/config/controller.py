@@ -44,10 +44,10 @@ from .schema import (
     ParamSpec,
     check_key,
     check_value,
+    expect_mapping,
     freeze,
     join,
     param_table,
-    unknown_parameter,
 )
 from .values import describe, did_you_mean, fmt_list
 
@@ -76,8 +76,6 @@ __all__ = [
     "SpeedScaling",
     "ROS_PARAMETERS",
     "RESERVED_TOP_LEVEL_KEYS",
-    "check_keys",
-    "expect_mapping",
     "not_a_joint",
 ]
 
@@ -273,27 +271,6 @@ DEFAULTS: Final[Mapping[str, Any]] = freeze({
 """Every default, nested like the parameter file (``<joints>`` stands for each joint)."""
 
 
-def _float_default(table: Mapping[str, ParamSpec], name: str) -> float:
-    value = table[name].default
-    if not isinstance(value, float):  # pragma: no cover - guards the tables above
-        raise TypeError(f"schema default of {name} is not a float")
-    return value
-
-
-def _bool_default(table: Mapping[str, ParamSpec], name: str) -> bool:
-    value = table[name].default
-    if not isinstance(value, bool):  # pragma: no cover - guards the tables above
-        raise TypeError(f"schema default of {name} is not a bool")
-    return value
-
-
-def _str_default(table: Mapping[str, ParamSpec], name: str) -> str:
-    value = table[name].default
-    if not isinstance(value, str):  # pragma: no cover - guards the tables above
-        raise TypeError(f"schema default of {name} is not a str")
-    return value
-
-
 def _empty_mapping() -> Mapping[str, Any]:
     return MappingProxyType({})
 
@@ -307,10 +284,10 @@ def _empty_mapping() -> Mapping[str, Any]:
 class JointConstraints:
     """Default tolerances of one joint (``constraints.<joint>``); 0 means "not checked"."""
 
-    trajectory: float = _float_default(JOINT_CONSTRAINT_PARAMETERS, "trajectory")
-    goal: float = _float_default(JOINT_CONSTRAINT_PARAMETERS, "goal")
-    max_deceleration_on_cancel: float = _float_default(
-        JOINT_CONSTRAINT_PARAMETERS, "max_deceleration_on_cancel"
+    trajectory: float = JOINT_CONSTRAINT_PARAMETERS["trajectory"].default
+    goal: float = JOINT_CONSTRAINT_PARAMETERS["goal"].default
+    max_deceleration_on_cancel: float = (
+        JOINT_CONSTRAINT_PARAMETERS["max_deceleration_on_cancel"].default
     )
 
 
@@ -321,11 +298,9 @@ class Constraints:
     Inside a :class:`ControllerConfig`, ``joints`` has one entry for every configured joint.
     """
 
-    stopped_velocity_tolerance: float = _float_default(
-        CONSTRAINT_PARAMETERS, "stopped_velocity_tolerance"
-    )
-    goal_time: float = _float_default(CONSTRAINT_PARAMETERS, "goal_time")
-    decelerate_on_cancel: bool = _bool_default(CONSTRAINT_PARAMETERS, "decelerate_on_cancel")
+    stopped_velocity_tolerance: float = CONSTRAINT_PARAMETERS["stopped_velocity_tolerance"].default
+    goal_time: float = CONSTRAINT_PARAMETERS["goal_time"].default
+    decelerate_on_cancel: bool = CONSTRAINT_PARAMETERS["decelerate_on_cancel"].default
     joints: Mapping[str, JointConstraints] = field(default_factory=_empty_mapping)
 
     def __post_init__(self) -> None:
@@ -340,13 +315,13 @@ class Constraints:
 class Gains:
     """PID gains of one joint (``gains.<joint>``)."""
 
-    p: float = _float_default(GAIN_PARAMETERS, "p")
-    i: float = _float_default(GAIN_PARAMETERS, "i")
-    d: float = _float_default(GAIN_PARAMETERS, "d")
-    i_clamp: float = _float_default(GAIN_PARAMETERS, "i_clamp")
-    ff_velocity_scale: float = _float_default(GAIN_PARAMETERS, "ff_velocity_scale")
-    normalize_error: bool = _bool_default(GAIN_PARAMETERS, "normalize_error")
-    angle_wraparound: bool = _bool_default(GAIN_PARAMETERS, "angle_wraparound")
+    p: float = GAIN_PARAMETERS["p"].default
+    i: float = GAIN_PARAMETERS["i"].default
+    d: float = GAIN_PARAMETERS["d"].default
+    i_clamp: float = GAIN_PARAMETERS["i_clamp"].default
+    ff_velocity_scale: float = GAIN_PARAMETERS["ff_velocity_scale"].default
+    normalize_error: bool = GAIN_PARAMETERS["normalize_error"].default
+    angle_wraparound: bool = GAIN_PARAMETERS["angle_wraparound"].default
 
     @property
     def wraps(self) -> bool:
@@ -358,13 +333,11 @@ class Gains:
 class SpeedScaling:
     """Speed scaling settings (``speed_scaling``; :data:`SPEED_SCALING_PARAMETERS`)."""
 
-    initial_scaling_factor: float = _float_default(
-        SPEED_SCALING_PARAMETERS, "initial_scaling_factor"
-    )
-    max_scaling_factor: float = _float_default(SPEED_SCALING_PARAMETERS, "max_scaling_factor")
-    state_interface: str = _str_default(SPEED_SCALING_PARAMETERS, "state_interface")
-    command_interface: str = _str_default(SPEED_SCALING_PARAMETERS, "command_interface")
-    ramp_time: float = _float_default(SPEED_SCALING_PARAMETERS, "ramp_time")
+    initial_scaling_factor: float = SPEED_SCALING_PARAMETERS["initial_scaling_factor"].default
+    max_scaling_factor: float = SPEED_SCALING_PARAMETERS["max_scaling_factor"].default
+    state_interface: str = SPEED_SCALING_PARAMETERS["state_interface"].default
+    command_interface: str = SPEED_SCALING_PARAMETERS["command_interface"].default
+    ramp_time: float = SPEED_SCALING_PARAMETERS["ramp_time"].default
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -384,29 +357,29 @@ class ControllerConfig:
     command_joints: tuple[str, ...] = ()
     command_interfaces: tuple[str, ...]
     state_interfaces: tuple[str, ...]
-    allow_partial_joints_goal: bool = _bool_default(PARAMETERS, "allow_partial_joints_goal")
-    open_loop_control: bool = _bool_default(PARAMETERS, "open_loop_control")
-    allow_integration_in_goal_trajectories: bool = _bool_default(
-        PARAMETERS, "allow_integration_in_goal_trajectories"
+    allow_partial_joints_goal: bool = PARAMETERS["allow_partial_joints_goal"].default
+    open_loop_control: bool = PARAMETERS["open_loop_control"].default
+    allow_integration_in_goal_trajectories: bool = (
+        PARAMETERS["allow_integration_in_goal_trajectories"].default
     )
-    state_publish_rate: float = _float_default(PARAMETERS, "state_publish_rate")
-    set_last_command_interface_value_as_state_on_activation: bool = _bool_default(
-        PARAMETERS, "set_last_command_interface_value_as_state_on_activation"
+    state_publish_rate: float = PARAMETERS["state_publish_rate"].default
+    set_last_command_interface_value_as_state_on_activation: bool = (
+        PARAMETERS["set_last_command_interface_value_as_state_on_activation"].default
     )
-    action_monitor_rate: float = _float_default(PARAMETERS, "action_monitor_rate")
-    interpolation_method: str = _str_default(PARAMETERS, "interpolation_method")
-    allow_nonzero_velocity_at_trajectory_end: bool = _bool_default(
-        PARAMETERS, "allow_nonzero_velocity_at_trajectory_end"
+    action_monitor_rate: float = PARAMETERS["action_monitor_rate"].default
+    interpolation_method: str = PARAMETERS["interpolation_method"].default
+    allow_nonzero_velocity_at_trajectory_end: bool = (
+        PARAMETERS["allow_nonzero_velocity_at_trajectory_end"].default
     )
-    cmd_timeout: float = _float_default(PARAMETERS, "cmd_timeout")
-    start_with_holding: bool = _bool_default(PARAMETERS, "start_with_holding")
+    cmd_timeout: float = PARAMETERS["cmd_timeout"].default
+    start_with_holding: bool = PARAMETERS["start_with_holding"].default
     constraints: Constraints = field(default_factory=Constraints)
     gains: Mapping[str, Gains] = field(default_factory=_empty_mapping)
-    update_rate: float = _float_default(PARAMETERS, "update_rate")
+    update_rate: float = PARAMETERS["update_rate"].default
     limits: Mapping[str, JointLimits] = field(default_factory=_empty_mapping)
     """Per joint, the controller's joint limits (issue 12; :mod:`.limits`); joints absent are
     unlimited. Not one of upstream's parameters (upstream reads limits from the URDF)."""
-    time_scaling: str = _str_default(LIMITS_PARAMETERS, "time_scaling")
+    time_scaling: str = LIMITS_PARAMETERS["time_scaling"].default
     """``limits.time_scaling``: what a goal beyond the limits gets by default, ``"reject"`` or
     ``"fit"`` (slowed down uniformly; :mod:`.limits_check`); a goal may ask for either."""
     speed_scaling: SpeedScaling = field(default_factory=SpeedScaling)
@@ -572,18 +545,6 @@ def not_a_joint(
         path,
         key,
     )
-
-
-def check_keys(mapping: Mapping[Any, Any], table: Mapping[str, ParamSpec], prefix: str) -> None:
-    for key in mapping:
-        if check_key(key, prefix) not in table:
-            raise unknown_parameter(key, table, prefix)
-
-
-def expect_mapping(value: Any, path: str) -> Mapping[Any, Any]:
-    if not isinstance(value, Mapping):
-        raise ConfigurationError(f"expected a mapping, got {describe(value)}", path, value)
-    return value
 
 
 def _checked_fields(obj: Any, table: Mapping[str, ParamSpec], prefix: str) -> dict[str, Any]:

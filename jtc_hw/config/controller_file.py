@@ -33,12 +33,10 @@ from .controller import (
     Gains,
     JointConstraints,
     SpeedScaling,
-    check_keys,
-    expect_mapping,
     not_a_joint,
 )
 from .limits import LIMIT_FIELDS, JointLimits
-from .schema import check_key, check_value, unknown_parameter
+from .schema import check_key, check_keys, check_value, expect_mapping, unknown_parameter
 from .values import closest, coerce_string_array, describe, did_you_mean
 
 __all__ = [

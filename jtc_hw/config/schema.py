@@ -29,7 +29,9 @@ __all__ = [
     "ParamSpec",
     "check_fields",
     "check_key",
+    "check_keys",
     "check_value",
+    "expect_mapping",
     "freeze",
     "join",
     "param_table",
@@ -164,6 +166,31 @@ def unknown_parameter(
             f"; known parameters: {', '.join(known)}" if known else "; it takes none"
         )
     return ConfigurationError(f"unknown parameter {key!r}{of}{hint}", join(prefix, key), key)
+
+
+def expect_mapping(value: Any, path: str, of: str = "") -> Mapping[Any, Any]:
+    """``value`` if it is a mapping.
+
+    Raises:
+        ConfigurationError: it is not (``of``: whose, e.g. `` of component 0``).
+    """
+    if not isinstance(value, Mapping):
+        raise ConfigurationError(f"expected a mapping{of}, got {describe(value)}", path, value)
+    return value
+
+
+def check_keys(
+    mapping: Mapping[Any, Any], schema: Mapping[str, ParamSpec], path: str, of: str = ""
+) -> None:
+    """Every key of ``mapping`` is a string that a row of ``schema`` names.
+
+    Raises:
+        ConfigurationError: a key that is not a string, or unknown (see
+            :func:`unknown_parameter`).
+    """
+    for key in mapping:
+        if check_key(key, path) not in schema:
+            raise unknown_parameter(key, schema, path, of)
 
 
 def freeze(value: Any) -> Any:
@@ -430,14 +457,9 @@ def validate_params(
         ConfigurationError: not a mapping, unknown key (with a suggestion), missing required
             key, wrong type, out of range; the error's path names the key.
     """
-    if raw is None:
-        raw = {}
     of = f" of {owner}" if owner else ""
-    if not isinstance(raw, Mapping):
-        raise ConfigurationError(f"expected a mapping{of}, got {describe(raw)}", path, raw)
-    for key in raw:
-        if check_key(key, path) not in schema:
-            raise unknown_parameter(key, schema, path, of)
+    raw = expect_mapping({} if raw is None else raw, path, of)
+    check_keys(raw, schema, path, of)
     result: dict[str, Any] = {}
     for name, spec in schema.items():
         key_path = join(path, name)

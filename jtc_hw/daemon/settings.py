@@ -284,21 +284,11 @@ _TCP, _RT, _FOX, _D, _S = (
 
 @dataclass(frozen=True)
 class TcpSettings:
-    """``daemon.tcp``: the optional TCP endpoint next to the Unix socket.
-
-    Attributes:
-        host: a loopback address (``127.0.0.1``, ``::1`` or ``localhost``).
-        port: TCP port (0: any free port, see ``Server.tcp_address``).
-        token: every TCP client must first send ``{"op": "auth", "token": ...}`` with it.
-        max_clients: simultaneous authenticated TCP connections (the unix socket has its own
-            limit); more get ``busy`` unless their request, after ``auth``, is ``stop``.
-        max_unauthenticated: connections that may wait to authenticate at once, apart from
-            ``max_clients``; a newcomer beyond it takes the place of the one waiting longest
-            (``jtc_hw.daemon.tcp_door``).
-        auth_timeout_s: how long a connection may take, from its opening, to authenticate
-            (sending bytes without completing a request does not extend it).
-        auth_failure_delay_s: failed authentications are answered at most one per this long
-            per peer address, each at least this long after it came.
+    """``daemon.tcp``: the optional TCP endpoint next to the Unix socket; one field per row
+    of :data:`TCP_PARAMETERS`, which says what each is. Every client first sends
+    ``{"op": "auth", "token": ...}``; ``max_unauthenticated`` and ``auth_failure_delay_s`` are
+    the door's (:mod:`jtc_hw.daemon.tcp_door`); a port of 0 is any free one
+    (``Server.tcp_address``).
 
     Raises:
         ConfigurationError: at construction, a value :data:`TCP_PARAMETERS` refuses: ``host``
@@ -373,30 +363,11 @@ class DaemonSettings:
     """``daemon``: how the daemon serves clients and runs its loop; what the server and the
     transports take.
 
-    Attributes:
-        socket: absolute path of the Unix socket; its parent directory is created if
-            missing.
-        socket_mode: permission bits of the socket file (who may connect).
-        socket_group: group of the socket file and of a directory made for it (a name or a
-            gid), or ``None``: the daemon's.
-        tcp: the optional loopback TCP endpoint (with its own ``max_clients``).
-        max_clients: simultaneous unix socket connections; ``RESERVED_UNIX_CLIENTS`` more are
-            allowed to the daemon's user and root. More get ``busy``, unless their request is
-            ``stop``.
-        idle_timeout_s: a connection without a request for this long, with no subscription
-            and no goal running, is closed (``idle``); 0: never.
-        max_message_bytes: longest request line accepted.
-        realtime: scheduling of the loop.
-        api_stall_s: how long the loop's ordered messages (results, replies) may wait for the
-            API process to read them before the loop ends the active goal and holds.
-        log_level: one of :data:`LOG_LEVELS`.
-        foxglove: the live view, or None (off).
-        flight_recorder_s: seconds the flight recorder keeps before a trigger (0: off).
-        flight_recorder_dir: absolute directory of its bags.
-        flight_recorder_keep: how many of its bags are kept.
-        record: absolute directory where each run is recorded from its start, or ``None``.
-        zenoh: the Zenoh interface, or None (off).
-        client_queue_size, client_queue_hard_cap, close_timeout_s: :data:`SERVER_PARAMETERS`.
+    One field per row of :data:`DAEMON_PARAMETERS` (which says what each is; ``socket`` and
+    the directories are absolute here, ``socket_group`` a group name or gid or ``None`` for
+    the daemon's, and the sections are their own settings or ``None``: off), then one per row
+    of :data:`SERVER_PARAMETERS`. ``max_clients`` leaves ``RESERVED_UNIX_CLIENTS`` more
+    connections to the daemon's user and root; a client over a limit may still send ``stop``.
 
     Raises:
         ConfigurationError: at construction, a value the rows refuse, a socket path that is

@@ -54,7 +54,7 @@ def test_the_layering_contract_is_kept() -> None:
          "jtc_hw.controller is not allowed to import jtc_hw.config.reading"),
         ("jtc_hw/config/values.py", "from jtc_hw.controller import pid",
          "jtc_hw.config is not allowed to import jtc_hw.controller"),
-        ("jtc_hw/hardware/params.py", "from jtc_hw.daemon import robot",
+        ("jtc_hw/hardware/timing.py", "from jtc_hw.daemon import robot",
          "jtc_hw.hardware is not allowed to import jtc_hw.daemon"),
         ("jtc_hw/api/protocol.py", "from jtc_hw.hardware import registry",
          "jtc_hw.api is not allowed to import jtc_hw.hardware"),

@@ -34,7 +34,7 @@ from __future__ import annotations
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, fields
 from types import MappingProxyType
-from typing import Any, Final
+from typing import Any, Final, TypeVar
 
 from ..errors import ConfigurationError
 from .limits import JointLimits, check_joint_limits
@@ -553,6 +553,38 @@ def _checked_fields(obj: Any, table: Mapping[str, ParamSpec], prefix: str) -> di
     }
 
 
+_T = TypeVar("_T")
+
+
+def _instance(value: Any, cls: type[_T], path: str) -> _T:
+    if not isinstance(value, cls):
+        raise ConfigurationError(
+            f"expected a {cls.__name__} instance, got {describe(value)}", path, value
+        )
+    return value
+
+
+def _per_joint(
+    entries: Any,
+    joints: Sequence[str],
+    cls: type[_T],
+    table: Mapping[str, ParamSpec],
+    section: str,
+    others: Sequence[str] = (),
+) -> Mapping[str, _T]:
+    """``constraints.<joint>`` or ``gains.<joint>``: one checked ``cls`` per joint (the
+    defaults for a joint not given); a key that is not a joint (nor one of ``others``) is an
+    error."""
+    for key in expect_mapping(entries, section):
+        if check_key(key, section) not in joints:
+            raise not_a_joint(key, section, joints, others)
+    checked = {}
+    for joint in joints:
+        given = _instance(entries.get(joint, cls()), cls, f"{section}.{joint}")
+        checked[joint] = cls(**_checked_fields(given, table, f"{section}.{joint}"))
+    return MappingProxyType(checked)
+
+
 def _validate(cfg: ControllerConfig) -> None:
     """Check and normalise every field of ``cfg`` in place (it is frozen, hence setattr)."""
 
@@ -581,60 +613,21 @@ def _validate(cfg: ControllerConfig) -> None:
         check_value(LIMITS_PARAMETERS["time_scaling"], cfg.time_scaling, "limits.time_scaling"),
     )
 
-    constraints = cfg.constraints
-    if not isinstance(constraints, Constraints):
-        raise ConfigurationError(
-            f"expected a Constraints instance, got {describe(constraints)}",
-            "constraints",
-            constraints,
-        )
-    per_joint = expect_mapping(constraints.joints, "constraints")
-    for key in per_joint:
-        if check_key(key, "constraints") not in joints:
-            raise not_a_joint(key, "constraints", joints, tuple(CONSTRAINT_PARAMETERS))
-    joint_constraints: dict[str, JointConstraints] = {}
-    for joint in joints:
-        given = per_joint.get(joint, JointConstraints())
-        if not isinstance(given, JointConstraints):
-            raise ConfigurationError(
-                f"expected a JointConstraints instance, got {describe(given)}",
-                f"constraints.{joint}",
-                given,
-            )
-        checked = _checked_fields(given, JOINT_CONSTRAINT_PARAMETERS, f"constraints.{joint}")
-        joint_constraints[joint] = JointConstraints(**checked)
+    constraints = _instance(cfg.constraints, Constraints, "constraints")
+    joint_constraints = _per_joint(
+        constraints.joints, joints, JointConstraints, JOINT_CONSTRAINT_PARAMETERS, "constraints",
+        tuple(CONSTRAINT_PARAMETERS),
+    )
     put(
         "constraints",
         Constraints(
             **_checked_fields(constraints, CONSTRAINT_PARAMETERS, "constraints"),
-            joints=MappingProxyType(joint_constraints),
+            joints=joint_constraints,
         ),
     )
+    put("gains", _per_joint(cfg.gains, joints, Gains, GAIN_PARAMETERS, "gains"))
 
-    gains = expect_mapping(cfg.gains, "gains")
-    for key in gains:
-        if check_key(key, "gains") not in joints:
-            raise not_a_joint(key, "gains", joints)
-    joint_gains: dict[str, Gains] = {}
-    for joint in joints:
-        given_gains = gains.get(joint, Gains())
-        if not isinstance(given_gains, Gains):
-            raise ConfigurationError(
-                f"expected a Gains instance, got {describe(given_gains)}",
-                f"gains.{joint}",
-                given_gains,
-            )
-        checked_gains = _checked_fields(given_gains, GAIN_PARAMETERS, f"gains.{joint}")
-        joint_gains[joint] = Gains(**checked_gains)
-    put("gains", MappingProxyType(joint_gains))
-
-    scaling = cfg.speed_scaling
-    if not isinstance(scaling, SpeedScaling):
-        raise ConfigurationError(
-            f"expected a SpeedScaling instance, got {describe(scaling)}",
-            "speed_scaling",
-            scaling,
-        )
+    scaling = _instance(cfg.speed_scaling, SpeedScaling, "speed_scaling")
     checked_scaling = _checked_fields(scaling, SPEED_SCALING_PARAMETERS, "speed_scaling")
     for name in ("state_interface", "command_interface"):
         if checked_scaling[name]:

@@ -36,6 +36,7 @@ from typing import Any, ClassVar, Final
 import numpy as np
 from numpy.typing import NDArray
 
+from ..config.schema import ParamKind, ParamSpec, check_value, param_table, validate_params
 from ..config.values import describe, did_you_mean
 from ..controller.config import COMMAND_INTERFACE_TYPES, STATE_INTERFACE_TYPES
 from ..controller.joints import JointCommand, JointState
@@ -46,7 +47,6 @@ from ..errors import (
     JtcHwError,
     add_note,
 )
-from .params import ParamKind, ParamSpec, check_value, param_table, validate_params
 
 __all__ = [
     "COMMON_PARAMS",

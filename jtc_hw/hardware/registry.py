@@ -16,10 +16,10 @@ from importlib import metadata
 from types import MappingProxyType
 from typing import Any, Final
 
+from ..config.schema import freeze, join
 from ..config.values import describe, did_you_mean
 from ..errors import ConfigurationError, HardwareError, JtcHwError
 from .interface import HardwareInterface
-from .params import freeze, join
 
 __all__ = [
     "BUILTIN_HARDWARE",

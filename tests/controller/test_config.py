@@ -1,4 +1,4 @@
-"""Configuration loading and validation (jtc_hw.controller.config)."""
+"""Configuration loading and validation (jtc_hw.config: the controller's parameters)."""
 
 from __future__ import annotations
 

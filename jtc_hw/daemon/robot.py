@@ -66,6 +66,7 @@ __all__ = [
     "DEFAULT_HARDWARE_NAME",
     "HARDWARE_KEYS",
     "SOCKET_NAME",
+    "DaemonSettings",
     "RobotConfig",
     "create_hardware_set",
     "default_socket_path",

@@ -1,4 +1,4 @@
-"""``ControllerConfig.limits``: the value all of issue 12 reads (jtc_hw.controller.limits)."""
+"""``ControllerConfig.limits``: the value all of issue 12 reads (jtc_hw.config.limits)."""
 
 from __future__ import annotations
 

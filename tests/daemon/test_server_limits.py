@@ -55,7 +55,7 @@ def shared_dir() -> Iterator[Path]:
 
 @contextlib.asynccontextmanager
 async def serving(
-    path: Path | None, backend: FakeBackend | None = None, **settings: Any
+    path: Path, backend: FakeBackend | None = None, **settings: Any
 ) -> AsyncIterator[tuple[Server, FakeBackend]]:
     backend = backend or FakeBackend()
     server = Server(backend, DaemonSettings(socket=str(path), socket_mode=0o666, **settings))
@@ -263,11 +263,13 @@ def test_a_stop_gets_through_when_every_slot_is_taken(
     run(main())
 
 
-def test_tcp_has_its_own_limit_and_a_short_authentication_deadline(logs: LogWatch) -> None:
+def test_tcp_has_its_own_limit_and_a_short_authentication_deadline(
+    tmp_path: Path, logs: LogWatch
+) -> None:
     async def main() -> None:
         tcp = TcpSettings("127.0.0.1", 0, TOKEN, max_clients=2, auth_timeout_s=0.3,
                           auth_failure_delay_s=0.0)
-        async with serving(None, tcp=tcp) as (server, backend):
+        async with serving(tmp_path / "d.sock", tcp=tcp) as (server, backend):
             assert server.tcp_address is not None
             holders = [await Peer.tcp(server.tcp_address) for _ in range(2)]
             for peer in holders:
@@ -324,7 +326,7 @@ def test_tcp_has_its_own_limit_and_a_short_authentication_deadline(logs: LogWatc
 
 
 def test_strangers_waiting_to_authenticate_never_take_the_token_holders_slots(
-    logs: LogWatch, monkeypatch: pytest.MonkeyPatch
+    tmp_path: Path, logs: LogWatch, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """30 connections that never authenticate, held open, against 8 authenticated slots and
     16 places to wait: the token holder is served in full (not only a stop), and the longest
@@ -334,7 +336,7 @@ def test_strangers_waiting_to_authenticate_never_take_the_token_holders_slots(
 
     async def main() -> None:
         tcp = TcpSettings("127.0.0.1", 0, TOKEN, auth_timeout_s=30.0)
-        async with serving(None, tcp=tcp) as (server, backend):
+        async with serving(tmp_path / "d.sock", tcp=tcp) as (server, backend):
             assert server.tcp_address is not None
             strangers = [await Peer.tcp(server.tcp_address) for _ in range(30)]
             await logs.wait_for("client 30 (tcp 127.0.0.1")
@@ -360,7 +362,9 @@ def test_strangers_waiting_to_authenticate_never_take_the_token_holders_slots(
     run(main())
 
 
-def test_failed_authentications_are_answered_slowly_per_address(logs: LogWatch) -> None:
+def test_failed_authentications_are_answered_slowly_per_address(
+    tmp_path: Path, logs: LogWatch
+) -> None:
     """Each wrong token from one address is answered at least auth_failure_delay_s after the
     previous one, however many connections try at once; the right token is not held back by
     them; the address is logged once, not once per attempt."""
@@ -369,7 +373,7 @@ def test_failed_authentications_are_answered_slowly_per_address(logs: LogWatch) 
 
     async def main() -> None:
         tcp = TcpSettings("127.0.0.1", 0, TOKEN, auth_timeout_s=30.0, auth_failure_delay_s=delay)
-        async with serving(None, tcp=tcp) as (server, _):
+        async with serving(tmp_path / "d.sock", tcp=tcp) as (server, _):
             assert server.tcp_address is not None
             loop = asyncio.get_running_loop()
             started = loop.time()

@@ -42,7 +42,7 @@ from jtc_hw import (  # noqa: E402
     TrajectoryPoint,
     load_config,
 )
-from jtc_hw.controller.limits import JointLimits  # noqa: E402
+from jtc_hw.config.limits import JointLimits  # noqa: E402
 
 TARGET_MEDIAN_US = {6: 60.0, 96: 200.0}
 RATE_HZ = 1000.0

@@ -3,8 +3,8 @@
 The controller core is a pure library: feed it time and state, get commands and goal events.
 """
 
-from .controller.config import ControllerConfig
-from .controller.config_io import load_config
+from .config.controller import ControllerConfig
+from .config.reading import load_config
 from .controller.controller import JointTrajectoryController, UpdateResult
 from .controller.goals import ErrorCode, GoalFeedback, GoalResult, GoalStatus, TrajectoryStopped
 from .controller.joints import JointCommand, JointState

@@ -113,7 +113,7 @@ def load_goal_file(path: str) -> dict[str, Any]:
     Raises:
         ConfigurationError: unreadable file or malformed content, naming the line/field.
     """
-    from .controller.parsing import decode_text
+    from .config.reading import decode_text
 
     p = Path(path)
     try:
@@ -133,7 +133,7 @@ def load_goal_file(path: str) -> dict[str, Any]:
             ) from None
     else:
         from .api.goal_files import split_documents
-        from .controller.parsing import load_yaml
+        from .config.reading import load_yaml
 
         # ros2 topic echo ends each message with '---'.
         data = load_yaml(split_documents(text, path), path)  # strict, alias expansion bounded
@@ -346,7 +346,7 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 
 def cmd_check(args: argparse.Namespace) -> int:
-    from .controller.config_io import explain
+    from .controller.parameters import explain
     from .daemon.robot import create_hardware_set, load_robot, security_warnings
 
     robot = load_robot(args.config_file, args.controller)
@@ -636,7 +636,7 @@ def _parameter_value(text: str, name: str) -> Any:
     Raises:
         ConfigurationError: not YAML, or a mapping (parameters are scalars or lists).
     """
-    from .controller.parsing import load_yaml
+    from .config.reading import load_yaml
 
     value = load_yaml(text, name)
     if isinstance(value, dict):

@@ -310,9 +310,9 @@ def daemon(sock: Path) -> Iterator[Any]:
     """A real socket server on ``sock`` with a ``FakeBackend``, in its own thread."""
     from helpers.fake_backend import ServerThread
 
-    from jtc_hw.daemon.server import ServerSettings
+    from jtc_hw.daemon.settings import DaemonSettings
 
-    srv = ServerThread(ServerSettings(socket=sock))
+    srv = ServerThread(DaemonSettings(socket=str(sock)))
     yield srv
     srv.close()
 

@@ -6,7 +6,7 @@ from __future__ import annotations
 import re
 from pathlib import Path
 
-from jtc_hw.controller.config import LIMITS_PARAMETERS
+from jtc_hw.config.controller import LIMITS_PARAMETERS
 
 ROOT = Path(__file__).resolve().parents[1]
 # "time_scaling: reject  # fit (the default ...)" or "# ...; default fit"

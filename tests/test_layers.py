@@ -1,11 +1,11 @@
 """The layering contract of ``pyproject.toml`` holds, and the checker would catch a breach.
 
 ``lint-imports`` (import-linter) reads the contracts from ``pyproject.toml``: the layers
-cli > daemon > api | hardware > controller > errors, a controller without I/O, clock or thread
-modules, drivers that never import the daemon, the API or the CLI, and no import circle among
-the CAN emulators and their socketcand server. It runs here, so every
-test run (and CI) checks it; the second test plants a forbidden import in a copy of the tree to
-show that the check is not vacuous.
+cli > daemon > api | hardware > controller > config > errors, a controller without I/O, clock
+or thread modules (nor the configuration's file reading), drivers that never import the daemon,
+the API or the CLI, and no import circle among the CAN emulators and their socketcand server.
+It runs here, so every test run (and CI) checks it; the second test plants a forbidden import
+in a copy of the tree to show that the check is not vacuous.
 """
 
 from __future__ import annotations
@@ -50,7 +50,11 @@ def test_the_layering_contract_is_kept() -> None:
          "import socket"),
         ("jtc_hw/controller/trajectory.py", "import time", "jtc_hw.controller is not allowed to "
          "import time"),
-        ("jtc_hw/hardware/params.py", "from jtc_hw.daemon import robot",
+        ("jtc_hw/controller/pid.py", "from jtc_hw.config import reading",
+         "jtc_hw.controller is not allowed to import jtc_hw.config.reading"),
+        ("jtc_hw/config/values.py", "from jtc_hw.controller import pid",
+         "jtc_hw.config is not allowed to import jtc_hw.controller"),
+        ("jtc_hw/hardware/timing.py", "from jtc_hw.daemon import robot",
          "jtc_hw.hardware is not allowed to import jtc_hw.daemon"),
         ("jtc_hw/api/protocol.py", "from jtc_hw.hardware import registry",
          "jtc_hw.api is not allowed to import jtc_hw.hardware"),

@@ -4,9 +4,10 @@ Time is a parameter (integer nanoseconds), state comes in, commands and goal eve
 layering contract in ``pyproject.toml`` (checked by ``lint-imports`` on every test run) keeps it
 that way: nothing here imports the hardware, daemon or API layers, or a socket, thread or clock.
 
-- :mod:`.config`: the upstream parameters, one schema table per level, and
-  :class:`~.config.ControllerConfig`; :mod:`.config_io`: ``load_config`` / ``config_to_dict`` /
-  ``explain``; :mod:`.parsing`: strict YAML and value checks shared with the robot file.
+- :mod:`.config`: :class:`~.config.ControllerConfig` and its constants, declared, checked and
+  read from files in :mod:`jtc_hw.config` (the controller reads no file);
+  :mod:`.parameters`: the runtime parameters (``get_parameters`` / ``set_parameters``) and
+  ``explain``.
 - :mod:`.joints`: joint state and command vectors.
 - :mod:`.interpolation`, :mod:`.trajectory`: splines and the immutable reference.
 - :mod:`.validation`, :mod:`.tolerances`, :mod:`.pid`, :mod:`.goals`: goal checks, tolerances,

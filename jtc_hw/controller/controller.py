@@ -51,7 +51,6 @@ from ..errors import (
     StalePlan,
 )
 from .config import MAX_SCALING_CEILING, ControllerConfig
-from .config_io import ParameterChange, get_parameters, read_only_differences, set_parameters
 from .goals import (
     ErrorCode,
     Event,
@@ -76,6 +75,7 @@ from .limits_check import (
     reject,
     scale_prepared,
 )
+from .parameters import ParameterChange, get_parameters, read_only_differences, set_parameters
 from .pid import Pid
 from .stopping import (
     stop_decelerations,

@@ -44,9 +44,9 @@ from typing import Any, NamedTuple
 import numpy as np
 from numpy.typing import NDArray
 
+from ..config.limits import JointLimits
 from ..errors import GoalRejected
 from .interpolation import F64, SegmentKind
-from .limits import JointLimits
 from .trajectory import NS_PER_S, PreparedTrajectory, Trajectory
 
 __all__ = [

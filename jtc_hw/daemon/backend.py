@@ -46,13 +46,8 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from ..config.controller_file import config_to_dict
 from ..controller.config import ControllerConfig
-from ..controller.config_io import (
-    ParameterChange,
-    config_to_dict,
-    parameters_report,
-    set_parameters,
-)
 from ..controller.controller import Plan, Planner, in_trajectory_time
 from ..controller.goals import (
     ErrorCode,
@@ -63,6 +58,7 @@ from ..controller.goals import (
 )
 from ..controller.joints import JointCommand
 from ..controller.limits_check import AcceptedGoal, TimeScaling
+from ..controller.parameters import ParameterChange, parameters_report, set_parameters
 from ..controller.tolerances import JointTolerance
 from ..controller.trajectory import (
     JointTrajectory,

@@ -10,9 +10,9 @@ from __future__ import annotations
 from collections.abc import Mapping, Sequence
 from typing import Any, Protocol
 
-from ..controller.config_io import ParameterChange
 from ..controller.goals import GoalFeedback, GoalResult
 from ..controller.limits_check import TimeScaling
+from ..controller.parameters import ParameterChange
 from ..controller.tolerances import JointTolerance
 from ..controller.trajectory import JointTrajectory, QueriedState
 

@@ -1,35 +1,27 @@
-"""One client connection of the socket server, and the settings that bound them all.
+"""One client connection of the socket server.
 
-:class:`ServerSettings` is where and how the server listens (the robot file's ``daemon``
-fields); :class:`Connection` is one client: its streams, its bounded outgoing queue (droppable
+:class:`Connection` is one client: its streams, its bounded outgoing queue (droppable
 ``state`` / ``feedback``, never-dropped replies and results up to a hard cap), its subscription,
-its deadlines (authentication, idleness) and its counters.
+its deadlines (authentication, idleness) and its counters. The bounds are the daemon's settings
+(:class:`~jtc_hw.daemon.settings.DaemonSettings`).
 """
 
 from __future__ import annotations
 
 import asyncio
 import collections
-import ipaddress
 import os
 import socket
 import struct
-from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field, fields
 from typing import Any
 
-from ..api.framing import DEFAULT_MAX_MESSAGE_BYTES
-from ..errors import (
-    ConfigurationError,
-)
+from .settings import DaemonSettings
 
 __all__ = [
     "OVER_LIMIT_CLIENTS",
     "OVER_LIMIT_DEADLINE_S",
     "RESERVED_UNIX_CLIENTS",
     "Connection",
-    "ServerSettings",
-    "TcpEndpoint",
     "is_privileged",
     "peer_identity",
 ]
@@ -45,175 +37,6 @@ OVER_LIMIT_DEADLINE_S = 2.0
 first) before it gets ``busy``."""
 
 
-@dataclass(frozen=True)
-class TcpEndpoint:
-    """The optional loopback TCP endpoint (the robot file's ``daemon.tcp``).
-
-    Attributes:
-        host: a loopback address (``127.0.0.1``, ``::1`` or ``localhost``).
-        port: TCP port (0: any free port, see ``Server.tcp_address``).
-        token: every TCP client must first send ``{"op": "auth", "token": ...}`` with it.
-        max_clients: simultaneous authenticated TCP connections (the unix socket has its own
-            limit); more get ``busy`` unless their request, after ``auth``, is ``stop``.
-        max_unauthenticated: connections that may wait to authenticate at once, apart from
-            ``max_clients``; a newcomer beyond it takes the place of the one waiting longest
-            (``jtc_hw.daemon.tcp_door``).
-        auth_timeout_s: how long a connection may take, from its opening, to authenticate
-            (sending bytes without completing a request does not extend it).
-        auth_failure_delay_s: failed authentications are answered at most one per this long
-            per peer address, each at least this long after it came.
-    """
-
-    host: str = "127.0.0.1"
-    port: int = 0
-    token: str = field(default="", repr=False)
-    max_clients: int = 8
-    max_unauthenticated: int = 16
-    auth_timeout_s: float = 1.0
-    auth_failure_delay_s: float = 0.5
-
-
-@dataclass(frozen=True)
-class ServerSettings:
-    """Where and how the server listens (field names as in the robot file's ``daemon``).
-
-    Attributes:
-        socket: the unix socket file (``None``: TCP only); its parent directory is created if
-            missing.
-        socket_mode: permission bits of the socket file (who may connect).
-        socket_group: group (name or gid) given the socket file and a directory made for
-            it; ``None``: the daemon's own.
-        tcp: the optional loopback TCP endpoint (with its own ``max_clients``).
-        max_clients: simultaneous unix socket connections; ``RESERVED_UNIX_CLIENTS`` more are
-            allowed to the daemon's user and root. More get ``busy``, unless their request is
-            ``stop``.
-        max_message_bytes: longest request line accepted.
-        client_queue_size: queued outgoing messages per client above which ``state`` and
-            ``feedback`` events are dropped for that client.
-        client_queue_hard_cap: queued messages at which a client is disconnected as too slow.
-        close_timeout_s: how long a closing connection may take to read its last messages.
-        idle_timeout_s: a connection without a request for this long, with no subscription
-            and no goal running, is closed (``idle``); 0: never.
-    """
-
-    socket: str | os.PathLike[str] | None = None
-    socket_mode: int = 0o660
-    socket_group: str | int | None = None
-    tcp: TcpEndpoint | None = None
-    max_clients: int = 16
-    max_message_bytes: int = DEFAULT_MAX_MESSAGE_BYTES
-    client_queue_size: int = 256
-    client_queue_hard_cap: int = 4096
-    close_timeout_s: float = 1.0
-    idle_timeout_s: float = 300.0
-
-    @classmethod
-    def coerce(cls, settings: object) -> ServerSettings:
-        """Settings from a ``ServerSettings``, a mapping of its fields, or any object with
-        attributes of those names, such as ``RobotConfig.daemon`` (missing ones take the
-        defaults; other attributes are ignored). ``tcp`` may likewise be a mapping or an
-        object with ``host``, ``port`` and ``token``.
-
-        Raises:
-            ConfigurationError: an unknown key in a mapping, or invalid values (see ``check``).
-        """
-        if isinstance(settings, ServerSettings):
-            out = settings
-        else:
-            names = [f.name for f in fields(cls)]
-            values = _pick(settings, names, "")
-            tcp = values.get("tcp")
-            if tcp is not None and not isinstance(tcp, TcpEndpoint):
-                values["tcp"] = TcpEndpoint(**_pick(tcp, _TCP_FIELDS, "tcp."))
-            out = cls(**values)
-        out.check()
-        return out
-
-    def check(self) -> None:
-        """Validate the values.
-
-        Raises:
-            ConfigurationError: no endpoint, a non-loopback TCP host, TCP without a token,
-                or a value out of range; names the setting.
-        """
-        if self.socket is None and self.tcp is None:
-            raise ConfigurationError("no endpoint: set socket and/or tcp")
-        mode = self.socket_mode
-        if isinstance(mode, bool) or not isinstance(mode, int) or not 0 <= mode <= 0o777:
-            raise ConfigurationError("expected permission bits 0..0o777", "socket_mode", mode)
-        if self.tcp is not None:
-            _check_loopback(self.tcp.host)
-            if not isinstance(self.tcp.token, str) or not self.tcp.token:
-                raise ConfigurationError(
-                    "TCP needs a token: clients authenticate with it in their first request",
-                    "tcp.token",
-                )
-            port = self.tcp.port
-            if isinstance(port, bool) or not isinstance(port, int) or not 0 <= port <= 65535:
-                raise ConfigurationError("expected a port 0..65535", "tcp.port", port)
-            for name in ("max_clients", "max_unauthenticated"):
-                limit = getattr(self.tcp, name)
-                if isinstance(limit, bool) or not isinstance(limit, int) or limit < 1:
-                    raise ConfigurationError("expected an integer >= 1", f"tcp.{name}", limit)
-            for name in ("auth_timeout_s", "auth_failure_delay_s"):
-                value = getattr(self.tcp, name)
-                if isinstance(value, bool) or not isinstance(value, (int, float)) or not (
-                    value > 0 or (value == 0 and name == "auth_failure_delay_s")
-                ):
-                    raise ConfigurationError("expected seconds > 0", f"tcp.{name}", value)
-        for name in ("max_clients", "max_message_bytes", "client_queue_size"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-                raise ConfigurationError("expected an integer >= 1", name, value)
-        if self.client_queue_hard_cap < self.client_queue_size:
-            raise ConfigurationError(
-                f"must be >= client_queue_size ({self.client_queue_size})",
-                "client_queue_hard_cap",
-                self.client_queue_hard_cap,
-            )
-        for name in ("close_timeout_s", "idle_timeout_s"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, (int, float)):
-                raise ConfigurationError("expected a number of seconds", name, value)
-            if not (value > 0 or (value == 0 and name == "idle_timeout_s")):
-                what = "seconds >= 0 (0: never)" if name == "idle_timeout_s" else "seconds > 0"
-                raise ConfigurationError(f"expected {what}", name, value)
-
-
-_TCP_FIELDS = [f.name for f in fields(TcpEndpoint)]
-
-
-def _pick(source: object, names: Sequence[str], prefix: str) -> dict[str, Any]:
-    if isinstance(source, Mapping):
-        for key in source:
-            if key not in names:
-                raise ConfigurationError(
-                    f"unknown server setting (known: {', '.join(names)})", f"{prefix}{key}"
-                )
-        return {k: source[k] for k in names if k in source}
-    return {k: getattr(source, k) for k in names if hasattr(source, k)}
-
-
-def _check_loopback(host: str) -> None:
-    if host == "localhost":
-        return
-    try:
-        address = ipaddress.ip_address(host)
-    except ValueError:
-        raise ConfigurationError(
-            "expected a loopback IP address such as 127.0.0.1 or ::1 (or 'localhost')",
-            "tcp.host",
-            host,
-        ) from None
-    if not address.is_loopback:
-        raise ConfigurationError(
-            f"{host} is not a loopback address; the TCP endpoint is for local tools only "
-            "(reach it from elsewhere through an SSH tunnel)",
-            "tcp.host",
-            host,
-        )
-
-
 class Connection:
     """One client: its streams, outgoing queue, subscription and drop counters."""
 
@@ -224,7 +47,7 @@ class Connection:
         peer: str,
         reader: asyncio.StreamReader,
         writer: asyncio.StreamWriter,
-        settings: ServerSettings,
+        settings: DaemonSettings,
         uid: int | None = None,
         now: float = 0.0,
         host: str = "",

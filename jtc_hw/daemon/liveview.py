@@ -50,7 +50,7 @@ from ..controller.trajectory import JointTrajectory, PointColumns
 from ..errors import ConfigurationError
 
 if TYPE_CHECKING:
-    from .robot import FoxgloveSettings
+    from .settings import FoxgloveSettings
 
 log = logging.getLogger("jtc_hw.liveview")
 

@@ -113,11 +113,10 @@ from .connection import (
     OVER_LIMIT_DEADLINE_S,
     RESERVED_UNIX_CLIENTS,
     Connection,
-    ServerSettings,
-    TcpEndpoint,
     is_privileged,
     peer_identity,
 )
+from .settings import DaemonSettings
 from .tcp_door import TcpDoor
 from .unix_socket import bind_unix, remove_socket_file
 
@@ -125,8 +124,6 @@ __all__ = [
     "Backend",
     "BackendListener",
     "Server",
-    "ServerSettings",
-    "TcpEndpoint",
 ]
 
 log = logging.getLogger("jtc_hw.server")
@@ -153,23 +150,19 @@ class Server:
 
     Example::
 
-        server = Server(backend, ServerSettings(socket="/run/jtc-hw/jtc-hw.sock"))
+        server = Server(backend, DaemonSettings(socket="/run/jtc-hw/jtc-hw.sock"))
         await server.start()
         ...
         await server.close()
 
     Args:
         backend: the control loop's host.
-        settings: a ``ServerSettings``, a mapping of its fields, or an object with attributes
-            of those names.
-
-    Raises:
-        ConfigurationError: invalid settings.
+        settings: the daemon's settings (checked when they were built).
     """
 
-    def __init__(self, backend: Backend, settings: object) -> None:
+    def __init__(self, backend: Backend, settings: DaemonSettings) -> None:
         self.backend = backend
-        self.settings = ServerSettings.coerce(settings)
+        self.settings = settings
         self._servers: list[asyncio.Server] = []
         self._conns: dict[int, Connection] = {}
         self._tasks: dict[int, asyncio.Task[None]] = {}

@@ -85,8 +85,9 @@ from ..api.protocol import (
 from ..controller.goals import GoalFeedback, GoalResult
 from ..controller.trajectory import JointTrajectory
 from ..errors import ConfigurationError
-from .connection import Connection, ServerSettings
+from .connection import Connection
 from .realtime import release_freed_memory, return_freed_memory_promptly
+from .settings import DaemonSettings
 from .zenoh_config import import_zenoh, session_config
 
 if TYPE_CHECKING:
@@ -168,7 +169,7 @@ class QueryConnection(Connection):
     is sent is the query's reply; what is routed to it later (the goal's feedback and result)
     is already on ``<prefix>/events`` and is dropped here."""
 
-    def __init__(self, number: int, settings: ServerSettings, peer: str) -> None:
+    def __init__(self, number: int, settings: DaemonSettings, peer: str) -> None:
         # No stream: nothing reads or writes through reader/writer (send and abort below).
         super().__init__(number, "zenoh", peer, cast(Any, None), cast(Any, None), settings)
         self._replied = False

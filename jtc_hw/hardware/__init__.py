@@ -3,7 +3,8 @@
 - :mod:`.interface`: :class:`HardwareInterface`, the ros2_control lifecycle every component
   follows, with the policy (transition guard, parameter validation, error wrapping) in the base
   class and the I/O in the driver's underscore primitives.
-- :mod:`.params`: the parameter schema engine (:class:`ParamSpec`, :func:`validate_params`).
+- :class:`ParamSpec`, :func:`param_table`, :func:`validate_params`: how a kind declares its
+  ``params`` (docs/drivers.md), the one schema engine of :mod:`jtc_hw.config.schema`.
 - :mod:`.components`: :class:`HardwareSet`, several components forming the controller's joints.
 - :mod:`.registry`: kinds by name (built-in, the ``jtc_hw.hardware`` entry-point group,
   :func:`register_hardware`), created lazily.
@@ -13,6 +14,7 @@
 Drivers import what they need from here: ``from jtc_hw.hardware import HardwareInterface``.
 """
 
+from ..config.schema import ParamKind, ParamSpec, param_table, validate_params
 from ..controller.joints import JointCommand, JointState
 from .components import HardwareSet
 from .interface import (
@@ -33,7 +35,6 @@ from .interface import (
     miss_rate_param,
     one_line,
 )
-from .params import ParamKind, ParamSpec, param_table, validate_params
 from .registry import (
     BUILTIN_HARDWARE,
     ENTRY_POINT_GROUP,

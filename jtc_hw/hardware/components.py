@@ -13,9 +13,9 @@ from typing import Any, Final
 import numpy as np
 from numpy.typing import NDArray
 
+from ..config.values import did_you_mean
 from ..controller.config import COMMAND_INTERFACE_TYPES
 from ..controller.joints import JointCommand, JointState
-from ..controller.parsing import did_you_mean
 from ..errors import ConfigurationError, JtcHwError, add_note
 from .interface import _ALLOWED, HardwareInterface, LifecycleState, _lifecycle_error, _raise_first
 

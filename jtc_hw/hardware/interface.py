@@ -36,9 +36,10 @@ from typing import Any, ClassVar, Final
 import numpy as np
 from numpy.typing import NDArray
 
+from ..config.schema import ParamKind, ParamSpec, check_value, param_table, validate_params
+from ..config.values import describe, did_you_mean
 from ..controller.config import COMMAND_INTERFACE_TYPES, STATE_INTERFACE_TYPES
 from ..controller.joints import JointCommand, JointState
-from ..controller.parsing import describe, did_you_mean
 from ..errors import (
     ConfigurationError,
     ControllerStateError,
@@ -46,7 +47,6 @@ from ..errors import (
     JtcHwError,
     add_note,
 )
-from .params import ParamKind, ParamSpec, _coerce, param_table, validate_params
 
 __all__ = [
     "COMMON_PARAMS",
@@ -292,7 +292,7 @@ class DeviceName:
 def _check_joint_names(value: Any, path: str) -> tuple[str, ...]:
     spec = ParamSpec(path, ParamKind.STRINGS, (), "the joints of the component",
                      unique=True, non_empty=True)
-    names: tuple[str, ...] = _coerce(spec, value, path, ())
+    names: tuple[str, ...] = check_value(spec, value, path)
     return names
 
 
@@ -301,7 +301,7 @@ def _check_interfaces(
 ) -> tuple[str, ...]:
     spec = ParamSpec(path, ParamKind.STRINGS, (), f"{path.replace('_', ' ')}",
                      unique=True, non_empty=True)
-    names: tuple[str, ...] = _coerce(spec, value, path, ())
+    names: tuple[str, ...] = check_value(spec, value, path)
     for name in names:
         if name not in supported:
             raise ConfigurationError(

@@ -41,10 +41,10 @@ from typing import Any, ClassVar
 import numpy as np
 from numpy.typing import NDArray
 
+from ..config.schema import ParamKind, ParamSpec, param_table
 from ..controller.joints import JointCommand, JointState
 from ..errors import CommunicationError, ConfigurationError, HardwareError
 from .interface import DeviceWatchdog, HardwareInterface, SafeAction
-from .params import ParamKind, ParamSpec, param_table
 
 __all__ = ["MirrorHardware"]
 

@@ -16,10 +16,10 @@ from importlib import metadata
 from types import MappingProxyType
 from typing import Any, Final
 
-from ..controller.parsing import describe, did_you_mean
+from ..config.schema import freeze, join
+from ..config.values import describe, did_you_mean
 from ..errors import ConfigurationError, HardwareError, JtcHwError
 from .interface import HardwareInterface
-from .params import _freeze, _join
 
 __all__ = [
     "BUILTIN_HARDWARE",
@@ -256,7 +256,7 @@ class HardwareSpec:
             if isinstance(value, list):
                 object.__setattr__(self, name, tuple(value))
         if isinstance(self.params, Mapping):
-            object.__setattr__(self, "params", _freeze(self.params))
+            object.__setattr__(self, "params", freeze(self.params))
 
 
 def _prefixed(exc: ConfigurationError, prefix: str) -> ConfigurationError:
@@ -264,7 +264,7 @@ def _prefixed(exc: ConfigurationError, prefix: str) -> ConfigurationError:
     message = str(exc)
     if exc.path and message.startswith(f"{exc.path}: "):
         message = message[len(exc.path) + 2:]
-    return ConfigurationError(message, _join(prefix, exc.path), exc.value)
+    return ConfigurationError(message, join(prefix, exc.path), exc.value)
 
 
 def create_hardware(spec: HardwareSpec) -> HardwareInterface:
@@ -275,7 +275,7 @@ def create_hardware(spec: HardwareSpec) -> HardwareInterface:
             interfaces or parameters; the path starts with ``spec.path``.
         HardwareError: the driver's constructor failed otherwise.
     """
-    cls = hardware_class(spec.kind, _join(spec.path, "kind"))
+    cls = hardware_class(spec.kind, join(spec.path, "kind"))
     try:
         return cls(
             spec.name, spec.joints, spec.command_interfaces, spec.state_interfaces, spec.params

@@ -12,7 +12,7 @@ from helpers.fake_backend import TOKEN, ServerThread
 
 from jtc_hw.cli import EXIT_BAD_INPUT, EXIT_OK, load_goal_file, main
 from jtc_hw.controller.trajectory import JointTrajectory, TrajectoryPoint
-from jtc_hw.daemon.server import ServerSettings
+from jtc_hw.daemon.settings import DaemonSettings
 from jtc_hw.errors import ConfigurationError
 
 pytestmark = pytest.mark.usefixtures("no_leaks")  # threads, sockets, resources
@@ -22,7 +22,7 @@ CONFIG = "joints: [j1]\ncommand_interfaces: [position]\nstate_interfaces: [posit
 
 @pytest.fixture
 def daemon(tmp_path: Path) -> Iterator[ServerThread]:
-    srv = ServerThread(ServerSettings(socket=tmp_path / "d.sock", max_clients=1))
+    srv = ServerThread(DaemonSettings(socket=str(tmp_path / "d.sock"), max_clients=1))
     yield srv
     srv.close()
 
@@ -55,7 +55,7 @@ def test_client_commands_refuse_a_squatted_default_socket(
     monkeypatch.delenv("RUNTIME_DIRECTORY", raising=False)
     monkeypatch.delenv("JTC_HW_SOCKET", raising=False)
     monkeypatch.setenv("XDG_RUNTIME_DIR", str(runtime))
-    srv = ServerThread(ServerSettings(socket=runtime / "jtc-hw.sock"))
+    srv = ServerThread(DaemonSettings(socket=str(runtime / "jtc-hw.sock")))
     try:
         assert main(["status"]) == EXIT_OK  # ours: used
         capsys.readouterr()

@@ -16,7 +16,7 @@ from helpers.fake_backend import TOKEN, ServerThread
 from jtc_hw import GoalRejected, JointTolerance, JointTrajectory, TrajectoryPoint
 from jtc_hw.api.client import UNTRUSTED, Client, ClientConnectionError, GoalHandle
 from jtc_hw.api.framing import RequestError
-from jtc_hw.daemon.server import ServerSettings, TcpEndpoint
+from jtc_hw.daemon.settings import DaemonSettings, TcpSettings
 from jtc_hw.errors import ProtocolError
 
 pytestmark = pytest.mark.usefixtures("no_leaks")  # threads, sockets, resources
@@ -165,7 +165,8 @@ def test_stop(daemon: ServerThread, client: Client) -> None:
 
 
 def test_tcp_with_token(tmp_path: Path) -> None:
-    srv = ServerThread(ServerSettings(socket=None, tcp=TcpEndpoint("127.0.0.1", 0, TOKEN)))
+    srv = ServerThread(DaemonSettings(socket=str(tmp_path / "d.sock"),
+                                      tcp=TcpSettings("127.0.0.1", 0, TOKEN)))
     try:
         address = srv.server.tcp_address
         assert address is not None
@@ -181,7 +182,7 @@ def test_tcp_with_token(tmp_path: Path) -> None:
 
 
 def test_busy_and_missing_daemon(sock: Path, tmp_path: Path) -> None:
-    srv = ServerThread(ServerSettings(socket=sock, max_clients=1))
+    srv = ServerThread(DaemonSettings(socket=str(sock), max_clients=1))
     try:
         # One slot and the two reserved for the daemon's user, which this test runs as.
         with Client.connect(sock), Client.connect(sock), Client.connect(sock):
@@ -200,7 +201,7 @@ def test_busy_and_missing_daemon(sock: Path, tmp_path: Path) -> None:
 
 
 def test_an_idle_connection_closed_by_the_daemon_says_why(sock: Path) -> None:
-    srv = ServerThread(ServerSettings(socket=sock, idle_timeout_s=0.2))
+    srv = ServerThread(DaemonSettings(socket=str(sock), idle_timeout_s=0.2))
     try:
         client = Client.connect(sock)
         try:
@@ -226,7 +227,7 @@ def test_default_path_from_environment(
 
 
 def test_server_closing_fails_waiters(sock: Path) -> None:
-    srv = ServerThread(ServerSettings(socket=sock))
+    srv = ServerThread(DaemonSettings(socket=str(sock)))
     client = Client.connect(sock)
     try:
         goal = client.send_goal(trajectory(t=5.0))
@@ -262,7 +263,7 @@ def runtime_dir(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
 
 
 def test_the_default_socket_is_used_when_it_is_ours(runtime_dir: Path) -> None:
-    srv = ServerThread(ServerSettings(socket=runtime_dir / "jtc-hw.sock"))
+    srv = ServerThread(DaemonSettings(socket=str(runtime_dir / "jtc-hw.sock")))
     try:
         with Client.connect() as client:
             assert client.label == str(runtime_dir / "jtc-hw.sock")
@@ -275,7 +276,7 @@ def test_the_default_socket_is_used_when_it_is_ours(runtime_dir: Path) -> None:
 def test_a_squatted_default_socket_is_refused(runtime_dir: Path) -> None:
     """Another user's socket at the default path: the client says why it will not use it."""
     path = runtime_dir / "jtc-hw.sock"
-    srv = ServerThread(ServerSettings(socket=path))
+    srv = ServerThread(DaemonSettings(socket=str(path)))
     try:
         os.chown(path, NOBODY, -1)
         with pytest.raises(ClientConnectionError) as info:

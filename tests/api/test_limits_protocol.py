@@ -16,7 +16,7 @@ from jtc_hw.api.client import Client
 from jtc_hw.api.framing import RequestError
 from jtc_hw.api.protocol import SendGoal, SendTrajectory, parse_request
 from jtc_hw.cli import EXIT_OK, main
-from jtc_hw.daemon.server import ServerSettings
+from jtc_hw.daemon.settings import DaemonSettings
 
 pytestmark = pytest.mark.usefixtures("no_leaks")  # threads, sockets, resources
 
@@ -44,7 +44,7 @@ def test_the_request_field_is_parsed_and_checked() -> None:
 @pytest.fixture
 def daemon(sock: Path) -> Iterator[ServerThread]:
     backend = FakeBackend(limits={"j1": {"velocity": 0.5}})
-    srv = ServerThread(ServerSettings(socket=sock), backend)
+    srv = ServerThread(DaemonSettings(socket=str(sock)), backend)
     yield srv
     srv.close()
 

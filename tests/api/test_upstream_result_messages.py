@@ -18,7 +18,7 @@ from jtc_hw.api.framing import encode
 from jtc_hw.api.protocol import result_event
 from jtc_hw.cli import EXIT_GOAL_FAILED, EXIT_OK, _goal_result
 from jtc_hw.controller.trajectory import JointTrajectory, TrajectoryPoint
-from jtc_hw.daemon.server import ServerSettings
+from jtc_hw.daemon.settings import DaemonSettings
 
 pytestmark = pytest.mark.usefixtures("no_leaks")  # threads, sockets, resources
 
@@ -27,7 +27,7 @@ PATH_VIOLATION = "Aborted due to path tolerance violation"
 
 @pytest.fixture
 def daemon(tmp_path: Path) -> Iterator[ServerThread]:
-    srv = ServerThread(ServerSettings(socket=tmp_path / "d.sock"))
+    srv = ServerThread(DaemonSettings(socket=str(tmp_path / "d.sock")))
     yield srv
     srv.close()
 

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from jtc_hw import GoalStatus, JointTrajectory, JointTrajectoryController, TrajectoryPoint
-from jtc_hw.controller.limits import JointLimits
+from jtc_hw.config.limits import JointLimits
 from jtc_hw.errors import ConfigurationError
 
 from conftest import MS, Mirror, S, make_config
@@ -403,7 +403,7 @@ def test_upstreams_parameters_are_read_only_and_the_ramp_time_changes_next_cycle
 
 
 def test_check_warns_when_the_controller_starts_paused() -> None:
-    from jtc_hw.controller.config_io import explain
+    from jtc_hw.controller.parameters import explain
 
     assert not [w for w in explain(make_config(NAMES)) if "speed_scaling" in w]
     warnings = explain(make_config(NAMES, speed_scaling={"initial_scaling_factor": 0.0}))

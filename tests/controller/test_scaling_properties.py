@@ -17,7 +17,7 @@ from hypothesis import strategies as st
 from test_scaling_controller import ACCEL, INTERFACES, NAMES, PATH_TOL, Run, goal
 
 from jtc_hw import GoalStatus
-from jtc_hw.controller.limits import JointLimits
+from jtc_hw.config.limits import JointLimits
 
 from conftest import make_config
 

@@ -22,9 +22,11 @@ from jtc_hw import (
     TrajectoryPoint,
     TrajectoryStopped,
 )
-from jtc_hw.controller.config_io import config_to_dict, get_parameters, load_config
+from jtc_hw.config.controller_file import config_to_dict
+from jtc_hw.config.limits import JointLimits
+from jtc_hw.config.reading import load_config
 from jtc_hw.controller.controller import CANCELED_DECELERATING_DETAILS, CANCELED_DETAILS
-from jtc_hw.controller.limits import JointLimits
+from jtc_hw.controller.parameters import get_parameters
 from jtc_hw.controller.stopping import (
     DERIVED_STOP_TIME_S,
     stop_decelerations,
@@ -363,7 +365,7 @@ def test_the_stop_is_reported_as_a_reference_change() -> None:
 
 
 def test_check_warns_when_decelerate_on_cancel_falls_back() -> None:
-    from jtc_hw.controller.config_io import explain
+    from jtc_hw.controller.parameters import explain
 
     assert not [w for w in explain(decel_config()) if "decelerate_on_cancel" in w]
     [warning] = [w for w in explain(decel_config(state_interfaces=["position"]))

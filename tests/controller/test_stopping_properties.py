@@ -20,7 +20,7 @@ from hypothesis import HealthCheck, given, note, settings
 from hypothesis import strategies as st
 
 from jtc_hw import GoalResult, JointTrajectory, TrajectoryPoint
-from jtc_hw.controller.limits import JointLimits
+from jtc_hw.config.limits import JointLimits
 from jtc_hw.controller.stopping import stop_duration_bound_s, stop_phases, stop_trajectory
 
 from conftest import Rig, S, make_config

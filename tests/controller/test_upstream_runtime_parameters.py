@@ -24,8 +24,10 @@ from jtc_hw import (
     JointTrajectory,
     TrajectoryPoint,
 )
-from jtc_hw.controller.config import GAIN_PARAMETERS, PARAMETERS, Effect
-from jtc_hw.controller.config_io import load_config, parameter_names
+from jtc_hw.config.controller import GAIN_PARAMETERS, PARAMETERS
+from jtc_hw.config.reading import load_config
+from jtc_hw.config.schema import Effect
+from jtc_hw.controller.parameters import parameter_names
 
 from conftest import Rig, S, make_config
 

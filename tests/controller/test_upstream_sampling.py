@@ -21,7 +21,7 @@ from jtc_hw import (
     TrajectoryPoint,
     TrajectoryStopped,
 )
-from jtc_hw.controller.config_io import explain
+from jtc_hw.controller.parameters import explain
 
 from conftest import MS, Rig, S, make_config
 

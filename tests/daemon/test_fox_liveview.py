@@ -340,7 +340,7 @@ def test_a_missing_sdk_names_the_extra_to_install(monkeypatch: pytest.MonkeyPatc
     import sys
 
     from jtc_hw.daemon.liveview import LiveView
-    from jtc_hw.daemon.robot import FoxgloveSettings
+    from jtc_hw.daemon.settings import FoxgloveSettings
     from jtc_hw.errors import ConfigurationError
 
     monkeypatch.setitem(sys.modules, "foxglove", None)  # import foxglove -> ImportError

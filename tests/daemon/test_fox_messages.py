@@ -29,7 +29,7 @@ from jtc_hw.daemon.liveview import (
     topics,
     trajectory_message,
 )
-from jtc_hw.daemon.robot import FoxgloveSettings
+from jtc_hw.daemon.settings import FoxgloveSettings
 
 SNAPSHOT = {
     "time_ns": 5_000_000_000,
@@ -171,7 +171,7 @@ def test_a_port_in_use_is_refused_with_the_key_to_change() -> None:
     import socket
 
     from jtc_hw.daemon.liveview import LiveView
-    from jtc_hw.daemon.robot import FoxgloveSettings
+    from jtc_hw.daemon.settings import FoxgloveSettings
     from jtc_hw.errors import ConfigurationError
 
     async def attempt(port: int) -> str:

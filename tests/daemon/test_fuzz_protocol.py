@@ -21,7 +21,8 @@ from helpers.peers import Peer, run
 
 from jtc_hw.api.framing import ERROR_CODES
 from jtc_hw.api.protocol import OPS
-from jtc_hw.daemon.server import Server, ServerSettings
+from jtc_hw.daemon.server import Server
+from jtc_hw.daemon.settings import DaemonSettings
 
 pytestmark = pytest.mark.usefixtures("no_leaks")  # threads, sockets, resources
 
@@ -88,7 +89,9 @@ def test_every_line_gets_one_reply_in_order_and_none_is_internal(tmp_path: Path)
 
     async def main() -> tuple[list[dict[str, Any]], int]:
         backend = FakeBackend()
-        settings = ServerSettings(socket=tmp_path / "d.sock", max_message_bytes=MAX_MESSAGE_BYTES)
+        settings = DaemonSettings(
+            socket=str(tmp_path / "d.sock"), max_message_bytes=MAX_MESSAGE_BYTES
+        )
         async with Server(backend, settings):
             peer = await Peer.unix(tmp_path / "d.sock")
             try:

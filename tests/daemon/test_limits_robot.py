@@ -9,7 +9,7 @@ import pytest
 import yaml
 
 from jtc_hw.cli import EXIT_OK, main
-from jtc_hw.controller.limits import JointLimits
+from jtc_hw.config.limits import JointLimits
 from jtc_hw.daemon.robot import load_robot
 
 URDF = Path(__file__).resolve().parents[1] / "data" / "limits_arm.urdf"

@@ -11,14 +11,12 @@ import numpy as np
 import pytest
 
 from jtc_hw.daemon.robot import (
-    DaemonSettings,
-    RealtimeSettings,
     RobotConfig,
-    TcpSettings,
     create_hardware_set,
     default_socket_path,
     load_robot,
 )
+from jtc_hw.daemon.settings import DaemonSettings, RealtimeSettings, TcpSettings
 from jtc_hw.errors import ConfigurationError
 from jtc_hw.hardware import HardwareSpec, LifecycleState
 from jtc_hw.hardware.mirror import MirrorHardware
@@ -379,14 +377,17 @@ def test_settings_check_themselves_when_built_directly() -> None:
 
 
 def test_the_daemon_settings_reach_the_server(tmp_path: Path) -> None:
-    from jtc_hw.daemon.server import ServerSettings
+    from helpers.fake_backend import FakeBackend
+
+    from jtc_hw.daemon.server import Server
 
     daemon = load_robot(robot(daemon={
         "socket": str(tmp_path / "d.sock"), "max_clients": 3, "idle_timeout_s": 30,
         "tcp": {"token": TOKEN, "max_clients": 5, "auth_failure_delay_s": 0.25},
         "socket_group": "robot",
     })).daemon
-    settings = ServerSettings.coerce(daemon)
+    settings = Server(FakeBackend(), daemon).settings
+    assert settings is daemon
     assert settings.socket_group == "robot" and settings.tcp is not None
     assert settings.tcp.auth_failure_delay_s == 0.25
     assert (settings.max_clients, settings.idle_timeout_s) == (3, 30.0)

@@ -15,7 +15,6 @@ import socket
 import stat
 from collections.abc import AsyncIterator, Iterator
 from pathlib import Path
-from types import SimpleNamespace
 from typing import Any
 
 import pytest
@@ -24,7 +23,8 @@ from helpers.peers import LogWatch, Peer, goal_msg, run, watch_server_log
 
 from jtc_hw import GoalResult
 from jtc_hw.api.paths import default_socket_path
-from jtc_hw.daemon.server import Server, ServerSettings, TcpEndpoint
+from jtc_hw.daemon.server import Server
+from jtc_hw.daemon.settings import DaemonSettings, TcpSettings
 from jtc_hw.errors import ConfigurationError
 
 pytestmark = pytest.mark.usefixtures("no_leaks")  # threads, sockets, resources
@@ -43,7 +43,7 @@ async def serving(
     path: Path, backend: FakeBackend | None = None, **settings: Any
 ) -> AsyncIterator[tuple[Server, FakeBackend]]:
     backend = backend or FakeBackend()
-    server = Server(backend, ServerSettings(socket=path, **settings))
+    server = Server(backend, DaemonSettings(socket=str(path), **settings))
     await server.start()
     try:
         yield server, backend
@@ -332,14 +332,14 @@ def test_max_clients(sock: Path, logs: LogWatch) -> None:
 
 def test_oversize_message_keeps_the_connection(sock: Path) -> None:
     async def main() -> None:
-        async with serving(sock, max_message_bytes=300):
+        async with serving(sock, max_message_bytes=1024):  # the schema's least
             peer = await Peer.unix(sock)
             big = {"id": 1, "op": "send_goal", "trajectory": goal_msg(), "pad": "x" * 5000}
             await peer.send(json.dumps(big).encode() + b'\n{"id": 2, "op": "hello"}\n')
             too_large = await peer.recv()
             assert too_large["ok"] is False and too_large["id"] is None
             assert too_large["error"]["code"] == "too_large"
-            assert "300 bytes" in too_large["error"]["message"]
+            assert "1024 bytes" in too_large["error"]["message"]
             assert (await peer.recv())["id"] == 2
             assert (await peer.request("get_status"))["ok"]
             await peer.close()
@@ -607,7 +607,7 @@ def test_a_default_socket_directory_of_another_user_is_refused(
     monkeypatch.setenv("XDG_RUNTIME_DIR", str(runtime))
 
     async def main() -> None:
-        server = Server(FakeBackend(), ServerSettings(socket=default_socket_path()))
+        server = Server(FakeBackend(), DaemonSettings(socket=str(default_socket_path())))
         with pytest.raises(ConfigurationError) as info:
             await server.start()
         assert str(info.value) == (
@@ -643,14 +643,14 @@ def test_stale_socket_is_replaced(sock: Path, logs: LogWatch) -> None:
 def test_live_socket_or_other_file_is_refused(sock: Path) -> None:
     async def main() -> None:
         async with serving(sock):
-            second = Server(FakeBackend(), ServerSettings(socket=sock))
+            second = Server(FakeBackend(), DaemonSettings(socket=str(sock)))
             with pytest.raises(ConfigurationError, match="another daemon is listening on"):
                 await second.start()
             await second.close()
             assert sock.exists()  # the live daemon's socket is untouched
         other = sock.with_name("plain")
         other.write_text("not a socket")
-        third = Server(FakeBackend(), ServerSettings(socket=other))
+        third = Server(FakeBackend(), DaemonSettings(socket=str(other)))
         with pytest.raises(ConfigurationError, match="is not a socket"):
             await third.start()
         assert other.read_text() == "not a socket"
@@ -660,7 +660,8 @@ def test_live_socket_or_other_file_is_refused(sock: Path) -> None:
 
 def test_tcp_with_token(tmp_path: Path, logs: LogWatch) -> None:
     async def main() -> None:
-        settings = ServerSettings(socket=None, tcp=TcpEndpoint("127.0.0.1", 0, TOKEN))
+        settings = DaemonSettings(socket=str(tmp_path / "d.sock"),
+                                  tcp=TcpSettings("127.0.0.1", 0, TOKEN))
         server = Server(FakeBackend(), settings)
         async with server:
             address = server.tcp_address
@@ -691,10 +692,11 @@ def test_tcp_with_token(tmp_path: Path, logs: LogWatch) -> None:
     assert not any(TOKEN in m or "guess" in m for m in logs.messages)
 
 
-def test_tcp_client_that_never_authenticates_is_closed(logs: LogWatch) -> None:
+def test_tcp_client_that_never_authenticates_is_closed(tmp_path: Path, logs: LogWatch) -> None:
     async def main() -> None:
-        settings = ServerSettings(
-            socket=None, tcp=TcpEndpoint("127.0.0.1", 0, TOKEN, auth_timeout_s=0.2)
+        settings = DaemonSettings(
+            socket=str(tmp_path / "d.sock"),
+            tcp=TcpSettings("127.0.0.1", 0, TOKEN, auth_timeout_s=0.2),
         )
         async with Server(FakeBackend(), settings) as server:
             assert server.tcp_address is not None
@@ -712,32 +714,27 @@ def test_tcp_client_that_never_authenticates_is_closed(logs: LogWatch) -> None:
 @pytest.mark.parametrize("host", ["0.0.0.0", "192.168.1.5", "::", "example.com"])
 def test_non_loopback_tcp_host_is_refused(host: str) -> None:
     with pytest.raises(ConfigurationError, match="tcp.host"):
-        Server(FakeBackend(), ServerSettings(socket=None, tcp=TcpEndpoint(host, 0, TOKEN)))
+        Server(FakeBackend(), DaemonSettings(tcp=TcpSettings(host, 0, TOKEN)))
 
 
-def test_settings_validation_and_coercion(sock: Path) -> None:
-    with pytest.raises(ConfigurationError, match="needs a token"):
-        ServerSettings.coerce({"tcp": {"host": "127.0.0.1", "port": 0}})
-    with pytest.raises(ConfigurationError, match="no endpoint"):
-        ServerSettings.coerce({})
-    with pytest.raises(ConfigurationError, match="unknown server setting"):
-        ServerSettings.coerce({"socket": str(sock), "max_client": 3})
-    with pytest.raises(ConfigurationError, match="max_clients"):
-        ServerSettings.coerce({"socket": str(sock), "max_clients": 0})
-    # An object shaped like the robot file's daemon section (extra attributes ignored).
-    daemon = SimpleNamespace(
-        socket=str(sock),
-        socket_mode=0o640,
-        max_clients=3,
-        max_message_bytes=1000,
-        tcp=SimpleNamespace(host="::1", port=0, token=TOKEN),
-        realtime=None,
-        log_level="info",
-    )
-    settings = ServerSettings.coerce(daemon)
-    assert settings.socket == str(sock) and settings.socket_mode == 0o640
-    assert settings.tcp == TcpEndpoint("::1", 0, TOKEN) and settings.max_clients == 3
-    assert Server(FakeBackend(), daemon).path == sock
+def test_settings_are_typed_and_check_themselves(sock: Path) -> None:
+    # The server takes the daemon's frozen settings as built (no mapping, no duck typing): a
+    # value is checked once, by the robot file's schema rows, when the settings are made.
+    with pytest.raises(ConfigurationError, match="daemon.tcp.token: must be at least 16"):
+        TcpSettings("127.0.0.1", 0)
+    with pytest.raises(ConfigurationError, match="daemon.socket: expected an absolute path"):
+        DaemonSettings(socket=None)  # type: ignore[arg-type]
+    with pytest.raises(TypeError, match="max_client"):
+        DaemonSettings(socket=str(sock), max_client=3)  # type: ignore[call-arg]
+    with pytest.raises(ConfigurationError, match="daemon.max_clients: must be >= 1"):
+        DaemonSettings(socket=str(sock), max_clients=0)
+    with pytest.raises(ConfigurationError, match="daemon.client_queue_hard_cap"):
+        DaemonSettings(socket=str(sock), client_queue_size=8, client_queue_hard_cap=4)
+    settings = DaemonSettings(socket=str(sock), socket_mode=0o640, max_clients=3,
+                              tcp=TcpSettings("::1", 0, TOKEN))
+    assert settings.tcp == TcpSettings("::1", 0, TOKEN) and settings.max_clients == 3
+    server = Server(FakeBackend(), settings)
+    assert server.settings is settings and server.path == sock
 
 
 @pytest.mark.skipif(os.geteuid() != 0, reason="gives a socket another group: needs root")
@@ -749,13 +746,13 @@ def test_socket_group_is_given_to_the_socket_and_its_new_directory(tmp_path: Pat
     path = tmp_path / "run" / "d.sock"
 
     async def main() -> None:
-        settings = ServerSettings(socket=path, socket_group=group.gr_name)
+        settings = DaemonSettings(socket=str(path), socket_group=group.gr_name)
         async with Server(FakeBackend(), settings):
             assert path.stat().st_gid == group.gr_gid
             assert path.parent.stat().st_gid == group.gr_gid
             assert stat.S_IMODE(path.stat().st_mode) == 0o660
         with pytest.raises(ConfigurationError, match="there is no group 'no-such-group-jtc'"):
-            await Server(FakeBackend(), ServerSettings(socket=path,
+            await Server(FakeBackend(), DaemonSettings(socket=str(path),
                                                        socket_group="no-such-group-jtc")).start()
 
     run(main())

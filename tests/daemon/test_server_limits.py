@@ -28,7 +28,8 @@ from helpers.peers import LogWatch, Peer, goal_msg, run, watch_server_log
 from jtc_hw.daemon import server as server_module
 from jtc_hw.daemon import tcp_door
 from jtc_hw.daemon.connection import OVER_LIMIT_CLIENTS, RESERVED_UNIX_CLIENTS
-from jtc_hw.daemon.server import Server, ServerSettings, TcpEndpoint
+from jtc_hw.daemon.server import Server
+from jtc_hw.daemon.settings import DaemonSettings, TcpSettings
 
 pytestmark = pytest.mark.usefixtures("no_leaks")  # threads, sockets, resources
 
@@ -54,10 +55,10 @@ def shared_dir() -> Iterator[Path]:
 
 @contextlib.asynccontextmanager
 async def serving(
-    path: Path | None, backend: FakeBackend | None = None, **settings: Any
+    path: Path, backend: FakeBackend | None = None, **settings: Any
 ) -> AsyncIterator[tuple[Server, FakeBackend]]:
     backend = backend or FakeBackend()
-    server = Server(backend, ServerSettings(socket=path, socket_mode=0o666, **settings))
+    server = Server(backend, DaemonSettings(socket=str(path), socket_mode=0o666, **settings))
     await server.start()
     try:
         yield server, backend
@@ -262,11 +263,13 @@ def test_a_stop_gets_through_when_every_slot_is_taken(
     run(main())
 
 
-def test_tcp_has_its_own_limit_and_a_short_authentication_deadline(logs: LogWatch) -> None:
+def test_tcp_has_its_own_limit_and_a_short_authentication_deadline(
+    tmp_path: Path, logs: LogWatch
+) -> None:
     async def main() -> None:
-        tcp = TcpEndpoint("127.0.0.1", 0, TOKEN, max_clients=2, auth_timeout_s=0.3,
+        tcp = TcpSettings("127.0.0.1", 0, TOKEN, max_clients=2, auth_timeout_s=0.3,
                           auth_failure_delay_s=0.0)
-        async with serving(None, tcp=tcp) as (server, backend):
+        async with serving(tmp_path / "d.sock", tcp=tcp) as (server, backend):
             assert server.tcp_address is not None
             holders = [await Peer.tcp(server.tcp_address) for _ in range(2)]
             for peer in holders:
@@ -323,7 +326,7 @@ def test_tcp_has_its_own_limit_and_a_short_authentication_deadline(logs: LogWatc
 
 
 def test_strangers_waiting_to_authenticate_never_take_the_token_holders_slots(
-    logs: LogWatch, monkeypatch: pytest.MonkeyPatch
+    tmp_path: Path, logs: LogWatch, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """30 connections that never authenticate, held open, against 8 authenticated slots and
     16 places to wait: the token holder is served in full (not only a stop), and the longest
@@ -332,8 +335,8 @@ def test_strangers_waiting_to_authenticate_never_take_the_token_holders_slots(
     monkeypatch.setattr(tcp_door, "HANDSHAKE_GRACE_S", 0.0)
 
     async def main() -> None:
-        tcp = TcpEndpoint("127.0.0.1", 0, TOKEN, auth_timeout_s=30.0)
-        async with serving(None, tcp=tcp) as (server, backend):
+        tcp = TcpSettings("127.0.0.1", 0, TOKEN, auth_timeout_s=30.0)
+        async with serving(tmp_path / "d.sock", tcp=tcp) as (server, backend):
             assert server.tcp_address is not None
             strangers = [await Peer.tcp(server.tcp_address) for _ in range(30)]
             await logs.wait_for("client 30 (tcp 127.0.0.1")
@@ -359,7 +362,9 @@ def test_strangers_waiting_to_authenticate_never_take_the_token_holders_slots(
     run(main())
 
 
-def test_failed_authentications_are_answered_slowly_per_address(logs: LogWatch) -> None:
+def test_failed_authentications_are_answered_slowly_per_address(
+    tmp_path: Path, logs: LogWatch
+) -> None:
     """Each wrong token from one address is answered at least auth_failure_delay_s after the
     previous one, however many connections try at once; the right token is not held back by
     them; the address is logged once, not once per attempt."""
@@ -367,8 +372,8 @@ def test_failed_authentications_are_answered_slowly_per_address(logs: LogWatch) 
     tries = 4
 
     async def main() -> None:
-        tcp = TcpEndpoint("127.0.0.1", 0, TOKEN, auth_timeout_s=30.0, auth_failure_delay_s=delay)
-        async with serving(None, tcp=tcp) as (server, _):
+        tcp = TcpSettings("127.0.0.1", 0, TOKEN, auth_timeout_s=30.0, auth_failure_delay_s=delay)
+        async with serving(tmp_path / "d.sock", tcp=tcp) as (server, _):
             assert server.tcp_address is not None
             loop = asyncio.get_running_loop()
             started = loop.time()
@@ -401,7 +406,7 @@ def test_tcp_connections_do_not_take_unix_slots(tmp_path: Path) -> None:
     path = tmp_path / "d.sock"
 
     async def main() -> None:
-        tcp = TcpEndpoint("127.0.0.1", 0, TOKEN, max_clients=3)
+        tcp = TcpSettings("127.0.0.1", 0, TOKEN, max_clients=3)
         async with serving(path, max_clients=1, tcp=tcp) as (server, _):
             assert server.tcp_address is not None
             remote = [await Peer.tcp(server.tcp_address) for _ in range(3)]

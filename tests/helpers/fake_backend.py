@@ -15,11 +15,13 @@ from typing import Any, TypeVar
 import numpy as np
 
 from jtc_hw import GoalFeedback, GoalResult, JointTrajectoryController, TrajectorySample
-from jtc_hw.controller.config_io import ParameterChange, config_to_dict, parameters_report
+from jtc_hw.config.controller_file import config_to_dict
 from jtc_hw.controller.limits_check import AcceptedGoal, TimeScaling
+from jtc_hw.controller.parameters import ParameterChange, parameters_report
 from jtc_hw.controller.tolerances import JointTolerance
 from jtc_hw.controller.trajectory import JointTrajectory
-from jtc_hw.daemon.server import BackendListener, Server, ServerSettings
+from jtc_hw.daemon.server import BackendListener, Server
+from jtc_hw.daemon.settings import DaemonSettings
 from jtc_hw.errors import ConfigurationError
 
 from conftest import Mirror, S, make_config
@@ -201,7 +203,7 @@ class FakeBackend:
 class ServerThread:
     """The server on its own asyncio loop in a thread, as the daemon runs it."""
 
-    def __init__(self, settings: ServerSettings, backend: FakeBackend | None = None) -> None:
+    def __init__(self, settings: DaemonSettings, backend: FakeBackend | None = None) -> None:
         self.backend = backend or FakeBackend()
         self.loop = asyncio.new_event_loop()
         self.thread = threading.Thread(target=self.loop.run_forever, name="test-server")

@@ -24,7 +24,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from jtc_hw.api.protocol import OPS
-from jtc_hw.controller.config import (
+from jtc_hw.config.controller import (
     CONSTRAINT_PARAMETERS,
     GAIN_PARAMETERS,
     JOINT_CONSTRAINT_PARAMETERS,

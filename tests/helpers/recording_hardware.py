@@ -16,9 +16,8 @@ from pathlib import Path
 from typing import Any, ClassVar
 
 from jtc_hw.controller.joints import JointCommand
-from jtc_hw.hardware import DeviceName, SafeAction
+from jtc_hw.hardware import DeviceName, ParamKind, ParamSpec, SafeAction, param_table
 from jtc_hw.hardware.mirror import MirrorHardware
-from jtc_hw.hardware.params import ParamKind, ParamSpec, param_table
 
 KIND = "recording-test"
 

@@ -1,4 +1,4 @@
-"""Configuration loading and validation (jtc_hw.controller.config)."""
+"""Configuration loading and validation (jtc_hw.config: the controller's parameters)."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ from typing import Any
 import pytest
 import yaml
 
-from jtc_hw.controller.config import (
+from jtc_hw.config.controller import (
     ALLOWED_COMMAND_INTERFACE_COMBINATIONS,
     CONTROLLER_TYPE,
     DEFAULTS,
@@ -21,7 +21,9 @@ from jtc_hw.controller.config import (
     Gains,
     JointConstraints,
 )
-from jtc_hw.controller.config_io import config_to_dict, explain, load_config
+from jtc_hw.config.controller_file import config_to_dict
+from jtc_hw.config.reading import load_config
+from jtc_hw.controller.parameters import explain
 from jtc_hw.errors import ConfigurationError
 
 BASE: dict[str, Any] = {
@@ -930,7 +932,7 @@ def test_an_unreadable_file_is_one_configuration_error_with_its_position(
 
 
 def test_nesting_up_to_the_limit_is_read(tmp_path: Path) -> None:
-    from jtc_hw.controller.parsing import MAX_DEPTH, load_yaml
+    from jtc_hw.config.reading import MAX_DEPTH, load_yaml
 
     deep = load_yaml("[" * MAX_DEPTH + "]" * MAX_DEPTH, "x")
     for _ in range(MAX_DEPTH - 1):

@@ -10,13 +10,9 @@ import pytest
 import yaml
 
 from jtc_hw import ConfigurationError, load_config
-from jtc_hw.controller.config_io import (
-    config_to_dict,
-    explain,
-    get_parameters,
-    set_parameters,
-)
-from jtc_hw.controller.limits import JointLimits
+from jtc_hw.config.controller_file import config_to_dict
+from jtc_hw.config.limits import JointLimits
+from jtc_hw.controller.parameters import explain, get_parameters, set_parameters
 
 DATA = Path(__file__).resolve().parents[1] / "data"
 URDF = DATA / "limits_arm.urdf"

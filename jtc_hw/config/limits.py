@@ -4,8 +4,8 @@ These are the controller's limits (issue 12), distinct from a hardware driver's
 ``position_limits``, which stay the last line of defence in the driver. ``ControllerConfig.limits``
 maps a joint name to its :class:`JointLimits`; a joint that is absent (or a field that is
 ``None``) is unlimited. Where they come from (a ``limits:`` section of the robot YAML, or a URDF's
-``<limit>`` / ``<safety_controller>``) is the parser's business (``config_io``); this module only
-defines the value and checks it.
+``<limit>`` / ``<safety_controller>``) is the parser's business (:mod:`.controller_file`,
+:mod:`.reading`); this module only defines the value and checks it.
 """
 
 from __future__ import annotations

@@ -1,34 +1,43 @@
-"""The parameter schema of hardware kinds: declare a table once, get checked, frozen values.
+"""The one schema engine: declare a parameter once, get it checked, defaulted and frozen.
 
-A kind declares its parameters as a :func:`param_table` of :class:`ParamSpec` rows (name, kind,
-default, help, bounds, choices, per-joint); :func:`validate_params` checks a YAML mapping against
-it and returns an immutable mapping with defaults filled in. Every error names the key path and
-says what was expected. The robot file's ``hardware:`` and ``daemon:`` sections use the same
-engine (:mod:`jtc_hw.daemon.robot`).
+Every parameter of the project is a row of a schema table: the controller's upstream parameters
+(:mod:`jtc_hw.config.controller`), each hardware kind's ``params`` (a driver's ``PARAMS``), the
+robot file's ``hardware:`` and ``daemon:`` sections. A table is a :func:`param_table` of
+:class:`ParamSpec` rows (name, kind, default, description, bounds, choices, per joint, and for a
+runtime parameter whether it is read-only and when a change takes effect).
+:func:`validate_params` checks a mapping against a table and returns an immutable mapping with
+the defaults filled in; :func:`check_value` checks one value against one row. Every error is a
+:class:`~jtc_hw.errors.ConfigurationError` that names the dotted key path and says what was
+expected, with a "did you mean" where a name is close to a known one. No I/O.
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from enum import Enum
 from types import MappingProxyType
 from typing import Any, Final
 
-from ..controller.parsing import coerce_bool, coerce_string_array, describe, did_you_mean
 from ..errors import ConfigurationError
+from .values import coerce_bool, coerce_string_array, describe, did_you_mean, fmt_list
 
 __all__ = [
+    "Effect",
     "ParamKind",
     "ParamSpec",
+    "check_fields",
+    "check_key",
+    "check_keys",
+    "check_value",
+    "expect_mapping",
+    "freeze",
+    "join",
     "param_table",
+    "unknown_parameter",
     "validate_params",
 ]
-
-# --------------------------------------------------------------------------------------------
-# Parameter schema (shared with robot.py)
-# --------------------------------------------------------------------------------------------
 
 
 class ParamKind(Enum):
@@ -44,6 +53,19 @@ class ParamKind(Enum):
     SECTION = "a mapping"
 
 
+class Effect(Enum):
+    """When a parameter changed at runtime (``set_parameters``) takes effect: upstream's timing.
+
+    Upstream re-reads its parameters at the start of the next ``update``: gains apply from that
+    cycle, the default tolerances and the goal checks from the next command, and what it reads
+    only in ``on_activate`` (``cmd_timeout``, the activation seeding) from the next activation.
+    """
+
+    NEXT_CYCLE = "next cycle"
+    NEXT_COMMAND = "next goal or trajectory"
+    NEXT_ACTIVATION = "next activation"
+
+
 _PER_JOINT_KINDS: Final = frozenset(
     {ParamKind.FLOAT, ParamKind.INT, ParamKind.BOOL, ParamKind.STRING, ParamKind.RANGE}
 )
@@ -51,17 +73,19 @@ _PER_JOINT_KINDS: Final = frozenset(
 
 @dataclass(frozen=True)
 class ParamSpec:
-    """One row of a parameter schema table.
+    """One row of a schema table.
 
     Attributes:
         name: parameter name (last component of its dotted path).
         kind: value type.
         default: value used when the parameter is not given (for ``per_joint``: the value of
-            each joint not given).
+            each joint not given; for ``STRINGS``: a tuple).
         description: one-line description.
         minimum: inclusive lower bound for numbers (each element for lists and ranges).
         maximum: inclusive upper bound for numbers.
-        choices: allowed values for strings and integers.
+        choices: allowed values for strings and integers; for ``STRINGS``, the allowed
+            elements (only the controller's interface lists restrict theirs, and the message
+            calls them interface types).
         required: the parameter must be given.
         nullable: an explicit ``null`` means "use the default".
         unique: list without duplicates.
@@ -74,6 +98,9 @@ class ParamSpec:
             string keys, kept as given).
         coerce: custom check replacing the standard one: ``coerce(value, path)`` returns the
             normalised value or raises :class:`ConfigurationError`.
+        read_only: a runtime parameter fixed once the controller is configured (upstream's
+            ``read_only``, or read only at configuration there); ``set_parameters`` refuses it.
+        effect: when a change at runtime takes effect (ignored when ``read_only``).
     """
 
     name: str
@@ -90,6 +117,8 @@ class ParamSpec:
     per_joint: bool = False
     fields: Mapping[str, ParamSpec] | None = None
     coerce: Callable[[Any, str], Any] | None = None
+    read_only: bool = False
+    effect: Effect = Effect.NEXT_COMMAND
 
 
 def param_table(*params: ParamSpec) -> Mapping[str, ParamSpec]:
@@ -107,8 +136,70 @@ def param_table(*params: ParamSpec) -> Mapping[str, ParamSpec]:
     return MappingProxyType(table)
 
 
-def _join(prefix: str, key: str) -> str:
+def join(prefix: str, key: str) -> str:
+    """The dotted path of ``key`` inside ``prefix`` (``prefix`` empty: ``key``)."""
     return f"{prefix}.{key}" if prefix else key
+
+
+def check_key(key: Any, path: str) -> str:
+    """``key`` if it is a string (YAML reads ``1:`` or ``yes:`` as other types).
+
+    Raises:
+        ConfigurationError: not a string; the hint says to quote it.
+    """
+    if not isinstance(key, str):
+        raise ConfigurationError(f"keys must be strings, got {describe(key)}; quote it", path, key)
+    return key
+
+
+def unknown_parameter(
+    key: str, known: Iterable[str], prefix: str = "", of: str = ""
+) -> ConfigurationError:
+    """The error for a key no row of the table names: a close name, the dotted form's
+    nesting, or the known names (``of``: whose parameters, e.g. `` of component 0``)."""
+    known = list(known)
+    head = key.split(".", 1)[0]
+    if "." in key and head in known:
+        hint = f"; dotted names are not expanded: nest it under '{head}'"
+    else:
+        hint = did_you_mean(key, known) or (
+            f"; known parameters: {', '.join(known)}" if known else "; it takes none"
+        )
+    return ConfigurationError(f"unknown parameter {key!r}{of}{hint}", join(prefix, key), key)
+
+
+def expect_mapping(value: Any, path: str, of: str = "") -> Mapping[Any, Any]:
+    """``value`` if it is a mapping.
+
+    Raises:
+        ConfigurationError: it is not (``of``: whose, e.g. `` of component 0``).
+    """
+    if not isinstance(value, Mapping):
+        raise ConfigurationError(f"expected a mapping{of}, got {describe(value)}", path, value)
+    return value
+
+
+def check_keys(
+    mapping: Mapping[Any, Any], schema: Mapping[str, ParamSpec], path: str, of: str = ""
+) -> None:
+    """Every key of ``mapping`` is a string that a row of ``schema`` names.
+
+    Raises:
+        ConfigurationError: a key that is not a string, or unknown (see
+            :func:`unknown_parameter`).
+    """
+    for key in mapping:
+        if check_key(key, path) not in schema:
+            raise unknown_parameter(key, schema, path, of)
+
+
+def freeze(value: Any) -> Any:
+    """Deep read-only copy: mappings become MappingProxyType, lists become tuples."""
+    if isinstance(value, Mapping):
+        return MappingProxyType({k: freeze(v) for k, v in value.items()})
+    if isinstance(value, (list, tuple)):
+        return tuple(freeze(v) for v in value)
+    return value
 
 
 def _is_number(value: Any) -> bool:
@@ -247,14 +338,12 @@ def _per_joint(spec: ParamSpec, value: Any, path: str, joints: Sequence[str]) ->
     )
 
 
-def _strings(spec: ParamSpec, value: Any, path: str) -> tuple[str, ...]:
-    # The same rules (and messages) as the controller's string-array parameters.
-    return coerce_string_array(value, path)
-
-
 def _list_checks(spec: ParamSpec, items: tuple[Any, ...], path: str, value: Any) -> None:
     if spec.non_empty and not items:
-        raise ConfigurationError(f"must not be empty ({spec.description})", path, value)
+        required = "required: " if spec.required else ""
+        raise ConfigurationError(
+            f"must not be empty ({required}{spec.description})", path, value
+        )
     if spec.unique:
         seen: set[Any] = set()
         for item in items:
@@ -265,18 +354,38 @@ def _list_checks(spec: ParamSpec, items: tuple[Any, ...], path: str, value: Any)
             seen.add(item)
 
 
-def _coerce(spec: ParamSpec, value: Any, path: str, joints: Sequence[str]) -> Any:
+def _strings(spec: ParamSpec, value: Any, path: str) -> tuple[str, ...]:
+    items = coerce_string_array(value, path)
+    _list_checks(spec, items, path, value)
+    if spec.choices:
+        allowed = [str(c) for c in spec.choices]
+        for item in items:
+            if item not in allowed:
+                raise ConfigurationError(
+                    f"{item!r} is not an allowed interface type; allowed: "
+                    f"{fmt_list(allowed)}{did_you_mean(item, allowed)}",
+                    path,
+                    item,
+                )
+    return items
+
+
+def check_value(spec: ParamSpec, value: Any, path: str, joints: Sequence[str] = ()) -> Any:
+    """``value`` checked against the row ``spec`` and normalised (numbers as float or int,
+    lists as tuples, per-joint values as tuples in the order of ``joints``, sections as
+    read-only mappings).
+
+    Raises:
+        ConfigurationError: wrong type, out of range, not an allowed choice, duplicate or
+            empty where not allowed; the error's path is ``path`` (or below it).
+    """
     if spec.coerce is not None:
         return spec.coerce(value, path)
     kind = spec.kind
     if spec.per_joint:
         return _per_joint(spec, value, path, joints)
-    if kind is ParamKind.STRING:
-        return _string(spec, value, path)
     if kind is ParamKind.STRINGS:
-        items: tuple[Any, ...] = _strings(spec, value, path)
-        _list_checks(spec, items, path, value)
-        return items
+        return _strings(spec, value, path)
     if kind is ParamKind.INTS:
         if not isinstance(value, (list, tuple)):
             raise ConfigurationError(
@@ -292,25 +401,27 @@ def _coerce(spec: ParamSpec, value: Any, path: str, joints: Sequence[str]) -> An
             if not isinstance(value, Mapping):
                 raise ConfigurationError(f"expected a mapping, got {describe(value)}", path, value)
             for key in value:
-                _check_key(key, path)
-            return _freeze(value)
+                check_key(key, path)
+            return freeze(value)
         return validate_params(spec.fields, value, path, joints=joints)
     return _scalar(spec, value, path)
 
 
-def _check_key(key: Any, path: str) -> str:
-    if not isinstance(key, str):
-        raise ConfigurationError(f"keys must be strings, got {describe(key)}; quote it", path, key)
-    return key
+def check_fields(obj: Any, schema: Mapping[str, ParamSpec], path: str) -> None:
+    """Check and normalise, in place, the fields of a frozen dataclass its table declares.
 
+    A settings dataclass calls it from ``__post_init__``, so that an instance built directly is
+    checked by the same rows, with the same messages, as one read from a file. A ``None`` of a
+    ``nullable`` row stays ``None``; a ``SECTION`` row holds a dataclass that checked itself.
 
-def _freeze(value: Any) -> Any:
-    """Deep read-only copy: mappings become MappingProxyType, lists become tuples."""
-    if isinstance(value, Mapping):
-        return MappingProxyType({k: _freeze(v) for k, v in value.items()})
-    if isinstance(value, (list, tuple)):
-        return tuple(_freeze(v) for v in value)
-    return value
+    Raises:
+        ConfigurationError: as :func:`check_value`; the path is ``path.<field>``.
+    """
+    for name, spec in schema.items():
+        value = getattr(obj, name)
+        if spec.kind is ParamKind.SECTION or (value is None and spec.nullable):
+            continue
+        object.__setattr__(obj, name, check_value(spec, value, join(path, name)))
 
 
 def _default(spec: ParamSpec, path: str, joints: Sequence[str]) -> Any:
@@ -346,21 +457,12 @@ def validate_params(
         ConfigurationError: not a mapping, unknown key (with a suggestion), missing required
             key, wrong type, out of range; the error's path names the key.
     """
-    if raw is None:
-        raw = {}
     of = f" of {owner}" if owner else ""
-    if not isinstance(raw, Mapping):
-        raise ConfigurationError(f"expected a mapping{of}, got {describe(raw)}", path, raw)
-    for key in raw:
-        if _check_key(key, path) not in schema:
-            known = list(schema)
-            hint = did_you_mean(key, known) or (
-                f"; known parameters: {', '.join(known)}" if known else "; it takes none"
-            )
-            raise ConfigurationError(f"unknown parameter {key!r}{of}{hint}", _join(path, key), key)
+    raw = expect_mapping({} if raw is None else raw, path, of)
+    check_keys(raw, schema, path, of)
     result: dict[str, Any] = {}
     for name, spec in schema.items():
-        key_path = _join(path, name)
+        key_path = join(path, name)
         value = raw.get(name)
         if name not in raw or (value is None and spec.nullable):
             if spec.required:
@@ -369,6 +471,5 @@ def validate_params(
                 )
             result[name] = _default(spec, key_path, joints)
         else:
-            result[name] = _coerce(spec, value, key_path, joints)
+            result[name] = check_value(spec, value, key_path, joints)
     return MappingProxyType(result)
-

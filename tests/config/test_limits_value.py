@@ -1,4 +1,4 @@
-"""``ControllerConfig.limits``: the value all of issue 12 reads (jtc_hw.controller.limits)."""
+"""``ControllerConfig.limits``: the value all of issue 12 reads (jtc_hw.config.limits)."""
 
 from __future__ import annotations
 
@@ -7,8 +7,8 @@ import pickle
 import pytest
 
 from jtc_hw import ConfigurationError
+from jtc_hw.config.limits import JointLimits
 from jtc_hw.controller.config import ControllerConfig
-from jtc_hw.controller.limits import JointLimits
 
 
 def config(**limits: JointLimits) -> ControllerConfig:

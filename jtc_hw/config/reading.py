@@ -1,8 +1,8 @@
-"""Reading configuration values: strict YAML, and checks whose errors say what to write.
+"""What reads files: strict YAML, a URDF's joint limits, and :func:`load_config`.
 
-Shared by the controller's parameters, the hardware parameter schema and the robot file, so
-that every configuration error reads the same way: the key path, what was found, and a hint
-("did you mean", "write true without quotes").
+The only module of :mod:`jtc_hw.config` that opens a file; what it reads is handed to the
+checks of :mod:`.controller_file` (and the robot file's, :mod:`jtc_hw.daemon.robot`) as plain
+data, and the controller gets a frozen :class:`~jtc_hw.config.controller.ControllerConfig`.
 
 YAML is read with a safe loader that refuses a key given twice and bounds what aliases may
 add: a few lines of nested anchors (``&a``) and aliases (``*a``) can stand for a billion nodes
@@ -18,27 +18,27 @@ byte), a character YAML refuses, a syntax error, too deep a nesting, an alias bo
 
 from __future__ import annotations
 
-import difflib
+import math
 import os
-from collections.abc import Hashable, Iterable, Mapping
+from collections.abc import Hashable, Mapping, Sequence
 from typing import Any
+from xml.etree import ElementTree
 
 import yaml
 
 from ..errors import ConfigurationError
+from .controller import ControllerConfig
+from .controller_file import build_config, select_controller
+from .limits import JointLimits
 
 __all__ = [
-    "closest",
-    "coerce_bool",
-    "coerce_string_array",
-    "describe",
-    "did_you_mean",
-    "fmt_list",
-    "load_yaml",
     "MAX_ALIAS_NODES",
     "MAX_DEPTH",
     "decode_text",
+    "load_config",
+    "load_yaml",
     "read_source",
+    "read_urdf_limits",
 ]
 
 MAX_ALIAS_NODES = 1_000_000
@@ -50,63 +50,9 @@ MAX_DEPTH = 100
 robot file or a goal file needs fewer than ten; the parser recurses once per level."""
 
 
-def describe(value: Any) -> str:
-    return f"{value!r} ({type(value).__name__})"
-
-
-def fmt_list(items: Iterable[str]) -> str:
-    return "[" + ", ".join(items) + "]"
-
-
-def closest(word: str, candidates: Iterable[str]) -> str | None:
-    matches = difflib.get_close_matches(word, list(candidates), n=1, cutoff=0.6)
-    return matches[0] if matches else None
-
-
-def did_you_mean(word: str, candidates: Iterable[str]) -> str:
-    best = closest(word, candidates)
-    return f"; did you mean '{best}'?" if best is not None else ""
-
-
-def coerce_string_array(value: Any, path: str) -> tuple[str, ...]:
-    """Type-check a string array: a list of strings, or the literal '{}' / '[]' (empty)."""
-    if isinstance(value, str):
-        if value.strip() in ("{}", "[]"):
-            return ()
-        raise ConfigurationError(
-            f"expected a list of strings, got {describe(value)}; write a YAML list, "
-            f"e.g. [{value}]",
-            path,
-            value,
-        )
-    if not isinstance(value, (list, tuple)):
-        raise ConfigurationError(f"expected a list of strings, got {describe(value)}", path, value)
-    for index, item in enumerate(value):
-        if not isinstance(item, str):
-            raise ConfigurationError(
-                f"expected a list of strings, but element {index} is {describe(item)}",
-                path,
-                item,
-            )
-        if not item.strip():
-            raise ConfigurationError(f"element {index} is an empty name", path, item)
-    return tuple(value)
-
-
-def coerce_bool(value: Any, path: str, prefix: str = "") -> bool:
-    """``value`` if it is a YAML boolean; a quoted "true"/"false" gets a hint.
-
-    Raises:
-        ConfigurationError: not a boolean.
-    """
-    if not isinstance(value, bool):
-        hint = ""
-        if isinstance(value, str) and value.strip().lower() in ("true", "false"):
-            hint = f"; write {value.strip().lower()} without quotes"
-        raise ConfigurationError(
-            f"{prefix}expected true or false, got {describe(value)}{hint}", path, value
-        )
-    return value
+# --------------------------------------------------------------------------------------------
+# Strict YAML
+# --------------------------------------------------------------------------------------------
 
 
 class AliasExpansionError(yaml.YAMLError):
@@ -333,3 +279,160 @@ def read_source(source: str | os.PathLike[str] | Mapping[str, Any]) -> Mapping[A
             filename,
         )
     return data
+
+
+# --------------------------------------------------------------------------------------------
+# URDF joint limits
+# --------------------------------------------------------------------------------------------
+
+
+def _urdf_error(filename: str, message: str) -> ConfigurationError:
+    return ConfigurationError(f"URDF {filename}: {message}", "limits.urdf", filename)
+
+
+def _urdf_float(
+    element: Any, attribute: str, filename: str, joint: str
+) -> float | None:
+    text = element.get(attribute)
+    if text is None:
+        return None
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not math.isfinite(value):
+        raise _urdf_error(
+            filename,
+            f"joint {joint!r}: <{element.tag} {attribute}={text!r}> is not a finite number",
+        )
+    return value
+
+
+def read_urdf_limits(filename: str, joints: Sequence[str]) -> dict[str, JointLimits]:
+    """The limits a URDF file gives the joints ``joints`` (others are skipped).
+
+    ``<limit lower upper velocity effort>`` of revolute and prismatic joints give the position
+    range (narrowed by ``<safety_controller soft_lower_limit soft_upper_limit>``), continuous
+    joints only velocity and effort; a velocity or effort of 0 (URDF's "not given") is no
+    limit. The file is read with the standard library's XML parser; a document type
+    declaration is refused, so no entity is ever expanded.
+
+    Raises:
+        ConfigurationError: the file cannot be read, is not well-formed, has a DOCTYPE, has
+            no ``<robot>`` root, or a joint's attribute is not a number, negative where it
+            must not be, or a range whose lower end is not below its upper end.
+    """
+    try:
+        with open(filename, "rb") as stream:
+            data = stream.read()
+    except OSError as exc:
+        raise _urdf_error(filename, f"cannot read it: {exc.strerror or exc}") from None
+    if b"<!DOCTYPE" in data.upper() or b"<!ENTITY" in data.upper():
+        raise _urdf_error(
+            filename,
+            "has a document type declaration (<!DOCTYPE ...> or <!ENTITY ...>), which is "
+            "refused so that no entity is expanded; a URDF needs none: remove it",
+        )
+    try:
+        root = ElementTree.fromstring(data)
+    except ElementTree.ParseError as exc:
+        raise _urdf_error(filename, f"is not well-formed XML: {exc}") from None
+    if root.tag != "robot":
+        raise _urdf_error(filename, f"the root element is <{root.tag}>, not <robot>")
+    wanted = set(joints)
+    limits: dict[str, JointLimits] = {}
+    for element in root.iter("joint"):
+        name = element.get("name")
+        kind = element.get("type")
+        if name not in wanted or kind not in ("revolute", "prismatic", "continuous"):
+            continue
+        limit = element.find("limit")
+        safety = element.find("safety_controller")
+        position = None
+        velocity = effort = None
+        if limit is not None:
+            for attribute in ("velocity", "effort"):
+                value = _urdf_float(limit, attribute, filename, name)
+                if value is not None and value < 0.0:
+                    raise _urdf_error(
+                        filename,
+                        f"joint {name!r}: <limit {attribute}={limit.get(attribute)!r}> must "
+                        "not be negative",
+                    )
+                if value:
+                    if attribute == "velocity":
+                        velocity = value
+                    else:
+                        effort = value
+            if kind != "continuous":
+                lower = _urdf_float(limit, "lower", filename, name)
+                upper = _urdf_float(limit, "upper", filename, name)
+                if lower is not None or upper is not None:
+                    low = 0.0 if lower is None else lower
+                    high = 0.0 if upper is None else upper
+                    if safety is not None:
+                        soft_low = _urdf_float(safety, "soft_lower_limit", filename, name)
+                        soft_high = _urdf_float(safety, "soft_upper_limit", filename, name)
+                        low = low if soft_low is None else max(low, soft_low)
+                        high = high if soft_high is None else min(high, soft_high)
+                    if not low < high:
+                        raise _urdf_error(
+                            filename,
+                            f"joint {name!r}: the position range [{low:g}, {high:g}] (from "
+                            "<limit lower upper> and <safety_controller soft_lower_limit "
+                            "soft_upper_limit>) is empty",
+                        )
+                    position = (low, high)
+        found = JointLimits(position, velocity, None, None, effort)
+        if not found.empty:
+            limits[name] = found
+    return limits
+
+
+# --------------------------------------------------------------------------------------------
+# The controller's configuration
+# --------------------------------------------------------------------------------------------
+
+
+def load_config(
+    source: str | os.PathLike[str] | Mapping[str, Any],
+    controller_name: str | None = None,
+    *,
+    base_dir: str | os.PathLike[str] | None = None,
+) -> ControllerConfig:
+    """Read, check and freeze a controller configuration.
+
+    Args:
+        source: path of a YAML file, or an already parsed mapping. Either the upstream
+            layout (``<name>: {ros__parameters: {...}}`` plus an optional
+            ``controller_manager`` section whose ``update_rate`` is used), or the parameters
+            directly at the top level (plus an optional ``update_rate``). Top-level
+            ``hardware`` and ``daemon`` keys are skipped (they configure the daemon); a
+            top-level ``limits`` section gives the joint limits (per joint, or ``urdf``: a
+            URDF file's) and ``time_scaling``.
+        controller_name: which controller section to use when there are several. Without
+            it, the only section is used, or the only one the controller manager declares
+            with the joint_trajectory_controller type. For the plain layout it is the
+            resulting name (default ``joint_trajectory_controller``).
+        base_dir: the directory a relative ``limits.urdf`` is relative to (default: the
+            file's directory, or the current directory for a mapping).
+
+    Returns:
+        The validated configuration, with defaults filled for every joint.
+
+    Raises:
+        ConfigurationError: the file cannot be read or parsed, a key is unknown, a required
+            parameter is missing, a value has the wrong type or range, or the interfaces
+            form an unsupported combination. The message names the dotted key path.
+        TypeError: ``source`` is neither a path nor a mapping.
+    """
+    data = read_source(source)
+    name, params, cm_update_rate = select_controller(data, controller_name)
+    if base_dir is None and not isinstance(source, Mapping):
+        base_dir = os.path.dirname(os.path.abspath(os.fspath(source)))
+    directory = os.getcwd() if base_dir is None else os.fspath(base_dir)
+
+    def read_urdf(urdf: str, joints: Sequence[str]) -> dict[str, JointLimits]:
+        return read_urdf_limits(os.path.join(directory, os.path.expanduser(urdf)), joints)
+
+    return build_config(name, params, cm_update_rate, data.get("limits"), read_urdf)

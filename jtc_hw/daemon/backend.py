@@ -62,7 +62,7 @@ from ..controller.goals import (
     TrajectoryStopped,
 )
 from ..controller.joints import JointCommand
-from ..controller.limits_check import AcceptedGoal, TimeScaling
+from ..controller.limits_check import TimeScaling
 from ..controller.tolerances import JointTolerance
 from ..controller.trajectory import (
     JointTrajectory,
@@ -72,27 +72,43 @@ from ..controller.trajectory import (
     TrajectorySample,
 )
 from ..errors import (
-    ConfigurationError,
     ControllerStateError,
     GoalRejected,
     HardwareError,
     JtcHwError,
 )
+from .backend_api import Accepted
 from .cyclering import READ_PERIOD_S, RING_S, CycleRing, remove_stale
+from .messages import (
+    Cancel,
+    Commit,
+    Committed,
+    Events,
+    Exit,
+    Failed,
+    Fault,
+    Log,
+    LoopOp,
+    Ready,
+    Rearm,
+    Reference,
+    Reply,
+    Request,
+    SetParameters,
+    SetSpeedScaling,
+    Shutdown,
+    Sim,
+    Stale,
+    State,
+    Status,
+    Stop,
+)
 from .pipe import Inbox, PlanWriter
 from .robot import RobotConfig, joint_position_limits
 
 log = logging.getLogger("jtc_hw.backend")
 
 ATTEMPTS = 5
-_LOOP_ERRORS: dict[str, type[JtcHwError]] = {
-    "ConfigurationError": ConfigurationError,
-    "ControllerStateError": ControllerStateError,
-    "GoalRejected": GoalRejected,
-    "HardwareError": HardwareError,
-    "CommunicationError": HardwareError,
-    "MotorFault": HardwareError,
-}
 # The loop process's start (a spawned interpreter importing numpy and the drivers, then the
 # hardware's configure and activate). JTC_HW_LOOP_START_TIMEOUT_S raises it where a machine
 # is known to be far slower, as tools/vcan-hil's software-emulated VM (issue 15).
@@ -238,12 +254,12 @@ class LoopBackend:
         self._timebase: tuple[int, int, float, float] | None = None
         self._version = -1
         self._plans: dict[int, Plan] = {}
-        self._waiting: dict[int, asyncio.Future[Any]] = {}
+        self._waiting: dict[int, asyncio.Future[Committed | Stale | Reply | Failed]] = {}
         self._ids = itertools.count(1)
         self._listener: Listener | None = None
         self._taps: list[Tap] = []
         self._status: dict[str, Any] = {}
-        self._ready: asyncio.Future[dict[str, Any]] | None = None
+        self._ready: asyncio.Future[Ready] | None = None
         self._exited: asyncio.Future[int] | None = None
         self._conn: Connection | None = None
         self._process: multiprocessing.process.BaseProcess | None = None
@@ -267,7 +283,8 @@ class LoopBackend:
         self.death: str | None = None
         """Why the loop process ended without being asked to ("control loop died: ...")."""
         self.last_heard_ns = 0
-        self.info: dict[str, Any] = {}
+        self.info: Ready | None = None
+        """The loop's ``Ready`` (its pid, start time, period), once it is."""
         self.exit_code: int | None = None
         self.flight: Any = None
         """The flight recorder (``jtc_hw.rec.flight.FlightRecorder``), made by ``start``."""
@@ -279,7 +296,7 @@ class LoopBackend:
 
     # -- process ------------------------------------------------------------------------------
 
-    async def start(self) -> dict[str, Any]:
+    async def start(self) -> Ready:
         """Spawn the loop process and wait until the hardware is active.
 
         Raises:
@@ -393,7 +410,7 @@ class LoopBackend:
         if not self._exited.done():
             stopping_s = 0.0  # a decelerating stop the loop finishes first (its bound)
             try:
-                reply = await self._request("shutdown", {"reason": reason})
+                reply = await self._request(Shutdown(reason))
                 if isinstance(reply, float):
                     stopping_s = reply
             except JtcHwError as exc:
@@ -530,117 +547,127 @@ class LoopBackend:
         if self._exited is not None and not self._exited.done():
             self._exited.set_result(self.exit_code)
 
-    def _dispatch(self, message: tuple[Any, ...]) -> None:
+    def _dispatch(self, message: Any) -> None:
         self.last_heard_ns = time.monotonic_ns()
-        kind = message[0]
-        if kind == "reference":
-            _, version, trajectory, plan_id = message
-            replaced = self._ref
-            if plan_id is not None:
-                self._ref = self._plans.pop(plan_id).reference
-            else:
-                self._ref = trajectory
-            self._version = version
-            if replaced is not None and replaced.nbytes >= TRIM_AFTER_BYTES:
-                del replaced
-                self._release_memory(0.0)
-        elif kind in ("committed", "stale", "reply"):
-            future = self._waiting.pop(message[1], None)
-            if kind == "committed":
-                self._active_goal = message[2]
-                if message[2] is not None:
-                    self._open_goals[message[2]] = None
-            if future is not None and not future.done():
-                future.set_result(message)
-            if kind == "stale":
-                self._plans.pop(message[1], None)
-        elif kind == "events":
-            for event in message[1]:
-                if isinstance(event, TrajectoryStopped):
-                    log.warning("topic trajectory stopped: %s%s", event.reason,
-                                f": {event.details}" if event.details else "")
-                elif isinstance(event, GoalResult):
-                    self._finish_goal(event)
+        match message:
+            case State():
+                self._on_state(message)
+            case Events(events):
+                for event in events:
+                    if isinstance(event, TrajectoryStopped):
+                        log.warning("topic trajectory stopped: %s%s", event.reason,
+                                    f": {event.details}" if event.details else "")
+                    elif isinstance(event, GoalResult):
+                        self._finish_goal(event)
+                    else:
+                        if self._listener is not None:
+                            self._listener.on_goal_event(event)
+                        self._tap("on_goal_event", event)
+            case Reference(version, trajectory, plan_id):
+                replaced = self._ref
+                if plan_id is not None:
+                    self._ref = self._plans.pop(plan_id).reference
                 else:
-                    if self._listener is not None:
-                        self._listener.on_goal_event(event)
-                    self._tap("on_goal_event", event)
-        elif kind == "state":
-            self._measured = (message[1][2], message[1][3])
-            raw = message[1]
-            if len(raw) > 14:  # (a test's partial state has no speed scaling)
-                self._timebase = (raw[0], raw[14], raw[12], raw[13])
-            if (
-                self._listener is not None
-                or self._taps
-                or self.flight is not None
-                or self.recording is not None
-            ):
-                snapshot = self._snapshot(message[1])
-                if self.flight is not None and self._ring is None:
-                    self.flight.on_state(snapshot)  # (with the ring, it has every cycle)
-                if self.recording is not None:
-                    self.recording.on_state(snapshot)
-                if self._listener is not None:
-                    self._listener.on_state(snapshot)
-                self._tap("on_state", snapshot)
-        elif kind == "status":
-            self._status = message[1]
-        elif kind == "log":
-            if message[1] >= logging.ERROR and self._ready is not None and not self._ready.done():
-                self._log_start_error()  # an earlier one did not stop the start: say it
-                self._start_error = (message[1], message[2])
-            else:
-                log.log(message[1], "%s", message[2])
-            if message[1] >= logging.ERROR:
-                self._last_error = message[2]
-                if str(message[2]).startswith("hardware fault"):
-                    self._record_event({"event": "fault", "text": str(message[2]),
-                                        "time_ns": time.monotonic_ns()})
-                    if self.flight is not None:
-                        self._flight_trigger("fault")
-        elif kind == "ready":
-            self._log_start_error()
-            t0 = message[1]["t0_ns"]
-            initial = self.config.speed_scaling.initial_scaling_factor
-            self._timebase = (t0, t0, initial, initial)  # activation: trajectory time = clock
-            if self._ready is not None and not self._ready.done():
-                self._ready.set_result(message[1])
-        elif kind == "exit":
-            # The process is ending; its sentinel settles the goals (_process_ended).
-            self.exit_code = message[1]
+                    self._ref = trajectory
+                self._version = version
+                if replaced is not None and replaced.nbytes >= TRIM_AFTER_BYTES:
+                    del replaced
+                    self._release_memory(0.0)
+            case Committed(plan_id, goal_id):
+                self._active_goal = goal_id
+                if goal_id is not None:
+                    self._open_goals[goal_id] = None
+                self._answer(plan_id, message)
+            case Stale(plan_id):
+                self._answer(plan_id, message)
+                self._plans.pop(plan_id, None)
+            case Reply(request_id) | Failed(request_id):
+                self._answer(request_id, message)
+            case Status(status):
+                self._status = status
+            case Log(level, text):
+                self._on_log(level, text)
+            case Fault():
+                self._on_log(logging.ERROR, message.text)
+                self._record_event({"event": "fault", "text": message.text,
+                                    "time_ns": time.monotonic_ns()})
+                if self.flight is not None:
+                    self._flight_trigger("fault")
+            case Ready(t0_ns=t0):
+                self._log_start_error()
+                initial = self.config.speed_scaling.initial_scaling_factor
+                self._timebase = (t0, t0, initial, initial)  # activation: trajectory time = clock
+                if self._ready is not None and not self._ready.done():
+                    self._ready.set_result(message)
+            case Exit(code):
+                # The process is ending; its sentinel settles the goals (_process_ended).
+                self.exit_code = code
 
-    def _snapshot(self, raw: tuple[Any, ...]) -> dict[str, Any]:
-        (
-            t, desired, positions, velocities, error, command, holding, goal,
-            reference_tfs, feedback_tfs, accelerations, output, factor, target, _tau,
-        ) = raw
+    def _answer(self, waiter: int, message: Committed | Stale | Reply | Failed) -> None:
+        """Resolve the future waiting for ``message`` (a plan's or a request's), if any."""
+        future = self._waiting.pop(waiter, None)
+        if future is not None and not future.done():
+            future.set_result(message)
+
+    def _on_log(self, level: int, text: str) -> None:
+        """A log line of the loop: logged (before ``Ready``, an error is kept as the start's
+        reason instead); an error is the loop's last."""
+        if level >= logging.ERROR and self._ready is not None and not self._ready.done():
+            self._log_start_error()  # an earlier one did not stop the start: say it
+            self._start_error = (level, text)
+        else:
+            log.log(level, "%s", text)
+        if level >= logging.ERROR:
+            self._last_error = text
+
+    def _on_state(self, state: State) -> None:
+        self._measured = (state.positions, state.velocities)
+        self._timebase = (state.time_ns, state.trajectory_time_ns, state.speed_scaling_factor,
+                          state.speed_scaling_target)
+        if (
+            self._listener is not None
+            or self._taps
+            or self.flight is not None
+            or self.recording is not None
+        ):
+            snapshot = self._snapshot(state)
+            if self.flight is not None and self._ring is None:
+                self.flight.on_state(snapshot)  # (with the ring, it has every cycle)
+            if self.recording is not None:
+                self.recording.on_state(snapshot)
+            if self._listener is not None:
+                self._listener.on_state(snapshot)
+            self._tap("on_state", snapshot)
+
+    def _snapshot(self, state: State) -> dict[str, Any]:
+        desired, error = state.desired, state.error
         return {
-            "time_ns": t,
+            "time_ns": state.time_ns,
             "joint_names": list(self.joint_names),
             "desired": {
                 "positions": _vector(desired[0]),
                 "velocities": _vector(desired[1]),
                 "accelerations": _vector(desired[2]),
                 "effort": _vector(desired[3]),
-                "time_from_start": reference_tfs,
+                "time_from_start": state.reference_time_from_start,
             },
             "actual": {
-                "positions": _vector(positions),
-                "velocities": _vector(velocities),
-                "accelerations": _vector(accelerations),
-                "time_from_start": feedback_tfs,
+                "positions": _vector(state.positions),
+                "velocities": _vector(state.velocities),
+                "accelerations": _vector(state.accelerations),
+                "time_from_start": state.feedback_time_from_start,
             },
             "error": {
                 "positions": _vector(error[0]),
                 "velocities": _vector(error[1]),
                 "accelerations": _vector(error[2]),
             },
-            "command": _command_json(command),
-            "output": _command_json(output),
-            "holding": holding,
-            "active_goal": goal,
-            "speed_scaling": {"factor": factor, "target": target},
+            "command": _command_json(state.command),
+            "output": _command_json(state.output),
+            "holding": state.holding,
+            "active_goal": state.active_goal,
+            "speed_scaling": {"factor": state.speed_scaling_factor,
+                              "target": state.speed_scaling_target},
         }
 
     def _finish_goal(self, result: GoalResult) -> None:
@@ -779,7 +806,8 @@ class LoopBackend:
         """The loop's statistics and hardware status (refreshed at 2 Hz); the active goal is
         tracked from commits and results, so it is current. ``alive``: the loop process runs;
         ``loop_pid``: its pid; after its death, ``controller.fault`` says how it died."""
-        status = dict(self._status, alive=self.alive, loop_pid=self.info.get("pid"))
+        status = dict(self._status, alive=self.alive,
+                      loop_pid=None if self.info is None else self.info.pid)
         if "controller" in status or self.death:
             controller = dict(status.get("controller", {}), active_goal=self._active_goal)
             if self.death:
@@ -825,7 +853,7 @@ class LoopBackend:
         goal_time_tolerance: float = 0.0,
         *,
         time_scaling: str | None = None,
-    ) -> int:
+    ) -> Accepted:
         """Plan and commit an action goal.
 
         Args:
@@ -833,7 +861,7 @@ class LoopBackend:
                 ``limits.time_scaling``).
 
         Returns:
-            The goal id, an ``AcceptedGoal`` whose ``time_scaling`` says how it was fitted.
+            The goal's id, and how it was fitted to the joint limits.
 
         Raises:
             GoalRejected: invalid goal, beyond the joint limits, or the loop kept refusing the
@@ -859,11 +887,11 @@ class LoopBackend:
             made.append(plan)
             return plan
 
-        result = await self._plan_and_commit(make, len(traj.points))
-        assert result is not None
-        self._tap("on_command", sent, int(result))
-        self._record_command(sent, int(result))
-        return AcceptedGoal(int(result), made[-1].time_scaling)
+        goal_id = await self._plan_and_commit(make, len(traj.points))
+        assert goal_id is not None
+        self._tap("on_command", sent, goal_id)
+        self._record_command(sent, goal_id)
+        return Accepted.of(goal_id, made[-1].time_scaling)
 
     async def send_trajectory(
         self, traj: JointTrajectory, *, time_scaling: str | None = None
@@ -880,7 +908,7 @@ class LoopBackend:
             GoalRejected: invalid trajectory, beyond the joint limits, or not active.
         """
         if not traj.points:
-            await self._request("stop", {})
+            await self._request(Stop())
             self._record_command(traj)
             return None
         check_position_limits(traj, self._position_limits)
@@ -907,14 +935,14 @@ class LoopBackend:
         if not self.alive:
             raise HardwareError("the control loop is not running; nothing commands the motors")
         try:
-            await self._request("stop", {})
+            await self._request(Stop())
         except GoalRejected:  # the loop's "not active": stopped after a fault, nothing moves
             return False
         return True
 
     async def cancel_goal(self, goal_id: int) -> bool:
         """Cancel the executing goal ``goal_id``; False if it is not executing."""
-        return bool(await self._request("cancel", {"goal_id": goal_id}))
+        return bool(await self._request(Cancel(goal_id)))
 
     async def rearm(self) -> bool:
         """Leave a hardware fault: re-open the devices, clear their latched faults
@@ -926,7 +954,7 @@ class LoopBackend:
         Returns:
             False if there was nothing to re-arm (no fault, the controller is running).
         """
-        rearmed = bool(await self._request("rearm", {}))
+        rearmed = bool(await self._request(Rearm()))
         if rearmed:
             self._record_event({"event": "rearm",
                                 "text": "re-armed: holding the measured position",
@@ -946,7 +974,7 @@ class LoopBackend:
             ConfigurationError: not a number in ``[0, speed_scaling.max_scaling_factor]``.
             HardwareError: the control loop did not answer.
         """
-        value: dict[str, float] = await self._request("set_speed_scaling", {"factor": factor})
+        value: dict[str, float] = await self._request(SetSpeedScaling(factor))
         if self._timebase is not None:
             t, tau, current, _ = self._timebase
             self._timebase = (t, tau, current, value["target"])
@@ -980,7 +1008,7 @@ class LoopBackend:
             change: ParameterChange = await aio.run_in_executor(
                 self._executor, set_parameters, self.config, dict(changes)
             )
-            await self._request("set_parameters", {"config": change.config})
+            await self._request(SetParameters(change.config))
             self.config = change.config
             self._planner = Planner(change.config)
             return change
@@ -992,7 +1020,7 @@ class LoopBackend:
             ConfigurationError: no component of that name.
             HardwareError: the component is not simulated hardware.
         """
-        await self._request("sim", {"component": component, "freeze": freeze, "fault": fault})
+        await self._request(Sim(component, freeze, fault))
 
     # -- internals ----------------------------------------------------------------------------
 
@@ -1031,7 +1059,7 @@ class LoopBackend:
             return "the control loop is not running"
         return None
 
-    def _send(self, message: tuple[Any, ...], bulk: bool = False) -> None:
+    def _send(self, message: Commit | Request, bulk: bool = False) -> None:
         """Queue ``message`` for the loop and write what the pipe takes now; the rest is written
         when it becomes writable (the event loop never waits for the loop to read a plan).
         A request (not ``bulk``) goes before what is left of a plan being written."""
@@ -1061,20 +1089,30 @@ class LoopBackend:
             aio.add_writer(conn.fileno(), self._write)
             self._writing = True
 
-    async def _request(self, op: str, args: dict[str, Any]) -> Any:
+    async def _request(self, op: LoopOp) -> Any:
+        """Have the loop do ``op``; what it returns.
+
+        Raises:
+            JtcHwError: the loop's error (``Failed.exception``).
+            HardwareError: the loop did not answer within ``REQUEST_TIMEOUT_S``.
+            ControllerStateError: the loop is not running (or died meanwhile).
+        """
         request_id = next(self._ids)
         future = asyncio.get_running_loop().create_future()
         self._waiting[request_id] = future
-        self._send(("request", request_id, op, args))
+        self._send(Request(request_id, op))
         try:
-            _, _, ok, value = await asyncio.wait_for(future, REQUEST_TIMEOUT_S)
+            answer = await asyncio.wait_for(future, REQUEST_TIMEOUT_S)
         except asyncio.TimeoutError:  # the builtin TimeoutError from 3.11 on
             self._waiting.pop(request_id, None)
-            raise HardwareError(f"the control loop did not answer {op!r} within 5 s") from None
-        if not ok:
-            kind, message = value
-            raise _LOOP_ERRORS.get(kind, HardwareError)(message)
-        return value
+            raise HardwareError(
+                f"the control loop did not answer {op.name!r} within 5 s") from None
+        match answer:
+            case Reply(value=value):
+                return value
+            case Failed():
+                raise answer.exception()
+        raise HardwareError(f"the control loop answered {op.name!r} with {answer!r}")
 
     def _release_memory(self, delay_s: float) -> None:
         """Return freed memory to the system in ``delay_s``, in the planning thread (it walks
@@ -1136,20 +1174,23 @@ class LoopBackend:
             future = aio.create_future()
             self._waiting[plan_id] = future
             try:
-                self._send(("commit", plan_id, plan), bulk=True)
+                self._send(Commit(plan_id, plan), bulk=True)
                 reply = await asyncio.wait_for(future, REQUEST_TIMEOUT_S)
             except ControllerStateError as exc:  # the loop died before it answered
                 self._waiting.pop(plan_id, None)
                 raise GoalRejected(str(exc)) from None
             if plan.reference.nbytes >= TRIM_AFTER_BYTES:
                 self._release_memory(TRIM_DELAY_S)  # the fitting's temporaries, the request
-            if reply[0] == "committed":
-                return reply[2]  # type: ignore[no-any-return]
-            reason = reply[2]
-            if reason.startswith("not active"):
-                raise GoalRejected(f"the controller is {reason}")
-            margin = 2 * margin + took
-            log.debug("plan %d was stale (%s); planning again", plan_id, reason)
+            match reply:
+                case Committed(goal_id=goal_id):
+                    return goal_id
+                case Stale(reason=reason) if reason.startswith("not active"):
+                    raise GoalRejected(f"the controller is {reason}")
+                case Stale(reason=reason):
+                    margin = 2 * margin + took
+                    log.debug("plan %d was stale (%s); planning again", plan_id, reason)
+                case _:
+                    raise HardwareError(f"the control loop answered a plan with {reply!r}")
         raise GoalRejected(
             f"the control loop kept refusing the plan ({ATTEMPTS} attempts); the reference "
             "changes too often or planning is too slow for this goal's size"

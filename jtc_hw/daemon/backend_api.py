@@ -7,6 +7,7 @@ control loop in its own process) and in tests by a small controller host; the se
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Mapping, Sequence
 from typing import Any, Protocol
 
@@ -16,7 +17,31 @@ from ..controller.limits_check import TimeScaling
 from ..controller.tolerances import JointTolerance
 from ..controller.trajectory import JointTrajectory, QueriedState
 
-__all__ = ["Backend", "BackendListener"]
+__all__ = ["Accepted", "Backend", "BackendListener"]
+
+
+@dataclasses.dataclass(frozen=True, slots=True)
+class Accepted:
+    """An accepted action goal: its id, and how it was fitted to the joint limits.
+
+    Attributes:
+        goal_id: the goal's id (its events and results carry it).
+        time_scaling: the uniform slow-down applied to fit the limits (``time_scaling: fit``),
+            ``None`` when the goal runs as sent (checked, or no limits).
+        duration_s: the last point's ``time_from_start`` after slowing, seconds; ``None``
+            with ``time_scaling``.
+    """
+
+    goal_id: int
+    time_scaling: float | None = None
+    duration_s: float | None = None
+
+    @classmethod
+    def of(cls, goal_id: int, scaling: TimeScaling | None) -> Accepted:
+        """The goal ``goal_id`` accepted with the plan's ``scaling`` (``None``: as sent)."""
+        if scaling is None:
+            return cls(goal_id)
+        return cls(goal_id, scaling.factor, scaling.duration_s)
 
 
 class BackendListener(Protocol):
@@ -87,9 +112,9 @@ class Backend(Protocol):
         goal_time_tolerance: float,
         *,
         time_scaling: str | None = None,
-    ) -> int:
-        """Accept an action goal and return its id (an ``AcceptedGoal`` where the goal was
-        fitted to the joint limits: the ``accepted`` reply then says how).
+    ) -> Accepted:
+        """Accept an action goal: its id, and how it was fitted to the joint limits (the
+        ``accepted`` reply then says so).
 
         Raises:
             GoalRejected: why it was refused, with the FollowJointTrajectory error code.

@@ -16,7 +16,7 @@ Neither ever waits for the other:
 - **loop -> API** (:class:`Outbox`): the loop never waits for the API process. Messages are
   queued, and the queue is written once per cycle with ``sendmsg(MSG_DONTWAIT)`` (all pending
   messages in one system call, a partial write resumed where it stopped). Droppable messages
-  (``state``, the periodic ``status``) are coalesced while the queue is not empty, the newest
+  (``State``, the periodic ``Status``) are coalesced while the queue is not empty, the newest
   kept; every other message is kept in order. If the API process stops reading, the age of
   the oldest kept message tells the loop how long it has been stalled
   (:meth:`Outbox.oldest_ns`). This direction keeps ``multiprocessing``'s wire format (a 4-byte
@@ -112,7 +112,7 @@ class PlanWriter:
         """Something waits to be written."""
         return bool(self._current or self._urgent or self._bulk)
 
-    def put(self, message: tuple[Any, ...], bulk: bool = False) -> None:
+    def put(self, message: object, bulk: bool = False) -> None:
         """Queue ``message``; :meth:`flush` writes it.
 
         Raises:
@@ -172,7 +172,7 @@ class PlanWriter:
         return False
 
 
-def _records(message: tuple[Any, ...]) -> list[bytes | memoryview]:
+def _records(message: object) -> list[bytes | memoryview]:
     """``message`` as a ``HEAD`` record and its buffers' ``CHUNK`` records: a HEAD record is
     one item (header and payload), a CHUNK two (its header, then the memory it carries)."""
     buffers: list[pickle.PickleBuffer] = []
@@ -201,7 +201,7 @@ def _skip(parts: list[bytes | memoryview], count: int) -> list[bytes | memoryvie
     return out
 
 
-def send_framed(conn: Connection, message: tuple[Any, ...], bulk: bool = True) -> None:
+def send_framed(conn: Connection, message: object, bulk: bool = True) -> None:
     """Send ``message`` as :class:`PlanWriter` does, waiting until it is written (tests, tools).
 
     Raises:
@@ -557,7 +557,7 @@ class _Entry:
 
     __slots__ = ("data", "key", "queued_ns")
 
-    def __init__(self, data: bytes, key: str | None, queued_ns: int) -> None:
+    def __init__(self, data: bytes, key: object | None, queued_ns: int) -> None:
         self.data = data
         self.key = key
         self.queued_ns = queued_ns
@@ -595,7 +595,7 @@ class Outbox:
         self.capacity_bytes = capacity_bytes
         self._clock = clock
         self._entries: collections.deque[_Entry] = collections.deque()
-        self._latest: dict[str, _Entry] = {}  # the waiting droppable message of each key
+        self._latest: dict[object, _Entry] = {}  # the waiting droppable message of each key
         self._written = 0  # bytes of the first entry already written
         self._ordered: collections.deque[_Entry] = collections.deque()  # waiting, in order
         self.pending_bytes = 0
@@ -622,7 +622,7 @@ class Outbox:
 
     # -- queueing ----------------------------------------------------------------------------
 
-    def put(self, message: Any, key: str | None = None) -> None:
+    def put(self, message: Any, key: object | None = None) -> None:
         """Queue ``message``; with a ``key``, it replaces a waiting message of the same key.
 
         Raises:

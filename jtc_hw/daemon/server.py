@@ -770,7 +770,7 @@ class Server:
                     req.goal_time_tolerance,
                     time_scaling=req.time_scaling,
                 )
-                goal_id = int(accepted)
+                goal_id = accepted.goal_id
                 # Nothing may be awaited from here on: the route must exist before this task
                 # yields, so that every later event of the goal finds it (module docstring).
                 self._routes[goal_id] = conn
@@ -783,7 +783,8 @@ class Server:
                         goal_id,
                     )
                 log.info("%s: goal %d accepted", conn.label, goal_id)
-                scaled = scaling_fields(getattr(accepted, "time_scaling", None))
+                scaled = {} if accepted.time_scaling is None else {
+                    "time_scale": accepted.time_scaling, "duration_s": accepted.duration_s}
                 conn.send(encode(reply(req.id, goal_id=goal_id, accepted=True, **scaled)))
                 for event in self._early.pop(goal_id, ()):
                     self._route(conn, event)

@@ -75,12 +75,13 @@ def test_a_killed_loop_gives_each_open_goal_one_aborted_result_and_refuses_the_r
         backend.set_listener(recorder)
         await backend.start()
         try:
-            first = await backend.send_goal(goal(0.5, 20.0))
+            first = (await backend.send_goal(goal(0.5, 20.0))).goal_id
             await recorder.wait_for(lambda: any(e.goal_id == first for e in recorder.events))
             # A second goal preempts the first; the loop is killed before anything else.
-            second = await backend.send_goal(goal(-0.5, 20.0))
-            assert backend.status()["loop_pid"] == backend.info["pid"]
-            os.kill(backend.info["pid"], signal.SIGKILL)
+            second = (await backend.send_goal(goal(-0.5, 20.0))).goal_id
+            assert backend.info is not None
+            assert backend.status()["loop_pid"] == backend.info.pid
+            os.kill(backend.info.pid, signal.SIGKILL)
             code = await asyncio.wait_for(backend.wait_exited(), WAIT_S)
             assert code == -signal.SIGKILL
 
@@ -131,7 +132,7 @@ def test_a_requested_stop_is_not_a_death(tmp_path: Path) -> None:
         recorder = Recorder()
         backend.set_listener(recorder)
         await backend.start()
-        goal_id = await backend.send_goal(goal(0.5, 20.0))
+        goal_id = (await backend.send_goal(goal(0.5, 20.0))).goal_id
         assert await backend.stop("test over") == 0
         assert backend.death is None
         (result,) = recorder.results(goal_id)

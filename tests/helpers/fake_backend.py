@@ -16,9 +16,10 @@ import numpy as np
 
 from jtc_hw import GoalFeedback, GoalResult, JointTrajectoryController, TrajectorySample
 from jtc_hw.controller.config_io import ParameterChange, config_to_dict, parameters_report
-from jtc_hw.controller.limits_check import AcceptedGoal, TimeScaling
+from jtc_hw.controller.limits_check import TimeScaling
 from jtc_hw.controller.tolerances import JointTolerance
 from jtc_hw.controller.trajectory import JointTrajectory
+from jtc_hw.daemon.backend_api import Accepted
 from jtc_hw.daemon.server import BackendListener, Server, ServerSettings
 from jtc_hw.errors import ConfigurationError
 
@@ -78,9 +79,9 @@ class FakeBackend:
         goal_time_tolerance: float,
         *,
         time_scaling: str | None = None,
-    ) -> int:
+    ) -> Accepted:
         await asyncio.sleep(0)  # the real backend waits for the loop process here
-        goal_id = AcceptedGoal(
+        accepted = Accepted.of(
             self.ctrl.send_goal(
                 self.t,
                 traj,
@@ -92,18 +93,19 @@ class FakeBackend:
             self.ctrl.last_time_scaling,
         )
         if not self.early_feedback:
-            return goal_id
+            return accepted
         # The id's future is resolved and, in the same callback, the goal's first events are
         # dispatched: they reach the server before its send_goal coroutine resumes.
-        reply: asyncio.Future[int] = asyncio.get_running_loop().create_future()
+        reply: asyncio.Future[Accepted] = asyncio.get_running_loop().create_future()
 
         def deliver() -> None:
-            reply.set_result(goal_id)
+            reply.set_result(accepted)
             z = np.zeros(len(self.joint_names))
             assert self.listener is not None
             self.listener.on_goal_event(
                 GoalFeedback(
-                    goal_id, self.t, 0.0, TrajectorySample(z, z, z, z), z, z, np.zeros((3, len(z)))
+                    accepted.goal_id, self.t, 0.0, TrajectorySample(z, z, z, z), z, z,
+                    np.zeros((3, len(z))),
                 )
             )
 

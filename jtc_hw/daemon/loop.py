@@ -18,7 +18,7 @@ exact replica to plan against: a committed plan by its id (the API process made 
 value (a constant trajectory, a few bytes). The loop process has a single thread: after each
 cycle it reads whatever has arrived, a bounded amount, without blocking (:class:`~.pipe.Inbox`),
 and the next cycle pops the completed messages. What it sends goes through a
-:class:`~.pipe.Outbox`, written at the end of each cycle without ever blocking: the loop never
+:class:`~.outbox.Outbox`, written at the end of each cycle without ever blocking: the loop never
 waits for the API process. If the API process stops reading (stopped, swapped out, wedged) for
 ``daemon.api_stall_s``, the loop ends the active goal ``ABORTED`` with that reason, holds the
 measured position, refuses new goals, keeps cycling and publishing into the outbox (``state``
@@ -95,7 +95,8 @@ from .messages import (
     Status,
     Stop,
 )
-from .pipe import Inbox, Outbox
+from .outbox import Outbox
+from .pipe import Inbox
 from .robot import RobotConfig, create_hardware_set, load_robot
 
 log = logging.getLogger("jtc_hw.loop")

@@ -378,9 +378,9 @@ def loop_side(plan_message: Commit, rate_hz: float) -> dict[str, float]:
     Returns the slowest ``pump`` (one cycle's read, ms), how many cycles the plan took to
     arrive, and the time to release the plan once received.
     """
-    from jtc_hw.daemon.backend import _grow_send_buffer
     from jtc_hw.daemon.loop import INBOX_SPARE, inbox_budget
     from jtc_hw.daemon.pipe import Inbox, send_framed
+    from jtc_hw.daemon.supervision import _grow_send_buffer
 
     period_ns = round(1e9 / rate_hz)
     parent, child = multiprocessing.Pipe(duplex=True)

@@ -1,8 +1,10 @@
-"""What the socket server needs from a backend, and what a backend reports to the server.
+"""What the socket server needs from a backend, and what a backend reports to its observers.
 
 :class:`Backend` is implemented for real by :class:`jtc_hw.daemon.backend.LoopBackend` (the
-control loop in its own process) and in tests by a small controller host; the server
-(:class:`jtc_hw.daemon.server.Server`) is the :class:`BackendListener`.
+control loop in its own process) and in tests by a small controller host. Everything that
+consumes the loop's output is an :class:`Observer`: the server
+(:class:`jtc_hw.daemon.server.Server`, socket subscriptions and goal routing), the live view,
+the Zenoh interface and the recorders (:mod:`jtc_hw.daemon.observers`).
 """
 
 from __future__ import annotations
@@ -17,7 +19,7 @@ from ..controller.limits_check import TimeScaling
 from ..controller.tolerances import JointTolerance
 from ..controller.trajectory import JointTrajectory, QueriedState
 
-__all__ = ["Accepted", "Backend", "BackendListener"]
+__all__ = ["Accepted", "Backend", "Observer"]
 
 
 @dataclasses.dataclass(frozen=True, slots=True)
@@ -44,22 +46,23 @@ class Accepted:
         return cls(goal_id, scaling.factor, scaling.duration_s)
 
 
-class BackendListener(Protocol):
-    """What the backend reports to (the ``Server`` is one)."""
-
-    def on_goal_event(self, event: GoalResult | GoalFeedback) -> None:
-        """A goal's feedback or result; called in the asyncio loop's thread.
-
-        Raises:
-            Nothing.
-        """
+class Observer(Protocol):
+    """What the backend reports to, in the asyncio loop's thread; each method returns at once
+    (queue anything slow) and should not raise (an exception is logged and skipped)."""
 
     def on_state(self, snapshot: dict[str, Any]) -> None:
-        """A JSON-able controller state snapshot, at ``state_publish_rate``; loop thread.
+        """A JSON-able controller state snapshot, at ``state_publish_rate``."""
 
-        Raises:
-            Nothing.
-        """
+    def on_goal_event(self, event: GoalResult | GoalFeedback) -> None:
+        """A goal's feedback or result."""
+
+    def on_command(self, traj: JointTrajectory, goal_id: int | None) -> None:
+        """An accepted command as the client sent it (a goal's trajectory, ``goal_id`` its
+        id; a topic trajectory, ``goal_id`` None; no points: a stop), before its reply."""
+
+    def on_record(self, event: dict[str, Any]) -> None:
+        """A result, fault or re-arm as recordings keep it (``goal_events``' JSON,
+        docs/recording.md)."""
 
 
 class Backend(Protocol):
@@ -215,10 +218,6 @@ class Backend(Protocol):
         """
         ...
 
-    def set_listener(self, listener: BackendListener) -> None:
-        """Where goal events and state snapshots go from now on.
-
-        Raises:
-            Nothing.
-        """
+    def add_observer(self, observer: Observer) -> None:
+        """Also report to ``observer`` from now on (after those added before)."""
         ...

@@ -107,7 +107,7 @@ from ..errors import (
     HardwareError,
     JtcHwError,
 )
-from .backend_api import Backend, BackendListener
+from .backend_api import Backend, Observer
 from .connection import (
     OVER_LIMIT_CLIENTS,
     OVER_LIMIT_DEADLINE_S,
@@ -123,7 +123,7 @@ from .unix_socket import bind_unix, remove_socket_file
 
 __all__ = [
     "Backend",
-    "BackendListener",
+    "Observer",
     "Server",
     "ServerSettings",
     "TcpEndpoint",
@@ -149,7 +149,7 @@ _RESERVED_STATE_KEYS = frozenset({"event", "dropped", "dropped_total"})
 
 
 class Server:
-    """The socket API in front of a ``Backend``; also the backend's ``BackendListener``.
+    """The socket API in front of a ``Backend``; also an ``Observer`` of the backend.
 
     Example::
 
@@ -211,7 +211,7 @@ class Server:
         return self._tcp_address
 
     async def start(self) -> None:
-        """Register as the backend's listener and start listening.
+        """Register as an observer of the backend and start listening.
 
         Raises:
             ConfigurationError: the socket path is in use by a live daemon, is not a socket,
@@ -222,7 +222,7 @@ class Server:
         if self._started:
             raise ControllerStateError("the server is already started")
         self._started = True
-        self.backend.set_listener(self)
+        self.backend.add_observer(self)
         try:
             if self.path is not None:
                 sock, self._socket_identity = bind_unix(
@@ -899,7 +899,7 @@ class Server:
             "results_discarded": self._results_discarded,
         }
 
-    # -- BackendListener ----------------------------------------------------------------------
+    # -- Observer -----------------------------------------------------------------------------
 
     def on_goal_event(self, event: GoalResult | GoalFeedback) -> None:
         """Route a goal's event to the client that sent the goal.

@@ -19,8 +19,8 @@ from jtc_hw.controller.config_io import ParameterChange, config_to_dict, paramet
 from jtc_hw.controller.limits_check import TimeScaling
 from jtc_hw.controller.tolerances import JointTolerance
 from jtc_hw.controller.trajectory import JointTrajectory
-from jtc_hw.daemon.backend_api import Accepted
-from jtc_hw.daemon.server import BackendListener, Server, ServerSettings
+from jtc_hw.daemon.backend_api import Accepted, Observer
+from jtc_hw.daemon.server import Server, ServerSettings
 from jtc_hw.errors import ConfigurationError
 
 from conftest import Mirror, S, make_config
@@ -41,7 +41,7 @@ class FakeBackend:
         self.t = 10 * S
         self.period = S // 100
         self.ctrl.activate(self.t, self.mirror.state())
-        self.listener: BackendListener | None = None
+        self.listener: Observer | None = None
         self.cycles = 0
         self.early_feedback = False  # deliver a goal's first event before send_goal returns
         self.status_error: Exception | None = None
@@ -160,8 +160,8 @@ class FakeBackend:
             raise ConfigurationError(f"no simulated component '{component}' (have: mirror)")
         self.mirror.frozen = freeze
 
-    def set_listener(self, listener: BackendListener) -> None:
-        self.listener = listener
+    def add_observer(self, observer: Observer) -> None:
+        self.listener = observer
 
     def step(self, seconds: float) -> list[GoalResult | GoalFeedback]:
         """Run control cycles for ``seconds`` of simulated time, delivering goal events."""

@@ -56,6 +56,7 @@ from .messages import (
     Committed,
     Events,
     Fault,
+    LoopMessage,
     Ready,
     Rearm,
     Reference,
@@ -240,7 +241,7 @@ class LoopBackend:
                                          reason, now))
         self._active_goal = None
 
-    def _dispatch(self, message: Any) -> None:
+    def _dispatch(self, message: LoopMessage) -> None:
         """A message of the loop (after :class:`LoopProcess` took its part)."""
         match message:
             case State():

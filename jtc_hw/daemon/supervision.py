@@ -46,6 +46,7 @@ from .messages import (
     Failed,
     Fault,
     Log,
+    LoopMessage,
     LoopOp,
     Ready,
     Reply,
@@ -106,7 +107,7 @@ class LoopProcess:
     """
 
     def __init__(self, source: str | dict[str, Any], controller_name: str | None,
-                 period_ns: int, on_message: Callable[[Any], None],
+                 period_ns: int, on_message: Callable[[LoopMessage], None],
                  on_ended: Callable[[str], None]) -> None:
         self._source = source
         self._controller_name = controller_name
@@ -294,7 +295,7 @@ class LoopProcess:
             # The end of the pipe: the process is ending. Its sentinel says when it has.
             asyncio.get_running_loop().remove_reader(self._conn.fileno())
 
-    def _dispatch(self, message: Any) -> None:
+    def _dispatch(self, message: LoopMessage) -> None:
         self.last_heard_ns = time.monotonic_ns()
         match message:
             case Committed(plan_id) | Stale(plan_id):

@@ -21,8 +21,8 @@ and the next cycle pops the completed messages. What it sends goes through a
 :class:`~.outbox.Outbox`, written at the end of each cycle without ever blocking: the loop never
 waits for the API process. If the API process stops reading (stopped, swapped out, wedged) for
 ``daemon.api_stall_s``, the loop ends the active goal ``ABORTED`` with that reason, holds the
-measured position, refuses new goals, keeps cycling and publishing into the outbox (``state``
-and ``status`` coalesced, everything else kept in order), and serves again once the API process
+measured position, refuses new goals, keeps cycling and publishing into the outbox (``State``
+and ``Status`` coalesced, everything else kept in order), and serves again once the API process
 has read the backlog. Before it configures any hardware, the loop process locks every device
 its components drive (``HardwareInterface.devices()``, :mod:`.locks`): a second daemon on the
 same hardware stops there, having sent nothing.

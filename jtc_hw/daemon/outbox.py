@@ -90,11 +90,7 @@ class Outbox:
         self._send_ns_total = 0
 
     def close(self) -> None:
-        """Release the duplicated socket (the connection itself stays open).
-
-        Raises:
-            Nothing.
-        """
+        """Release the duplicated socket (the connection itself stays open)."""
         self._sock.close()
 
     # -- queueing ----------------------------------------------------------------------------
@@ -148,11 +144,7 @@ class Outbox:
         return self.ordered_bytes > self.capacity_bytes
 
     def oldest_ns(self) -> int | None:
-        """When the oldest waiting ordered message was queued (``None``: none waits).
-
-        Raises:
-            Nothing.
-        """
+        """When the oldest waiting ordered message was queued (``None``: none waits)."""
         return self._ordered[0].queued_ns if self._ordered else None
 
     # -- writing -----------------------------------------------------------------------------
@@ -268,9 +260,6 @@ class Outbox:
         ``pending_bytes`` now, ``peak_bytes`` ever, ``capacity_bytes``; ``oldest_ms``, the age
         of the oldest waiting ordered message; ``send_us``: ``max`` of one flush since the
         previous snapshot, ``worst`` ever, ``mean`` over all flushes.
-
-        Raises:
-            Nothing.
         """
         window, self._send_ns_max = self._send_ns_max, 0
         if window > self._send_ns_worst:

@@ -92,11 +92,7 @@ class PlanWriter:
         """Writing failed for good (the loop process is gone)."""
 
     def close(self) -> None:
-        """Release the duplicated socket (the connection itself stays open).
-
-        Raises:
-            Nothing.
-        """
+        """Release the duplicated socket (the connection itself stays open)."""
         self._sock.close()
 
     @property
@@ -362,11 +358,7 @@ class Inbox:
         self._mapped: list[_Mapped] = []  # large messages' memory, to give back once unused
 
     def close(self) -> None:
-        """Release the duplicated socket (the connection itself stays open).
-
-        Raises:
-            Nothing.
-        """
+        """Release the duplicated socket (the connection itself stays open)."""
         self._sock.close()
 
     def pump(self, until_ns: int | None = None) -> None:
@@ -517,9 +509,6 @@ class Inbox:
 
         Returns:
             Whether there was something to give back.
-
-        Raises:
-            Nothing.
         """
         for mapped in self._mapped:
             if mapped.unused():
@@ -534,11 +523,7 @@ class Inbox:
         return len(self._queue)
 
     def pop(self) -> Any | None:
-        """The oldest completed message, or ``None``.
-
-        Raises:
-            Nothing.
-        """
+        """The oldest completed message, or ``None``."""
         try:
             return self._queue.popleft()
         except IndexError:

@@ -88,6 +88,7 @@ from jtc_hw.controller.controller import Planner  # noqa: E402
 from jtc_hw.controller.limits_check import check  # noqa: E402
 from jtc_hw.controller.trajectory import Trajectory  # noqa: E402
 from jtc_hw.controller.validation import prepare  # noqa: E402
+from jtc_hw.daemon.messages import Commit  # noqa: E402
 from jtc_hw.daemon.robot import load_robot  # noqa: E402
 
 SIZES = (2, 200, 2000, 20000)
@@ -370,16 +371,16 @@ def best_ms(fn: Callable[[], Any], repeat: int) -> tuple[float, Any]:
     return best, value
 
 
-def loop_side(plan_message: tuple[Any, ...], rate_hz: float) -> dict[str, float]:
+def loop_side(plan_message: Commit, rate_hz: float) -> dict[str, float]:
     """The plan read through the loop's inbox, once a period, from a pipe that another thread
     fills with ``send_framed`` (as the API process does).
 
     Returns the slowest ``pump`` (one cycle's read, ms), how many cycles the plan took to
     arrive, and the time to release the plan once received.
     """
-    from jtc_hw.daemon.backend import _grow_send_buffer
     from jtc_hw.daemon.loop import INBOX_SPARE, inbox_budget
     from jtc_hw.daemon.pipe import Inbox, send_framed
+    from jtc_hw.daemon.supervision import _grow_send_buffer
 
     period_ns = round(1e9 / rate_hz)
     parent, child = multiprocessing.Pipe(duplex=True)
@@ -448,13 +449,13 @@ def breakdown(points: int, args: argparse.Namespace) -> dict[str, Any]:
 
     def dump() -> bytes:
         buffers.clear()
-        return pickle.dumps(("commit", 1, plan), protocol=5, buffer_callback=buffers.append)
+        return pickle.dumps(Commit(1, plan), protocol=5, buffer_callback=buffers.append)
 
     stages["pickle_ms"], head = best_ms(dump, repeat)
     plan_bytes = len(head) + sum(b.raw().nbytes for b in buffers)
     raw = [b.raw() for b in buffers]
     stages["unpickle_ms"], _ = best_ms(lambda: pickle.loads(head, buffers=raw), repeat)
-    loop = loop_side(("commit", 1, plan), args.rate)
+    loop = loop_side(Commit(1, plan), args.rate)
     row: dict[str, Any] = {
         "kind": "breakdown",
         "points": points,

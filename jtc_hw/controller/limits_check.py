@@ -50,7 +50,6 @@ from .interpolation import F64, SegmentKind
 from .trajectory import NS_PER_S, PreparedTrajectory, Trajectory
 
 __all__ = [
-    "AcceptedGoal",
     "FIT",
     "REJECT",
     "TIME_SCALING_MODES",
@@ -92,21 +91,6 @@ class TimeScaling(NamedTuple):
 
     factor: float
     duration_s: float
-
-
-class AcceptedGoal(int):
-    """A goal id that also carries how the goal was fitted to the joint limits.
-
-    An ``int`` everywhere a goal id is expected (the daemon's backend returns it from
-    ``send_goal``); ``time_scaling`` is the ``Plan``'s (None: checked as sent, or no limits).
-    """
-
-    time_scaling: TimeScaling | None
-
-    def __new__(cls, goal_id: int, time_scaling: TimeScaling | None = None) -> AcceptedGoal:
-        accepted = super().__new__(cls, goal_id)
-        accepted.time_scaling = time_scaling
-        return accepted
 
 
 def scaling_fields(scaling: TimeScaling | None) -> dict[str, float]:

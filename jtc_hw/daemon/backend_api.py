@@ -1,12 +1,15 @@
-"""What the socket server needs from a backend, and what a backend reports to the server.
+"""What the socket server needs from a backend, and what a backend reports to its observers.
 
 :class:`Backend` is implemented for real by :class:`jtc_hw.daemon.backend.LoopBackend` (the
-control loop in its own process) and in tests by a small controller host; the server
-(:class:`jtc_hw.daemon.server.Server`) is the :class:`BackendListener`.
+control loop in its own process) and in tests by a small controller host. Everything that
+consumes the loop's output is an :class:`Observer`: the server
+(:class:`jtc_hw.daemon.server.Server`, socket subscriptions and goal routing), the live view,
+the Zenoh interface and the recorders (:mod:`jtc_hw.daemon.observers`).
 """
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Mapping, Sequence
 from typing import Any, Protocol
 
@@ -16,25 +19,50 @@ from ..controller.parameters import ParameterChange
 from ..controller.tolerances import JointTolerance
 from ..controller.trajectory import JointTrajectory, QueriedState
 
-__all__ = ["Backend", "BackendListener"]
+__all__ = ["Accepted", "Backend", "Observer"]
 
 
-class BackendListener(Protocol):
-    """What the backend reports to (the ``Server`` is one)."""
+@dataclasses.dataclass(frozen=True, slots=True)
+class Accepted:
+    """An accepted action goal: its id, and how it was fitted to the joint limits.
 
-    def on_goal_event(self, event: GoalResult | GoalFeedback) -> None:
-        """A goal's feedback or result; called in the asyncio loop's thread.
+    Attributes:
+        goal_id: the goal's id (its events and results carry it).
+        time_scaling: the uniform slow-down applied to fit the limits (``time_scaling: fit``),
+            ``None`` when the goal runs as sent (checked, or no limits).
+        duration_s: the last point's ``time_from_start`` after slowing, seconds; ``None``
+            with ``time_scaling``.
+    """
 
-        Raises:
-            Nothing.
-        """
+    goal_id: int
+    time_scaling: float | None = None
+    duration_s: float | None = None
+
+    @classmethod
+    def of(cls, goal_id: int, scaling: TimeScaling | None) -> Accepted:
+        """The goal ``goal_id`` accepted with the plan's ``scaling`` (``None``: as sent)."""
+        if scaling is None:
+            return cls(goal_id)
+        return cls(goal_id, scaling.factor, scaling.duration_s)
+
+
+class Observer(Protocol):
+    """What the backend reports to, in the asyncio loop's thread; each method returns at once
+    (queue anything slow) and should not raise (an exception is logged and skipped)."""
 
     def on_state(self, snapshot: dict[str, Any]) -> None:
-        """A JSON-able controller state snapshot, at ``state_publish_rate``; loop thread.
+        """A JSON-able controller state snapshot, at ``state_publish_rate``."""
 
-        Raises:
-            Nothing.
-        """
+    def on_goal_event(self, event: GoalResult | GoalFeedback) -> None:
+        """A goal's feedback or result."""
+
+    def on_command(self, traj: JointTrajectory, goal_id: int | None) -> None:
+        """An accepted command as the client sent it (a goal's trajectory, ``goal_id`` its
+        id; a topic trajectory, ``goal_id`` None; no points: a stop), before its reply."""
+
+    def on_record(self, event: dict[str, Any]) -> None:
+        """A result, fault or re-arm as recordings keep it (``goal_events``' JSON,
+        docs/recording.md)."""
 
 
 class Backend(Protocol):
@@ -87,9 +115,9 @@ class Backend(Protocol):
         goal_time_tolerance: float,
         *,
         time_scaling: str | None = None,
-    ) -> int:
-        """Accept an action goal and return its id (an ``AcceptedGoal`` where the goal was
-        fitted to the joint limits: the ``accepted`` reply then says how).
+    ) -> Accepted:
+        """Accept an action goal: its id, and how it was fitted to the joint limits (the
+        ``accepted`` reply then says so).
 
         Raises:
             GoalRejected: why it was refused, with the FollowJointTrajectory error code.
@@ -172,7 +200,7 @@ class Backend(Protocol):
 
     def get_parameters(self, names: Sequence[str] | None) -> dict[str, Any]:
         """Controller parameters in effect: ``{"parameters": {name: value}, "read_only":
-        [name, ...]}`` (``config_io.parameters_report``), all or ``names``.
+        [name, ...]}`` (``controller.parameters.parameters_report``), all or ``names``.
 
         Raises:
             ConfigurationError: a name is not a parameter.
@@ -190,10 +218,6 @@ class Backend(Protocol):
         """
         ...
 
-    def set_listener(self, listener: BackendListener) -> None:
-        """Where goal events and state snapshots go from now on.
-
-        Raises:
-            Nothing.
-        """
+    def add_observer(self, observer: Observer) -> None:
+        """Also report to ``observer`` from now on (after those added before)."""
         ...

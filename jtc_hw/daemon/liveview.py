@@ -3,7 +3,7 @@
 Theory of operation
 -------------------
 ``daemon.foxglove: {port: 8765}`` starts a :class:`LiveView` next to the socket server. It
-is a tap on what the loop already sends to the API process (the backend calls it with every
+is an observer of what the loop sends to the API process (the backend calls it with every
 state snapshot, goal event and accepted command, in the asyncio thread) plus a 1 Hz poll of
 the status for ``/diagnostics``; the loop process knows nothing of it. An accepted command's
 message (thousands of points) is built in a worker thread, off the goal's acceptance path.
@@ -507,7 +507,7 @@ class LiveView:
             # The SDK's stop joins its threads; keep the event loop free meanwhile.
             await asyncio.get_running_loop().run_in_executor(None, server.stop)
 
-    # -- taps (called by the backend in the asyncio thread; never raise) ----------------------
+    # -- observer (called by the backend in the asyncio thread; never raises) ----------------
 
     def on_state(self, snapshot: dict[str, Any]) -> None:
         """Publish ``/joint_states`` and ``controller_state`` (at most at ``rate``)."""
@@ -536,6 +536,8 @@ class LiveView:
         added to the goal's acceptance (measured: loaded scenario's goals accepted in 104-236
         ms median with a viewer, 60-87 ms without; docs/benchmarks.md).
         """
+        if not traj.points:
+            return  # a stop: no trajectory to show
         channel = self._channels.get("joint_trajectory")
         if channel is None or self._server is None or not channel.has_sinks():
             return  # nobody listens: build nothing
@@ -547,6 +549,9 @@ class LiveView:
         self._worker.submit(self._publish, "joint_trajectory", trajectory_message, traj, start,
                             goal_id, log_time=self.wall_ns(now))
 
+    def on_record(self, event: dict[str, Any]) -> None:
+        """Nothing: results are on ``goal_events`` already."""
+
     def _publish(self, role: str, build: Callable[..., dict[str, Any]], *args: Any,
                  log_time: int) -> None:
         channel = self._channels.get(role)
@@ -556,7 +561,7 @@ class LiveView:
             channel.log(build(*args), log_time=log_time)
             self.published += 1
         except Exception:
-            # A tap must never break the backend's dispatch of the loop's messages.
+            # An observer must never break the backend's dispatch of the loop's messages.
             self.errors += 1
             if self.errors <= 3:
                 log.exception("live view: cannot publish on %s; skipped", role)

@@ -6,25 +6,23 @@ The loop runs in its own process so that API work (parsing, fitting a 2,000-poin
 serving clients) never shares an interpreter lock with it. It talks to the API process over
 one duplex ``multiprocessing`` connection:
 
-- in (records of ``pipe.PlanWriter``, a plan's arrays out of band in chunks):
-  ``("commit", plan_id, Plan)``, ``("request", request_id, op, args)`` (ops: ``cancel``,
-  ``stop``, ``sim``, ``rearm``, ``set_parameters`` with a configuration the API process
-  checked, ``set_speed_scaling`` (a factor, or ``None`` to resume), ``shutdown``);
-- out: ``("ready", info)``, ``("reference", version, trajectory_or_None, plan_id_or_None)``,
-  ``("committed", plan_id, goal_id)``, ``("stale", plan_id, reason)``, ``("events", [...])``,
-  ``("state", snapshot)``, ``("status", dict)``, ``("reply", request_id, ok, value)``,
-  ``("log", level, message)``, ``("exit", code)``.
+- in (records of ``pipe.PlanWriter``, a plan's arrays out of band in chunks): the records of
+  :mod:`.messages`: ``Commit(plan_id, Plan)`` and ``Request(request_id, op)`` (ops:
+  ``Cancel``, ``Stop``, ``Sim``, ``Rearm``, ``SetParameters`` with a configuration the API
+  process checked, ``SetSpeedScaling`` (a factor, or ``None`` to resume), ``Shutdown``);
+- out: ``Ready``, ``Reference``, ``Committed`` | ``Stale`` (per commit), ``Events``,
+  ``State``, ``Status``, ``Reply`` | ``Failed`` (per request), ``Log``, ``Fault``, ``Exit``.
 
 Every change of the controller's reference is reported, in order, so the API process keeps an
 exact replica to plan against: a committed plan by its id (the API process made it), a hold by
 value (a constant trajectory, a few bytes). The loop process has a single thread: after each
 cycle it reads whatever has arrived, a bounded amount, without blocking (:class:`~.pipe.Inbox`),
 and the next cycle pops the completed messages. What it sends goes through a
-:class:`~.pipe.Outbox`, written at the end of each cycle without ever blocking: the loop never
+:class:`~.outbox.Outbox`, written at the end of each cycle without ever blocking: the loop never
 waits for the API process. If the API process stops reading (stopped, swapped out, wedged) for
 ``daemon.api_stall_s``, the loop ends the active goal ``ABORTED`` with that reason, holds the
-measured position, refuses new goals, keeps cycling and publishing into the outbox (``state``
-and ``status`` coalesced, everything else kept in order), and serves again once the API process
+measured position, refuses new goals, keeps cycling and publishing into the outbox (``State``
+and ``Status`` coalesced, everything else kept in order), and serves again once the API process
 has read the backlog. Before it configures any hardware, the loop process locks every device
 its components drive (``HardwareInterface.devices()``, :mod:`.locks`): a second daemon on the
 same hardware stops there, having sent nothing.
@@ -67,11 +65,38 @@ from ..controller.goals import Event
 from ..controller.joints import JointCommand, JointState
 from ..errors import HardwareError, JtcHwError, StalePlan
 from ..hardware import HardwareSet, LifecycleState
+from ..hardware.mirror import MirrorHardware
 from .clock import Ticker
 from .cyclering import CycleRing
 from .locks import DeviceLock, lock_devices
 from .loopstats import LoopStats
-from .pipe import Inbox, Outbox
+from .messages import (
+    Cancel,
+    Commit,
+    Committed,
+    Events,
+    Exit,
+    Failed,
+    Fault,
+    Log,
+    LoopMessage,
+    LoopOp,
+    Ready,
+    Rearm,
+    Reference,
+    Reply,
+    Request,
+    SetParameters,
+    SetSpeedScaling,
+    Shutdown,
+    Sim,
+    Stale,
+    State,
+    Status,
+    Stop,
+)
+from .outbox import Outbox
+from .pipe import Inbox
 from .robot import RobotConfig, create_hardware_set, load_robot
 
 log = logging.getLogger("jtc_hw.loop")
@@ -138,7 +163,7 @@ class ControlLoop:
 
     # -- messaging ----------------------------------------------------------------------------
 
-    def send(self, *message: Any) -> None:
+    def send(self, message: LoopMessage) -> None:
         """Queue an ordered message (never dropped); written at the end of the cycle.
 
         Raises:
@@ -146,29 +171,29 @@ class ControlLoop:
         """
         self.outbox.put(message)
 
-    def publish(self, *message: Any) -> None:
-        """Queue a droppable message (``state``, the periodic ``status``): while the API
-        process lags, a newer one of the same kind replaces it.
+    def publish(self, message: State | Status) -> None:
+        """Queue a droppable message (``State``, the periodic ``Status``): while the API
+        process lags, a newer one of the same class replaces it.
 
         Raises:
             pickle.PicklingError: the message cannot be pickled (a programming error).
         """
-        self.outbox.put(message, key=message[0])
+        self.outbox.put(message, key=type(message))
 
     def _report_reference(self) -> None:
         version = self.ctrl.reference_version
         if version == self._version_sent:
             return
         if self._committed_plan is not None:
-            self.send("reference", version, None, self._committed_plan)
+            self.send(Reference(version, None, self._committed_plan))
             self._committed_plan = None
         else:
-            self.send("reference", version, self.ctrl.reference, None)
+            self.send(Reference(version, self.ctrl.reference, None))
         self._version_sent = version
 
     def _send_events(self, events: tuple[Event, ...]) -> None:
         if events:
-            self.send("events", events)
+            self.send(Events(events))
 
     # -- lifecycle ----------------------------------------------------------------------------
 
@@ -189,7 +214,7 @@ class ControlLoop:
     def _enter_fault(self, now_ns: int, reason: str) -> None:
         self.fault = self.fault_cause = reason
         log.error("hardware fault: %s; controller stopped, hardware safe action applied", reason)
-        self.send("log", logging.ERROR, f"hardware fault: {reason}")
+        self.send(Fault(reason))
         events: tuple[Event, ...] = ()
         if self.ctrl.active:
             events = self.ctrl.deactivate(now_ns, f"hardware fault: {reason}")
@@ -200,7 +225,7 @@ class ControlLoop:
             log.error("safe action after the fault failed too: %s", exc)
         # The status (with the fault) goes before the goal's result, so that a client that
         # asks for the status on seeing the result finds the fault.
-        self.send("status", self.status())
+        self.send(Status(self.status()))
         self._send_events(events)
 
     def _write_deactivation_command(self, now_ns: int) -> None:
@@ -252,7 +277,7 @@ class ControlLoop:
         except JtcHwError as exc:
             self.fault = f"re-arm failed: {exc}"
             log.error("%s", self.fault)
-            self.send("status", self.status())
+            self.send(Status(self.status()))
             if hardware.state is LifecycleState.ACTIVE:
                 try:
                     hardware.deactivate(now_ns)
@@ -261,98 +286,92 @@ class ControlLoop:
             raise
         self.fault = self.fault_cause = None
         log.info("re-armed: holding the measured position")
-        self.send("status", self.status())
+        self.send(Status(self.status()))
         return True
 
     # -- requests -----------------------------------------------------------------------------
 
-    def _handle(self, message: Any, now_ns: int) -> None:
-        kind = message[0]
-        if kind == "commit":
-            _, plan_id, plan = message
-            # Freeing megabytes of arrays (munmap) costs hundreds of microseconds: the plan and
-            # the reference it replaces are released later, in a cycle's spare time.
-            self._retired.append((plan, self.ctrl.reference if self.ctrl.active else None))
-            self._commit(plan_id, plan, now_ns)
-        elif kind == "request":
-            _, request_id, op, args = message
-            try:
-                value = self._request(op, args, now_ns)
-            except JtcHwError as exc:
-                self.send("reply", request_id, False, (type(exc).__name__, str(exc)))
-            else:
-                self.send("reply", request_id, True, value)
+    def _handle(self, message: Commit | Request, now_ns: int) -> None:
+        match message:
+            case Commit(plan_id, plan):
+                # Freeing megabytes of arrays (munmap) costs hundreds of microseconds: the plan
+                # and the reference it replaces are released later, in a cycle's spare time.
+                self._retired.append((plan, self.ctrl.reference if self.ctrl.active else None))
+                self._commit(plan_id, plan, now_ns)
+            case Request(request_id, op):
+                try:
+                    value = self._request(op, now_ns)
+                except JtcHwError as exc:
+                    self.send(Failed.of(request_id, exc))
+                else:
+                    self.send(Reply(request_id, value))
 
     def _commit(self, plan_id: int, plan: Plan, now_ns: int) -> None:
         if self.fault is not None or not self.ctrl.active:
-            self.send("stale", plan_id, f"not active: {self.fault or 'controller stopped'}")
+            self.send(Stale(plan_id, f"not active: {self.fault or 'controller stopped'}"))
             return
         if self._stopping_until_ns is not None:
-            self.send("stale", plan_id, f"not active: {self._shutdown_reason}")
+            self.send(Stale(plan_id, f"not active: {self._shutdown_reason}"))
             return
         if self.api_stalled:
             # Its feedback and result could not be delivered either.
-            self.send(
-                "stale",
+            self.send(Stale(
                 plan_id,
                 "not active: the daemon's API process has not yet read the control loop's "
                 "backlog; retry once it has",
-            )
+            ))
             return
         try:
             goal_id = self.ctrl.commit(plan, now_ns)
         except StalePlan as exc:
-            self.send("stale", plan_id, str(exc))
+            self.send(Stale(plan_id, str(exc)))
             return
         self._committed_plan = plan_id
         self._report_reference()
-        self.send("committed", plan_id, goal_id)
+        self.send(Committed(plan_id, goal_id))
 
-    def _request(self, op: str, args: dict[str, Any], now_ns: int) -> Any:
-        if op == "cancel":
-            return self.ctrl.cancel_goal(int(args["goal_id"]))
-        if op == "stop":
-            self.ctrl.request_stop()
-            return True
-        if op == "sim":
-            from ..hardware.mirror import MirrorHardware
-
-            component = self.hardware.component(args["component"])
-            if not isinstance(component, MirrorHardware):
-                raise HardwareError(
-                    f"component '{args['component']}' is {component.kind} hardware; only "
-                    "simulated (mirror) components can be frozen"
-                )
-            if args.get("freeze") is not None:
-                component.set_frozen(bool(args["freeze"]))
-            if args.get("fault"):
-                component.inject_fault(str(args["fault"]))
-            return True
-        if op == "set_parameters":
-            # Checked by the API process; the controller refuses read-only differences.
-            config = args["config"]
-            self.ctrl.apply_parameters(config)
-            self.config = config
-            self.state_every_ns = round(1e9 / config.state_publish_rate)
-            self._next_state_ns = min(self._next_state_ns, now_ns + self.state_every_ns)
-            return True
-        if op == "set_speed_scaling":
-            factor = args.get("factor")
-            if factor is None:
-                self.ctrl.resume_speed_scaling()
-            else:
-                self.ctrl.set_speed_scaling(factor)
-            return {
-                "factor": self.ctrl.speed_scaling_factor,
-                "target": self.ctrl.speed_scaling_target,
-            }
-        if op == "rearm":
-            done = self._rearm(now_ns)
-            self._report_reference()
-            return done
-        if op == "shutdown":
-            self._shutdown_reason = str(args.get("reason") or self._shutdown_reason)
-            return self._begin_shutdown(now_ns)
+    def _request(self, op: LoopOp, now_ns: int) -> Any:
+        match op:
+            case Cancel(goal_id):
+                return self.ctrl.cancel_goal(int(goal_id))
+            case Stop():
+                self.ctrl.request_stop()
+                return True
+            case Sim(name, freeze, fault):
+                component = self.hardware.component(name)
+                if not isinstance(component, MirrorHardware):
+                    raise HardwareError(
+                        f"component '{name}' is {component.kind} hardware; only "
+                        "simulated (mirror) components can be frozen"
+                    )
+                if freeze is not None:
+                    component.set_frozen(bool(freeze))
+                if fault:
+                    component.inject_fault(str(fault))
+                return True
+            case SetParameters(config):
+                # Checked by the API process; the controller refuses read-only differences.
+                self.ctrl.apply_parameters(config)
+                self.config = config
+                self.state_every_ns = round(1e9 / config.state_publish_rate)
+                self._next_state_ns = min(self._next_state_ns, now_ns + self.state_every_ns)
+                return True
+            case SetSpeedScaling(factor):
+                if factor is None:
+                    self.ctrl.resume_speed_scaling()
+                else:
+                    self.ctrl.set_speed_scaling(factor)
+                return {
+                    "factor": self.ctrl.speed_scaling_factor,
+                    "target": self.ctrl.speed_scaling_target,
+                }
+            case Rearm():
+                done = self._rearm(now_ns)
+                self._report_reference()
+                return done
+            case Shutdown(reason):
+                self._shutdown_reason = str(reason or self._shutdown_reason)
+                return self._begin_shutdown(now_ns)
         raise JtcHwError(f"unknown loop request {op!r}")
 
     def _begin_shutdown(self, now_ns: int) -> bool | float:
@@ -449,8 +468,7 @@ class ControlLoop:
             self._next_state_ns = now_ns + self.state_every_ns
             cs = out.state
             self.publish(
-                "state",
-                (
+                State(
                     now_ns,
                     np.stack(out.desired),
                     state.positions,
@@ -463,12 +481,10 @@ class ControlLoop:
                     cs.feedback_time_from_start,
                     cs.feedback.accelerations,
                     cs.output,
-                    # Speed scaling: the factor, its target, and where trajectory time stands
-                    # at ``now_ns`` (the API process plans in trajectory time).
                     cs.speed_scaling_factor,
                     cs.speed_scaling_target,
                     self.ctrl.trajectory_time_ns,
-                ),
+                )
             )
 
     def _monitor(self, now_ns: int) -> None:
@@ -566,7 +582,7 @@ class ControlLoop:
         self.serve_outbox(deadline_ns)
         inbox.pump(deadline_ns + self.period_ns - self.inbox_spare_ns)
         if self.handle_inbox(inbox, deadline_ns):
-            self.serve_outbox(deadline_ns)  # "committed", the reply: now, not a period later
+            self.serve_outbox(deadline_ns)  # Committed, the Reply: now, not a period later
 
     def run(self, inbox: Inbox) -> None:
         """Cycle until asked to stop or the API process disappears."""
@@ -587,7 +603,7 @@ class ControlLoop:
             self.stats.record(woke - deadline, done - woke, skipped)
             if deadline >= self._next_status_ns:
                 self._next_status_ns = deadline + STATUS_PERIOD_NS
-                self.publish("status", self.status())
+                self.publish(Status(self.status()))
             self.after_cycle(deadline, inbox)
             if inbox.closed and not inbox.waiting:  # what arrived before the end goes first
                 log.warning("the API process went away: stopping the loop safely")
@@ -616,7 +632,7 @@ class ControlLoop:
             self.hardware.cleanup()
         except JtcHwError as exc:
             log.error("releasing the hardware failed: %s", exc)
-        self.send("status", self.status())
+        self.send(Status(self.status()))
 
 
 QUIET_LOGGERS = {
@@ -655,7 +671,7 @@ def loop_main(source: str | dict[str, Any], controller_name: str | None, conn: C
     ``ring_name``: the API process's :class:`~.cyclering.CycleRing` to write every cycle into
     (None: none).
 
-    Never raises: failures are reported as ``("exit", code)`` with a log line first.
+    Never raises: failures are reported as ``Exit(code)`` with a ``Log`` line first.
     """
     # The API process coordinates shutdown; a terminal's Ctrl-C or systemd's SIGTERM to the
     # whole group must not kill the loop before the goal got its result and the robot holds.
@@ -697,22 +713,14 @@ def loop_main(source: str | dict[str, Any], controller_name: str | None, conn: C
 
         rt = robot.daemon.realtime
         for line in apply_realtime(rt.priority, rt.lock_memory, rt.cpu_affinity):
-            loop.send("log", logging.INFO, line)
-        loop.send("log", logging.INFO, reduce_timer_slack())
-        loop.send("log", logging.INFO, keep_freed_memory())
-        loop.send("log", logging.INFO, disable_huge_pages())
+            loop.send(Log(logging.INFO, line))
+        loop.send(Log(logging.INFO, reduce_timer_slack()))
+        loop.send(Log(logging.INFO, keep_freed_memory()))
+        loop.send(Log(logging.INFO, disable_huge_pages()))
         now = time.monotonic_ns()
         loop.start(now)
-        loop._report_reference()  # before "ready": the API process plans against it at once
-        loop.send(
-            "ready",
-            {
-                "pid": os.getpid(),
-                "t0_ns": now,
-                "period_ns": loop.period_ns,
-                "hardware": loop.hardware.status(),
-            },
-        )
+        loop._report_reference()  # before Ready: the API process plans against it at once
+        loop.send(Ready(os.getpid(), now, loop.period_ns, loop.hardware.status()))
         outbox.drain(EXIT_DRAIN_S)  # not cycling yet: waiting is harmless
         inbox = Inbox(conn, inbox_budget(loop.period_ns))
         try:
@@ -723,11 +731,11 @@ def loop_main(source: str | dict[str, Any], controller_name: str | None, conn: C
         # Said once, by the API process (its log, or its "cannot start: ..." line): logging
         # it here as well printed a missing serial port three times, from three modules.
         last_words = str(exc)
-        outbox.put(("log", logging.ERROR, last_words))
+        outbox.put(Log(logging.ERROR, last_words))
         code = 2
     except Exception as exc:  # last resort: say what happened, never die silently
         log.exception("control loop crashed")
-        outbox.put(("log", logging.CRITICAL, f"control loop crashed: {exc!r}"))
+        outbox.put(Log(logging.CRITICAL, f"control loop crashed: {exc!r}"))
         code = 3
     finally:
         if loop is not None and code:
@@ -738,7 +746,7 @@ def loop_main(source: str | dict[str, Any], controller_name: str | None, conn: C
             loop.ring = None
         if ring is not None:
             ring.close()
-    outbox.put(("exit", code))
+    outbox.put(Exit(code))
     if not outbox.drain(EXIT_DRAIN_S):
         if last_words is not None:
             log.error("%s", last_words)  # nobody else will say it

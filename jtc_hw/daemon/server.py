@@ -107,7 +107,7 @@ from ..errors import (
     HardwareError,
     JtcHwError,
 )
-from .backend_api import Backend, BackendListener
+from .backend_api import Backend, Observer
 from .connection import (
     OVER_LIMIT_CLIENTS,
     OVER_LIMIT_DEADLINE_S,
@@ -122,7 +122,7 @@ from .unix_socket import bind_unix, remove_socket_file
 
 __all__ = [
     "Backend",
-    "BackendListener",
+    "Observer",
     "Server",
 ]
 
@@ -146,7 +146,7 @@ _RESERVED_STATE_KEYS = frozenset({"event", "dropped", "dropped_total"})
 
 
 class Server:
-    """The socket API in front of a ``Backend``; also the backend's ``BackendListener``.
+    """The socket API in front of a ``Backend``; also an ``Observer`` of the backend.
 
     Example::
 
@@ -204,7 +204,7 @@ class Server:
         return self._tcp_address
 
     async def start(self) -> None:
-        """Register as the backend's listener and start listening.
+        """Register as an observer of the backend and start listening.
 
         Raises:
             ConfigurationError: the socket path is in use by a live daemon, is not a socket,
@@ -215,7 +215,7 @@ class Server:
         if self._started:
             raise ControllerStateError("the server is already started")
         self._started = True
-        self.backend.set_listener(self)
+        self.backend.add_observer(self)
         try:
             if self.path is not None:
                 sock, self._socket_identity = bind_unix(
@@ -763,7 +763,7 @@ class Server:
                     req.goal_time_tolerance,
                     time_scaling=req.time_scaling,
                 )
-                goal_id = int(accepted)
+                goal_id = accepted.goal_id
                 # Nothing may be awaited from here on: the route must exist before this task
                 # yields, so that every later event of the goal finds it (module docstring).
                 self._routes[goal_id] = conn
@@ -776,7 +776,8 @@ class Server:
                         goal_id,
                     )
                 log.info("%s: goal %d accepted", conn.label, goal_id)
-                scaled = scaling_fields(getattr(accepted, "time_scaling", None))
+                scaled = {} if accepted.time_scaling is None else {
+                    "time_scale": accepted.time_scaling, "duration_s": accepted.duration_s}
                 conn.send(encode(reply(req.id, goal_id=goal_id, accepted=True, **scaled)))
                 for event in self._early.pop(goal_id, ()):
                     self._route(conn, event)
@@ -891,7 +892,7 @@ class Server:
             "results_discarded": self._results_discarded,
         }
 
-    # -- BackendListener ----------------------------------------------------------------------
+    # -- Observer -----------------------------------------------------------------------------
 
     def on_goal_event(self, event: GoalResult | GoalFeedback) -> None:
         """Route a goal's event to the client that sent the goal.

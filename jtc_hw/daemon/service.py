@@ -193,7 +193,7 @@ class Daemon:
         except JtcHwError as exc:
             log.error("cannot start: %s", exc)
             return False
-        self.backend.add_tap(live)
+        self.backend.add_observer(live)
         self.live_view = live
         return live
 
@@ -212,7 +212,7 @@ class Daemon:
             log.error("cannot start: %s", exc)
             await iface.close()
             return False
-        self.backend.add_tap(iface)
+        self.backend.add_observer(iface)
         server.status_sections["zenoh"] = iface.stats
         self.zenoh = iface
         return iface

@@ -14,7 +14,7 @@ docs/zenoh.md)::
     <prefix>/rpc/<op>   a queryable per socket operation: the query's payload is the socket's
                         request body (``op`` may be left out), the reply the socket's reply
 
-It is a tap on the backend (state snapshots and goal events, in the asyncio thread, like the
+It is an observer of the backend (state snapshots and goal events, in the asyncio thread, like the
 live view); the loop process knows nothing of it. A query is executed by the socket server's
 own dispatch (``Server.answer_remote``), so replies and errors are byte for byte the
 socket's. A goal sent over Zenoh has its ``accepted`` reply as the query's reply; its feedback
@@ -380,7 +380,7 @@ class ZenohInterface:
             log.exception("zenoh: closing the session failed")
         self._declared.clear()
 
-    # -- taps (the backend calls them in the asyncio thread; they never block nor raise) ------
+    # -- observer (the backend calls it in the asyncio thread; it never blocks nor raises) ---
 
     def on_state(self, snapshot: dict[str, Any]) -> None:
         """Publish the socket's ``state`` event on ``<prefix>/state``."""
@@ -410,10 +410,13 @@ class ZenohInterface:
         """Publish an accepted command on ``events`` as the socket sends it to a subscriber
         with ``commands`` (``jtc-hw record --zenoh``); never dropped, as results."""
         outbox = self._outbox
-        if outbox is None:
+        if outbox is None or not traj.points:  # (a stop is for the socket's subscribers)
             return
         outbox.put(partial(self._put_event, command_event, traj, goal_id,
                            self._server.backend.now_ns()))
+
+    def on_record(self, event: dict[str, Any]) -> None:
+        """Nothing: results are on ``events`` already."""
 
     # -- in the outbox's thread ---------------------------------------------------------------
 

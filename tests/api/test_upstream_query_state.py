@@ -14,7 +14,9 @@ from helpers.fake_backend import ServerThread
 from jtc_hw import JointTrajectory, Trajectory, TrajectoryPoint
 from jtc_hw.api.client import Client
 from jtc_hw.cli import EXIT_OK, main
+from jtc_hw.controller.joints import JointCommand
 from jtc_hw.daemon.backend import LoopBackend
+from jtc_hw.daemon.messages import Reference, State
 from jtc_hw.daemon.robot import load_robot
 
 from conftest import make_robot_config
@@ -74,23 +76,30 @@ def test_loop_backend_replica_answers_query_state_as_the_controller(tmp_path: Pa
     )
     backend = LoopBackend(robot, str(tmp_path / "robot.yaml"))
     ref = Trajectory.constant(10 * S, [0.1, 0.2])
-    backend._dispatch(("reference", 1, ref, None))
+    backend._dispatch(Reference(1, ref, None))
     held = backend.query_state(10 * S)
     assert (held.success, held.where) == (False, "after_end")
     before = backend.query_state(9 * S)  # no state published yet: the reference's first
     assert (before.success, before.where) == (False, "before_start")
     np.testing.assert_array_equal(before.positions, [0.1, 0.2])
-    state = (
+    state = State(
         10 * S,
         np.zeros((4, 2)),
         np.array([0.15, 0.25]),
         np.array([0.5, -0.5]),
         np.zeros((3, 2)),
-        None,
+        JointCommand(np.array([0.15, 0.25]), None, None, None),
         True,
         None,
+        0.0,
+        0.0,
+        None,
+        JointCommand(np.array([0.15, 0.25]), None, None, None),
+        1.0,
+        1.0,
+        10 * S,
     )
-    backend._dispatch(("state", state))
+    backend._dispatch(state)
     before = backend.query_state(9 * S)
     np.testing.assert_array_equal(before.positions, [0.15, 0.25])
     np.testing.assert_array_equal(before.velocities, [0.5, -0.5])

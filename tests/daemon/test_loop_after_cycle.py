@@ -18,7 +18,9 @@ import pytest
 
 from jtc_hw.controller.trajectory import JointTrajectory, TrajectoryPoint
 from jtc_hw.daemon.loop import ControlLoop
-from jtc_hw.daemon.pipe import Inbox, Outbox, send_framed
+from jtc_hw.daemon.messages import Commit, Committed, Reference, Reply, Request, Stop
+from jtc_hw.daemon.outbox import Outbox
+from jtc_hw.daemon.pipe import Inbox, send_framed
 from jtc_hw.daemon.robot import load_robot
 
 from conftest import make_robot_config
@@ -83,7 +85,7 @@ def test_a_plan_is_committed_by_the_after_cycle_that_completes_it(rig: Rig) -> N
     )
     rig.cycle()  # the plan is sent while this cycle runs
     sampled = rig.loop.ctrl.reference.sample(rig.now)
-    send_framed(rig.api, ("commit", 41, plan))
+    send_framed(rig.api, Commit(41, plan))
     messages: list[Any] = []
     for _ in range(100):  # the pump stops at a time of the real clock: it may take several
         rig.loop.after_cycle(rig.now, rig.loop_inbox)
@@ -91,10 +93,10 @@ def test_a_plan_is_committed_by_the_after_cycle_that_completes_it(rig: Rig) -> N
         if rig.loop.ctrl.active_goal is not None:
             break  # committed by this after_cycle: its answer must be out already
         assert not messages
-    committed = [m for m in messages if m[0] == "committed"]
-    assert committed == [("committed", 41, 1)]
-    references = [m for m in messages if m[0] == "reference"]
-    assert references and references[-1][3] == 41  # reported by plan id, before "committed"
+    committed = [m for m in messages if isinstance(m, Committed)]
+    assert committed == [Committed(41, 1)]
+    references = [m for m in messages if isinstance(m, Reference)]
+    assert references and references[-1].plan_id == 41  # by plan id, before Committed
     assert messages.index(references[-1]) < messages.index(committed[0])
     assert rig.loop.ctrl.active_goal == 1
     # The deadline already sampled gets the same desired state from the new reference.
@@ -107,7 +109,7 @@ def test_a_plan_is_committed_by_the_after_cycle_that_completes_it(rig: Rig) -> N
 
 def test_a_request_is_answered_by_the_after_cycle_that_completes_it(rig: Rig) -> None:
     rig.cycle()
-    send_framed(rig.api, ("request", 5, "stop", {}), bulk=False)
+    send_framed(rig.api, Request(5, Stop()), bulk=False)
     rig.loop.after_cycle(rig.now, rig.loop_inbox)  # one record: read whatever the time
-    assert ("reply", 5, True, True) in rig.received()
+    assert Reply(5, True) in rig.received()
 

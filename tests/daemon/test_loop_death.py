@@ -32,7 +32,7 @@ WAIT_S = 10.0
 
 
 class Recorder:
-    """The backend's listener: every goal event, in order."""
+    """An observer of the backend: every goal event, in order."""
 
     def __init__(self) -> None:
         self.events: list[GoalResult | GoalFeedback] = []
@@ -43,6 +43,12 @@ class Recorder:
         self.changed.set()
 
     def on_state(self, snapshot: dict[str, Any]) -> None:
+        pass
+
+    def on_command(self, traj: JointTrajectory, goal_id: int | None) -> None:
+        pass
+
+    def on_record(self, event: dict[str, Any]) -> None:
         pass
 
     def results(self, goal_id: int) -> list[GoalResult]:
@@ -72,15 +78,16 @@ def test_a_killed_loop_gives_each_open_goal_one_aborted_result_and_refuses_the_r
     async def scenario() -> None:
         backend = LoopBackend(load_robot(source), source)
         recorder = Recorder()
-        backend.set_listener(recorder)
+        backend.add_observer(recorder)
         await backend.start()
         try:
-            first = await backend.send_goal(goal(0.5, 20.0))
+            first = (await backend.send_goal(goal(0.5, 20.0))).goal_id
             await recorder.wait_for(lambda: any(e.goal_id == first for e in recorder.events))
             # A second goal preempts the first; the loop is killed before anything else.
-            second = await backend.send_goal(goal(-0.5, 20.0))
-            assert backend.status()["loop_pid"] == backend.info["pid"]
-            os.kill(backend.info["pid"], signal.SIGKILL)
+            second = (await backend.send_goal(goal(-0.5, 20.0))).goal_id
+            assert backend.info is not None
+            assert backend.status()["loop_pid"] == backend.info.pid
+            os.kill(backend.info.pid, signal.SIGKILL)
             code = await asyncio.wait_for(backend.wait_exited(), WAIT_S)
             assert code == -signal.SIGKILL
 
@@ -129,9 +136,9 @@ def test_a_requested_stop_is_not_a_death(tmp_path: Path) -> None:
     async def scenario() -> None:
         backend = LoopBackend(load_robot(source), source)
         recorder = Recorder()
-        backend.set_listener(recorder)
+        backend.add_observer(recorder)
         await backend.start()
-        goal_id = await backend.send_goal(goal(0.5, 20.0))
+        goal_id = (await backend.send_goal(goal(0.5, 20.0))).goal_id
         assert await backend.stop("test over") == 0
         assert backend.death is None
         (result,) = recorder.results(goal_id)

@@ -17,7 +17,9 @@ import pytest
 
 from jtc_hw.controller.trajectory import JointTrajectory, TrajectoryPoint
 from jtc_hw.daemon.loop import ControlLoop
-from jtc_hw.daemon.pipe import Inbox, Outbox
+from jtc_hw.daemon.messages import Commit, Request, Shutdown
+from jtc_hw.daemon.outbox import Outbox
+from jtc_hw.daemon.pipe import Inbox
 from jtc_hw.daemon.robot import load_robot
 
 from conftest import make_robot_config
@@ -57,11 +59,11 @@ def test_a_skipped_deadline_at_the_stops_end_does_not_end_the_loop_before_the_re
     now = 10_000_000_000
     ctl.start(now)
     trajectory = JointTrajectory(JOINTS, [TrajectoryPoint(2.0, [1.0, -1.0])])
-    ctl._handle(("commit", 1, ctl.ctrl.plan_goal(now, trajectory)), now)
+    ctl._handle(Commit(1, ctl.ctrl.plan_goal(now, trajectory)), now)
     for _ in range(RATE // 2):  # half-way: moving
         now += PERIOD_NS
         ctl.cycle(now, PERIOD_NS, inbox)
-    ctl._handle(("request", 2, "shutdown", {"reason": "test"}), now)
+    ctl._handle(Request(2, Shutdown("test")), now)
     end = None
     while end is None:
         now += PERIOD_NS

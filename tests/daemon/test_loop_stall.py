@@ -22,7 +22,9 @@ import pytest
 from jtc_hw.controller.goals import GoalResult, GoalStatus
 from jtc_hw.controller.trajectory import JointTrajectory, TrajectoryPoint
 from jtc_hw.daemon.loop import ControlLoop
-from jtc_hw.daemon.pipe import Inbox, Outbox
+from jtc_hw.daemon.messages import Commit, Committed, Events, Reference, Stale, State
+from jtc_hw.daemon.outbox import Outbox
+from jtc_hw.daemon.pipe import Inbox
 from jtc_hw.daemon.robot import load_robot
 from jtc_hw.errors import GoalRejected
 
@@ -88,14 +90,14 @@ class Rig:
             JOINTS, [TrajectoryPoint(duration_s, [target] * len(JOINTS), [0.0] * len(JOINTS))]
         )
         plan = self.loop.ctrl.plan_goal(self.clock.now, trajectory)
-        self.loop._handle(("commit", 1, plan), self.clock.now)
+        self.loop._handle(Commit(1, plan), self.clock.now)
 
     def results(self) -> list[GoalResult]:
         return [
             event
             for message in self.received
-            if message[0] == "events"
-            for event in message[1]
+            if isinstance(message, Events)
+            for event in message.events
             if isinstance(event, GoalResult)
         ]
 
@@ -120,7 +122,7 @@ def test_a_stalled_reader_ends_the_goal_and_the_loop_holds_and_recovers(rig: Rig
     rig.commit_goal(1.0, 10.0)
     rig.step(50, read=True)  # 0.1 s of a 10 s goal
     assert rig.loop.ctrl.active_goal is not None
-    assert [m for m in rig.received if m[0] == "committed"]
+    assert [m for m in rig.received if isinstance(m, Committed)]
     rig.received.clear()
 
     # The API process stops reading. The socket fills; the loop goes on cycling regardless.
@@ -156,14 +158,15 @@ def test_a_stalled_reader_ends_the_goal_and_the_loop_holds_and_recovers(rig: Rig
     assert result.status is GoalStatus.ABORTED
     assert "has not read the control loop's messages" in result.error_string
     assert "daemon.api_stall_s: 0.2 s" in result.error_string
-    stale = [m for m in rig.received if m[0] == "stale"]
-    assert len(stale) == 1 and "has not yet read" in stale[0][2]
+    stale = [m for m in rig.received if isinstance(m, Stale)]
+    assert len(stale) == 1 and "has not yet read" in stale[0].reason
     # The abort's new reference (a hold) comes right before the result: a client that sees
     # the result finds the hold in query_state.
-    at = next(i for i, m in enumerate(rig.received) if m[0] == "events" and result in m[1])
-    assert rig.received[at - 1][0] == "reference"
-    assert rig.received[at - 1][2] is not None  # a hold, sent by value
-    states = [m[1][0] for m in rig.received if m[0] == "state"]
+    at = next(i for i, m in enumerate(rig.received)
+              if isinstance(m, Events) and result in m.events)
+    assert isinstance(rig.received[at - 1], Reference)
+    assert rig.received[at - 1].trajectory is not None  # a hold, sent by value
+    states = [m.time_ns for m in rig.received if isinstance(m, State)]
     assert states == sorted(states)
     assert len(states) < (rig.cycles * 50) // RATE  # fewer than published: coalesced
     status = rig.loop.status()["loop"]

@@ -1,4 +1,4 @@
-"""The loop's outbox (jtc_hw.daemon.pipe.Outbox): never blocks, keeps order, coalesces state.
+"""The loop's outbox (jtc_hw.daemon.outbox.Outbox): never blocks, keeps order, coalesces state.
 
 Each test writes into a real socketpair (``multiprocessing.Pipe``) whose send buffer is shrunk
 so that it fills after a few kilobytes, and reads the other end with the API process's
@@ -16,7 +16,8 @@ from typing import Any
 
 import pytest
 
-from jtc_hw.daemon.pipe import Inbox, Outbox
+from jtc_hw.daemon.outbox import Outbox
+from jtc_hw.daemon.pipe import Inbox
 
 pytestmark = pytest.mark.usefixtures("no_leaks")
 

@@ -24,7 +24,9 @@ from jtc_hw.controller.joints import JointCommand
 from jtc_hw.controller.trajectory import JointTrajectory, TrajectoryPoint
 from jtc_hw.daemon.backend import LoopBackend
 from jtc_hw.daemon.loop import ControlLoop
-from jtc_hw.daemon.pipe import Inbox, Outbox
+from jtc_hw.daemon.messages import Commit, Events
+from jtc_hw.daemon.outbox import Outbox
+from jtc_hw.daemon.pipe import Inbox
 from jtc_hw.daemon.robot import load_robot
 from jtc_hw.hardware.mirror import MirrorHardware
 
@@ -98,14 +100,14 @@ class Rig:
     def commit_goal(self, target: float, duration_s: float) -> None:
         trajectory = JointTrajectory(JOINTS, [TrajectoryPoint(duration_s, [target, -target])])
         plan = self.loop.ctrl.plan_goal(self.now, trajectory)
-        self.loop._handle(("commit", 1, plan), self.now)
+        self.loop._handle(Commit(1, plan), self.now)
 
     def results(self) -> list[GoalResult]:
         return [
             event
             for message in self.received
-            if message[0] == "events"
-            for event in message[1]
+            if isinstance(message, Events)
+            for event in message.events
             if isinstance(event, GoalResult)
         ]
 
@@ -216,7 +218,7 @@ def test_the_daemon_log_line_of_a_result_has_its_details(
         "joint 'b' position error +0.06 exceeds 0.05",
     )
     with caplog.at_level(logging.INFO, logger="jtc_hw.backend"):
-        backend._dispatch(("events", [result]))
+        backend._dispatch(Events((result,)))
     assert caplog.messages == [
         "goal 4 aborted (-4): Aborted due to path tolerance violation: joint 'b' position "
         "error +0.06 exceeds 0.05"

@@ -20,7 +20,9 @@ from helpers.dynamixel import DAEMON_TEST_TIMEOUT_MS, IDS, JOINTS, OFFSET, START
 from jtc_hw.controller.goals import ErrorCode, GoalResult, GoalStatus
 from jtc_hw.controller.trajectory import JointTrajectory, TrajectoryPoint
 from jtc_hw.daemon.loop import ControlLoop
-from jtc_hw.daemon.pipe import Inbox, Outbox
+from jtc_hw.daemon.messages import Commit, Events
+from jtc_hw.daemon.outbox import Outbox
+from jtc_hw.daemon.pipe import Inbox
 from jtc_hw.daemon.robot import load_robot
 from jtc_hw.drivers.dynamixel.emulator import DynamixelEmulator
 
@@ -70,7 +72,7 @@ def test_deactivation_writes_goal_velocity_zero_before_the_torque_goes_off(
         loop.start(now)
         start = loop.ctrl.reference.sample(now).positions
         trajectory = JointTrajectory(JOINTS, [TrajectoryPoint(2.0, list(start + 1.0))])
-        loop._handle(("commit", 1, loop.ctrl.plan_goal(now, trajectory)), now)
+        loop._handle(Commit(1, loop.ctrl.plan_goal(now, trajectory)), now)
         for _ in range(20):
             now += PERIOD_NS
             loop.cycle(now, PERIOD_NS, inbox)
@@ -87,8 +89,8 @@ def test_deactivation_writes_goal_velocity_zero_before_the_torque_goes_off(
         api_inbox.pump()
         results = []
         while (message := api_inbox.pop()) is not None:
-            if message[0] == "events":
-                results += [e for e in message[1] if isinstance(e, GoalResult)]
+            if isinstance(message, Events):
+                results += [e for e in message.events if isinstance(e, GoalResult)]
         assert [(r.status, r.error_code) for r in results] == [
             (GoalStatus.ABORTED, ErrorCode.INVALID_GOAL)
         ]

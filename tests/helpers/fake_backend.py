@@ -16,11 +16,12 @@ import numpy as np
 
 from jtc_hw import GoalFeedback, GoalResult, JointTrajectoryController, TrajectorySample
 from jtc_hw.config.controller_file import config_to_dict
-from jtc_hw.controller.limits_check import AcceptedGoal, TimeScaling
+from jtc_hw.controller.limits_check import TimeScaling
 from jtc_hw.controller.parameters import ParameterChange, parameters_report
 from jtc_hw.controller.tolerances import JointTolerance
 from jtc_hw.controller.trajectory import JointTrajectory
-from jtc_hw.daemon.server import BackendListener, Server
+from jtc_hw.daemon.backend_api import Accepted, Observer
+from jtc_hw.daemon.server import Server
 from jtc_hw.daemon.settings import DaemonSettings
 from jtc_hw.errors import ConfigurationError
 
@@ -42,7 +43,7 @@ class FakeBackend:
         self.t = 10 * S
         self.period = S // 100
         self.ctrl.activate(self.t, self.mirror.state())
-        self.listener: BackendListener | None = None
+        self.listener: Observer | None = None
         self.cycles = 0
         self.early_feedback = False  # deliver a goal's first event before send_goal returns
         self.status_error: Exception | None = None
@@ -80,9 +81,9 @@ class FakeBackend:
         goal_time_tolerance: float,
         *,
         time_scaling: str | None = None,
-    ) -> int:
+    ) -> Accepted:
         await asyncio.sleep(0)  # the real backend waits for the loop process here
-        goal_id = AcceptedGoal(
+        accepted = Accepted.of(
             self.ctrl.send_goal(
                 self.t,
                 traj,
@@ -94,18 +95,19 @@ class FakeBackend:
             self.ctrl.last_time_scaling,
         )
         if not self.early_feedback:
-            return goal_id
+            return accepted
         # The id's future is resolved and, in the same callback, the goal's first events are
         # dispatched: they reach the server before its send_goal coroutine resumes.
-        reply: asyncio.Future[int] = asyncio.get_running_loop().create_future()
+        reply: asyncio.Future[Accepted] = asyncio.get_running_loop().create_future()
 
         def deliver() -> None:
-            reply.set_result(goal_id)
+            reply.set_result(accepted)
             z = np.zeros(len(self.joint_names))
             assert self.listener is not None
             self.listener.on_goal_event(
                 GoalFeedback(
-                    goal_id, self.t, 0.0, TrajectorySample(z, z, z, z), z, z, np.zeros((3, len(z)))
+                    accepted.goal_id, self.t, 0.0, TrajectorySample(z, z, z, z), z, z,
+                    np.zeros((3, len(z))),
                 )
             )
 
@@ -160,8 +162,8 @@ class FakeBackend:
             raise ConfigurationError(f"no simulated component '{component}' (have: mirror)")
         self.mirror.frozen = freeze
 
-    def set_listener(self, listener: BackendListener) -> None:
-        self.listener = listener
+    def add_observer(self, observer: Observer) -> None:
+        self.listener = observer
 
     def step(self, seconds: float) -> list[GoalResult | GoalFeedback]:
         """Run control cycles for ``seconds`` of simulated time, delivering goal events."""

@@ -48,12 +48,33 @@ import math
 import os
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any, Protocol
 
 from ..errors import ConfigurationError, JtcHwError
 
-if TYPE_CHECKING:
-    from ..daemon.cyclering import CycleLayout
+
+class CycleRowLayout(Protocol):
+    """Where each value sits in a row of the loop's cycle ring: what a recording reads of
+    ``jtc_hw.daemon.cyclering.CycleLayout``, which satisfies it. Said here rather than
+    imported: the recordings are a layer below the daemon that uses them
+    (``pyproject.toml``'s contracts)."""
+
+    @property
+    def width(self) -> int:
+        """float64 values per row."""
+        ...
+
+    def column(self, name: str) -> int:
+        """The column of a scalar (``time_ns``, ``active_goal``, ...)."""
+        ...
+
+    def block(self, name: str) -> slice:
+        """The columns of a per-joint block (positions, velocities, ...)."""
+        ...
+
+    def times(self, rows: Any) -> Any:
+        """The deadlines (int64) of ``rows`` (an array of rows)."""
+        ...
 
 RECORD_HINT = "recording needs the rosbags library: pip install 'jtc_hw[record]'"
 
@@ -411,7 +432,7 @@ class BagRecorder:
         ))
         self._goal_change(event.get("active_goal"), time_ns)
 
-    def cycle(self, layout: CycleLayout, row: Any, names: Sequence[str]) -> None:
+    def cycle(self, layout: CycleRowLayout, row: Any, names: Sequence[str]) -> None:
         """Record one cycle's row of the loop's cycle ring (``jtc_hw.daemon.cyclering``):
         ``/joint_states``, ``controller_state`` and goal changes, as :meth:`state` does for a
         published state. A per-joint block that is all NaN (an interface not configured, no

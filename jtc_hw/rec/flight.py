@@ -42,7 +42,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
-    from ..daemon.cyclering import CycleLayout
+    from .bag import CycleRowLayout
 
 log = logging.getLogger("jtc_hw.flight_recorder")
 
@@ -88,7 +88,7 @@ class FlightRecorder:
         self.cycle_rate_hz = cycle_rate_hz
         self.joint_names = list(joint_names)
         # Every cycle's row (on_cycles): a circular array, allocated with the first rows.
-        self._layout: CycleLayout | None = None
+        self._layout: CycleRowLayout | None = None
         self._cycles: Any = None
         self._cycles_stored = 0  # rows ever stored; the next goes at this modulo capacity
         self.lost_cycles = 0
@@ -127,7 +127,7 @@ class FlightRecorder:
         self._trim(t)
         self.poll(t)
 
-    def on_cycles(self, rows: Any, layout: CycleLayout, lost: int = 0) -> None:
+    def on_cycles(self, rows: Any, layout: CycleRowLayout, lost: int = 0) -> None:
         """Keep every cycle's row (an array of rows of the cycle ring, in order); ``lost``:
         rows that were overwritten in the ring before they could be copied. Writes the bags
         whose second after has now passed.

@@ -27,6 +27,7 @@ from ..api.client import Client
 from ..api.protocol import trajectory_from_json
 from ..controller.config import DEFAULT_CONTROLLER_NAME
 from ..rec.bag import BagRecorder, RecordingFailed, tolerances_from_constraints
+from ..rec.continuous import DIAGNOSTICS_PERIOD_NS
 from ..rec.plot import plot_bag
 from .common import EXIT_BAD_INPUT, EXIT_OK, EXIT_WRITE_FAILED, client_options, connect
 
@@ -89,8 +90,6 @@ def cmd_record(args: argparse.Namespace) -> int:
 
 
 def _record(client: Client, recorder: BagRecorder, args: argparse.Namespace) -> None:
-    from ..rec.continuous import DIAGNOSTICS_PERIOD_NS  # start-up time: a thread pool
-
     subscription = client.subscribe_state(maxlen=1_000_000, commands=True)
     print(f"recording to {recorder.path}", flush=True)
     end_ns: int | None = None

@@ -4,9 +4,9 @@
 the hardware components are created, nothing is opened), prints what it will do, and warns
 about settings that have no effect or are unsafe.
 
-The daemon's modules are imported when a command runs (start-up time: the robot file's
-schemas and the hardware registry cost most of ``jtc-hw``'s start, which ``--help`` and the
-client commands do not need).
+The robot file's module and the service are imported when a command runs (start-up time: with
+the hardware registry they load, they cost more than the rest of ``jtc-hw``'s start, and
+``--help`` and the client commands do not need them).
 """
 
 from __future__ import annotations
@@ -16,6 +16,7 @@ import sys
 from typing import Any
 
 from ..controller.config_io import explain
+from ..daemon.systemd_units import private_tmp_warnings
 from .common import EXIT_OK, print_warnings
 
 __all__ = ["add_parsers", "cmd_check", "cmd_run"]
@@ -30,7 +31,7 @@ CHECK_EXIT_HELP = (
 
 
 def cmd_run(args: argparse.Namespace) -> int:
-    from ..daemon.robot import load_robot, security_warnings  # start-up time (module docstring)
+    from ..daemon.robot import load_robot, security_warnings  # start-up time (see above)
     from ..daemon.service import run  # start-up time
 
     print_warnings(security_warnings(load_robot(args.config_file, args.controller)), sys.stderr)
@@ -39,7 +40,6 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 def cmd_check(args: argparse.Namespace) -> int:
     from ..daemon.robot import create_hardware_set, load_robot, security_warnings  # start-up time
-    from ..daemon.systemd_units import private_tmp_warnings  # start-up time
 
     robot = load_robot(args.config_file, args.controller)
     # Creating the components checks their parameters as `run` will (no I/O: nothing is

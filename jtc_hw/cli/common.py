@@ -197,16 +197,16 @@ def connect(args: argparse.Namespace, hello: bool = True) -> Client:
         if exc.code in (UNTRUSTED, PERMISSION):  # a daemon may run: not "is it running?"
             raise ConfigurationError(str(exc)) from exc
         # The client's message ends with its own "is the daemon running?": say it once.
-        reason = str(exc).removesuffix("; is the daemon running?")
-        raise NoDaemon(
-            f"cannot reach a jtc-hw daemon at {path}: {reason}. Is it running "
-            "('jtc-hw run CONFIG', or 'systemctl status jtc-hw')? Use --socket to point at it."
-        ) from exc
+        raise _unreachable(path, str(exc).removesuffix("; is the daemon running?")) from exc
     except (OSError, JtcHwError) as exc:
-        raise NoDaemon(
-            f"cannot reach a jtc-hw daemon at {path}: {exc}. Is it running "
-            "('jtc-hw run CONFIG', or 'systemctl status jtc-hw')? Use --socket to point at it."
-        ) from exc
+        raise _unreachable(path, str(exc)) from exc
+
+
+def _unreachable(path: str, reason: str) -> NoDaemon:
+    return NoDaemon(
+        f"cannot reach a jtc-hw daemon at {path}: {reason}. Is it running "
+        "('jtc-hw run CONFIG', or 'systemctl status jtc-hw')? Use --socket to point at it."
+    )
 
 
 # -- what commands print the same way ---------------------------------------------------------

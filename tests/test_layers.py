@@ -92,7 +92,6 @@ def test_a_forbidden_import_breaks_the_contract(
     assert contract in result.stdout, result.stdout
 
 
-
 SUBJECTS = ("jtc_hw.cli", "jtc_hw.rec")
 """The packages whose modules the two graph checks below cover."""
 

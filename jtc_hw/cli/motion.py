@@ -15,6 +15,7 @@ from .common import EXIT_OK, client_options, connect
 
 __all__ = ["add_parsers", "cmd_pause", "cmd_rearm", "cmd_resume", "cmd_speed", "cmd_stop"]
 
+
 def cmd_stop(args: argparse.Namespace) -> int:
     # No hello: "stop" must be the first request to be served by a daemon whose client slots
     # are all taken.

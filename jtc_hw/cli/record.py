@@ -37,6 +37,7 @@ DRAIN_TIMEOUT_S = 2.0
 """After Ctrl-C: how long the recorder waits for the daemon's reply that says it has every
 message sent before."""
 
+
 def _terminate(signum: int, frame: FrameType | None) -> None:
     raise KeyboardInterrupt
 

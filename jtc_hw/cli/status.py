@@ -30,6 +30,7 @@ from .common import client_options, connect
 __all__ = ["add_parsers", "cmd_hardware", "cmd_status", "format_hardware", "hardware_report",
            "status_lines"]
 
+
 def _num(value: Any, unit: str = "") -> str:
     if value is None:
         return "-"
@@ -135,6 +136,7 @@ def cmd_status(args: argparse.Namespace) -> int:
     return 0
 
 # -- hardware -------------------------------------------------------------------------------
+
 
 _COLUMNS = (
     ("motor", "motor"), ("joint", "joint"), ("model", "model"), ("firmware", "fw"),

@@ -78,6 +78,7 @@ class CycleRowLayout(Protocol):
         """The deadlines (int64) of ``rows`` (an array of rows)."""
         ...
 
+
 RECORD_HINT = "recording needs the rosbags library: pip install 'jtc_hw[record]'"
 
 CONTROLLER_STATE_TYPE = "control_msgs/msg/JointTrajectoryControllerState"

@@ -51,7 +51,6 @@ def as_nobody(argv: list[str], groups: tuple[int, ...] = ()) -> tuple[int, str, 
     import jtc_hw.cli.parser  # every command module
     import jtc_hw.daemon.robot  # noqa: F401
     import jtc_hw.rec.bag  # noqa: F401
-    import jtc_hw.rec.continuous  # noqa: F401
 
     jtc_hw.cli.parser.build_parser()
     out_r, out_w = os.pipe()

@@ -3,8 +3,8 @@
 ``lint-imports`` (import-linter) reads the contracts from ``pyproject.toml``: the layers
 cli > daemon > api | hardware | rec > controller > errors, a controller without I/O, clock or
 thread modules, drivers that never import the daemon, the API, the CLI or the recordings, the
-CLI's command groups independent of each other above ``cli.common``, and no import circle among
-the CAN emulators and their socketcand server. It runs here, so every
+CLI's command groups independent of each other between ``cli.parser`` and ``cli.common``, and
+no import circle among the CAN emulators and their socketcand server. It runs here, so every
 test run (and CI) checks it; the second test plants a forbidden import in a copy of the tree to
 show that the check is not vacuous. Function-local and ``TYPE_CHECKING`` imports count.
 

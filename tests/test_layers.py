@@ -150,3 +150,14 @@ def test_a_planted_circle_or_private_import_is_found(tmp_path: Path) -> None:
         source.write("\nfrom .common import _robot  # planted by the test\n")
     assert "jtc_hw.rec.bag -> jtc_hw.rec.plot -> jtc_hw.rec.bag" in import_circles(tmp_path)
     assert any(line.endswith(" _robot") for line in private_imports(tmp_path))
+
+
+def test_importing_the_cli_package_loads_none_of_its_commands() -> None:
+    """A daemon started by the ``jtc-hw`` console script imports the script, and so
+    ``jtc_hw.cli``, again in its loop process (multiprocessing's spawn runs it): that import
+    must not bring the commands, the client or the recorders into the real-time process."""
+    code = ("import sys, jtc_hw.cli; print(' '.join(sorted(m for m in sys.modules if "
+            "m.startswith(('jtc_hw.cli', 'jtc_hw.api', 'jtc_hw.rec', 'jtc_hw.daemon')))))")
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                            timeout=60, check=True)
+    assert result.stdout.split() == ["jtc_hw.cli"]

@@ -152,6 +152,8 @@ def cmd_plot(args: argparse.Namespace) -> int:
     """
     out = Path(args.out) if args.out else Path(args.bag) / "plot.png"
     plot_bag(args.bag, out, joints=args.joints, controller=args.controller_name)
+    print(f"wrote {out}")
+    return EXIT_OK
 
 
 def add_parsers(sub: Any) -> None:

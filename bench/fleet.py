@@ -52,7 +52,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from jtc_hw.api.zenoh_client import open_session  # noqa: E402
-from jtc_hw.cli import demo_config  # noqa: E402
+from jtc_hw.cli.demo import demo_config  # noqa: E402
 
 START_TIMEOUT_S = 60.0
 WARM_UP_S = 1.0

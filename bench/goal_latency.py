@@ -4,7 +4,7 @@
 Three measurements (the first by default, or when ``--sizes`` is given with the others):
 
 ``sizes``
-    Starts ``python -m jtc_hw run`` on six simulated (mirror) joints (``jtc_hw.cli.demo_config``
+    Starts ``python -m jtc_hw run`` on six simulated (mirror) joints (``cli.demo.demo_config``
     at ``--rate``, socket in a temporary directory) and sends goals of 2, 200, 2,000 and 20,000
     points (``--points``) with the real ``Client``: a smooth wave on all six joints, positions
     and velocities at full float precision, points 1 ms apart, small enough (0.02 rad) that a
@@ -82,7 +82,7 @@ from jtc_hw.api.framing import (  # noqa: E402
     encode,
 )
 from jtc_hw.api.protocol import SendGoal, parse_request  # noqa: E402
-from jtc_hw.cli import DEMO_JOINTS  # noqa: E402
+from jtc_hw.cli.demo import DEMO_JOINTS  # noqa: E402
 from jtc_hw.config.limits import JointLimits  # noqa: E402
 from jtc_hw.controller.controller import Planner  # noqa: E402
 from jtc_hw.controller.limits_check import check  # noqa: E402
@@ -411,7 +411,7 @@ def loop_side(plan_message: Commit, rate_hz: float) -> dict[str, float]:
 
 
 def breakdown(points: int, args: argparse.Namespace) -> dict[str, Any]:
-    from jtc_hw.cli import demo_config
+    from jtc_hw.cli.demo import demo_config
 
     config = load_robot(demo_config("/nonexistent/bench.sock")).controller
     if args.limits:  # generous: the goal fits, and every limit is checked on every segment

@@ -2,7 +2,7 @@
 """Wake-up lateness of the real daemon's control loop, idle and under client load.
 
 For each rate, starts ``python -m jtc_hw run`` as a subprocess on six simulated (mirror) joints
-(``jtc_hw.cli.demo_config`` with the rate changed; socket in a temporary directory) and runs
+(``jtc_hw.cli.demo.demo_config`` with the rate changed; socket in a temporary directory) and runs
 two scenarios on it, one after the other:
 
   idle    no client but the measuring one, which asks for ``get_status`` twice a second.
@@ -79,7 +79,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from jtc_hw.api.client import Client  # noqa: E402
-from jtc_hw.cli import DEMO_JOINTS, demo_config  # noqa: E402
+from jtc_hw.cli.demo import DEMO_JOINTS, demo_config  # noqa: E402
 from jtc_hw.daemon.loopstats import DEFAULT_WINDOW_S  # noqa: E402
 from jtc_hw.errors import GoalRejected, JtcHwError  # noqa: E402
 

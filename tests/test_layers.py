@@ -1,15 +1,22 @@
 """The layering contract of ``pyproject.toml`` holds, and the checker would catch a breach.
 
 ``lint-imports`` (import-linter) reads the contracts from ``pyproject.toml``: the layers
-cli > daemon > api | hardware > controller > config > errors, a controller without I/O, clock
-or thread modules (nor the configuration's file reading), drivers that never import the daemon,
-the API or the CLI, and no import circle among the CAN emulators and their socketcand server.
-It runs here, so every test run (and CI) checks it; the second test plants a forbidden import
-in a copy of the tree to show that the check is not vacuous.
+cli > daemon > api | hardware | rec > controller > config > errors, a controller without I/O,
+clock or thread modules (nor the configuration's file reading), drivers that never import the
+daemon, the API, the CLI or the recordings, the CLI's command groups independent of each other
+between ``cli.parser`` and ``cli.common``, and no import circle among the CAN emulators and their
+socketcand server. It runs here, so every test run (and CI) checks it; the second test plants a
+forbidden import in a copy of the tree to show that the check is not vacuous. Function-local and
+``TYPE_CHECKING`` imports count.
+
+Two rules of the CLI and the recordings that a contract does not state are checked on the
+import graph itself: no import circle reaches them, and none of their modules imports a
+private name (``_name``) of another module.
 """
 
 from __future__ import annotations
 
+import ast
 import shutil
 import subprocess
 import sys
@@ -40,7 +47,7 @@ def lint_imports(checkout: Path) -> subprocess.CompletedProcess[str]:
 def test_the_layering_contract_is_kept() -> None:
     result = lint_imports(ROOT)
     assert result.returncode == 0, result.stdout + result.stderr
-    assert "4 kept, 0 broken" in result.stdout, result.stdout
+    assert "5 kept, 0 broken" in result.stdout, result.stdout
 
 
 @pytest.mark.parametrize(
@@ -60,6 +67,18 @@ def test_the_layering_contract_is_kept() -> None:
          "jtc_hw.api is not allowed to import jtc_hw.hardware"),
         ("drivers/can/frames.py", "from jtc_hw.daemon import loop",
          "drivers is not allowed to import jtc_hw.daemon"),
+        ("drivers/motor_model.py", "from jtc_hw.rec import bag",
+         "drivers is not allowed to import jtc_hw.rec"),
+        ("jtc_hw/rec/flight.py", "from jtc_hw.daemon.cyclering import CycleLayout",
+         "jtc_hw.rec is not allowed to import jtc_hw.daemon"),
+        ("jtc_hw/rec/bag.py", "from jtc_hw.api import protocol",
+         "jtc_hw.rec is not allowed to import jtc_hw.api"),
+        ("jtc_hw/api/client.py", "from jtc_hw.rec import bag",
+         "jtc_hw.api is not allowed to import jtc_hw.rec"),
+        ("jtc_hw/cli/state.py", "from .goals import load_goal_file",
+         "jtc_hw.cli.state is not allowed to import jtc_hw.cli.goals"),
+        ("jtc_hw/cli/common.py", "from . import record",
+         "jtc_hw.cli.common is not allowed to import jtc_hw.cli.record"),
         ("drivers/can/socketcand.py", "from .emulator import MitBusEmulator",
          "drivers.can.socketcand is not allowed to import drivers.can.emulator"),
     ],
@@ -76,3 +95,74 @@ def test_a_forbidden_import_breaks_the_contract(
     result = lint_imports(tmp_path)
     assert result.returncode == 1, result.stdout + result.stderr
     assert contract in result.stdout, result.stdout
+
+
+SUBJECTS = ("jtc_hw.cli", "jtc_hw.rec")
+"""The packages whose modules the two graph checks below cover."""
+
+CIRCLES = f"""
+import grimp
+graph = grimp.build_graph("jtc_hw", cache_dir=None)
+for module in sorted(graph.modules):
+    if not any(module == p or module.startswith(p + ".") for p in {SUBJECTS!r}):
+        continue
+    for imported in sorted(graph.find_modules_directly_imported_by(module)):
+        back = graph.find_shortest_chain(importer=imported, imported=module)
+        if back is not None:
+            print(" -> ".join((module, *back)))
+"""
+"""Prints each import circle through a module of :data:`SUBJECTS` (grimp, as lint-imports)."""
+
+
+def import_circles(checkout: Path) -> list[str]:
+    """The import circles through the CLI or the recordings in ``checkout``, one line each."""
+    result = subprocess.run([sys.executable, "-c", CIRCLES], cwd=checkout, capture_output=True,
+                            text=True, timeout=300, check=True)
+    return result.stdout.splitlines()
+
+
+def private_imports(checkout: Path) -> list[str]:
+    """Where a module of the CLI or the recordings in ``checkout`` imports a ``_name`` of
+    another module of ``jtc_hw``: ``path:line name``."""
+    found = []
+    for package in SUBJECTS:
+        for path in sorted((checkout / package.replace(".", "/")).glob("*.py")):
+            for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+                if not isinstance(node, ast.ImportFrom):
+                    continue
+                ours = node.level > 0 or (node.module or "").split(".")[0] == "jtc_hw"
+                for alias in node.names:
+                    private = alias.name.startswith("_") and not alias.name.startswith("__")
+                    if ours and private:
+                        found.append(f"{path.relative_to(checkout)}:{node.lineno} {alias.name}")
+    return found
+
+
+def test_no_import_circle_reaches_the_cli_or_the_recordings() -> None:
+    assert import_circles(ROOT) == []
+
+
+def test_the_cli_and_the_recordings_import_no_private_name_of_another_module() -> None:
+    assert private_imports(ROOT) == []
+
+
+def test_a_planted_circle_or_private_import_is_found(tmp_path: Path) -> None:
+    shutil.copytree(ROOT / "jtc_hw", tmp_path / "jtc_hw",
+                    ignore=shutil.ignore_patterns("__pycache__"))
+    with open(tmp_path / "jtc_hw/rec/bag.py", "a", encoding="utf-8") as source:
+        source.write("\n\ndef _planted() -> None:\n    from . import plot  # planted by the test\n")
+    with open(tmp_path / "jtc_hw/cli/state.py", "a", encoding="utf-8") as source:
+        source.write("\nfrom .common import _robot  # planted by the test\n")
+    assert "jtc_hw.rec.bag -> jtc_hw.rec.plot -> jtc_hw.rec.bag" in import_circles(tmp_path)
+    assert any(line.endswith(" _robot") for line in private_imports(tmp_path))
+
+
+def test_importing_the_cli_package_loads_none_of_its_commands() -> None:
+    """A daemon started by the ``jtc-hw`` console script imports the script, and so
+    ``jtc_hw.cli``, again in its loop process (multiprocessing's spawn runs it): that import
+    must not bring the commands, the client or the recorders into the real-time process."""
+    code = ("import sys, jtc_hw.cli; print(' '.join(sorted(m for m in sys.modules if "
+            "m.startswith(('jtc_hw.cli', 'jtc_hw.api', 'jtc_hw.rec', 'jtc_hw.daemon')))))")
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                            timeout=60, check=True)
+    assert result.stdout.split() == ["jtc_hw.cli"]

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import pytest
 
-from jtc_hw.cli import (
+from jtc_hw.cli.demo import (
     DEMO_EMULATOR_PRIORITY,
     DEMO_LOOP_PRIORITY,
     _start_emulator,
@@ -128,7 +128,7 @@ def test_the_demo_runs_its_dynamixel_emulator_at_a_real_time_priority() -> None:
 def test_without_the_privilege_the_demo_asks_for_no_real_time_priority() -> None:
     """Without CAP_SYS_NICE and with ``ulimit -r`` 0 (a laptop's user), ``fifo_permitted``
     says no, so the demo asks for nothing it would be refused (no warning noise)."""
-    code = ("from jtc_hw.cli import fifo_permitted; "
+    code = ("from jtc_hw.cli.demo import fifo_permitted; "
             f"print(fifo_permitted({DEMO_LOOP_PRIORITY}), fifo_permitted(1))")
     argv = [sys.executable, "-c", code]
     if os.geteuid() == 0:  # root: drop CAP_SYS_NICE (the bounding set limits what exec keeps)

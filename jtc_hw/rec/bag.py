@@ -48,12 +48,36 @@ import math
 import os
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any, Protocol
+
+import numpy as np
 
 from ..errors import ConfigurationError, JtcHwError
 
-if TYPE_CHECKING:
-    from ..daemon.cyclering import CycleLayout
+
+class CycleRowLayout(Protocol):
+    """Where each value sits in a row of the loop's cycle ring: what a recording reads of
+    ``jtc_hw.daemon.cyclering.CycleLayout``, which satisfies it. Said here rather than
+    imported: the recordings are a layer below the daemon that uses them
+    (``pyproject.toml``'s contracts)."""
+
+    @property
+    def width(self) -> int:
+        """float64 values per row."""
+        ...
+
+    def column(self, name: str) -> int:
+        """The column of a scalar (``time_ns``, ``active_goal``, ...)."""
+        ...
+
+    def block(self, name: str) -> slice:
+        """The columns of a per-joint block (positions, velocities, ...)."""
+        ...
+
+    def times(self, rows: Any) -> Any:
+        """The deadlines (int64) of ``rows`` (an array of rows)."""
+        ...
+
 
 RECORD_HINT = "recording needs the rosbags library: pip install 'jtc_hw[record]'"
 
@@ -163,7 +187,7 @@ def typestore() -> Any:
     Raises:
         RecordingUnavailable: rosbags is not installed.
     """
-    try:
+    try:  # rosbags is an optional extra (jtc_hw[record])
         from rosbags.typesys import Stores, get_types_from_msg, get_typestore
     except ImportError as exc:
         raise RecordingUnavailable(RECORD_HINT) from exc
@@ -174,8 +198,6 @@ def typestore() -> Any:
 
 def _floats(values: Sequence[float | None] | None) -> Any:
     """A float64 array for a message field; the socket's ``null`` (no value) becomes NaN."""
-    import numpy as np
-
     if not values:
         return np.zeros(0, dtype=np.float64)
     return np.array([math.nan if v is None else v for v in values], dtype=np.float64)
@@ -211,7 +233,7 @@ class BagRecorder:
             FileExistsError: the directory exists (rosbag2 never writes into an existing one).
         """
         self._store = typestore()
-        from rosbags.rosbag2 import StoragePlugin, Writer
+        from rosbags.rosbag2 import StoragePlugin, Writer  # the optional extra; typestore checked
 
         self.path = Path(path)
         if self.path.exists():
@@ -411,13 +433,11 @@ class BagRecorder:
         ))
         self._goal_change(event.get("active_goal"), time_ns)
 
-    def cycle(self, layout: CycleLayout, row: Any, names: Sequence[str]) -> None:
+    def cycle(self, layout: CycleRowLayout, row: Any, names: Sequence[str]) -> None:
         """Record one cycle's row of the loop's cycle ring (``jtc_hw.daemon.cyclering``):
         ``/joint_states``, ``controller_state`` and goal changes, as :meth:`state` does for a
         published state. A per-joint block that is all NaN (an interface not configured, no
         reference while faulted) is recorded as an empty array, as ROS leaves such fields."""
-        import numpy as np
-
         time_ns = int(row[layout.column("time_ns"):layout.column("time_ns") + 1]
                       .view(np.int64)[0])
 
@@ -536,8 +556,6 @@ class BagRecorder:
         lists every goal it tracks; a bag reader wants the change). The goal's UUID is its id,
         big-endian in the last 8 bytes."""
         types = self._store.types
-        import numpy as np
-
         uuid = np.frombuffer(bytes(8) + goal_id.to_bytes(8, "big", signed=False), np.uint8)
         info = types["action_msgs/msg/GoalInfo"](
             goal_id=types["unique_identifier_msgs/msg/UUID"](uuid=uuid.copy()),

@@ -20,6 +20,7 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
+from .bag import BagRecorder, RecordingFailed
 from .flight import bag_name
 
 log = logging.getLogger("jtc_hw.record")
@@ -46,8 +47,6 @@ class ContinuousRecorder:
             RecordingUnavailable: rosbags is not installed.
             OSError: the directory cannot be created.
         """
-        from .bag import BagRecorder
-
         offset = time.time_ns() - time.monotonic_ns()
         directory = Path(directory)
         directory.mkdir(parents=True, exist_ok=True)
@@ -83,8 +82,6 @@ class ContinuousRecorder:
         self._worker.submit(self._guarded, self._recorder.goal_event, dict(event))
 
     def _guarded(self, write: Callable[..., None], *args: Any) -> None:
-        from .bag import RecordingFailed
-
         if self.stopped is not None:  # queued before the failure
             return
         try:

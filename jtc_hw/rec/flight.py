@@ -39,10 +39,11 @@ import time
 from collections.abc import Mapping, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
-if TYPE_CHECKING:
-    from ..daemon.cyclering import CycleLayout
+import numpy as np
+
+from .bag import BagRecorder, CycleRowLayout, RecordingFailed
 
 log = logging.getLogger("jtc_hw.flight_recorder")
 
@@ -88,7 +89,7 @@ class FlightRecorder:
         self.cycle_rate_hz = cycle_rate_hz
         self.joint_names = list(joint_names)
         # Every cycle's row (on_cycles): a circular array, allocated with the first rows.
-        self._layout: CycleLayout | None = None
+        self._layout: CycleRowLayout | None = None
         self._cycles: Any = None
         self._cycles_stored = 0  # rows ever stored; the next goes at this modulo capacity
         self.lost_cycles = 0
@@ -101,7 +102,7 @@ class FlightRecorder:
         self.available = seconds > 0
         if self.available:
             try:
-                import rosbags  # noqa: F401
+                import rosbags  # noqa: F401 - an optional extra (jtc_hw[record])
             except ImportError:
                 self.available = False
                 log.info("flight recorder off: it needs the rosbags library "
@@ -127,7 +128,7 @@ class FlightRecorder:
         self._trim(t)
         self.poll(t)
 
-    def on_cycles(self, rows: Any, layout: CycleLayout, lost: int = 0) -> None:
+    def on_cycles(self, rows: Any, layout: CycleRowLayout, lost: int = 0) -> None:
         """Keep every cycle's row (an array of rows of the cycle ring, in order); ``lost``:
         rows that were overwritten in the ring before they could be copied. Writes the bags
         whose second after has now passed.
@@ -145,8 +146,6 @@ class FlightRecorder:
         if n == 0:
             return
         if self._cycles is None:
-            import numpy as np
-
             rate = self.cycle_rate_hz or 1000.0
             capacity = max(16, math.ceil((self.window_ns + AFTER_NS) / 1e9 * rate
                                          + CYCLE_MARGIN_S * rate))
@@ -168,8 +167,6 @@ class FlightRecorder:
 
     def _cycle_window(self, start_ns: int, end_ns: int) -> Any:
         """A copy of the rows kept with ``start_ns <= time <= end_ns``, in order."""
-        import numpy as np
-
         assert self._layout is not None
         capacity = len(self._cycles)
         stored = min(self._cycles_stored, capacity)
@@ -289,8 +286,6 @@ class FlightRecorder:
     def _write(self, path: Path, states: list[dict[str, Any]],
                events: list[dict[str, Any]], commands: list[tuple[int, Any]],
                cycles: Any = None) -> None:
-        from .bag import BagRecorder, RecordingFailed
-
         layout = self._layout
         n_cycles = 0 if cycles is None else len(cycles)
         if not states and not events and not n_cycles:  # e.g. a fault before the first state

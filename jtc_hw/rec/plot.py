@@ -32,6 +32,9 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+import yaml
+
 from ..errors import ConfigurationError
 from .bag import CONTROLLER_STATE_TYPE, TOLERANCES_KEY, RecordingUnavailable, typestore
 
@@ -57,10 +60,8 @@ def read_series(bag: str | Path, controller: str) -> dict[str, Any]:
         RecordingUnavailable: rosbags is not installed.
         ConfigurationError: the path is not a bag, or holds no controller state.
     """
-    import numpy as np
-
     store = typestore()
-    from rosbags.highlevel import AnyReader
+    from rosbags.highlevel import AnyReader  # the optional extra, checked by typestore()
 
     state_topic = f"/{controller}/controller_state"
     events_topic = f"/{controller}/goal_events"
@@ -150,8 +151,6 @@ def executed_waypoints(
     Returns:
         (time, joint, position) of every waypoint the reference reached.
     """
-    import numpy as np
-
     out: list[tuple[float, str, float]] = []
     n = len(t)
     # Where the loop switched trajectories: the trajectory time falls back.
@@ -189,8 +188,6 @@ def _reached(t: Any, tfs: Any, first: int, end: int, at: float) -> float | None:
     does not. A waypoint before the first state's trajectory time (the loop took the command
     between two states) is placed back from that state by its trajectory time, no earlier than
     the state before."""
-    import numpy as np
-
     after = np.flatnonzero(tfs[first:end] >= at)
     if not len(after):
         return None
@@ -205,8 +202,6 @@ def _reached(t: Any, tfs: Any, first: int, end: int, at: float) -> float | None:
 
 def _tolerances(bag: Path) -> dict[str, dict[str, float]]:
     """The configured tolerances the recorder stored in ``metadata.yaml`` (none: ``{}``)."""
-    import yaml
-
     try:
         info = yaml.safe_load((bag / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
         return dict(json.loads(info.get("custom_data", {})[TOLERANCES_KEY]))
@@ -277,7 +272,7 @@ def build_figure(
         RecordingUnavailable: rosbags is not installed.
         ConfigurationError: not a bag, no controller state, or an unknown joint in ``joints``.
     """
-    try:
+    try:  # matplotlib is an optional extra (jtc_hw[plot])
         from matplotlib.figure import Figure
     except ImportError as exc:
         raise PlotUnavailable(PLOT_HINT) from exc

@@ -10,7 +10,9 @@ from pathlib import Path
 import pytest
 from helpers.fake_backend import TOKEN, ServerThread
 
-from jtc_hw.cli import EXIT_BAD_INPUT, EXIT_OK, load_goal_file, main
+from jtc_hw.cli import main
+from jtc_hw.cli.common import EXIT_BAD_INPUT, EXIT_OK
+from jtc_hw.cli.goals import load_goal_file
 from jtc_hw.controller.trajectory import JointTrajectory, TrajectoryPoint
 from jtc_hw.daemon.settings import DaemonSettings
 from jtc_hw.errors import ConfigurationError

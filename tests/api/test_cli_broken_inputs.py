@@ -23,7 +23,7 @@ from pathlib import Path
 import pytest
 from helpers.daemon import ROOT, daemon_env
 
-from jtc_hw.cli import build_parser
+from jtc_hw.cli.parser import build_parser
 
 pytestmark = pytest.mark.usefixtures("no_leaks")  # threads, sockets, resources
 

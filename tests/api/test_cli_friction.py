@@ -17,7 +17,9 @@ import pytest
 import yaml
 
 from jtc_hw import __version__
-from jtc_hw.cli import EXIT_BAD_INPUT, build_parser, main
+from jtc_hw.cli import main
+from jtc_hw.cli.common import EXIT_BAD_INPUT
+from jtc_hw.cli.parser import build_parser
 from jtc_hw.daemon.logs import THIRD_PARTY_LOGGERS, VERBOSE_ENV, quiet_third_party_loggers
 from jtc_hw.daemon.robot import load_robot
 

@@ -9,7 +9,7 @@ import pytest
 
 from jtc_hw.api.goal_files import ros_goal
 from jtc_hw.api.protocol import SendGoal, parse_request
-from jtc_hw.cli import load_goal_file
+from jtc_hw.cli.goals import load_goal_file
 from jtc_hw.errors import ConfigurationError
 
 from conftest import ROOT
@@ -125,7 +125,8 @@ def test_send_of_a_bad_goal_time_tolerance_is_an_error_not_a_crash(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     """It crashed with a TypeError (exit 1, 'aborted') before reaching any daemon."""
-    from jtc_hw.cli import EXIT_BAD_INPUT, main
+    from jtc_hw.cli import main
+    from jtc_hw.cli.common import EXIT_BAD_INPUT
 
     path = tmp_path / "goal.yaml"
     path.write_text(

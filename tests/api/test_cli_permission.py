@@ -27,7 +27,7 @@ import yaml
 from helpers.daemon import WAIT_S, DaemonProcess, robot_config
 
 from jtc_hw.api import paths
-from jtc_hw.cli import build_parser
+from jtc_hw.cli.parser import build_parser
 
 NOBODY = 65534
 
@@ -48,15 +48,11 @@ def as_nobody(argv: list[str], groups: tuple[int, ...] = ()) -> tuple[int, str, 
     stderr. An exception escaping ``main`` is printed as the console script would (a
     traceback) and exits 99."""
     import jtc_hw.api.client  # noqa: F401 - everything the commands import, before the drop
-    import jtc_hw.cli
-    import jtc_hw.cli_fleet  # noqa: F401
-    import jtc_hw.cli_health  # noqa: F401
-    import jtc_hw.cli_state  # noqa: F401
+    import jtc_hw.cli.parser  # every command module
     import jtc_hw.daemon.robot  # noqa: F401
     import jtc_hw.rec.bag  # noqa: F401
-    import jtc_hw.rec.cli  # noqa: F401
 
-    jtc_hw.cli.build_parser()
+    jtc_hw.cli.parser.build_parser()
     out_r, out_w = os.pipe()
     err_r, err_w = os.pipe()
     pid = os.fork()

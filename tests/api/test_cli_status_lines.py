@@ -3,7 +3,7 @@ of them, readable; the raw reply stays behind ``--json``)."""
 
 from __future__ import annotations
 
-from jtc_hw.cli_state import status_lines
+from jtc_hw.cli.status import status_lines
 
 
 def test_the_flight_recorder_line_says_what_it_keeps_and_its_last_bag() -> None:

@@ -15,7 +15,8 @@ from jtc_hw import GoalRejected, JointTrajectory, TrajectoryPoint
 from jtc_hw.api.client import Client
 from jtc_hw.api.framing import RequestError
 from jtc_hw.api.protocol import SendGoal, SendTrajectory, parse_request
-from jtc_hw.cli import EXIT_OK, main
+from jtc_hw.cli import main
+from jtc_hw.cli.common import EXIT_OK
 from jtc_hw.daemon.settings import DaemonSettings
 
 pytestmark = pytest.mark.usefixtures("no_leaks")  # threads, sockets, resources

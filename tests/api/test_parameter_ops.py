@@ -16,7 +16,8 @@ from helpers.fake_backend import ServerThread
 
 from jtc_hw.api import Client, RequestError
 from jtc_hw.api.protocol import GetParameters, SetParameters, parse_request
-from jtc_hw.cli import EXIT_BAD_INPUT, EXIT_OK, main
+from jtc_hw.cli import main
+from jtc_hw.cli.common import EXIT_BAD_INPUT, EXIT_OK
 
 pytestmark = pytest.mark.usefixtures("no_leaks")  # threads, sockets, resources
 

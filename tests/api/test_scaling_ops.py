@@ -12,7 +12,8 @@ from helpers.fake_backend import ServerThread
 from jtc_hw import JointTrajectory, TrajectoryPoint
 from jtc_hw.api import Client, RequestError
 from jtc_hw.api.protocol import SetSpeedScaling, parse_request
-from jtc_hw.cli import EXIT_OK, main
+from jtc_hw.cli import main
+from jtc_hw.cli.common import EXIT_OK
 
 pytestmark = pytest.mark.usefixtures("no_leaks")  # threads, sockets, resources
 
@@ -115,7 +116,7 @@ def test_cli_help_explains(command: str, capsys: pytest.CaptureFixture[str]) -> 
 
 
 def test_jtc_hw_state_shows_a_factor_other_than_1(capsys: pytest.CaptureFixture[str]) -> None:
-    from jtc_hw.cli_state import print_state as _print_state
+    from jtc_hw.cli.state import print_state as _print_state
 
     state = {
         "time_ns": 12_000_000_000,

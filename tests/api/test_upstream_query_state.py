@@ -13,7 +13,8 @@ from helpers.fake_backend import ServerThread
 
 from jtc_hw import JointTrajectory, Trajectory, TrajectoryPoint
 from jtc_hw.api.client import Client
-from jtc_hw.cli import EXIT_OK, main
+from jtc_hw.cli import main
+from jtc_hw.cli.common import EXIT_OK
 from jtc_hw.controller.joints import JointCommand
 from jtc_hw.daemon.backend import LoopBackend
 from jtc_hw.daemon.messages import Reference, State

@@ -16,7 +16,7 @@ from jtc_hw import ErrorCode, GoalResult, GoalStatus, JointTolerance
 from jtc_hw.api.client import Client
 from jtc_hw.api.framing import encode
 from jtc_hw.api.protocol import result_event
-from jtc_hw.cli import EXIT_GOAL_FAILED, EXIT_OK, _goal_result
+from jtc_hw.cli.common import EXIT_GOAL_FAILED, EXIT_OK, goal_result
 from jtc_hw.controller.trajectory import JointTrajectory, TrajectoryPoint
 from jtc_hw.daemon.settings import DaemonSettings
 
@@ -77,7 +77,7 @@ def test_a_client_gets_upstreams_string_and_the_failing_joint(
 
 
 class _Finished:
-    """A goal handle whose goal has already ended (what ``_goal_result`` reads of one)."""
+    """A goal handle whose goal has already ended (what ``goal_result`` reads of one)."""
 
     def __init__(self, result: dict[str, Any]) -> None:
         self._result = result
@@ -98,14 +98,14 @@ def test_the_command_line_prints_the_details_under_the_result(
         "error_string": PATH_VIOLATION, "details": "joint 'j2' position error +0.06 exceeds 0.05",
         "time_ns": 1,
     }
-    assert _goal_result(_Finished(aborted), 1.0, True, 1.0) == EXIT_GOAL_FAILED
+    assert goal_result(_Finished(aborted), 1.0, True, 1.0) == EXIT_GOAL_FAILED
     assert capsys.readouterr().out == (
         f"goal 7 aborted (error_code -4): {PATH_VIOLATION}\n"
         "  joint 'j2' position error +0.06 exceeds 0.05\n"
     )
     succeeded = dict(aborted, status="succeeded", error_code=0,
                      error_string="Goal successfully reached!", details="")
-    assert _goal_result(_Finished(succeeded), 1.0, True, 1.0) == EXIT_OK
+    assert goal_result(_Finished(succeeded), 1.0, True, 1.0) == EXIT_OK
     assert capsys.readouterr().out == (
         "goal 7 succeeded (error_code 0): Goal successfully reached!\n"
     )

@@ -14,7 +14,7 @@ import pytest
 import yaml
 from helpers.daemon import DaemonProcess, daemon_env
 
-from jtc_hw.cli import demo_config
+from jtc_hw.cli.demo import demo_config
 
 from conftest import ROOT
 

@@ -8,7 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from jtc_hw.cli import EXIT_OK, main
+from jtc_hw.cli import main
+from jtc_hw.cli.common import EXIT_OK
 from jtc_hw.controller.goals import ErrorCode, GoalFeedback, GoalResult, GoalStatus
 from jtc_hw.controller.trajectory import (
     JointTrajectory,

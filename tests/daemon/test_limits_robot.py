@@ -8,7 +8,8 @@ from pathlib import Path
 import pytest
 import yaml
 
-from jtc_hw.cli import EXIT_OK, main
+from jtc_hw.cli import main
+from jtc_hw.cli.common import EXIT_OK
 from jtc_hw.config.limits import JointLimits
 from jtc_hw.daemon.robot import load_robot
 

@@ -16,7 +16,8 @@ from helpers.daemon import JOINTS, DaemonProcess, connect, next_state, traj
 
 from jtc_hw import GoalRejected
 from jtc_hw.api.framing import RequestError
-from jtc_hw.cli import EXIT_BAD_INPUT, EXIT_OK, main
+from jtc_hw.cli import main
+from jtc_hw.cli.common import EXIT_BAD_INPUT, EXIT_OK
 
 pytestmark = pytest.mark.usefixtures("no_leaks")  # threads, sockets, resources
 

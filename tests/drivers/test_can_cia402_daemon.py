@@ -24,7 +24,7 @@ from helpers.daemon import WAIT_S, DaemonProcess, connect, loop_process, next_st
 
 from jtc_hw.api.client import Client
 from jtc_hw.api.framing import RequestError
-from jtc_hw.cli_health import format_hardware, hardware_report
+from jtc_hw.cli.status import format_hardware, hardware_report
 
 from conftest import make_robot_config
 

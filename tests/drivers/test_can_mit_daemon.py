@@ -40,7 +40,7 @@ from helpers.hardware_threads import start_as_hardware
 
 from jtc_hw.api.client import Client
 from jtc_hw.api.framing import RequestError
-from jtc_hw.cli_health import format_hardware, hardware_report
+from jtc_hw.cli.status import format_hardware, hardware_report
 from jtc_hw.drivers.can.emulator import MitBusEmulator
 from jtc_hw.drivers.can.socketcand import SocketcandServer
 

@@ -16,7 +16,7 @@ import can
 import numpy as np
 import pytest
 
-from jtc_hw.cli_health import format_hardware, hardware_report
+from jtc_hw.cli.status import format_hardware, hardware_report
 from jtc_hw.controller.joints import JointCommand
 from jtc_hw.drivers.can.emulator import MitBusEmulator
 from jtc_hw.drivers.can.mit import MitHardware

@@ -20,8 +20,9 @@ from helpers.daemon import WAIT_S, DaemonProcess, connect
 from helpers.daemon import ConfiguredDaemon as DxlDaemon
 from helpers.dynamixel import DAEMON_TEST_TIMEOUT_MS, servos_as_hardware
 
-from jtc_hw.cli import EXIT_NO_DAEMON, main
-from jtc_hw.cli_health import format_hardware, hardware_report
+from jtc_hw.cli import main
+from jtc_hw.cli.common import EXIT_NO_DAEMON
+from jtc_hw.cli.status import format_hardware, hardware_report
 from jtc_hw.drivers.dynamixel.emulator import DynamixelEmulator
 
 from conftest import make_robot_config

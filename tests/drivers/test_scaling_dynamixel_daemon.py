@@ -19,7 +19,8 @@ from helpers.daemon import WAIT_S, connect, next_state, settle
 from helpers.dynamixel import servos_as_hardware
 from test_dynamixel_daemon import GOAL_TOL, IDS, JOINTS, START, DxlDaemon, robot
 
-from jtc_hw.cli import EXIT_OK, main
+from jtc_hw.cli import main
+from jtc_hw.cli.common import EXIT_OK
 from jtc_hw.drivers.dynamixel.emulator import DynamixelEmulator
 
 pytestmark = pytest.mark.usefixtures("no_leaks")

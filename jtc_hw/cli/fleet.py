@@ -1,4 +1,4 @@
-"""``jtc-hw fleet`` and the CLI's ``--zenoh PREFIX`` (docs/zenoh.md).
+"""``jtc-hw fleet``: the daemons on Zenoh, one line each (docs/zenoh.md).
 
 ``jtc-hw fleet`` lists the daemons a Zenoh session sees (their liveliness tokens under
 ``--prefix``, default ``jtc/**``), one line each: prefix, joints, active goal, fault, loop
@@ -14,85 +14,22 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
 import threading
 import time
 from typing import Any, Final
 
-from .errors import ConfigurationError
+from ..api.zenoh_client import open_session
+from ..errors import ConfigurationError
 
-__all__ = ["STATUS_REFRESH_S", "TOKEN_ENV", "add_parser", "check_line", "cmd_fleet",
-           "connect_zenoh", "zenoh_token"]
+__all__ = ["STATUS_REFRESH_S", "add_parsers", "cmd_fleet"]
 
 STATUS_REFRESH_S: Final = 5.0
 """How often ``--watch`` asks every daemon for its status again."""
 DEFAULT_PATTERN: Final = "jtc/**"
 
 
-TOKEN_ENV: Final = "JTC_HW_ZENOH_TOKEN"
-"""Where a client command finds the Zenoh token without ``--zenoh-token-file`` (never on the
-command line: every local user can read another's arguments in ``ps``)."""
-
-
-def zenoh_token(args: argparse.Namespace, no_daemon: type[Exception]) -> str | None:
-    """The token of ``--zenoh-token-file FILE`` (its first line), else ``$JTC_HW_ZENOH_TOKEN``,
-    else ``None`` (the command may only watch).
-
-    Raises:
-        no_daemon: the file cannot be read or is empty (the message names it).
-    """
-    path = getattr(args, "zenoh_token_file", None)
-    if path is None:
-        return os.environ.get(TOKEN_ENV) or None
-    try:
-        with open(path, encoding="utf-8") as f:
-            token = f.readline().strip()
-    except (OSError, UnicodeDecodeError) as exc:
-        raise no_daemon(f"cannot read the Zenoh token from {path}: "
-                        f"{getattr(exc, 'strerror', None) or exc}") from None
-    if not token:
-        raise no_daemon(f"{path} is empty: put the daemon's daemon.zenoh.token on its first line")
-    return token
-
-
-def connect_zenoh(args: argparse.Namespace, hello: bool, no_daemon: type[Exception]) -> Any:
-    """A client command's connection with ``--zenoh PREFIX`` (``--zenoh-config FILE``,
-    the token from :func:`zenoh_token`).
-
-    Raises:
-        no_daemon: no daemon at the prefix, eclipse-zenoh missing, an unreadable token
-            file (the message says what to do).
-        ConfigurationError: the ``--zenoh-config`` file cannot be read (bad input, exit 2).
-    """
-    from .api.client import Client, ClientConnectionError
-
-    token = zenoh_token(args, no_daemon)
-    try:
-        return Client.connect(f"zenoh:{args.zenoh}", zenoh_config=args.zenoh_config,
-                              timeout_s=args.timeout, hello=hello, token=token)
-    except ValueError as exc:  # an unreadable configuration: bad input, said as such
-        raise ConfigurationError(str(exc), "--zenoh-config") from None
-    except (ClientConnectionError, TimeoutError) as exc:
-        raise no_daemon(f"{exc}") from exc
-
-
-def check_line(daemon: Any, controller: str) -> str:
-    """``jtc-hw check``'s line about ``daemon.zenoh``."""
-    z = daemon.zenoh
-    if z is None:
-        return "  zenoh           off (daemon.zenoh)"
-    where = ", ".join(
-        part for part in (
-            f"listen {', '.join(z.listen)}" if z.listen else "",
-            f"connect {', '.join(z.connect)}" if z.connect else "",
-            f"config {z.config}" if z.config else "",
-            "multicast scouting" if z.multicast_scouting else "",
-        ) if part) or "no endpoint"
-    return f"  zenoh           {z.resolved_prefix(controller)} ({z.mode or 'peer'}; {where})"
-
-
-def add_parser(sub: Any) -> None:
+def add_parsers(sub: Any) -> None:
     """Add ``fleet`` to the CLI's subcommands."""
     p = sub.add_parser(
         "fleet",
@@ -237,9 +174,6 @@ def cmd_fleet(args: argparse.Namespace) -> int:
         ClientConnectionError: eclipse-zenoh is missing or no session can be opened.
         ConfigurationError: an unreadable Zenoh configuration.
     """
-    from .api.zenoh_client import open_session
-    from .errors import ConfigurationError
-
     try:
         session = open_session(args.zenoh_config)
     except ValueError as exc:  # an unreadable configuration: bad input, said as such
@@ -305,4 +239,3 @@ def _refresh(session: Any, pattern: str, fleet: _Fleet, timeout_s: float) -> Non
     except Exception:  # the session closed under us (Ctrl-C)
         return
     fleet.changed.set()
-

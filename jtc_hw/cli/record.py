@@ -1,4 +1,4 @@
-"""The ``jtc-hw record`` and ``jtc-hw plot`` commands (registered by ``jtc_hw.cli``).
+"""``jtc-hw record`` and ``jtc-hw plot``: a running daemon into a ROS 2 bag, and a bag into a plot.
 
 ``record`` is a client of a running daemon: it subscribes to the ``state`` stream (every
 ``state_publish_rate`` tick) with every accepted command (``command`` events) and every goal
@@ -8,6 +8,9 @@ result, hardware fault and re-arm (``record`` events), asks
 daemon time (counted from the first state it receives), or on Ctrl-C/SIGTERM, and always
 finishes the bag so that it opens. A write that fails (a full disk) ends the recording: the bag
 is closed with what it holds (``jtc_hw.rec.bag``), one line says so, exit status 4.
+
+Both need optional extras (``jtc_hw[record]``: rosbags; ``jtc_hw[plot]``: matplotlib), which
+:mod:`jtc_hw.rec` imports only when a bag is opened or drawn.
 """
 
 from __future__ import annotations
@@ -16,78 +19,23 @@ import argparse
 import signal
 import sys
 import time
+from pathlib import Path
 from types import FrameType
 from typing import Any
 
-DEFAULT_CONTROLLER = "joint_trajectory_controller"
-DIAGNOSTICS_PERIOD_NS = 1_000_000_000
+from ..api.client import Client
+from ..api.protocol import trajectory_from_json
+from ..config.controller import DEFAULT_CONTROLLER_NAME
+from ..rec.bag import BagRecorder, RecordingFailed, tolerances_from_constraints
+from ..rec.continuous import DIAGNOSTICS_PERIOD_NS
+from ..rec.plot import plot_bag
+from .common import EXIT_BAD_INPUT, EXIT_OK, EXIT_WRITE_FAILED, client_options, connect
+
+__all__ = ["add_parsers", "cmd_plot", "cmd_record"]
+
 DRAIN_TIMEOUT_S = 2.0
 """After Ctrl-C: how long the recorder waits for the daemon's reply that says it has every
 message sent before."""
-EXIT_OK, EXIT_BAD_INPUT, EXIT_WRITE_FAILED = 0, 2, 4
-
-
-def add_parsers(sub: Any, client_options: Any) -> None:
-    """Register ``record`` and ``plot`` on ``jtc-hw``'s subparsers."""
-    p = sub.add_parser(
-        "record",
-        help="record the robot's state into a ROS 2 bag (rosbag2, MCAP storage)",
-        description=(
-            "Record /joint_states, /<controller>/controller_state, /<controller>/joint_trajectory "
-            "(every accepted command), /<controller>/goal_events and /diagnostics from a running "
-            "daemon into the rosbag2 directory OUT (MCAP storage; opens in ros2 bag info/play, "
-            "Foxglove, PlotJuggler). Stops after --duration seconds, or on Ctrl-C. Needs pip "
-            "install 'jtc_hw[record]'. Exit status: 0 recorded, 2 bad input (OUT exists, "
-            "library missing, a socket you may not connect to: permission denied), 3 no "
-            "daemon, 4 writing the bag failed (a full disk: the bag is "
-            "closed with the rows written before, readable)."
-        ),
-    )
-    p.add_argument("out", metavar="OUT", help="bag directory to create (must not exist)")
-    p.add_argument("--duration", type=float, default=None,
-                   help="seconds to record (daemon clock); default: until Ctrl-C")
-    p.add_argument("--controller-name", default=DEFAULT_CONTROLLER,
-                   help=f"namespace of the controller's topics (default {DEFAULT_CONTROLLER})")
-    client_options(p)
-    p.set_defaults(func=cmd_record)
-
-    p = sub.add_parser(
-        "plot",
-        help="plot a recording: desired vs actual per joint",
-        description=(
-            "Plot a bag written by 'jtc-hw record': per joint, the reference (desired) and "
-            "feedback (actual) position, and velocity where recorded, over time, with the goal "
-            "events marked. Needs pip install 'jtc_hw[plot]'. Exit status: 0 written; 2 bad input."
-        ),
-    )
-    p.add_argument("bag", metavar="BAG", help="the bag directory")
-    p.add_argument("--joints", nargs="+", help="joints to plot (default: all)")
-    p.add_argument("--out", help="image file to write (default: BAG/plot.png)")
-    p.add_argument("--controller-name", default=DEFAULT_CONTROLLER,
-                   help=f"namespace of the controller's topics (default {DEFAULT_CONTROLLER})")
-    p.set_defaults(func=cmd_plot)
-
-
-def check_lines(daemon: Any) -> list[str]:
-    """``jtc-hw check``'s lines for the flight recorder and recording settings."""
-    try:
-        import rosbags  # noqa: F401
-
-        missing = ""
-    except ImportError:
-        missing = "; OFF: needs pip install 'jtc_hw[record]'"
-    lines = []
-    if not daemon.flight_recorder_s:
-        lines.append("  flight recorder off (daemon.flight_recorder_s: 0)")
-    else:
-        lines.append(
-            f"  flight recorder {daemon.flight_recorder_s:g} s before each abort, fault, rearm "
-            f"and SIGTERM, into {daemon.flight_recorder_dir} (keeps "
-            f"{daemon.flight_recorder_keep}){missing}")
-    if daemon.record is not None:
-        refused = "; run REFUSES to start: needs pip install 'jtc_hw[record]'" if missing else ""
-        lines.append(f"  record          every run from its start into {daemon.record}{refused}")
-    return lines
 
 
 def _terminate(signum: int, frame: FrameType | None) -> None:
@@ -100,9 +48,6 @@ def cmd_record(args: argparse.Namespace) -> int:
     Raises:
         RecordingUnavailable: rosbags is not installed (the CLI prints its hint, exit 2).
     """
-    from ..cli import _connect
-    from .bag import BagRecorder, RecordingFailed, tolerances_from_constraints
-
     if args.duration is not None and not args.duration > 0:
         print(f"error: --duration must be a positive number of seconds, not {args.duration}",
               file=sys.stderr)
@@ -112,7 +57,7 @@ def cmd_record(args: argparse.Namespace) -> int:
     # with SIGINT ignored; Ctrl-C or `kill -INT` must still finish the bag.
     previous = {sig: signal.signal(sig, _terminate) for sig in (signal.SIGTERM, signal.SIGINT)}
     try:
-        with _connect(args) as client:
+        with connect(args) as client:
             before = time.time_ns()
             now_ns = int(client.hello()["now_ns"])
             offset = (before + time.time_ns()) // 2 - now_ns
@@ -145,9 +90,7 @@ def cmd_record(args: argparse.Namespace) -> int:
             signal.signal(sig, handler)
 
 
-def _record(client: Any, recorder: Any, args: argparse.Namespace) -> None:
-    from ..api.protocol import trajectory_from_json
-
+def _record(client: Client, recorder: BagRecorder, args: argparse.Namespace) -> None:
     subscription = client.subscribe_state(maxlen=1_000_000, commands=True)
     print(f"recording to {recorder.path}", flush=True)
     end_ns: int | None = None
@@ -207,11 +150,48 @@ def cmd_plot(args: argparse.Namespace) -> int:
     Raises:
         PlotUnavailable: matplotlib or rosbags is not installed (exit 2 with the hint).
     """
-    from pathlib import Path
-
-    from .plot import plot_bag
-
     out = Path(args.out) if args.out else Path(args.bag) / "plot.png"
     plot_bag(args.bag, out, joints=args.joints, controller=args.controller_name)
     print(f"wrote {out}")
     return EXIT_OK
+
+
+def add_parsers(sub: Any) -> None:
+    """Add ``record`` and ``plot`` to ``jtc-hw``'s subcommands."""
+    p = sub.add_parser(
+        "record",
+        help="record the robot's state into a ROS 2 bag (rosbag2, MCAP storage)",
+        description=(
+            "Record /joint_states, /<controller>/controller_state, /<controller>/joint_trajectory "
+            "(every accepted command), /<controller>/goal_events and /diagnostics from a running "
+            "daemon into the rosbag2 directory OUT (MCAP storage; opens in ros2 bag info/play, "
+            "Foxglove, PlotJuggler). Stops after --duration seconds, or on Ctrl-C. Needs pip "
+            "install 'jtc_hw[record]'. Exit status: 0 recorded, 2 bad input (OUT exists, "
+            "library missing, a socket you may not connect to: permission denied), 3 no "
+            "daemon, 4 writing the bag failed (a full disk: the bag is "
+            "closed with the rows written before, readable)."
+        ),
+    )
+    p.add_argument("out", metavar="OUT", help="bag directory to create (must not exist)")
+    p.add_argument("--duration", type=float, default=None,
+                   help="seconds to record (daemon clock); default: until Ctrl-C")
+    p.add_argument("--controller-name", default=DEFAULT_CONTROLLER_NAME,
+                   help=f"namespace of the controller's topics (default {DEFAULT_CONTROLLER_NAME})")
+    client_options(p)
+    p.set_defaults(func=cmd_record)
+
+    p = sub.add_parser(
+        "plot",
+        help="plot a recording: desired vs actual per joint",
+        description=(
+            "Plot a bag written by 'jtc-hw record': per joint, the reference (desired) and "
+            "feedback (actual) position, and velocity where recorded, over time, with the goal "
+            "events marked. Needs pip install 'jtc_hw[plot]'. Exit status: 0 written; 2 bad input."
+        ),
+    )
+    p.add_argument("bag", metavar="BAG", help="the bag directory")
+    p.add_argument("--joints", nargs="+", help="joints to plot (default: all)")
+    p.add_argument("--out", help="image file to write (default: BAG/plot.png)")
+    p.add_argument("--controller-name", default=DEFAULT_CONTROLLER_NAME,
+                   help=f"namespace of the controller's topics (default {DEFAULT_CONTROLLER_NAME})")
+    p.set_defaults(func=cmd_plot)

@@ -1,4 +1,4 @@
-"""``jtc-hw state`` and ``jtc-hw status``: what the daemon is doing, readable or as JSON.
+"""``jtc-hw state`` and ``jtc-hw query``: what the controller does now, and will T seconds on.
 
 ``state`` shows the controller state stream (desired, actual, error per joint). The loop sends
 no state while the controller is stopped by a hardware fault (the hardware is not read then),
@@ -8,8 +8,7 @@ returns to the table once the robot is re-armed. ``--json`` prints one JSON obje
 (NDJSON): the daemon's ``state`` events as sent (docs/protocol.md), and while faulted
 ``{"event": "fault", "fault": ..., "joint_names": ..., "held": ...}`` lines.
 
-``status`` prints the daemon's status reply as a table; ``--json`` prints the reply itself
-(without the protocol's ``id``/``ok`` wrapper).
+``query`` asks for the desired state T seconds from now (upstream's ``query_state``).
 """
 
 from __future__ import annotations
@@ -18,11 +17,12 @@ import argparse
 import json
 import sys
 import time
-from collections.abc import Sequence
 from datetime import datetime
 from typing import Any
 
-__all__ = ["cmd_state", "cmd_status", "print_state", "status_lines"]
+from .common import EXIT_OK, client_options, connect, fmt
+
+__all__ = ["add_parsers", "cmd_query", "cmd_state", "print_state", "wall_time"]
 
 QUIET_PROBE_S = 0.5
 """A state stream silent this long makes ``state`` look at the status for a fault. Longer
@@ -30,12 +30,6 @@ than any sensible ``state_publish_rate`` period (upstream's default is 50 Hz).""
 
 FAULT_REFRESH_S = 1.0
 """While faulted, ``state --watch`` shows the status again this often (the stream is silent)."""
-
-
-def _fmt(values: Sequence[float | None] | None, width: int = 9) -> str:
-    if values is None:
-        return "-"
-    return " ".join(f"{v:{width}.4f}" if v is not None else f"{'nan':>{width}}" for v in values)
 
 
 def wall_time() -> str:
@@ -55,8 +49,8 @@ def print_state(state: dict[str, Any], header: bool) -> None:
     for i, name in enumerate(names):
         vel = (a.get("velocities") or [None] * len(names))[i]
         print(
-            f"{name:<14} {_fmt([d['positions'][i]])} {_fmt([a['positions'][i]])} "
-            f"{_fmt([e['positions'][i]])} {_fmt([vel])}"
+            f"{name:<14} {fmt([d['positions'][i]])} {fmt([a['positions'][i]])} "
+            f"{fmt([e['positions'][i]])} {fmt([vel])}"
         )
     goal = state.get("active_goal")
     dropped = state.get("dropped") or 0
@@ -97,7 +91,7 @@ def _print_fault(view: dict[str, Any], as_json: bool) -> int:
     names, held = view["joint_names"], view["held"] or [None] * len(view["joint_names"])
     print(f"{'joint':<14} {'held':>9} {'actual':>9}   {wall_time()}")
     for name, value in zip(names, held, strict=False):
-        print(f"{name:<14} {_fmt([value])} {'-':>9}")
+        print(f"{name:<14} {fmt([value])} {'-':>9}")
     print(
         f"FAULT (controller stopped, hardware not read): {view['fault']}\n"
         "  'jtc-hw rearm' leaves it once the cause is removed; 'jtc-hw status' shows details",
@@ -112,10 +106,8 @@ def cmd_state(args: argparse.Namespace) -> int:
     Raises:
         TimeoutError: no state and no fault within ``--timeout`` (the daemon does not answer).
     """
-    from .cli import _connect
-
     tty = sys.stdout.isatty() and not args.json
-    with _connect(args) as client:
+    with connect(args) as client:
         subscription = client.subscribe_state()
         try:
             drawn = 0  # lines of the last table, for redrawing it in place
@@ -153,108 +145,51 @@ def cmd_state(args: argparse.Namespace) -> int:
             subscription.close()
 
 
-def _num(value: Any, unit: str = "") -> str:
-    if value is None:
-        return "-"
-    if isinstance(value, float):
-        return f"{value:.6g}{unit}"
-    return f"{value}{unit}"
+def cmd_query(args: argparse.Namespace) -> int:
+    with connect(args) as client:
+        reply = client.query_state(in_s=args.t)
+        names = client.joint_names
+        print(f"desired state in {args.t:g} s:")
+        where = reply.get("where")
+        if where == "after_end":
+            print("  success: false (at or after the last point; these are its values)")
+        elif where == "before_start":
+            print("  success: false (before the trajectory's start; this is the measured state)")
+        for key in ("positions", "velocities", "accelerations", "effort"):
+            values = reply.get(key) or reply.get("desired", {}).get(key)
+            print(f"  {key:<13} {fmt(values)}")
+        print(f"  joints        {' '.join(f'{n:>9}' for n in names)}")
+        return EXIT_OK
 
 
-def status_lines(status: dict[str, Any]) -> list[str]:
-    """The ``get_status`` reply as readable lines (fields a daemon lacks are skipped)."""
-    lines: list[str] = []
-    server = status.get("server", {})
-    alive = "alive" if status.get("alive", True) else "NOT ALIVE"
-    lines.append(
-        f"daemon        jtc-hw {server.get('version', '?')} (protocol "
-        f"{server.get('protocol_version', '?')}), loop pid {status.get('loop_pid', '?')}, {alive}"
+def add_parsers(sub: Any) -> None:
+    """Add ``state`` and ``query`` to ``jtc-hw``'s subcommands."""
+    p = sub.add_parser(
+        "state",
+        help="print the controller state (once, or --watch)",
+        description=(
+            "Print the controller state: per joint desired, actual and error positions and "
+            "the velocity; the header shows this machine's wall time. During a hardware fault "
+            "(no state is published) it shows the fault and the held position instead."
+        ),
     )
-    c = status.get("controller", {})
-    if c:
-        if c.get("fault"):
-            state = f"FAULT: {c['fault']}"
-        elif not c.get("active", True):
-            state = "inactive"
-        else:
-            state = "active, " + ("holding" if c.get("holding") else "moving")
-        goal = c.get("active_goal")
-        scaling = c.get("speed_scaling") or {}
-        extra = f", goal {goal}" if goal is not None else ""
-        if scaling and scaling.get("target", 1.0) != 1.0:
-            extra += f", speed scaling {scaling.get('factor')} -> {scaling.get('target')}"
-        lines.append(f"controller    {state}{extra}")
-    loop = status.get("loop", {})
-    if loop:
-        late, cost = loop.get("lateness_us", {}), loop.get("cost_us", {})
-        lines.append(
-            f"loop          {_num(loop.get('rate_hz'), ' Hz')}, {_num(loop.get('cycles'))} "
-            f"cycles, overruns {_num(loop.get('overruns'))}"
-        )
-        lines.append(
-            f"  lateness    p50 {_num(late.get('p50'))} us, p99 {_num(late.get('p99'))} us, "
-            f"max {_num(late.get('max'))} us"
-        )
-        lines.append(
-            f"  cycle cost  p50 {_num(cost.get('p50'))} us, p99 {_num(cost.get('p99'))} us, "
-            f"max {_num(cost.get('max'))} us"
-        )
-    hardware = status.get("hardware", {})
-    if hardware:
-        lines.append(f"hardware      {hardware.get('state', '?')}")
-        for comp in hardware.get("components", []):
-            lines.append(
-                f"  {comp.get('name', '?'):<11} {comp.get('kind', '?')}, "
-                f"{comp.get('state', '?')}, joints {', '.join(comp.get('joints', []))}, "
-                f"safe action {comp.get('safe_action', '?')}"
-            )
-            counters = comp.get("counters") or {}
-            if counters:
-                lines.append(
-                    "    counters  " + ", ".join(f"{k} {v}" for k, v in counters.items())
-                )
-            if comp.get("last_fault"):
-                lines.append(f"    last fault  {comp['last_fault']}")
-    flight = status.get("flight_recorder") or {}
-    if flight:
-        if not flight.get("enabled"):
-            lines.append("flight rec    off")
-        else:
-            rate = flight.get("cycle_rate_hz")
-            every = f"every cycle ({_num(rate, ' Hz')})" if rate else "published states"
-            lines.append(
-                f"flight rec    last {_num(flight.get('seconds'), ' s')} of {every}, "
-                f"lost cycles {_num(flight.get('lost_cycles'))}, write errors "
-                f"{_num(flight.get('errors'))}; last bag {flight.get('last_file') or '-'}"
-            )
-    zenoh = status.get("zenoh") or {}
-    if zenoh:
-        lines.append(
-            f"zenoh         {zenoh.get('prefix', '?')}: queries {_num(zenoh.get('queries'))}, "
-            f"busy {_num(zenoh.get('busy'))}, unauthorized {_num(zenoh.get('unauthorized'))}, "
-            f"published {_num(zenoh.get('published'))}, "
-            f"dropped {_num(zenoh.get('dropped'))}, lost {_num(zenoh.get('lost'))}"
-        )
-    if server:
-        clients = server.get("clients", [])
-        lines.append(
-            f"clients       {len(clients)} connected (max {_num(server.get('max_clients'))} "
-            f"+{_num(server.get('reserved_clients'))} reserved), "
-            f"{_num(server.get('connections_total'))} since start"
-        )
-    lines.append("(jtc-hw status --json: the full reply)")
-    return lines
+    p.add_argument("--watch", action="store_true", help="keep printing at state_publish_rate")
+    p.add_argument(
+        "--json",
+        action="store_true",
+        help="print the daemon's state messages as NDJSON (one JSON object per line)",
+    )
+    client_options(p)
+    p.set_defaults(func=cmd_state)
 
-
-def cmd_status(args: argparse.Namespace) -> int:
-    """``jtc-hw status [--json]``."""
-    from .cli import _connect
-
-    with _connect(args) as client:
-        reply = client.get_status()
-    if args.json:
-        print(json.dumps({k: v for k, v in reply.items() if k not in ("id", "ok")}, indent=2,
-                         default=str))
-        return 0
-    print("\n".join(status_lines(reply)))
-    return 0
+    p = sub.add_parser(
+        "query",
+        help="desired state T seconds from now (query_state)",
+        description=(
+            "Ask the controller for the desired state T seconds from now, as upstream's "
+            "query_state service: positions, velocities, accelerations, effort per joint."
+        ),
+    )
+    p.add_argument("t", type=float, metavar="T", help="seconds from now")
+    client_options(p)
+    p.set_defaults(func=cmd_query)

@@ -1,0 +1,125 @@
+"""``jtc-hw``'s parser, and the exit status of what a command raises.
+
+The command groups add their subcommands (``add_parsers``) in the order ``jtc-hw --help``
+lists them; :func:`parse_and_run` runs the one asked for and maps what it raises to the exit
+statuses of :mod:`jtc_hw.cli` (:class:`~jtc_hw.cli.common.NoDaemon`: 3; bad input, a refused
+request: 2).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from collections.abc import Sequence
+
+from .. import __version__
+from ..api.framing import RequestError
+from ..daemon.logs import VERBOSE_ENV
+from ..errors import ConfigurationError, GoalRejected, JtcHwError
+from . import demo, emulate, fleet, goals, motion, params, record, run, state, status
+from .common import CLIENT_EXIT_HELP, EXIT_BAD_INPUT, EXIT_NO_DAEMON, EXIT_OK, NoDaemon
+
+__all__ = ["DESCRIPTION", "build_parser", "parse_and_run"]
+
+DESCRIPTION = """\
+Drive robot joints with ROS 2 joint_trajectory_controller semantics, without ROS.
+
+  jtc-hw demo                  start a daemon on simulated joints, run a goal, show it
+  jtc-hw check robot.yaml      validate a configuration and explain it
+  jtc-hw run robot.yaml        run the daemon (under systemd: see config/jtc-hw.service)
+  jtc-hw send goal.yaml        send a trajectory to a running daemon and watch it
+  jtc-hw state --watch         live table of the controller state
+  jtc-hw stop                  stop any motion and hold (gets through a daemon with every
+                               client slot taken)
+  jtc-hw rearm                 leave a hardware fault, holding where the joints are
+  jtc-hw speed 0.5             run the trajectory at half speed (ramps, within the limits)
+  jtc-hw pause / jtc-hw resume smoothly stop along the path / carry on at the speed before
+  jtc-hw param set gains.j1.p 12
+                               change a controller parameter while the daemon runs
+                               ('jtc-hw param get' lists them)
+  jtc-hw emulate dynamixel     emulated servos on a pseudo-terminal (no robot needed)
+  jtc-hw fleet --watch         the daemons on Zenoh, one line each (docs/zenoh.md)
+
+Client commands find the daemon's socket from --socket, else --config's daemon.socket,
+else $JTC_HW_SOCKET, else the default path (see 'jtc-hw check' for a config's path). A socket
+is used only if the process behind it runs as you, root, or a member of --config's
+daemon.socket_group; at the default path the file must be yours or root's too. With --tcp
+[HOST:PORT] they reach the TCP endpoint, with --config's token (or $JTC_HW_TOKEN).
+With --zenoh PREFIX (and --zenoh-config FILE) they reach the daemon at that Zenoh prefix;
+commands there need its token (--zenoh-token-file FILE or $JTC_HW_ZENOH_TOKEN).
+"""
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """``jtc-hw``'s parser: the subcommands in the order ``--help`` lists them."""
+    parser = argparse.ArgumentParser(
+        prog="jtc-hw",
+        description=DESCRIPTION,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument("--version", action="version", version=f"jtc-hw {__version__}")
+    parser.add_argument(
+        "-v",
+        "--verbose",
+        action="store_true",
+        help="keep the INFO logs of third-party libraries (canopen, python-can)",
+    )
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    run.add_parsers(sub)  # run, check
+    demo.add_parsers(sub)
+    goals.add_parsers(sub)  # send, cancel
+    state.add_parsers(sub)  # state, query
+    motion.add_parsers(sub)  # stop, rearm, speed, pause, resume
+    params.add_parsers(sub)  # param
+    emulate.add_parsers(sub)
+    status.add_parsers(sub)  # status, hardware
+    record.add_parsers(sub)  # record, plot
+    fleet.add_parsers(sub)
+    for command in sub.choices.values():
+        # Every subcommand's --help states its exit statuses (unless its description does);
+        # a command group sets its own where they are not the client commands' usual ones.
+        if "Exit status" not in (command.description or "") and command.epilog is None:
+            command.epilog = CLIENT_EXIT_HELP
+    return parser
+
+
+def parse_and_run(argv: Sequence[str] | None = None) -> int:
+    """Run the command of ``argv`` (default: ``sys.argv[1:]``); its exit status."""
+    parser = build_parser()
+    args, extra = parser.parse_known_args(argv)
+    if args.verbose:
+        os.environ[VERBOSE_ENV] = "1"  # inherited by the daemon and emulators we start
+    if extra and args.func is params.cmd_param and not any(e.startswith("--") for e in extra):
+        args.items.extend(extra)  # argparse ends a positional list at the first option
+    elif extra:
+        parser.error(f"unrecognized arguments: {' '.join(extra)}")
+    try:
+        return int(args.func(args))
+    except ConfigurationError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except GoalRejected as exc:
+        code = getattr(exc, "error_code", -1)
+        print(f"rejected (error_code {code}): {exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except NoDaemon as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return EXIT_NO_DAEMON
+    except RequestError as exc:
+        # The daemon answered and refused the request (bad request, not active, busy...).
+        print(f"error: {exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except BrokenPipeError:
+        # The reader went away (jtc-hw state | head): not an error. Point stdout at
+        # /dev/null so the interpreter's final flush does not raise again.
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        return EXIT_OK
+    except (JtcHwError, TimeoutError) as exc:
+        # Connection lost, or no reply in time: no daemon answers.
+        print(f"error: {exc}", file=sys.stderr)
+        return EXIT_NO_DAEMON
+    except KeyboardInterrupt:
+        return 130
+

@@ -102,9 +102,9 @@ class Mirror:
 
     A position command is where the joints are at the next :meth:`state`, a velocity command
     integrates, an effort drives a unit inertia (the mirror's rules). ``p`` and ``v`` are what
-    :meth:`state` returns; a test that moves the joints from outside (assigns ``p`` or changes
-    it in place: a slip, a push) does so with :meth:`MirrorHardware.displace` before the
-    joints next move. ``frozen``: :meth:`MirrorHardware.set_frozen`.
+    :meth:`state` returns; a test moves the joints from outside (a slip, a push) by assigning
+    ``p`` or changing it in place, which the next :meth:`state` or :meth:`apply` hands to
+    :meth:`MirrorHardware.displace`. ``frozen``: :meth:`MirrorHardware.set_frozen`.
     """
 
     def __init__(self, positions: Sequence[float]) -> None:

@@ -18,9 +18,10 @@ from typing import Any
 import numpy as np
 import pytest
 
-from jtc_hw import JointState, JointTrajectoryController, load_config
+from jtc_hw import JointCommand, JointState, JointTrajectoryController, load_config
 from jtc_hw.api import Client
-from jtc_hw.controller.config import ControllerConfig
+from jtc_hw.controller.config import COMMAND_INTERFACE_TYPES, ControllerConfig
+from jtc_hw.hardware.mirror import MirrorHardware
 
 ROOT = Path(__file__).resolve().parents[1]
 """The repository checkout."""
@@ -95,33 +96,57 @@ def make_robot_config(
 
 
 class Mirror:
-    """Ideal simulated joints: the command becomes the state by the next cycle.
+    """The ideal simulated joints the controller tests step: the ``mirror`` hardware kind
+    (:class:`~jtc_hw.hardware.mirror.MirrorHardware`, no lag, no limits), active throughout,
+    on a clock of its own that each :meth:`apply` moves on by ``dt_s``.
 
-    Position commands are taken as the position reached at the next cycle; velocity commands
-    integrate; effort commands drive a unit inertia. ``frozen`` stops feedback changing.
+    A position command is where the joints are at the next :meth:`state`, a velocity command
+    integrates, an effort drives a unit inertia (the mirror's rules). ``p`` and ``v`` are what
+    :meth:`state` returns; a test moves the joints from outside (a slip, a push) by assigning
+    ``p`` or changing it in place, which the next :meth:`state` or :meth:`apply` hands to
+    :meth:`MirrorHardware.displace`. ``frozen``: :meth:`MirrorHardware.set_frozen`.
     """
 
-    def __init__(self, positions: Sequence[float], velocities: Sequence[float] | None = None):
-        self.p = np.array(positions, dtype=float)
-        self.v = np.zeros_like(self.p) if velocities is None else np.array(velocities, float)
-        self.frozen = False
+    def __init__(self, positions: Sequence[float]) -> None:
+        joints = [f"j{i}" for i in range(len(positions))]
+        self.hardware = MirrorHardware(
+            "mirror", joints, COMMAND_INTERFACE_TYPES, ("position", "velocity"),
+            {"initial_positions": [float(x) for x in positions]},
+        )
+        self._t_ns = 0
+        self.hardware.configure()
+        self.hardware.activate(self._t_ns)
+        self._take()
+
+    def _take(self) -> None:
+        state = self.hardware.read(self._t_ns)
+        assert state.velocities is not None
+        self.p, self.v = state.positions, state.velocities
+        self._read_p = self.p.copy()
+
+    def _displaced(self) -> None:
+        """Hand a test's change of ``p`` to the hardware (a read does not move the joints)."""
+        if not np.array_equal(self.p, self._read_p):
+            self.hardware.displace(self.p)
+            self._take()
+
+    @property
+    def frozen(self) -> bool:
+        return self.hardware.frozen
+
+    @frozen.setter
+    def frozen(self, frozen: bool) -> None:
+        self.hardware.set_frozen(frozen)
 
     def state(self) -> JointState:
+        self._displaced()
         return JointState(self.p.copy(), self.v.copy())
 
-    def apply(self, command: Any, dt_s: float) -> None:
-        if self.frozen:
-            return
-        if command.positions is not None and not np.isnan(command.positions).any():
-            new_p = command.positions.copy()
-            self.v = (new_p - self.p) / dt_s
-            self.p = new_p
-        elif command.velocities is not None and not np.isnan(command.velocities).any():
-            self.v = command.velocities.copy()
-            self.p = self.p + self.v * dt_s
-        elif command.effort is not None and not np.isnan(command.effort).any():
-            self.v = self.v + command.effort * dt_s
-            self.p = self.p + self.v * dt_s
+    def apply(self, command: JointCommand, dt_s: float) -> None:
+        self._displaced()
+        self.hardware.write(self._t_ns, command)
+        self._t_ns += round(dt_s * S)
+        self._take()
 
 
 class Rig:

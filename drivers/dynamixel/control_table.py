@@ -49,6 +49,7 @@ __all__ = [
     "Register",
     "UnknownModelError",
     "UnknownRegisterError",
+    "hardware_error_text",
     "model_by_name",
     "model_by_number",
 ]
@@ -73,6 +74,13 @@ class HardwareError(IntFlag):
     MOTOR_ENCODER = 0x08
     ELECTRICAL_SHOCK = 0x10
     OVERLOAD = 0x20
+
+
+def hardware_error_text(flags: int) -> str:
+    """Hardware Error Status bits as words (``"overheating, overload"``), for messages."""
+    names = [flag.name.lower().replace("_", " ")
+             for flag in HardwareError if flags & flag and flag.name]
+    return ", ".join(names) if names else f"unknown hardware error 0x{flags:02x}"
 
 
 #: Baud Rate register value -> bit/s (the X series' common table; a model accepts the values up

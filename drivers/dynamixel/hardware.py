@@ -14,18 +14,8 @@ exactly one transaction per direction:
 ``position`` -> Position Control (or Extended Position with ``extended_position: true``),
 ``velocity`` -> Velocity Control, ``effort`` -> Current Control.
 
-**Units.** For joint *i* with model resolution ``ticks_per_rev``, ``direction`` d (+1 / -1),
-``gear_ratio`` g (motor turns per joint turn) and ``offset`` o (rad)::
-
-    motor_rad   = ticks * 2*pi / ticks_per_rev          (tick 0 is 0 rad; mid-range 2048 is pi)
-    joint       = d * motor_rad / g + o
-    ticks       = round(d * (joint - o) * g * ticks_per_rev / (2*pi))
-    joint_vel   = d * raw_velocity * velocity_unit / g   (velocity_unit = 0.229 rev/min in rad/s)
-    raw_velocity= round(d * joint_vel * g / velocity_unit)
-    joint_effort= d * raw_current * current_unit * torque_constant * g
-    raw_current = round(d * joint_effort / (torque_constant * g * current_unit))
-
-The same per-joint factors are used both ways, so ``ticks -> joint -> ticks`` is the identity.
+**Units.** Joint units <-> register counts per joint, the same factors both ways
+(:class:`~jtc_hw.drivers.dynamixel.units.JointUnits`: direction, gear ratio, offset).
 Commands are clamped to the servo's limits (position limits, Velocity Limit, Current Limit read
 back at configure) before they are sent: a Sync Write has no reply, so a value the servo would
 refuse must never be sent.
@@ -67,7 +57,6 @@ import math
 import os
 import time
 from collections.abc import Mapping, Sequence
-from types import MappingProxyType
 from typing import Any, ClassVar, Final
 
 import numpy as np
@@ -82,18 +71,13 @@ from jtc_hw.errors import (
     add_note,
 )
 from jtc_hw.hardware import (
-    JOINT_MAPPING_PARAMS,
-    WATCHDOG_PARAM,
     DeviceName,
     DeviceWatchdog,
     HardwareInterface,
     JointCommand,
     JointState,
-    ParamKind,
     ParamSpec,
     SafeAction,
-    health_params,
-    param_table,
 )
 
 from .bus import (
@@ -104,7 +88,6 @@ from .bus import (
     SyncReadResult,
 )
 from .control_table import (
-    BAUD_RATES,
     BUS_WATCHDOG_FIRMWARE,
     BUS_WATCHDOG_MAX,
     BUS_WATCHDOG_UNIT_S,
@@ -113,27 +96,23 @@ from .control_table import (
     Model,
     OperatingMode,
     UnknownModelError,
+    hardware_error_text,
     model_by_name,
     model_by_number,
 )
-from .control_table import (
-    HardwareError as ServoHardwareError,
-)
+from .health import ServoHealth
+from .params import GAINS, PARAMS
+from .units import JointUnits
 
 __all__ = ["DynamixelHardware"]
 
 _log = logging.getLogger(__name__)
 
 F64 = NDArray[np.float64]
-I64 = NDArray[np.int64]
 
-_SDK_BAUD_RATES: Final = tuple(sorted(b for b in BAUD_RATES.values() if b <= 4_000_000))
 _POSITION_MODE_TICKS: Final = (0, 4095)
 _EXTENDED_TICKS: Final = (-1_048_575, 1_048_575)
 _PRESENT_DTYPE: Final = np.dtype([("current", "<i2"), ("velocity", "<i4"), ("position", "<i4")])
-_GAINS: Final = (
-    "position_p_gain", "position_i_gain", "position_d_gain", "velocity_p_gain", "velocity_i_gain"
-)
 _BUS_WATCHDOG: Final = 98
 #: Activation reads back Torque Enable (64) .. Present Position (132..135) in one Sync Read.
 _ENABLED_BLOCK: Final = (64, 136)
@@ -142,43 +121,9 @@ _ENABLED_BLOCK: Final = (64, 136)
 #: the servo refused would be wherever the last session left it).
 _GOAL_SEED_TOLERANCE_TICKS: Final = 20
 _DATA_RANGE_ERROR: Final = 4  # status packet error number: Data Range Error
-#: Health reads, one Sync Read per slot, in turn (register names: first, last of each block):
-#: Torque Enable (64) .. Hardware Error Status (70), Moving (122) .. Moving Status (123),
-#: Present Input Voltage (144) .. Present Temperature (146), the same addresses on every X model.
-_HEALTH_BLOCKS: Final = (
-    ("torque_enable", "hardware_error_status"),
-    ("moving", "moving_status"),
-    ("present_input_voltage", "present_temperature"),
-)
-#: Default supply warning range, as factors of the model's nominal voltage (12 V: 10.2 .. 15 V,
-#: inside the 12 V X models' recommended 10 .. 14.8 V at the top, and their 9.5 .. 16 V Min/Max
-#: Voltage Limit defaults, at which the servo itself raises its Input Voltage Error).
-_SUPPLY_WARN: Final = (0.85, 1.25)
-#: Health key of each register read in _HEALTH_BLOCKS (the hardware error goes to ``errors``).
-_HEALTH_KEYS: Final = MappingProxyType({
-    "torque_enable": "torque_enabled", "moving": "moving", "moving_status": "moving_status",
-    "present_input_voltage": "voltage_v", "present_temperature": "temperature_c",
-})
 _POSITION_FAMILY: Final = (
     OperatingMode.POSITION, OperatingMode.EXTENDED_POSITION, OperatingMode.CURRENT_BASED_POSITION
 )
-
-
-def _coerce_baud(value: Any, path: str) -> int:
-    if value not in _SDK_BAUD_RATES or isinstance(value, bool):
-        raise ConfigurationError(
-            f"baud rate must be one of {', '.join(str(b) for b in _SDK_BAUD_RATES)} bit/s, "
-            f"got {value!r}",
-            path,
-            value,
-        )
-    return int(value)
-
-
-def _hardware_error_text(flags: int) -> str:
-    names = [flag.name.lower().replace("_", " ")
-             for flag in ServoHardwareError if flags & flag and flag.name]
-    return ", ".join(names) if names else f"unknown hardware error 0x{flags:02x}"
 
 
 class DynamixelHardware(HardwareInterface):
@@ -196,63 +141,7 @@ class DynamixelHardware(HardwareInterface):
         i for i in ("position", "velocity", "effort") if i in STATE_INTERFACE_TYPES
     )
 
-    PARAMS: ClassVar[Mapping[str, ParamSpec]] = param_table(
-        ParamSpec("port", ParamKind.STRING, None,
-                  "serial device of the bus (e.g. /dev/ttyUSB0 or /dev/serial/by-id/...)",
-                  required=True),
-        ParamSpec("baud_rate", ParamKind.INT, 57600,
-                  "bus bit rate (bit/s); the X series' factory default is 57600",
-                  coerce=_coerce_baud),
-        ParamSpec("ids", ParamKind.INT, None, "per joint servo id (0..252, unique)",
-                  minimum=0, maximum=252, per_joint=True, required=True),
-        ParamSpec("model", ParamKind.STRING, "XM430-W350", "per joint servo model",
-                  per_joint=True),
-        *JOINT_MAPPING_PARAMS,
-        ParamSpec("position_limits", ParamKind.RANGE, (-math.inf, math.inf),
-                  "per joint [min, max] joint position, rad (null: the servo's limit registers)",
-                  per_joint=True, nullable=True),
-        ParamSpec("extended_position", ParamKind.BOOL, False,
-                  "position interface: Extended Position mode (multi-turn) instead of Position"),
-        ParamSpec("return_delay_time_us", ParamKind.INT, 0,
-                  "Return Delay Time written to every servo, us (0..508, in 2 us steps)",
-                  minimum=0, maximum=508),
-        ParamSpec("profile_velocity", ParamKind.FLOAT, 0.0,
-                  "per joint Profile Velocity, rad/s at the joint (0: none)", minimum=0.0,
-                  per_joint=True),
-        ParamSpec("profile_acceleration", ParamKind.FLOAT, 0.0,
-                  "per joint Profile Acceleration, rad/s^2 at the joint (0: none)", minimum=0.0,
-                  per_joint=True),
-        *(
-            ParamSpec(gain, ParamKind.INT, None,
-                      f"per joint {gain.replace('_', ' ')} register (null: the servo's)",
-                      minimum=0, maximum=16383, nullable=True, per_joint=True)
-            for gain in _GAINS
-        ),
-        ParamSpec("fast_sync_read", ParamKind.BOOL, False,
-                  "use Fast Sync Read (one combined reply; firmware 45+)"),
-        ParamSpec("timeout_ms", ParamKind.FLOAT, 5.0,
-                  "allowance beyond the wire time before a reply counts as missing, ms",
-                  minimum=0.1, maximum=1000.0),
-        ParamSpec("max_retries", ParamKind.INT, 1,
-                  "retries of a failed read within one cycle before it is a fault",
-                  minimum=0, maximum=10),
-        ParamSpec("reboot_timeout_s", ParamKind.FLOAT, 2.0,
-                  "how long recover() waits for a rebooted servo to answer, s",
-                  minimum=0.01, maximum=30.0),
-        ParamSpec("latency_timer_warn", ParamKind.BOOL, True,
-                  "warn when the USB serial adapter's latency timer is above 1 ms"),
-        WATCHDOG_PARAM,
-        ParamSpec("health_period_s", ParamKind.FLOAT, 0.5,
-                  "how often every servo's temperature, voltage, hardware error and moving "
-                  "status are read, s (one extra Sync Read in every third of it, after a write)",
-                  minimum=0.01, maximum=60.0),
-        # The Temperature Limit (which shuts an X servo down) is 70 or 80 degC.
-        *health_params(65.0, None),
-        ParamSpec("voltage_range", ParamKind.RANGE, None,
-                  "[min, max] supply voltage, V: a servo reporting one outside raises a warning "
-                  f"(null: {_SUPPLY_WARN[0]:g} .. {_SUPPLY_WARN[1]:g} x each model's nominal "
-                  "voltage, e.g. 10.2 .. 15 V for a 12 V servo)", nullable=True),
-    )
+    PARAMS: ClassVar[Mapping[str, ParamSpec]] = PARAMS
 
     def __init__(
         self,
@@ -311,8 +200,8 @@ class DynamixelHardware(HardwareInterface):
                 )
 
         # Bus Watchdog value armed on activate: the configured time rounded up to 20 ms steps.
-        units = max(1, math.ceil(p["watchdog_s"] / BUS_WATCHDOG_UNIT_S - 1e-9))
-        if units > BUS_WATCHDOG_MAX:
+        watchdog_units = max(1, math.ceil(p["watchdog_s"] / BUS_WATCHDOG_UNIT_S - 1e-9))
+        if watchdog_units > BUS_WATCHDOG_MAX:
             raise ConfigurationError(
                 f"watchdog_s {p['watchdog_s']:g} s does not fit the servos' Bus Watchdog "
                 f"(1..{BUS_WATCHDOG_MAX} x 20 ms: at most "
@@ -320,36 +209,19 @@ class DynamixelHardware(HardwareInterface):
                 "params.watchdog_s",
                 p["watchdog_s"],
             )
-        self._watchdog_units: int = units
-        self.watchdog_timeout_s: float = units * BUS_WATCHDOG_UNIT_S
+        self._watchdog_units: int = watchdog_units
+        self.watchdog_timeout_s: float = watchdog_units * BUS_WATCHDOG_UNIT_S
         """The Bus Watchdog time armed on activate, s (``watchdog_s`` rounded up to 20 ms)."""
 
-        self._direction = np.array(p["direction"], dtype=np.float64)
-        self._gear = np.array(p["gear_ratio"], dtype=np.float64)
-        self._offset = np.array(p["offset"], dtype=np.float64)
-        # Motor-side units of one count, per joint.
-        self._rad_per_tick = np.array([2.0 * math.pi / m.ticks_per_rev for m in self.models])
-        self._rad_s_per_count = np.array([m.velocity_unit_rad_s for m in self.models])
-        self._nm_per_count = np.array([
-            (m.current_unit_a or 0.0) * (m.torque_constant_nm_per_a or 0.0) for m in self.models
-        ])
-        # Joint units per register count and back, computed once: the hot path is then one
-        # multiply (and one add for positions) per direction, the same factors both ways.
-        d, g = self._direction, self._gear
-        self._pos_scale = d * self._rad_per_tick / g
-        self._pos_inverse = d * g / self._rad_per_tick
-        self._vel_scale = d * self._rad_s_per_count / g
-        self._vel_inverse = d * g / self._rad_s_per_count
-        self._effort_scale = d * self._nm_per_count * g
-        sensing = self._nm_per_count > 0
-        self._effort_inverse = np.where(
-            sensing, d / (g * np.where(sensing, self._nm_per_count, 1.0)), 0.0)
+        self.units = JointUnits(self.models, p["direction"], p["gear_ratio"], p["offset"])
+        """Joint units <-> register counts (public: tests and tools use it)."""
+        units = self.units
         limits = p["position_limits"]
         self._joint_lower = np.array([lim[0] for lim in limits], dtype=np.float64)
         self._joint_upper = np.array([lim[1] for lim in limits], dtype=np.float64)
         # Tick limits from the joint limits (inf where not given).
-        a = self.joint_to_ticks_float(self._joint_lower)
-        b = self.joint_to_ticks_float(self._joint_upper)
+        a = units.joint_to_ticks_float(self._joint_lower)
+        b = units.joint_to_ticks_float(self._joint_upper)
         self._limit_ticks_lo = np.where(np.isnan(a), -np.inf, np.minimum(a, b))
         self._limit_ticks_hi = np.where(np.isnan(b), np.inf, np.maximum(a, b))
         if self.mode is OperatingMode.POSITION:
@@ -386,16 +258,8 @@ class DynamixelHardware(HardwareInterface):
         self._last_fault_by_servo: dict[int, str] = {}
         self._retries = 0
         # Health: read in turn, one block per slot (see _read_health), kept per servo.
-        self._firmware: dict[int, int] = {}
-        self._health_values: dict[int, dict[str, int]] = {i: {} for i in self.ids}
-        # When each health block was last read, per servo (monotonic ns): older than two
-        # health periods, its values are reported unknown (see _health).
-        self._health_at: dict[int, dict[int, int]] = {i: {} for i in self.ids}
-        self._health_stale_ns = 2 * round(p["health_period_s"] * 1e9)
-        self._health_slot_ns = max(1, round(p["health_period_s"] * 1e9 / len(_HEALTH_BLOCKS)))
-        self._next_health_ns: int | None = None
-        self._health_block = 0
-        self._health_errors = 0
+        self._servo_health = ServoHealth(self.ids, self.joints, self.models,
+                                         p["health_period_s"], p["voltage_range"])
         self._joint_of = dict(zip(self.ids, self.joints, strict=True))
         self._index_of = {servo_id: i for i, servo_id in enumerate(self.ids)}
         # What write() sends: the command field, its register, and the conversion to counts.
@@ -404,49 +268,11 @@ class DynamixelHardware(HardwareInterface):
         self._goal_name = {"position": "goal_position", "velocity": "goal_velocity",
                            "effort": "goal_current"}[self._interface]
         if self._interface == "position":
-            self._goal_offset, self._goal_inverse = self._offset, self._pos_inverse
+            self._goal_offset, self._goal_inverse = units.offset, units.pos_inverse
         elif self._interface == "velocity":
-            self._goal_offset, self._goal_inverse = np.zeros(n), self._vel_inverse
+            self._goal_offset, self._goal_inverse = np.zeros(n), units.vel_inverse
         else:
-            self._goal_offset, self._goal_inverse = np.zeros(n), self._effort_inverse
-
-    # -- conversions (public: tests and tools use them) ----------------------------------------
-
-    def ticks_to_joint(self, ticks: NDArray[Any]) -> F64:
-        """Present Position ticks -> joint positions, rad (see the module docstring)."""
-        result: F64 = np.asarray(ticks) * self._pos_scale + self._offset
-        return result
-
-    def joint_to_ticks_float(self, joint: NDArray[Any]) -> F64:
-        """Joint positions, rad -> ticks, unrounded (infinite stays infinite)."""
-        result: F64 = (np.asarray(joint, dtype=np.float64) - self._offset) * self._pos_inverse
-        return result
-
-    def joint_to_ticks(self, joint: NDArray[Any]) -> I64:
-        """Joint positions, rad -> ticks, rounded to the nearest (the inverse of
-        :meth:`ticks_to_joint` on whole ticks)."""
-        result: I64 = np.rint(self.joint_to_ticks_float(joint)).astype(np.int64)
-        return result
-
-    def velocity_to_joint(self, raw: NDArray[Any]) -> F64:
-        """Velocity register counts -> joint velocities, rad/s."""
-        result: F64 = np.asarray(raw) * self._vel_scale
-        return result
-
-    def joint_to_velocity(self, joint_vel: NDArray[Any]) -> I64:
-        """Joint velocities, rad/s -> velocity register counts (rounded)."""
-        result: I64 = np.rint(np.asarray(joint_vel) * self._vel_inverse).astype(np.int64)
-        return result
-
-    def current_to_joint(self, raw: NDArray[Any]) -> F64:
-        """Current register counts -> joint efforts, N*m (torque constant times gear ratio)."""
-        result: F64 = np.asarray(raw) * self._effort_scale
-        return result
-
-    def joint_to_current(self, effort: NDArray[Any]) -> I64:
-        """Joint efforts, N*m -> current register counts (rounded; 0 without current sensing)."""
-        result: I64 = np.rint(np.asarray(effort) * self._effort_inverse).astype(np.int64)
-        return result
+            self._goal_offset, self._goal_inverse = np.zeros(n), units.effort_inverse
 
     # -- labels ---------------------------------------------------------------------------------
 
@@ -473,7 +299,7 @@ class DynamixelHardware(HardwareInterface):
         return CommunicationError(message)
 
     def _motor_fault(self, servo_id: int, flags: int) -> MotorFault:
-        cause = _hardware_error_text(flags)
+        cause = hardware_error_text(flags)
         self._latched[servo_id] = flags
         self._last_fault_by_servo[servo_id] = cause
         return MotorFault(
@@ -531,7 +357,7 @@ class DynamixelHardware(HardwareInterface):
                 flags = self._read_register(servo_id, "hardware_error_status")
                 if flags:
                     self._latched[servo_id] = flags
-                    self._last_fault_by_servo[servo_id] = _hardware_error_text(flags)
+                    self._last_fault_by_servo[servo_id] = hardware_error_text(flags)
                 if (self._read_register(servo_id, "bus_watchdog") < 0
                         and servo_id not in self._tripped):
                     self._leftover_trips.add(servo_id)
@@ -564,7 +390,7 @@ class DynamixelHardware(HardwareInterface):
         velocity mode) if the daemon stopped. Updating the firmware is free and quick; running
         some joints unprotected is not a choice this driver makes silently."""
         firmware = self._read_register(servo_id, "firmware_version")
-        self._firmware[servo_id] = firmware
+        self._servo_health.firmware[servo_id] = firmware
         if firmware < BUS_WATCHDOG_FIRMWARE:
             raise HardwareError(
                 f"{self._servo(servo_id)}: firmware v{firmware} has no Bus Watchdog (needs "
@@ -622,7 +448,7 @@ class DynamixelHardware(HardwareInterface):
                 self._write_register(servo_id, "torque_enable", 0)
             for name, value in changes.items():
                 self._write_register(servo_id, name, value)
-        for gain in _GAINS:
+        for gain in GAINS:
             value = p[gain][i]
             if value is not None:
                 self._write_register(servo_id, gain, value)
@@ -631,7 +457,7 @@ class DynamixelHardware(HardwareInterface):
             ("profile_acceleration", p["profile_acceleration"][i],
              model.profile_acceleration_unit_rad_s2),
         ):
-            counts = max(1, round(per_joint * self._gear[i] / unit)) if per_joint > 0 else 0
+            counts = max(1, round(per_joint * self.units.gear[i] / unit)) if per_joint > 0 else 0
             if self._read_register(servo_id, name) != counts:
                 self._write_register(servo_id, name, counts)
         # Clamps in register units of the goal register.
@@ -870,11 +696,12 @@ class DynamixelHardware(HardwareInterface):
         raw = np.frombuffer(b"".join([data[i] for i in self.ids]), dtype=_PRESENT_DTYPE)
         # Only now, with every servo's data good, does the state change.
         ticks = raw["position"]
-        positions: F64 = ticks * self._pos_scale + self._offset
+        units = self.units
+        positions: F64 = ticks * units.pos_scale + units.offset
         self._present_ticks = ticks
         self._positions = positions
-        self._velocities = raw["velocity"] * self._vel_scale
-        self._efforts = raw["current"] * self._effort_scale
+        self._velocities = raw["velocity"] * units.vel_scale
+        self._efforts = raw["current"] * units.effort_scale
         # Effort is no state interface of the JTC: it is reported in status() details only.
         velocities = self._velocities.copy() if self._velocity_state else None
         return JointState(positions.copy(), velocities)
@@ -917,38 +744,11 @@ class DynamixelHardware(HardwareInterface):
         return self._state_from(self._sync_read_present())
 
     def _read_health(self, now_ns: int) -> None:
-        """Every health slot, one Sync Read of the next health block of every servo.
-
-        After the cycle's write (a Sync Write has no reply, so the bus is free): the command
-        is out, and no cycle pays more than this one transaction. A failed health read is
-        counted, not raised: the next cycle's read is the one that decides about the bus.
-        """
-        if self._next_health_ns is None:
-            self._next_health_ns = now_ns
-        if now_ns < self._next_health_ns:
-            return
-        self._next_health_ns = now_ns + self._health_slot_ns
-        block_index = self._health_block
-        first, last = _HEALTH_BLOCKS[block_index]
-        self._health_block = (self._health_block + 1) % len(_HEALTH_BLOCKS)
-        model = self.models[0]
-        start = model.register(first).address
-        end_reg = model.register(last)
-        size = end_reg.address + end_reg.size - start
-        bus = self._require_bus()
-        try:
-            result = bus.sync_read(self.ids, start, size)
-        except ServoCommunicationError:
-            self._health_errors += 1
-            return
-        read_at = time.monotonic_ns()
-        for i, servo_id in enumerate(self.ids):
-            block = result.data[servo_id]
-            self._health_at[servo_id][block_index] = read_at
-            values = self._health_values[servo_id]
-            for name in (first, last):
-                reg = self.models[i].register(name)
-                values[name] = reg.decode(block[reg.address - start:reg.address - start + reg.size])
+        """Every health slot, one Sync Read of the next health block of every servo (after the
+        cycle's write; see :mod:`.health`)."""
+        block = self._servo_health.due(now_ns)
+        if block is not None:
+            self._servo_health.read(self._require_bus(), block)
 
     def _sync_write_goal(self, name: str, values: Mapping[int, int]) -> None:
         bus = self._require_bus()
@@ -1057,7 +857,7 @@ class DynamixelHardware(HardwareInterface):
             self._last_fault_by_servo.pop(servo_id, None)
             self._setup_servo(i)  # the reboot reset the RAM area, Bus Watchdog included
             _log.info("%s: rebooted, hardware error %s cleared", self._servo(servo_id),
-                      _hardware_error_text(flags))
+                      hardware_error_text(flags))
         # Tripped watchdogs: cleared (with a goal that keeps the servo still) so that goals are
         # accepted again; activate() then arms them anew.
         values = self._watchdog_values()
@@ -1104,7 +904,7 @@ class DynamixelHardware(HardwareInterface):
                 str(servo_id): {
                     "joint": joint,
                     "model": model.name,
-                    "hardware_error": (_hardware_error_text(self._latched[servo_id])
+                    "hardware_error": (hardware_error_text(self._latched[servo_id])
                                        if servo_id in self._latched else None),
                     "last_fault": self._last_fault_by_servo.get(servo_id),
                     "watchdog_expired": (servo_id in self._tripped
@@ -1118,55 +918,17 @@ class DynamixelHardware(HardwareInterface):
         }
 
     def _health(self) -> tuple[list[dict[str, Any]], dict[str, Any] | None]:
-        """The servos' health as last read. A block read more than two ``health_period_s``
-        ago (the bus lost, the health reads failing, nothing read while a watchdog may be
-        armed), or never, gives unknown values (``None``, listed in ``unknown``; ``stale``
-        true), not the last ones heard; ``age_s`` is the age of the servo's oldest block."""
-        now = time.monotonic_ns()
-        motors: list[dict[str, Any]] = []
-        for servo_id, joint, model in zip(self.ids, self.joints, self.models, strict=True):
-            read_at = self._health_at[servo_id]
-            fresh = {k for k, t in read_at.items() if now - t <= self._health_stale_ns}
-            v = {name: value for name, value in self._health_values[servo_id].items()
-                 if any(name in _HEALTH_BLOCKS[k] for k in fresh)}
-            unknown = [_HEALTH_KEYS[name] for k, names in enumerate(_HEALTH_BLOCKS)
-                       if k not in fresh for name in names if name in _HEALTH_KEYS]
-            oldest = min(read_at.values()) if len(read_at) == len(_HEALTH_BLOCKS) else None
-            errors: list[str] = []
-            flags = v.get("hardware_error_status", self._latched.get(servo_id, 0))
-            if flags:
-                errors.append(f"hardware error: {_hardware_error_text(flags)}")
-            if servo_id in self._tripped or servo_id in self._leftover_trips:
-                errors.append("bus watchdog expired")
-            volts = v.get("present_input_voltage")
-            torque = v.get("torque_enable")
-            supply = self.params["voltage_range"] or tuple(
-                round(f * model.nominal_voltage_v, 2) for f in _SUPPLY_WARN)
-            motors.append({
-                "motor": servo_id,
-                "joint": joint,
-                "model": model.name,
-                "firmware": self._firmware.get(servo_id),
-                "mode": self.mode.name.lower(),
-                "torque_enabled": None if torque is None else bool(torque),
-                "temperature_c": v.get("present_temperature"),
-                "voltage_v": None if volts is None else volts / 10.0,
-                "voltage_range_v": list(supply),
-                "moving": None if "moving" not in v else bool(v["moving"]),
-                "moving_status": v.get("moving_status"),
-                "age_s": None if oldest is None else round((now - oldest) / 1e9, 3),
-                "stale": bool(unknown),
-                "unknown": unknown,
-                "errors": errors,
-                "last_fault": self._last_fault_by_servo.get(servo_id),
-            })
+        """The servos' health as last read (stale blocks unknown: see :mod:`.health`)."""
+        motors = self._servo_health.report(
+            self.mode.name.lower(), self._latched, self._tripped | self._leftover_trips,
+            self._last_fault_by_servo)
         stats = self._bus.stats if self._bus is not None else None
         bus = None if stats is None else {
             "transactions": stats.transactions,
             "timeouts": stats.timeouts,
             "crc_errors": stats.corrupt,
             "retries": self._retries,
-            "health_read_errors": self._health_errors,
+            "health_read_errors": self._servo_health.read_errors,
         }
         return motors, bus
 

@@ -59,8 +59,8 @@ class MirrorHardware(HardwareInterface):
     """Simulated joints for tests and the embedded default (see the module docstring).
 
     Test knobs, usable in any state: :meth:`set_frozen` (feedback stops changing, to provoke
-    tolerance aborts) and :meth:`inject_fault` / :meth:`clear_fault` (reads raise
-    ``CommunicationError``).
+    tolerance aborts), :meth:`inject_fault` / :meth:`clear_fault` (reads raise
+    ``CommunicationError``) and :meth:`displace` (the joints moved from outside).
 
     Raises:
         ConfigurationError: invalid parameters (see :attr:`PARAMS`), or an initial position
@@ -155,6 +155,23 @@ class MirrorHardware(HardwareInterface):
     def clear_fault(self) -> None:
         """Undo :meth:`inject_fault`."""
         self._fault = None
+
+    def displace(self, positions: Sequence[float] | NDArray[np.float64]) -> None:
+        """Move the joints from outside (a push, a slip, a hand while the torque is off) to
+        ``positions``, clamped to the position limits, at the time of the last call.
+
+        The velocity and acceleration states and the commands in force are unchanged: the
+        next read shows the new positions, each joint following its command from there (an
+        ideal position-driven one is back on its target at the next read after time passed).
+        Frozen joints stay where they were put.
+
+        Raises:
+            ValueError: ``positions`` is not one value per joint.
+        """
+        p = np.array(positions, dtype=np.float64)
+        if p.shape != self._p.shape:
+            raise ValueError(f"{self._owner()}: {p.size} positions for {len(self.joints)} joints")
+        self._p = np.clip(p, self._lower, self._upper)
 
     # -- primitives ---------------------------------------------------------------------------
 

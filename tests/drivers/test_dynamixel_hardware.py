@@ -139,23 +139,23 @@ def test_unit_conversion_is_exact_and_symmetric() -> None:
     )
     ticks = np.array([[0, 0, 0], [2048, 2048, 2048], [-5000, 123456, 4095], [1, -1, 77]])
     for row in ticks:
-        joint = hw.ticks_to_joint(row)
-        assert list(hw.joint_to_ticks(joint)) == list(row)
+        joint = hw.units.ticks_to_joint(row)
+        assert list(hw.units.joint_to_ticks(joint)) == list(row)
     # The documented formula, literally.
-    j = hw.ticks_to_joint(np.array([1024, 1024, 1024]))
+    j = hw.units.ticks_to_joint(np.array([1024, 1024, 1024]))
     assert j[0] == pytest.approx(math.pi / 2)
     assert j[1] == pytest.approx(-(math.pi / 2) / 2.0 - math.pi)
     assert j[2] == pytest.approx(-(math.pi / 2) / 3.5 + 0.25)
     # Velocity: 0.229 rev/min per count; effort: 2.69 mA per count * torque constant * gear.
-    v = hw.velocity_to_joint(np.array([100, 100, 100]))
+    v = hw.units.velocity_to_joint(np.array([100, 100, 100]))
     unit = 0.229 * 2 * math.pi / 60
     assert v == pytest.approx([100 * unit, -100 * unit / 2.0, -100 * unit / 3.5])
-    assert list(hw.joint_to_velocity(v)) == [100, 100, 100]
-    e = hw.current_to_joint(np.array([10, 10, 10]))
+    assert list(hw.units.joint_to_velocity(v)) == [100, 100, 100]
+    e = hw.units.current_to_joint(np.array([10, 10, 10]))
     kt = 4.1 / 2.3
     assert e == pytest.approx([10 * 0.00269 * kt, -10 * 0.00269 * kt * 2.0,
                                -10 * 0.00269 * kt * 3.5])
-    assert list(hw.joint_to_current(e)) == [10, 10, 10]
+    assert list(hw.units.joint_to_current(e)) == [10, 10, 10]
 
 
 def test_direction_and_gear_against_the_emulator(

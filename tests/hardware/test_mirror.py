@@ -313,6 +313,21 @@ def test_frozen_feedback_repeats_and_resumes_without_a_jump() -> None:
     assert read(hw, S + HALF) == ([2.0], [4.0], [8.0])
 
 
+def test_displaced_joints_read_where_they_were_put_then_follow_their_commands() -> None:
+    hw = mirror(command=("position", "velocity"), position_limits=[None, [-1.0, 1.0]])
+    hw.write(0, JointCommand([1.0, NAN], [NAN, 0.5]))
+    assert read(hw, HALF) == ([1.0, 0.25], [2.0, 0.5], [4.0, 1.0])
+    hw.displace([0.5, 3.0])  # b against its upper limit
+    assert read(hw, HALF) == ([0.5, 1.0], [2.0, 0.5], [4.0, 1.0])  # no time: states kept
+    p, _, _ = read(hw, S)
+    assert p == [1.0, 1.0]  # a back on its target; b still at its limit
+    with pytest.raises(ValueError, match="1 positions for 2 joints"):
+        hw.displace([0.0])
+    hw.set_frozen(True)
+    hw.displace([0.0, 0.0])
+    assert read(hw, 2 * S)[0] == [0.0, 0.0]  # frozen joints stay where they were put
+
+
 def test_injected_fault_raises_on_read_until_cleared() -> None:
     hw = mirror(joints=("a",), command=("velocity",))
     hw.write(0, JointCommand(velocities=[1.0]))

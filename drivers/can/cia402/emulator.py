@@ -6,7 +6,7 @@ Each :class:`Cia402DriveEmulator` is one node: its object dictionary is the ship
 (``jtc_hw_drive.eds``) served by canopen's :class:`~canopen.LocalNode` SDO server; this module
 adds what canopen's local node does not do: NMT (boot-up message, pre-operational /
 operational / stopped, reset communication restoring the PDO parameters), the CiA 402 state
-machine (:data:`~jtc_hw.drivers.can.cia402_codec.DRIVE_TRANSITIONS`), synchronous PDOs and
+machine (:data:`~jtc_hw.drivers.can.cia402.codec.DRIVE_TRANSITIONS`), synchronous PDOs and
 the physics of the joint (:class:`~jtc_hw.drivers.motor_model.Motor`).
 
 Emulators given the same ``bus`` object share one receive thread (a *hub*), as drives share a
@@ -62,14 +62,15 @@ import can
 import canopen
 from canopen.sdo.exceptions import SdoAbortedError
 
-from ..motor_model import Motor, MotorParams
-from . import cia402_codec as c4
-from .bus import CAN_ERR_BUSOFF, wire_time_s
-from .emulation import PushSink, WakeEarly, attach_sink
+from ...motor_model import Motor, MotorParams
+from ..bus import CAN_ERR_BUSOFF, wire_time_s
+from ..emulation import PushSink, WakeEarly, attach_sink
+from . import codec as c4
 
 __all__ = ["DEFAULT_EDS", "Cia402DriveEmulator", "NmtState", "WatchdogTrip"]
 
-_log = logging.getLogger(__name__)
+# A logger name is public (log filters name it): the one from before drivers/can/ was split.
+_log = logging.getLogger("jtc_hw.drivers.can.cia402_emulator")
 
 DEFAULT_EDS: Path = c4.DEFAULT_EDS
 """The EDS of the emulated drive (shipped with the package)."""

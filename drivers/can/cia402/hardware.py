@@ -15,7 +15,7 @@ The Notifier is then stopped: in cyclic operation the driver owns the bus receiv
 non-blocking drain), so the control-loop process has no second Python thread competing for
 the interpreter lock.
 
-The cycle (layouts and state machine from :mod:`~jtc_hw.drivers.can.cia402_codec`):
+The cycle (layouts and state machine from :mod:`~jtc_hw.drivers.can.cia402.codec`):
 
 * ``write``: late frames (answers to the previous SYNC that came after its read) are taken
   and counted, then per bus every drive's RPDO1 (controlword, target), one SYNC and, every
@@ -93,12 +93,13 @@ from jtc_hw.hardware import (
     param_table,
 )
 
-from . import bus as canbus
-from . import cia402_codec as c4
+from .. import bus as canbus
+from . import codec as c4
 
 __all__ = ["Cia402Hardware"]
 
-_log = logging.getLogger(__name__)
+# A logger name is public (log filters name it): the one from before drivers/can/ was split.
+_log = logging.getLogger("jtc_hw.drivers.can.cia402")
 
 _PROFILE_402 = 402
 _NOTIFIER_CYCLE_S = 0.02

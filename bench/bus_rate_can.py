@@ -47,14 +47,14 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from jtc_hw.controller.joints import JointCommand  # noqa: E402
 from jtc_hw.drivers.can.bus import wire_time_s  # noqa: E402
-from jtc_hw.drivers.can.frames import (  # noqa: E402
+from jtc_hw.drivers.can.mit.codec import (  # noqa: E402
     MODEL_PRESETS,
     MitCommand,
     MitReply,
     encode_command,
     encode_reply,
 )
-from jtc_hw.drivers.can.mit import MitHardware  # noqa: E402
+from jtc_hw.drivers.can.mit.hardware import MitHardware  # noqa: E402
 from jtc_hw.hardware.timing import reduce_timer_slack  # noqa: E402
 
 BITRATE = 1_000_000

@@ -41,9 +41,9 @@ from typing import Any
 import can
 
 from jtc_hw.controller.joints import JointCommand
-from jtc_hw.drivers.can import cia402_codec as c4
 from jtc_hw.drivers.can.bus import wire_time_s
-from jtc_hw.drivers.can.cia402 import Cia402Hardware
+from jtc_hw.drivers.can.cia402 import codec as c4
+from jtc_hw.drivers.can.cia402.hardware import Cia402Hardware
 from jtc_hw.hardware.timing import reduce_timer_slack
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))

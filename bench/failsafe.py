@@ -83,8 +83,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from jtc_hw.api.client import Client  # noqa: E402
-from jtc_hw.drivers.can.cia402_emulator import Cia402DriveEmulator  # noqa: E402
-from jtc_hw.drivers.can.emulator import MitBusEmulator  # noqa: E402
+from jtc_hw.drivers.can.cia402.emulator import Cia402DriveEmulator  # noqa: E402
+from jtc_hw.drivers.can.mit.emulator import MitBusEmulator  # noqa: E402
 from jtc_hw.drivers.can.socketcand import SocketcandServer  # noqa: E402
 from jtc_hw.drivers.dynamixel.emulator import DynamixelEmulator  # noqa: E402
 from jtc_hw.errors import JtcHwError  # noqa: E402

@@ -38,7 +38,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from jtc_hw.controller.joints import JointCommand  # noqa: E402
 from jtc_hw.daemon.clock import Ticker  # noqa: E402
-from jtc_hw.drivers.can.mit import MitHardware  # noqa: E402
+from jtc_hw.drivers.can.mit.hardware import MitHardware  # noqa: E402
 from jtc_hw.hardware.timing import reduce_timer_slack  # noqa: E402
 
 MOTORS = 6

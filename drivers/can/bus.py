@@ -1,10 +1,10 @@
 """The python-can bus layer shared by the CAN hardware kinds (``can-mit``, ``can-cia402``).
 
 This is the only module of ``drivers/can`` that decides how a ``can.Bus`` is opened, drained,
-checked and closed; the protocol modules (``frames``) do no I/O.
+checked and closed; the protocols' codecs (``mit.codec``, ``cia402.codec``) do no I/O.
 
-Public API (used by ``mit.py`` and ``cia402.py``)
--------------------------------------------------
+Public API (used by ``mit.hardware`` and ``cia402.hardware``)
+-------------------------------------------------------------
 Configuration:
 
 * :data:`BUS_FIELDS` -- the per-bus parameter schema (``interface``, ``channel``, ``bitrate``,

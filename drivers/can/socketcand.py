@@ -33,7 +33,7 @@ every client socket (``select.select``: its timeout has microsecond resolution, 
 only milliseconds) until a client sends or the earliest due frame of the given timers (the
 emulators, each with its own heap of due frames) is near, handles the clients' elements in
 itself (the emulators in push mode answer in it) and releases the due frames (waking a little
-early and spinning the rest, :class:`~jtc_hw.drivers.can.emulator.WakeEarly`). No thread of
+early and spinning the rest, :class:`~jtc_hw.drivers.can.emulation.WakeEarly`). No thread of
 the process then competes for the interpreter lock or waits on another.
 
 python-can's client reads the handshake replies with one ``recv`` each and compares them

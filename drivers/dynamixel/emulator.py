@@ -66,6 +66,7 @@ from types import TracebackType
 
 from jtc_hw.hardware.timing import reduce_timer_slack
 
+from .. import emulation_cli
 from ..can.emulation import DEFAULT_PRIORITY, realtime_priority
 from .control_table import BUS_WATCHDOG_FIRMWARE, HardwareError, model_by_name
 from .packets import (
@@ -818,27 +819,12 @@ _GROUP = frozenset(
 
 
 def parse_ids(text: str) -> list[int]:
-    """``"1-6"``, ``"1,3,5"``, ``"1-3,7"`` -> a list of ids.
+    """``"1-6"``, ``"1,3,5"``, ``"1-3,7"`` -> a list of ids (the emulators' shared syntax).
 
     Raises:
         ValueError: malformed text, ids out of 0..252 or duplicated.
     """
-    ids: list[int] = []
-    for part in text.split(","):
-        part = part.strip()
-        if not part:
-            continue
-        if "-" in part:
-            lo_text, hi_text = part.split("-", 1)
-            lo, hi = int(lo_text), int(hi_text)
-            if hi < lo:
-                raise ValueError(f"empty id range {part!r}")
-            ids.extend(range(lo, hi + 1))
-        else:
-            ids.append(int(part))
-    if not ids or any(not 0 <= i <= 252 for i in ids) or len(set(ids)) != len(ids):
-        raise ValueError(f"ids must be distinct values in 0..252: {text!r}")
-    return ids
+    return emulation_cli.parse_ids(text, valid=range(253))
 
 
 def build_parser() -> argparse.ArgumentParser:

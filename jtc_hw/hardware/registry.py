@@ -45,8 +45,8 @@ ENTRY_POINT_GROUP: Final = "jtc_hw.hardware"
 BUILTIN_HARDWARE: Final[Mapping[str, str]] = MappingProxyType({
     "mirror": "jtc_hw.hardware.mirror:MirrorHardware",
     "dynamixel": "jtc_hw.drivers.dynamixel.hardware:DynamixelHardware",
-    "can-mit": "jtc_hw.drivers.can.mit:MitHardware",
-    "can-cia402": "jtc_hw.drivers.can.cia402:Cia402Hardware",
+    "can-mit": "jtc_hw.drivers.can.mit.hardware:MitHardware",
+    "can-cia402": "jtc_hw.drivers.can.cia402.hardware:Cia402Hardware",
 })
 """Built-in kinds, as lazy ``"module:Class"`` strings."""
 

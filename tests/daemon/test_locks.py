@@ -20,8 +20,8 @@ import pytest
 from jtc_hw.daemon import locks
 from jtc_hw.daemon.locks import DeviceBusy, acquire, lock_devices, lock_file_name
 from jtc_hw.drivers.can.bus import THIS_HOST, BusSettings, bus_keys
-from jtc_hw.drivers.can.cia402 import Cia402Hardware
-from jtc_hw.drivers.can.mit import MitHardware
+from jtc_hw.drivers.can.cia402.hardware import Cia402Hardware
+from jtc_hw.drivers.can.mit.hardware import MitHardware
 from jtc_hw.drivers.dynamixel.hardware import DynamixelHardware
 from jtc_hw.errors import CommunicationError, HardwareError
 

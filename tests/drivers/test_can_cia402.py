@@ -20,9 +20,9 @@ import numpy as np
 import pytest
 
 from jtc_hw.controller.joints import JointCommand
-from jtc_hw.drivers.can.cia402 import Cia402Hardware
-from jtc_hw.drivers.can.cia402_codec import State
-from jtc_hw.drivers.can.cia402_emulator import Cia402DriveEmulator, NmtState
+from jtc_hw.drivers.can.cia402.codec import State
+from jtc_hw.drivers.can.cia402.emulator import Cia402DriveEmulator, NmtState
+from jtc_hw.drivers.can.cia402.hardware import Cia402Hardware
 from jtc_hw.errors import CommunicationError, ConfigurationError, HardwareError, MotorFault
 from jtc_hw.hardware import HardwareSpec, LifecycleState, create_hardware
 

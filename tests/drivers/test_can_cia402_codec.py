@@ -6,8 +6,8 @@ import math
 
 import pytest
 
-from jtc_hw.drivers.can import cia402_codec as c4
-from jtc_hw.drivers.can.cia402_codec import Command, State
+from jtc_hw.drivers.can.cia402 import codec as c4
+from jtc_hw.drivers.can.cia402.codec import Command, State
 from jtc_hw.errors import ProtocolError
 
 # -- statusword ----------------------------------------------------------------------------------

@@ -32,8 +32,8 @@ socketcand = pytest.importorskip(
     "jtc_hw.drivers.can.socketcand", reason="the socketcand server (CAN-MIT) is not available"
 )
 
-from jtc_hw.drivers.can.cia402_codec import AbortConnection, State  # noqa: E402
-from jtc_hw.drivers.can.cia402_emulator import Cia402DriveEmulator  # noqa: E402
+from jtc_hw.drivers.can.cia402.codec import AbortConnection, State  # noqa: E402
+from jtc_hw.drivers.can.cia402.emulator import Cia402DriveEmulator  # noqa: E402
 
 pytestmark = pytest.mark.usefixtures("no_leaks")  # threads, sockets, resources
 

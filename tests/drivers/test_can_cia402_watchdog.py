@@ -27,10 +27,10 @@ from canopen.sdo.exceptions import SdoAbortedError
 from test_can_cia402 import BOUND_S, CPR, NODES, Rig, hold
 
 from jtc_hw.controller.joints import JointCommand
-from jtc_hw.drivers.can import cia402_codec as c4
-from jtc_hw.drivers.can.cia402 import Cia402Hardware
-from jtc_hw.drivers.can.cia402_codec import AbortConnection, State
-from jtc_hw.drivers.can.cia402_emulator import DEFAULT_EDS, Cia402DriveEmulator, NmtState
+from jtc_hw.drivers.can.cia402 import codec as c4
+from jtc_hw.drivers.can.cia402.codec import AbortConnection, State
+from jtc_hw.drivers.can.cia402.emulator import DEFAULT_EDS, Cia402DriveEmulator, NmtState
+from jtc_hw.drivers.can.cia402.hardware import Cia402Hardware
 from jtc_hw.errors import ConfigurationError, HardwareError, MotorFault
 from jtc_hw.hardware import LifecycleState
 

@@ -23,9 +23,9 @@ from helpers.daemon import WAIT_S, daemon_env
 
 from jtc_hw.controller.joints import JointCommand
 from jtc_hw.drivers.can.bus import open_bus
-from jtc_hw.drivers.can.emulator import MitBusEmulator
-from jtc_hw.drivers.can.frames import MODEL_PRESETS, MitReply, encode_reply, quantum
-from jtc_hw.drivers.can.mit import MitHardware
+from jtc_hw.drivers.can.mit.codec import MODEL_PRESETS, MitReply, encode_reply, quantum
+from jtc_hw.drivers.can.mit.emulator import MitBusEmulator
+from jtc_hw.drivers.can.mit.hardware import MitHardware
 from jtc_hw.errors import CommunicationError, ConfigurationError, HardwareError, MotorFault
 from jtc_hw.hardware import HardwareSpec, create_hardware
 

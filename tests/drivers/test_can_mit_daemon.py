@@ -41,7 +41,7 @@ from helpers.hardware_threads import start_as_hardware
 from jtc_hw.api.client import Client
 from jtc_hw.api.framing import RequestError
 from jtc_hw.cli.status import format_hardware, hardware_report
-from jtc_hw.drivers.can.emulator import MitBusEmulator
+from jtc_hw.drivers.can.mit.emulator import MitBusEmulator
 from jtc_hw.drivers.can.socketcand import SocketcandServer
 
 pytestmark = pytest.mark.usefixtures("no_leaks")  # threads, sockets, resources

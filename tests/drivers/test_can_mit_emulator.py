@@ -24,8 +24,7 @@ import pytest
 from helpers.can_emulator import control
 from helpers.daemon import WAIT_S, daemon_env
 
-from jtc_hw.drivers.can.emulator import EmulatorEvent, MitBusEmulator
-from jtc_hw.drivers.can.frames import (
+from jtc_hw.drivers.can.mit.codec import (
     CLEAR_ERROR,
     ENTER_MOTOR_MODE,
     EXIT_MOTOR_MODE,
@@ -41,6 +40,7 @@ from jtc_hw.drivers.can.frames import (
     encode_register_frame,
     timeout_register_value,
 )
+from jtc_hw.drivers.can.mit.emulator import EmulatorEvent, MitBusEmulator
 
 from conftest import ROOT
 

@@ -19,8 +19,8 @@ import pytest
 
 from jtc_hw.controller.joints import JointCommand
 from jtc_hw.drivers.can.bus import BUS_FIELDS, BusHealth, BusSettings, full_queue, send
-from jtc_hw.drivers.can.emulator import MitBusEmulator
-from jtc_hw.drivers.can.mit import MitHardware
+from jtc_hw.drivers.can.mit.emulator import MitBusEmulator
+from jtc_hw.drivers.can.mit.hardware import MitHardware
 from jtc_hw.errors import CommunicationError
 
 pytestmark = pytest.mark.usefixtures("no_leaks")  # threads, sockets, resources

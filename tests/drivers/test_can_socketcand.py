@@ -16,9 +16,9 @@ import pytest
 from helpers.daemon import daemon_env
 
 from jtc_hw.controller.joints import JointCommand
-from jtc_hw.drivers.can.emulator import MitBusEmulator
-from jtc_hw.drivers.can.frames import ENTER_MOTOR_MODE
-from jtc_hw.drivers.can.mit import MitHardware
+from jtc_hw.drivers.can.mit.codec import ENTER_MOTOR_MODE
+from jtc_hw.drivers.can.mit.emulator import MitBusEmulator
+from jtc_hw.drivers.can.mit.hardware import MitHardware
 from jtc_hw.drivers.can.socketcand import SocketcandServer, format_frame, parse_send
 
 from conftest import ROOT

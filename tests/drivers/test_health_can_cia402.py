@@ -15,8 +15,8 @@ from typing import Any
 import can
 import pytest
 
-from jtc_hw.drivers.can.cia402 import Cia402Hardware
-from jtc_hw.drivers.can.cia402_emulator import Cia402DriveEmulator
+from jtc_hw.drivers.can.cia402.emulator import Cia402DriveEmulator
+from jtc_hw.drivers.can.cia402.hardware import Cia402Hardware
 from jtc_hw.errors import HardwareError
 
 pytestmark = pytest.mark.usefixtures("no_leaks")

@@ -18,8 +18,8 @@ import pytest
 
 from jtc_hw.cli.status import format_hardware, hardware_report
 from jtc_hw.controller.joints import JointCommand
-from jtc_hw.drivers.can.emulator import MitBusEmulator
-from jtc_hw.drivers.can.mit import MitHardware
+from jtc_hw.drivers.can.mit.emulator import MitBusEmulator
+from jtc_hw.drivers.can.mit.hardware import MitHardware
 
 pytestmark = pytest.mark.usefixtures("no_leaks")
 

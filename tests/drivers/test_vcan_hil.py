@@ -212,8 +212,8 @@ def test_cia402_goal_drive_fault_and_rearm(tmp_path: Path) -> None:
     and CSP; a goal succeeds, a drive fault aborts naming the drive, the re-arm resets it.
     The drives are emulated in this process (faults are injected into them); the daemon is
     another process, so every frame crosses vcan0."""
-    from jtc_hw.drivers.can.cia402_codec import State
-    from jtc_hw.drivers.can.cia402_emulator import Cia402DriveEmulator
+    from jtc_hw.drivers.can.cia402.codec import State
+    from jtc_hw.drivers.can.cia402.emulator import Cia402DriveEmulator
 
     joints, nodes = ["shoulder", "elbow"], [3, 7]
     bus = can.Bus(interface="socketcan", channel="vcan0")

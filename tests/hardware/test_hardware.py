@@ -745,8 +745,8 @@ def test_builtin_kinds_are_lazy_import_strings() -> None:
     assert dict(BUILTIN_HARDWARE) == {
         "mirror": "jtc_hw.hardware.mirror:MirrorHardware",
         "dynamixel": "jtc_hw.drivers.dynamixel.hardware:DynamixelHardware",
-        "can-mit": "jtc_hw.drivers.can.mit:MitHardware",
-        "can-cia402": "jtc_hw.drivers.can.cia402:Cia402Hardware",
+        "can-mit": "jtc_hw.drivers.can.mit.hardware:MitHardware",
+        "can-cia402": "jtc_hw.drivers.can.cia402.hardware:Cia402Hardware",
     }
     assert {"mirror", "dynamixel", "can-mit", "can-cia402"} <= set(available_hardware())
     assert hardware_class("mirror") is MirrorHardware

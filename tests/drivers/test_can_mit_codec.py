@@ -14,8 +14,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from jtc_hw.drivers.can.bus import wire_bits, wire_time_s
-from jtc_hw.drivers.can.emulator import MitBusEmulator
-from jtc_hw.drivers.can.frames import (
+from jtc_hw.drivers.can.mit.codec import (
     DAMIAO_REGISTERS,
     ENTER_MOTOR_MODE,
     EXIT_MOTOR_MODE,
@@ -41,6 +40,7 @@ from jtc_hw.drivers.can.frames import (
     timeout_register_value,
     uint_to_float,
 )
+from jtc_hw.drivers.can.mit.emulator import MitBusEmulator
 
 AK80 = MODEL_PRESETS["AK80-9"]  # p 12.5, v 50, t 18, kp 500, kd 5
 DM = MODEL_PRESETS["DM4310"]  # p 12.5, v 30, t 10, Damiao reply

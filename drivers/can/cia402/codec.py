@@ -60,7 +60,9 @@ from typing import Final
 
 from jtc_hw.errors import ProtocolError
 
-DEFAULT_EDS: Final = Path(str(resources.files("jtc_hw.drivers.can").joinpath("jtc_hw_drive.eds")))
+DEFAULT_EDS: Final = Path(
+    str(resources.files("jtc_hw.drivers.can.cia402").joinpath("jtc_hw_drive.eds"))
+)
 """The EDS of the emulated drive, shipped with the package (the driver's default)."""
 
 __all__ = [

@@ -116,7 +116,7 @@ from jtc_hw.hardware import (
     param_table,
 )
 
-from .bus import (
+from ..bus import (
     BusHealth,
     BusSettings,
     buses_param,
@@ -131,7 +131,7 @@ from .bus import (
     send,
     wire_bits,
 )
-from .frames import (
+from .codec import (
     CLEAR_ERROR,
     DAMIAO_STATES,
     DAMIAO_TIMEOUT_RID,
@@ -154,7 +154,8 @@ from .frames import (
 
 __all__ = ["MitHardware"]
 
-_log = logging.getLogger(__name__)
+# A logger name is public (log filters name it): the one from before drivers/can/ was split.
+_log = logging.getLogger("jtc_hw.drivers.can.mit")
 F64 = NDArray[np.float64]
 NS_PER_S = 1_000_000_000
 DISABLED = 0  # Damiao state code of a motor out of motor mode (as after a power-up)

@@ -2,20 +2,14 @@
 
 Theory of operation
 -------------------
-Configuration (``configure``) uses the ``canopen`` library while a python-can ``Notifier``
-thread feeds it: per drive an NMT *reset communication* and the wait for its boot-up message
-(proof that it is there, and PDO parameters back to their defaults), an SDO check of the
-device type (profile 402), the PDO mapping written with canopen's PDO API (RPDO1
-controlword + target position / velocity, TPDO1 statusword + position actual + torque actual,
-TPDO2 velocity actual + error code + modes of operation display, all of transmission type 1:
-synchronous), the mode of operation (0x6060 = 8 CSP or 9 CSV, checked in 0x6061: a refused
-mode switch is an error), the abort connection option code (0x6007, ``watchdog_reaction``)
-and a heartbeat consumer entry (0x1016) claimed for the daemon's node id, then NMT *start*.
+Configuration (``configure``: :mod:`~jtc_hw.drivers.can.cia402.sdo`) sets every drive up
+with ``canopen``'s SDO client while a python-can ``Notifier`` thread feeds it: NMT reset and
+boot-up, device type, PDO mapping, mode of operation, 0x6007, a 0x1016 consumer entry, start.
 The Notifier is then stopped: in cyclic operation the driver owns the bus receive (``bus.py``'s
 non-blocking drain), so the control-loop process has no second Python thread competing for
 the interpreter lock.
 
-The cycle (layouts and state machine from :mod:`~jtc_hw.drivers.can.cia402_codec`):
+The cycle (layouts and state machine from :mod:`~jtc_hw.drivers.can.cia402.codec`):
 
 * ``write``: late frames (answers to the previous SYNC that came after its read) are taken
   and counted, then per bus every drive's RPDO1 (controlword, target), one SYNC and, every
@@ -60,14 +54,11 @@ from __future__ import annotations
 
 import logging
 import math
-import struct
 import time
 from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
-from dataclasses import dataclass, field, replace
 from itertools import zip_longest
 from pathlib import Path
-from types import MappingProxyType
 from typing import Any, ClassVar
 
 import can
@@ -93,23 +84,23 @@ from jtc_hw.hardware import (
     param_table,
 )
 
-from . import bus as canbus
-from . import cia402_codec as c4
+from .. import bus as canbus
+from . import codec as c4
+from .drives import Drive, DriveBus
+from .sdo import DriveSetup
 
 __all__ = ["Cia402Hardware"]
 
-_log = logging.getLogger(__name__)
+# A logger name is public (log filters name it): the one from before drivers/can/ was split.
+_log = logging.getLogger("jtc_hw.drivers.can.cia402")
 
-_PROFILE_402 = 402
-_NOTIFIER_CYCLE_S = 0.02
 _SDO_NOTIFIER_CYCLE_S = 0.005  # SDO sessions of activate / deactivate: stop them sooner
 _FAULTY = (c4.State.FAULT, c4.State.FAULT_REACTION_ACTIVE)
 # Health: the error register 0x1001 is no PDO object; in cyclic operation one expedited SDO
-# upload request (client -> server 0x600 + node, answer on 0x580 + node) goes out after a
-# cycle's SYNC at a low rate, and the answer is taken with the TPDOs (the driver owns the bus
-# receive then: canopen's SDO client, which blocks, is not used).
-_SDO_REQUEST = 0x600
-_SDO_RESPONSE = 0x580
+# upload request (client -> server 0x600 + node, answer on 0x580 + node: ``Drive.sdo_tx``,
+# ``Drive.sdo_rx``) goes out after a cycle's SYNC at a low rate, and the answer is taken with
+# the TPDOs (the driver owns the bus receive then: canopen's SDO client, which blocks, is not
+# used).
 _SDO_UPLOAD = 0x40  # ccs 2: initiate upload; scs 2 answers (0x4F for one expedited byte)
 _SDO_ABORT = 0x80
 _HEARTBEATS_PER_WATCHDOG = 4
@@ -124,89 +115,6 @@ _REACTION_TEXT = {
     c4.AbortConnection.FAULT: "fault reaction (0x605E), then Fault",
     c4.AbortConnection.DISABLE_VOLTAGE: "Disable Voltage (power stage off at once: it coasts)",
 }
-
-
-@dataclass
-class _Drive:
-    """One drive: its configuration and its newest feedback."""
-
-    joint: str
-    index: int
-    node_id: int
-    bus: str
-    scale: c4.JointScale
-    lower: float
-    upper: float
-    vmax: float
-    tpdo1: int = 0
-    tpdo2: int = 0
-    rpdo1: int = 0
-    emcy: int = 0
-    statusword: int | None = None
-    state: c4.State | None = None
-    position_counts: int = 0
-    torque_permille: int = 0
-    velocity_value: int = 0
-    error_code: int = 0
-    mode_display: int = 0
-    rx1_at: float = 0.0
-    rx2_at: float = 0.0
-    fresh: bool = False
-    late: int = 0
-    missed: int = 0
-    last_emcy: int | None = None
-    heartbeat_lost: bool = False
-    consumer_sub: int = 0
-    controlword: int = 0
-    target: int = 0
-    error_register: int | None = None  # 0x1001, read by SDO at a low rate (health)
-    sdo_tx: int = 0
-    sdo_rx: int = 0
-
-    def __post_init__(self) -> None:
-        self.tpdo1 = c4.tpdo_cob_id(1, self.node_id)
-        self.tpdo2 = c4.tpdo_cob_id(2, self.node_id)
-        self.rpdo1 = c4.rpdo_cob_id(1, self.node_id)
-        self.emcy = c4.emcy_cob_id(self.node_id)
-        self.sdo_tx = _SDO_REQUEST + self.node_id
-        self.sdo_rx = _SDO_RESPONSE + self.node_id
-
-    def who(self) -> str:
-        return f"drive node {self.node_id} (joint {self.joint!r}, bus {self.bus!r})"
-
-    def describe_state(self) -> str:
-        if self.statusword is None or self.state is None:
-            return "no statusword yet"
-        return f"{self.state.value} (statusword 0x{self.statusword:04X})"
-
-
-@dataclass
-class _Bus:
-    """One CAN bus and the drives on it."""
-
-    settings: canbus.BusSettings
-    drives: list[_Drive]
-    health: canbus.BusHealth
-    bus: can.BusABC | None = None
-    keys: dict[int, tuple[_Drive, int]] = field(default_factory=dict)
-    sync_outstanding: bool = False
-    syncs: int = 0
-    opened_at: float = 0.0
-    network: canopen.Network | None = None
-    nodes: dict[int, canopen.RemoteNode] = field(default_factory=dict)
-    next_beat: float = 0.0
-    beats: int = 0
-
-    def __post_init__(self) -> None:
-        for d in self.drives:
-            self.keys[d.tpdo1] = (d, 1)
-            self.keys[d.tpdo2] = (d, 2)
-            self.keys[d.emcy] = (d, 0)
-            self.keys[d.sdo_rx] = (d, 3)
-
-    def key(self, msg: can.Message) -> int | None:
-        cob = int(msg.arbitration_id)
-        return cob if cob in self.keys else None
 
 
 def _watchdog_ms(watchdog_s: float) -> int:
@@ -229,15 +137,6 @@ def _watchdog_ms(watchdog_s: float) -> int:
             "params.watchdog_s", watchdog_s,
         )
     return ms
-
-
-def _tuned(settings: canbus.BusSettings) -> canbus.BusSettings:
-    """``socketcand`` with ``tcp_tune`` on unless configured: without TCP_NODELAY the RPDOs and
-    the SYNC of one cycle, written separately, wait for Nagle's algorithm and the server's
-    delayed ACK (tens of ms), and every cycle's answers come late."""
-    if settings.interface != "socketcand" or "tcp_tune" in settings.options:
-        return settings
-    return replace(settings, options=MappingProxyType({**settings.options, "tcp_tune": True}))
 
 
 class Cia402Hardware(HardwareInterface):
@@ -335,22 +234,22 @@ class Cia402Hardware(HardwareInterface):
         self._rpdo_layout = c4.RPDO_CSP if self._csp else c4.RPDO_CSV
         buses: Mapping[str, canbus.BusSettings] = p["buses"]
         bus_of = canbus.joint_buses(self.joints, p["bus"], buses)
-        self._eds = str(p["eds"] or c4.DEFAULT_EDS)
+        eds = str(p["eds"] or c4.DEFAULT_EDS)
         if p["eds"] and not Path(p["eds"]).is_file():
             raise ConfigurationError(f"no such EDS file {p['eds']!r}", "params.eds", p["eds"])
-        drives: list[_Drive] = []
+        drives: list[Drive] = []
         for i, joint in enumerate(self.joints):
             direction = p["direction"][i]
             low, high = p["position_limits"][i]
             vmax = p["velocity_limit"][i]
-            drives.append(_Drive(
+            drives.append(Drive(
                 joint=joint, index=i, node_id=p["node_id"][i], bus=bus_of[i],
                 scale=c4.JointScale(p["counts_per_revolution"][i], p["gear_ratio"][i],
                                     direction, p["offset"][i], p["velocity_unit"]),
                 lower=low, upper=high, vmax=vmax if vmax > 0.0 else math.inf,
             ))
         self._drives = drives
-        self._buses: dict[str, _Bus] = {}
+        self._buses: dict[str, DriveBus] = {}
         for name_, settings in buses.items():
             on = [d for d in drives if d.bus == name_]
             seen: dict[int, str] = {}
@@ -363,9 +262,8 @@ class Cia402Hardware(HardwareInterface):
                     )
                 seen[d.node_id] = d.joint
             if on:
-                self._buses[name_] = _Bus(settings, on, canbus.BusHealth(settings))
+                self._buses[name_] = DriveBus(settings, on, canbus.BusHealth(settings))
         self._feedback_timeout_s: float = p["feedback_timeout_s"]
-        self._boot_timeout_s: float = p["boot_timeout_s"]
         self._transition_timeout_s: float = p["transition_timeout_s"]
         self._last_fault_by_node: dict[int, str] = {}
         self._watchdog_ms = _watchdog_ms(p["watchdog_s"])
@@ -381,6 +279,8 @@ class Cia402Hardware(HardwareInterface):
                     "params.master_node_id", self._master_id,
                 )
         self._reaction = _REACTIONS[p["watchdog_reaction"]]
+        self._sdo = DriveSetup(self._owner(), eds, self.mode, self._rpdo_layout, self._reaction,
+                               self._master_id, p["boot_timeout_s"])
         self._armed = False  # the drives' consumers watch our heartbeat (0x1016 written)
         self._feeding = False  # we produce it (active, or activating / deactivating)
         self._disarm_failures: list[str] = []
@@ -395,10 +295,10 @@ class Cia402Hardware(HardwareInterface):
         try:
             for b in self._buses.values():
                 b.health = canbus.BusHealth(b.settings)
-                b.bus = canbus.open_settings(_tuned(b.settings))
+                b.bus = canbus.open_settings(b.settings)  # socketcand: tcp_tune on
                 b.opened_at = time.monotonic()
                 b.sync_outstanding = False
-                self._configure_bus(b)
+                self._sdo.configure_bus(b)
         except BaseException:
             self._cleanup()
             raise
@@ -408,139 +308,6 @@ class Cia402Hardware(HardwareInterface):
             d.fresh = False
             d.last_emcy = None
             d.heartbeat_lost = False
-
-    def _configure_bus(self, b: _Bus) -> None:
-        assert b.bus is not None
-        network = canopen.Network(b.bus)
-        nodes = {d.node_id: network.add_node(d.node_id, self._eds) for d in b.drives}
-        b.network, b.nodes = network, nodes  # for the SDO sessions of activate / deactivate
-        booted: dict[int, bool] = {}
-
-        def on_heartbeat(node_id: int) -> Any:
-            def callback(state: int) -> None:
-                if state == 0:
-                    booted[node_id] = True
-            return callback
-
-        canbus.flush(b.bus)  # boot-ups and answers from before: not ours
-        notifier = can.Notifier(b.bus, [MessageListener(network)], timeout=_NOTIFIER_CYCLE_S)
-        try:
-            for d in b.drives:
-                node = nodes[d.node_id]
-                node.sdo.RESPONSE_TIMEOUT = b.settings.setup_timeout
-                node.nmt.add_heartbeat_callback(on_heartbeat(d.node_id))
-                node.nmt.send_command(c4.NMT_RESET_COMMUNICATION)
-            deadline = time.monotonic() + self._boot_timeout_s
-            for d in b.drives:
-                node = nodes[d.node_id]
-                with node.nmt.state_update:
-                    while not booted.get(d.node_id):
-                        remaining = deadline - time.monotonic()
-                        if remaining <= 0.0:
-                            raise CommunicationError(
-                                f"{self._owner()}: {d.who()} sent no boot-up message within "
-                                f"{self._boot_timeout_s:g} s of an NMT reset communication; "
-                                "check its power, wiring, node id and that the bus runs at "
-                                f"{b.settings.bitrate} bit/s"
-                            )
-                        node.nmt.state_update.wait(remaining)
-            for d in b.drives:
-                self._setup_drive(d, nodes[d.node_id])
-            for d in b.drives:
-                nodes[d.node_id].nmt.send_command(c4.NMT_START)
-        finally:
-            notifier.stop(timeout=2.0)
-        # canopen's PDO maps subscribed to their frames while saving; the cycle decodes them.
-        network.subscribers.clear()
-
-    def _sdo_error(self, d: _Drive, what: str, exc: Exception) -> HardwareError:
-        if isinstance(exc, SdoAbortedError):
-            return HardwareError(
-                f"{self._owner()}: {d.who()} refused {what}: SDO abort 0x{exc.code:08X} "
-                f"({one_line(exc)}); check that the drive supports it (EDS: {self._eds})"
-            )
-        return CommunicationError(
-            f"{self._owner()}: {d.who()} did not answer while {what} ({one_line(exc)}); "
-            "check the "
-            "drive's power and wiring"
-        )
-
-    def _setup_drive(self, d: _Drive, node: canopen.RemoteNode) -> None:
-        what = "reading the device type 0x1000"
-        try:
-            device_type = int(node.sdo[c4.DEVICE_TYPE].raw)
-            if device_type & 0xFFFF != _PROFILE_402:
-                raise HardwareError(
-                    f"{self._owner()}: {d.who()} is not a CiA 402 drive: device type "
-                    f"0x{device_type:08X} (profile {device_type & 0xFFFF}); check the node id"
-                )
-            what = "mapping its PDOs"
-            self._map(node.rpdo[1], d.rpdo1, self._rpdo_layout)
-            self._map(node.rpdo[2], c4.rpdo_cob_id(2, d.node_id), None)
-            self._map(node.tpdo[1], d.tpdo1, c4.TPDO_STATUS)
-            self._map(node.tpdo[2], d.tpdo2, c4.TPDO_FEEDBACK)
-            what = f"setting the mode of operation 0x6060 to {int(self.mode)} ({self.mode.name})"
-            node.sdo[c4.MODES_OF_OPERATION].raw = int(self.mode)
-            shown = int(node.sdo[c4.MODES_OF_OPERATION_DISPLAY].raw)
-            # By index, not through the EDS: a drive's EDS need not list these objects.
-            what = (f"setting the abort connection option code 0x6007 to {int(self._reaction)} "
-                    f"({self._reaction.name.lower()})")
-            node.sdo.download(c4.ABORT_CONNECTION_OPTION, 0, struct.pack("<h", self._reaction))
-            what = "reading its consumer heartbeat time entries 0x1016"
-            d.consumer_sub = self._consumer_entry(d, node)
-            what = f"writing its consumer heartbeat time 0x1016:{d.consumer_sub}"
-            self._write_consumer(d, node, 0)  # claimed, not watching yet: activate arms it
-        except (SdoAbortedError, SdoCommunicationError) as exc:
-            raise self._sdo_error(d, what, exc) from exc
-        d.mode_display = shown
-        if shown != int(self.mode):
-            raise HardwareError(
-                f"{self._owner()}: {d.who()}: mode switch failed: 0x6060 was set to "
-                f"{int(self.mode)} ({self.mode.name}) but 0x6061 displays {shown}; check "
-                "that the drive supports cyclic synchronous modes (0x6502) and is not "
-                "being commanded by another master"
-            )
-
-    def _consumer_entry(self, d: _Drive, node: canopen.RemoteNode) -> int:
-        """The 0x1016 sub-index to use: the one already watching the master's node id, else
-        the first unused one (CiA 301 refuses two entries for one node id).
-
-        Raises:
-            HardwareError: every entry watches another node.
-        """
-        count = int.from_bytes(node.sdo.upload(c4.CONSUMER_HEARTBEAT_TIME, 0), "little")
-        free = 0
-        for sub in range(1, count + 1):
-            value = int.from_bytes(node.sdo.upload(c4.CONSUMER_HEARTBEAT_TIME, sub), "little")
-            entry = c4.decode_consumer_entry(value)
-            if entry is None:
-                free = free or sub
-            elif entry[0] == self._master_id:
-                return sub
-        if not free:
-            raise HardwareError(
-                f"{self._owner()}: {d.who()} has no free consumer heartbeat entry in 0x1016 "
-                f"({count} entries, each watching another node) for the daemon's heartbeat "
-                f"(node {self._master_id}); free one with the drive's configuration tool"
-            )
-        return free
-
-    def _write_consumer(self, d: _Drive, node: canopen.RemoteNode, time_ms: int) -> None:
-        value = c4.encode_consumer_entry(self._master_id, time_ms)
-        node.sdo.download(c4.CONSUMER_HEARTBEAT_TIME, d.consumer_sub, struct.pack("<I", value))
-
-    @staticmethod
-    def _map(pdo: Any, cob_id: int, layout: c4.PdoLayout | None) -> None:
-        pdo.clear()
-        pdo.cob_id = cob_id
-        if layout is None:
-            pdo.enabled = False
-        else:
-            for entry in layout.entries:
-                pdo.add_variable(entry.index, entry.subindex)
-            pdo.trans_type = 1
-            pdo.enabled = True
-        pdo.save()
 
     def _activate(self, now_ns: int) -> JointCommand:
         for b in self._buses.values():
@@ -695,7 +462,7 @@ class Cia402Hardware(HardwareInterface):
     # -- the heartbeat watchdog --------------------------------------------------------------------
 
     @contextmanager
-    def _sdo_session(self, b: _Bus) -> Iterator[dict[int, canopen.RemoteNode]]:
+    def _sdo_session(self, b: DriveBus) -> Iterator[dict[int, canopen.RemoteNode]]:
         """canopen's SDO clients of ``b``'s drives, fed by a Notifier thread for the session
         only (in cyclic operation the driver receives frames itself, with no second thread)."""
         bus, network = self._bus_of(b), b.network
@@ -711,7 +478,7 @@ class Cia402Hardware(HardwareInterface):
             network.subscribers.clear()
             self._flush(b)  # answers to nothing of ours from the session: not cycle feedback
 
-    def _send_heartbeat(self, b: _Bus) -> None:
+    def _send_heartbeat(self, b: DriveBus) -> None:
         self._send(b, can.Message(arbitration_id=c4.bootup_cob_id(self._master_id),
                                   is_extended_id=False,
                                   data=c4.encode_heartbeat(c4.NmtState.OPERATIONAL)))
@@ -729,9 +496,9 @@ class Cia402Hardware(HardwareInterface):
             with self._sdo_session(b) as nodes:
                 for d in b.drives:
                     try:
-                        self._write_consumer(d, nodes[d.node_id], self._watchdog_ms)
+                        self._sdo.write_consumer(d, nodes[d.node_id], self._watchdog_ms)
                     except (SdoAbortedError, SdoCommunicationError) as exc:
-                        raise self._sdo_error(
+                        raise self._sdo.sdo_error(
                             d, f"arming its heartbeat consumer 0x1016:{d.consumer_sub}", exc
                         ) from exc
         self._armed = self._feeding = True
@@ -760,7 +527,7 @@ class Cia402Hardware(HardwareInterface):
                         else:
                             self._send_heartbeat(b)
                             try:
-                                self._write_consumer(d, nodes[d.node_id], 0)
+                                self._sdo.write_consumer(d, nodes[d.node_id], 0)
                             except (SdoAbortedError, SdoCommunicationError) as exc:
                                 failures.append(f"{d.who()} did not confirm "
                                                 f"({one_line(exc)})")
@@ -876,7 +643,7 @@ class Cia402Hardware(HardwareInterface):
                 velocities[d.index] = d.scale.velocity(d.velocity_value)
         return JointState(positions, velocities)
 
-    def _check(self, d: _Drive, now: float, active: bool) -> None:
+    def _check(self, d: Drive, now: float, active: bool) -> None:
         if active and d.heartbeat_lost:
             # First: the drive may still answer (or even show Operation Enabled again, were
             # its quick stop left by our next Enable Operation), but it did stop by itself.
@@ -936,12 +703,12 @@ class Cia402Hardware(HardwareInterface):
 
     # -- bus helpers ------------------------------------------------------------------------------
 
-    def _bus_of(self, b: _Bus) -> can.BusABC:
+    def _bus_of(self, b: DriveBus) -> can.BusABC:
         if b.bus is None:
             raise CommunicationError(f"{self._owner()}: {b.settings.describe()} is not open")
         return b.bus
 
-    def _bus_error(self, b: _Bus, what: str, exc: BaseException) -> CommunicationError:
+    def _bus_error(self, b: DriveBus, what: str, exc: BaseException) -> CommunicationError:
         """A failure of bus ``b`` as a whole, in one line: what failed, on which bus, the
         drives it leaves unreachable, and the library's reason cut to its first line
         (python-can's socketcand client appends a whole traceback to its errors)."""
@@ -950,13 +717,13 @@ class Cia402Hardware(HardwareInterface):
             f"{self._owner()}: {what} on {b.settings.describe()} failed, drives {drives} "
             f"unreachable: {one_line(exc)}; check the interface and its connection")
 
-    def _send(self, b: _Bus, msg: can.Message) -> bool:
+    def _send(self, b: DriveBus, msg: can.Message) -> bool:
         try:
             return canbus.send(self._bus_of(b), msg, b.health)
         except can.CanError as exc:
             raise self._bus_error(b, "sending", exc) from exc
 
-    def _send_cycle(self, buses: Sequence[_Bus], *, send_rpdo: bool) -> None:
+    def _send_cycle(self, buses: Sequence[DriveBus], *, send_rpdo: bool) -> None:
         """Every drive's RPDO1 (optionally), one SYNC and, when due, the daemon's heartbeat,
         on each of ``buses``.
 
@@ -993,7 +760,7 @@ class Cia402Hardware(HardwareInterface):
                 if msg is not None:
                     self._send(b, msg)
 
-    def _collect(self, b: _Bus, deadline: float) -> None:
+    def _collect(self, b: DriveBus, deadline: float) -> None:
         latest: dict[int, can.Message] = {}
         want = {d.tpdo1 for d in b.drives} | {d.tpdo2 for d in b.drives}
         try:
@@ -1006,7 +773,7 @@ class Cia402Hardware(HardwareInterface):
                 d.missed += 1
         b.health.check(self._bus_of(b), self._owner())
 
-    def _take(self, b: _Bus, latest: Mapping[int, can.Message], result: Any) -> None:
+    def _take(self, b: DriveBus, latest: Mapping[int, can.Message], result: Any) -> None:
         for err in result.errors:
             b.health.note_error_frame(err)
         b.health.rx_frames += result.stored
@@ -1035,7 +802,7 @@ class Cia402Hardware(HardwareInterface):
                     f"decode ({one_line(exc)}); another master may have remapped its PDOs"
                 ) from exc
 
-    def _take_sdo(self, d: _Drive, data: bytes) -> None:
+    def _take_sdo(self, d: Drive, data: bytes) -> None:
         """An SDO answer: the error register if it is the upload of 0x1001:00 (anything else,
         e.g. a late answer to configure's canopen session, is not ours and is left alone)."""
         if len(data) < 5 or data[1] | data[2] << 8 != c4.ERROR_REGISTER or data[3] != 0:
@@ -1045,7 +812,7 @@ class Cia402Hardware(HardwareInterface):
         elif data[0] == _SDO_ABORT:
             self._sdo_aborts += 1
 
-    def _drain_late(self, b: _Bus) -> None:
+    def _drain_late(self, b: DriveBus) -> None:
         """Take the answers that came after the last read's window, counting them as late.
 
         They are still the newest feedback (a cycle shorter than the bus needs makes every
@@ -1063,7 +830,7 @@ class Cia402Hardware(HardwareInterface):
             if which == 1:
                 d.late += 1
 
-    def _flush(self, b: _Bus) -> None:
+    def _flush(self, b: DriveBus) -> None:
         if b.bus is None:
             return
         try:
@@ -1090,7 +857,7 @@ class Cia402Hardware(HardwareInterface):
 
     # -- errors -----------------------------------------------------------------------------------
 
-    def _comm_lost(self, d: _Drive, age: float | None) -> CommunicationError:
+    def _comm_lost(self, d: Drive, age: float | None) -> CommunicationError:
         b = self._buses[d.bus]
         if age is None:
             what = f"did not answer a SYNC within {b.settings.setup_timeout:g} s"
@@ -1108,14 +875,14 @@ class Cia402Hardware(HardwareInterface):
         self._last_fault_by_node[d.node_id] = message
         return CommunicationError(message)
 
-    def _heartbeat_fault(self, d: _Drive) -> MotorFault:
+    def _heartbeat_fault(self, d: Drive) -> MotorFault:
         return self._fault(
             d, f"lost the daemon's heartbeat (none for {self._watchdog_ms} ms, watchdog_s) and "
             f"stopped by itself with 0x6007 {_REACTION_TEXT[self._reaction]}: the control loop "
             "stalled or its frames did not reach the drive; re-arm when it runs again",
         )
 
-    def _fault(self, d: _Drive, what: str) -> MotorFault:
+    def _fault(self, d: Drive, what: str) -> MotorFault:
         code = d.error_code or d.last_emcy or 0
         message = (
             f"{self._owner()}: {d.who()} {what}: state {d.describe_state()}, error code "

@@ -19,7 +19,7 @@ import os
 import signal
 import sys
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from ..errors import JtcHwError
 from .backend import LoopBackend
@@ -27,6 +27,9 @@ from .locks import DeviceLock, acquire, socket_lock_path
 from .robot import RobotConfig, load_robot
 from .sdnotify import Notifier
 from .unix_socket import make_socket_directory
+
+if TYPE_CHECKING:
+    from .requests import Requests
 
 log = logging.getLogger("jtc_hw.daemon")
 
@@ -121,6 +124,8 @@ class Daemon:
                        what="served")
 
     async def _serve(self, aio: asyncio.AbstractEventLoop) -> int:
+        # Here, not at the top: the CLI's other commands import this module (start-up time).
+        from .requests import Requests
         from .server import Server
 
         settings = self.robot.daemon
@@ -130,7 +135,8 @@ class Daemon:
             log.error("cannot start: %s", exc)
             await self.backend.stop("start-up failed", record=False)
             return 2
-        server = Server(self.backend, settings)
+        requests = Requests(self.backend, settings.max_message_bytes)
+        server = Server(self.backend, settings, requests)
         try:
             await server.start()
         except Exception as exc:
@@ -142,7 +148,7 @@ class Daemon:
             await server.close()
             await self.backend.stop("start-up failed", record=False)
             return 2
-        zenoh = await self._start_zenoh(server)
+        zenoh = await self._start_zenoh(requests)
         if zenoh is False:
             if live is not None:
                 await live.close()
@@ -168,6 +174,7 @@ class Daemon:
             if zenoh is not None:
                 await zenoh.close()  # after the loop's stop: its last results are published
             await server.close()
+            requests.close()
             # asyncio restores the default (fatal) handlers when its loop closes: a second
             # SIGTERM now must not turn a clean stop into death by signal.
             for sig in (signal.SIGTERM, signal.SIGINT):
@@ -197,7 +204,7 @@ class Daemon:
         self.live_view = live
         return live
 
-    async def _start_zenoh(self, server: Any) -> Any:
+    async def _start_zenoh(self, requests: Requests) -> Any:
         """The Zenoh interface if ``daemon.zenoh`` asks for one (None: off; False: it could
         not start, which is logged)."""
         settings = self.robot.daemon.zenoh
@@ -205,7 +212,7 @@ class Daemon:
             return None
         from .zenoh_iface import ZenohInterface
 
-        iface = ZenohInterface(settings, self.robot.controller.name, server, self.backend.status)
+        iface = ZenohInterface(settings, self.robot.controller.name, requests, self.backend.status)
         try:
             await iface.start()
         except JtcHwError as exc:
@@ -213,7 +220,7 @@ class Daemon:
             await iface.close()
             return False
         self.backend.add_tap(iface)
-        server.status_sections["zenoh"] = iface.stats
+        requests.status_sections["zenoh"] = iface.stats
         self.zenoh = iface
         return iface
 

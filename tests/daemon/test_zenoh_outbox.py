@@ -74,10 +74,10 @@ class FakeQuery:
 
 
 def interface() -> ZenohInterface:
-    server = SimpleNamespace(backend=SimpleNamespace(joint_names=["j1"]),
-                             settings=SimpleNamespace(max_message_bytes=1024))
+    requests = SimpleNamespace(backend=SimpleNamespace(joint_names=["j1"]),
+                               max_message_bytes=1024)
     return ZenohInterface(ZenohSettings(prefix="jtc/t/a", token=TOKEN), "c",
-                          server, dict)  # type: ignore[arg-type]
+                          requests, dict)  # type: ignore[arg-type]
 
 
 def test_queries_over_the_limit_are_answered_busy_at_once() -> None:

@@ -298,9 +298,8 @@ class Requests:
             error = RequestError(INTERNAL, str(exc), item.id)
         except Exception as exc:
             log.exception("%s: %s failed", caller.label, item.op)
-            message = f"internal error: {type(exc).__name__}: {exc}"
-            return self.refuse(caller, item, RequestError(INTERNAL, message, item.id),
-                               logged=True)
+            text = f"internal error: {type(exc).__name__}: {exc}"
+            return self.refuse(caller, item, RequestError(INTERNAL, text, item.id), logged=True)
         return self.refuse(caller, item, error)
 
     @staticmethod

@@ -119,7 +119,9 @@ class Server:
         self.backend = backend
         self.settings = ServerSettings.coerce(settings)
         self._owns_requests = requests is None
-        self.requests = requests or Requests(backend, self.settings.max_message_bytes)
+        if requests is None:
+            requests = Requests(backend, self.settings.max_message_bytes)
+        self.requests = requests
         self._servers: list[asyncio.Server] = []
         self._conns: dict[int, Connection] = {}
         self._tasks: dict[int, asyncio.Task[None]] = {}
@@ -197,6 +199,8 @@ class Server:
         if self._closed:
             return
         self._closed = True
+        if self._owns_requests:
+            self.requests.close()  # events from now on are ignored, as the clients go
         for srv in self._servers:
             srv.close()
         tasks = list(self._tasks.values())
@@ -213,8 +217,6 @@ class Server:
         if self.path is not None and self._socket_identity is not None:
             remove_socket_file(self.path, self._socket_identity)
             self._socket_identity = None
-        if self._owns_requests:
-            self.requests.close()
         if decoding is not None:  # the readers are gone: nothing is decoding any more
             decoding.shutdown(wait=True)
 

@@ -254,6 +254,8 @@ class ZenohInterface:
         controller: the controller's name (the default prefix's last chunk).
         requests: the request layer, which executes the queries.
         status: the backend's ``status`` (polled for faults).
+        add_tap: the backend's ``add_tap``: once started, the interface has the backend send
+            it every state, goal event and accepted command, which it publishes.
     """
 
     def __init__(
@@ -262,12 +264,14 @@ class ZenohInterface:
         controller: str,
         requests: Requests,
         status: Callable[[], dict[str, Any]],
+        add_tap: Callable[[ZenohInterface], None] | None = None,
     ) -> None:
         self.settings = settings
         self.prefix = settings.resolved_prefix(controller)
         self.keys = keys(self.prefix)
         self._requests = requests
         self._status = status
+        self._add_tap = add_tap
         self._joint_names = list(requests.backend.joint_names)
         self._max_bytes = requests.max_message_bytes
         self._session: Any = None
@@ -296,7 +300,8 @@ class ZenohInterface:
     # -- lifecycle ----------------------------------------------------------------------------
 
     async def start(self) -> None:
-        """Open the session and declare the token, publishers and the queryable.
+        """Open the session and declare the token, publishers and the queryable; then tap the
+        backend and add ``zenoh`` to ``get_status``.
 
         Raises:
             ConfigurationError: ``eclipse-zenoh`` is missing (the message says what to
@@ -331,6 +336,9 @@ class ZenohInterface:
             session.liveliness().declare_token(self.keys["liveliness"]),
         ]
         self._fault_task = self._aio.create_task(self._watch_fault())
+        if self._add_tap is not None:
+            self._add_tap(self)
+        self._requests.status_sections["zenoh"] = self.stats
         log.info("zenoh: serving under %s (mode %s, listen %s, connect %s)", self.prefix,
                  self.settings.mode or "peer", list(self.settings.listen or ()) or "none",
                  list(self.settings.connect) or "none")

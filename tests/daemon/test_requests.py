@@ -1,5 +1,6 @@
 """The request layer without a transport: every operation answered as a value, later messages
-through an outlet the test implements (as a transport would), goal events routed in order.
+through an outlet the test implements (as a transport would), goal events routed in order; and
+the transports' registry over it.
 
 ``FakeBackend`` is the small controller host of the server tests (the real controller on a
 simulated clock), so these run in milliseconds and need no socket.
@@ -11,6 +12,7 @@ import asyncio
 import json
 import logging
 from collections.abc import Iterator
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -21,6 +23,11 @@ from jtc_hw.api.framing import RequestError, encode
 from jtc_hw.api.protocol import OPS, parse_request
 from jtc_hw.controller.limits_check import AcceptedGoal, TimeScaling
 from jtc_hw.daemon.requests import Caller, Requests, accepted_goal
+from jtc_hw.daemon.robot import DaemonSettings
+from jtc_hw.daemon.server import Server
+from jtc_hw.daemon.transports import TRANSPORTS, Wiring
+from jtc_hw.daemon.zenoh_config import ZenohSettings
+from jtc_hw.daemon.zenoh_iface import ZenohInterface
 
 
 class Outlet:
@@ -216,3 +223,22 @@ def test_the_accepted_goal_is_read_in_one_place() -> None:
     assert accepted_goal(AcceptedGoal(8, None)) == (8, {})
     assert accepted_goal(AcceptedGoal(9, TimeScaling(2.0, 3.5))) == (
         9, {"time_scale": 2.0, "duration_s": 3.5})
+
+
+def test_a_transport_is_one_registration_over_the_shared_layer(tmp_path: Path) -> None:
+    backend = FakeBackend()
+    requests = Requests(backend, max_message_bytes=1024)
+    taps: list[object] = []
+    socket = str(tmp_path / "d.sock")
+    plain = Wiring(requests, DaemonSettings(socket=socket), "arm", taps.append, backend.status)
+    assert [r.name for r in TRANSPORTS] == ["socket", "zenoh"]
+    opened = {r.name: r.open(plain) for r in TRANSPORTS}
+    server = opened["socket"]
+    assert isinstance(server, Server) and server.requests is requests
+    assert opened["zenoh"] is None  # daemon.zenoh absent: off
+    zenoh = ZenohSettings(prefix="jtc/t/a", token="0123456789abcdef-token")
+    wired = Wiring(requests, DaemonSettings(socket=socket, zenoh=zenoh), "arm", taps.append,
+                   backend.status)
+    iface = TRANSPORTS[1].open(wired)
+    assert isinstance(iface, ZenohInterface) and iface.prefix == "jtc/t/a"
+    assert taps == [] and requests.status_sections == {}  # both once started

@@ -258,7 +258,8 @@ class Requests:
         self._subscribers.clear()
 
     def leave(self, caller: Caller) -> None:
-        """``caller``'s client has gone: send it nothing more (its goals run on).
+        """``caller``'s client has gone: no more state, commands or records for it. Its goals
+        run on; their results are discarded (and counted) when its outlet says it is gone.
 
         Raises:
             Nothing.

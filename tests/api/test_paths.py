@@ -16,7 +16,7 @@ from pathlib import Path
 
 import pytest
 import yaml
-from helpers.daemon import WAIT_S, DaemonProcess, robot_config
+from helpers.daemon import WAIT_S, DaemonProcess, connect, robot_config
 
 from jtc_hw.api import paths
 from jtc_hw.api.paths import (
@@ -301,6 +301,11 @@ def test_cli_finds_the_service(service: Path, tmp_path: Path,
     daemon.start()
     try:
         daemon.wait_ready()
+        # The status has its controller section once the loop's first status is in, which
+        # can come after the socket accepts on a busy machine (it failed in CI under load).
+        with connect(daemon) as client, client.subscribe_state() as sub:
+            while "controller" not in client.get_status():
+                sub.get(timeout_s=WAIT_S)  # the loop's next cycle, then ask again
         for extra in ([], ["--config", str(client_config)]):
             assert main(["status", "--timeout", str(WAIT_S), *extra]) == 0, capsys.readouterr()
             assert "controller" in capsys.readouterr().out

@@ -1,13 +1,18 @@
 """The running service: the control loop process, the socket server and their wiring.
 
 - :mod:`.service`: ``run()``: start-up, signals, systemd notification, shutdown.
-- :mod:`.robot`: the robot YAML file (controller, hardware, daemon settings).
+- :mod:`.robot`: the robot YAML file (its hardware section); :mod:`.settings`: the
+  ``daemon:`` section's tables and the frozen ``DaemonSettings``.
 - :mod:`.loop`, :mod:`.clock`, :mod:`.loopstats`, :mod:`.realtime`: the loop process: absolute
-  deadlines, overrun accounting, real-time set-up.
-- :mod:`.backend`: the API process's side of the loop (planning against a replica).
+  deadlines, overrun accounting, real-time set-up; :mod:`.pipe`, :mod:`.outbox`: its
+  non-blocking inbox and outbox.
+- :mod:`.messages`: the records the loop and the API process exchange.
+- :mod:`.supervision`: the loop process seen from the API process; :mod:`.backend`: planning
+  against the replica of its reference; :mod:`.observers`: who hears what the loop publishes
+  (the recorders, the server, the live view, Zenoh).
 - :mod:`.server`, :mod:`.connection`: the asyncio socket server and one client connection.
 - :mod:`.sdnotify`: the systemd notify protocol.
-- :mod:`.liveview`: the Foxglove live view (``daemon.foxglove``), a tap on the backend.
+- :mod:`.liveview`: the Foxglove live view (``daemon.foxglove``), an observer of the backend.
 
 Nothing is imported here, so that the loop process loads only what it runs.
 """

@@ -5,6 +5,8 @@
 - :mod:`.loop`, :mod:`.clock`, :mod:`.loopstats`, :mod:`.realtime`: the loop process: absolute
   deadlines, overrun accounting, real-time set-up.
 - :mod:`.backend`: the API process's side of the loop (planning against a replica).
+- :mod:`.requests`: every operation, no transport (a request in, its reply out).
+- :mod:`.transports`: the registry of transports (the socket server, Zenoh).
 - :mod:`.server`, :mod:`.connection`: the asyncio socket server and one client connection.
 - :mod:`.sdnotify`: the systemd notify protocol.
 - :mod:`.liveview`: the Foxglove live view (``daemon.foxglove``), a tap on the backend.

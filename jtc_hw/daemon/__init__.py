@@ -9,7 +9,9 @@
 - :mod:`.messages`: the records the loop and the API process exchange.
 - :mod:`.supervision`: the loop process seen from the API process; :mod:`.backend`: planning
   against the replica of its reference; :mod:`.observers`: who hears what the loop publishes
-  (the recorders, the server, the live view, Zenoh).
+  (the recorders, the request layer, Zenoh, the live view).
+- :mod:`.requests`: every operation, no transport (a request in, its reply out).
+- :mod:`.transports`: the registry of transports (the socket server, Zenoh).
 - :mod:`.server`, :mod:`.connection`: the asyncio socket server and one client connection.
 - :mod:`.sdnotify`: the systemd notify protocol.
 - :mod:`.liveview`: the Foxglove live view (``daemon.foxglove``), an observer of the backend.

@@ -1,10 +1,11 @@
-"""What the socket server needs from a backend, and what a backend reports to its observers.
+"""What the request layer needs from a backend, and what a backend reports to its observers.
 
 :class:`Backend` is implemented for real by :class:`jtc_hw.daemon.backend.LoopBackend` (the
 control loop in its own process) and in tests by a small controller host. Everything that
-consumes the loop's output is an :class:`Observer`: the server
-(:class:`jtc_hw.daemon.server.Server`, socket subscriptions and goal routing), the live view,
-the Zenoh interface and the recorders (:mod:`jtc_hw.daemon.observers`).
+consumes the loop's output is an :class:`Observer`: the request layer
+(:class:`jtc_hw.daemon.requests.Requests`, subscriptions and goal routing for every
+transport), the live view, the Zenoh interface and the recorders
+(:mod:`jtc_hw.daemon.observers`).
 """
 
 from __future__ import annotations

@@ -1,9 +1,10 @@
 """One client connection of the socket server.
 
 :class:`Connection` is one client: its streams, its bounded outgoing queue (droppable
-``state`` / ``feedback``, never-dropped replies and results up to a hard cap), its subscription,
-its deadlines (authentication, idleness) and its counters. The bounds are the daemon's settings
-(:class:`~jtc_hw.daemon.settings.DaemonSettings`).
+``state`` / ``feedback``, never-dropped replies and results up to a hard cap), its deadlines
+(authentication, idleness) and its counters. It is the request layer's ``Outlet`` for its
+client, whose ``Caller`` (subscription, goals, drop counters) it holds. The bounds are the
+daemon's settings (:class:`~jtc_hw.daemon.settings.DaemonSettings`).
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ import socket
 import struct
 from typing import Any
 
+from .requests import Caller
 from .settings import DaemonSettings
 
 __all__ = [
@@ -38,7 +40,8 @@ first) before it gets ``busy``."""
 
 
 class Connection:
-    """One client: its streams, outgoing queue, subscription and drop counters."""
+    """One client: its streams, outgoing queue and deadlines; the ``Outlet`` of its
+    ``caller`` (the request layer's record of it: subscription, goals, drop counters)."""
 
     def __init__(
         self,
@@ -62,7 +65,7 @@ class Connection:
         self.stop_only = False  # authenticated over tcp.max_clients: one stop, then closed
         auth_s = settings.tcp.auth_timeout_s if settings.tcp is not None else 0.0
         self.auth_deadline = now + auth_s  # on TCP; after auth over the limit: the stop's
-        self.last_activity = now  # the last request, or the end of the last goal
+        self.last_activity = now  # the last request (see ``activity``)
         self.reader = reader
         self.writer = writer
         self.queue: collections.deque[bytes] = collections.deque()
@@ -70,30 +73,21 @@ class Connection:
         self.hard_cap = settings.client_queue_hard_cap
         self.wake = asyncio.Event()
         self.authenticated = kind == "unix"
-        self.subscribed = False
-        self.commands = False  # subscribed with commands: also every accepted command
         self.closing = False  # reading stopped: flush the queue, then close
         self.gone = False  # the transport is closed: nothing can be sent any more
         self.close_reason = "closed by the client"
         self.requests = 0
-        self.dropped_state = 0
-        self.dropped_feedback = 0
-        self.dropped_since_state = 0
-        self.goals: set[int] = set()
         self.too_slow = False
+        self.caller = Caller(number, self.label, self)
 
     @property
     def label(self) -> str:
         return f"client {self.number} ({self.peer})"
 
     @property
-    def dropped_total(self) -> int:
-        return self.dropped_state + self.dropped_feedback
-
-    @property
-    def engaged(self) -> bool:
-        """Waiting for something of the daemon (state events, a goal's result): not idle."""
-        return self.subscribed or bool(self.goals)
+    def activity(self) -> float:
+        """When it was last active: its last request, or the end of its last goal."""
+        return max(self.last_activity, self.caller.goals_ended_at)
 
     def send(self, data: bytes) -> bool:
         """Queue a message that must not be dropped; False if it cannot be sent.
@@ -132,18 +126,19 @@ class Connection:
         self.wake.set()
 
     def stats(self) -> dict[str, Any]:
+        caller = self.caller
         return {
             "client": self.number,
             "transport": self.kind,
             "peer": self.peer,
             "authenticated": self.authenticated,
             "reserved_slot": self.reserved,
-            "subscribed": self.subscribed,
+            "subscribed": caller.subscribed,
             "requests": self.requests,
             "queued": len(self.queue),
-            "dropped_state": self.dropped_state,
-            "dropped_feedback": self.dropped_feedback,
-            "goals": sorted(self.goals),
+            "dropped_state": caller.dropped_state,
+            "dropped_feedback": caller.dropped_feedback,
+            "goals": sorted(caller.goals),
         }
 
 

@@ -7,9 +7,9 @@ states, goal events, accepted commands, recorded events), added to the backend's
 :class:`Observers` in the order they start::
 
     LoopBackend --> Observers --> Recorders    the flight recorder and daemon.record (below)
-                              --> Server       socket subscriptions, goal routing
-                              --> LiveView     Foxglove (daemon.foxglove)
+                              --> Requests     subscriptions, goal routing (every transport)
                               --> ZenohInterface (daemon.zenoh)
+                              --> LiveView     Foxglove (daemon.foxglove)
 
 All calls come in the asyncio thread, in that order; one observer's exception is logged and
 the others still hear the message (a view or a recorder never stops a result reaching its

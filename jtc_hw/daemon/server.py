@@ -1,33 +1,24 @@
-"""The daemon's socket server: asyncio, one task pair per client, the wire format of ``protocol``.
+"""The unix socket and TCP transport: NDJSON over streams, one task pair per client (asyncio).
 
 Theory of operation
 -------------------
-The server owns sockets and nothing else. It decodes requests with ``protocol.Decoder``, calls
-the ``Backend`` (which runs the control loop elsewhere, in another process) and writes replies
-and events with ``framing.encode``. It never waits on the control loop while holding anything
-another client needs: backend coroutines (``send_goal``, ``cancel_goal``, ``send_trajectory``)
-are awaited by the requesting client's own task, and the synchronous backend methods must
-return at once (they read replicas and caches; see ``Backend``).
+What this adds to the request layer (``jtc_hw.daemon.requests``, which executes every
+operation): **framing** (``protocol.Decoder`` reads NDJSON lines, ``framing.encode``'s bytes
+are written), **slots** (who may connect, how many), **authentication** on TCP (the token
+handshake, ``jtc_hw.daemon.tcp_door``) and **deadlines** (authentication, idleness). Each
+connection is a ``Connection``: the request layer's ``Outlet`` for its client's later
+messages (goal events, state), and the holder of its ``Caller``. Long lines are decoded in a
+worker thread, so that no client's big goal holds the event loop (an operator's ``stop``).
 
 Per client, a reader task handles requests one after another (so replies come back in request
-order) and a writer task drains a bounded outgoing queue:
+order; each reply is queued before the reader awaits anything else, as the request layer
+asks) and a writer task drains a bounded outgoing queue:
 
 - ``state`` and ``feedback`` events are dropped while the queue holds ``client_queue_size``
   messages; the loss is counted per client, reported in the next ``state`` event's ``dropped``
   and in ``get_status``;
 - replies and goal ``result`` events are never dropped; a client so slow that its queue reaches
   ``client_queue_hard_cap`` messages is disconnected (and logged).
-
-Goal routing: a goal's events go to the connection that sent it. ``Backend.send_goal`` returns
-the id and the server registers the route before it awaits anything else, so no event can
-overtake the registration through this server's own scheduling. A backend may still deliver a
-goal's events *before* the ``send_goal`` coroutine resumes (e.g. it resolves the id's future and
-then, in the same callback, dispatches a batch of events that includes the goal's first
-feedback): events for a goal id without a route are held (bounded) and delivered right after
-the ``accepted`` reply once the route exists.
-
-A client that disconnects while its goal runs does not stop the goal (as with a ROS action
-client that vanishes): the goal runs on to its result, which is logged and discarded.
 
 Admission (a stop always gets through): the unix socket and TCP have separate limits
 (``max_clients``, ``tcp.max_clients``); ``RESERVED_UNIX_CLIENTS`` more unix connections are
@@ -45,11 +36,9 @@ goal running) for ``idle_timeout_s``.
 from __future__ import annotations
 
 import asyncio
-import collections
 import hmac
 import logging
 import time
-from collections.abc import Callable, Mapping
 from concurrent.futures import ThreadPoolExecutor
 from functools import partial
 from pathlib import Path
@@ -57,14 +46,8 @@ from typing import Any
 
 from .. import __version__
 from ..api.framing import (
-    BAD_REQUEST,
     BUSY,
-    GOAL_REJECTED,
-    HARDWARE,
     IDLE,
-    INTERNAL,
-    NOT_ACTIVE,
-    NOT_FOUND,
     PROTOCOL_VERSION,
     UNAUTHORIZED,
     RequestError,
@@ -72,41 +55,8 @@ from ..api.framing import (
     error_reply,
     reply,
 )
-from ..api.protocol import (
-    Auth,
-    CancelGoal,
-    Decoder,
-    GetConfig,
-    GetParameters,
-    GetStatus,
-    Hello,
-    QueryState,
-    Rearm,
-    Request,
-    SendGoal,
-    SendTrajectory,
-    SetParameters,
-    SetSpeedScaling,
-    Sim,
-    Stop,
-    SubscribeState,
-    UnsubscribeState,
-    command_event,
-    feedback_event,
-    record_event,
-    result_event,
-    sample_to_json,
-)
-from ..controller.goals import GoalFeedback, GoalResult
-from ..controller.limits_check import scaling_fields
-from ..controller.trajectory import JointTrajectory
-from ..errors import (
-    ConfigurationError,
-    ControllerStateError,
-    GoalRejected,
-    HardwareError,
-    JtcHwError,
-)
+from ..api.protocol import Auth, Decoder, Request, Stop
+from ..errors import ControllerStateError
 from .backend_api import Backend, Observer
 from .connection import (
     OVER_LIMIT_CLIENTS,
@@ -116,6 +66,7 @@ from .connection import (
     is_privileged,
     peer_identity,
 )
+from .requests import Caller, Requests
 from .settings import DaemonSettings
 from .tcp_door import TcpDoor
 from .unix_socket import bind_unix, remove_socket_file
@@ -128,12 +79,6 @@ __all__ = [
 
 log = logging.getLogger("jtc_hw.server")
 
-EARLY_GOALS = 64
-"""Goal ids whose events are held while their route is not registered yet."""
-EARLY_EVENTS = 256
-"""Feedback events held per such goal (results are always held)."""
-FINISHED_GOALS = 256
-"""Recently finished goal ids remembered, so that a straggling event is ignored, not held."""
 _READ_CHUNK = 65536
 DECODE_IN_WORKER_BYTES = 64 * 1024
 """Lines at least this long (a goal of a few hundred points and more) are decoded and parsed in
@@ -142,11 +87,10 @@ event loop would serve nobody else (an operator's ``stop`` included)."""
 _OVER_LIMIT_MAX_BYTES = 4096
 """Longest request read from a connection over the limit (``auth`` and ``stop`` are short)."""
 _WRITE_BATCH = 65536
-_RESERVED_STATE_KEYS = frozenset({"event", "dropped", "dropped_total"})
 
 
 class Server:
-    """The socket API in front of a ``Backend``; also an ``Observer`` of the backend.
+    """The unix socket and TCP endpoints in front of the request layer.
 
     Example::
 
@@ -158,27 +102,26 @@ class Server:
     Args:
         backend: the control loop's host.
         settings: the daemon's settings (checked when they were built).
+        requests: the request layer shared with the other transports; ``None``: one of its
+            own over ``backend`` (closed with the server).
     """
 
-    def __init__(self, backend: Backend, settings: DaemonSettings) -> None:
+    def __init__(
+        self, backend: Backend, settings: DaemonSettings, requests: Requests | None = None
+    ) -> None:
         self.backend = backend
         self.settings = settings
+        self._owns_requests = requests is None
+        if requests is None:
+            requests = Requests(backend, self.settings.max_message_bytes)
+        self.requests = requests
         self._servers: list[asyncio.Server] = []
         self._conns: dict[int, Connection] = {}
         self._tasks: dict[int, asyncio.Task[None]] = {}
-        self._routes: dict[int, Connection] = {}
-        self._early: collections.OrderedDict[int, list[GoalResult | GoalFeedback]] = (
-            collections.OrderedDict()
-        )
-        self._finished: collections.OrderedDict[int, None] = collections.OrderedDict()
         self._number = 0
         self._refused_busy = 0
         self._over_limit = {"unix": 0, "tcp": 0}  # connections over the limit, being served
         self._stops_over_limit = 0
-        self._results_discarded = 0
-        self.status_sections: dict[str, Callable[[], dict[str, Any]]] = {}
-        """More sections of ``get_status`` by name (an add-on's counters: ``zenoh``); each is
-        called in the event loop and must not block nor raise."""
         self._socket_identity: tuple[int, int] | None = None
         self._started = False
         self._closed = False
@@ -204,7 +147,7 @@ class Server:
         return self._tcp_address
 
     async def start(self) -> None:
-        """Register as an observer of the backend and start listening.
+        """Have the request layer listen to the backend, and start listening.
 
         Raises:
             ConfigurationError: the socket path is in use by a live daemon, is not a socket,
@@ -215,7 +158,8 @@ class Server:
         if self._started:
             raise ControllerStateError("the server is already started")
         self._started = True
-        self.backend.add_observer(self)
+        self.requests.listen()
+        self.requests.server_status = self.stats
         try:
             if self.path is not None:
                 sock, self._socket_identity = bind_unix(
@@ -248,6 +192,8 @@ class Server:
         if self._closed:
             return
         self._closed = True
+        if self._owns_requests:
+            self.requests.close()  # events from now on are ignored, as the clients go
         for srv in self._servers:
             srv.close()
         tasks = list(self._tasks.values())
@@ -264,9 +210,6 @@ class Server:
         if self.path is not None and self._socket_identity is not None:
             remove_socket_file(self.path, self._socket_identity)
             self._socket_identity = None
-        self._routes.clear()
-        self._early.clear()
-        self._finished.clear()
         if decoding is not None:  # the readers are gone: nothing is decoding any more
             decoding.shutdown(wait=True)
 
@@ -408,14 +351,12 @@ class Server:
                 rid = item.request_id if isinstance(item, RequestError) else item.id
                 if isinstance(item, RequestError):
                     # Say what is wrong with it (e.g. a stop without its newline is not run).
-                    out.append(encode(self._error(conn, None, item)))
+                    out.append(self.requests.refuse(conn.caller, None, item).data)
                     return out
                 if isinstance(item, Stop):
                     self._stops_over_limit += 1
                     log.info("%s: stop (over the limit)", conn.label)
-                    answer = await self._answer(conn, item)
-                    assert answer is not None  # only send_goal sends its own reply
-                    out.append(answer)
+                    out.append((await self.requests.answer(conn.caller, item)).data)
                     return out
                 out.append(encode(error_reply(rid, BUSY, self._busy_message(conn.kind))))
                 return out
@@ -452,7 +393,8 @@ class Server:
         self._tasks.pop(conn.number, None)
         if self._door is not None:
             self._door.leave(conn)
-        running = sorted(conn.goals)
+        self.requests.leave(conn.caller)
+        running = sorted(conn.caller.goals)
         extra = ""
         if running:
             extra = (
@@ -466,8 +408,8 @@ class Server:
             conn.label,
             conn.close_reason,
             conn.requests,
-            conn.dropped_state,
-            conn.dropped_feedback,
+            conn.caller.dropped_state,
+            conn.caller.dropped_feedback,
             extra,
         )
 
@@ -478,9 +420,9 @@ class Server:
         idle = self.settings.idle_timeout_s
         if not idle:
             return None
-        if conn.engaged:
+        if conn.caller.engaged:
             return float(idle)  # then look again: it may have become idle meanwhile
-        return max(0.0, conn.last_activity + idle - now)
+        return max(0.0, conn.activity + idle - now)
 
     def _timed_out(self, conn: Connection, now: float) -> bool:
         """After a read timed out: whether the connection must close (and why, queued)."""
@@ -498,10 +440,10 @@ class Server:
             conn.close_reason = "unauthorized (no auth request in time)"
             return True
         idle = self.settings.idle_timeout_s
-        if conn.engaged:
+        if conn.caller.engaged:
             conn.last_activity = now
             return False
-        if not idle or now < conn.last_activity + idle:
+        if not idle or now < conn.activity + idle:
             return False
         message = (
             f"no request for {idle:g} s, no subscription and no goal running (idle_timeout_s); "
@@ -590,58 +532,11 @@ class Server:
         if conn.stop_only:
             await self._stop_only(conn, item)
             return
-        if isinstance(item, RequestError):
-            self._reject(conn, None, item)
+        if isinstance(item, Auth) and conn.kind == "tcp" and not self._token_ok(item.token):
+            await self._authenticate(conn, item)  # a wrong token is a failed handshake
             return
-        answer = await self._answer(conn, item)
-        if answer is not None:
-            conn.send(answer)
-
-    async def _answer(self, conn: Connection, item: Request) -> bytes | None:
-        """Execute a request: its encoded reply (success or error), or ``None`` when
-        ``_dispatch`` has sent it already. Never raises: a failure is an error reply, logged."""
-        try:
-            answer = await self._dispatch(conn, item)
-            return None if answer is None else encode(answer)
-        except RequestError as exc:
-            error = exc
-        except GoalRejected as exc:
-            error = RequestError(GOAL_REJECTED, exc.reason, item.id, exc.error_code)
-        except ControllerStateError as exc:
-            error = RequestError(NOT_ACTIVE, str(exc), item.id)
-        except ConfigurationError as exc:
-            error = RequestError(BAD_REQUEST, str(exc), item.id)
-        except HardwareError as exc:
-            error = RequestError(HARDWARE, str(exc), item.id)
-        except JtcHwError as exc:
-            error = RequestError(INTERNAL, str(exc), item.id)
-        except Exception as exc:
-            log.exception("%s: %s failed", conn.label, item.op)
-            message = f"internal error: {type(exc).__name__}: {exc}"
-            error = RequestError(INTERNAL, message, item.id)
-            return encode(self._error(conn, item, error, logged=True))
-        return encode(self._error(conn, item, error))
-
-    async def answer_remote(self, conn: Connection, item: Request | RequestError) -> bytes:
-        """Execute one request of a transport without a stream of its own (a Zenoh query,
-        ``jtc_hw.daemon.zenoh_iface``) through the socket's own dispatch, so that replies and
-        errors are exactly the socket's: its encoded reply. ``conn`` stands for the querier;
-        the reply to ``send_goal`` is the first message it is sent (``conn.send``), and the
-        goal's events are routed to it afterwards.
-
-        Raises:
-            Nothing: a failure is an error reply, logged.
-        """
-        conn.requests += 1
-        if isinstance(item, RequestError):
-            return encode(self._error(conn, None, item))
-        answer = await self._answer(conn, item)
-        if answer is not None:
-            return answer
-        sent = conn.queue.popleft() if conn.queue else None
-        if sent is None:  # pragma: no cover - _dispatch returns None only after conn.send
-            return encode(error_reply(item.id, INTERNAL, f"{item.op}: no reply"))
-        return sent
+        answered = await self.requests.answer(conn.caller, item)
+        conn.send(answered.data)  # before awaiting anything (jtc_hw.daemon.requests)
 
     async def _authenticate(self, conn: Connection, item: Request | RequestError) -> None:
         """The handshake's one request: ``auth`` with the token takes a TCP slot (over
@@ -691,9 +586,7 @@ class Server:
         if isinstance(item, Stop):
             self._stops_over_limit += 1
             log.info("%s: stop (over the limit)", conn.label)
-            answer = await self._answer(conn, item)
-            assert answer is not None  # only send_goal sends its own reply
-            conn.send(answer)
+            conn.send((await self.requests.answer(conn.caller, item)).data)
         else:
             request = None if isinstance(item, RequestError) else item
             rid = item.request_id if isinstance(item, RequestError) else item.id
@@ -705,172 +598,11 @@ class Server:
     def _token_ok(self, token: str) -> bool:
         return bool(self._token) and hmac.compare_digest(token.encode("utf-8"), self._token)
 
-    def _reject(
-        self,
-        conn: Connection,
-        request: Request | None,
-        error: RequestError,
-        logged: bool = False,
-    ) -> None:
-        conn.send(encode(self._error(conn, request, error, logged)))
+    def _reject(self, conn: Connection, request: Request | None, error: RequestError) -> None:
+        conn.send(self.requests.refuse(conn.caller, request, error).data)
 
-    @staticmethod
-    def _error(
-        conn: Connection,
-        request: Request | None,
-        error: RequestError,
-        logged: bool = False,
-    ) -> dict[str, Any]:
-        """The error reply, logged."""
-        rid = error.request_id if error.request_id is not None or request is None else request.id
-        if not logged:
-            op = request.op if request is not None else "request"
-            log.info(
-                "%s: rejected %s (id %r): %s: %s", conn.label, op, rid, error.code, error.message
-            )
-        return error_reply(rid, error.code, error.message, error.error_code)
-
-    async def _dispatch(self, conn: Connection, req: Request) -> dict[str, Any] | None:
-        backend = self.backend
-        match req:
-            case Hello():
-                if req.protocol_version is not None and req.protocol_version != PROTOCOL_VERSION:
-                    raise RequestError(
-                        BAD_REQUEST,
-                        f"protocol_version: this daemon speaks version {PROTOCOL_VERSION}; "
-                        f"the client asked for {req.protocol_version}",
-                        req.id,
-                    )
-                ours = {
-                    "protocol_version": PROTOCOL_VERSION,
-                    "server_version": __version__,
-                    "joint_names": list(backend.joint_names),
-                    "now_ns": backend.now_ns(),
-                    "max_message_bytes": self.settings.max_message_bytes,
-                }
-                return self._merge(req.id, backend.hello(), ours)
-            case Auth():
-                if conn.kind == "tcp" and not self._token_ok(req.token):
-                    await self._authenticate(conn, req)
-                    return None
-                return reply(req.id, authenticated=True)
-            case SendGoal():
-                traj = req.trajectory.to_joint_trajectory(backend.now_ns())
-                accepted = await backend.send_goal(
-                    traj,
-                    req.path_tolerance,
-                    req.goal_tolerance,
-                    req.goal_time_tolerance,
-                    time_scaling=req.time_scaling,
-                )
-                goal_id = accepted.goal_id
-                # Nothing may be awaited from here on: the route must exist before this task
-                # yields, so that every later event of the goal finds it (module docstring).
-                self._routes[goal_id] = conn
-                conn.goals.add(goal_id)
-                if conn.gone:
-                    log.info(
-                        "%s left before goal %d was accepted; it runs on to its result, "
-                        "which will be discarded",
-                        conn.label,
-                        goal_id,
-                    )
-                log.info("%s: goal %d accepted", conn.label, goal_id)
-                scaled = {} if accepted.time_scaling is None else {
-                    "time_scale": accepted.time_scaling, "duration_s": accepted.duration_s}
-                conn.send(encode(reply(req.id, goal_id=goal_id, accepted=True, **scaled)))
-                for event in self._early.pop(goal_id, ()):
-                    self._route(conn, event)
-                return None
-            case CancelGoal():
-                if not await backend.cancel_goal(req.goal_id):
-                    raise RequestError(
-                        NOT_FOUND,
-                        f"goal {req.goal_id} is not executing (unknown, already finished or "
-                        "already being canceled); nothing to cancel",
-                        req.id,
-                    )
-                return reply(req.id, goal_id=req.goal_id, canceling=True)
-            case SendTrajectory():
-                traj = req.trajectory.to_joint_trajectory(backend.now_ns())
-                scaling = await backend.send_trajectory(traj, time_scaling=req.time_scaling)
-                return reply(req.id, stopping=not traj.points, **scaling_fields(scaling))
-            case Stop():
-                if not await backend.stop_motion():
-                    return reply(
-                        req.id,
-                        stopped=False,
-                        message="nothing to stop: the controller is not active (see "
-                        "get_status: controller.fault)",
-                    )
-                return reply(req.id, stopped=True)
-            case QueryState():
-                t = req.resolve(backend.now_ns())
-                queried = backend.query_state(t)
-                return reply(
-                    req.id,
-                    time_ns=t,
-                    success=queried.success,
-                    where=queried.where,
-                    joint_names=list(backend.joint_names),
-                    **sample_to_json(queried),
-                )
-            case SubscribeState():
-                conn.subscribed = True
-                conn.commands = conn.commands or req.commands
-                return reply(req.id, subscribed=True, commands=conn.commands)
-            case UnsubscribeState():
-                conn.subscribed = conn.commands = False
-                return reply(req.id, subscribed=False)
-            case GetConfig():
-                return reply(req.id, config=backend.config_dict())
-            case GetStatus():
-                sections = {name: get() for name, get in self.status_sections.items()}
-                return self._merge(req.id, backend.status(),
-                                   {**sections, "server": self.stats(conn)})
-            case Sim():
-                await backend.sim(req.component, req.freeze, req.fault)
-                if req.fault is not None:
-                    return reply(req.id, component=req.component, fault=req.fault)
-                return reply(req.id, component=req.component, frozen=req.freeze)
-            case GetParameters():
-                return self._merge(req.id, backend.get_parameters(req.names), {})
-            case SetParameters():
-                change = await backend.set_parameters(req.parameters)
-                log.info(
-                    "%s: parameters changed: %s",
-                    conn.label,
-                    ", ".join(f"{k}={v!r}" for k, v in change.values.items()),
-                )
-                return self._merge(req.id, change.to_json(), {})
-            case SetSpeedScaling():
-                speed = await backend.set_speed_scaling(None if req.resume else req.factor)
-                log.info(
-                    "%s: speed scaling %s: ramping from %g to %g",
-                    conn.label,
-                    "resumed" if req.resume else "set",
-                    speed["factor"],
-                    speed["target"],
-                )
-                return reply(req.id, factor=speed["factor"], target=speed["target"])
-            case Rearm():
-                done = await backend.rearm()
-                if not done:
-                    return reply(req.id, rearmed=False, message="nothing to re-arm: no fault")
-                return reply(req.id, rearmed=True)
-        raise AssertionError(f"unhandled request {req!r}")  # pragma: no cover
-
-    @staticmethod
-    def _merge(
-        request_id: object, theirs: Mapping[str, Any], ours: Mapping[str, Any]
-    ) -> dict[str, Any]:
-        out: dict[str, Any] = {"id": request_id, "ok": True}
-        out.update((k, v) for k, v in theirs.items() if k not in ("id", "ok"))
-        out.update(ours)
-        return out
-
-    def stats(self, conn: Connection | None = None) -> dict[str, Any]:
-        """The server's part of ``get_status``.
+    def stats(self, caller: Caller | None = None) -> dict[str, Any]:
+        """The server's part of ``get_status`` (``server``), as ``caller`` asks it.
 
         Raises:
             Nothing.
@@ -884,146 +616,10 @@ class Server:
             "idle_timeout_s": self.settings.idle_timeout_s,
             "tcp": None if self._door is None else self._door.stats(),
             "clients": [c.stats() for c in self._conns.values()],
-            "you": None if conn is None else conn.number,
+            "you": None if caller is None else caller.number,
             "connections_total": self._number,
             "refused_busy": self._refused_busy,
             "stops_over_limit": self._stops_over_limit,
-            "goals_routed": sorted(self._routes),
-            "results_discarded": self._results_discarded,
+            "goals_routed": self.requests.goals_routed,
+            "results_discarded": self.requests.results_discarded,
         }
-
-    # -- Observer -----------------------------------------------------------------------------
-
-    def on_goal_event(self, event: GoalResult | GoalFeedback) -> None:
-        """Route a goal's event to the client that sent the goal.
-
-        Raises:
-            Nothing: a result whose client has gone is logged and discarded.
-        """
-        if self._closed:
-            return
-        conn = self._routes.get(event.goal_id)
-        if conn is None:
-            if event.goal_id in self._finished:
-                log.debug("ignoring a late event of finished goal %d", event.goal_id)
-                return
-            self._hold(event)
-            return
-        self._route(conn, event)
-
-    def _route(self, conn: Connection, event: GoalResult | GoalFeedback) -> None:
-        if isinstance(event, GoalResult):
-            self._routes.pop(event.goal_id, None)
-            conn.goals.discard(event.goal_id)
-            if not conn.goals:  # the idle clock starts when the client's last goal ends
-                conn.last_activity = time.monotonic()
-            self._finished[event.goal_id] = None
-            if len(self._finished) > FINISHED_GOALS:
-                self._finished.popitem(last=False)
-            if not conn.send(encode(result_event(event))):
-                self._results_discarded += 1
-                log.info(
-                    "goal %d %s (%d: %s) after %s disconnected; result discarded",
-                    event.goal_id,
-                    event.status.value,
-                    int(event.error_code),
-                    event.error_string,
-                    conn.label,
-                )
-            return
-        if conn.gone:
-            return
-        try:
-            data = encode(feedback_event(event, self.backend.joint_names))
-        except (TypeError, IndexError):
-            log.exception("cannot encode feedback of goal %d; skipped", event.goal_id)
-            return
-        if not conn.offer(data):
-            conn.dropped_feedback += 1
-            conn.dropped_since_state += 1
-
-    def _hold(self, event: GoalResult | GoalFeedback) -> None:
-        events = self._early.get(event.goal_id)
-        if events is None:
-            if len(self._early) >= EARLY_GOALS:
-                goal_id, lost = self._early.popitem(last=False)
-                log.warning(
-                    "discarded %d event(s) of goal %d: no client ever claimed the goal",
-                    len(lost),
-                    goal_id,
-                )
-            events = self._early[event.goal_id] = []
-        if isinstance(event, GoalResult) or len(events) < EARLY_EVENTS:
-            events.append(event)
-
-    def on_command(self, trajectory: JointTrajectory, goal_id: int | None) -> None:
-        """Send an accepted command (a goal's trajectory, a topic trajectory; empty: a stop)
-        to every client subscribed with ``commands`` (``jtc-hw record``). Not droppable: a
-        recording must have every command; a client that stops reading is disconnected at the
-        queue's hard cap, as for results.
-
-        Raises:
-            Nothing: a command that cannot be encoded is logged and skipped.
-        """
-        if self._closed:
-            return
-        subscribers = [c for c in self._conns.values() if c.commands and not c.gone]
-        if not subscribers:
-            return
-        try:
-            data = encode(command_event(trajectory, goal_id, self.backend.now_ns()))
-        except (TypeError, ValueError):
-            log.exception("cannot encode an accepted command; skipped")
-            return
-        for conn in subscribers:
-            conn.send(data)
-
-    def on_record(self, event: dict[str, Any]) -> None:
-        """Send a result, fault or re-arm (a ``record`` event) to every client subscribed
-        with ``commands`` (``jtc-hw record`` writes them into its bag). Not droppable, as
-        commands.
-
-        Raises:
-            Nothing: an event that cannot be encoded is logged and skipped.
-        """
-        if self._closed:
-            return
-        subscribers = [c for c in self._conns.values() if c.commands and not c.gone]
-        if not subscribers:
-            return
-        try:
-            data = encode(record_event(event))
-        except (TypeError, ValueError):
-            log.exception("cannot encode a recorded event; skipped")
-            return
-        for conn in subscribers:
-            conn.send(data)
-
-    def on_state(self, snapshot: dict[str, Any]) -> None:
-        """Send a state snapshot to every subscribed client whose queue has room.
-
-        Raises:
-            Nothing: a snapshot that cannot be encoded is logged and skipped.
-        """
-        if self._closed:
-            return
-        subscribers = [c for c in self._conns.values() if c.subscribed and not c.gone]
-        if not subscribers:
-            return
-        body = {k: v for k, v in snapshot.items() if k not in _RESERVED_STATE_KEYS}
-        try:
-            head = encode({"event": "state", **body})[:-2]  # without the closing "}\n"
-        except TypeError:
-            # Never raise into the backend's dispatch: say what is wrong and skip this one.
-            log.exception("cannot encode a state snapshot; skipped")
-            return
-        for conn in subscribers:
-            tail = b',"dropped":%d,"dropped_total":%d}\n' % (
-                conn.dropped_since_state,
-                conn.dropped_total,
-            )
-            if conn.offer(head + tail):
-                conn.dropped_since_state = 0
-            else:
-                conn.dropped_state += 1
-                conn.dropped_since_state += 1

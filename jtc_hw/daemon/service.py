@@ -19,7 +19,7 @@ import os
 import signal
 import sys
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from ..errors import JtcHwError
 from .backend import LoopBackend
@@ -27,6 +27,10 @@ from .locks import DeviceLock, acquire, socket_lock_path
 from .robot import RobotConfig, load_robot
 from .sdnotify import Notifier
 from .unix_socket import make_socket_directory
+
+if TYPE_CHECKING:
+    from .requests import Requests
+    from .transports import Transport
 
 log = logging.getLogger("jtc_hw.daemon")
 
@@ -74,7 +78,7 @@ class Daemon:
         self._reason = "daemon stopping"
         self._failed = False
         self.live_view: Any = None  # the LiveView while daemon.foxglove serves one
-        self.zenoh: Any = None  # the ZenohInterface while daemon.zenoh is on
+        self.transports: list[Transport] = []  # started (jtc_hw.daemon.transports)
 
     def request_stop(self, reason: str, failed: bool = False) -> None:
         """Begin an orderly shutdown (idempotent)."""
@@ -121,7 +125,9 @@ class Daemon:
                        what="served")
 
     async def _serve(self, aio: asyncio.AbstractEventLoop) -> int:
-        from .server import Server
+        # Here, not at the top: the CLI's other commands import this module (start-up time).
+        from .requests import Requests
+        from .transports import TRANSPORTS, Wiring
 
         settings = self.robot.daemon
         try:
@@ -130,28 +136,33 @@ class Daemon:
             log.error("cannot start: %s", exc)
             await self.backend.stop("start-up failed", record=False)
             return 2
-        server = Server(self.backend, settings)
-        try:
-            await server.start()
-        except Exception as exc:
-            log.error("cannot open the socket: %s", exc)
-            await self.backend.stop("start-up failed", record=False)
-            return 2
+        requests = Requests(self.backend, settings.max_message_bytes)
+        wiring = Wiring(requests, settings, self.robot.controller.name, self.backend.add_observer,
+                        self.backend.status)
+        for registration in TRANSPORTS:
+            transport = registration.open(wiring)
+            if transport is None:
+                continue
+            try:
+                await transport.start()
+            except Exception as exc:
+                log.error("%s: %s", registration.failure, exc)
+                await transport.close()
+                await self._close_transports(requests)
+                await self.backend.stop("start-up failed", record=False)
+                return 2
+            self.transports.append(transport)
         live = await self._start_live_view()
         if live is False:
-            await server.close()
-            await self.backend.stop("start-up failed", record=False)
-            return 2
-        zenoh = await self._start_zenoh(server)
-        if zenoh is False:
-            if live is not None:
-                await live.close()
-            await server.close()
+            await self._close_transports(requests)
             await self.backend.stop("start-up failed", record=False)
             return 2
         c = self.robot.controller
         kinds = ", ".join(sorted({h.kind for h in self.robot.hardware}))
-        status = f"{len(c.joints)} joints at {c.update_rate:g} Hz on {kinds}; socket {server.path}"
+        status = (
+            f"{len(c.joints)} joints at {c.update_rate:g} Hz on {kinds}; socket "
+            f"{Path(settings.socket)}"
+        )
         log.info("ready: %s", status)
         self.notifier.ready(status=status)
         watchdog = aio.create_task(self._watchdog())
@@ -165,9 +176,8 @@ class Daemon:
             code = await self.backend.stop(self._reason)
             if live is not None:
                 await live.close()
-            if zenoh is not None:
-                await zenoh.close()  # after the loop's stop: its last results are published
-            await server.close()
+            # After the loop's stop: its last results reach every transport's clients.
+            await self._close_transports(requests)
             # asyncio restores the default (fatal) handlers when its loop closes: a second
             # SIGTERM now must not turn a clean stop into death by signal.
             for sig in (signal.SIGTERM, signal.SIGINT):
@@ -197,25 +207,11 @@ class Daemon:
         self.live_view = live
         return live
 
-    async def _start_zenoh(self, server: Any) -> Any:
-        """The Zenoh interface if ``daemon.zenoh`` asks for one (None: off; False: it could
-        not start, which is logged)."""
-        settings = self.robot.daemon.zenoh
-        if settings is None:
-            return None
-        from .zenoh_iface import ZenohInterface
-
-        iface = ZenohInterface(settings, self.robot.controller.name, server, self.backend.status)
-        try:
-            await iface.start()
-        except JtcHwError as exc:
-            log.error("cannot start: %s", exc)
-            await iface.close()
-            return False
-        self.backend.add_observer(iface)
-        server.status_sections["zenoh"] = iface.stats
-        self.zenoh = iface
-        return iface
+    async def _close_transports(self, requests: Requests) -> None:
+        """Close the started transports, the last started first, then the request layer."""
+        while self.transports:
+            await self.transports.pop().close()
+        requests.close()
 
     async def _loop_death(self) -> None:
         """Exit (non-zero) as soon as the loop process ends without being asked to: the

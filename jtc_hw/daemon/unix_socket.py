@@ -1,5 +1,10 @@
 """The daemon's unix socket file: its directory, binding it, replacing a stale one, removing it.
 
+What the unix socket adds to the request layer, beside the framing and slots it shares with TCP
+(``jtc_hw.daemon.server``): the socket file, whose permissions say who may connect, and the
+peer's uid (``SO_PEERCRED``, ``connection.peer_identity``) that lets the daemon's own user and
+root into the reserved slots.
+
 Nobody else may be able to put a socket where clients look for the daemon: a directory the
 daemon creates is writable by its user only (others may only enter it, as ``socket_mode``
 allows them to connect), and the default place is refused if someone else prepared it. A

@@ -14,12 +14,16 @@ docs/zenoh.md)::
     <prefix>/rpc/<op>   a queryable per socket operation: the query's payload is the socket's
                         request body (``op`` may be left out), the reply the socket's reply
 
-It is an observer of the backend (state snapshots and goal events, in the asyncio thread, like the
-live view); the loop process knows nothing of it. A query is executed by the socket server's
-own dispatch (``Server.answer_remote``), so replies and errors are byte for byte the
-socket's. A goal sent over Zenoh has its ``accepted`` reply as the query's reply; its feedback
+What this adds to the request layer (``jtc_hw.daemon.requests``, which executes every
+operation): **key expressions** (one queryable per operation, the publications above), the
+**token attachment** (below), and Zenoh's **threads and memory** (below). A query is answered
+by ``Requests.answer``, as a socket request is, so replies and errors are byte for byte the
+socket's. Its querier is a ``Caller`` of its own whose outlet discards what is routed to it
+later: a goal sent over Zenoh has its ``accepted`` reply as the query's reply; its feedback
 and its one result are published on ``events``, as are those of every goal (a socket client's
 too), so a querier that vanishes leaves nothing waiting on it and the result is never lost.
+The publications come from its being an observer of the backend (state snapshots and goal
+events, in the asyncio thread, like the live view); the loop process knows nothing of it.
 
 Credentials: loopback is no door at all on a machine with other users, so every query of an
 operation in :data:`COMMANDS` (everything that moves the robot or changes its settings, ``stop``
@@ -63,7 +67,7 @@ import threading
 import time
 from collections.abc import Callable
 from functools import partial
-from typing import TYPE_CHECKING, Any, Final, cast
+from typing import TYPE_CHECKING, Any, Final
 
 from ..api.framing import (
     BAD_REQUEST,
@@ -85,13 +89,11 @@ from ..api.protocol import (
 from ..controller.goals import GoalFeedback, GoalResult
 from ..controller.trajectory import JointTrajectory
 from ..errors import ConfigurationError
-from .connection import Connection
 from .realtime import release_freed_memory, return_freed_memory_promptly
-from .settings import DaemonSettings
+from .requests import Caller, Requests
 from .zenoh_config import import_zenoh, session_config
 
 if TYPE_CHECKING:
-    from .server import Server
     from .zenoh_config import ZenohSettings
 
 log = logging.getLogger("jtc_hw.zenoh")
@@ -164,32 +166,20 @@ def keys(prefix: str) -> dict[str, str]:
     }
 
 
-class QueryConnection(Connection):
-    """The querier of one Zenoh query, as the socket server sees a client: the first message it
-    is sent is the query's reply; what is routed to it later (the goal's feedback and result)
-    is already on ``<prefix>/events`` and is dropped here."""
+class _Discard:
+    """The outlet of a query's ``Caller``: the query's one reply is the query's; what is routed
+    to it later (its goal's feedback and result) is on ``<prefix>/events`` already."""
 
-    def __init__(self, number: int, settings: DaemonSettings, peer: str) -> None:
-        # No stream: nothing reads or writes through reader/writer (send and abort below).
-        super().__init__(number, "zenoh", peer, cast(Any, None), cast(Any, None), settings)
-        self._replied = False
-
-    @property
-    def label(self) -> str:
-        return f"zenoh query {self.number} ({self.peer})"
+    gone = False
 
     def send(self, data: bytes) -> bool:
-        if not self._replied:
-            self._replied = True
-            self.queue.append(data)
         return True
 
     def offer(self, data: bytes) -> bool:
         return True
 
-    def abort(self, reason: str) -> None:
-        self.gone = True
-        self.close_reason = reason
+
+_DISCARD: Final = _Discard()
 
 
 class _Outbox:
@@ -262,24 +252,29 @@ class ZenohInterface:
     Args:
         settings: ``daemon.zenoh``.
         controller: the controller's name (the default prefix's last chunk).
-        server: the socket server, whose dispatch executes the queries.
+        requests: the request layer, which executes the queries.
         status: the backend's ``status`` (polled for faults).
+        add_observer: the backend's ``add_observer``: once started, the interface is an
+            observer of the backend (every state, goal event and accepted command, which it
+            publishes).
     """
 
     def __init__(
         self,
         settings: ZenohSettings,
         controller: str,
-        server: Server,
+        requests: Requests,
         status: Callable[[], dict[str, Any]],
+        add_observer: Callable[[ZenohInterface], None] | None = None,
     ) -> None:
         self.settings = settings
         self.prefix = settings.resolved_prefix(controller)
         self.keys = keys(self.prefix)
-        self._server = server
+        self._requests = requests
         self._status = status
-        self._joint_names = list(getattr(server.backend, "joint_names", ()))
-        self._max_bytes = server.settings.max_message_bytes
+        self._add_observer = add_observer
+        self._joint_names = list(requests.backend.joint_names)
+        self._max_bytes = requests.max_message_bytes
         self._session: Any = None
         self._declared: list[Any] = []
         self._state_pub: Any = None
@@ -306,7 +301,8 @@ class ZenohInterface:
     # -- lifecycle ----------------------------------------------------------------------------
 
     async def start(self) -> None:
-        """Open the session and declare the token, publishers and the queryable.
+        """Open the session and declare the token, publishers and the queryable; then observe
+        the backend and add ``zenoh`` to ``get_status``.
 
         Raises:
             ConfigurationError: ``eclipse-zenoh`` is missing (the message says what to
@@ -341,6 +337,9 @@ class ZenohInterface:
             session.liveliness().declare_token(self.keys["liveliness"]),
         ]
         self._fault_task = self._aio.create_task(self._watch_fault())
+        if self._add_observer is not None:
+            self._add_observer(self)
+        self._requests.status_sections["zenoh"] = self.stats
         log.info("zenoh: serving under %s (mode %s, listen %s, connect %s)", self.prefix,
                  self.settings.mode or "peer", list(self.settings.listen or ()) or "none",
                  list(self.settings.connect) or "none")
@@ -413,7 +412,7 @@ class ZenohInterface:
         if outbox is None or not traj.points:  # (a stop is for the socket's subscribers)
             return
         outbox.put(partial(self._put_event, command_event, traj, goal_id,
-                           self._server.backend.now_ns()))
+                           self._requests.backend.now_ns()))
 
     def on_record(self, event: dict[str, Any]) -> None:
         """Nothing: results are on ``events`` already."""
@@ -597,7 +596,7 @@ class ZenohInterface:
 
     async def _execute(self, query: Any, op: str, body: bytes | RequestError) -> None:
         self._queries += 1
-        conn = QueryConnection(self._queries, self._server.settings, "zenoh")
+        caller = Caller(self._queries, f"zenoh query {self._queries} (zenoh)", _DISCARD)
         try:
             item: Request | RequestError
             if isinstance(body, RequestError):
@@ -608,14 +607,14 @@ class ZenohInterface:
             else:
                 item = self.decode(op, body, self._max_bytes)
             del body
-            data = await self._server.answer_remote(conn, item)
+            data = (await self._requests.answer(caller, item)).data
             if self._outbox is None or not self._outbox.put(partial(self._reply, query, data)):
                 self._end(query)
         except asyncio.CancelledError:
             self._end(query)
             raise
-        except Exception:  # answer_remote never raises; Zenoh's drop might
-            log.exception("zenoh: query %d failed", conn.number)
+        except Exception:  # answer never raises; Zenoh's drop might
+            log.exception("zenoh: query %d failed", caller.number)
         finally:
             with self._lock:
                 self._inflight -= 1

@@ -1,6 +1,6 @@
 """The Zenoh interface's bounds, without a Zenoh session: its outbox (what is dropped when
 Zenoh is slow), its limit on queries executing at once (``busy``) and on wrong-token refusals
-waiting (``unauthorized``)."""
+waiting (``unauthorized``); and a query executed by the request layer."""
 
 from __future__ import annotations
 
@@ -11,7 +11,10 @@ from types import SimpleNamespace
 from typing import Any
 
 import pytest
+from helpers.fake_backend import FakeBackend
+from helpers.peers import goal_msg
 
+from jtc_hw.daemon.requests import Requests
 from jtc_hw.daemon.zenoh_config import ZenohSettings
 from jtc_hw.daemon.zenoh_iface import (
     MAX_QUERIES,
@@ -74,10 +77,10 @@ class FakeQuery:
 
 
 def interface() -> ZenohInterface:
-    server = SimpleNamespace(backend=SimpleNamespace(joint_names=["j1"]),
-                             settings=SimpleNamespace(max_message_bytes=1024))
+    requests = SimpleNamespace(backend=SimpleNamespace(joint_names=["j1"]),
+                               max_message_bytes=1024)
     return ZenohInterface(ZenohSettings(prefix="jtc/t/a", token=TOKEN), "c",
-                          server, dict)  # type: ignore[arg-type]
+                          requests, dict)  # type: ignore[arg-type]
 
 
 def test_queries_over_the_limit_are_answered_busy_at_once() -> None:
@@ -164,3 +167,31 @@ def test_decode(op: str, body: bytes, code: str | None) -> None:
         assert getattr(item, "op", None) == op, item
     else:
         assert getattr(item, "code", None) == code, item
+
+
+def test_a_query_is_answered_by_the_request_layer_with_no_stand_in_connection() -> None:
+    """``send_goal`` too: its reply is the layer's returned value (the socket's bytes), and
+    the goal's later events, published on ``events`` by the observer, go nowhere else."""
+    backend = FakeBackend()
+    requests = Requests(backend, max_message_bytes=1 << 20)
+    requests.listen()
+    iface = ZenohInterface(ZenohSettings(prefix="jtc/t/a", token=TOKEN), "c", requests, dict)
+    aio = iface._aio = asyncio.new_event_loop()
+    iface._outbox = _Outbox(OUTBOX, OUTBOX)
+    body = json.dumps({"id": 5, "trajectory": goal_msg()}).encode()
+    query = FakeQuery("jtc/t/a/rpc/send_goal", body, token=TOKEN)
+    try:
+        iface._inflight = 1  # as _on_query leaves it
+        aio.run_until_complete(iface._execute(query, "send_goal", body))
+        iface._outbox.close(timeout_s=10)
+        assert query.dropped and iface._inflight == 0
+        [(key, reply)] = query.replies
+        goal_id = reply["goal_id"]
+        assert key == "jtc/t/a/rpc/send_goal"
+        assert reply == {"id": 5, "ok": True, "goal_id": goal_id, "accepted": True}
+        assert requests.goals_routed == [goal_id]
+        backend.step(1.5)  # feedback and the result reach the query's caller: discarded
+        assert requests.goals_routed == [] and requests.results_discarded == 0
+    finally:
+        aio.close()
+        requests.close()

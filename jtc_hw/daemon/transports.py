@@ -1,0 +1,114 @@
+"""The daemon's ways in: every transport is one module over the request layer, registered here.
+
+Theory of operation
+-------------------
+A transport turns what arrives on its medium into ``protocol.Request`` values, has
+``Requests.answer`` execute them, and sends the ``Reply`` back; it implements the request
+layer's ``Outlet`` for what comes later (``jtc_hw.daemon.requests``). What it adds is its own:
+framing, authentication, slots, key expressions. It never reaches into another transport.
+
+Adding one (ROS 2, say) is one module and one line::
+
+    1. ros2_iface.py: a class with ``async start()`` and ``async close()`` (``Transport``)
+       over a ``Requests``; a ``Caller`` per client or per request, its ``Outlet`` delivering
+       the goal events and states the layer routes to it;
+    2. here: an opener ``(Wiring) -> Transport | None`` (``None``: not configured) and its
+       ``Registration`` in ``TRANSPORTS``.
+
+The daemon (``jtc_hw.daemon.service``) starts the registered transports in this order after the
+loop process, and closes them in the reverse order after the loop has stopped (so that the last
+goal results reach every transport's clients). Nothing else names a transport.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any, Protocol
+
+from .requests import Requests
+from .server import Server
+from .zenoh_iface import ZenohInterface
+
+if TYPE_CHECKING:
+    from .settings import DaemonSettings
+
+__all__ = ["TRANSPORTS", "Registration", "Transport", "Wiring"]
+
+
+class Transport(Protocol):
+    """One way in to the request layer, as the daemon starts and stops it."""
+
+    async def start(self) -> None:
+        """Serve from now on (bind, listen, declare; register any ``get_status`` section).
+
+        Raises:
+            JtcHwError: it cannot serve (said in one line, naming the setting); ``OSError``
+                likewise for an address that cannot be bound.
+        """
+        ...
+
+    async def close(self) -> None:
+        """Stop serving, after letting its clients read what is queued. Idempotent.
+
+        Raises:
+            Nothing: errors while closing are logged.
+        """
+        ...
+
+
+@dataclass(frozen=True)
+class Wiring:
+    """What a transport is built from.
+
+    Attributes:
+        requests: the request layer every transport shares.
+        daemon: the robot file's ``daemon`` settings (each transport reads its own).
+        controller: the controller's name (Zenoh's default prefix).
+        add_observer: have the backend also send its state snapshots, goal events, accepted
+            commands and records to an ``Observer`` (a transport that publishes them all, as
+            Zenoh does).
+        status: the backend's ``get_status`` facts, for a transport that watches them.
+    """
+
+    requests: Requests
+    daemon: DaemonSettings
+    controller: str
+    add_observer: Callable[[Any], None]
+    status: Callable[[], dict[str, Any]]
+
+
+@dataclass(frozen=True)
+class Registration:
+    """A transport in ``TRANSPORTS``.
+
+    Attributes:
+        name: what it is called (``socket``, ``zenoh``).
+        open: its transport for these settings, ``None`` when they do not ask for it.
+        failure: how the daemon's log line begins when it cannot start.
+    """
+
+    name: str
+    open: Callable[[Wiring], Transport | None]
+    failure: str = "cannot start"
+
+
+def _socket(wiring: Wiring) -> Transport:
+    """The unix socket and TCP (``daemon.socket``, ``daemon.tcp``): always."""
+    return Server(wiring.requests.backend, wiring.daemon, wiring.requests)
+
+
+def _zenoh(wiring: Wiring) -> Transport | None:
+    """Zenoh (``daemon.zenoh``), off when absent."""
+    settings = wiring.daemon.zenoh
+    if settings is None:
+        return None
+    return ZenohInterface(settings, wiring.controller, wiring.requests, wiring.status,
+                          add_observer=wiring.add_observer)
+
+
+TRANSPORTS: tuple[Registration, ...] = (
+    Registration("socket", _socket, "cannot open the socket"),
+    Registration("zenoh", _zenoh),
+)
+"""Every transport, in the order they start (closed in the reverse order)."""

@@ -165,6 +165,11 @@ def executed_waypoints(
         before = candidates[t[candidates] <= logged]
         later = candidates[t[candidates] > logged]
         first = int(before[-1]) if len(before) else int(later[0]) if len(later) else None
+        if first is None and not starts and n and t[0] <= logged:
+            # The recording began before the first command and its trajectory time never fell
+            # back: the hold before it was younger than the command's first published sample
+            # (a goal sent right after the daemon started). It is followed from the start.
+            first = 0
         starts.append(first)
         if first is not None:
             after = first + 1

@@ -157,3 +157,17 @@ def test_results_faults_and_rearms_are_in_the_bag_and_on_the_plot(tmp_path: Path
                for s in texts), texts
     assert any(s.startswith("hardware fault") and "servo 3" in s for s in texts), texts
     assert any(s.startswith("re-armed") for s in texts), texts
+
+
+def test_a_goal_sent_right_after_the_start_has_its_waypoints() -> None:
+    """A goal sent within a publication period of the daemon's start: the hold's trajectory
+    time (0.0) never exceeds the goal's first published one (0.012), so no fall-back marks the
+    switch. The waypoint is still found (CI: a plot of such a recording had none)."""
+    from jtc_hw.rec.plot import executed_waypoints
+
+    t = np.arange(0.0, 1.0, 0.02)
+    tfs = np.concatenate([[0.0], 0.012 + np.arange(len(t) - 1) * 0.02])
+    (waypoint,) = executed_waypoints(t, tfs, [(0.01, [(0.5, "joint1", 0.3)])])
+    when, name, value = waypoint
+    assert (name, value) == ("joint1", 0.3)
+    assert tfs[int(np.searchsorted(t, when))] >= 0.5 > tfs[int(np.searchsorted(t, when)) - 1]

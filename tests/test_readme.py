@@ -19,11 +19,11 @@ from pathlib import Path
 import pytest
 
 from jtc_hw.cli.demo import (
-    DEMO_EMULATOR_PRIORITY,
     DEMO_LOOP_PRIORITY,
     _start_emulator,
     fifo_permitted,
 )
+from jtc_hw.drivers.emulation_cli import DEFAULT_PRIORITY
 
 ROOT = Path(__file__).resolve().parents[1]
 BUSY_PROCESSES = 4  # as `tools/cpu-hog -n 4`: twice the cores of the CI machine
@@ -103,11 +103,11 @@ def test_demo_on_emulated_motors(hardware: str, busy_beside: int) -> None:
     assert "INFO canopen" not in done.stderr and "INFO can." not in done.stderr
 
 
-@pytest.mark.skipif(not fifo_permitted(DEMO_EMULATOR_PRIORITY),
+@pytest.mark.skipif(not fifo_permitted(DEFAULT_PRIORITY),
                     reason="this user may not have a SCHED_FIFO priority")
 def test_the_demo_runs_its_dynamixel_emulator_at_a_real_time_priority() -> None:
     """Every thread of the Dynamixel emulator (including those it started after being set)
-    is at SCHED_FIFO, as the CAN emulator sets itself: a real servo is not slowed down by
+    is at SCHED_FIFO, as ``jtc-hw emulate`` sets itself: a real servo is not slowed down by
     the host's other work, and normally scheduled it missed the bus watchdog on a busy
     machine."""
     emulator, line, forward = _start_emulator("dynamixel", STARTUP_TIMEOUT_S)
@@ -117,7 +117,7 @@ def test_the_demo_runs_its_dynamixel_emulator_at_a_real_time_priority() -> None:
         assert len(tids) > 1  # the serving thread(s), started after the priority was set
         for tid in tids:
             assert os.sched_getscheduler(tid) == os.SCHED_FIFO, tid
-            assert os.sched_getparam(tid).sched_priority == DEMO_EMULATOR_PRIORITY, tid
+            assert os.sched_getparam(tid).sched_priority == DEFAULT_PRIORITY, tid
     finally:
         emulator.terminate()
         emulator.wait(STARTUP_TIMEOUT_S)

@@ -6,8 +6,6 @@
 - :class:`Timer`: frames due at set times, released by a one-thread socketcand server.
 - :class:`ControlSocket`: fault commands to an emulator process, one line each, on a unix
   socket (what a test or an operator in another process uses to brown a motor out).
-- :func:`realtime_priority`: an emulator process scheduled as the hardware it stands for,
-  not as one more program on a busy host.
 
 The MIT-mode emulator, the CiA 402 emulator and the socketcand server all import this module
 and none imports another's, so there is no import circle among them.
@@ -26,13 +24,7 @@ from typing import Any, Protocol
 
 import can
 
-__all__ = ["DEFAULT_PRIORITY", "ControlSocket", "PushSink", "Timer", "WakeEarly",
-           "attach_sink", "realtime_priority"]
-
-DEFAULT_PRIORITY = 1
-"""SCHED_FIFO priority an emulator process asks for unless told otherwise: the lowest, so a
-control loop at any real-time priority still preempts it, while busy normally scheduled
-programs (a compiler, a second test suite) no longer do."""
+__all__ = ["ControlSocket", "PushSink", "Timer", "WakeEarly", "attach_sink"]
 
 
 class WakeEarly:
@@ -188,36 +180,3 @@ class ControlSocket:
         self._thread.join(2.0)
         with contextlib.suppress(FileNotFoundError):
             os.unlink(self.path)
-
-
-def realtime_priority(priority: int) -> str | None:
-    """Run the calling thread, and the threads it starts afterwards, at SCHED_FIFO
-    ``priority`` (0: leave normal scheduling).
-
-    Motors answer within microseconds whatever the host does; an emulator process scheduled
-    like any other program answers late whenever the host is busy (measured: 0.3-0.6 % of
-    the replies of a 500 Hz loop over six motors later than their read's deadline with the
-    machine otherwise idle, 4-7 % beside two busy processes; docs/benchmarks.md), which the
-    driver would count as missed replies of real motors. At a real-time priority the
-    emulator's threads preempt normally scheduled work as soon as a frame or a due reply
-    wakes them. Call it before starting any thread.
-
-    Returns:
-        ``None`` when applied (or ``priority`` is 0), else one line saying why not (no
-        privilege: CAP_SYS_NICE or an RLIMIT_RTPRIO of at least ``priority``).
-
-    Raises:
-        ValueError: ``priority`` is not in 0..99.
-    """
-    if not 0 <= priority <= 99:
-        raise ValueError(f"a SCHED_FIFO priority is 1..99 (0: normal scheduling), got "
-                         f"{priority}")
-    if priority == 0:
-        return None
-    try:
-        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
-    except (OSError, AttributeError) as exc:  # EPERM; AttributeError: not Linux
-        return (f"normal scheduling (SCHED_FIFO {priority} refused: {exc}); on a busy host "
-                "its replies may come late: run it as root, with CAP_SYS_NICE, or with "
-                "`ulimit -r` >= the priority")
-    return None

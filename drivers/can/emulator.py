@@ -19,7 +19,7 @@ connect line.
 The process runs at SCHED_FIFO priority 1 where permitted (``--priority N``; 0: normal
 scheduling), as the motors it stands for are not slowed down by a busy host: normally
 scheduled, its replies came late on a loaded machine and counted as missed
-(:func:`~jtc_hw.drivers.can.emulation.realtime_priority`).
+(:func:`~jtc_hw.drivers.emulation_cli.realtime_priority`).
 With ``--one-thread`` the emulators start no threads (``start(push=True, thread=False)``; CiA
 402 drives ``start(push=True)``): the server's single thread reads every client, the frames
 reach the emulators in it, and it releases every bus's due replies (each emulator keeps its
@@ -43,10 +43,10 @@ from typing import Any
 
 import can
 
-from ..emulation_cli import parse_ids
+from ..emulation_cli import DEFAULT_PRIORITY, parse_ids, realtime_priority
 from ..motor_model import MotorParams
 from .cia402.emulator import Cia402DriveEmulator
-from .emulation import DEFAULT_PRIORITY, ControlSocket, realtime_priority
+from .emulation import ControlSocket
 from .mit.codec import MODEL_PRESETS
 from .mit.emulator import EmulatorEvent, MitBusEmulator
 from .socketcand import SocketcandServer
@@ -196,7 +196,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.priority is not None and not 0 <= args.priority <= 99:
         parser.error(f"--priority must be 0..99, got {args.priority}")
     # Before any thread starts: they inherit the policy.
-    refused = realtime_priority(DEFAULT_PRIORITY if args.priority is None else args.priority)
+    refused = realtime_priority(DEFAULT_PRIORITY if args.priority is None else args.priority,
+                                whole_process=True)
     if refused is not None and args.priority is not None:  # asked for: say it was not given
         print(f"jtc-hw emulate can: {refused}", file=sys.stderr)
 

@@ -67,7 +67,7 @@ from types import TracebackType
 from jtc_hw.hardware.timing import reduce_timer_slack
 
 from .. import emulation_cli
-from ..can.emulation import DEFAULT_PRIORITY, realtime_priority
+from ..emulation_cli import DEFAULT_PRIORITY, realtime_priority
 from .control_table import BUS_WATCHDOG_FIRMWARE, HardwareError, model_by_name
 from .packets import (
     BROADCAST_ID,
@@ -886,7 +886,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         parser.error(f"--priority must be 0..99, got {args.priority}")
     # Before the serving thread starts: it inherits the policy. A normally scheduled emulator
     # missed the daemon's 20 ms ping at configure on a busy machine (issue 22).
-    refused = realtime_priority(DEFAULT_PRIORITY if args.priority is None else args.priority)
+    refused = realtime_priority(DEFAULT_PRIORITY if args.priority is None else args.priority,
+                                whole_process=True)
     if refused is not None and args.priority is not None:  # asked for: say it was not given
         print(f"jtc-hw emulate dynamixel: {refused}", file=sys.stderr)
     try:

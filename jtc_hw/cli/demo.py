@@ -28,7 +28,7 @@ from ..errors import JtcHwError
 from .common import EXIT_BAD_INPUT, EXIT_NO_DAEMON, goal_result
 
 __all__ = [
-    "DEMO_EMULATED_WATCHDOG_S", "DEMO_EMULATOR_PRIORITY", "DEMO_HARDWARE", "DEMO_JOINTS",
+    "DEMO_EMULATED_WATCHDOG_S", "DEMO_HARDWARE", "DEMO_JOINTS",
     "DEMO_LOOP_PRIORITY", "add_parsers", "cmd_demo", "demo_config", "demo_goal",
     "demo_hardware", "fifo_permitted",
 ]
@@ -52,10 +52,6 @@ DEMO_JOINTS = [f"joint{i}" for i in range(1, 7)]
 
 DEMO_LOOP_PRIORITY = 2
 """SCHED_FIFO priority of the demo's control loop where permitted: above its emulators'."""
-
-DEMO_EMULATOR_PRIORITY = 1
-"""SCHED_FIFO priority of the demo's emulator where permitted: the lowest, as ``jtc-hw
-emulate can`` asks for itself, so the loop preempts it and busy programs do not."""
 
 DEMO_EMULATED_WATCHDOG_S = 0.5
 """Watchdogs (``watchdog_s``) and feedback timeouts of the demo's emulated motors: a busy
@@ -81,24 +77,6 @@ def fifo_permitted(priority: int) -> bool:
     except (OSError, ValueError, IndexError):
         pass
     return False
-
-
-def _schedule_fifo(pid: int, priority: int) -> bool:
-    """Put every thread of process ``pid`` at SCHED_FIFO ``priority`` (threads it starts
-    later inherit it); whether that was done. Refused or not permitted: left as it is,
-    quietly (the demo then runs normally scheduled)."""
-    if not fifo_permitted(priority):
-        return False
-    try:
-        tids = [int(t) for t in os.listdir(f"/proc/{pid}/task")]
-    except (OSError, ValueError):
-        tids = [pid]
-    try:
-        for tid in tids:
-            os.sched_setscheduler(tid, os.SCHED_FIFO, os.sched_param(priority))
-    except OSError:  # EPERM (no real-time budget), ESRCH (a thread that ended meanwhile)
-        return False
-    return True
 
 
 def demo_config(
@@ -148,9 +126,8 @@ def _start_emulator(
     """Start ``jtc-hw emulate`` for a demo hardware kind; return it, its connection line and
     the thread forwarding its stderr (join it once the emulator has exited: its last lines).
 
-    The emulator runs at SCHED_FIFO :data:`DEMO_EMULATOR_PRIORITY` where permitted: ``jtc-hw
-    emulate can`` asks for it itself; the Dynamixel emulator is set from here, right after
-    its start (before it starts any thread of its own)."""
+    The emulator runs at SCHED_FIFO where permitted: ``jtc-hw emulate`` asks for its default
+    priority itself (``drivers/emulation_cli.py``)."""
     if kind == "dynamixel":
         # Its statistics once, when it stops: live, they interleaved with the progress bar.
         argv = ["dynamixel", "--ids", "1-6", "--model", "XM430-W350", "--baud", "4000000",
@@ -165,8 +142,6 @@ def _start_emulator(
         stderr=subprocess.PIPE,
         text=True,
     )
-    if kind == "dynamixel":
-        _schedule_fifo(emulator.pid, DEMO_EMULATOR_PRIORITY)
     stdout, stderr = emulator.stdout, emulator.stderr
     assert stdout is not None and stderr is not None
     forward = threading.Thread(target=_forward, args=(stderr, "  emulator | "), daemon=True)

@@ -15,7 +15,7 @@ import gc
 import threading
 from collections.abc import Callable
 
-from jtc_hw.drivers.can.emulation import DEFAULT_PRIORITY, realtime_priority
+from jtc_hw.drivers.emulation_cli import DEFAULT_PRIORITY, realtime_priority
 
 __all__ = ["start_as_hardware"]
 

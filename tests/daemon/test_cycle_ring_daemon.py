@@ -27,18 +27,18 @@ def rings(d: DaemonProcess) -> list[Path]:
     return sorted(SHM.glob(f"jtc_hw_{d.pid}_*"))
 
 
-def foreign_rings(*ours: DaemonProcess) -> list[Path]:
-    """Rings of daemons this test did not start (another test session on the machine)."""
-    pids = {d.pid for d in ours}
-    return [p for p in SHM.glob("jtc_hw_*_*") if p.name.split("_")[2] not in map(str, pids)]
+ATTEMPTS = 3
+"""Rounds of kill-and-restart before the test gives up on seeing the second daemon remove the
+ring itself (see below)."""
 
 
-def test_a_killed_daemons_ring_is_removed_when_the_next_one_starts(tmp_path: Path) -> None:
-    first = DaemonProcess(tmp_path / "d", flight_recorder_dir=str(tmp_path / "bags"))
+def kill_then_restart(where: Path) -> bool:
+    """A daemon killed with its whole process group leaves its ring; the next daemon to start
+    on the same socket runs without it. Whether that daemon's log says it removed the ring."""
+    first = DaemonProcess(where / "d", flight_recorder_dir=str(where / "bags"))
     first.start()
     try:
         first.wait_ready()
-        others = foreign_rings(first)
         left = rings(first)
         assert len(left) == 1, sorted(SHM.iterdir())
         os.killpg(first.pid, signal.SIGKILL)  # API process, loop, resource tracker: all
@@ -48,17 +48,12 @@ def test_a_killed_daemons_ring_is_removed_when_the_next_one_starts(tmp_path: Pat
     finally:
         if first.proc is not None and first.proc.poll() is None:  # failed before the kill
             first.shutdown()
-    second = DaemonProcess(tmp_path / "d", flight_recorder_dir=str(tmp_path / "bags"))
+    second = DaemonProcess(where / "d", flight_recorder_dir=str(where / "bags"))
     second.start()
     try:
         second.wait_ready()
         assert not left[0].exists()
-        # Which daemon removed it: this one, unless another session's daemon ran meanwhile
-        # (.ci/run runs two suites side by side; any starting daemon removes every stale ring,
-        # which is the design). Such a daemon's ring is seen here or above.
-        others += foreign_rings(first, second)
-        if not others:
-            assert "the cycle ring of a daemon that was killed" in second.log()
+        removed_here = "the cycle ring of a daemon that was killed" in second.log()
         own = rings(second)
         assert len(own) == 1
     finally:
@@ -66,3 +61,16 @@ def test_a_killed_daemons_ring_is_removed_when_the_next_one_starts(tmp_path: Pat
     assert code == 0, second.log()
     assert not own[0].exists()  # SIGTERM: the daemon removed its own
     wait_gone(second.pid)
+    return removed_here
+
+
+def test_a_killed_daemons_ring_is_removed_when_the_next_one_starts(tmp_path: Path) -> None:
+    # Any starting daemon removes every stale ring (the design), and .ci/run runs two suites
+    # side by side: another session's daemon starting between the kill and the restart may
+    # remove the ring first, and a short-lived one cannot be told from here. The ring being
+    # gone shows that a daemon's start removes it; which daemon did is shown by a round in
+    # which this test's second daemon says so in its log.
+    said: list[bool] = []
+    while len(said) < ATTEMPTS and not any(said):
+        said.append(kill_then_restart(tmp_path / f"round{len(said)}"))
+    assert said[-1], f"no round of {len(said)} had the restarted daemon log the ring's removal"

@@ -278,7 +278,7 @@ def no_leaks() -> Iterator[None]:
     assert not unclosed, f"unclosed resources: {unclosed}"
     # Of the daemons started during the test: those still running keep theirs; one killed with
     # SIGKILL (its resource tracker too) leaves it to the next daemon's start
-    # (cyclering.remove_stale, tests/daemon/test_cycle_ring_daemon.py), done here instead.
+    # (cyclering.remove_stale, tests/daemon/test_cycle_ring_cleanup.py), done here instead.
     daemons = [d for d in getattr(sys.modules.get("helpers.daemon"), "_DAEMONS", [])
                if d.proc is not None]
     running = tuple(f"jtc_hw_{d.pid}_" for d in daemons if d.proc.poll() is None)

@@ -787,7 +787,7 @@ def test_has_command_and_state() -> None:
 
 # Effort and velocity command interfaces below come with a cmd_timeout: without one, the
 # default allow_nonzero_velocity_at_trajectory_end (true) is warned about (issue 11; tested in
-# tests/controller/test_upstream_sampling.py).
+# tests/controller/test_sampling.py).
 GUARDED = {"cmd_timeout": 1.0}
 
 

@@ -342,7 +342,7 @@ def test_goal_time_zero_waits_for_the_goal() -> None:
 
 def test_no_success_while_passing_through_the_goal_at_speed() -> None:
     # With a velocity command interface (upstream computes the velocity error only then; a
-    # position-only one succeeds here: test_upstream_results.py).
+    # position-only one succeeds here: test_results.py).
     ctrl = JointTrajectoryController(
         make_config(
             command_interfaces=("position", "velocity"), constraints=constraints(0.0, 0.01)

@@ -182,7 +182,7 @@ def test_sigterm_mid_goal_decelerates_to_rest(decelerating_daemon: DaemonProcess
     # ramp seen says the joint comes to rest. At a load average of 10 the daemon's last
     # states of a shutdown can be lost on their way (states are droppable, and the daemon
     # closes the connection once stopped: issue 22); that the loop cycles until it read the
-    # joints at rest is then shown by test_loop_shutdown_stop.py, not by this stream.
+    # joints at rest is then shown by test_shutdown_stop.py, not by this stream.
     # (The stop starts from the velocity measured in its first cycle: after a late cycle,
     # anything from 0 to CRUISE.)
     stop = [m for m in after(states, cruising["time_ns"]) if not cruises(m)]

@@ -22,7 +22,7 @@ import pytest
 from helpers.daemon import WAIT_S, connect
 from helpers.daemon import ConfiguredDaemon as DxlDaemon
 from helpers.dynamixel import servos_as_hardware
-from test_health_dynamixel_daemon import IDS, JOINTS, motor_health, robot, wait_status
+from test_dynamixel_health_daemon import IDS, JOINTS, motor_health, robot, wait_status
 
 from jtc_hw.cli import main
 from jtc_hw.drivers.dynamixel.control_table import HardwareError

@@ -58,7 +58,7 @@ def robot(socket_path: Path, device: str) -> dict[str, Any]:
             # The path tolerance is wide: this test is about the stop, and a busy host that
             # delays the daemon's loop 100 ms puts the servo 0.1 rad behind at 1 rad/s (CI,
             # issue 22: the goal aborted at +0.103 before SIGTERM). Path aborts are tested
-            # in tests/controller/ and tests/daemon/test_upstream_deactivation.py.
+            # in tests/controller/ and tests/daemon/loop/test_deactivation.py.
             **{j: {"trajectory": 0.5, "goal": 0.02, "max_deceleration_on_cancel": DECEL}
                for j in JOINTS},
         },

@@ -108,7 +108,7 @@ def test_check_and_run_warn_of_a_token_others_can_read(
     path.chmod(0o600)
     assert main(["check", str(path)]) == EXIT_OK
     assert "TCP token" not in capsys.readouterr().out
-    # (run prints the same warning to its log: tests/daemon/test_failsafe_e2e.py)
+    # (run prints the same warning to its log: tests/daemon/test_stop_under_flood.py)
 
 
 def test_check_warns_of_a_socket_mode_that_lets_every_user_in(
@@ -122,7 +122,7 @@ def test_check_warns_of_a_socket_mode_that_lets_every_user_in(
     path.write_text(CONFIG + f"daemon: {{socket: {tmp_path}/d.sock, socket_mode: 0o660}}\n")
     assert main(["check", str(path)]) == EXIT_OK
     assert "socket_mode" not in capsys.readouterr().out
-    # (run prints the same warning to its log: tests/daemon/test_failsafe_e2e.py)
+    # (run prints the same warning to its log: tests/daemon/test_stop_under_flood.py)
 
 
 def test_check_says_what_stops_each_components_motors(

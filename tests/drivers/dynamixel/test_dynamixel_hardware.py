@@ -475,7 +475,7 @@ def test_a_late_reply_is_not_taken_for_the_next_one(
 def test_the_shipped_configurations_load() -> None:
     from jtc_hw.daemon.robot import create_hardware_set, load_robot
 
-    root = Path(__file__).resolve().parents[2] / "config"
+    root = Path(__file__).resolve().parents[3] / "config"
     for name in ("dynamixel-arm.yaml", "dynamixel-arm-emulated.yaml"):
         robot = load_robot(root / name)
         (component,) = create_hardware_set(robot).components

@@ -1,7 +1,7 @@
 """How the CAN drivers tell a full transmit queue from an interface that is gone, on the host.
 
 The kernel-side versions (``ip link set vcan0 down``, a qdisc that cannot drain) are in
-``tests/drivers/test_vcan_hil.py`` and run inside the VM (``tools/vcan-hil``). Here python-can's
+``tests/drivers/can/test_vcan_hil.py`` and run inside the VM (``tools/vcan-hil``). Here python-can's
 ``virtual`` bus stands for the interface: a peer with room for one frame that never reads
 makes every send raise ``can.CanOperationError``, as a full queue does.
 """

@@ -14,7 +14,7 @@ import dataclasses
 import numpy as np
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-from test_scaling_controller import ACCEL, INTERFACES, NAMES, PATH_TOL, Run, goal
+from test_speed_scaling import ACCEL, INTERFACES, NAMES, PATH_TOL, Run, goal
 
 from jtc_hw import GoalStatus
 from jtc_hw.config.limits import JointLimits

@@ -300,7 +300,7 @@ def test_a_client_too_slow_for_its_replies_is_disconnected(sock: Path, logs: Log
 
 def test_max_clients(sock: Path, logs: LogWatch) -> None:
     """This test runs as the daemon's user: it gets the two reserved slots too (the limits
-    for other users are in test_server_limits)."""
+    for other users are in test_connection_limits)."""
 
     async def main() -> None:
         async with serving(sock, max_clients=2) as (server, _):

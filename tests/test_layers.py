@@ -69,7 +69,7 @@ def test_the_layering_contract_is_kept() -> None:
          "drivers is not allowed to import jtc_hw.daemon"),
         ("drivers/motor_model.py", "from jtc_hw.rec import bag",
          "drivers is not allowed to import jtc_hw.rec"),
-        ("jtc_hw/rec/flight.py", "from jtc_hw.daemon.cyclering import CycleLayout",
+        ("jtc_hw/rec/flight.py", "from jtc_hw.daemon.channel.cyclering import CycleLayout",
          "jtc_hw.rec is not allowed to import jtc_hw.daemon"),
         ("jtc_hw/rec/bag.py", "from jtc_hw.api import protocol",
          "jtc_hw.rec is not allowed to import jtc_hw.api"),

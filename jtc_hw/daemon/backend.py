@@ -47,7 +47,7 @@ from ..controller.trajectory import (
 )
 from ..errors import ControllerStateError, GoalRejected, HardwareError
 from .backend_api import Accepted, Observer
-from .messages import (
+from .channel.messages import (
     Cancel,
     Committed,
     Events,

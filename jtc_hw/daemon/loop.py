@@ -66,11 +66,8 @@ from ..controller.joints import JointCommand, JointState
 from ..errors import HardwareError, JtcHwError, StalePlan
 from ..hardware import HardwareSet, LifecycleState
 from ..hardware.mirror import MirrorHardware
-from .clock import Ticker
-from .cyclering import CycleRing
-from .locks import DeviceLock, lock_devices
-from .loopstats import LoopStats
-from .messages import (
+from .channel.cyclering import CycleRing
+from .channel.messages import (
     Cancel,
     Commit,
     Committed,
@@ -95,8 +92,11 @@ from .messages import (
     Status,
     Stop,
 )
+from .channel.pipe import Inbox
+from .clock import Ticker
+from .locks import DeviceLock, lock_devices
+from .loopstats import LoopStats
 from .outbox import Outbox
-from .pipe import Inbox
 from .robot import RobotConfig, create_hardware_set, load_robot
 
 log = logging.getLogger("jtc_hw.loop")

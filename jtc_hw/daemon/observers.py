@@ -40,8 +40,8 @@ from ..controller.trajectory import JointTrajectory
 from ..rec.continuous import ContinuousRecorder
 from ..rec.flight import FlightRecorder
 from .backend_api import Observer
-from .cyclering import READ_PERIOD_S, RING_S, CycleRing, remove_stale
-from .messages import State
+from .channel.cyclering import READ_PERIOD_S, RING_S, CycleRing, remove_stale
+from .channel.messages import State
 from .settings import DaemonSettings
 
 __all__ = ["Observers", "Recorders", "state_json"]

@@ -38,8 +38,7 @@ from typing import Any
 
 from ..controller.controller import Plan
 from ..errors import ControllerStateError, HardwareError, JtcHwError
-from .loop import INBOX_SPARE, inbox_budget, loop_main
-from .messages import (
+from .channel.messages import (
     Commit,
     Committed,
     Exit,
@@ -54,7 +53,8 @@ from .messages import (
     Shutdown,
     Stale,
 )
-from .pipe import Inbox, PlanWriter
+from .channel.pipe import Inbox, PlanWriter
+from .loop import INBOX_SPARE, inbox_budget, loop_main
 
 __all__ = ["LoopProcess"]
 

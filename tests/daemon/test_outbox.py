@@ -16,8 +16,8 @@ from typing import Any
 
 import pytest
 
+from jtc_hw.daemon.channel.pipe import Inbox
 from jtc_hw.daemon.outbox import Outbox
-from jtc_hw.daemon.pipe import Inbox
 
 pytestmark = pytest.mark.usefixtures("no_leaks")
 

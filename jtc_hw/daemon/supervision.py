@@ -2,7 +2,7 @@
 
 Theory of operation
 -------------------
-:class:`LoopProcess` spawns the loop process (``jtc_hw.daemon.loop.loop_main``) on one duplex
+:class:`LoopProcess` spawns the loop process (``jtc_hw.daemon.loop.cycle.loop_main``) on one duplex
 pipe and waits for its ``Ready``. From then on it is the only one that talks to it:
 
 - out: ``Commit`` and ``Request`` records (:mod:`.messages`), written without blocking
@@ -54,7 +54,7 @@ from .channel.messages import (
     Stale,
 )
 from .channel.pipe import Inbox, PlanWriter
-from .loop import INBOX_SPARE, inbox_budget, loop_main
+from .loop.cycle import INBOX_SPARE, inbox_budget, loop_main
 
 __all__ = ["LoopProcess"]
 

@@ -182,7 +182,7 @@ def check_token(token: object) -> str:
 
 
 LOOP_PROCESS: Final = "jtc-hw-loop"
-"""``jtc_hw.daemon.loop.LOOP_PROCESS_NAME``, the loop process's ``multiprocessing`` name
+"""``jtc_hw.daemon.loop.cycle.LOOP_PROCESS_NAME``, the loop process's ``multiprocessing`` name
 (not imported: this module is imported by the robot file's loader, the loop's too)."""
 
 

@@ -379,8 +379,8 @@ def loop_side(plan_message: Commit, rate_hz: float) -> dict[str, float]:
     arrive, and the time to release the plan once received.
     """
     from jtc_hw.daemon.channel.pipe import Inbox, send_framed
+    from jtc_hw.daemon.core.supervision import _grow_send_buffer
     from jtc_hw.daemon.loop.cycle import INBOX_SPARE, inbox_budget
-    from jtc_hw.daemon.supervision import _grow_send_buffer
 
     period_ns = round(1e9 / rate_hz)
     parent, child = multiprocessing.Pipe(duplex=True)

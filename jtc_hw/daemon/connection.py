@@ -16,7 +16,7 @@ import socket
 import struct
 from typing import Any
 
-from .requests import Caller
+from .core.requests import Caller
 from .settings import DaemonSettings
 
 __all__ = [

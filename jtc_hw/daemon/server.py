@@ -2,7 +2,7 @@
 
 Theory of operation
 -------------------
-What this adds to the request layer (``jtc_hw.daemon.requests``, which executes every
+What this adds to the request layer (``jtc_hw.daemon.core.requests``, which executes every
 operation): **framing** (``protocol.Decoder`` reads NDJSON lines, ``framing.encode``'s bytes
 are written), **slots** (who may connect, how many), **authentication** on TCP (the token
 handshake, ``jtc_hw.daemon.tcp_door``) and **deadlines** (authentication, idleness). Each
@@ -57,7 +57,6 @@ from ..api.framing import (
 )
 from ..api.protocol import Auth, Decoder, Request, Stop
 from ..errors import ControllerStateError
-from .backend_api import Backend, Observer
 from .connection import (
     OVER_LIMIT_CLIENTS,
     OVER_LIMIT_DEADLINE_S,
@@ -66,7 +65,8 @@ from .connection import (
     is_privileged,
     peer_identity,
 )
-from .requests import Caller, Requests
+from .core.backend_api import Backend, Observer
+from .core.requests import Caller, Requests
 from .settings import DaemonSettings
 from .tcp_door import TcpDoor
 from .unix_socket import bind_unix, remove_socket_file
@@ -536,7 +536,7 @@ class Server:
             await self._authenticate(conn, item)  # a wrong token is a failed handshake
             return
         answered = await self.requests.answer(conn.caller, item)
-        conn.send(answered.data)  # before awaiting anything (jtc_hw.daemon.requests)
+        conn.send(answered.data)  # before awaiting anything (jtc_hw.daemon.core.requests)
 
     async def _authenticate(self, conn: Connection, item: Request | RequestError) -> None:
         """The handshake's one request: ``auth`` with the token takes a TCP slot (over

@@ -22,14 +22,14 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from ..errors import JtcHwError
-from .backend import LoopBackend
+from .core.backend import LoopBackend
 from .locks import DeviceLock, acquire, socket_lock_path
 from .robot import RobotConfig, load_robot
 from .sdnotify import Notifier
 from .unix_socket import make_socket_directory
 
 if TYPE_CHECKING:
-    from .requests import Requests
+    from .core.requests import Requests
     from .transports import Transport
 
 log = logging.getLogger("jtc_hw.daemon")
@@ -126,7 +126,7 @@ class Daemon:
 
     async def _serve(self, aio: asyncio.AbstractEventLoop) -> int:
         # Here, not at the top: the CLI's other commands import this module (start-up time).
-        from .requests import Requests
+        from .core.requests import Requests
         from .transports import TRANSPORTS, Wiring
 
         settings = self.robot.daemon

@@ -4,7 +4,7 @@ Theory of operation
 -------------------
 A transport turns what arrives on its medium into ``protocol.Request`` values, has
 ``Requests.answer`` execute them, and sends the ``Reply`` back; it implements the request
-layer's ``Outlet`` for what comes later (``jtc_hw.daemon.requests``). What it adds is its own:
+layer's ``Outlet`` for what comes later (``jtc_hw.daemon.core.requests``). What it adds is its own:
 framing, authentication, slots, key expressions. It never reaches into another transport.
 
 Adding one (ROS 2, say) is one module and one line::
@@ -26,7 +26,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Protocol
 
-from .requests import Requests
+from .core.requests import Requests
 from .server import Server
 from .zenoh_iface import ZenohInterface
 

@@ -11,7 +11,6 @@ import pytest
 
 from jtc_hw.controller.joints import JointCommand
 from jtc_hw.controller.limits_check import TimeScaling
-from jtc_hw.daemon.backend_api import Accepted
 from jtc_hw.daemon.channel.messages import (
     Cancel,
     Committed,
@@ -32,6 +31,7 @@ from jtc_hw.daemon.channel.messages import (
     Status,
     Stop,
 )
+from jtc_hw.daemon.core.backend_api import Accepted
 from jtc_hw.errors import (
     CommunicationError,
     ConfigurationError,

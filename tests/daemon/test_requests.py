@@ -22,8 +22,8 @@ from helpers.peers import goal_msg, run
 from jtc_hw.api.framing import RequestError, encode
 from jtc_hw.api.protocol import OPS, parse_request
 from jtc_hw.controller.limits_check import TimeScaling
-from jtc_hw.daemon.backend_api import Accepted
-from jtc_hw.daemon.requests import Caller, Requests, accepted_goal
+from jtc_hw.daemon.core.backend_api import Accepted
+from jtc_hw.daemon.core.requests import Caller, Requests, accepted_goal
 from jtc_hw.daemon.server import Server
 from jtc_hw.daemon.settings import DaemonSettings
 from jtc_hw.daemon.transports import TRANSPORTS, Wiring

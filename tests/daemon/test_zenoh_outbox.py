@@ -14,7 +14,7 @@ import pytest
 from helpers.fake_backend import FakeBackend
 from helpers.peers import goal_msg
 
-from jtc_hw.daemon.requests import Requests
+from jtc_hw.daemon.core.requests import Requests
 from jtc_hw.daemon.zenoh_config import ZenohSettings
 from jtc_hw.daemon.zenoh_iface import (
     MAX_QUERIES,

@@ -36,9 +36,9 @@ from collections.abc import Callable
 from multiprocessing.connection import Connection
 from typing import Any
 
-from ..controller.controller import Plan
-from ..errors import ControllerStateError, HardwareError, JtcHwError
-from .channel.messages import (
+from ...controller.controller import Plan
+from ...errors import ControllerStateError, HardwareError, JtcHwError
+from ..channel.messages import (
     Commit,
     Committed,
     Exit,
@@ -53,8 +53,8 @@ from .channel.messages import (
     Shutdown,
     Stale,
 )
-from .channel.pipe import Inbox, PlanWriter
-from .loop.cycle import INBOX_SPARE, inbox_budget, loop_main
+from ..channel.pipe import Inbox, PlanWriter
+from ..loop.cycle import INBOX_SPARE, inbox_budget, loop_main
 
 __all__ = ["LoopProcess"]
 

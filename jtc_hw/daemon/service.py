@@ -26,11 +26,11 @@ from .core.backend import LoopBackend
 from .locks import DeviceLock, acquire, socket_lock_path
 from .robot import RobotConfig, load_robot
 from .sdnotify import Notifier
-from .unix_socket import make_socket_directory
+from .transports.unix_socket import make_socket_directory
 
 if TYPE_CHECKING:
     from .core.requests import Requests
-    from .transports import Transport
+    from .transports.registry import Transport
 
 log = logging.getLogger("jtc_hw.daemon")
 
@@ -78,7 +78,7 @@ class Daemon:
         self._reason = "daemon stopping"
         self._failed = False
         self.live_view: Any = None  # the LiveView while daemon.foxglove serves one
-        self.transports: list[Transport] = []  # started (jtc_hw.daemon.transports)
+        self.transports: list[Transport] = []  # started (jtc_hw.daemon.transports.registry)
 
     def request_stop(self, reason: str, failed: bool = False) -> None:
         """Begin an orderly shutdown (idempotent)."""
@@ -127,7 +127,7 @@ class Daemon:
     async def _serve(self, aio: asyncio.AbstractEventLoop) -> int:
         # Here, not at the top: the CLI's other commands import this module (start-up time).
         from .core.requests import Requests
-        from .transports import TRANSPORTS, Wiring
+        from .transports.registry import TRANSPORTS, Wiring
 
         settings = self.robot.daemon
         try:
@@ -194,7 +194,7 @@ class Daemon:
         settings = self.robot.daemon.foxglove
         if settings is None:
             return None
-        from .liveview import LiveView
+        from .transports.liveview import LiveView
 
         c = self.robot.controller
         live = LiveView(settings, c.name, c.joints, c.state_publish_rate, self.backend.status)

@@ -45,12 +45,12 @@ from typing import TYPE_CHECKING, Any, Final
 
 import numpy as np
 
-from ..controller.goals import GoalFeedback, GoalResult
-from ..controller.trajectory import JointTrajectory, PointColumns
-from ..errors import ConfigurationError
+from ...controller.goals import GoalFeedback, GoalResult
+from ...controller.trajectory import JointTrajectory, PointColumns
+from ...errors import ConfigurationError
 
 if TYPE_CHECKING:
-    from .settings import FoxgloveSettings
+    from ..settings import FoxgloveSettings
 
 log = logging.getLogger("jtc_hw.liveview")
 

@@ -69,7 +69,7 @@ from collections.abc import Callable
 from functools import partial
 from typing import TYPE_CHECKING, Any, Final
 
-from ..api.framing import (
+from ...api.framing import (
     BAD_REQUEST,
     BUSY,
     TOO_LARGE,
@@ -79,22 +79,22 @@ from ..api.framing import (
     encode,
     error_reply,
 )
-from ..api.protocol import (
+from ...api.protocol import (
     Request,
     command_event,
     feedback_event,
     parse_request,
     result_event,
 )
-from ..controller.goals import GoalFeedback, GoalResult
-from ..controller.trajectory import JointTrajectory
-from ..errors import ConfigurationError
-from .core.requests import Caller, Requests
-from .realtime import release_freed_memory, return_freed_memory_promptly
-from .zenoh_config import import_zenoh, session_config
+from ...controller.goals import GoalFeedback, GoalResult
+from ...controller.trajectory import JointTrajectory
+from ...errors import ConfigurationError
+from ..core.requests import Caller, Requests
+from ..realtime import release_freed_memory, return_freed_memory_promptly
+from ..zenoh_config import import_zenoh, session_config
 
 if TYPE_CHECKING:
-    from .zenoh_config import ZenohSettings
+    from ..zenoh_config import ZenohSettings
 
 log = logging.getLogger("jtc_hw.zenoh")
 

@@ -26,12 +26,12 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Protocol
 
-from .core.requests import Requests
+from ..core.requests import Requests
 from .server import Server
 from .zenoh_iface import ZenohInterface
 
 if TYPE_CHECKING:
-    from .settings import DaemonSettings
+    from ..settings import DaemonSettings
 
 __all__ = ["TRANSPORTS", "Registration", "Transport", "Wiring"]
 

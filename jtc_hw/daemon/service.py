@@ -24,6 +24,7 @@ from typing import TYPE_CHECKING, Any
 from ..errors import JtcHwError
 from .core.backend import LoopBackend
 from .locks import DeviceLock, acquire, socket_lock_path
+from .logs import quiet_third_party_loggers
 from .robot import RobotConfig, load_robot
 from .sdnotify import Notifier
 from .transports.unix_socket import make_socket_directory
@@ -61,8 +62,6 @@ def setup_logging(level: str = "info", stream: Any = None) -> None:
     root = logging.getLogger()
     root.handlers[:] = [handler]
     root.setLevel(getattr(logging, level.upper(), logging.INFO))
-    from .logs import quiet_third_party_loggers
-
     quiet_third_party_loggers()  # canopen's INFO lines unless jtc-hw -v
 
 
@@ -194,6 +193,7 @@ class Daemon:
         settings = self.robot.daemon.foxglove
         if settings is None:
             return None
+        # Start-up time: the live view's module only for daemon.foxglove (the foxglove extra).
         from .transports.liveview import LiveView
 
         c = self.robot.controller

@@ -246,7 +246,7 @@ def import_zenoh() -> Any:
         ConfigurationError: ``eclipse-zenoh`` is missing; the message says what to install.
     """
     try:
-        import zenoh
+        import zenoh  # the optional extra (jtc_hw[zenoh])
     except ImportError:
         raise ConfigurationError(
             f"needs the eclipse-zenoh package: {INSTALL_HINT}, or remove daemon.zenoh",

@@ -63,6 +63,7 @@ from ..channel.messages import (
     Status,
     Stop,
 )
+from ..realtime import release_freed_memory
 from ..robot import RobotConfig, joint_position_limits
 from .backend_api import Accepted, Observer
 from .observers import Observers, Recorders, result_record, state_json
@@ -585,8 +586,6 @@ class LoopBackend:
         the heap: not in the event loop's thread); one pending release covers them all."""
         if self._trim is not None:
             return
-        from ..realtime import release_freed_memory
-
         aio = asyncio.get_running_loop()
 
         def release() -> None:

@@ -451,7 +451,7 @@ class LiveView:
                 install), or the address cannot be listened on.
         """
         try:
-            import foxglove
+            import foxglove  # the optional extra (jtc_hw[foxglove])
         except ImportError:
             raise ConfigurationError(
                 f"the live view needs the foxglove-sdk package: {INSTALL_HINT}, or remove "

@@ -32,7 +32,7 @@ Three measurements (the first by default, or when ``--sizes`` is given with the 
     each ``--points`` size (best of several repetitions): client encoding, line framing and
     JSON decoding, request parsing, validation (``prepare``), fitting and splicing (``splice``),
     pickling the plan for the loop; and the loop side: the plan read through the loop's own
-    inbox (``jtc_hw.daemon.pipe.Inbox``, with the budget of one cycle at ``--rate``) from a
+    inbox (``jtc_hw.daemon.channel.pipe.Inbox``, with the budget of one cycle at ``--rate``) from a
     pipe that another thread fills with ``send_framed``, its slowest ``pump`` (one cycle's
     share) and how many cycles it takes, and releasing the plan. ``--cprofile`` adds the top
     functions of the API-process stages under ``cProfile``. ``--limits`` gives every joint
@@ -88,7 +88,7 @@ from jtc_hw.controller.controller import Planner  # noqa: E402
 from jtc_hw.controller.limits_check import check  # noqa: E402
 from jtc_hw.controller.trajectory import Trajectory  # noqa: E402
 from jtc_hw.controller.validation import prepare  # noqa: E402
-from jtc_hw.daemon.messages import Commit  # noqa: E402
+from jtc_hw.daemon.channel.messages import Commit  # noqa: E402
 from jtc_hw.daemon.robot import load_robot  # noqa: E402
 
 SIZES = (2, 200, 2000, 20000)
@@ -378,9 +378,9 @@ def loop_side(plan_message: Commit, rate_hz: float) -> dict[str, float]:
     Returns the slowest ``pump`` (one cycle's read, ms), how many cycles the plan took to
     arrive, and the time to release the plan once received.
     """
-    from jtc_hw.daemon.loop import INBOX_SPARE, inbox_budget
-    from jtc_hw.daemon.pipe import Inbox, send_framed
-    from jtc_hw.daemon.supervision import _grow_send_buffer
+    from jtc_hw.daemon.channel.pipe import Inbox, send_framed
+    from jtc_hw.daemon.core.supervision import _grow_send_buffer
+    from jtc_hw.daemon.loop.cycle import INBOX_SPARE, inbox_budget
 
     period_ns = round(1e9 / rate_hz)
     parent, child = multiprocessing.Pipe(duplex=True)

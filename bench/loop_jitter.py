@@ -15,14 +15,14 @@ two scenarios on it, one after the other:
           results (canceled = preempted by the next one) are counted and reported.
 
 Optionally (``--scenarios bare idle loaded``), ``bare`` first runs the loop's clock alone for
-the same time: ``jtc_hw.daemon.clock.Ticker`` in a fresh process with the same real-time set-up
+the same time: ``jtc_hw.daemon.loop.clock.Ticker`` in a fresh process with the same real-time set-up
 (``apply_realtime``, timer slack, frozen GC) and nothing to do per cycle. What it measures is the
 floor set by this machine, its kernel and the interpreter, not by jtc_hw.
 
 Where the figures come from:
 
 - lateness (``woke - deadline`` of each cycle) is measured by the loop itself
-  (``jtc_hw.daemon.loopstats``) and published in ``get_status()["loop"]`` every 0.5 s. Its
+  (``jtc_hw.daemon.loop.stats``) and published in ``get_status()["loop"]`` every 0.5 s. Its
   percentiles cover a sliding window of the last 10 s of cycles and cannot be reset from a
   client, so ``p50``/``p99`` are those of the window that ends with the run (the run's last 10
   s; a run shorter than that is preceded by a warm-up in the same scenario so that the window
@@ -80,7 +80,7 @@ sys.path.insert(0, str(ROOT))
 
 from jtc_hw.api.client import Client  # noqa: E402
 from jtc_hw.cli.demo import DEMO_JOINTS, demo_config  # noqa: E402
-from jtc_hw.daemon.loopstats import DEFAULT_WINDOW_S  # noqa: E402
+from jtc_hw.daemon.loop.stats import DEFAULT_WINDOW_S  # noqa: E402
 from jtc_hw.errors import GoalRejected, JtcHwError  # noqa: E402
 
 TARGET_RATE_HZ = 1000.0
@@ -448,8 +448,8 @@ class Load:
 
 BARE_LOOP = """
 import gc, json, resource, sys, time
-from jtc_hw.daemon.clock import Ticker
-from jtc_hw.daemon.loopstats import LoopStats
+from jtc_hw.daemon.loop.clock import Ticker
+from jtc_hw.daemon.loop.stats import LoopStats
 from jtc_hw.daemon.realtime import apply_realtime
 from jtc_hw.hardware.timing import reduce_timer_slack
 

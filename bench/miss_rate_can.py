@@ -4,7 +4,7 @@
 The daemon's cycle on the emulated leg of ``config/can-mit-leg-emulated.yaml``: six AK80-9
 motors on one 1 Mbit/s bus, served by ``jtc-hw emulate can --pace`` (its own process, as
 that file's comment starts it) over socketcand, driven by the real ``MitHardware`` at 500 Hz
-on the daemon's own absolute-deadline ticker (:class:`jtc_hw.daemon.clock.Ticker`: a late
+on the daemon's own absolute-deadline ticker (:class:`jtc_hw.daemon.loop.clock.Ticker`: a late
 cycle is followed by a shorter one, a stall of a period or more skips deadlines), each cycle
 ``read`` (the replies to the previous cycle's ``write``, ``receive_timeout`` 1 ms as in that
 file) then ``write``. Nothing runs at a realtime priority: the default deployment.
@@ -37,7 +37,7 @@ from typing import Any
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from jtc_hw.controller.joints import JointCommand  # noqa: E402
-from jtc_hw.daemon.clock import Ticker  # noqa: E402
+from jtc_hw.daemon.loop.clock import Ticker  # noqa: E402
 from jtc_hw.drivers.can.mit.hardware import MitHardware  # noqa: E402
 from jtc_hw.hardware.timing import reduce_timer_slack  # noqa: E402
 

@@ -2,7 +2,8 @@
 """What the cycle ring costs the loop: one ``CycleRing.write`` per cycle, median and p99.
 
 The loop process writes every cycle's row (deadline, measured, reference and output values per
-joint) into the shared-memory ring the flight recorder reads (``jtc_hw/daemon/cyclering.py``).
+joint) into the shared-memory ring the flight recorder reads
+(``jtc_hw/daemon/channel/cyclering.py``).
 This times that call alone, with the arrays one controller cycle produces (position, velocity
 and acceleration reference, position and velocity measured, a position command), the garbage
 collector frozen as in the loop; and the reader's copy of a 100 ms batch (the API process, for
@@ -27,7 +28,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from jtc_hw.controller.joints import JointCommand, JointState  # noqa: E402
 from jtc_hw.controller.trajectory import TrajectorySample  # noqa: E402
-from jtc_hw.daemon.cyclering import READ_PERIOD_S, RING_S, CycleRing  # noqa: E402
+from jtc_hw.daemon.channel.cyclering import READ_PERIOD_S, RING_S, CycleRing  # noqa: E402
 
 RATE_HZ = 1000.0
 

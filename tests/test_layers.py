@@ -4,14 +4,16 @@
 cli > daemon > api | hardware | rec > controller > config > errors, a controller without I/O,
 clock or thread modules (nor the configuration's file reading), drivers that never import the
 daemon, the API, the CLI or the recordings, the CLI's command groups independent of each other
-between ``cli.parser`` and ``cli.common``, and no import circle among the CAN emulators and their
-socketcand server. It runs here, so every test run (and CI) checks it; the second test plants a
-forbidden import in a copy of the tree to show that the check is not vacuous. Function-local and
-``TYPE_CHECKING`` imports count.
+between ``cli.parser`` and ``cli.common``, the daemon's rooms by process (service > transports >
+core > loop > channel | robot > settings, every module placed), and no import circle among the
+CAN emulators and their socketcand server. It runs here, so every test run (and CI) checks it;
+the second test plants a forbidden import in a copy of the tree to show that the check is not
+vacuous. Function-local and ``TYPE_CHECKING`` imports count.
 
 Two rules of the CLI and the recordings that a contract does not state are checked on the
 import graph itself: no import circle reaches them, and none of their modules imports a
-private name (``_name``) of another module.
+private name (``_name``) of another module. No import circle reaches the daemon either (its
+contract forbids one between its rooms, this also inside a room).
 """
 
 from __future__ import annotations
@@ -47,7 +49,7 @@ def lint_imports(checkout: Path) -> subprocess.CompletedProcess[str]:
 def test_the_layering_contract_is_kept() -> None:
     result = lint_imports(ROOT)
     assert result.returncode == 0, result.stdout + result.stderr
-    assert "5 kept, 0 broken" in result.stdout, result.stdout
+    assert "6 kept, 0 broken" in result.stdout, result.stdout
 
 
 @pytest.mark.parametrize(
@@ -69,7 +71,7 @@ def test_the_layering_contract_is_kept() -> None:
          "drivers is not allowed to import jtc_hw.daemon"),
         ("drivers/motor_model.py", "from jtc_hw.rec import bag",
          "drivers is not allowed to import jtc_hw.rec"),
-        ("jtc_hw/rec/flight.py", "from jtc_hw.daemon.cyclering import CycleLayout",
+        ("jtc_hw/rec/flight.py", "from jtc_hw.daemon.channel.cyclering import CycleLayout",
          "jtc_hw.rec is not allowed to import jtc_hw.daemon"),
         ("jtc_hw/rec/bag.py", "from jtc_hw.api import protocol",
          "jtc_hw.rec is not allowed to import jtc_hw.api"),
@@ -81,6 +83,12 @@ def test_the_layering_contract_is_kept() -> None:
          "jtc_hw.cli.common is not allowed to import jtc_hw.cli.record"),
         ("drivers/can/socketcand.py", "from .emulator import MitBusEmulator",
          "drivers.can.socketcand is not allowed to import drivers.can.emulator"),
+        ("jtc_hw/daemon/loop/stats.py", "from ..core import backend_api",
+         "jtc_hw.daemon.loop is not allowed to import jtc_hw.daemon.core"),
+        ("jtc_hw/daemon/core/requests.py", "from ..transports import server",
+         "jtc_hw.daemon.core is not allowed to import jtc_hw.daemon.transports"),
+        ("jtc_hw/daemon/channel/messages.py", "from ..loop import outbox",
+         "jtc_hw.daemon.channel is not allowed to import jtc_hw.daemon.loop"),
     ],
 )
 def test_a_forbidden_import_breaks_the_contract(
@@ -100,24 +108,27 @@ def test_a_forbidden_import_breaks_the_contract(
 SUBJECTS = ("jtc_hw.cli", "jtc_hw.rec")
 """The packages whose modules the two graph checks below cover."""
 
-CIRCLES = f"""
+CIRCLES = """
+import sys
 import grimp
 graph = grimp.build_graph("jtc_hw", cache_dir=None)
 for module in sorted(graph.modules):
-    if not any(module == p or module.startswith(p + ".") for p in {SUBJECTS!r}):
+    if not any(module == p or module.startswith(p + ".") for p in sys.argv[1:]):
         continue
     for imported in sorted(graph.find_modules_directly_imported_by(module)):
         back = graph.find_shortest_chain(importer=imported, imported=module)
         if back is not None:
             print(" -> ".join((module, *back)))
 """
-"""Prints each import circle through a module of :data:`SUBJECTS` (grimp, as lint-imports)."""
+"""Prints each import circle through a module of the packages named in its arguments (grimp,
+as lint-imports)."""
 
 
-def import_circles(checkout: Path) -> list[str]:
-    """The import circles through the CLI or the recordings in ``checkout``, one line each."""
-    result = subprocess.run([sys.executable, "-c", CIRCLES], cwd=checkout, capture_output=True,
-                            text=True, timeout=300, check=True)
+def import_circles(checkout: Path, subjects: tuple[str, ...] = SUBJECTS) -> list[str]:
+    """The import circles through ``subjects`` (default: the CLI and the recordings) in
+    ``checkout``, one line each."""
+    result = subprocess.run([sys.executable, "-c", CIRCLES, *subjects], cwd=checkout,
+                            capture_output=True, text=True, timeout=300, check=True)
     return result.stdout.splitlines()
 
 
@@ -142,6 +153,12 @@ def test_no_import_circle_reaches_the_cli_or_the_recordings() -> None:
     assert import_circles(ROOT) == []
 
 
+def test_no_import_circle_reaches_the_daemon() -> None:
+    """Inside a room too (two modules of ``transports/``, say), where the daemon's layers
+    contract does not look; function-local and ``TYPE_CHECKING`` imports count."""
+    assert import_circles(ROOT, ("jtc_hw.daemon",)) == []
+
+
 def test_the_cli_and_the_recordings_import_no_private_name_of_another_module() -> None:
     assert private_imports(ROOT) == []
 
@@ -153,7 +170,13 @@ def test_a_planted_circle_or_private_import_is_found(tmp_path: Path) -> None:
         source.write("\n\ndef _planted() -> None:\n    from . import plot  # planted by the test\n")
     with open(tmp_path / "jtc_hw/cli/state.py", "a", encoding="utf-8") as source:
         source.write("\nfrom .common import _robot  # planted by the test\n")
+    with open(tmp_path / "jtc_hw/daemon/transports/connection.py", "a",
+              encoding="utf-8") as source:
+        source.write("\n\ndef _planted() -> None:\n"
+                     "    from . import server  # planted by the test\n")
     assert "jtc_hw.rec.bag -> jtc_hw.rec.plot -> jtc_hw.rec.bag" in import_circles(tmp_path)
+    assert ("jtc_hw.daemon.transports.connection -> jtc_hw.daemon.transports.server -> "
+            "jtc_hw.daemon.transports.connection") in import_circles(tmp_path, ("jtc_hw.daemon",))
     assert any(line.endswith(" _robot") for line in private_imports(tmp_path))
 
 

@@ -1,20 +1,44 @@
-"""The running service: the control loop process, the socket server and their wiring.
+"""The running service: two processes, a room for each, and what they share.
 
-- :mod:`.service`: ``run()``: start-up, signals, systemd notification, shutdown.
-- :mod:`.robot`: the robot YAML file (its hardware section); :mod:`.settings`: the
-  ``daemon:`` section's tables and the frozen ``DaemonSettings``.
-- :mod:`.loop`, :mod:`.clock`, :mod:`.loopstats`, :mod:`.realtime`: the loop process: absolute
-  deadlines, overrun accounting, real-time set-up; :mod:`.pipe`, :mod:`.outbox`: its
-  non-blocking inbox and outbox.
-- :mod:`.messages`: the records the loop and the API process exchange.
-- :mod:`.supervision`: the loop process seen from the API process; :mod:`.backend`: planning
-  against the replica of its reference; :mod:`.observers`: who hears what the loop publishes
-  (the recorders, the request layer, Zenoh, the live view).
-- :mod:`.requests`: every operation, no transport (a request in, its reply out).
-- :mod:`.transports`: the registry of transports (the socket server, Zenoh).
-- :mod:`.server`, :mod:`.connection`: the asyncio socket server and one client connection.
-- :mod:`.sdnotify`: the systemd notify protocol.
-- :mod:`.liveview`: the Foxglove live view (``daemon.foxglove``), an observer of the backend.
+The path says where a line runs (docs/decisions.md 45)::
 
-Nothing is imported here, so that the loop process loads only what it runs.
+    service          the API process's main: start-up, signals, systemd notification, shutdown
+    transports/      API process: every door a client reaches
+      registry         the registry of request transports (one line per transport)
+      server           unix socket and TCP: framing, slots, deadlines
+      connection       one client connection
+      unix_socket      the socket file, the peer's uid
+      tcp_door         who may wait to authenticate; wrong tokens slowed
+      zenoh_iface      Zenoh: key expressions, the token attachment
+      liveview         the Foxglove live view (daemon.foxglove): publishes only
+    core/            API process: the loop seen from here, planning, every operation
+      supervision      the loop process: spawned, spoken to, watched
+      backend          the replica of the loop's reference, planning (LoopBackend)
+      backend_api      the Backend interface, Observer, Accepted
+      observers        the fan-out of what the loop publishes; the recorders
+      requests         every operation, no transport: a request in, its reply out
+    loop/            loop process: the real-time one
+      cycle            loop_main (the spawn target) and ControlLoop (one cycle)
+      clock            absolute deadlines
+      stats            overrun accounting
+      outbox           the loop's queue to the API process, never blocking
+    channel/         both processes: what crosses between them
+      messages         the typed records they exchange
+      pipe             framing; the non-blocking reader, the plan writer
+      cyclering        every cycle's row, in shared memory (flight recorder)
+    robot            both processes: the robot file (load_robot, its hardware section)
+    settings         the daemon: section's tables, the frozen DaemonSettings
+    zenoh_config     the daemon.zenoh section, the Zenoh session configuration
+    locks  logs      both processes: device and socket locks; third-party loggers
+    realtime         both processes: CPU affinity, locked memory, SCHED_FIFO, the allocator
+    sdnotify         the systemd notify protocol (the service's)
+    systemd_units    the installed units that run a file (the CLI's check)
+
+The arrows point one way (import-linter's "The daemon" contract in pyproject.toml): service >
+transports | sdnotify | systemd_units > core > loop > channel | robot > settings > zenoh_config
+> locks | logs | realtime. The loop process loads loop/, channel/ and the modules below them,
+nothing of core/ or transports/.
+
+Nothing is imported here (nor in any subpackage's ``__init__``), so that the loop process loads
+only what it runs.
 """

@@ -22,15 +22,16 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from ..errors import JtcHwError
-from .backend import LoopBackend
+from .core.backend import LoopBackend
 from .locks import DeviceLock, acquire, socket_lock_path
+from .logs import quiet_third_party_loggers
 from .robot import RobotConfig, load_robot
 from .sdnotify import Notifier
-from .unix_socket import make_socket_directory
+from .transports.unix_socket import make_socket_directory
 
 if TYPE_CHECKING:
-    from .requests import Requests
-    from .transports import Transport
+    from .core.requests import Requests
+    from .transports.registry import Transport
 
 log = logging.getLogger("jtc_hw.daemon")
 
@@ -61,8 +62,6 @@ def setup_logging(level: str = "info", stream: Any = None) -> None:
     root = logging.getLogger()
     root.handlers[:] = [handler]
     root.setLevel(getattr(logging, level.upper(), logging.INFO))
-    from .logs import quiet_third_party_loggers
-
     quiet_third_party_loggers()  # canopen's INFO lines unless jtc-hw -v
 
 
@@ -78,7 +77,7 @@ class Daemon:
         self._reason = "daemon stopping"
         self._failed = False
         self.live_view: Any = None  # the LiveView while daemon.foxglove serves one
-        self.transports: list[Transport] = []  # started (jtc_hw.daemon.transports)
+        self.transports: list[Transport] = []  # started (jtc_hw.daemon.transports.registry)
 
     def request_stop(self, reason: str, failed: bool = False) -> None:
         """Begin an orderly shutdown (idempotent)."""
@@ -126,8 +125,8 @@ class Daemon:
 
     async def _serve(self, aio: asyncio.AbstractEventLoop) -> int:
         # Here, not at the top: the CLI's other commands import this module (start-up time).
-        from .requests import Requests
-        from .transports import TRANSPORTS, Wiring
+        from .core.requests import Requests
+        from .transports.registry import TRANSPORTS, Wiring
 
         settings = self.robot.daemon
         try:
@@ -194,7 +193,8 @@ class Daemon:
         settings = self.robot.daemon.foxglove
         if settings is None:
             return None
-        from .liveview import LiveView
+        # Start-up time: the live view's module only for daemon.foxglove (the foxglove extra).
+        from .transports.liveview import LiveView
 
         c = self.robot.controller
         live = LiveView(settings, c.name, c.joints, c.state_publish_rate, self.backend.status)

@@ -287,7 +287,7 @@ class TcpSettings:
     """``daemon.tcp``: the optional TCP endpoint next to the Unix socket; one field per row
     of :data:`TCP_PARAMETERS`, which says what each is. Every client first sends
     ``{"op": "auth", "token": ...}``; ``max_unauthenticated`` and ``auth_failure_delay_s`` are
-    the door's (:mod:`jtc_hw.daemon.tcp_door`); a port of 0 is any free one
+    the door's (:mod:`jtc_hw.daemon.transports.tcp_door`); a port of 0 is any free one
     (``Server.tcp_address``).
 
     Raises:
@@ -328,7 +328,7 @@ class RealtimeSettings:
 
 @dataclass(frozen=True)
 class FoxgloveSettings:
-    """``daemon.foxglove``: the live view (``jtc_hw.daemon.liveview``).
+    """``daemon.foxglove``: the live view (``jtc_hw.daemon.transports.liveview``).
 
     Attributes:
         host: address to listen on; the protocol has no authentication, so a non-loopback

@@ -21,8 +21,8 @@ session lease (:data:`LEASE_MS` / :data:`KEEP_ALIVE` unless the file sets anothe
 Credential rule (the TCP door's token, for every Zenoh peer): ``token`` is required, at least
 :data:`MIN_TOKEN_LENGTH` characters; a section without one is refused at load, saying how to
 make one. Every query that commands the robot carries it in its attachment
-(``jtc_hw.daemon.zenoh_iface``); without it a peer may only watch. Loopback is no protection on
-a machine with other users: any of them reaches ``tcp/127.0.0.1``.
+(``jtc_hw.daemon.transports.zenoh_iface``); without it a peer may only watch. Loopback is no
+protection on a machine with other users: any of them reaches ``tcp/127.0.0.1``.
 
 Security rule (the TCP listener's, on the network): a listen endpoint that is not loopback
 needs TLS (a ``tls/`` or ``quic/`` locator, with ``transport.link.tls.listen_certificate`` and
@@ -105,7 +105,7 @@ ZENOH_PARAMETERS: Final[Mapping[str, ParamSpec]] = param_table(
 
 @dataclass(frozen=True)
 class ZenohSettings:
-    """``daemon.zenoh``: the daemon's Zenoh interface (``jtc_hw.daemon.zenoh_iface``).
+    """``daemon.zenoh``: the daemon's Zenoh interface (``jtc_hw.daemon.transports.zenoh_iface``).
 
     Attributes:
         prefix: key expression of this daemon, or ``None`` for :func:`default_prefix`.
@@ -182,7 +182,7 @@ def check_token(token: object) -> str:
 
 
 LOOP_PROCESS: Final = "jtc-hw-loop"
-"""``jtc_hw.daemon.loop.LOOP_PROCESS_NAME``, the loop process's ``multiprocessing`` name
+"""``jtc_hw.daemon.loop.cycle.LOOP_PROCESS_NAME``, the loop process's ``multiprocessing`` name
 (not imported: this module is imported by the robot file's loader, the loop's too)."""
 
 
@@ -246,7 +246,7 @@ def import_zenoh() -> Any:
         ConfigurationError: ``eclipse-zenoh`` is missing; the message says what to install.
     """
     try:
-        import zenoh
+        import zenoh  # the optional extra (jtc_hw[zenoh])
     except ImportError:
         raise ConfigurationError(
             f"needs the eclipse-zenoh package: {INSTALL_HINT}, or remove daemon.zenoh",

@@ -57,7 +57,7 @@ from ..errors import ConfigurationError, JtcHwError
 
 class CycleRowLayout(Protocol):
     """Where each value sits in a row of the loop's cycle ring: what a recording reads of
-    ``jtc_hw.daemon.cyclering.CycleLayout``, which satisfies it. Said here rather than
+    ``jtc_hw.daemon.channel.cyclering.CycleLayout``, which satisfies it. Said here rather than
     imported: the recordings are a layer below the daemon that uses them
     (``pyproject.toml``'s contracts)."""
 
@@ -434,7 +434,7 @@ class BagRecorder:
         self._goal_change(event.get("active_goal"), time_ns)
 
     def cycle(self, layout: CycleRowLayout, row: Any, names: Sequence[str]) -> None:
-        """Record one cycle's row of the loop's cycle ring (``jtc_hw.daemon.cyclering``):
+        """Record one cycle's row of the loop's cycle ring (``jtc_hw.daemon.channel.cyclering``):
         ``/joint_states``, ``controller_state`` and goal changes, as :meth:`state` does for a
         published state. A per-joint block that is all NaN (an interface not configured, no
         reference while faulted) is recorded as an empty array, as ROS leaves such fields."""

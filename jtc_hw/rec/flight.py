@@ -3,7 +3,7 @@
 Theory of operation
 -------------------
 Runs in the API process (``LoopBackend`` feeds it; the loop never does). It keeps every
-cycle's state (rows of the loop's cycle ring, ``jtc_hw.daemon.cyclering``, copied in by
+cycle's state (rows of the loop's cycle ring, ``jtc_hw.daemon.channel.cyclering``, copied in by
 :meth:`FlightRecorder.on_cycles` into a preallocated array of ``flight_recorder_s`` + 1.5 seconds
 at the cycle rate), the accepted commands and the goal events of the last ``flight_recorder_s``
 seconds plus one, in memory. Fed published states instead (:meth:`FlightRecorder.on_state`, at

@@ -16,8 +16,8 @@ from jtc_hw.api.client import Client
 from jtc_hw.cli import main
 from jtc_hw.cli.common import EXIT_OK
 from jtc_hw.controller.joints import JointCommand
-from jtc_hw.daemon.backend import LoopBackend
-from jtc_hw.daemon.messages import Reference, State
+from jtc_hw.daemon.channel.messages import Reference, State
+from jtc_hw.daemon.core.backend import LoopBackend
 from jtc_hw.daemon.robot import load_robot
 
 from conftest import make_robot_config

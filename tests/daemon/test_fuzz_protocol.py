@@ -21,8 +21,8 @@ from helpers.peers import Peer, run
 
 from jtc_hw.api.framing import ERROR_CODES
 from jtc_hw.api.protocol import OPS
-from jtc_hw.daemon.server import Server
 from jtc_hw.daemon.settings import DaemonSettings
+from jtc_hw.daemon.transports.server import Server
 
 pytestmark = pytest.mark.usefixtures("no_leaks")  # threads, sockets, resources
 

@@ -339,8 +339,8 @@ def test_the_live_view_is_off_by_default_and_its_options_are_checked(tmp_path: P
 def test_a_missing_sdk_names_the_extra_to_install(monkeypatch: pytest.MonkeyPatch) -> None:
     import sys
 
-    from jtc_hw.daemon.liveview import LiveView
     from jtc_hw.daemon.settings import FoxgloveSettings
+    from jtc_hw.daemon.transports.liveview import LiveView
     from jtc_hw.errors import ConfigurationError
 
     monkeypatch.setitem(sys.modules, "foxglove", None)  # import foxglove -> ImportError

@@ -17,7 +17,8 @@ from jtc_hw.controller.trajectory import (
     TrajectoryPoint,
     TrajectorySample,
 )
-from jtc_hw.daemon.liveview import (
+from jtc_hw.daemon.settings import FoxgloveSettings
+from jtc_hw.daemon.transports.liveview import (
     ERROR,
     OK,
     WARN,
@@ -30,7 +31,6 @@ from jtc_hw.daemon.liveview import (
     topics,
     trajectory_message,
 )
-from jtc_hw.daemon.settings import FoxgloveSettings
 
 SNAPSHOT = {
     "time_ns": 5_000_000_000,
@@ -171,8 +171,8 @@ def test_a_port_in_use_is_refused_with_the_key_to_change() -> None:
     import asyncio
     import socket
 
-    from jtc_hw.daemon.liveview import LiveView
     from jtc_hw.daemon.settings import FoxgloveSettings
+    from jtc_hw.daemon.transports.liveview import LiveView
     from jtc_hw.errors import ConfigurationError
 
     async def attempt(port: int) -> str:

@@ -1,4 +1,4 @@
-"""Loop death seen from the API process (jtc_hw.daemon.backend.LoopBackend), in process.
+"""Loop death seen from the API process (jtc_hw.daemon.core.backend.LoopBackend), in process.
 
 The backend spawns its real loop process on simulated joints; the test kills that process and
 checks what the service and the server build on: exactly one ABORTED result per goal the loop
@@ -19,7 +19,7 @@ import pytest
 
 from jtc_hw.controller.goals import GoalFeedback, GoalResult, GoalStatus
 from jtc_hw.controller.trajectory import JointTrajectory, TrajectoryPoint
-from jtc_hw.daemon.backend import LoopBackend
+from jtc_hw.daemon.core.backend import LoopBackend
 from jtc_hw.daemon.robot import load_robot
 from jtc_hw.errors import ControllerStateError, GoalRejected
 

@@ -1,5 +1,6 @@
-"""The records between the two processes (jtc_hw.daemon.messages): they cross a pickle intact,
-are matched by class, and a request's error keeps its class from the one exception tree."""
+"""The records between the two processes (jtc_hw.daemon.channel.messages): they cross a pickle
+intact, are matched by class, and a request's error keeps its class from the one exception
+tree."""
 
 from __future__ import annotations
 
@@ -10,8 +11,7 @@ import pytest
 
 from jtc_hw.controller.joints import JointCommand
 from jtc_hw.controller.limits_check import TimeScaling
-from jtc_hw.daemon.backend_api import Accepted
-from jtc_hw.daemon.messages import (
+from jtc_hw.daemon.channel.messages import (
     Cancel,
     Committed,
     Events,
@@ -31,6 +31,7 @@ from jtc_hw.daemon.messages import (
     Status,
     Stop,
 )
+from jtc_hw.daemon.core.backend_api import Accepted
 from jtc_hw.errors import (
     CommunicationError,
     ConfigurationError,

@@ -1,5 +1,5 @@
-"""The backend's observers (jtc_hw.daemon.observers): every one hears every message, in the order
-they were added, and one that raises costs the others nothing."""
+"""The backend's observers (jtc_hw.daemon.core.observers): every one hears every message, in the
+order they were added, and one that raises costs the others nothing."""
 
 from __future__ import annotations
 
@@ -12,8 +12,8 @@ import pytest
 from jtc_hw.controller.goals import GoalFeedback, GoalResult
 from jtc_hw.controller.joints import JointCommand
 from jtc_hw.controller.trajectory import JointTrajectory
-from jtc_hw.daemon.messages import State
-from jtc_hw.daemon.observers import Observers, state_json
+from jtc_hw.daemon.channel.messages import State
+from jtc_hw.daemon.core.observers import Observers, state_json
 
 
 class Seen:

@@ -9,7 +9,7 @@ import pytest
 
 from jtc_hw import GoalRejected, JointTrajectory, TrajectoryPoint
 from jtc_hw.controller.trajectory import PointColumns
-from jtc_hw.daemon.backend import check_position_limits
+from jtc_hw.daemon.core.backend import check_position_limits
 from jtc_hw.daemon.robot import joint_position_limits, load_robot
 
 LIMITS = {"a": (-1.0, 1.0), "c": (0.0, math.inf)}

@@ -287,7 +287,7 @@ def test_locked_memory_large_buffers_are_locked_as_touched_and_given_back() -> N
     code = textwrap.dedent(
         """
         import json
-        from jtc_hw.daemon import pipe
+        from jtc_hw.daemon.channel import pipe
         from jtc_hw.daemon.realtime import apply_realtime
 
         def kib(key):

@@ -379,7 +379,7 @@ def test_settings_check_themselves_when_built_directly() -> None:
 def test_the_daemon_settings_reach_the_server(tmp_path: Path) -> None:
     from helpers.fake_backend import FakeBackend
 
-    from jtc_hw.daemon.server import Server
+    from jtc_hw.daemon.transports.server import Server
 
     daemon = load_robot(robot(daemon={
         "socket": str(tmp_path / "d.sock"), "max_clients": 3, "idle_timeout_s": 30,

@@ -22,7 +22,7 @@ from typing import Any
 import yaml
 
 from jtc_hw.api.client import Client, StateSubscription
-from jtc_hw.daemon.loop import LOOP_PROCESS_NAME
+from jtc_hw.daemon.loop.cycle import LOOP_PROCESS_NAME
 
 from conftest import ROOT, make_robot_config
 

@@ -20,9 +20,9 @@ from jtc_hw.controller.limits_check import TimeScaling
 from jtc_hw.controller.parameters import ParameterChange, parameters_report
 from jtc_hw.controller.tolerances import JointTolerance
 from jtc_hw.controller.trajectory import JointTrajectory
-from jtc_hw.daemon.backend_api import Accepted, Observer
-from jtc_hw.daemon.server import Server
+from jtc_hw.daemon.core.backend_api import Accepted, Observer
 from jtc_hw.daemon.settings import DaemonSettings
+from jtc_hw.daemon.transports.server import Server
 from jtc_hw.errors import ConfigurationError
 
 from conftest import Mirror, S, make_config

@@ -95,7 +95,8 @@ class Peer:
 
 
 class LogWatch(logging.Handler):
-    """Collects ``jtc_hw.daemon.server`` records; tests await a record containing a fragment."""
+    """Collects the socket server's records (``jtc_hw.daemon.transports.server``); tests await
+    a record containing a fragment."""
 
     def __init__(self) -> None:
         super().__init__(logging.DEBUG)

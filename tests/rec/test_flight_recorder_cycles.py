@@ -17,7 +17,7 @@ import pytest
 
 from jtc_hw.controller.joints import JointCommand, JointState
 from jtc_hw.controller.trajectory import TrajectorySample
-from jtc_hw.daemon.cyclering import CycleRing
+from jtc_hw.daemon.channel.cyclering import CycleRing
 
 pytest.importorskip("rosbags")
 mcap_reader = pytest.importorskip("mcap.reader")

@@ -17,10 +17,10 @@ import numpy as np
 import pytest
 
 from jtc_hw.controller.trajectory import JointTrajectory, TrajectoryPoint
-from jtc_hw.daemon.loop import ControlLoop
-from jtc_hw.daemon.messages import Commit, Committed, Reference, Reply, Request, Stop
-from jtc_hw.daemon.outbox import Outbox
-from jtc_hw.daemon.pipe import Inbox, send_framed
+from jtc_hw.daemon.channel.messages import Commit, Committed, Reference, Reply, Request, Stop
+from jtc_hw.daemon.channel.pipe import Inbox, send_framed
+from jtc_hw.daemon.loop.cycle import ControlLoop
+from jtc_hw.daemon.loop.outbox import Outbox
 from jtc_hw.daemon.robot import load_robot
 
 from conftest import make_robot_config

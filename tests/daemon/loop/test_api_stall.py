@@ -21,10 +21,10 @@ import pytest
 
 from jtc_hw.controller.goals import GoalResult, GoalStatus
 from jtc_hw.controller.trajectory import JointTrajectory, TrajectoryPoint
-from jtc_hw.daemon.loop import ControlLoop
-from jtc_hw.daemon.messages import Commit, Committed, Events, Reference, Stale, State
-from jtc_hw.daemon.outbox import Outbox
-from jtc_hw.daemon.pipe import Inbox
+from jtc_hw.daemon.channel.messages import Commit, Committed, Events, Reference, Stale, State
+from jtc_hw.daemon.channel.pipe import Inbox
+from jtc_hw.daemon.loop.cycle import ControlLoop
+from jtc_hw.daemon.loop.outbox import Outbox
 from jtc_hw.daemon.robot import load_robot
 from jtc_hw.errors import GoalRejected
 

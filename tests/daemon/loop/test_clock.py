@@ -1,10 +1,11 @@
-"""Absolute-deadline ticker driven by a fake clock (jtc_hw.daemon.clock); no wall time anywhere."""
+"""Absolute-deadline ticker driven by a fake clock (jtc_hw.daemon.loop.clock); no wall time
+anywhere."""
 
 from __future__ import annotations
 
 import pytest
 
-from jtc_hw.daemon.clock import Tick, Ticker
+from jtc_hw.daemon.loop.clock import Tick, Ticker
 
 MS = 1_000_000
 US = 1_000

@@ -19,7 +19,7 @@ import pytest
 
 from jtc_hw.controller.joints import JointCommand, JointState
 from jtc_hw.controller.trajectory import TrajectorySample
-from jtc_hw.daemon.cyclering import CycleRing, remove_stale
+from jtc_hw.daemon.channel.cyclering import CycleRing, remove_stale
 from jtc_hw.errors import JtcHwError
 
 JOINTS = 3

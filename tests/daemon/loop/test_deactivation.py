@@ -22,11 +22,11 @@ import pytest
 from jtc_hw.controller.goals import ErrorCode, GoalResult, GoalStatus
 from jtc_hw.controller.joints import JointCommand
 from jtc_hw.controller.trajectory import JointTrajectory, TrajectoryPoint
-from jtc_hw.daemon.backend import LoopBackend
-from jtc_hw.daemon.loop import ControlLoop
-from jtc_hw.daemon.messages import Commit, Events
-from jtc_hw.daemon.outbox import Outbox
-from jtc_hw.daemon.pipe import Inbox
+from jtc_hw.daemon.channel.messages import Commit, Events
+from jtc_hw.daemon.channel.pipe import Inbox
+from jtc_hw.daemon.core.backend import LoopBackend
+from jtc_hw.daemon.loop.cycle import ControlLoop
+from jtc_hw.daemon.loop.outbox import Outbox
 from jtc_hw.daemon.robot import load_robot
 from jtc_hw.hardware.mirror import MirrorHardware
 

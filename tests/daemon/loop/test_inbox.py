@@ -1,5 +1,5 @@
-"""The loop process's inbox (jtc_hw.daemon.pipe.Inbox): framed messages read without blocking, a
-bounded amount at a time."""
+"""The loop process's inbox (jtc_hw.daemon.channel.pipe.Inbox): framed messages read without
+blocking, a bounded amount at a time."""
 
 from __future__ import annotations
 
@@ -9,8 +9,8 @@ from collections.abc import Iterator
 import numpy as np
 import pytest
 
-from jtc_hw.daemon.pipe import Inbox as _Inbox
-from jtc_hw.daemon.pipe import send_framed
+from jtc_hw.daemon.channel.pipe import Inbox as _Inbox
+from jtc_hw.daemon.channel.pipe import send_framed
 
 
 @pytest.fixture
@@ -92,7 +92,7 @@ def test_large_messages_get_memory_of_their_own_given_back_once_unused(
     import mmap
     import threading
 
-    from jtc_hw.daemon import pipe as pipe_module
+    from jtc_hw.daemon.channel import pipe as pipe_module
 
     monkeypatch.setattr(pipe_module, "RETURNED_MESSAGE_BYTES", 1 << 16)
     monkeypatch.setattr(pipe_module, "RELEASE_CHUNK_BYTES", 1 << 16)
@@ -127,7 +127,7 @@ def test_large_messages_get_memory_of_their_own_given_back_once_unused(
 def test_receive_buffers_by_size() -> None:
     import mmap
 
-    from jtc_hw.daemon import pipe as pipe_module
+    from jtc_hw.daemon.channel import pipe as pipe_module
 
     assert isinstance(pipe_module._receive_buffer(100), bytearray)
     assert isinstance(pipe_module._receive_buffer(pipe_module.LARGE_MESSAGE_BYTES), memoryview)
@@ -141,7 +141,7 @@ def test_a_request_overtakes_the_rest_of_a_plan_and_nothing_blocks(
 ) -> None:
     import socket
 
-    from jtc_hw.daemon.pipe import CHUNK_BYTES, PlanWriter
+    from jtc_hw.daemon.channel.pipe import CHUNK_BYTES, PlanWriter
 
     sender, receiver = pipe
     with socket.socket(fileno=sender.fileno()) as sock:  # type: ignore[attr-defined]
@@ -172,7 +172,7 @@ def test_a_request_overtakes_the_rest_of_a_plan_and_nothing_blocks(
 
 
 def test_a_writer_whose_reader_is_gone_is_closed(pipe: tuple[object, object]) -> None:
-    from jtc_hw.daemon.pipe import PlanWriter
+    from jtc_hw.daemon.channel.pipe import PlanWriter
 
     sender, receiver = pipe
     receiver.close()  # type: ignore[attr-defined]
@@ -188,7 +188,7 @@ def test_a_writer_whose_reader_is_gone_is_closed(pipe: tuple[object, object]) ->
 
 
 def test_a_stream_that_makes_no_sense_closes_the_inbox(pipe: tuple[object, object]) -> None:
-    from jtc_hw.daemon.pipe import _RECORD, CHUNK
+    from jtc_hw.daemon.channel.pipe import _RECORD, CHUNK
 
     sender, receiver = pipe
     inbox = _Inbox(receiver, 1 << 16)  # type: ignore[arg-type]

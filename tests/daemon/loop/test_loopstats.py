@@ -1,4 +1,4 @@
-"""Loop statistics on exact synthetic sequences (jtc_hw.daemon.loopstats)."""
+"""Loop statistics on exact synthetic sequences (jtc_hw.daemon.loop.stats)."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ from typing import Any
 
 import pytest
 
-from jtc_hw.daemon.loopstats import LoopStats
+from jtc_hw.daemon.loop.stats import LoopStats
 
 US = 1000  # ns
 

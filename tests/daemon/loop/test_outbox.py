@@ -1,4 +1,4 @@
-"""The loop's outbox (jtc_hw.daemon.outbox.Outbox): never blocks, keeps order, coalesces state.
+"""The loop's outbox (jtc_hw.daemon.loop.outbox.Outbox): never blocks, keeps order, coalesces state.
 
 Each test writes into a real socketpair (``multiprocessing.Pipe``) whose send buffer is shrunk
 so that it fills after a few kilobytes, and reads the other end with the API process's
@@ -16,8 +16,8 @@ from typing import Any
 
 import pytest
 
-from jtc_hw.daemon.outbox import Outbox
-from jtc_hw.daemon.pipe import Inbox
+from jtc_hw.daemon.channel.pipe import Inbox
+from jtc_hw.daemon.loop.outbox import Outbox
 
 pytestmark = pytest.mark.usefixtures("no_leaks")
 

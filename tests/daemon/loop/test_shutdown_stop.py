@@ -16,10 +16,10 @@ from pathlib import Path
 import pytest
 
 from jtc_hw.controller.trajectory import JointTrajectory, TrajectoryPoint
-from jtc_hw.daemon.loop import ControlLoop
-from jtc_hw.daemon.messages import Commit, Request, Shutdown
-from jtc_hw.daemon.outbox import Outbox
-from jtc_hw.daemon.pipe import Inbox
+from jtc_hw.daemon.channel.messages import Commit, Request, Shutdown
+from jtc_hw.daemon.channel.pipe import Inbox
+from jtc_hw.daemon.loop.cycle import ControlLoop
+from jtc_hw.daemon.loop.outbox import Outbox
 from jtc_hw.daemon.robot import load_robot
 
 from conftest import make_robot_config

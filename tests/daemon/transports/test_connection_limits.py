@@ -25,11 +25,11 @@ import pytest
 from helpers.fake_backend import TOKEN, FakeBackend
 from helpers.peers import LogWatch, Peer, goal_msg, run, watch_server_log
 
-from jtc_hw.daemon import server as server_module
-from jtc_hw.daemon import tcp_door
-from jtc_hw.daemon.connection import OVER_LIMIT_CLIENTS, RESERVED_UNIX_CLIENTS
-from jtc_hw.daemon.server import Server
 from jtc_hw.daemon.settings import DaemonSettings, TcpSettings
+from jtc_hw.daemon.transports import server as server_module
+from jtc_hw.daemon.transports import tcp_door
+from jtc_hw.daemon.transports.connection import OVER_LIMIT_CLIENTS, RESERVED_UNIX_CLIENTS
+from jtc_hw.daemon.transports.server import Server
 
 pytestmark = pytest.mark.usefixtures("no_leaks")  # threads, sockets, resources
 

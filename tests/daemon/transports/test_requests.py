@@ -22,13 +22,13 @@ from helpers.peers import goal_msg, run
 from jtc_hw.api.framing import RequestError, encode
 from jtc_hw.api.protocol import OPS, parse_request
 from jtc_hw.controller.limits_check import TimeScaling
-from jtc_hw.daemon.backend_api import Accepted
-from jtc_hw.daemon.requests import Caller, Requests, accepted_goal
-from jtc_hw.daemon.server import Server
+from jtc_hw.daemon.core.backend_api import Accepted
+from jtc_hw.daemon.core.requests import Caller, Requests, accepted_goal
 from jtc_hw.daemon.settings import DaemonSettings
-from jtc_hw.daemon.transports import TRANSPORTS, Wiring
+from jtc_hw.daemon.transports.registry import TRANSPORTS, Wiring
+from jtc_hw.daemon.transports.server import Server
+from jtc_hw.daemon.transports.zenoh_iface import ZenohInterface
 from jtc_hw.daemon.zenoh_config import ZenohSettings
-from jtc_hw.daemon.zenoh_iface import ZenohInterface
 
 
 class Outlet:

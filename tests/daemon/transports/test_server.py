@@ -23,8 +23,8 @@ from helpers.peers import LogWatch, Peer, goal_msg, run, watch_server_log
 
 from jtc_hw import GoalResult
 from jtc_hw.api.paths import default_socket_path
-from jtc_hw.daemon.server import Server
 from jtc_hw.daemon.settings import DaemonSettings, TcpSettings
+from jtc_hw.daemon.transports.server import Server
 from jtc_hw.errors import ConfigurationError
 
 pytestmark = pytest.mark.usefixtures("no_leaks")  # threads, sockets, resources
@@ -355,7 +355,7 @@ def test_a_long_request_being_decoded_does_not_hold_up_other_clients(
     import threading
 
     from jtc_hw.api.protocol import Decoder
-    from jtc_hw.daemon.server import DECODE_IN_WORKER_BYTES
+    from jtc_hw.daemon.transports.server import DECODE_IN_WORKER_BYTES
 
     gate = threading.Event()
     feed = Decoder.feed

@@ -95,7 +95,7 @@ def test_the_files_own_listen_endpoints_are_checked(tmp_path: Path) -> None:
 
 
 def test_the_loop_process_name_is_the_loops() -> None:
-    from jtc_hw.daemon.loop import LOOP_PROCESS_NAME
+    from jtc_hw.daemon.loop.cycle import LOOP_PROCESS_NAME
     from jtc_hw.daemon.zenoh_config import LOOP_PROCESS
 
     assert LOOP_PROCESS == LOOP_PROCESS_NAME

@@ -5,11 +5,12 @@ with malloc from its own threads' arenas; freed, they stay in glibc's free lists
 process used to stay ~100 MB larger after one ``too_large`` reply (more after several). The
 daemon now answers ``too_large`` from the payload's length, without copying it, and gives
 freed memory back to the system (``malloc_trim``) after any query of 1 MB or more has ended
-(``jtc_hw.daemon.zenoh_iface``, docs/zenoh.md "Memory"). The bound is on the API process's
-resident set (``VmRSS`` in /proc/<pid>/status), waited for with a deadline: the releases run
-after the reply, in a worker thread. Before the change the process stayed ~100 MB larger after
-the first query and grew with the next ones (61, 163, 251 MB). Now five in a row leave it
-flat: most leave nothing, one may leave part of itself until the next (:data:`HELD_MB`).
+(``jtc_hw.daemon.transports.zenoh_iface``, docs/zenoh.md "Memory"). The bound is on the API
+process's resident set (``VmRSS`` in /proc/<pid>/status), waited for with a deadline: the
+releases run after the reply, in a worker thread. Before the change the process stayed ~100 MB
+larger after the first query and grew with the next ones (61, 163, 251 MB). Now five in a row
+leave it flat: most leave nothing, one may leave part of itself until the next
+(:data:`HELD_MB`).
 """
 
 from __future__ import annotations

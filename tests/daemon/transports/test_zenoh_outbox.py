@@ -14,15 +14,15 @@ import pytest
 from helpers.fake_backend import FakeBackend
 from helpers.peers import goal_msg
 
-from jtc_hw.daemon.requests import Requests
-from jtc_hw.daemon.zenoh_config import ZenohSettings
-from jtc_hw.daemon.zenoh_iface import (
+from jtc_hw.daemon.core.requests import Requests
+from jtc_hw.daemon.transports.zenoh_iface import (
     MAX_QUERIES,
     MAX_REFUSALS_WAITING,
     WRONG_TOKEN_DELAY_S,
     ZenohInterface,
     _Outbox,
 )
+from jtc_hw.daemon.zenoh_config import ZenohSettings
 
 pytestmark = pytest.mark.usefixtures("no_leaks")
 

@@ -19,10 +19,10 @@ from helpers.dynamixel import DAEMON_TEST_TIMEOUT_MS, IDS, JOINTS, OFFSET, START
 
 from jtc_hw.controller.goals import ErrorCode, GoalResult, GoalStatus
 from jtc_hw.controller.trajectory import JointTrajectory, TrajectoryPoint
-from jtc_hw.daemon.loop import ControlLoop
-from jtc_hw.daemon.messages import Commit, Events
-from jtc_hw.daemon.outbox import Outbox
-from jtc_hw.daemon.pipe import Inbox
+from jtc_hw.daemon.channel.messages import Commit, Events
+from jtc_hw.daemon.channel.pipe import Inbox
+from jtc_hw.daemon.loop.cycle import ControlLoop
+from jtc_hw.daemon.loop.outbox import Outbox
 from jtc_hw.daemon.robot import load_robot
 from jtc_hw.drivers.dynamixel.emulator import DynamixelEmulator
 

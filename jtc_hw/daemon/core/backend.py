@@ -31,23 +31,22 @@ from typing import Any
 
 import numpy as np
 
-from ..config.controller_file import config_to_dict
-from ..controller.config import ControllerConfig
-from ..controller.controller import Plan, Planner, in_trajectory_time
-from ..controller.goals import ErrorCode, GoalResult, GoalStatus, TrajectoryStopped
-from ..controller.limits_check import TimeScaling
-from ..controller.parameters import ParameterChange, parameters_report, set_parameters
-from ..controller.tolerances import JointTolerance
-from ..controller.trajectory import (
+from ...config.controller_file import config_to_dict
+from ...controller.config import ControllerConfig
+from ...controller.controller import Plan, Planner, in_trajectory_time
+from ...controller.goals import ErrorCode, GoalResult, GoalStatus, TrajectoryStopped
+from ...controller.limits_check import TimeScaling
+from ...controller.parameters import ParameterChange, parameters_report, set_parameters
+from ...controller.tolerances import JointTolerance
+from ...controller.trajectory import (
     JointTrajectory,
     PointColumns,
     QueriedState,
     Trajectory,
     TrajectorySample,
 )
-from ..errors import ControllerStateError, GoalRejected, HardwareError
-from .backend_api import Accepted, Observer
-from .messages import (
+from ...errors import ControllerStateError, GoalRejected, HardwareError
+from ..channel.messages import (
     Cancel,
     Committed,
     Events,
@@ -64,8 +63,10 @@ from .messages import (
     Status,
     Stop,
 )
+from ..realtime import release_freed_memory
+from ..robot import RobotConfig, joint_position_limits
+from .backend_api import Accepted, Observer
 from .observers import Observers, Recorders, result_record, state_json
-from .robot import RobotConfig, joint_position_limits
 from .supervision import LoopProcess
 
 log = logging.getLogger("jtc_hw.backend")
@@ -585,8 +586,6 @@ class LoopBackend:
         the heap: not in the event loop's thread); one pending release covers them all."""
         if self._trim is not None:
             return
-        from .realtime import release_freed_memory
-
         aio = asyncio.get_running_loop()
 
         def release() -> None:

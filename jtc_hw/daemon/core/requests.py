@@ -52,8 +52,8 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
-from .. import __version__
-from ..api.framing import (
+from ... import __version__
+from ...api.framing import (
     BAD_REQUEST,
     GOAL_REJECTED,
     HARDWARE,
@@ -66,7 +66,7 @@ from ..api.framing import (
     error_reply,
     reply,
 )
-from ..api.protocol import (
+from ...api.protocol import (
     Auth,
     CancelGoal,
     GetConfig,
@@ -90,10 +90,10 @@ from ..api.protocol import (
     result_event,
     sample_to_json,
 )
-from ..controller.goals import GoalFeedback, GoalResult
-from ..controller.limits_check import scaling_fields
-from ..controller.trajectory import JointTrajectory
-from ..errors import (
+from ...controller.goals import GoalFeedback, GoalResult
+from ...controller.limits_check import scaling_fields
+from ...controller.trajectory import JointTrajectory
+from ...errors import (
     ConfigurationError,
     ControllerStateError,
     GoalRejected,

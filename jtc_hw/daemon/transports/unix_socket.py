@@ -1,9 +1,9 @@
 """The daemon's unix socket file: its directory, binding it, replacing a stale one, removing it.
 
 What the unix socket adds to the request layer, beside the framing and slots it shares with TCP
-(``jtc_hw.daemon.server``): the socket file, whose permissions say who may connect, and the
-peer's uid (``SO_PEERCRED``, ``connection.peer_identity``) that lets the daemon's own user and
-root into the reserved slots.
+(``jtc_hw.daemon.transports.server``): the socket file, whose permissions say who may connect,
+and the peer's uid (``SO_PEERCRED``, ``connection.peer_identity``) that lets the daemon's own
+user and root into the reserved slots.
 
 Nobody else may be able to put a socket where clients look for the daemon: a directory the
 daemon creates is writable by its user only (others may only enter it, as ``socket_mode``
@@ -20,8 +20,8 @@ import socket
 import stat
 from pathlib import Path
 
-from ..api.paths import default_socket_path, directory_problem, group_id
-from ..errors import ConfigurationError
+from ...api.paths import default_socket_path, directory_problem, group_id
+from ...errors import ConfigurationError
 
 __all__ = ["bind_unix", "directory_mode", "make_socket_directory", "remove_socket_file"]
 

@@ -60,17 +60,15 @@ from typing import Any
 
 import numpy as np
 
-from ..controller.controller import JointTrajectoryController, Plan
-from ..controller.goals import Event
-from ..controller.joints import JointCommand, JointState
-from ..errors import HardwareError, JtcHwError, StalePlan
-from ..hardware import HardwareSet, LifecycleState
-from ..hardware.mirror import MirrorHardware
-from .clock import Ticker
-from .cyclering import CycleRing
-from .locks import DeviceLock, lock_devices
-from .loopstats import LoopStats
-from .messages import (
+from ...controller.controller import JointTrajectoryController, Plan
+from ...controller.goals import Event
+from ...controller.joints import JointCommand, JointState
+from ...errors import HardwareError, JtcHwError, StalePlan
+from ...hardware import HardwareSet, LifecycleState
+from ...hardware.mirror import MirrorHardware
+from ...hardware.timing import reduce_timer_slack
+from ..channel.cyclering import CycleRing
+from ..channel.messages import (
     Cancel,
     Commit,
     Committed,
@@ -95,9 +93,19 @@ from .messages import (
     Status,
     Stop,
 )
+from ..channel.pipe import Inbox
+from ..locks import DeviceLock, lock_devices
+from ..logs import quiet_third_party_loggers
+from ..realtime import (
+    apply_realtime,
+    disable_huge_pages,
+    keep_freed_memory,
+    set_process_name,
+)
+from ..robot import RobotConfig, create_hardware_set, load_robot
+from .clock import Ticker
 from .outbox import Outbox
-from .pipe import Inbox
-from .robot import RobotConfig, create_hardware_set, load_robot
+from .stats import LoopStats
 
 log = logging.getLogger("jtc_hw.loop")
 
@@ -677,14 +685,10 @@ def loop_main(source: str | dict[str, Any], controller_name: str | None, conn: C
     # whole group must not kill the loop before the goal got its result and the robot holds.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
-    from .realtime import set_process_name
-
     set_process_name(LOOP_PROCESS_NAME)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     for name, level in QUIET_LOGGERS.items():
         logging.getLogger(name).setLevel(level)
-    from .logs import quiet_third_party_loggers
-
     quiet_third_party_loggers()  # canopen's INFO lines unless jtc-hw -v
     # Any thread would take the interpreter lock whenever the loop thread releases it (in any
     # system call) and keep it for up to the switch interval, 5 ms by default: measured, a
@@ -708,9 +712,6 @@ def loop_main(source: str | dict[str, Any], controller_name: str | None, conn: C
             config=robot.source_path or "configuration given as a mapping",
             pid=os.getppid(),
         )
-        from ..hardware.timing import reduce_timer_slack
-        from .realtime import apply_realtime, disable_huge_pages, keep_freed_memory
-
         rt = robot.daemon.realtime
         for line in apply_realtime(rt.priority, rt.lock_memory, rt.cpu_affinity):
             loop.send(Log(logging.INFO, line))

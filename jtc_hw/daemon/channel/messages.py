@@ -34,12 +34,12 @@ import dataclasses
 from collections.abc import Mapping
 from typing import Any, ClassVar, NamedTuple
 
-from ..controller.config import ControllerConfig
-from ..controller.controller import Plan
-from ..controller.goals import Event
-from ..controller.joints import JointCommand
-from ..controller.trajectory import Trajectory
-from ..errors import (
+from ...controller.config import ControllerConfig
+from ...controller.controller import Plan
+from ...controller.goals import Event
+from ...controller.joints import JointCommand
+from ...controller.trajectory import Trajectory
+from ...errors import (
     ConfigurationError,
     ControllerStateError,
     GoalRejected,

@@ -14,7 +14,7 @@ docs/zenoh.md)::
     <prefix>/rpc/<op>   a queryable per socket operation: the query's payload is the socket's
                         request body (``op`` may be left out), the reply the socket's reply
 
-What this adds to the request layer (``jtc_hw.daemon.requests``, which executes every
+What this adds to the request layer (``jtc_hw.daemon.core.requests``, which executes every
 operation): **key expressions** (one queryable per operation, the publications above), the
 **token attachment** (below), and Zenoh's **threads and memory** (below). A query is answered
 by ``Requests.answer``, as a socket request is, so replies and errors are byte for byte the
@@ -69,7 +69,7 @@ from collections.abc import Callable
 from functools import partial
 from typing import TYPE_CHECKING, Any, Final
 
-from ..api.framing import (
+from ...api.framing import (
     BAD_REQUEST,
     BUSY,
     TOO_LARGE,
@@ -79,22 +79,22 @@ from ..api.framing import (
     encode,
     error_reply,
 )
-from ..api.protocol import (
+from ...api.protocol import (
     Request,
     command_event,
     feedback_event,
     parse_request,
     result_event,
 )
-from ..controller.goals import GoalFeedback, GoalResult
-from ..controller.trajectory import JointTrajectory
-from ..errors import ConfigurationError
-from .realtime import release_freed_memory, return_freed_memory_promptly
-from .requests import Caller, Requests
-from .zenoh_config import import_zenoh, session_config
+from ...controller.goals import GoalFeedback, GoalResult
+from ...controller.trajectory import JointTrajectory
+from ...errors import ConfigurationError
+from ..core.requests import Caller, Requests
+from ..realtime import release_freed_memory, return_freed_memory_promptly
+from ..zenoh_config import import_zenoh, session_config
 
 if TYPE_CHECKING:
-    from .zenoh_config import ZenohSettings
+    from ..zenoh_config import ZenohSettings
 
 log = logging.getLogger("jtc_hw.zenoh")
 

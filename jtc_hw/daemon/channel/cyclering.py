@@ -46,7 +46,7 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import JtcHwError
+from ...errors import JtcHwError
 
 MAGIC = 0x4A54435249  # "JTCRI"
 VERSION = 1

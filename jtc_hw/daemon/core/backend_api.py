@@ -1,11 +1,11 @@
 """What the request layer needs from a backend, and what a backend reports to its observers.
 
-:class:`Backend` is implemented for real by :class:`jtc_hw.daemon.backend.LoopBackend` (the
+:class:`Backend` is implemented for real by :class:`jtc_hw.daemon.core.backend.LoopBackend` (the
 control loop in its own process) and in tests by a small controller host. Everything that
 consumes the loop's output is an :class:`Observer`: the request layer
-(:class:`jtc_hw.daemon.requests.Requests`, subscriptions and goal routing for every
+(:class:`jtc_hw.daemon.core.requests.Requests`, subscriptions and goal routing for every
 transport), the live view, the Zenoh interface and the recorders
-(:mod:`jtc_hw.daemon.observers`).
+(:mod:`jtc_hw.daemon.core.observers`).
 """
 
 from __future__ import annotations
@@ -14,11 +14,11 @@ import dataclasses
 from collections.abc import Mapping, Sequence
 from typing import Any, Protocol
 
-from ..controller.goals import GoalFeedback, GoalResult
-from ..controller.limits_check import TimeScaling
-from ..controller.parameters import ParameterChange
-from ..controller.tolerances import JointTolerance
-from ..controller.trajectory import JointTrajectory, QueriedState
+from ...controller.goals import GoalFeedback, GoalResult
+from ...controller.limits_check import TimeScaling
+from ...controller.parameters import ParameterChange
+from ...controller.tolerances import JointTolerance
+from ...controller.trajectory import JointTrajectory, QueriedState
 
 __all__ = ["Accepted", "Backend", "Observer"]
 

@@ -16,8 +16,8 @@ import socket
 import struct
 from typing import Any
 
-from .requests import Caller
-from .settings import DaemonSettings
+from ..core.requests import Caller
+from ..settings import DaemonSettings
 
 __all__ = [
     "OVER_LIMIT_CLIENTS",

@@ -21,7 +21,7 @@ from collections.abc import Callable
 from multiprocessing.connection import Connection
 from typing import Any
 
-from .pipe import encode_message
+from ..channel.pipe import encode_message
 
 __all__ = ["Outbox"]
 

@@ -4,14 +4,14 @@ Theory of operation
 -------------------
 A transport turns what arrives on its medium into ``protocol.Request`` values, has
 ``Requests.answer`` execute them, and sends the ``Reply`` back; it implements the request
-layer's ``Outlet`` for what comes later (``jtc_hw.daemon.requests``). What it adds is its own:
-framing, authentication, slots, key expressions. It never reaches into another transport.
+layer's ``Outlet`` for what comes later (``jtc_hw.daemon.core.requests``). What it adds is its
+own: framing, authentication, slots, key expressions. It never reaches into another transport.
 
 Adding one (ROS 2, say) is one module and one line::
 
-    1. ros2_iface.py: a class with ``async start()`` and ``async close()`` (``Transport``)
-       over a ``Requests``; a ``Caller`` per client or per request, its ``Outlet`` delivering
-       the goal events and states the layer routes to it;
+    1. transports/ros2_iface.py: a class with ``async start()`` and ``async close()``
+       (``Transport``) over a ``Requests``; a ``Caller`` per client or per request, its
+       ``Outlet`` delivering the goal events and states the layer routes to it;
     2. here: an opener ``(Wiring) -> Transport | None`` (``None``: not configured) and its
        ``Registration`` in ``TRANSPORTS``.
 
@@ -26,12 +26,12 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Protocol
 
-from .requests import Requests
+from ..core.requests import Requests
 from .server import Server
 from .zenoh_iface import ZenohInterface
 
 if TYPE_CHECKING:
-    from .settings import DaemonSettings
+    from ..settings import DaemonSettings
 
 __all__ = ["TRANSPORTS", "Registration", "Transport", "Wiring"]
 

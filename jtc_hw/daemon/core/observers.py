@@ -33,16 +33,16 @@ from typing import Any
 
 import numpy as np
 
-from ..controller.config import ControllerConfig
-from ..controller.goals import GoalFeedback, GoalResult, GoalStatus
-from ..controller.joints import JointCommand
-from ..controller.trajectory import JointTrajectory
-from ..rec.continuous import ContinuousRecorder
-from ..rec.flight import FlightRecorder
+from ...controller.config import ControllerConfig
+from ...controller.goals import GoalFeedback, GoalResult, GoalStatus
+from ...controller.joints import JointCommand
+from ...controller.trajectory import JointTrajectory
+from ...rec.continuous import ContinuousRecorder
+from ...rec.flight import FlightRecorder
+from ..channel.cyclering import READ_PERIOD_S, RING_S, CycleRing, remove_stale
+from ..channel.messages import State
+from ..settings import DaemonSettings
 from .backend_api import Observer
-from .cyclering import READ_PERIOD_S, RING_S, CycleRing, remove_stale
-from .messages import State
-from .settings import DaemonSettings
 
 __all__ = ["Observers", "Recorders", "state_json"]
 

@@ -1,9 +1,9 @@
 """The TCP endpoint's door: who may wait to authenticate, and how fast a wrong token is answered.
 
 What TCP adds to the request layer, beside the framing and slots it shares with the unix socket
-(``jtc_hw.daemon.server``): **authentication**. Loopback is open to every local user, so a TCP
-client's first request must be ``auth`` with the token; this module keeps the room where
-connections wait to do so, the server runs the handshake.
+(``jtc_hw.daemon.transports.server``): **authentication**. Loopback is open to every local
+user, so a TCP client's first request must be ``auth`` with the token; this module keeps the
+room where connections wait to do so, the server runs the handshake.
 
 Theory of operation
 -------------------

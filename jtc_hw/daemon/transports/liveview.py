@@ -45,12 +45,12 @@ from typing import TYPE_CHECKING, Any, Final
 
 import numpy as np
 
-from ..controller.goals import GoalFeedback, GoalResult
-from ..controller.trajectory import JointTrajectory, PointColumns
-from ..errors import ConfigurationError
+from ...controller.goals import GoalFeedback, GoalResult
+from ...controller.trajectory import JointTrajectory, PointColumns
+from ...errors import ConfigurationError
 
 if TYPE_CHECKING:
-    from .settings import FoxgloveSettings
+    from ..settings import FoxgloveSettings
 
 log = logging.getLogger("jtc_hw.liveview")
 
@@ -451,7 +451,7 @@ class LiveView:
                 install), or the address cannot be listened on.
         """
         try:
-            import foxglove
+            import foxglove  # the optional extra (jtc_hw[foxglove])
         except ImportError:
             raise ConfigurationError(
                 f"the live view needs the foxglove-sdk package: {INSTALL_HINT}, or remove "

@@ -2,10 +2,10 @@
 
 Theory of operation
 -------------------
-What this adds to the request layer (``jtc_hw.daemon.requests``, which executes every
+What this adds to the request layer (``jtc_hw.daemon.core.requests``, which executes every
 operation): **framing** (``protocol.Decoder`` reads NDJSON lines, ``framing.encode``'s bytes
 are written), **slots** (who may connect, how many), **authentication** on TCP (the token
-handshake, ``jtc_hw.daemon.tcp_door``) and **deadlines** (authentication, idleness). Each
+handshake, ``jtc_hw.daemon.transports.tcp_door``) and **deadlines** (authentication, idleness). Each
 connection is a ``Connection``: the request layer's ``Outlet`` for its client's later
 messages (goal events, state), and the holder of its ``Caller``. Long lines are decoded in a
 worker thread, so that no client's big goal holds the event loop (an operator's ``stop``).
@@ -44,8 +44,8 @@ from functools import partial
 from pathlib import Path
 from typing import Any
 
-from .. import __version__
-from ..api.framing import (
+from ... import __version__
+from ...api.framing import (
     BUSY,
     IDLE,
     PROTOCOL_VERSION,
@@ -55,9 +55,11 @@ from ..api.framing import (
     error_reply,
     reply,
 )
-from ..api.protocol import Auth, Decoder, Request, Stop
-from ..errors import ControllerStateError
-from .backend_api import Backend, Observer
+from ...api.protocol import Auth, Decoder, Request, Stop
+from ...errors import ControllerStateError
+from ..core.backend_api import Backend, Observer
+from ..core.requests import Caller, Requests
+from ..settings import DaemonSettings
 from .connection import (
     OVER_LIMIT_CLIENTS,
     OVER_LIMIT_DEADLINE_S,
@@ -66,8 +68,6 @@ from .connection import (
     is_privileged,
     peer_identity,
 )
-from .requests import Caller, Requests
-from .settings import DaemonSettings
 from .tcp_door import TcpDoor
 from .unix_socket import bind_unix, remove_socket_file
 
@@ -536,7 +536,7 @@ class Server:
             await self._authenticate(conn, item)  # a wrong token is a failed handshake
             return
         answered = await self.requests.answer(conn.caller, item)
-        conn.send(answered.data)  # before awaiting anything (jtc_hw.daemon.requests)
+        conn.send(answered.data)  # before awaiting anything (jtc_hw.daemon.core.requests)
 
     async def _authenticate(self, conn: Connection, item: Request | RequestError) -> None:
         """The handshake's one request: ``auth`` with the token takes a TCP slot (over

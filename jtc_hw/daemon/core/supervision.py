@@ -2,7 +2,7 @@
 
 Theory of operation
 -------------------
-:class:`LoopProcess` spawns the loop process (``jtc_hw.daemon.loop.loop_main``) on one duplex
+:class:`LoopProcess` spawns the loop process (``jtc_hw.daemon.loop.cycle.loop_main``) on one duplex
 pipe and waits for its ``Ready``. From then on it is the only one that talks to it:
 
 - out: ``Commit`` and ``Request`` records (:mod:`.messages`), written without blocking
@@ -36,10 +36,9 @@ from collections.abc import Callable
 from multiprocessing.connection import Connection
 from typing import Any
 
-from ..controller.controller import Plan
-from ..errors import ControllerStateError, HardwareError, JtcHwError
-from .loop import INBOX_SPARE, inbox_budget, loop_main
-from .messages import (
+from ...controller.controller import Plan
+from ...errors import ControllerStateError, HardwareError, JtcHwError
+from ..channel.messages import (
     Commit,
     Committed,
     Exit,
@@ -54,7 +53,8 @@ from .messages import (
     Shutdown,
     Stale,
 )
-from .pipe import Inbox, PlanWriter
+from ..channel.pipe import Inbox, PlanWriter
+from ..loop.cycle import INBOX_SPARE, inbox_budget, loop_main
 
 __all__ = ["LoopProcess"]
 

@@ -8,14 +8,9 @@ from .config.reading import load_config
 from .controller.controller import JointTrajectoryController, UpdateResult
 from .controller.goals import ErrorCode, GoalFeedback, GoalResult, GoalStatus, TrajectoryStopped
 from .controller.joints import JointCommand, JointState
+from .controller.messages import JointTrajectory, TrajectoryPoint
 from .controller.tolerances import JointTolerance
-from .controller.trajectory import (
-    JointTrajectory,
-    QueriedState,
-    Trajectory,
-    TrajectoryPoint,
-    TrajectorySample,
-)
+from .controller.trajectory import QueriedState, Trajectory, TrajectorySample
 from .errors import (
     CommunicationError,
     ConfigurationError,

@@ -30,8 +30,8 @@ from collections.abc import Mapping, Sequence
 from types import TracebackType
 from typing import Any
 
+from ..controller.messages import JointTrajectory
 from ..controller.tolerances import JointTolerance
-from ..controller.trajectory import JointTrajectory
 from ..errors import GoalRejected, ProtocolError
 from .framing import BUSY, GOAL_REJECTED, PROTOCOL_VERSION, MessageDecoder, RequestError, encode
 from .handles import FeedbackCallback, GoalHandle, StateSubscription

@@ -36,16 +36,15 @@ from numpy.typing import NDArray
 
 from ..controller.goals import GoalFeedback, GoalResult
 from ..controller.limits_check import TIME_SCALING_MODES
-from ..controller.tolerances import JointTolerance
-from ..controller.trajectory import (
+from ..controller.messages import (
     NS_PER_S,
     JointTrajectory,
     PointColumns,
-    QueriedState,
     TrajectoryPoint,
-    TrajectorySample,
     seconds_to_ns,
 )
+from ..controller.tolerances import JointTolerance
+from ..controller.trajectory import QueriedState, TrajectorySample
 from .framing import (
     BAD_REQUEST,
     DEFAULT_MAX_MESSAGE_BYTES,

@@ -75,6 +75,7 @@ from .limits_check import (
     reject,
     scale_prepared,
 )
+from .messages import NS_PER_S, JointTrajectory, PreparedTrajectory
 from .parameters import ParameterChange, get_parameters, read_only_differences, set_parameters
 from .pid import Pid
 from .stopping import (
@@ -85,15 +86,7 @@ from .stopping import (
     warm_up,
 )
 from .tolerances import JointTolerance, SegmentTolerances, violated
-from .trajectory import (
-    NS_PER_S,
-    JointTrajectory,
-    PreparedTrajectory,
-    QueriedState,
-    Trajectory,
-    TrajectorySample,
-    shortest_angular_distance,
-)
+from .trajectory import QueriedState, Trajectory, TrajectorySample, shortest_angular_distance
 from .validation import prepare
 
 F64 = NDArray[np.float64]

@@ -47,7 +47,7 @@ from jtc_hw.api.protocol import (
     tolerances_to_json,
     trajectory_to_json,
 )
-from jtc_hw.controller.trajectory import JointTrajectory, TrajectoryPoint
+from jtc_hw.controller.messages import JointTrajectory, TrajectoryPoint
 from jtc_hw.errors import ProtocolError
 
 S = 1_000_000_000

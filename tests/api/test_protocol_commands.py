@@ -11,7 +11,7 @@ from jtc_hw.api.protocol import (
     parse_request,
     trajectory_from_json,
 )
-from jtc_hw.controller.trajectory import JointTrajectory, TrajectoryPoint
+from jtc_hw.controller.messages import JointTrajectory, TrajectoryPoint
 
 
 def test_commands_is_an_optional_boolean() -> None:

@@ -17,7 +17,8 @@ from ..config.values import did_you_mean
 from ..controller.config import COMMAND_INTERFACE_TYPES
 from ..controller.joints import JointCommand, JointState
 from ..errors import ConfigurationError, JtcHwError, add_note
-from .interface import _ALLOWED, HardwareInterface, LifecycleState, _lifecycle_error, _raise_first
+from .interface import HardwareInterface, _raise_first
+from .lifecycle import _ALLOWED, LifecycleState, _lifecycle_error
 
 __all__ = [
     "HardwareSet",

@@ -49,6 +49,7 @@ __all__ = [
     "UNTRUSTED",
     "default_socket_path",
 ]
+from .events import tolerances_to_json, trajectory_to_json
 from .paths import (
     client_socket_path,
     listener_problem,
@@ -56,7 +57,6 @@ from .paths import (
     service_uid,
     socket_problem,
 )
-from .protocol import tolerances_to_json, trajectory_to_json
 
 log = logging.getLogger("jtc_hw.client")
 

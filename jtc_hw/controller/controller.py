@@ -126,14 +126,8 @@ class JointTrajectoryController(ControlLaw, Stops):
         self._n = n
         self._wrap = np.asarray(config.wraparound, dtype=bool)
         self._any_wrap = bool(self._wrap.any())
-        gains = [config.gains[j] for j in self.joint_names]
-        self._pid = Pid(
-            np.array([g.p for g in gains]),
-            np.array([g.i for g in gains]),
-            np.array([g.d for g in gains]),
-            np.array([g.i_clamp for g in gains]),
-        )
-        self._ff = np.array([g.ff_velocity_scale for g in gains])
+        *pid_gains, self._ff = self._gains(config)
+        self._pid = Pid(*pid_gains)
         cmd = config.command_interfaces
         self._cmd_pos = "position" in cmd
         self._cmd_vel = "velocity" in cmd
@@ -586,16 +580,16 @@ class JointTrajectoryController(ControlLaw, Stops):
         self.config = config
         self._planner = Planner(config)  # defaults and checks for the next command
         self._set_ramp_bounds(config)
-        gains = [config.gains[j] for j in self.joint_names]
-        self._pid.set_gains(
-            np.array([g.p for g in gains]),
-            np.array([g.i for g in gains]),
-            np.array([g.d for g in gains]),
-            np.array([g.i_clamp for g in gains]),
-        )
-        self._ff = np.array([g.ff_velocity_scale for g in gains])
+        *pid_gains, self._ff = self._gains(config)
+        self._pid.set_gains(*pid_gains)
         self._stop_decel = stop_decelerations(config)
         self._stop_jerk = stop_jerks(config)
+
+    def _gains(self, config: ControllerConfig) -> list[F64]:
+        """Per joint: p, i, d, i_clamp and the velocity feed-forward scale."""
+        gains = [config.gains[j] for j in self.joint_names]
+        fields = ("p", "i", "d", "i_clamp", "ff_velocity_scale")
+        return [np.array([getattr(g, f) for g in gains]) for f in fields]
 
     # -- the cycle ----------------------------------------------------------------------------
 

@@ -84,8 +84,8 @@ from jtc_hw.api.framing import (  # noqa: E402
 from jtc_hw.api.protocol import SendGoal, parse_request  # noqa: E402
 from jtc_hw.cli.demo import DEMO_JOINTS  # noqa: E402
 from jtc_hw.config.limits import JointLimits  # noqa: E402
-from jtc_hw.controller.controller import Planner  # noqa: E402
 from jtc_hw.controller.limits_check import check  # noqa: E402
+from jtc_hw.controller.planner import Planner  # noqa: E402
 from jtc_hw.controller.trajectory import Trajectory  # noqa: E402
 from jtc_hw.controller.validation import prepare  # noqa: E402
 from jtc_hw.daemon.channel.messages import Commit  # noqa: E402

@@ -5,17 +5,13 @@ The controller core is a pure library: feed it time and state, get commands and 
 
 from .config.controller import ControllerConfig
 from .config.reading import load_config
-from .controller.controller import JointTrajectoryController, UpdateResult
+from .controller.controller import JointTrajectoryController
 from .controller.goals import ErrorCode, GoalFeedback, GoalResult, GoalStatus, TrajectoryStopped
 from .controller.joints import JointCommand, JointState
+from .controller.messages import JointTrajectory, TrajectoryPoint
+from .controller.results import UpdateResult
 from .controller.tolerances import JointTolerance
-from .controller.trajectory import (
-    JointTrajectory,
-    QueriedState,
-    Trajectory,
-    TrajectoryPoint,
-    TrajectorySample,
-)
+from .controller.trajectory import QueriedState, Trajectory, TrajectorySample
 from .errors import (
     CommunicationError,
     ConfigurationError,

@@ -10,10 +10,10 @@ CAN emulators and their socketcand server. It runs here, so every test run (and 
 the second test plants a forbidden import in a copy of the tree to show that the check is not
 vacuous. Function-local and ``TYPE_CHECKING`` imports count.
 
-Two rules of the CLI and the recordings that a contract does not state are checked on the
-import graph itself: no import circle reaches them, and none of their modules imports a
-private name (``_name``) of another module. No import circle reaches the daemon either (its
-contract forbids one between its rooms, this also inside a room).
+Three rules that a contract does not state are checked on the import graph and the files
+themselves: no import circle reaches any module of ``jtc_hw`` or ``drivers``, no module of the
+CLI or the recordings imports a private name (``_name``) of another module, and no module
+outgrows :data:`MAX_LINES` (a module that does is asking to be split by meaning).
 """
 
 from __future__ import annotations
@@ -106,29 +106,31 @@ def test_a_forbidden_import_breaks_the_contract(
 
 
 SUBJECTS = ("jtc_hw.cli", "jtc_hw.rec")
-"""The packages whose modules the two graph checks below cover."""
+"""The packages whose modules the private-name check below covers."""
 
-CIRCLES = """
-import sys
+PACKAGES = ("jtc_hw", "drivers")
+"""The packages whose every module the circle check covers."""
+
+CIRCLES = f"""
 import grimp
-graph = grimp.build_graph("jtc_hw", cache_dir=None)
+graph = grimp.build_graph(*{PACKAGES!r}, cache_dir=None)
 for module in sorted(graph.modules):
-    if not any(module == p or module.startswith(p + ".") for p in sys.argv[1:]):
-        continue
     for imported in sorted(graph.find_modules_directly_imported_by(module)):
         back = graph.find_shortest_chain(importer=imported, imported=module)
         if back is not None:
             print(" -> ".join((module, *back)))
 """
-"""Prints each import circle through a module of the packages named in its arguments (grimp,
-as lint-imports)."""
+"""Prints each import circle through a module of :data:`PACKAGES` (grimp, as lint-imports)."""
+
+MAX_LINES = {"jtc_hw": 800, "drivers": 1000}
+"""The longest a module of each package may be, in lines."""
 
 
-def import_circles(checkout: Path, subjects: tuple[str, ...] = SUBJECTS) -> list[str]:
-    """The import circles through ``subjects`` (default: the CLI and the recordings) in
-    ``checkout``, one line each."""
-    result = subprocess.run([sys.executable, "-c", CIRCLES, *subjects], cwd=checkout,
-                            capture_output=True, text=True, timeout=300, check=True)
+def import_circles(checkout: Path) -> list[str]:
+    """The import circles through any module of ``jtc_hw`` or ``drivers`` in ``checkout``,
+    one line each (every circle once per module on it)."""
+    result = subprocess.run([sys.executable, "-c", CIRCLES], cwd=checkout, capture_output=True,
+                            text=True, timeout=300, check=True)
     return result.stdout.splitlines()
 
 
@@ -149,14 +151,24 @@ def private_imports(checkout: Path) -> list[str]:
     return found
 
 
-def test_no_import_circle_reaches_the_cli_or_the_recordings() -> None:
+def oversized_modules(checkout: Path) -> list[str]:
+    """The modules of ``checkout`` longer than :data:`MAX_LINES` allows: ``path: n lines``."""
+    found = []
+    for package, limit in MAX_LINES.items():
+        for path in sorted((checkout / package).rglob("*.py")):
+            lines = len(path.read_text(encoding="utf-8").splitlines())
+            if lines > limit:
+                found.append(f"{path.relative_to(checkout)}: {lines} lines (limit {limit})")
+    return found
+
+
+def test_no_import_circle_reaches_any_module_of_jtc_hw_or_drivers() -> None:
     assert import_circles(ROOT) == []
 
 
-def test_no_import_circle_reaches_the_daemon() -> None:
-    """Inside a room too (two modules of ``transports/``, say), where the daemon's layers
-    contract does not look; function-local and ``TYPE_CHECKING`` imports count."""
-    assert import_circles(ROOT, ("jtc_hw.daemon",)) == []
+def test_no_module_outgrows_its_line_limit() -> None:
+    oversized = oversized_modules(ROOT)
+    assert oversized == [], "split by concern: " + "; ".join(oversized)
 
 
 def test_the_cli_and_the_recordings_import_no_private_name_of_another_module() -> None:
@@ -164,8 +176,8 @@ def test_the_cli_and_the_recordings_import_no_private_name_of_another_module() -
 
 
 def test_a_planted_circle_or_private_import_is_found(tmp_path: Path) -> None:
-    shutil.copytree(ROOT / "jtc_hw", tmp_path / "jtc_hw",
-                    ignore=shutil.ignore_patterns("__pycache__"))
+    for name in PACKAGES:
+        shutil.copytree(ROOT / name, tmp_path / name, ignore=shutil.ignore_patterns("__pycache__"))
     with open(tmp_path / "jtc_hw/rec/bag.py", "a", encoding="utf-8") as source:
         source.write("\n\ndef _planted() -> None:\n    from . import plot  # planted by the test\n")
     with open(tmp_path / "jtc_hw/cli/state.py", "a", encoding="utf-8") as source:
@@ -174,10 +186,25 @@ def test_a_planted_circle_or_private_import_is_found(tmp_path: Path) -> None:
               encoding="utf-8") as source:
         source.write("\n\ndef _planted() -> None:\n"
                      "    from . import server  # planted by the test\n")
-    assert "jtc_hw.rec.bag -> jtc_hw.rec.plot -> jtc_hw.rec.bag" in import_circles(tmp_path)
+    with open(tmp_path / "jtc_hw/api/handles.py", "a", encoding="utf-8") as source:
+        source.write("\nimport typing\n\nif typing.TYPE_CHECKING:\n"
+                     "    from .client import Client  # planted by the test\n")
+    circles = import_circles(tmp_path)
+    assert "jtc_hw.rec.bag -> jtc_hw.rec.plot -> jtc_hw.rec.bag" in circles
+    assert "jtc_hw.api.handles -> jtc_hw.api.client -> jtc_hw.api.handles" in circles
     assert ("jtc_hw.daemon.transports.connection -> jtc_hw.daemon.transports.server -> "
-            "jtc_hw.daemon.transports.connection") in import_circles(tmp_path, ("jtc_hw.daemon",))
+            "jtc_hw.daemon.transports.connection") in circles
     assert any(line.endswith(" _robot") for line in private_imports(tmp_path))
+
+
+def test_an_oversized_module_is_named(tmp_path: Path) -> None:
+    for package, limit in MAX_LINES.items():
+        (tmp_path / package / "sub").mkdir(parents=True)
+        (tmp_path / package / "sub" / "fits.py").write_text("x = 1\n" * limit)
+        (tmp_path / package / "sub" / "big.py").write_text("x = 1\n" * (limit + 1))
+    assert oversized_modules(tmp_path) == [
+        "jtc_hw/sub/big.py: 801 lines (limit 800)", "drivers/sub/big.py: 1001 lines (limit 1000)"
+    ]
 
 
 def test_importing_the_cli_package_loads_none_of_its_commands() -> None:

@@ -6,6 +6,7 @@
 - :mod:`.paths`: where the daemon's socket is by default.
 """
 
+from . import zenoh_client  # noqa: F401 (it registers Client.connect("zenoh:..."))
 from .client import (
     UNTRUSTED,
     Client,

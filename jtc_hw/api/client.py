@@ -24,16 +24,22 @@ import itertools
 import logging
 import os
 import socket
-import struct
 import threading
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from types import TracebackType
 from typing import Any
 
+from ..controller.messages import JointTrajectory
 from ..controller.tolerances import JointTolerance
-from ..controller.trajectory import JointTrajectory
-from ..errors import GoalRejected, ProtocolError
-from .framing import BUSY, GOAL_REJECTED, PROTOCOL_VERSION, MessageDecoder, RequestError, encode
+from .calls import (
+    NOT_EXPECTED,
+    PERMISSION,
+    UNTRUSTED,
+    ClientConnectionError,
+    Pending,
+    reply_error,
+)
+from .framing import BUSY, PROTOCOL_VERSION, MessageDecoder, RequestError, encode
 from .handles import FeedbackCallback, GoalHandle, StateSubscription
 
 __all__ = [
@@ -49,20 +55,25 @@ __all__ = [
     "UNTRUSTED",
     "default_socket_path",
 ]
+from .events import tolerances_to_json, trajectory_to_json
 from .paths import (
     client_socket_path,
-    listener_problem,
+    peer_pid,
+    peer_problem,
     permission_problem,
-    service_uid,
     socket_problem,
 )
-from .protocol import tolerances_to_json, trajectory_to_json
 
 log = logging.getLogger("jtc_hw.client")
 
 DEFAULT_TIMEOUT_S = 5.0
 CLIENT_MAX_MESSAGE_BYTES = 64 << 20
 """Longest message the client accepts from the daemon (a large ``get_config``)."""
+
+OPENERS: dict[str, Callable[..., Client]] = {}
+"""How ``Client.connect`` opens an address of another transport, by its scheme: ``zenoh:`` is
+``ZenohClient.open``, registered by :mod:`.zenoh_client` (which the package imports), so that
+this module, which that one builds on, does not import it."""
 
 TrajectoryLike = JointTrajectory | Mapping[str, Any]
 ToleranceLike = JointTolerance | Mapping[str, Any]
@@ -82,39 +93,6 @@ def default_socket_path() -> str:
     return client_socket_path()
 
 
-class ClientConnectionError(ProtocolError):
-    """The connection to the daemon could not be made, or was lost.
-
-    Attributes:
-        code: the machine code of the error the daemon sent before closing (``busy``,
-            ``unauthorized``), or of the client's own refusal (``untrusted``,
-            ``not_expected``, ``permission``), if any.
-    """
-
-    def __init__(self, message: str, code: str | None = None) -> None:
-        super().__init__(message)
-        self.code = code
-
-
-class _Pending:
-    """A request waiting for its reply."""
-
-    __slots__ = ("op", "done", "reply", "error", "on_feedback", "feedback_maxlen", "goal")
-
-    def __init__(self, op: str, on_feedback: FeedbackCallback | None, feedback_maxlen: int):
-        self.op = op
-        self.done = threading.Event()
-        self.reply: dict[str, Any] | None = None
-        self.error: Exception | None = None
-        self.on_feedback = on_feedback
-        self.feedback_maxlen = feedback_maxlen
-        self.goal: GoalHandle | None = None
-
-
-
-
-
-
 class Client:
     """A connection to the daemon; create it with ``Client.connect``.
 
@@ -129,23 +107,27 @@ class Client:
     """
 
     def __init__(self, sock: socket.socket, timeout_s: float, label: str) -> None:
+        self._init_state(timeout_s, label)
+        self._sock = sock
+        self._reader = threading.Thread(
+            target=self._read, name=f"jtc_hw-client-reader {label}", daemon=True
+        )
+        self._reader.start()
+
+    def _init_state(self, timeout_s: float, label: str) -> None:
+        """The state of every transport (a subclass may have no socket and no reader)."""
         self.timeout_s = timeout_s
         self.label = label
         self.info: dict[str, Any] = {}
-        self._sock = sock
         self._ids = itertools.count(1)
         self._lock = threading.Lock()  # pending, goals, subscriptions, lost
         self._send_lock = threading.Lock()
-        self._pending: dict[int, _Pending] = {}
+        self._pending: dict[int, Pending] = {}
         self._goals: dict[int, GoalHandle] = {}
         self._subscriptions: list[StateSubscription] = []
         self._lost: ClientConnectionError | None = None
         self._unclaimed: RequestError | None = None  # an id-less error no request waited for
         self._closing = False
-        self._reader = threading.Thread(
-            target=self._read, name=f"jtc_hw-client-reader {label}", daemon=True
-        )
-        self._reader.start()
 
     @classmethod
     def connect(
@@ -210,10 +192,8 @@ class Client:
         if expect_pid is not None and (tcp is not None or str(path).startswith("zenoh:")):
             raise ValueError("expect_pid checks a unix socket's peer; it cannot check tcp or zenoh")
         if isinstance(path, str) and path.startswith("zenoh:"):
-            from .zenoh_client import ZenohClient
-
-            return ZenohClient.open(path.removeprefix("zenoh:"), zenoh_config=zenoh_config,
-                                    timeout_s=timeout_s, hello=hello, token=token)
+            return OPENERS["zenoh:"](path.removeprefix("zenoh:"), zenoh_config=zenoh_config,
+                                     timeout_s=timeout_s, hello=hello, token=token)
         address: str | tuple[str, int]
         if tcp is not None:
             if not token:
@@ -248,13 +228,13 @@ class Client:
         if family == socket.AF_UNIX:
             try:
                 _refuse_untrusted(
-                    str(address), _peer_problem(sock, str(address), trusted_group), listener=True
+                    str(address), peer_problem(sock, str(address), trusted_group), listener=True
                 )
             except BaseException:
                 sock.close()
                 raise
         if expect_pid is not None:
-            peer = _peer_pid(sock)
+            peer = peer_pid(sock)
             if peer != expect_pid:
                 sock.close()
                 by = "an unidentified process" if peer is None else f"pid {peer}"
@@ -346,7 +326,7 @@ class Client:
             fields["goal_time_tolerance"] = goal_time_tolerance
         if time_scaling is not None:
             fields["time_scaling"] = time_scaling
-        pending = _Pending("send_goal", on_feedback, feedback_maxlen)
+        pending = Pending("send_goal", on_feedback, feedback_maxlen)
         self._request("send_goal", fields, timeout_s, pending)
         assert pending.goal is not None
         return pending.goal
@@ -634,10 +614,10 @@ class Client:
         op: str,
         fields: dict[str, Any],
         timeout_s: float | None,
-        pending: _Pending | None = None,
+        pending: Pending | None = None,
     ) -> dict[str, Any]:
         timeout = self.timeout_s if timeout_s is None else timeout_s
-        pending = pending or _Pending(op, None, 0)
+        pending = pending or Pending(op, None, 0)
         request_id = next(self._ids)
         data = encode({"id": request_id, "op": op, **fields})
         with self._lock:
@@ -713,7 +693,7 @@ class Client:
             pending = self._pending.pop(key, None) if key is not None else None
         if pending is None:
             if not message.get("ok", False):
-                error = _error(message)
+                error = reply_error(message)
                 if isinstance(error, RequestError) and request_id is None:
                     self._unclaimed = error  # e.g. "busy" before our first request was sent
             return  # otherwise a reply to a request that timed out
@@ -729,7 +709,7 @@ class Client:
                 pending.goal = handle
             pending.reply = message
         else:
-            pending.error = _error(message)
+            pending.error = reply_error(message)
         pending.done.set()
 
     def _dispatch_event(self, event: str, message: dict[str, Any]) -> None:
@@ -769,15 +749,6 @@ class Client:
             subscription._connection_lost(error)
 
 
-UNTRUSTED = "untrusted"
-"""``ClientConnectionError.code`` of a socket that failed the owner check."""
-NOT_EXPECTED = "not_expected"
-"""``ClientConnectionError.code`` of a socket served by another process than ``expect_pid``."""
-PERMISSION = "permission"
-"""``ClientConnectionError.code`` of a unix socket this user may not connect to (its mode, or
-a directory on its way, keeps them out: ``EACCES``)."""
-
-
 def _refuse_untrusted(path: str, problem: str | None, listener: bool = False) -> None:
     """Raise the refusal of ``path`` for ``problem`` (of the file or directory; with
     ``listener``, of the process listening), if any, with what to do."""
@@ -794,54 +765,6 @@ def _refuse_untrusted(path: str, problem: str | None, listener: bool = False) ->
             "(--socket PATH, or JTC_HW_SOCKET=PATH)"
         )
     raise ClientConnectionError(f"refusing the daemon socket {path}: {problem}. {hint}", UNTRUSTED)
-
-
-def _peer_pid(sock: socket.socket) -> int | None:
-    """The pid of the process listening on the unix socket ``sock`` is connected to
-    (``SO_PEERCRED``, recorded by the kernel at its ``listen``), or None if not known."""
-    peercred = getattr(socket, "SO_PEERCRED", None)
-    if peercred is None:  # pragma: no cover - not Linux
-        return None
-    try:
-        pid, _uid, _gid = struct.unpack(
-            "3i", sock.getsockopt(socket.SOL_SOCKET, peercred, struct.calcsize("3i"))
-        )
-    except OSError:
-        return None
-    return int(pid)
-
-
-def _peer_problem(sock: socket.socket, path: str, group: str | int | None) -> str | None:
-    """Whether the process listening on ``sock`` is this user's, root's, ``group``'s, or the
-    system service's user's at its socket ``path`` (``SO_PEERCRED``: recorded by the kernel
-    when it called ``listen``, it cannot be forged)."""
-    peercred = getattr(socket, "SO_PEERCRED", None)
-    if peercred is None:  # pragma: no cover - not Linux: the file owner check stands alone
-        return None
-    try:
-        pid, uid, _gid = struct.unpack(
-            "3i", sock.getsockopt(socket.SOL_SOCKET, peercred, struct.calcsize("3i"))
-        )
-    except OSError as exc:
-        return f"the listening process cannot be identified ({exc})"
-    if uid == service_uid(os.path.dirname(path)):
-        return None
-    problem = listener_problem(pid, uid, group)
-    return None if problem is None else f"{problem}: it is not your daemon"
-
-
-def _error(message: dict[str, Any]) -> Exception:
-    error = message.get("error")
-    if not isinstance(error, dict):
-        return ProtocolError(f"the daemon sent a failed reply without an error: {message!r:.200}")
-    code = str(error.get("code", "internal"))
-    text = str(error.get("message", ""))
-    error_code = error.get("error_code")
-    if code == GOAL_REJECTED:
-        return GoalRejected(text, int(error_code) if isinstance(error_code, int) else -1)
-    return RequestError(
-        code, text, message.get("id"), error_code if isinstance(error_code, int) else None
-    )
 
 
 def _trajectory(trajectory: TrajectoryLike, start_in: float | None) -> dict[str, Any]:

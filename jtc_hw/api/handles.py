@@ -11,10 +11,7 @@ import logging
 import threading
 from collections.abc import Callable, Iterator
 from types import TracebackType
-from typing import TYPE_CHECKING, Any
-
-if TYPE_CHECKING:
-    from .client import Client
+from typing import Any, Protocol
 
 __all__ = ["FeedbackCallback", "GoalHandle", "StateSubscription"]
 
@@ -22,6 +19,15 @@ log = logging.getLogger("jtc_hw.client")
 
 
 FeedbackCallback = Callable[[dict[str, Any]], None]
+
+
+class ClientLike(Protocol):
+    """What a handle asks of the :class:`~jtc_hw.api.client.Client` feeding it (which builds
+    on this module, so it is not imported here)."""
+
+    def cancel(self, goal_id: int, timeout_s: float | None = None) -> dict[str, Any]: ...
+
+    def _unsubscribe(self, subscription: StateSubscription, timeout_s: float | None) -> None: ...
 
 
 class GoalHandle:
@@ -38,7 +44,7 @@ class GoalHandle:
 
     def __init__(
         self,
-        client: Client,
+        client: ClientLike,
         goal_id: int,
         on_feedback: FeedbackCallback | None = None,
         feedback_maxlen: int = 1000,
@@ -174,7 +180,7 @@ class StateSubscription:
             keeps the newest ``maxlen``); each message's ``dropped`` counts the daemon's side.
     """
 
-    def __init__(self, client: Client, timeout_s: float, maxlen: int,
+    def __init__(self, client: ClientLike, timeout_s: float, maxlen: int,
                  commands: bool = False) -> None:
         self.timeout_s = timeout_s
         self.commands = commands

@@ -35,7 +35,9 @@ from __future__ import annotations
 import grp
 import os
 import pwd
+import socket
 import stat
+import struct
 from collections.abc import Mapping
 from typing import Final
 
@@ -47,6 +49,8 @@ __all__ = [
     "directory_problem",
     "group_id",
     "listener_problem",
+    "peer_pid",
+    "peer_problem",
     "permission_problem",
     "private_fallback_dir",
     "socket_problem",
@@ -350,3 +354,47 @@ def permission_problem(path: str) -> str:
         f"{what} lets no group in: set daemon.socket_group (a group of yours) and "
         "daemon.socket_mode 0660 in the daemon's configuration, then join that group"
     )
+
+
+def _peer_credentials(sock: socket.socket) -> tuple[int, int] | None:
+    """``(pid, uid)`` of the process listening on the unix socket ``sock`` is connected to
+    (``SO_PEERCRED``, recorded by the kernel at its ``listen``: it cannot be forged); None off
+    Linux.
+
+    Raises:
+        OSError: the kernel would not say.
+    """
+    peercred = getattr(socket, "SO_PEERCRED", None)
+    if peercred is None:  # pragma: no cover - not Linux
+        return None
+    pid, uid, _gid = struct.unpack(
+        "3i", sock.getsockopt(socket.SOL_SOCKET, peercred, struct.calcsize("3i"))
+    )
+    return int(pid), uid
+
+
+def peer_pid(sock: socket.socket) -> int | None:
+    """The pid of the process listening on the unix socket ``sock`` is connected to, or None
+    if not known."""
+    try:
+        credentials = _peer_credentials(sock)
+    except OSError:
+        return None
+    return None if credentials is None else credentials[0]
+
+
+def peer_problem(sock: socket.socket, path: str, group: str | int | None) -> str | None:
+    """Whether the process listening on ``sock`` is this user's, root's, ``group``'s, or the
+    system service's user's at its socket ``path`` (off Linux the file owner check stands
+    alone)."""
+    try:
+        credentials = _peer_credentials(sock)
+    except OSError as exc:
+        return f"the listening process cannot be identified ({exc})"
+    if credentials is None:
+        return None
+    pid, uid = credentials
+    if uid == service_uid(os.path.dirname(path)):
+        return None
+    problem = listener_problem(pid, uid, group)
+    return None if problem is None else f"{problem}: it is not your daemon"

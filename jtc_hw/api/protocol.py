@@ -8,7 +8,8 @@ complete specification, with an example per operation and event, is ``docs/proto
 
 This module only turns bytes into values and values into bytes, in the manner of h11: the server
 and the client own the sockets. The line framing and the error codes are
-:mod:`jtc_hw.api.framing`; this module says what a request means.
+:mod:`jtc_hw.api.framing`; this module says what a request means: it parses one into the typed
+requests of :mod:`.requests`, and exports them with the JSON forms of :mod:`.events`.
 ``Decoder.feed(data)`` takes whatever the socket gave (half a message, several messages) and
 returns the requests completed by it, in order; a message that cannot be used comes back as a
 ``RequestError`` *value* in the same list, carrying the machine code, a message naming the
@@ -25,26 +26,30 @@ from __future__ import annotations
 
 import difflib
 import math
-from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from collections.abc import Sequence
 from itertools import chain, compress, repeat
 from operator import is_not, methodcaller
-from typing import Any, ClassVar
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
-from ..controller.goals import GoalFeedback, GoalResult
 from ..controller.limits_check import TIME_SCALING_MODES
-from ..controller.tolerances import JointTolerance
-from ..controller.trajectory import (
+from ..controller.messages import (
     NS_PER_S,
-    JointTrajectory,
     PointColumns,
-    QueriedState,
     TrajectoryPoint,
-    TrajectorySample,
     seconds_to_ns,
+)
+from ..controller.tolerances import JointTolerance
+from .events import (
+    command_event,
+    feedback_event,
+    record_event,
+    result_event,
+    sample_to_json,
+    tolerances_to_json,
+    trajectory_to_json,
 )
 from .framing import (
     BAD_REQUEST,
@@ -55,6 +60,28 @@ from .framing import (
     RequestId,
     _describe,
     gc_paused,
+)
+from .requests import (
+    MAX_NS,
+    Auth,
+    CancelGoal,
+    GetConfig,
+    GetParameters,
+    GetStatus,
+    Hello,
+    QueryState,
+    Rearm,
+    Request,
+    SendGoal,
+    SendTrajectory,
+    SetParameters,
+    SetSpeedScaling,
+    Sim,
+    Stop,
+    SubscribeState,
+    UnsubscribeState,
+    WireTrajectory,
+    check_end,
 )
 
 __all__ = [
@@ -80,17 +107,17 @@ __all__ = [
     "SubscribeState",
     "UnsubscribeState",
     "WireTrajectory",
+    "command_event",
     "feedback_event",
     "parse_request",
     "parse_trajectory",
+    "record_event",
     "result_event",
     "sample_to_json",
     "tolerances_to_json",
     "trajectory_to_json",
 ]
 
-MAX_NS = 2**63 - 1
-"""Largest time in nanoseconds the protocol carries (int64)."""
 
 MAX_JOINT_VALUE = 1e6
 """Largest magnitude of a trajectory point's value (positions in rad or m, their derivatives,
@@ -98,248 +125,6 @@ effort in N·m or N). No joint travels a thousand kilometres or a million radian
 value is a client's bug, and values near the float64 range overflow the polynomial fit."""
 
 _MAX_SECONDS = MAX_NS / NS_PER_S
-
-# -- requests ---------------------------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class WireTrajectory:
-    """A trajectory as received: its start is resolved by the server (``to_joint_trajectory``).
-
-    Attributes:
-        start_time_ns: absolute start on the daemon clock, if given.
-        start_in: start in seconds from when the daemon received the request, if given.
-    """
-
-    joint_names: tuple[str, ...]
-    points: Sequence[TrajectoryPoint]
-    start_time_ns: int | None = None
-    start_in: float | None = None
-
-    def to_joint_trajectory(self, now_ns: int) -> JointTrajectory:
-        """The controller's trajectory message, with ``start_in`` resolved against ``now_ns``.
-
-        Neither start given: start time 0 ("when the controller receives it").
-
-        Raises:
-            RequestError: ``start_in`` puts the start outside the daemon clock's range, or the
-                last point would be after the end of the clock's range (int64 nanoseconds).
-        """
-        if self.start_time_ns is not None:
-            start = self.start_time_ns
-        elif self.start_in is not None:
-            start = now_ns + seconds_to_ns(self.start_in)
-            if not 0 <= start <= MAX_NS:
-                raise RequestError(
-                    BAD_REQUEST,
-                    f"trajectory.start_in: {self.start_in!r} s from now ({now_ns} ns) is "
-                    f"{start} ns, outside the daemon clock's range 0..{MAX_NS}",
-                )
-        else:
-            start = 0
-        # Start 0 means "now": the points are then timed from now.
-        _check_end(self.points, start or now_ns, "trajectory.points")
-        return JointTrajectory(self.joint_names, self.points, start)
-
-
-@dataclass(frozen=True)
-class Hello:
-    """``hello``: protocol and server versions, joints, rates, the daemon clock."""
-
-    op: ClassVar[str] = "hello"
-    id: RequestId = None
-    protocol_version: int | None = None
-
-
-@dataclass(frozen=True)
-class Auth:
-    """``auth``: the token of a TCP connection (must be its first request)."""
-
-    op: ClassVar[str] = "auth"
-    id: RequestId = None
-    token: str = ""
-
-    def __repr__(self) -> str:  # never log a token
-        return f"Auth(id={self.id!r}, token=<{len(self.token)} characters>)"
-
-
-@dataclass(frozen=True)
-class SendGoal:
-    """``send_goal``: a ``follow_joint_trajectory`` action goal."""
-
-    op: ClassVar[str] = "send_goal"
-    id: RequestId = None
-    trajectory: WireTrajectory = field(default_factory=lambda: WireTrajectory((), ()))
-    path_tolerance: tuple[JointTolerance, ...] = ()
-    goal_tolerance: tuple[JointTolerance, ...] = ()
-    goal_time_tolerance: float = 0.0
-    time_scaling: str | None = None
-    """``"reject"`` or ``"fit"`` a goal beyond the joint limits; None: the daemon's
-    ``limits.time_scaling``."""
-
-
-@dataclass(frozen=True)
-class CancelGoal:
-    """``cancel_goal``: ask the executing goal ``goal_id`` to stop."""
-
-    op: ClassVar[str] = "cancel_goal"
-    id: RequestId = None
-    goal_id: int = 0
-
-
-@dataclass(frozen=True)
-class SendTrajectory:
-    """``send_trajectory``: the ``joint_trajectory`` topic (no points: stop)."""
-
-    op: ClassVar[str] = "send_trajectory"
-    id: RequestId = None
-    trajectory: WireTrajectory = field(default_factory=lambda: WireTrajectory((), ()))
-    time_scaling: str | None = None
-    """As ``SendGoal.time_scaling``."""
-
-
-@dataclass(frozen=True)
-class Stop:
-    """``stop``: end any motion and hold (cancel the active goal, stop a topic trajectory).
-
-    Served even over the connection limit (see ``docs/protocol.md``).
-    """
-
-    op: ClassVar[str] = "stop"
-    id: RequestId = None
-
-
-@dataclass(frozen=True)
-class QueryState:
-    """``query_state``: the desired state at an absolute time or at a time from now."""
-
-    op: ClassVar[str] = "query_state"
-    id: RequestId = None
-    time_ns: int | None = None
-    in_s: float | None = None
-
-    def resolve(self, now_ns: int) -> int:
-        """The absolute time asked for.
-
-        Raises:
-            RequestError: ``in`` puts the time outside the daemon clock's range.
-        """
-        if self.time_ns is not None:
-            return self.time_ns
-        t = now_ns + seconds_to_ns(self.in_s or 0.0)
-        if not 0 <= t <= MAX_NS:
-            raise RequestError(
-                BAD_REQUEST,
-                f"in: {self.in_s!r} s from now ({now_ns} ns) is outside the daemon clock's "
-                f"range 0..{MAX_NS} ns",
-                self.id,
-            )
-        return t
-
-
-@dataclass(frozen=True)
-class SubscribeState:
-    """``subscribe_state``: receive ``state`` events; with ``commands``, also a ``command``
-    event for every command the daemon accepts (any client's goals and topic trajectories)."""
-
-    op: ClassVar[str] = "subscribe_state"
-    id: RequestId = None
-    commands: bool = False
-
-
-@dataclass(frozen=True)
-class UnsubscribeState:
-    """``unsubscribe_state``: stop receiving ``state`` events."""
-
-    op: ClassVar[str] = "unsubscribe_state"
-    id: RequestId = None
-
-
-@dataclass(frozen=True)
-class GetConfig:
-    """``get_config``: the configuration in effect."""
-
-    op: ClassVar[str] = "get_config"
-    id: RequestId = None
-
-
-@dataclass(frozen=True)
-class GetStatus:
-    """``get_status``: loop, hardware, controller and server statistics."""
-
-    op: ClassVar[str] = "get_status"
-    id: RequestId = None
-
-
-@dataclass(frozen=True)
-class Sim:
-    """``sim``: freeze or release a simulated component's feedback, or inject a latched
-    read fault (``fault``: its message; cleared by ``rearm``)."""
-
-    op: ClassVar[str] = "sim"
-    id: RequestId = None
-    component: str = ""
-    freeze: bool | None = False
-    fault: str | None = None
-
-
-@dataclass(frozen=True)
-class Rearm:
-    """``rearm``: leave a hardware fault (reboot / fault-reset the devices, hold the position)."""
-
-    op: ClassVar[str] = "rearm"
-    id: RequestId = None
-
-
-@dataclass(frozen=True)
-class GetParameters:
-    """``get_parameters``: controller parameter values by ROS-style name (``names``: some of
-    them, ``None``: all)."""
-
-    op: ClassVar[str] = "get_parameters"
-    id: RequestId = None
-    names: tuple[str, ...] | None = None
-
-
-@dataclass(frozen=True)
-class SetParameters:
-    """``set_parameters``: change controller parameters while running (all or nothing); the
-    values are checked by the daemon as the configuration file's are."""
-
-    op: ClassVar[str] = "set_parameters"
-    id: RequestId = None
-    parameters: dict[str, Any] = field(default_factory=dict)
-
-
-@dataclass(frozen=True)
-class SetSpeedScaling:
-    """``set_speed_scaling``: the speed scaling factor to ramp to (``factor``: 1 full speed,
-    0 pause), or ``resume``: back to the factor before the pause."""
-
-    op: ClassVar[str] = "set_speed_scaling"
-    id: RequestId = None
-    factor: float | None = None
-    resume: bool = False
-
-
-Request = (
-    Hello
-    | Auth
-    | SendGoal
-    | CancelGoal
-    | SendTrajectory
-    | Stop
-    | QueryState
-    | SubscribeState
-    | UnsubscribeState
-    | GetConfig
-    | GetStatus
-    | Sim
-    | Rearm
-    | GetParameters
-    | SetParameters
-    | SetSpeedScaling
-)
 
 _OP_FIELDS: dict[str, tuple[str, ...]] = {
     "hello": ("protocol_version",),
@@ -508,29 +293,6 @@ def _ns(seconds: float, path: str, rid: RequestId) -> int:
     return ns
 
 
-def _check_end(points: Sequence[TrajectoryPoint], start_ns: int, path: str) -> None:
-    """The last point's absolute time must fit the daemon clock (int64 nanoseconds).
-
-    Raises:
-        RequestError: ``bad_request`` naming the point.
-    """
-    if not points:
-        return
-    if isinstance(points, PointColumns):  # without building a point object per point
-        index = int(points.times_ns.argmax())
-        last = int(points.times_ns[index])
-    else:
-        index = max(range(len(points)), key=lambda i: points[i].time_from_start_ns)
-        last = points[index].time_from_start_ns
-    end = start_ns + last
-    if end > MAX_NS:
-        raise RequestError(
-            BAD_REQUEST,
-            f"{path}[{index}].time_from_start: the point would be due at {end} ns "
-            f"(start {start_ns} ns + {last} ns), after the end of "
-            f"the daemon clock's range ({MAX_NS} ns); start earlier or shorten the trajectory",
-        )
-
 
 def _vector(
     value: Any, path: str, rid: RequestId, joint_names: Sequence[str] = ()
@@ -581,7 +343,7 @@ def parse_trajectory(
     if f.has("start_time_ns"):
         start_time_ns = f.integer("start_time_ns", f.obj["start_time_ns"], 0, MAX_NS)
         try:
-            _check_end(points, start_time_ns, _join(path, "points"))
+            check_end(points, start_time_ns, _join(path, "points"))
         except RequestError as exc:
             exc.request_id = request_id
             raise
@@ -882,147 +644,3 @@ class Decoder:
         except RequestError as exc:
             return exc
 
-
-# -- events ------------------------------------------------------------------------------------
-
-
-def sample_to_json(sample: TrajectorySample | QueriedState) -> dict[str, Any]:
-    """A desired state as ``{positions, velocities, accelerations, effort}`` arrays.
-
-    Raises:
-        Nothing.
-    """
-    return {
-        "positions": sample.positions,
-        "velocities": sample.velocities,
-        "accelerations": sample.accelerations,
-        "effort": sample.effort,
-    }
-
-
-def result_event(result: GoalResult) -> dict[str, Any]:
-    """The ``result`` event of a goal: ``error_string`` is upstream's text, ``details`` what
-    we add (which joint broke which tolerance; ``""`` when nothing).
-
-    Raises:
-        Nothing.
-    """
-    return {
-        "event": "result",
-        "goal_id": result.goal_id,
-        "status": result.status.value,
-        "error_code": int(result.error_code),
-        "error_string": result.error_string,
-        "details": result.details,
-        "time_ns": result.time_ns,
-    }
-
-
-def feedback_event(feedback: GoalFeedback, joint_names: Sequence[str]) -> dict[str, Any]:
-    """The ``feedback`` event of a goal (``actual.velocities`` is null without a reading).
-
-    Raises:
-        Nothing.
-    """
-    error = feedback.error
-    return {
-        "event": "feedback",
-        "goal_id": feedback.goal_id,
-        "time_ns": feedback.time_ns,
-        "time_from_start": feedback.time_from_start,
-        "joint_names": list(joint_names),
-        "desired": sample_to_json(feedback.desired),
-        "actual": {
-            "positions": feedback.actual_positions,
-            "velocities": feedback.actual_velocities,
-        },
-        "error": {
-            "positions": error[0],
-            "velocities": error[1],
-            "accelerations": error[2],
-        },
-    }
-
-
-def command_event(trajectory: JointTrajectory, goal_id: int | None,
-                  time_ns: int) -> dict[str, Any]:
-    """The ``command`` event: a command the daemon accepted at ``time_ns`` (daemon clock), as
-    received (``trajectory_to_json``; ``start_time_ns`` absent: "start now"); ``goal_id`` null
-    for a topic trajectory (an empty one: a stop).
-
-    Raises:
-        Nothing.
-    """
-    return {"event": "command", "time_ns": time_ns, "goal_id": goal_id,
-            "trajectory": trajectory_to_json(trajectory)}
-
-
-def record_event(event: Mapping[str, Any]) -> dict[str, Any]:
-    """The ``record`` event: a goal's result, a hardware fault or a re-arm, as the bags'
-    ``goal_events`` hold it (``{"event": "result" | "fault" | "rearm", ..., "time_ns"}``,
-    docs/recording.md), for connections subscribed with ``commands`` (``jtc-hw record``).
-
-    Raises:
-        Nothing.
-    """
-    return {"event": "record", "record": dict(event)}
-
-
-def trajectory_from_json(obj: Mapping[str, Any]) -> JointTrajectory:
-    """A ``JointTrajectory`` back from ``trajectory_to_json``'s form (a ``command`` event's
-    ``trajectory``; ``start_in`` is not resolved: give ``start_time_ns``).
-
-    Raises:
-        KeyError, TypeError, ValueError: not that form.
-    """
-    return JointTrajectory(
-        obj["joint_names"],
-        [TrajectoryPoint(float(p["time_from_start"]), p.get("positions"), p.get("velocities"),
-                         p.get("accelerations"), p.get("effort")) for p in obj["points"]],
-        int(obj.get("start_time_ns", 0)),
-    )
-
-
-def trajectory_to_json(
-    trajectory: JointTrajectory, start_in: float | None = None
-) -> dict[str, Any]:
-    """The wire form of a ``JointTrajectory`` (for clients).
-
-    ``start_time_ns`` is written when non-zero; ``start_in`` instead, when given.
-
-    Raises:
-        ValueError: both a non-zero ``start_time_ns`` and ``start_in``.
-    """
-    if start_in is not None and trajectory.start_time_ns:
-        raise ValueError("give either a trajectory start_time_ns or start_in, not both")
-    points = []
-    for p in trajectory.points:
-        point: dict[str, Any] = {"time_from_start": p.time_from_start_ns / NS_PER_S}
-        for name in _POINT_FIELDS[1:]:
-            values = getattr(p, name)
-            if values is not None:
-                point[name] = list(values)
-        points.append(point)
-    out: dict[str, Any] = {"joint_names": list(trajectory.joint_names), "points": points}
-    if start_in is not None:
-        out["start_in"] = start_in
-    elif trajectory.start_time_ns:
-        out["start_time_ns"] = trajectory.start_time_ns
-    return out
-
-
-def tolerances_to_json(tolerances: Sequence[JointTolerance]) -> list[dict[str, Any]]:
-    """The wire form of tolerance overrides.
-
-    Raises:
-        Nothing.
-    """
-    return [
-        {
-            "name": t.name,
-            "position": t.position,
-            "velocity": t.velocity,
-            "acceleration": t.acceleration,
-        }
-        for t in tolerances
-    ]

@@ -25,7 +25,6 @@ gets a ``ClientConnectionError``, as when a socket closes.
 from __future__ import annotations
 
 import collections
-import itertools
 import json
 import logging
 import os
@@ -36,8 +35,9 @@ from collections.abc import Mapping
 from typing import Any, Final
 
 from ..errors import ProtocolError
-from .client import Client, ClientConnectionError, _Pending
-from .framing import PROTOCOL_VERSION, RequestError, encode
+from .calls import ClientConnectionError, Pending
+from .client import OPENERS, Client
+from .framing import PROTOCOL_VERSION, encode
 
 __all__ = [
     "DEFAULT_ZENOH_CONNECT",
@@ -166,19 +166,8 @@ class ZenohClient(Client):
     def __init__(self, session: Any, prefix: str, timeout_s: float, own_session: bool,
                  token: str | None = None) -> None:
         # Not Client.__init__: no socket and no reader thread; the same state otherwise.
-        self.timeout_s = timeout_s
-        self.label = f"{ZENOH_SCHEME}{prefix}"
+        self._init_state(timeout_s, f"{ZENOH_SCHEME}{prefix}")
         self.prefix = prefix
-        self.info: dict[str, Any] = {}
-        self._ids = itertools.count(1)
-        self._lock = threading.Lock()
-        self._send_lock = threading.Lock()
-        self._pending: dict[int, _Pending] = {}
-        self._goals = {}
-        self._subscriptions = []
-        self._lost: ClientConnectionError | None = None
-        self._unclaimed: RequestError | None = None
-        self._closing = False
         self._events_lock = threading.RLock()  # orders event delivery (module docstring)
         self._early: collections.OrderedDict[int, list[dict[str, Any]]] = (
             collections.OrderedDict())
@@ -262,10 +251,10 @@ class ZenohClient(Client):
         op: str,
         fields: dict[str, Any],
         timeout_s: float | None,
-        pending: _Pending | None = None,
+        pending: Pending | None = None,
     ) -> dict[str, Any]:
         timeout = self.timeout_s if timeout_s is None else timeout_s
-        pending = pending or _Pending(op, None, 0)
+        pending = pending or Pending(op, None, 0)
         request_id = next(self._ids)
         if op in ("subscribe_state", "unsubscribe_state"):
             return self._subscribe(request_id, op == "subscribe_state")
@@ -319,7 +308,7 @@ class ZenohClient(Client):
             raise lost
         raise TimeoutError(f"no reply to {op!r} from {self.label} within {timeout} s")
 
-    def _deliver(self, request_id: int, message: dict[str, Any], pending: _Pending) -> None:
+    def _deliver(self, request_id: int, message: dict[str, Any], pending: Pending) -> None:
         """The reply to its request (creating the goal's handle), then the goal's held events;
         with ``_events_lock`` held."""
         if message.get("id") != request_id:
@@ -425,3 +414,6 @@ class ZenohClient(Client):
             lost = self._lost
         if lost is None:
             self._fail_all(ClientConnectionError(f"{self.label}: the client was closed"))
+
+
+OPENERS[ZENOH_SCHEME] = ZenohClient.open  # Client.connect("zenoh:<prefix>")

@@ -24,7 +24,7 @@ from types import FrameType
 from typing import Any
 
 from ..api.client import Client
-from ..api.protocol import trajectory_from_json
+from ..api.events import trajectory_from_json
 from ..config.controller import DEFAULT_CONTROLLER_NAME
 from ..rec.bag import BagRecorder, RecordingFailed, tolerances_from_constraints
 from ..rec.continuous import DIAGNOSTICS_PERIOD_NS

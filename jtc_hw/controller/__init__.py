@@ -12,9 +12,14 @@ that way: nothing here imports the hardware, daemon or API layers, or a socket, 
 - :mod:`.interpolation`, :mod:`.trajectory`: splines and the immutable reference.
 - :mod:`.validation`, :mod:`.tolerances`, :mod:`.pid`, :mod:`.goals`: goal checks, tolerances,
   the control law and the goal state machine.
-- :mod:`.controller`: :class:`JointTrajectoryController` and the planner the daemon uses.
+- :mod:`.messages`: the trajectory command messages.
+- :mod:`.controller`: :class:`JointTrajectoryController`, with :mod:`.speed_scaling`,
+  :mod:`.stops`, :mod:`.control_law` (its mixins), :mod:`.outcomes` (what ends a command) and
+  :mod:`.results` (what a cycle returns); :mod:`.planner`: the planner the daemon uses.
 """
 
-from .controller import JointTrajectoryController, Plan, Planner, UpdateResult
+from .controller import JointTrajectoryController
+from .planner import Plan, Planner
+from .results import UpdateResult
 
 __all__ = ["JointTrajectoryController", "Plan", "Planner", "UpdateResult"]

@@ -47,7 +47,8 @@ from numpy.typing import NDArray
 from ..config.limits import JointLimits
 from ..errors import GoalRejected
 from .interpolation import F64, SegmentKind
-from .trajectory import NS_PER_S, PreparedTrajectory, Trajectory
+from .messages import NS_PER_S, PreparedTrajectory
+from .trajectory import Trajectory
 
 __all__ = [
     "FIT",

@@ -34,7 +34,8 @@ from numpy.typing import NDArray
 
 from .config import ControllerConfig
 from .interpolation import SegmentKind
-from .trajectory import NS_PER_S, Trajectory
+from .messages import NS_PER_S
+from .trajectory import Trajectory
 
 __all__ = [
     "DERIVED_STOP_TIME_S",

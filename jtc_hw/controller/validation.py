@@ -21,14 +21,8 @@ from numpy.typing import NDArray
 from ..errors import GoalRejected
 from .config import ControllerConfig
 from .interpolation import F64
-from .trajectory import (
-    FIELDS,
-    MAX_TIME_NS,
-    JointTrajectory,
-    PointColumns,
-    PreparedTrajectory,
-    TrajectoryPoint,
-)
+from .messages import FIELDS, JointTrajectory, PointColumns, PreparedTrajectory, TrajectoryPoint
+from .trajectory import MAX_TIME_NS
 
 INVALID_GOAL = -1
 INVALID_JOINTS = -2

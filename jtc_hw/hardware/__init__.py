@@ -2,7 +2,8 @@
 
 - :mod:`.interface`: :class:`HardwareInterface`, the ros2_control lifecycle every component
   follows, with the policy (transition guard, parameter validation, error wrapping) in the base
-  class and the I/O in the driver's underscore primitives.
+  class and the I/O in the driver's underscore primitives; :mod:`.lifecycle`: its states and
+  transition table; :mod:`.params`: the parameter rows kinds share.
 - :class:`ParamSpec`, :func:`param_table`, :func:`validate_params`: how a kind declares its
   ``params`` (docs/drivers.md), the one schema engine of :mod:`jtc_hw.config.schema`.
 - :mod:`.components`: :class:`HardwareSet`, several components forming the controller's joints.
@@ -18,22 +19,22 @@ from ..config.schema import ParamKind, ParamSpec, param_table, validate_params
 from ..controller.joints import JointCommand, JointState
 from .components import HardwareSet
 from .interface import (
-    COMMON_PARAMS,
-    DEFAULT_WATCHDOG_S,
     HEALTH_FIELDS,
-    JOINT_MAPPING_PARAMS,
-    MIN_WATCHDOG_PERIODS,
     NO_DEVICE_WATCHDOG,
-    TRANSITIONS,
-    WATCHDOG_PARAM,
     DeviceName,
     DeviceWatchdog,
     HardwareInterface,
-    LifecycleState,
-    SafeAction,
+    one_line,
+)
+from .lifecycle import TRANSITIONS, LifecycleState, SafeAction
+from .params import (
+    COMMON_PARAMS,
+    DEFAULT_WATCHDOG_S,
+    JOINT_MAPPING_PARAMS,
+    MIN_WATCHDOG_PERIODS,
+    WATCHDOG_PARAM,
     health_params,
     miss_rate_param,
-    one_line,
 )
 from .registry import (
     BUILTIN_HARDWARE,

@@ -17,7 +17,8 @@ from ..config.values import did_you_mean
 from ..controller.config import COMMAND_INTERFACE_TYPES
 from ..controller.joints import JointCommand, JointState
 from ..errors import ConfigurationError, JtcHwError, add_note
-from .interface import _ALLOWED, HardwareInterface, LifecycleState, _lifecycle_error, _raise_first
+from .interface import HardwareInterface, _raise_first
+from .lifecycle import _A, _ALLOWED, _F, _I, _U, LifecycleState, _lifecycle_error
 
 __all__ = [
     "HardwareSet",
@@ -26,14 +27,6 @@ __all__ = [
 _log = logging.getLogger("jtc_hw.hardware")
 
 F64 = NDArray[np.float64]
-
-_U, _I, _A, _F = (
-    LifecycleState.UNCONFIGURED,
-    LifecycleState.INACTIVE,
-    LifecycleState.ACTIVE,
-    LifecycleState.FINALIZED,
-)
-
 
 
 # --------------------------------------------------------------------------------------------

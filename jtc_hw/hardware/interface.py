@@ -1,4 +1,7 @@
-"""The hardware contract: the lifecycle every component follows, and its base class.
+"""The hardware contract: the base class every component derives from.
+
+The lifecycle's states and transition table are in :mod:`.lifecycle`, the shared parameter
+rows in :mod:`.params`; both are re-exported here, with the base class, as the contract.
 
 Theory of operation
 -------------------
@@ -26,26 +29,29 @@ from __future__ import annotations
 
 import logging
 from abc import ABC, abstractmethod
-from collections import deque
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
-from enum import Enum
 from types import MappingProxyType
 from typing import Any, ClassVar, Final
 
 import numpy as np
 from numpy.typing import NDArray
 
-from ..config.schema import ParamKind, ParamSpec, check_value, param_table, validate_params
+from ..config.schema import ParamKind, ParamSpec, check_value, validate_params
 from ..config.values import describe, did_you_mean
 from ..controller.config import COMMAND_INTERFACE_TYPES, STATE_INTERFACE_TYPES
 from ..controller.joints import JointCommand, JointState
-from ..errors import (
-    ConfigurationError,
-    ControllerStateError,
-    HardwareError,
-    JtcHwError,
-    add_note,
+from ..errors import ConfigurationError, HardwareError, JtcHwError, add_note
+from .lifecycle import _ALLOWED, TRANSITIONS, LifecycleState, SafeAction, _lifecycle_error
+from .params import (
+    COMMON_PARAMS,
+    DEFAULT_WATCHDOG_S,
+    JOINT_MAPPING_PARAMS,
+    MIN_WATCHDOG_PERIODS,
+    MISS_RATE_WINDOW,
+    WATCHDOG_PARAM,
+    health_params,
+    miss_rate_param,
 )
 
 __all__ = [
@@ -71,113 +77,6 @@ _log = logging.getLogger("jtc_hw.hardware")
 
 F64 = NDArray[np.float64]
 
-# --------------------------------------------------------------------------------------------
-# Lifecycle
-# --------------------------------------------------------------------------------------------
-
-
-class LifecycleState(Enum):
-    """Lifecycle state of a hardware component (ros2_control's primary states)."""
-
-    UNCONFIGURED = "unconfigured"
-    INACTIVE = "inactive"
-    ACTIVE = "active"
-    FINALIZED = "finalized"
-
-
-class SafeAction(Enum):
-    """What ``deactivate`` leaves the joints doing (the ``safe_action`` parameter)."""
-
-    HOLD = "hold"
-    """Keep torque on and hold the last position."""
-    TORQUE_OFF = "torque_off"
-    """Switch the drives off; the joints are free (and hold no command any more)."""
-
-
-_U, _I, _A, _F = (
-    LifecycleState.UNCONFIGURED,
-    LifecycleState.INACTIVE,
-    LifecycleState.ACTIVE,
-    LifecycleState.FINALIZED,
-)
-
-TRANSITIONS: Final[Mapping[tuple[LifecycleState, str], LifecycleState]] = MappingProxyType({
-    (_U, "configure"): _I,
-    (_I, "activate"): _A,
-    (_A, "deactivate"): _I,
-    (_I, "cleanup"): _U,
-})
-"""The lifecycle transitions: (state, method) -> state left on success."""
-
-_ALLOWED: Final[Mapping[str, frozenset[LifecycleState]]] = MappingProxyType({
-    **{method: frozenset({state}) for (state, method) in TRANSITIONS},
-    "read": frozenset({_I, _A}),
-    "write": frozenset({_A}),
-    "recover": frozenset({_I}),
-})
-
-
-def _steps_to(state: LifecycleState, targets: frozenset[LifecycleState]) -> list[str] | None:
-    """Shortest list of transition methods leading from ``state`` into ``targets``."""
-    queue: deque[tuple[LifecycleState, list[str]]] = deque([(state, [])])
-    seen = {state}
-    while queue:
-        current, steps = queue.popleft()
-        if current in targets:
-            return steps
-        for (source, method), target in TRANSITIONS.items():
-            if source is current and target not in seen:
-                seen.add(target)
-                queue.append((target, [*steps, method]))
-    return None
-
-
-def _lifecycle_error(owner: str, method: str, state: LifecycleState) -> ControllerStateError:
-    steps = _steps_to(state, _ALLOWED[method])
-    if not steps:
-        hint = "it was shut down; create a new instance"
-    else:
-        hint = "call " + " and ".join(f"{step}()" for step in steps) + " first"
-    return ControllerStateError(f"{owner}: cannot call {method}() while {state.value}; {hint}")
-
-
-
-COMMON_PARAMS: Final[Mapping[str, ParamSpec]] = param_table(
-    ParamSpec("safe_action", ParamKind.STRING, SafeAction.HOLD.value,
-              "what deactivate() leaves the joints doing: hold the position, or torque off",
-              choices=tuple(a.value for a in SafeAction)),
-)
-"""Parameters every hardware kind accepts (merged with the kind's ``PARAMS``)."""
-
-JOINT_MAPPING_PARAMS: Final[tuple[ParamSpec, ...]] = (
-    ParamSpec("offset", ParamKind.FLOAT, 0.0,
-              "per joint: joint position at motor zero, rad "
-              "(joint = direction * motor / gear_ratio + offset)", per_joint=True),
-    ParamSpec("direction", ParamKind.INT, 1,
-              "per joint: 1 or -1, the joint's sense against the motor's",
-              choices=(1, -1), per_joint=True),
-    ParamSpec("gear_ratio", ParamKind.FLOAT, 1.0,
-              "per joint: motor turns per joint turn (external gearing)",
-              minimum=1e-9, per_joint=True),
-)
-"""How a motor's position maps to its joint's, for drivers to include in their ``PARAMS``
-(``param_table(*JOINT_MAPPING_PARAMS, ...)``): one convention for every kind."""
-
-DEFAULT_WATCHDOG_S: Final = 0.1
-"""Default device-side watchdog time, s."""
-
-MIN_WATCHDOG_PERIODS: Final = 3
-"""A watchdog must allow at least this many loop periods (one late cycle must not trip it)."""
-
-WATCHDOG_PARAM: Final = ParamSpec(
-    "watchdog_s", ParamKind.FLOAT, DEFAULT_WATCHDOG_S,
-    "device-side watchdog, s: with no command for this long the motors stop by themselves "
-    "(armed on activate, disarmed on a clean deactivate); at least 3 loop periods",
-    minimum=0.001,
-)
-"""The ``watchdog_s`` row, for drivers whose devices have a watchdog to include in their
-``PARAMS``; the robot file checks it against the loop period (:data:`MIN_WATCHDOG_PERIODS`)."""
-
 
 HEALTH_FIELDS: Final[tuple[str, ...]] = (
     "motor", "joint", "model", "firmware", "mode", "torque_enabled", "temperature_c",
@@ -189,45 +88,6 @@ HEALTH_FIELDS: Final[tuple[str, ...]] = (
 MONITOR_RETRY_NS = 1_000_000_000
 """After a failed :meth:`HardwareInterface.monitor` (a device silent while faulted), how long the
 next attempt waits, ns."""
-
-
-def health_params(
-    temperature_warn_c: float, voltage_range: tuple[float, float] | None
-) -> tuple[ParamSpec, ...]:
-    """The health limit rows, for drivers that report temperatures (and voltages) to include
-    in their ``PARAMS`` with their motors' defaults.
-
-    Args:
-        temperature_warn_c: default warning temperature, degC.
-        voltage_range: default [min, max] supply voltage, V, outside which a warning is raised;
-            ``None``: the kind's motors report no voltage, so it has no such parameter.
-    """
-    rows = [
-        ParamSpec("temperature_warn_c", ParamKind.FLOAT, float(temperature_warn_c),
-                  "a motor at or above this temperature raises a warning in status and the "
-                  "log, degC"),
-    ]
-    if voltage_range is not None:
-        rows.append(ParamSpec(
-            "voltage_range", ParamKind.RANGE, tuple(float(v) for v in voltage_range),
-            "[min, max] supply voltage, V: a motor reporting one outside raises a warning"))
-    return tuple(rows)
-
-
-MISS_RATE_WINDOW: Final = 1000
-"""Transactions a miss rate is judged over (at least; the window closes at the first
-:meth:`HardwareInterface.health` call after that many): a few stragglers in a short window
-are not a trend, and a rate over the whole run would hide a recent one."""
-
-
-def miss_rate_param(default: float) -> ParamSpec:
-    """The ``miss_rate_warn`` row, for drivers whose bus counts ``transactions`` and
-    ``timeouts`` (replies that did not come in time), with the kind's default fraction."""
-    return ParamSpec(
-        "miss_rate_warn", ParamKind.FLOAT, float(default),
-        "fraction of transactions whose reply did not come in time above which a warning is "
-        "raised in status and the log, judged over windows of at least "
-        f"{MISS_RATE_WINDOW} transactions (0: never warn)", minimum=0.0, maximum=1.0)
 
 
 def one_line(exc: BaseException) -> str:

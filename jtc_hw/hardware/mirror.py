@@ -44,7 +44,8 @@ from numpy.typing import NDArray
 from ..config.schema import ParamKind, ParamSpec, param_table
 from ..controller.joints import JointCommand, JointState
 from ..errors import CommunicationError, ConfigurationError, HardwareError
-from .interface import DeviceWatchdog, HardwareInterface, SafeAction
+from .interface import DeviceWatchdog, HardwareInterface
+from .lifecycle import SafeAction
 
 __all__ = ["MirrorHardware"]
 

@@ -12,6 +12,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from jtc_hw import ErrorCode, GoalFeedback, GoalResult, GoalStatus, JointTolerance, TrajectorySample
+from jtc_hw.api.events import feedback_event, result_event, tolerances_to_json, trajectory_to_json
 from jtc_hw.api.framing import (
     BAD_JSON,
     BAD_REQUEST,
@@ -40,14 +41,10 @@ from jtc_hw.api.protocol import (
     Stop,
     SubscribeState,
     UnsubscribeState,
-    feedback_event,
     parse_request,
     parse_trajectory,
-    result_event,
-    tolerances_to_json,
-    trajectory_to_json,
 )
-from jtc_hw.controller.trajectory import JointTrajectory, TrajectoryPoint
+from jtc_hw.controller.messages import JointTrajectory, TrajectoryPoint
 from jtc_hw.errors import ProtocolError
 
 S = 1_000_000_000

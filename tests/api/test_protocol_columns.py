@@ -16,7 +16,7 @@ from hypothesis import strategies as st
 
 from jtc_hw.api import protocol
 from jtc_hw.api.framing import MessageDecoder, RequestError
-from jtc_hw.controller.trajectory import PointColumns
+from jtc_hw.controller.messages import PointColumns
 
 FIELDS = ("positions", "velocities", "accelerations", "effort")
 

@@ -4,14 +4,10 @@ from __future__ import annotations
 
 import pytest
 
+from jtc_hw.api.events import command_event, trajectory_from_json
 from jtc_hw.api.framing import RequestError
-from jtc_hw.api.protocol import (
-    SubscribeState,
-    command_event,
-    parse_request,
-    trajectory_from_json,
-)
-from jtc_hw.controller.trajectory import JointTrajectory, TrajectoryPoint
+from jtc_hw.api.protocol import SubscribeState, parse_request
+from jtc_hw.controller.messages import JointTrajectory, TrajectoryPoint
 
 
 def test_commands_is_an_optional_boolean() -> None:

@@ -14,10 +14,10 @@ from helpers.fake_backend import ServerThread
 
 from jtc_hw import ErrorCode, GoalResult, GoalStatus, JointTolerance
 from jtc_hw.api.client import Client
+from jtc_hw.api.events import result_event
 from jtc_hw.api.framing import encode
-from jtc_hw.api.protocol import result_event
 from jtc_hw.cli.common import EXIT_GOAL_FAILED, EXIT_OK, goal_result
-from jtc_hw.controller.trajectory import JointTrajectory, TrajectoryPoint
+from jtc_hw.controller.messages import JointTrajectory, TrajectoryPoint
 from jtc_hw.daemon.settings import DaemonSettings
 
 pytestmark = pytest.mark.usefixtures("no_leaks")  # threads, sockets, resources

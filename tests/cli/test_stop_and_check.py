@@ -13,7 +13,7 @@ from helpers.fake_backend import TOKEN, ServerThread
 from jtc_hw.cli import main
 from jtc_hw.cli.common import EXIT_BAD_INPUT, EXIT_OK
 from jtc_hw.cli.goals import load_goal_file
-from jtc_hw.controller.trajectory import JointTrajectory, TrajectoryPoint
+from jtc_hw.controller.messages import JointTrajectory, TrajectoryPoint
 from jtc_hw.daemon.settings import DaemonSettings
 from jtc_hw.errors import ConfigurationError
 

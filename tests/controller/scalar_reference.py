@@ -25,7 +25,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from jtc_hw.controller.config import ControllerConfig
-from jtc_hw.controller.trajectory import JointTrajectory, TrajectorySample
+from jtc_hw.controller.messages import JointTrajectory
+from jtc_hw.controller.trajectory import TrajectorySample
 from jtc_hw.errors import GoalRejected
 
 F64 = NDArray[np.float64]

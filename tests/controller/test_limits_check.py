@@ -15,8 +15,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from jtc_hw import GoalResult, GoalStatus, JointTrajectory, TrajectoryPoint
-from jtc_hw.controller.controller import Planner
 from jtc_hw.controller.limits_check import LimitTable, check
+from jtc_hw.controller.planner import Planner
 from jtc_hw.controller.trajectory import Trajectory
 from jtc_hw.errors import GoalRejected
 

@@ -44,8 +44,9 @@ from jtc_hw import (
     TrajectoryStopped,
 )
 from jtc_hw.controller.config import ControllerConfig
-from jtc_hw.controller.controller import DEACTIVATED, Plan
 from jtc_hw.controller.interpolation import SegmentKind
+from jtc_hw.controller.outcomes import DEACTIVATED
+from jtc_hw.controller.planner import Plan
 from jtc_hw.controller.trajectory import TrajectorySample, shortest_angular_distance
 from jtc_hw.controller.validation import prepare
 from jtc_hw.errors import StalePlan

@@ -25,7 +25,7 @@ from jtc_hw import (
 from jtc_hw.config.controller_file import config_to_dict
 from jtc_hw.config.limits import JointLimits
 from jtc_hw.config.reading import load_config
-from jtc_hw.controller.controller import CANCELED_DECELERATING_DETAILS, CANCELED_DETAILS
+from jtc_hw.controller.outcomes import CANCELED_DECELERATING_DETAILS, CANCELED_DETAILS
 from jtc_hw.controller.parameters import get_parameters
 from jtc_hw.controller.stopping import (
     DERIVED_STOP_TIME_S,

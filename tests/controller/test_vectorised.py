@@ -27,7 +27,8 @@ from hypothesis import strategies as st
 
 from jtc_hw import GoalRejected, JointTrajectory, Trajectory, TrajectoryPoint
 from jtc_hw.controller.config import ControllerConfig
-from jtc_hw.controller.trajectory import FIELDS, MAX_TIME_NS, PointColumns
+from jtc_hw.controller.messages import FIELDS, PointColumns
+from jtc_hw.controller.trajectory import MAX_TIME_NS
 from jtc_hw.controller.validation import prepare
 
 from conftest import MS, S, make_config

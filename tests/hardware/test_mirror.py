@@ -12,7 +12,7 @@ import pytest
 from jtc_hw.controller.controller import JointTrajectoryController
 from jtc_hw.controller.goals import ErrorCode, GoalResult, GoalStatus
 from jtc_hw.controller.joints import JointCommand
-from jtc_hw.controller.trajectory import JointTrajectory, TrajectoryPoint
+from jtc_hw.controller.messages import JointTrajectory, TrajectoryPoint
 from jtc_hw.errors import CommunicationError, ConfigurationError, HardwareError
 from jtc_hw.hardware.mirror import MirrorHardware
 

@@ -17,9 +17,9 @@ import numpy as np
 from jtc_hw import GoalFeedback, GoalResult, JointTrajectoryController, TrajectorySample
 from jtc_hw.config.controller_file import config_to_dict
 from jtc_hw.controller.limits_check import TimeScaling
+from jtc_hw.controller.messages import JointTrajectory
 from jtc_hw.controller.parameters import ParameterChange, parameters_report
 from jtc_hw.controller.tolerances import JointTolerance
-from jtc_hw.controller.trajectory import JointTrajectory
 from jtc_hw.daemon.core.backend_api import Accepted, Observer
 from jtc_hw.daemon.settings import DaemonSettings
 from jtc_hw.daemon.transports.server import Server

@@ -18,7 +18,7 @@ import pytest
 from helpers.dynamixel import DAEMON_TEST_TIMEOUT_MS, IDS, JOINTS, OFFSET, START, servos_as_hardware
 
 from jtc_hw.controller.goals import ErrorCode, GoalResult, GoalStatus
-from jtc_hw.controller.trajectory import JointTrajectory, TrajectoryPoint
+from jtc_hw.controller.messages import JointTrajectory, TrajectoryPoint
 from jtc_hw.daemon.channel.messages import Commit, Events
 from jtc_hw.daemon.channel.pipe import Inbox
 from jtc_hw.daemon.loop.cycle import ControlLoop

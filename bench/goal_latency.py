@@ -81,7 +81,8 @@ from jtc_hw.api.framing import (  # noqa: E402
     RequestError,
     encode,
 )
-from jtc_hw.api.protocol import SendGoal, parse_request  # noqa: E402
+from jtc_hw.api.protocol import parse_request  # noqa: E402
+from jtc_hw.api.requests import SendGoal  # noqa: E402
 from jtc_hw.cli.demo import DEMO_JOINTS  # noqa: E402
 from jtc_hw.config.limits import JointLimits  # noqa: E402
 from jtc_hw.controller.limits_check import check  # noqa: E402

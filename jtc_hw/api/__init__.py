@@ -7,15 +7,10 @@
 """
 
 from . import zenoh_client  # noqa: F401 (it registers Client.connect("zenoh:..."))
-from .client import (
-    UNTRUSTED,
-    Client,
-    ClientConnectionError,
-    GoalHandle,
-    StateSubscription,
-    default_socket_path,
-)
+from .calls import UNTRUSTED, ClientConnectionError
+from .client import Client, default_socket_path
 from .framing import RequestError
+from .handles import GoalHandle, StateSubscription
 
 __all__ = [
     "UNTRUSTED",

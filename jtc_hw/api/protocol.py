@@ -42,15 +42,6 @@ from ..controller.messages import (
     seconds_to_ns,
 )
 from ..controller.tolerances import JointTolerance
-from .events import (
-    command_event,
-    feedback_event,
-    record_event,
-    result_event,
-    sample_to_json,
-    tolerances_to_json,
-    trajectory_to_json,
-)
 from .framing import (
     BAD_REQUEST,
     DEFAULT_MAX_MESSAGE_BYTES,
@@ -84,39 +75,7 @@ from .requests import (
     check_end,
 )
 
-__all__ = [
-    "Auth",
-    "CancelGoal",
-    "Decoder",
-    "GetConfig",
-    "GetParameters",
-    "GetStatus",
-    "Hello",
-    "MAX_NS",
-    "OPS",
-    "QueryState",
-    "Rearm",
-    "Request",
-    "SendGoal",
-    "MAX_JOINT_VALUE",
-    "SendTrajectory",
-    "SetParameters",
-    "SetSpeedScaling",
-    "Sim",
-    "Stop",
-    "SubscribeState",
-    "UnsubscribeState",
-    "WireTrajectory",
-    "command_event",
-    "feedback_event",
-    "parse_request",
-    "parse_trajectory",
-    "record_event",
-    "result_event",
-    "sample_to_json",
-    "tolerances_to_json",
-    "trajectory_to_json",
-]
+__all__ = ["Decoder", "MAX_JOINT_VALUE", "OPS", "parse_request", "parse_trajectory"]
 
 
 MAX_JOINT_VALUE = 1e6

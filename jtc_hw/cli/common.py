@@ -19,13 +19,8 @@ import time
 from collections.abc import Sequence
 from typing import Any, Final
 
-from ..api.client import (
-    PERMISSION,
-    UNTRUSTED,
-    Client,
-    ClientConnectionError,
-    default_socket_path,
-)
+from ..api.calls import PERMISSION, UNTRUSTED, ClientConnectionError
+from ..api.client import Client, default_socket_path
 from ..api.paths import client_socket_path
 from ..api.paths import default_socket_path as default_rule
 from ..errors import ConfigurationError, JtcHwError

@@ -23,7 +23,8 @@ from typing import Any
 
 import yaml
 
-from ..api.client import NOT_EXPECTED, Client, ClientConnectionError
+from ..api.calls import NOT_EXPECTED, ClientConnectionError
+from ..api.client import Client
 from ..errors import JtcHwError
 from .common import EXIT_BAD_INPUT, EXIT_NO_DAEMON, goal_result
 

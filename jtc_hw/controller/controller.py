@@ -81,11 +81,7 @@ from .outcomes import (
 )
 from .parameters import ParameterChange, get_parameters, read_only_differences, set_parameters
 from .pid import Pid
-
-# Re-exported: daemon/ imports them from here.
-from .planner import Plan as Plan
-from .planner import Planner as Planner
-from .planner import in_trajectory_time as in_trajectory_time
+from .planner import Plan, Planner, in_trajectory_time
 from .results import ControllerState, UpdateResult
 from .stopping import stop_decelerations, stop_jerks, warm_up
 from .stops import Stops

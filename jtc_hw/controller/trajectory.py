@@ -43,11 +43,6 @@ from .interpolation import (
 )
 from .messages import NS_PER_S, PreparedTrajectory
 
-# Re-exported: daemon/ and its tests import the messages from here.
-from .messages import JointTrajectory as JointTrajectory
-from .messages import PointColumns as PointColumns
-from .messages import TrajectoryPoint as TrajectoryPoint
-
 OLD_HEADER_TIMESTAMP = -3
 
 

@@ -14,8 +14,10 @@ import pytest
 from helpers.fake_backend import TOKEN, ServerThread
 
 from jtc_hw import GoalRejected, JointTolerance, JointTrajectory, TrajectoryPoint
-from jtc_hw.api.client import UNTRUSTED, Client, ClientConnectionError, GoalHandle
+from jtc_hw.api.calls import UNTRUSTED, ClientConnectionError
+from jtc_hw.api.client import Client
 from jtc_hw.api.framing import RequestError
+from jtc_hw.api.handles import GoalHandle
 from jtc_hw.daemon.settings import DaemonSettings, TcpSettings
 from jtc_hw.errors import ProtocolError
 

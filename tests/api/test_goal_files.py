@@ -8,7 +8,8 @@ from pathlib import Path
 import pytest
 
 from jtc_hw.api.goal_files import ros_goal
-from jtc_hw.api.protocol import SendGoal, parse_request
+from jtc_hw.api.protocol import parse_request
+from jtc_hw.api.requests import SendGoal
 from jtc_hw.cli.goals import load_goal_file
 from jtc_hw.errors import ConfigurationError
 

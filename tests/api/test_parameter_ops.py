@@ -15,7 +15,8 @@ import pytest
 from helpers.fake_backend import ServerThread
 
 from jtc_hw.api import Client, RequestError
-from jtc_hw.api.protocol import GetParameters, SetParameters, parse_request
+from jtc_hw.api.protocol import parse_request
+from jtc_hw.api.requests import GetParameters, SetParameters
 from jtc_hw.cli import main
 from jtc_hw.cli.common import EXIT_BAD_INPUT, EXIT_OK
 

@@ -25,11 +25,10 @@ from jtc_hw.api.framing import (
     error_reply,
     reply,
 )
-from jtc_hw.api.protocol import (
-    OPS,
+from jtc_hw.api.protocol import OPS, Decoder, parse_request, parse_trajectory
+from jtc_hw.api.requests import (
     Auth,
     CancelGoal,
-    Decoder,
     GetConfig,
     GetStatus,
     Hello,
@@ -41,8 +40,6 @@ from jtc_hw.api.protocol import (
     Stop,
     SubscribeState,
     UnsubscribeState,
-    parse_request,
-    parse_trajectory,
 )
 from jtc_hw.controller.messages import JointTrajectory, TrajectoryPoint
 from jtc_hw.errors import ProtocolError

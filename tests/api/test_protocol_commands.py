@@ -6,7 +6,8 @@ import pytest
 
 from jtc_hw.api.events import command_event, trajectory_from_json
 from jtc_hw.api.framing import RequestError
-from jtc_hw.api.protocol import SubscribeState, parse_request
+from jtc_hw.api.protocol import parse_request
+from jtc_hw.api.requests import SubscribeState
 from jtc_hw.controller.messages import JointTrajectory, TrajectoryPoint
 
 

@@ -11,7 +11,8 @@ from helpers.fake_backend import ServerThread
 
 from jtc_hw import JointTrajectory, TrajectoryPoint
 from jtc_hw.api import Client, RequestError
-from jtc_hw.api.protocol import SetSpeedScaling, parse_request
+from jtc_hw.api.protocol import parse_request
+from jtc_hw.api.requests import SetSpeedScaling
 from jtc_hw.cli import main
 from jtc_hw.cli.common import EXIT_OK
 

@@ -14,7 +14,8 @@ from helpers.fake_backend import FakeBackend, ServerThread
 from jtc_hw import GoalRejected, JointTrajectory, TrajectoryPoint
 from jtc_hw.api.client import Client
 from jtc_hw.api.framing import RequestError
-from jtc_hw.api.protocol import SendGoal, SendTrajectory, parse_request
+from jtc_hw.api.protocol import parse_request
+from jtc_hw.api.requests import SendGoal, SendTrajectory
 from jtc_hw.cli import main
 from jtc_hw.cli.common import EXIT_OK
 from jtc_hw.daemon.settings import DaemonSettings

@@ -23,7 +23,8 @@ import pytest
 import yaml
 from helpers.daemon import WAIT_S, DaemonProcess, daemon_env, robot_config
 
-from jtc_hw.api.client import NOT_EXPECTED, Client, ClientConnectionError
+from jtc_hw.api.calls import NOT_EXPECTED, ClientConnectionError
+from jtc_hw.api.client import Client
 
 from conftest import ROOT
 

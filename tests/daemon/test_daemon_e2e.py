@@ -45,7 +45,7 @@ from helpers.daemon import (
 )
 
 from jtc_hw import GoalRejected
-from jtc_hw.api.client import ClientConnectionError
+from jtc_hw.api.calls import ClientConnectionError
 from jtc_hw.api.framing import RequestError
 
 pytestmark = pytest.mark.usefixtures("no_leaks")  # threads, sockets, resources

@@ -26,7 +26,7 @@ from helpers.daemon import (
     next_state,
 )
 
-from jtc_hw.api.client import ClientConnectionError
+from jtc_hw.api.calls import ClientConnectionError
 
 pytestmark = pytest.mark.usefixtures("no_leaks")
 

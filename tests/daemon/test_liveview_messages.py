@@ -11,12 +11,8 @@ import pytest
 from jtc_hw.cli import main
 from jtc_hw.cli.common import EXIT_OK
 from jtc_hw.controller.goals import ErrorCode, GoalFeedback, GoalResult, GoalStatus
-from jtc_hw.controller.trajectory import (
-    JointTrajectory,
-    PointColumns,
-    TrajectoryPoint,
-    TrajectorySample,
-)
+from jtc_hw.controller.messages import JointTrajectory, PointColumns, TrajectoryPoint
+from jtc_hw.controller.trajectory import TrajectorySample
 from jtc_hw.daemon.settings import FoxgloveSettings
 from jtc_hw.daemon.transports.liveview import (
     ERROR,

@@ -18,7 +18,7 @@ from typing import Any
 import pytest
 
 from jtc_hw.controller.goals import GoalFeedback, GoalResult, GoalStatus
-from jtc_hw.controller.trajectory import JointTrajectory, TrajectoryPoint
+from jtc_hw.controller.messages import JointTrajectory, TrajectoryPoint
 from jtc_hw.daemon.core.backend import LoopBackend
 from jtc_hw.daemon.robot import load_robot
 from jtc_hw.errors import ControllerStateError, GoalRejected

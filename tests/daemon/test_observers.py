@@ -11,7 +11,7 @@ import pytest
 
 from jtc_hw.controller.goals import GoalFeedback, GoalResult
 from jtc_hw.controller.joints import JointCommand
-from jtc_hw.controller.trajectory import JointTrajectory
+from jtc_hw.controller.messages import JointTrajectory
 from jtc_hw.daemon.channel.messages import State
 from jtc_hw.daemon.core.observers import Observers, state_json
 

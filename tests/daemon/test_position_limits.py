@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from jtc_hw import GoalRejected, JointTrajectory, TrajectoryPoint
-from jtc_hw.controller.trajectory import PointColumns
+from jtc_hw.controller.messages import PointColumns
 from jtc_hw.daemon.core.backend import check_position_limits
 from jtc_hw.daemon.robot import joint_position_limits, load_robot
 

@@ -21,7 +21,8 @@ from typing import Any
 
 import yaml
 
-from jtc_hw.api.client import Client, StateSubscription
+from jtc_hw.api.client import Client
+from jtc_hw.api.handles import StateSubscription
 from jtc_hw.daemon.loop.cycle import LOOP_PROCESS_NAME
 
 from conftest import ROOT, make_robot_config

@@ -35,9 +35,9 @@ from collections.abc import Mapping
 from typing import Any, ClassVar, NamedTuple
 
 from ...controller.config import ControllerConfig
-from ...controller.controller import Plan
 from ...controller.goals import Event
 from ...controller.joints import JointCommand
+from ...controller.planner import Plan
 from ...controller.trajectory import Trajectory
 from ...errors import (
     ConfigurationError,

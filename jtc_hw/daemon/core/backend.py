@@ -33,18 +33,13 @@ import numpy as np
 
 from ...config.controller_file import config_to_dict
 from ...controller.config import ControllerConfig
-from ...controller.controller import Plan, Planner, in_trajectory_time
 from ...controller.goals import ErrorCode, GoalResult, GoalStatus, TrajectoryStopped
 from ...controller.limits_check import TimeScaling
+from ...controller.messages import JointTrajectory, PointColumns
 from ...controller.parameters import ParameterChange, parameters_report, set_parameters
+from ...controller.planner import Plan, Planner, in_trajectory_time
 from ...controller.tolerances import JointTolerance
-from ...controller.trajectory import (
-    JointTrajectory,
-    PointColumns,
-    QueriedState,
-    Trajectory,
-    TrajectorySample,
-)
+from ...controller.trajectory import QueriedState, Trajectory, TrajectorySample
 from ...errors import ControllerStateError, GoalRejected, HardwareError
 from ..channel.messages import (
     Cancel,

@@ -16,9 +16,10 @@ from typing import Any, Protocol
 
 from ...controller.goals import GoalFeedback, GoalResult
 from ...controller.limits_check import TimeScaling
+from ...controller.messages import JointTrajectory
 from ...controller.parameters import ParameterChange
 from ...controller.tolerances import JointTolerance
-from ...controller.trajectory import JointTrajectory, QueriedState
+from ...controller.trajectory import QueriedState
 
 __all__ = ["Accepted", "Backend", "Observer"]
 

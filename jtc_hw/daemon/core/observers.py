@@ -36,7 +36,7 @@ import numpy as np
 from ...controller.config import ControllerConfig
 from ...controller.goals import GoalFeedback, GoalResult, GoalStatus
 from ...controller.joints import JointCommand
-from ...controller.trajectory import JointTrajectory
+from ...controller.messages import JointTrajectory
 from ...rec.continuous import ContinuousRecorder
 from ...rec.flight import FlightRecorder
 from ..channel.cyclering import READ_PERIOD_S, RING_S, CycleRing, remove_stale

@@ -53,6 +53,7 @@ from dataclasses import dataclass, field
 from typing import Any, Protocol
 
 from ... import __version__
+from ...api.events import command_event, feedback_event, record_event, result_event, sample_to_json
 from ...api.framing import (
     BAD_REQUEST,
     GOAL_REJECTED,
@@ -66,7 +67,7 @@ from ...api.framing import (
     error_reply,
     reply,
 )
-from ...api.protocol import (
+from ...api.requests import (
     Auth,
     CancelGoal,
     GetConfig,
@@ -84,15 +85,10 @@ from ...api.protocol import (
     Stop,
     SubscribeState,
     UnsubscribeState,
-    command_event,
-    feedback_event,
-    record_event,
-    result_event,
-    sample_to_json,
 )
 from ...controller.goals import GoalFeedback, GoalResult
 from ...controller.limits_check import scaling_fields
-from ...controller.trajectory import JointTrajectory
+from ...controller.messages import JointTrajectory
 from ...errors import (
     ConfigurationError,
     ControllerStateError,

@@ -36,7 +36,7 @@ from collections.abc import Callable
 from multiprocessing.connection import Connection
 from typing import Any
 
-from ...controller.controller import Plan
+from ...controller.planner import Plan
 from ...errors import ControllerStateError, HardwareError, JtcHwError
 from ..channel.messages import (
     Commit,

@@ -60,9 +60,10 @@ from typing import Any
 
 import numpy as np
 
-from ...controller.controller import JointTrajectoryController, Plan
+from ...controller.controller import JointTrajectoryController
 from ...controller.goals import Event
 from ...controller.joints import JointCommand, JointState
+from ...controller.planner import Plan
 from ...errors import HardwareError, JtcHwError, StalePlan
 from ...hardware import HardwareSet, LifecycleState
 from ...hardware.mirror import MirrorHardware

@@ -46,7 +46,7 @@ from typing import TYPE_CHECKING, Any, Final
 import numpy as np
 
 from ...controller.goals import GoalFeedback, GoalResult
-from ...controller.trajectory import JointTrajectory, PointColumns
+from ...controller.messages import JointTrajectory, PointColumns
 from ...errors import ConfigurationError
 
 if TYPE_CHECKING:

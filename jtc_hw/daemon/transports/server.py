@@ -55,7 +55,8 @@ from ...api.framing import (
     error_reply,
     reply,
 )
-from ...api.protocol import Auth, Decoder, Request, Stop
+from ...api.protocol import Decoder
+from ...api.requests import Auth, Request, Stop
 from ...errors import ControllerStateError
 from ..core.backend_api import Backend, Observer
 from ..core.requests import Caller, Requests

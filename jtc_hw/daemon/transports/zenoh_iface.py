@@ -69,6 +69,7 @@ from collections.abc import Callable
 from functools import partial
 from typing import TYPE_CHECKING, Any, Final
 
+from ...api.events import command_event, feedback_event, result_event
 from ...api.framing import (
     BAD_REQUEST,
     BUSY,
@@ -79,15 +80,10 @@ from ...api.framing import (
     encode,
     error_reply,
 )
-from ...api.protocol import (
-    Request,
-    command_event,
-    feedback_event,
-    parse_request,
-    result_event,
-)
+from ...api.protocol import parse_request
+from ...api.requests import Request
 from ...controller.goals import GoalFeedback, GoalResult
-from ...controller.trajectory import JointTrajectory
+from ...controller.messages import JointTrajectory
 from ...errors import ConfigurationError
 from ..core.requests import Caller, Requests
 from ..realtime import release_freed_memory, return_freed_memory_promptly

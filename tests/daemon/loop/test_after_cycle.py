@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from jtc_hw.controller.trajectory import JointTrajectory, TrajectoryPoint
+from jtc_hw.controller.messages import JointTrajectory, TrajectoryPoint
 from jtc_hw.daemon.channel.messages import Commit, Committed, Reference, Reply, Request, Stop
 from jtc_hw.daemon.channel.pipe import Inbox, send_framed
 from jtc_hw.daemon.loop.cycle import ControlLoop

@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 
 from jtc_hw.controller.goals import GoalResult, GoalStatus
-from jtc_hw.controller.trajectory import JointTrajectory, TrajectoryPoint
+from jtc_hw.controller.messages import JointTrajectory, TrajectoryPoint
 from jtc_hw.daemon.channel.messages import Commit, Committed, Events, Reference, Stale, State
 from jtc_hw.daemon.channel.pipe import Inbox
 from jtc_hw.daemon.loop.cycle import ControlLoop

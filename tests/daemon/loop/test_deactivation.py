@@ -21,7 +21,7 @@ import pytest
 
 from jtc_hw.controller.goals import ErrorCode, GoalResult, GoalStatus
 from jtc_hw.controller.joints import JointCommand
-from jtc_hw.controller.trajectory import JointTrajectory, TrajectoryPoint
+from jtc_hw.controller.messages import JointTrajectory, TrajectoryPoint
 from jtc_hw.daemon.channel.messages import Commit, Events
 from jtc_hw.daemon.channel.pipe import Inbox
 from jtc_hw.daemon.core.backend import LoopBackend

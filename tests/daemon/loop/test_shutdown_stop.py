@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from jtc_hw.controller.trajectory import JointTrajectory, TrajectoryPoint
+from jtc_hw.controller.messages import JointTrajectory, TrajectoryPoint
 from jtc_hw.daemon.channel.messages import Commit, Request, Shutdown
 from jtc_hw.daemon.channel.pipe import Inbox
 from jtc_hw.daemon.loop.cycle import ControlLoop

@@ -205,7 +205,7 @@ def test_other_users_cannot_take_the_reserved_slots(shared_dir: Path, logs: LogW
 
 
 def backend_traj(backend: FakeBackend) -> Any:
-    from jtc_hw.controller.trajectory import JointTrajectory, TrajectoryPoint
+    from jtc_hw.controller.messages import JointTrajectory, TrajectoryPoint
 
     return JointTrajectory(["j1", "j2"], [TrajectoryPoint(5.0, [0.5, -0.5])])
 

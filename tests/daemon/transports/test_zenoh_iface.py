@@ -47,7 +47,7 @@ pytest.importorskip("zenoh", reason="the Zenoh interface needs jtc_hw[zenoh]")
 
 pytestmark = pytest.mark.usefixtures("no_leaks")  # threads, sockets, resources
 
-from jtc_hw.api.client import ClientConnectionError  # noqa: E402
+from jtc_hw.api.calls import ClientConnectionError  # noqa: E402
 from jtc_hw.api.zenoh_client import ZenohClient, open_session  # noqa: E402
 
 from conftest import ROOT  # noqa: E402

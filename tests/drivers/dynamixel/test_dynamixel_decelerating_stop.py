@@ -21,7 +21,7 @@ from helpers.daemon import STOP_TIMEOUT_S, connect, next_state
 from helpers.daemon import ConfiguredDaemon as DxlDaemon
 from helpers.dynamixel import DAEMON_TEST_TIMEOUT_MS, servos_as_hardware
 
-from jtc_hw.api.client import ClientConnectionError
+from jtc_hw.api.calls import ClientConnectionError
 from jtc_hw.drivers.dynamixel.emulator import DynamixelEmulator
 
 from conftest import make_robot_config

@@ -194,7 +194,9 @@ class LoopBackend:
         if self._trim is not None:
             self._trim.cancel()
             self._trim = None
-        self._executor.shutdown(wait=False)
+        # Waits for a plan or a memory release already running (milliseconds; the interpreter
+        # would wait for it at exit anyway); queued ones are dropped: the loop has ended.
+        self._executor.shutdown(wait=True, cancel_futures=True)
         return self.loop.exit_code or 0
 
     @property

@@ -238,8 +238,7 @@ def add_parsers(sub: Any) -> None:
         default=3600.0,
         help="longest time to wait for the result (default 3600 s)",
     )
-    client_options(p)
-    p.set_defaults(func=cmd_send)
+    client_options(p, cmd_send)
 
     p = sub.add_parser(
         "cancel",
@@ -252,5 +251,4 @@ def add_parsers(sub: Any) -> None:
         epilog=CANCEL_EXIT_HELP,
     )
     p.add_argument("goal_id", nargs="?", type=int, help="default: the executing goal")
-    client_options(p)
-    p.set_defaults(func=cmd_cancel)
+    client_options(p, cmd_cancel)

@@ -123,5 +123,4 @@ may not connect to (permission denied) or not served by a daemon you trust; 3 no
         help="get: parameter names (default: all); set: NAME VALUE pairs",
     )
     p.add_argument("--json", action="store_true", help="print the daemon's reply as JSON")
-    client_options(p)
-    p.set_defaults(func=cmd_param)
+    client_options(p, cmd_param)

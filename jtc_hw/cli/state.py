@@ -179,8 +179,7 @@ def add_parsers(sub: Any) -> None:
         action="store_true",
         help="print the daemon's state messages as NDJSON (one JSON object per line)",
     )
-    client_options(p)
-    p.set_defaults(func=cmd_state)
+    client_options(p, cmd_state)
 
     p = sub.add_parser(
         "query",
@@ -191,5 +190,4 @@ def add_parsers(sub: Any) -> None:
         ),
     )
     p.add_argument("t", type=float, metavar="T", help="seconds from now")
-    client_options(p)
-    p.set_defaults(func=cmd_query)
+    client_options(p, cmd_query)

@@ -240,8 +240,7 @@ def add_parsers(sub: Any) -> None:
         ),
     )
     p.add_argument("--json", action="store_true", help="print the daemon's full reply as JSON")
-    client_options(p)
-    p.set_defaults(func=cmd_status)
+    client_options(p, cmd_status)
 
     p = sub.add_parser(
         "hardware",
@@ -257,7 +256,6 @@ def add_parsers(sub: Any) -> None:
             "trust; 3 no daemon answers."
         ),
     )
-    client_options(p)
+    client_options(p, cmd_hardware)
     p.add_argument("--json", action="store_true",
                    help="print the report as one JSON object instead of tables")
-    p.set_defaults(func=cmd_hardware)

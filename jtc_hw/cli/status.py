@@ -69,14 +69,11 @@ def status_lines(status: dict[str, Any]) -> list[str]:
             f"loop          {_num(loop.get('rate_hz'), ' Hz')}, {_num(loop.get('cycles'))} "
             f"cycles, overruns {_num(loop.get('overruns'))}"
         )
-        lines.append(
-            f"  lateness    p50 {_num(late.get('p50'))} us, p99 {_num(late.get('p99'))} us, "
-            f"max {_num(late.get('max'))} us"
-        )
-        lines.append(
-            f"  cycle cost  p50 {_num(cost.get('p50'))} us, p99 {_num(cost.get('p99'))} us, "
-            f"max {_num(cost.get('max'))} us"
-        )
+        for label, stats in (("lateness  ", late), ("cycle cost", cost)):
+            lines.append(
+                f"  {label}  p50 {_num(stats.get('p50'))} us, p99 {_num(stats.get('p99'))} us, "
+                f"max {_num(stats.get('max'))} us"
+            )
     hardware = status.get("hardware", {})
     if hardware:
         lines.append(f"hardware      {hardware.get('state', '?')}")

@@ -370,7 +370,6 @@ def _demo_refusal(config_path: str, reason: str) -> str:
 
 
 def add_parsers(sub: Any) -> None:
-    """Add ``demo`` to ``jtc-hw``'s subcommands."""
     p = sub.add_parser(
         "demo",
         help="run a goal on simulated joints and show what happened",

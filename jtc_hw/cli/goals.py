@@ -189,7 +189,6 @@ def cmd_cancel(args: argparse.Namespace) -> int:
 
 
 def add_parsers(sub: Any) -> None:
-    """Add ``send`` and ``cancel`` to ``jtc-hw``'s subcommands."""
     p = sub.add_parser(
         "send",
         help="send a trajectory file as a goal and watch it",

@@ -70,7 +70,6 @@ def cmd_resume(args: argparse.Namespace) -> int:
 
 
 def add_parsers(sub: Any) -> None:
-    """Add ``stop``, ``rearm``, ``speed``, ``pause`` and ``resume`` to ``jtc-hw``'s subcommands."""
     p = sub.add_parser(
         "stop",
         help="stop any motion and hold where the joints are",

@@ -86,7 +86,6 @@ def cmd_param(args: argparse.Namespace) -> int:
 
 
 def add_parsers(sub: Any) -> None:
-    """Add ``param`` to ``jtc-hw``'s subcommands."""
     p = sub.add_parser(
         "param",
         help="get or change controller parameters while the daemon runs",

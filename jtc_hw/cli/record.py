@@ -157,7 +157,6 @@ def cmd_plot(args: argparse.Namespace) -> int:
 
 
 def add_parsers(sub: Any) -> None:
-    """Add ``record`` and ``plot`` to ``jtc-hw``'s subcommands."""
     p = sub.add_parser(
         "record",
         help="record the robot's state into a ROS 2 bag (rosbag2, MCAP storage)",

@@ -185,7 +185,6 @@ def _recording_lines(daemon: Any) -> list[str]:
 
 
 def add_parsers(sub: Any) -> None:
-    """Add ``run`` and ``check`` to ``jtc-hw``'s subcommands."""
     p = sub.add_parser(
         "run",
         help="run the daemon",

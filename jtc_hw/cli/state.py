@@ -163,7 +163,6 @@ def cmd_query(args: argparse.Namespace) -> int:
 
 
 def add_parsers(sub: Any) -> None:
-    """Add ``state`` and ``query`` to ``jtc-hw``'s subcommands."""
     p = sub.add_parser(
         "state",
         help="print the controller state (once, or --watch)",

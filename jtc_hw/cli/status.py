@@ -122,7 +122,6 @@ def status_lines(status: dict[str, Any]) -> list[str]:
 
 
 def cmd_status(args: argparse.Namespace) -> int:
-    """``jtc-hw status [--json]``."""
     with connect(args) as client:
         reply = client.get_status()
     if args.json:
@@ -216,7 +215,6 @@ def format_hardware(report: Mapping[str, Any]) -> str:
 
 
 def cmd_hardware(args: argparse.Namespace) -> int:
-    """``jtc-hw hardware [--json]``."""
     with connect(args) as client:
         report = hardware_report(client.get_status())
     if args.json:
@@ -227,7 +225,6 @@ def cmd_hardware(args: argparse.Namespace) -> int:
 
 
 def add_parsers(sub: Any) -> None:
-    """Add ``status`` and ``hardware`` to ``jtc-hw``'s subcommands."""
     p = sub.add_parser(
         "status",
         help="loop statistics, hardware and controller status",

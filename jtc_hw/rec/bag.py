@@ -63,19 +63,15 @@ class CycleRowLayout(Protocol):
 
     @property
     def width(self) -> int:
-        """float64 values per row."""
         ...
 
     def column(self, name: str) -> int:
-        """The column of a scalar (``time_ns``, ``active_goal``, ...)."""
         ...
 
     def block(self, name: str) -> slice:
-        """The columns of a per-joint block (positions, velocities, ...)."""
         ...
 
     def times(self, rows: Any) -> Any:
-        """The deadlines (int64) of ``rows`` (an array of rows)."""
         ...
 
 

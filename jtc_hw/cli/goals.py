@@ -37,7 +37,6 @@ CANCEL_EXIT_HELP = (
     "served by a daemon you trust, or the daemon answered and refused the request; 3 no "
     "daemon answers."
 )
-"""The exit statuses of ``cancel``."""
 
 
 def load_goal_file(path: str) -> dict[str, Any]:

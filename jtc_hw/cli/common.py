@@ -16,7 +16,7 @@ import argparse
 import os
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any, Final
 
 from ..api.calls import PERMISSION, UNTRUSTED, ClientConnectionError
@@ -54,8 +54,9 @@ class NoDaemon(Exception):
 # -- the connection ---------------------------------------------------------------------------
 
 
-def client_options(p: argparse.ArgumentParser) -> None:
-    """Add the options of every client command: where the daemon is, how long to wait."""
+def client_options(p: argparse.ArgumentParser, func: Callable[[argparse.Namespace], int]) -> None:
+    """Add the options of every client command (where the daemon is, how long to wait), and
+    make ``func`` the command ``p`` runs."""
     p.add_argument("--socket", help="the daemon's Unix socket path")
     p.add_argument("--config", help="find the socket path in this robot configuration")
     p.add_argument("--tcp", nargs="?", const="", metavar="HOST:PORT",
@@ -75,6 +76,7 @@ def client_options(p: argparse.ArgumentParser) -> None:
         default=10.0,
         help="seconds to wait for the daemon's answers (default 10)",
     )
+    p.set_defaults(func=func)
 
 
 def _robot(args: argparse.Namespace) -> Any:
@@ -148,35 +150,24 @@ def zenoh_token(args: argparse.Namespace) -> str | None:
     return token
 
 
-def _connect_zenoh(args: argparse.Namespace, hello: bool) -> Client:
-    """A client command's connection with ``--zenoh PREFIX`` (``--zenoh-config FILE``,
-    the token from :func:`zenoh_token`).
-
-    Raises:
-        NoDaemon: no daemon at the prefix, eclipse-zenoh missing, an unreadable token
-            file (the message says what to do).
-        ConfigurationError: the ``--zenoh-config`` file cannot be read (bad input, exit 2).
-    """
-    token = zenoh_token(args)
-    try:
-        return Client.connect(f"zenoh:{args.zenoh}", zenoh_config=args.zenoh_config,
-                              timeout_s=args.timeout, hello=hello, token=token)
-    except ValueError as exc:  # an unreadable configuration: bad input, said as such
-        raise ConfigurationError(str(exc), "--zenoh-config") from None
-    except (ClientConnectionError, TimeoutError) as exc:
-        raise NoDaemon(f"{exc}") from exc
-
-
 def connect(args: argparse.Namespace, hello: bool = True) -> Client:
     """The client of a command's daemon, from its :func:`client_options`.
 
     Raises:
-        NoDaemon: nobody answers there (the message says how to start or find the daemon).
+        NoDaemon: nobody answers there (the message says how to start or find the daemon);
+            with ``--zenoh``, also eclipse-zenoh missing or an unreadable token file.
         ConfigurationError: an unreadable ``--config``/``--zenoh-config``, a bad ``--tcp``,
             or a socket not served by a daemon you trust or that you may not connect to.
     """
     if getattr(args, "zenoh", None):
-        return _connect_zenoh(args, hello)
+        token = zenoh_token(args)
+        try:
+            return Client.connect(f"zenoh:{args.zenoh}", zenoh_config=args.zenoh_config,
+                                  timeout_s=args.timeout, hello=hello, token=token)
+        except ValueError as exc:  # an unreadable configuration: bad input, said as such
+            raise ConfigurationError(str(exc), "--zenoh-config") from None
+        except (ClientConnectionError, TimeoutError) as exc:
+            raise NoDaemon(f"{exc}") from exc
     if getattr(args, "tcp", None) is not None:
         address, token = _tcp(args)
         try:

@@ -299,17 +299,12 @@ def _demo(args: argparse.Namespace, hardware: list[dict[str, Any]] | None, rate:
                 return EXIT_NO_DAEMON
             try:
                 client = Client.connect(socket_path, timeout_s=2.0, expect_pid=daemon.pid)
-            except ClientConnectionError as exc:
-                if exc.code == NOT_EXPECTED:  # another daemon took the path: not ours to move
+            except (OSError, JtcHwError) as exc:
+                if isinstance(exc, ClientConnectionError) and exc.code == NOT_EXPECTED:
+                    # another daemon took the path: not ours to move
                     _stop_daemon(daemon)
                     print(f"error: {_demo_refusal(config_path, str(exc))}", file=sys.stderr)
                     return EXIT_BAD_INPUT
-                if time.monotonic() > deadline:
-                    daemon.terminate()
-                    print("the daemon did not open its socket in time", file=sys.stderr)
-                    return EXIT_NO_DAEMON
-                time.sleep(0.05)  # CLI polling for a socket to appear; not in library code
-            except (OSError, JtcHwError):
                 if time.monotonic() > deadline:
                     daemon.terminate()
                     print("the daemon did not open its socket in time", file=sys.stderr)
@@ -376,7 +371,6 @@ def _demo_refusal(config_path: str, reason: str) -> str:
 
 
 def add_parsers(sub: Any) -> None:
-    """Add ``demo`` to ``jtc-hw``'s subcommands."""
     p = sub.add_parser(
         "demo",
         help="run a goal on simulated joints and show what happened",

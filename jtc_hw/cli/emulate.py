@@ -30,7 +30,6 @@ def cmd_emulate(args: argparse.Namespace) -> int:
 
 
 def add_parsers(sub: Any) -> None:
-    """Add ``emulate`` to ``jtc-hw``'s subcommands."""
     p = sub.add_parser(
         "emulate",
         help="run an emulated motor bus (Dynamixel on a pty, CAN motors) to test without a robot",

@@ -30,7 +30,6 @@ DEFAULT_PATTERN: Final = "jtc/**"
 
 
 def add_parsers(sub: Any) -> None:
-    """Add ``fleet`` to the CLI's subcommands."""
     p = sub.add_parser(
         "fleet",
         help="list the daemons on Zenoh with their state (--watch: live table)",

@@ -37,7 +37,6 @@ CANCEL_EXIT_HELP = (
     "served by a daemon you trust, or the daemon answered and refused the request; 3 no "
     "daemon answers."
 )
-"""The exit statuses of ``cancel``."""
 
 
 def load_goal_file(path: str) -> dict[str, Any]:
@@ -189,7 +188,6 @@ def cmd_cancel(args: argparse.Namespace) -> int:
 
 
 def add_parsers(sub: Any) -> None:
-    """Add ``send`` and ``cancel`` to ``jtc-hw``'s subcommands."""
     p = sub.add_parser(
         "send",
         help="send a trajectory file as a goal and watch it",
@@ -238,8 +236,7 @@ def add_parsers(sub: Any) -> None:
         default=3600.0,
         help="longest time to wait for the result (default 3600 s)",
     )
-    client_options(p)
-    p.set_defaults(func=cmd_send)
+    client_options(p, cmd_send)
 
     p = sub.add_parser(
         "cancel",
@@ -252,5 +249,4 @@ def add_parsers(sub: Any) -> None:
         epilog=CANCEL_EXIT_HELP,
     )
     p.add_argument("goal_id", nargs="?", type=int, help="default: the executing goal")
-    client_options(p)
-    p.set_defaults(func=cmd_cancel)
+    client_options(p, cmd_cancel)

@@ -70,7 +70,6 @@ def cmd_resume(args: argparse.Namespace) -> int:
 
 
 def add_parsers(sub: Any) -> None:
-    """Add ``stop``, ``rearm``, ``speed``, ``pause`` and ``resume`` to ``jtc-hw``'s subcommands."""
     p = sub.add_parser(
         "stop",
         help="stop any motion and hold where the joints are",
@@ -81,8 +80,7 @@ def add_parsers(sub: Any) -> None:
             "limit may send one stop). A stopped or faulted robot: nothing to do, exit 0."
         ),
     )
-    client_options(p)
-    p.set_defaults(func=cmd_stop)
+    client_options(p, cmd_stop)
 
     p = sub.add_parser(
         "rearm",
@@ -95,8 +93,7 @@ def add_parsers(sub: Any) -> None:
             "first: 'jtc-hw status' shows the fault."
         ),
     )
-    client_options(p)
-    p.set_defaults(func=cmd_rearm)
+    client_options(p, cmd_rearm)
 
     scaling_help = (
         "The trajectory time of the running goal (and of every later one) advances at the "
@@ -118,8 +115,7 @@ def add_parsers(sub: Any) -> None:
         help="the factor, in [0, 1] (up to speed_scaling.max_scaling_factor where the "
         "configuration raises it: above 1 speeds up)",
     )
-    client_options(p)
-    p.set_defaults(func=cmd_speed)
+    client_options(p, cmd_speed)
 
     p = sub.add_parser(
         "pause",
@@ -129,8 +125,7 @@ def add_parsers(sub: Any) -> None:
             f"the path. 'jtc-hw resume' carries on at the factor before the pause. {scaling_help}"
         ),
     )
-    client_options(p)
-    p.set_defaults(func=cmd_pause)
+    client_options(p, cmd_pause)
 
     p = sub.add_parser(
         "resume",
@@ -141,5 +136,4 @@ def add_parsers(sub: Any) -> None:
             f"{scaling_help}"
         ),
     )
-    client_options(p)
-    p.set_defaults(func=cmd_resume)
+    client_options(p, cmd_resume)

@@ -86,7 +86,6 @@ def cmd_param(args: argparse.Namespace) -> int:
 
 
 def add_parsers(sub: Any) -> None:
-    """Add ``param`` to ``jtc-hw``'s subcommands."""
     p = sub.add_parser(
         "param",
         help="get or change controller parameters while the daemon runs",
@@ -123,5 +122,4 @@ may not connect to (permission denied) or not served by a daemon you trust; 3 no
         help="get: parameter names (default: all); set: NAME VALUE pairs",
     )
     p.add_argument("--json", action="store_true", help="print the daemon's reply as JSON")
-    client_options(p)
-    p.set_defaults(func=cmd_param)
+    client_options(p, cmd_param)

@@ -96,19 +96,14 @@ def parse_and_run(argv: Sequence[str] | None = None) -> int:
         parser.error(f"unrecognized arguments: {' '.join(extra)}")
     try:
         return int(args.func(args))
-    except ConfigurationError as exc:
+    except (ConfigurationError, RequestError) as exc:
+        # RequestError: the daemon answered and refused the request (bad request, not active,
+        # busy...).
         print(f"error: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
     except GoalRejected as exc:
         code = getattr(exc, "error_code", -1)
         print(f"rejected (error_code {code}): {exc}", file=sys.stderr)
-        return EXIT_BAD_INPUT
-    except NoDaemon as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return EXIT_NO_DAEMON
-    except RequestError as exc:
-        # The daemon answered and refused the request (bad request, not active, busy...).
-        print(f"error: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
     except BrokenPipeError:
         # The reader went away (jtc-hw state | head): not an error. Point stdout at
@@ -116,8 +111,8 @@ def parse_and_run(argv: Sequence[str] | None = None) -> int:
         devnull = os.open(os.devnull, os.O_WRONLY)
         os.dup2(devnull, sys.stdout.fileno())
         return EXIT_OK
-    except (JtcHwError, TimeoutError) as exc:
-        # Connection lost, or no reply in time: no daemon answers.
+    except (NoDaemon, JtcHwError, TimeoutError) as exc:
+        # Nobody answers, the connection was lost, or no reply in time: no daemon answers.
         print(f"error: {exc}", file=sys.stderr)
         return EXIT_NO_DAEMON
     except KeyboardInterrupt:

@@ -157,7 +157,6 @@ def cmd_plot(args: argparse.Namespace) -> int:
 
 
 def add_parsers(sub: Any) -> None:
-    """Add ``record`` and ``plot`` to ``jtc-hw``'s subcommands."""
     p = sub.add_parser(
         "record",
         help="record the robot's state into a ROS 2 bag (rosbag2, MCAP storage)",
@@ -177,8 +176,7 @@ def add_parsers(sub: Any) -> None:
                    help="seconds to record (daemon clock); default: until Ctrl-C")
     p.add_argument("--controller-name", default=DEFAULT_CONTROLLER_NAME,
                    help=f"namespace of the controller's topics (default {DEFAULT_CONTROLLER_NAME})")
-    client_options(p)
-    p.set_defaults(func=cmd_record)
+    client_options(p, cmd_record)
 
     p = sub.add_parser(
         "plot",

@@ -185,7 +185,6 @@ def _recording_lines(daemon: Any) -> list[str]:
 
 
 def add_parsers(sub: Any) -> None:
-    """Add ``run`` and ``check`` to ``jtc-hw``'s subcommands."""
     p = sub.add_parser(
         "run",
         help="run the daemon",
@@ -196,9 +195,7 @@ def add_parsers(sub: Any) -> None:
         ),
         epilog=RUN_EXIT_HELP,
     )
-    p.add_argument("config_file", metavar="CONFIG", help="robot configuration (YAML)")
-    p.add_argument("--controller", help="controller section to use if the file has several")
-    p.set_defaults(func=cmd_run)
+    _config_arguments(p, cmd_run)
 
     p = sub.add_parser(
         "check",
@@ -209,6 +206,10 @@ def add_parsers(sub: Any) -> None:
         ),
         epilog=CHECK_EXIT_HELP,
     )
+    _config_arguments(p, cmd_check)
+
+
+def _config_arguments(p: argparse.ArgumentParser, func: Any) -> None:
     p.add_argument("config_file", metavar="CONFIG", help="robot configuration (YAML)")
     p.add_argument("--controller", help="controller section to use if the file has several")
-    p.set_defaults(func=cmd_check)
+    p.set_defaults(func=func)

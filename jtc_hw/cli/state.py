@@ -163,7 +163,6 @@ def cmd_query(args: argparse.Namespace) -> int:
 
 
 def add_parsers(sub: Any) -> None:
-    """Add ``state`` and ``query`` to ``jtc-hw``'s subcommands."""
     p = sub.add_parser(
         "state",
         help="print the controller state (once, or --watch)",
@@ -179,8 +178,7 @@ def add_parsers(sub: Any) -> None:
         action="store_true",
         help="print the daemon's state messages as NDJSON (one JSON object per line)",
     )
-    client_options(p)
-    p.set_defaults(func=cmd_state)
+    client_options(p, cmd_state)
 
     p = sub.add_parser(
         "query",
@@ -191,5 +189,4 @@ def add_parsers(sub: Any) -> None:
         ),
     )
     p.add_argument("t", type=float, metavar="T", help="seconds from now")
-    client_options(p)
-    p.set_defaults(func=cmd_query)
+    client_options(p, cmd_query)

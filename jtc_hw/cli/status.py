@@ -69,14 +69,11 @@ def status_lines(status: dict[str, Any]) -> list[str]:
             f"loop          {_num(loop.get('rate_hz'), ' Hz')}, {_num(loop.get('cycles'))} "
             f"cycles, overruns {_num(loop.get('overruns'))}"
         )
-        lines.append(
-            f"  lateness    p50 {_num(late.get('p50'))} us, p99 {_num(late.get('p99'))} us, "
-            f"max {_num(late.get('max'))} us"
-        )
-        lines.append(
-            f"  cycle cost  p50 {_num(cost.get('p50'))} us, p99 {_num(cost.get('p99'))} us, "
-            f"max {_num(cost.get('max'))} us"
-        )
+        for label, stats in (("lateness  ", late), ("cycle cost", cost)):
+            lines.append(
+                f"  {label}  p50 {_num(stats.get('p50'))} us, p99 {_num(stats.get('p99'))} us, "
+                f"max {_num(stats.get('max'))} us"
+            )
     hardware = status.get("hardware", {})
     if hardware:
         lines.append(f"hardware      {hardware.get('state', '?')}")
@@ -125,7 +122,6 @@ def status_lines(status: dict[str, Any]) -> list[str]:
 
 
 def cmd_status(args: argparse.Namespace) -> int:
-    """``jtc-hw status [--json]``."""
     with connect(args) as client:
         reply = client.get_status()
     if args.json:
@@ -219,7 +215,6 @@ def format_hardware(report: Mapping[str, Any]) -> str:
 
 
 def cmd_hardware(args: argparse.Namespace) -> int:
-    """``jtc-hw hardware [--json]``."""
     with connect(args) as client:
         report = hardware_report(client.get_status())
     if args.json:
@@ -230,7 +225,6 @@ def cmd_hardware(args: argparse.Namespace) -> int:
 
 
 def add_parsers(sub: Any) -> None:
-    """Add ``status`` and ``hardware`` to ``jtc-hw``'s subcommands."""
     p = sub.add_parser(
         "status",
         help="loop statistics, hardware and controller status",
@@ -240,8 +234,7 @@ def add_parsers(sub: Any) -> None:
         ),
     )
     p.add_argument("--json", action="store_true", help="print the daemon's full reply as JSON")
-    client_options(p)
-    p.set_defaults(func=cmd_status)
+    client_options(p, cmd_status)
 
     p = sub.add_parser(
         "hardware",
@@ -257,7 +250,6 @@ def add_parsers(sub: Any) -> None:
             "trust; 3 no daemon answers."
         ),
     )
-    client_options(p)
+    client_options(p, cmd_hardware)
     p.add_argument("--json", action="store_true",
                    help="print the report as one JSON object instead of tables")
-    p.set_defaults(func=cmd_hardware)

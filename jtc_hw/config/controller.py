@@ -42,6 +42,7 @@ from .schema import (
     Effect,
     ParamKind,
     ParamSpec,
+    check_fields,
     check_key,
     check_value,
     expect_mapping,
@@ -215,7 +216,6 @@ MAX_SCALING_CEILING: Final = 10.0
 """The largest ``speed_scaling.max_scaling_factor`` a configuration may give: a factor runs
 trajectories that much faster than their author planned them, so the range stays small and
 finite (an unbounded factor once made every later goal fail with an overflow, issue 21)."""
-
 
 
 def _max_scaling_factor(value: Any, path: str) -> float:
@@ -394,11 +394,9 @@ class ControllerConfig:
         return _reduce(self)
 
     def has_command(self, iface: str) -> bool:
-        """Whether ``iface`` is one of the command interfaces."""
         return iface in self.command_interfaces
 
     def has_state(self, iface: str) -> bool:
-        """Whether ``iface`` is one of the state interfaces."""
         return iface in self.state_interfaces
 
     @property
@@ -595,8 +593,7 @@ def _validate(cfg: ControllerConfig) -> None:
         raise ConfigurationError(
             f"expected a non-empty controller name, got {describe(cfg.name)}", "name", cfg.name
         )
-    for name, value in _checked_fields(cfg, PARAMETERS, "").items():
-        put(name, value)
+    check_fields(cfg, PARAMETERS, "")
     joints = cfg.joints
     _check_command_joints(cfg.command_joints, joints)
     _check_interfaces(cfg.command_interfaces, cfg.state_interfaces)

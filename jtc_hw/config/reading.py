@@ -349,9 +349,9 @@ def read_urdf_limits(filename: str, joints: Sequence[str]) -> dict[str, JointLim
         limit = element.find("limit")
         safety = element.find("safety_controller")
         position = None
-        velocity = effort = None
+        rates: dict[str, float | None] = {"velocity": None, "effort": None}
         if limit is not None:
-            for attribute in ("velocity", "effort"):
+            for attribute in rates:
                 value = _urdf_float(limit, attribute, filename, name)
                 if value is not None and value < 0.0:
                     raise _urdf_error(
@@ -359,11 +359,7 @@ def read_urdf_limits(filename: str, joints: Sequence[str]) -> dict[str, JointLim
                         f"joint {name!r}: <limit {attribute}={limit.get(attribute)!r}> must "
                         "not be negative",
                     )
-                if value:
-                    if attribute == "velocity":
-                        velocity = value
-                    else:
-                        effort = value
+                rates[attribute] = value or None  # 0: URDF's "not given"
             if kind != "continuous":
                 lower = _urdf_float(limit, "lower", filename, name)
                 upper = _urdf_float(limit, "upper", filename, name)
@@ -383,7 +379,7 @@ def read_urdf_limits(filename: str, joints: Sequence[str]) -> dict[str, JointLim
                             "soft_upper_limit>) is empty",
                         )
                     position = (low, high)
-        found = JointLimits(position, velocity, None, None, effort)
+        found = JointLimits(position, rates["velocity"], None, None, rates["effort"])
         if not found.empty:
             limits[name] = found
     return limits

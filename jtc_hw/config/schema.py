@@ -246,12 +246,12 @@ def _integer(spec: ParamSpec, value: Any, path: str, what: str = "") -> int:
     return value
 
 
+def _is_pair(value: Any) -> bool:
+    return isinstance(value, (list, tuple)) and len(value) == 2 and all(map(_is_number, value))
+
+
 def _range(spec: ParamSpec, value: Any, path: str, what: str = "") -> tuple[float, float]:
-    if (
-        not isinstance(value, (list, tuple))
-        or len(value) != 2
-        or not all(_is_number(v) for v in value)
-    ):
+    if not _is_pair(value):
         raise ConfigurationError(
             f"{what}expected a [min, max] pair of numbers, got {describe(value)}", path, value
         )
@@ -294,9 +294,7 @@ def _scalar(spec: ParamSpec, value: Any, path: str, what: str = "") -> Any:
 def _looks_like_one(spec: ParamSpec, value: Any) -> bool:
     """Whether ``value`` is one value for every joint (not a list / mapping of values)."""
     if spec.kind is ParamKind.RANGE:
-        return isinstance(value, (list, tuple)) and len(value) == 2 and all(
-            _is_number(v) for v in value
-        )
+        return _is_pair(value)
     return not isinstance(value, (list, tuple, Mapping))
 
 
@@ -398,9 +396,7 @@ def check_value(spec: ParamSpec, value: Any, path: str, joints: Sequence[str] = 
         return items
     if kind is ParamKind.SECTION:
         if spec.fields is None:
-            if not isinstance(value, Mapping):
-                raise ConfigurationError(f"expected a mapping, got {describe(value)}", path, value)
-            for key in value:
+            for key in expect_mapping(value, path):
                 check_key(key, path)
             return freeze(value)
         return validate_params(spec.fields, value, path, joints=joints)

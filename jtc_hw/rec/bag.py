@@ -63,19 +63,15 @@ class CycleRowLayout(Protocol):
 
     @property
     def width(self) -> int:
-        """float64 values per row."""
         ...
 
     def column(self, name: str) -> int:
-        """The column of a scalar (``time_ns``, ``active_goal``, ...)."""
         ...
 
     def block(self, name: str) -> slice:
-        """The columns of a per-joint block (positions, velocities, ...)."""
         ...
 
     def times(self, rows: Any) -> Any:
-        """The deadlines (int64) of ``rows`` (an array of rows)."""
         ...
 
 
@@ -355,10 +351,13 @@ class BagRecorder:
         """Why the bag was closed early (:class:`RecordingFailed`'s message), or None."""
         return self._failure
 
+    def _time(self, kind: str, t_ns: int) -> Any:
+        """A ``builtin_interfaces/msg/<kind>`` (``Time`` or ``Duration``) of ``t_ns``."""
+        return self._store.types[f"builtin_interfaces/msg/{kind}"](
+            sec=t_ns // 1_000_000_000, nanosec=t_ns % 1_000_000_000)
+
     def _stamp(self, time_ns: int) -> Any:
-        wall = time_ns + self.offset_ns
-        Time = self._store.types["builtin_interfaces/msg/Time"]
-        return Time(sec=wall // 1_000_000_000, nanosec=wall % 1_000_000_000)
+        return self._time("Time", time_ns + self.offset_ns)
 
     def _header(self, time_ns: int) -> Any:
         Header = self._store.types["std_msgs/msg/Header"]
@@ -385,52 +384,46 @@ class BagRecorder:
 
     def _point(self, values: Mapping[str, Any] | None) -> Any:
         Point = self._store.types["trajectory_msgs/msg/JointTrajectoryPoint"]
-        Duration = self._store.types["builtin_interfaces/msg/Duration"]
         values = values or {}
         t = values.get("time_from_start") or 0.0
-        t_ns = round(t * 1e9)
         return Point(
             positions=_floats(values.get("positions")),
             velocities=_floats(values.get("velocities")),
             accelerations=_floats(values.get("accelerations")),
             effort=_floats(values.get("effort")),
-            time_from_start=Duration(sec=t_ns // 1_000_000_000, nanosec=t_ns % 1_000_000_000),
+            time_from_start=self._time("Duration", round(t * 1e9)),
         )
 
     def _multi_dof_point(self) -> Any:
         Point = self._store.types["trajectory_msgs/msg/MultiDOFJointTrajectoryPoint"]
-        Duration = self._store.types["builtin_interfaces/msg/Duration"]
         return Point(transforms=[], velocities=[], accelerations=[],
-                     time_from_start=Duration(sec=0, nanosec=0))
+                     time_from_start=self._time("Duration", 0))
+
+    def _state(self, time_ns: int, names: list[str], reference: Any, feedback: Any,
+               error: Any, output: Any, scaling: float) -> None:
+        """``/joint_states`` (the feedback) and ``controller_state`` of a state or a cycle."""
+        types = self._store.types
+        self._write("/joint_states", time_ns, types["sensor_msgs/msg/JointState"](
+            header=self._header(time_ns), name=names, position=feedback.positions,
+            velocity=feedback.velocities, effort=feedback.effort))
+        empty = self._multi_dof_point()
+        self._write(f"/{self.controller}/controller_state", time_ns, types[CONTROLLER_STATE_TYPE](
+            header=self._header(time_ns), joint_names=names,
+            reference=reference, feedback=feedback, error=error, output=output,
+            multi_dof_joint_names=[],
+            multi_dof_reference=empty, multi_dof_feedback=empty,
+            multi_dof_error=empty, multi_dof_output=empty,
+            speed_scaling_factor=scaling,
+        ))
 
     def state(self, event: Mapping[str, Any]) -> None:
         """Record one ``state`` event: ``/joint_states``, ``controller_state``, goal changes."""
         time_ns = int(event["time_ns"])
-        names = list(event["joint_names"])
-        actual = event.get("actual") or {}
-        types = self._store.types
-        JointState = types["sensor_msgs/msg/JointState"]
-        self._write("/joint_states", time_ns, JointState(
-            header=self._header(time_ns), name=names,
-            position=_floats(actual.get("positions")),
-            velocity=_floats(actual.get("velocities")),
-            effort=_floats(actual.get("effort")),
-        ))
-        output = event.get("output") or event.get("command")
         scaling = (event.get("speed_scaling") or {}).get("factor", 1.0)
-        State = types[CONTROLLER_STATE_TYPE]
-        empty = self._multi_dof_point()
-        self._write(f"/{self.controller}/controller_state", time_ns, State(
-            header=self._header(time_ns), joint_names=names,
-            reference=self._point(event.get("desired")),
-            feedback=self._point(actual),
-            error=self._point(event.get("error")),
-            output=self._point(output),
-            multi_dof_joint_names=[],
-            multi_dof_reference=empty, multi_dof_feedback=empty,
-            multi_dof_error=empty, multi_dof_output=empty,
-            speed_scaling_factor=float(1.0 if scaling is None else scaling),
-        ))
+        self._state(time_ns, list(event["joint_names"]), self._point(event.get("desired")),
+                    self._point(event.get("actual")), self._point(event.get("error")),
+                    self._point(event.get("output") or event.get("command")),
+                    float(1.0 if scaling is None else scaling))
         self._goal_change(event.get("active_goal"), time_ns)
 
     def cycle(self, layout: CycleRowLayout, row: Any, names: Sequence[str]) -> None:
@@ -445,19 +438,15 @@ class BagRecorder:
             values = row[layout.block(name)]
             return values if not np.isnan(values).all() else np.zeros(0, dtype=np.float64)
 
-        types = self._store.types
-        Point = types["trajectory_msgs/msg/JointTrajectoryPoint"]
-        Duration = types["builtin_interfaces/msg/Duration"]
+        Point = self._store.types["trajectory_msgs/msg/JointTrajectoryPoint"]
 
         def point(prefix: str, t: float, effort: bool = True) -> Any:
-            t_ns = 0 if math.isnan(t) else round(t * 1e9)
             return Point(
                 positions=block(f"{prefix}_positions"),
                 velocities=block(f"{prefix}_velocities"),
                 accelerations=block(f"{prefix}_accelerations"),
                 effort=block(f"{prefix}_effort") if effort else np.zeros(0, dtype=np.float64),
-                time_from_start=Duration(sec=t_ns // 1_000_000_000,
-                                         nanosec=t_ns % 1_000_000_000))
+                time_from_start=self._time("Duration", 0 if math.isnan(t) else round(t * 1e9)))
 
         ref_t = float(row[layout.column("reference_time_from_start")])
         fb_t = float(row[layout.column("feedback_time_from_start")])
@@ -473,22 +462,9 @@ class BagRecorder:
             velocities=difference(reference.velocities, feedback.velocities),
             accelerations=difference(reference.accelerations, feedback.accelerations),
             effort=empty, time_from_start=reference.time_from_start)
-        JointState = types["sensor_msgs/msg/JointState"]
-        self._write("/joint_states", time_ns, JointState(
-            header=self._header(time_ns), name=list(names), position=feedback.positions,
-            velocity=feedback.velocities, effort=empty))
         scaling = float(row[layout.column("speed_scaling")])
-        State = types[CONTROLLER_STATE_TYPE]
-        multi = self._multi_dof_point()
-        self._write(f"/{self.controller}/controller_state", time_ns, State(
-            header=self._header(time_ns), joint_names=list(names),
-            reference=reference, feedback=feedback, error=error,
-            output=point("output", ref_t),
-            multi_dof_joint_names=[],
-            multi_dof_reference=multi, multi_dof_feedback=multi,
-            multi_dof_error=multi, multi_dof_output=multi,
-            speed_scaling_factor=1.0 if math.isnan(scaling) else scaling,
-        ))
+        self._state(time_ns, list(names), reference, feedback, error, point("output", ref_t),
+                    1.0 if math.isnan(scaling) else scaling)
         raw_goal = float(row[layout.column("active_goal")])
         self._goal_change(None if math.isnan(raw_goal) else int(raw_goal), time_ns)
 
@@ -513,21 +489,17 @@ class BagRecorder:
                 topic, "trajectory_msgs/msg/JointTrajectory", typestore=self._store)
             self._connections[topic] = self._command_connection
         types = self._store.types
-        Duration = types["builtin_interfaces/msg/Duration"]
         Point = types["trajectory_msgs/msg/JointTrajectoryPoint"]
-        Time = types["builtin_interfaces/msg/Time"]
         Header = types["std_msgs/msg/Header"]
         Message = types["trajectory_msgs/msg/JointTrajectory"]
-        points = []
-        for point in trajectory.points:
-            t = int(point.time_from_start_ns)
-            points.append(Point(
-                positions=_floats(point.positions), velocities=_floats(point.velocities),
-                accelerations=_floats(point.accelerations), effort=_floats(point.effort),
-                time_from_start=Duration(sec=t // 1_000_000_000, nanosec=t % 1_000_000_000)))
+        points = [
+            Point(positions=_floats(point.positions), velocities=_floats(point.velocities),
+                  accelerations=_floats(point.accelerations), effort=_floats(point.effort),
+                  time_from_start=self._time("Duration", int(point.time_from_start_ns)))
+            for point in trajectory.points
+        ]
         start = int(trajectory.start_time_ns)
-        wall = start + self.offset_ns if start else 0
-        header = Header(stamp=Time(sec=wall // 1_000_000_000, nanosec=wall % 1_000_000_000),
+        header = Header(stamp=self._time("Time", start + self.offset_ns if start else 0),
                         frame_id="")
         self._write(topic, time_ns, Message(
             header=header, joint_names=list(trajectory.joint_names), points=points))

@@ -251,13 +251,8 @@ def plot_bag(
     bag: str | Path, out: str | Path, joints: Sequence[str] | None = None,
     controller: str = "joint_trajectory_controller",
 ) -> Path:
-    """Draw the bag's desired vs actual positions (and velocities) per joint into ``out``.
-
-    Raises:
-        PlotUnavailable: matplotlib is not installed.
-        RecordingUnavailable: rosbags is not installed.
-        ConfigurationError: not a bag, no controller state, or an unknown joint in ``joints``.
-    """
+    """Draw the bag's desired vs actual positions (and velocities) per joint into ``out``
+    (:func:`build_figure`'s figure, which says what it raises)."""
     fig = build_figure(bag, joints, controller)
     out = Path(out)
     fig.savefig(out, dpi=80)

@@ -94,3 +94,32 @@ def test_a_skipped_deadline_at_the_stops_end_does_not_end_the_loop_before_the_re
     after = ctl._last_state
     assert after is not None
     assert list(last.positions) == pytest.approx(list(after.positions), abs=1e-12)
+
+
+def test_a_stop_the_host_starved_past_its_bound_ends_the_loop_and_says_so(
+    loop: tuple[ControlLoop, Inbox], caplog: pytest.LogCaptureFixture,
+) -> None:
+    """The shutdown waits for the decelerating stop at most its duration plus a margin: a loop
+    starved beyond that (no cycle for a second here) holds where the joints are, and its log
+    says the stop was cut and how many deadlines were skipped, the evidence a reader needs."""
+    ctl, inbox = loop
+    now = 10_000_000_000
+    ctl.start(now)
+    trajectory = JointTrajectory(JOINTS, [TrajectoryPoint(2.0, [1.0, -1.0])])
+    ctl._handle(Commit(1, ctl.ctrl.plan_goal(now, trajectory)), now)
+    for _ in range(RATE // 2):  # half-way: moving
+        now += PERIOD_NS
+        ctl.cycle(now, PERIOD_NS, inbox)
+    bound_s = ctl._begin_shutdown(now)
+    assert isinstance(bound_s, float) and bound_s > 0
+    for _ in range(3):  # the stop under way
+        now += PERIOD_NS
+        ctl.cycle(now, PERIOD_NS, inbox)
+        assert not ctl._shutdown_stop_done(now)
+    assert "decelerating stop had not ended" not in caplog.text
+    starved = round(bound_s * RATE) + 1  # deadlines missed: the next cycle is past the bound
+    now += (starved + 1) * PERIOD_NS
+    ctl.cycle(now, (starved + 1) * PERIOD_NS, inbox)
+    assert ctl._shutdown_stop_done(now)
+    assert (f"daemon stopping: the decelerating stop had not ended by its bound; holding where "
+            f"the joints are ({starved} deadlines skipped since the stop began)") in caplog.text

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 import os
+import re
 import signal
 from collections.abc import Iterator
 from pathlib import Path
@@ -119,15 +120,23 @@ def test_sigterm_decelerates_the_servos_to_rest(
     dt_s = np.diff(t_ns) / 1e9
     allowed = DECEL * dt_s[start:] * (1 + 1e-6) + 1e-9
     assert (np.abs(np.diff(desired_v[start:])) <= allowed).all()
-    assert desired_v[-1] == 0.0
-    # The servo followed the ramp: from where it was read at that state it travelled on about
-    # v^2 / (2 a) (the reference's own distance), where a hold keeps it within a tick or two
-    # (0.0015 rad each).
-    travelled = measured_p[-1] - measured_p[start]
-    expected = v_start**2 / (2 * DECEL)
-    assert travelled > 0.5 * expected - 0.005, (travelled, expected)
-    # ... and the emulated servo is at rest where the daemon last read it.
-    assert emu.positions()[1] - math.pi == pytest.approx(measured_p[-1], abs=0.01)
-    assert emu.register(1, "present_velocity") == 0
     log = d.log()
+    cut = re.search(r"had not ended by its bound; holding where the joints are \((\d+) deadlines "
+                    r"skipped", log)
+    if cut is not None:
+        # The host starved the loop past the stop's bound (its duration plus a margin): the
+        # daemon held where the joints were and said so. Only with deadlines skipped, which
+        # the loop counts on its own clock, is that the designed reaction and not a bug.
+        assert int(cut.group(1)) > 0, log
+    else:
+        assert desired_v[-1] == 0.0
+        # The servo followed the ramp: from where it was read at that state it travelled on about
+        # v^2 / (2 a) (the reference's own distance), where a hold keeps it within a tick or two
+        # (0.0015 rad each).
+        travelled = measured_p[-1] - measured_p[start]
+        expected = v_start**2 / (2 * DECEL)
+        assert travelled > 0.5 * expected - 0.005, (travelled, expected)
+        # ... and the emulated servo is at rest where the daemon last read it.
+        assert emu.positions()[1] - math.pi == pytest.approx(measured_p[-1], abs=0.01)
+        assert emu.register(1, "present_velocity") == 0
     assert "Traceback" not in log and "ERROR" not in log

@@ -7,7 +7,8 @@ session instead of a socket; every public method is the socket client's. A reque
 query on ``<prefix>/rpc/<op>`` with the socket's request body as payload, waited for in the
 caller's thread (Zenoh's ``get`` with the request's timeout); its reply is the socket's reply.
 With a ``token``, every query carries it as its attachment (the daemon requires it for
-commands, ``jtc_hw.daemon.zenoh_iface``); without one, commands come back ``unauthorized``.
+commands, ``jtc_hw.daemon.transports.zenoh_iface``); without one, commands come back
+``unauthorized``.
 
 Events come from two subscribers declared at connection, called in Zenoh's threads:
 ``<prefix>/events`` (goal feedback and results, for every goal of the daemon: those of this

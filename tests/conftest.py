@@ -10,6 +10,7 @@ import os
 import signal
 import sys
 import threading
+import time
 import warnings
 from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
@@ -250,6 +251,11 @@ def _shared_memory() -> set[str]:
             and n.split("_")[2:3] and n.split("_")[2].isdigit() and int(n.split("_")[2]) in pids}
 
 
+THREAD_END_S = 10.0
+"""How long :func:`no_leaks` waits for the threads a test started to end (an upper bound on
+waiting, never a claim of speed)."""
+
+
 @pytest.fixture
 def no_leaks() -> Iterator[None]:
     """Fail a test that leaves threads running, sockets open, unclosed resources or shared
@@ -270,6 +276,12 @@ def no_leaks() -> Iterator[None]:
         # full collection held the GIL 0.4-1 s on a busy machine, and an emulator thread of
         # this process (a module's servos, serving its daemon) missed its replies meanwhile.
         gc.freeze()
+    # A library's helper thread may end a moment after the close that ends it (Zenoh's
+    # callback threads, websockets' keepalive): waited for, with a bound, before it counts.
+    deadline = time.monotonic() + THREAD_END_S
+    for thread in threading.enumerate():
+        if thread not in threads:
+            thread.join(max(0.0, deadline - time.monotonic()))
     leaked_threads = [t.name for t in threading.enumerate() if t not in threads and t.is_alive()]
     leaked_sockets = _socket_fds() - sockets
     unclosed = [str(w.message) for w in caught if issubclass(w.category, ResourceWarning)]

@@ -109,4 +109,5 @@ def test_after_the_drives_fall_silent_health_no_longer_says_torque_enabled(
     for motor in health["motors"]:
         assert motor["torque_enabled"] is None and motor["state"] is None, motor
         assert motor["statusword"] is None and motor["error_code"] is None, motor
-        assert motor["age_s"] > 0.3 and "torque_enabled" in motor["unknown"], motor
+        # Stale: older than feedback_timeout_s (0.3 s); the age is given in whole ms.
+        assert motor["age_s"] >= 0.3 and "torque_enabled" in motor["unknown"], motor

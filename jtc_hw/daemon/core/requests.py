@@ -131,7 +131,6 @@ class Outlet(Protocol):
             False if it cannot be delivered (the client is gone, or has just been
             disconnected as too slow): a result is then counted as discarded.
         """
-        ...
 
     def offer(self, data: bytes) -> bool:
         """Deliver a droppable message (``state``, ``feedback``) if there is room.

@@ -268,7 +268,7 @@ class LoopBackend:
             case Status(status):
                 self._status = status
             case Fault():
-                self._record_event({"event": "fault", "text": message.text,
+                self.observers.record({"event": "fault", "text": message.text,
                                     "time_ns": time.monotonic_ns()})
                 self.recorders.trigger("fault")
             case Ready(t0_ns=t0):
@@ -285,7 +285,7 @@ class LoopBackend:
     def _finish_goal(self, result: GoalResult) -> None:
         if self.recorders.flight is not None:
             result = self.recorders.annotate(result)
-            self._record_event(result_record(result))
+            self.observers.record(result_record(result))
         self._open_goals.pop(result.goal_id, None)
         if result.goal_id == self._active_goal:
             self._active_goal = None
@@ -299,12 +299,6 @@ class LoopBackend:
             result.error_string,
             f": {result.details}" if result.details else "",
         )
-
-    def _record_event(self, event: dict[str, Any]) -> None:
-        """A result, fault or re-arm (``goal_events``' JSON, docs/recording.md) for the
-        observers that record: the flight recorder, ``daemon.record`` and the socket's
-        subscribers of commands (``jtc-hw record``)."""
-        self.observers.record(event)
 
     # -- Backend interface --------------------------------------------------------------------
 
@@ -484,7 +478,7 @@ class LoopBackend:
         """
         rearmed = bool(await self.loop.request(Rearm()))
         if rearmed:
-            self._record_event({"event": "rearm",
+            self.observers.record({"event": "rearm",
                                 "text": "re-armed: holding the measured position",
                                 "time_ns": time.monotonic_ns()})
             self.recorders.trigger("rearm")

@@ -168,11 +168,7 @@ class LoopBackend:
         return await self.loop.start(self.recorders.start())
 
     async def wait_exited(self) -> int:
-        """Until the loop process has ended (asked to or not); its exit status.
-
-        Raises:
-            ControllerStateError: the loop was never started.
-        """
+        """As :meth:`LoopProcess.wait_exited`."""
         return await self.loop.wait_exited()
 
     async def stop(self, reason: str, record: bool = True) -> int:
@@ -485,16 +481,6 @@ class LoopBackend:
         return rearmed
 
     async def set_speed_scaling(self, factor: float | None) -> dict[str, float]:
-        """Set the speed scaling factor's target in the loop's controller (``None``: resume,
-        back to the factor before the pause); it ramps there from the loop's next cycle.
-
-        Returns:
-            ``{"factor": in force now, "target": what it ramps to}``.
-
-        Raises:
-            ConfigurationError: not a number in ``[0, speed_scaling.max_scaling_factor]``.
-            HardwareError: the control loop did not answer.
-        """
         value: dict[str, float] = await self.loop.request(SetSpeedScaling(factor))
         if self._timebase is not None:
             t, tau, current, _ = self._timebase
@@ -502,11 +488,6 @@ class LoopBackend:
         return value
 
     def get_parameters(self, names: Sequence[str] | None) -> dict[str, Any]:
-        """Controller parameters in effect (``controller.parameters.parameters_report``).
-
-        Raises:
-            ConfigurationError: a name is not a parameter.
-        """
         return parameters_report(self.config, names)
 
     async def set_parameters(self, changes: Mapping[str, Any]) -> ParameterChange:
@@ -535,12 +516,6 @@ class LoopBackend:
             return change
 
     async def sim(self, component: str, freeze: bool | None, fault: str | None = None) -> None:
-        """Freeze or release a simulated component's feedback; returns once the loop did.
-
-        Raises:
-            ConfigurationError: no component of that name.
-            HardwareError: the component is not simulated hardware.
-        """
         await self.loop.request(Sim(component, freeze, fault))
 
     # -- internals ----------------------------------------------------------------------------

@@ -147,11 +147,11 @@ class Backend(Protocol):
 
     async def sim(self, component: str, freeze: bool | None, fault: str | None = None) -> None:
         """Freeze or release a simulated component's feedback (``None``: unchanged), or
-        inject a latched read fault (applied by the loop).
+        inject a latched read fault; returns once the loop did.
 
         Raises:
             ConfigurationError: no such simulated component.
-            HardwareError: the hardware could not do it.
+            HardwareError: the component is not simulated hardware, or could not do it.
         """
 
     async def stop_motion(self) -> bool:
@@ -168,13 +168,13 @@ class Backend(Protocol):
 
     async def set_speed_scaling(self, factor: float | None) -> dict[str, float]:
         """Set the speed scaling factor's target (``None``: resume, back to the factor before
-        the pause); the control loop's controller ramps to it.
+        the pause); the control loop's controller ramps to it from its next cycle.
 
         Returns:
             ``{"factor": in force now, "target": what it ramps to}``.
 
         Raises:
-            ConfigurationError: not a finite number >= 0.
+            ConfigurationError: not a number in ``[0, speed_scaling.max_scaling_factor]``.
             HardwareError: the request could not reach the control loop.
         """
 

@@ -10,13 +10,11 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from .joints import JointCommand
+from .joints import F64, JointCommand
 from .messages import NS_PER_S
 from .pid import Pid
 from .speed_scaling import SpeedScaling
 from .trajectory import TrajectorySample
-
-F64 = NDArray[np.float64]
 
 
 class ControlLaw(SpeedScaling):

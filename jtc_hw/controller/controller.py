@@ -65,7 +65,7 @@ from .goals import (
     GoalTransition,
     TrajectoryStopped,
 )
-from .joints import JointCommand, JointState
+from .joints import F64, JointCommand, JointState
 from .limits_check import TimeScaling
 from .messages import NS_PER_S, JointTrajectory
 from .outcomes import (
@@ -87,8 +87,6 @@ from .stopping import stop_decelerations, stop_jerks, warm_up
 from .stops import Stops
 from .tolerances import JointTolerance
 from .trajectory import QueriedState, Trajectory, TrajectorySample, shortest_angular_distance
-
-F64 = NDArray[np.float64]
 
 
 def _command_mask(config: ControllerConfig) -> NDArray[np.bool_] | None:

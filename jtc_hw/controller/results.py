@@ -6,14 +6,9 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
-import numpy as np
-from numpy.typing import NDArray
-
 from .goals import Event
-from .joints import JointCommand, JointState
+from .joints import F64, JointCommand, JointState
 from .trajectory import TrajectorySample
-
-F64 = NDArray[np.float64]
 
 
 class ControllerState(NamedTuple):

@@ -10,17 +10,14 @@ from __future__ import annotations
 from collections.abc import Callable
 
 import numpy as np
-from numpy.typing import NDArray
 
 from .goals import ErrorCode, GoalTransition
-from .joints import JointState
+from .joints import F64, JointState
 from .outcomes import CANCELED_ON_REQUEST, STOPPED_BY_TOPIC, Execution
 from .pid import Pid
 from .speed_scaling import SpeedScaling
 from .stopping import stop_duration_bound_s, stop_trajectory
 from .trajectory import Trajectory
-
-F64 = NDArray[np.float64]
 
 
 class Stops(SpeedScaling):

@@ -76,7 +76,6 @@ class Daemon:
         self._stop = asyncio.Event()
         self._reason = "daemon stopping"
         self._failed = False
-        self.live_view: Any = None  # the LiveView while daemon.foxglove serves one
         self.transports: list[Transport] = []  # started (jtc_hw.daemon.transports.registry)
 
     def request_stop(self, reason: str, failed: bool = False) -> None:
@@ -204,7 +203,6 @@ class Daemon:
             log.error("cannot start: %s", exc)
             return False
         self.backend.add_observer(live)
-        self.live_view = live
         return live
 
     async def _close_transports(self, requests: Requests) -> None:

@@ -42,6 +42,7 @@ from .zenoh_config import (
     TOKEN_HINT,
     ZENOH_PARAMETERS,
     ZenohSettings,
+    is_loopback,
     zenoh_settings,
 )
 
@@ -80,16 +81,6 @@ _A_STRING: Final = ParamSpec("string", ParamKind.STRING, "", "a string")
 # --------------------------------------------------------------------------------------------
 # The checks a row's kind does not cover
 # --------------------------------------------------------------------------------------------
-
-
-def is_loopback(host: str) -> bool:
-    """Whether ``host`` is ``localhost`` or a loopback IP address (127.0.0.0/8, ::1)."""
-    if host == "localhost":
-        return True
-    try:
-        return ipaddress.ip_address(host).is_loopback
-    except ValueError:
-        return False
 
 
 def _loopback_host(value: Any, path: str) -> str:

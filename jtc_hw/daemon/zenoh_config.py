@@ -40,7 +40,7 @@ import multiprocessing
 import os
 import re
 import socket
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any, Final
 
@@ -58,6 +58,7 @@ __all__ = [
     "default_prefix",
     "endpoint_is_loopback",
     "import_zenoh",
+    "is_loopback",
     "session_config",
     "zenoh_settings",
 ]
@@ -309,7 +310,11 @@ def endpoint_is_loopback(endpoint: str) -> bool:
         return True
     address = re.split(r"[?#]", rest, maxsplit=1)[0]
     host = address.rsplit(":", 1)[0] if ":" in address else address
-    host = host.strip("[]")
+    return is_loopback(host.strip("[]"))
+
+
+def is_loopback(host: str) -> bool:
+    """Whether ``host`` is ``localhost`` or a loopback IP address (127.0.0.0/8, ::1)."""
     if host == "localhost":
         return True
     try:
@@ -378,8 +383,3 @@ def check_security(settings: ZenohSettings) -> None:
             "(e.g. [tcp/127.0.0.1:7447])",
             "daemon.zenoh",
         )
-
-
-def endpoints_json(endpoints: Sequence[str]) -> str:
-    """A JSON list of endpoints (for ``zenoh.Config.insert_json5``)."""
-    return json.dumps(list(endpoints))

@@ -15,7 +15,7 @@ from numpy.typing import NDArray
 
 from ..config.values import did_you_mean
 from ..controller.config import COMMAND_INTERFACE_TYPES
-from ..controller.joints import JointCommand, JointState
+from ..controller.joints import F64, JointCommand, JointState
 from ..errors import ConfigurationError, JtcHwError, add_note
 from .interface import HardwareInterface, _raise_first
 from .lifecycle import _A, _ALLOWED, _F, _I, _U, LifecycleState, _lifecycle_error
@@ -26,7 +26,6 @@ __all__ = [
 
 _log = logging.getLogger("jtc_hw.hardware")
 
-F64 = NDArray[np.float64]
 
 
 # --------------------------------------------------------------------------------------------

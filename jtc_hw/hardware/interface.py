@@ -35,12 +35,11 @@ from types import MappingProxyType
 from typing import Any, ClassVar, Final
 
 import numpy as np
-from numpy.typing import NDArray
 
 from ..config.schema import ParamKind, ParamSpec, check_value, validate_params
 from ..config.values import describe, did_you_mean
 from ..controller.config import COMMAND_INTERFACE_TYPES, STATE_INTERFACE_TYPES
-from ..controller.joints import JointCommand, JointState
+from ..controller.joints import F64, JointCommand, JointState
 from ..errors import ConfigurationError, HardwareError, JtcHwError, add_note
 from .lifecycle import _ALLOWED, TRANSITIONS, LifecycleState, SafeAction, _lifecycle_error
 from .params import (
@@ -74,8 +73,6 @@ __all__ = [
 ]
 
 _log = logging.getLogger("jtc_hw.hardware")
-
-F64 = NDArray[np.float64]
 
 
 HEALTH_FIELDS: Final[tuple[str, ...]] = (

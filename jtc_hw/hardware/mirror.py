@@ -42,14 +42,13 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..config.schema import ParamKind, ParamSpec, param_table
-from ..controller.joints import JointCommand, JointState
+from ..controller.joints import F64, JointCommand, JointState
 from ..errors import CommunicationError, ConfigurationError, HardwareError
 from .interface import DeviceWatchdog, HardwareInterface
 from .lifecycle import SafeAction
 
 __all__ = ["MirrorHardware"]
 
-F64 = NDArray[np.float64]
 NS_PER_S = 1_000_000_000
 
 _POSITION, _VELOCITY, _ACCELERATION, _EFFORT = 0, 1, 2, 3

@@ -259,11 +259,6 @@ class CycleRing:
 
     # -- reader (the API process) -------------------------------------------------------------
 
-    @property
-    def written(self) -> int:
-        """Rows written so far (the published count)."""
-        return int(self._header[_H_COUNT])
-
     def read(self, since: int) -> tuple[Any, int, int]:
         """The rows written from sequence number ``since`` on, as a copy.
 

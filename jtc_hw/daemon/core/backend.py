@@ -168,11 +168,7 @@ class LoopBackend:
         return await self.loop.start(self.recorders.start())
 
     async def wait_exited(self) -> int:
-        """Until the loop process has ended (asked to or not); its exit status.
-
-        Raises:
-            ControllerStateError: the loop was never started.
-        """
+        """As :meth:`LoopProcess.wait_exited`."""
         return await self.loop.wait_exited()
 
     async def stop(self, reason: str, record: bool = True) -> int:
@@ -268,7 +264,7 @@ class LoopBackend:
             case Status(status):
                 self._status = status
             case Fault():
-                self._record_event({"event": "fault", "text": message.text,
+                self.observers.record({"event": "fault", "text": message.text,
                                     "time_ns": time.monotonic_ns()})
                 self.recorders.trigger("fault")
             case Ready(t0_ns=t0):
@@ -285,7 +281,7 @@ class LoopBackend:
     def _finish_goal(self, result: GoalResult) -> None:
         if self.recorders.flight is not None:
             result = self.recorders.annotate(result)
-            self._record_event(result_record(result))
+            self.observers.record(result_record(result))
         self._open_goals.pop(result.goal_id, None)
         if result.goal_id == self._active_goal:
             self._active_goal = None
@@ -299,12 +295,6 @@ class LoopBackend:
             result.error_string,
             f": {result.details}" if result.details else "",
         )
-
-    def _record_event(self, event: dict[str, Any]) -> None:
-        """A result, fault or re-arm (``goal_events``' JSON, docs/recording.md) for the
-        observers that record: the flight recorder, ``daemon.record`` and the socket's
-        subscribers of commands (``jtc-hw record``)."""
-        self.observers.record(event)
 
     # -- Backend interface --------------------------------------------------------------------
 
@@ -484,23 +474,13 @@ class LoopBackend:
         """
         rearmed = bool(await self.loop.request(Rearm()))
         if rearmed:
-            self._record_event({"event": "rearm",
+            self.observers.record({"event": "rearm",
                                 "text": "re-armed: holding the measured position",
                                 "time_ns": time.monotonic_ns()})
             self.recorders.trigger("rearm")
         return rearmed
 
     async def set_speed_scaling(self, factor: float | None) -> dict[str, float]:
-        """Set the speed scaling factor's target in the loop's controller (``None``: resume,
-        back to the factor before the pause); it ramps there from the loop's next cycle.
-
-        Returns:
-            ``{"factor": in force now, "target": what it ramps to}``.
-
-        Raises:
-            ConfigurationError: not a number in ``[0, speed_scaling.max_scaling_factor]``.
-            HardwareError: the control loop did not answer.
-        """
         value: dict[str, float] = await self.loop.request(SetSpeedScaling(factor))
         if self._timebase is not None:
             t, tau, current, _ = self._timebase
@@ -508,11 +488,6 @@ class LoopBackend:
         return value
 
     def get_parameters(self, names: Sequence[str] | None) -> dict[str, Any]:
-        """Controller parameters in effect (``controller.parameters.parameters_report``).
-
-        Raises:
-            ConfigurationError: a name is not a parameter.
-        """
         return parameters_report(self.config, names)
 
     async def set_parameters(self, changes: Mapping[str, Any]) -> ParameterChange:
@@ -541,12 +516,6 @@ class LoopBackend:
             return change
 
     async def sim(self, component: str, freeze: bool | None, fault: str | None = None) -> None:
-        """Freeze or release a simulated component's feedback; returns once the loop did.
-
-        Raises:
-            ConfigurationError: no component of that name.
-            HardwareError: the component is not simulated hardware.
-        """
         await self.loop.request(Sim(component, freeze, fault))
 
     # -- internals ----------------------------------------------------------------------------

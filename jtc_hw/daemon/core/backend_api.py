@@ -83,7 +83,6 @@ class Backend(Protocol):
         Raises:
             Nothing expected: an exception becomes an ``internal`` error reply.
         """
-        ...
 
     def hello(self) -> dict[str, Any]:
         """Facts for a new client (``update_rate``, ``state_publish_rate``, ...).
@@ -91,7 +90,6 @@ class Backend(Protocol):
         Raises:
             Nothing expected: an exception becomes an ``internal`` error reply.
         """
-        ...
 
     def config_dict(self) -> dict[str, Any]:
         """The configuration in effect, JSON-able.
@@ -99,7 +97,6 @@ class Backend(Protocol):
         Raises:
             Nothing expected: an exception becomes an ``internal`` error reply.
         """
-        ...
 
     def status(self) -> dict[str, Any]:
         """Loop statistics, hardware and controller status, JSON-able.
@@ -107,7 +104,6 @@ class Backend(Protocol):
         Raises:
             Nothing expected: an exception becomes an ``internal`` error reply.
         """
-        ...
 
     async def send_goal(
         self,
@@ -124,7 +120,6 @@ class Backend(Protocol):
         Raises:
             GoalRejected: why it was refused, with the FollowJointTrajectory error code.
         """
-        ...
 
     async def cancel_goal(self, goal_id: int) -> bool:
         """Request cancellation; False if ``goal_id`` is not executing.
@@ -132,7 +127,6 @@ class Backend(Protocol):
         Raises:
             HardwareError: the control loop did not answer (an ``internal`` error reply).
         """
-        ...
 
     async def send_trajectory(
         self, traj: JointTrajectory, *, time_scaling: str | None = None
@@ -142,7 +136,6 @@ class Backend(Protocol):
         Raises:
             GoalRejected: why it was refused.
         """
-        ...
 
     def query_state(self, time_ns: int) -> QueriedState:
         """``query_state`` at ``time_ns`` (upstream's section 16: ``success`` only inside
@@ -151,17 +144,15 @@ class Backend(Protocol):
         Raises:
             ControllerStateError: the controller is not active.
         """
-        ...
 
     async def sim(self, component: str, freeze: bool | None, fault: str | None = None) -> None:
         """Freeze or release a simulated component's feedback (``None``: unchanged), or
-        inject a latched read fault (applied by the loop).
+        inject a latched read fault; returns once the loop did.
 
         Raises:
             ConfigurationError: no such simulated component.
-            HardwareError: the hardware could not do it.
+            HardwareError: the component is not simulated hardware, or could not do it.
         """
-        ...
 
     async def stop_motion(self) -> bool:
         """End any motion and hold the measured position: cancel the active goal (its result
@@ -174,20 +165,18 @@ class Backend(Protocol):
         Raises:
             HardwareError: the request could not reach the control loop.
         """
-        ...
 
     async def set_speed_scaling(self, factor: float | None) -> dict[str, float]:
         """Set the speed scaling factor's target (``None``: resume, back to the factor before
-        the pause); the control loop's controller ramps to it.
+        the pause); the control loop's controller ramps to it from its next cycle.
 
         Returns:
             ``{"factor": in force now, "target": what it ramps to}``.
 
         Raises:
-            ConfigurationError: not a finite number >= 0.
+            ConfigurationError: not a number in ``[0, speed_scaling.max_scaling_factor]``.
             HardwareError: the request could not reach the control loop.
         """
-        ...
 
     async def rearm(self) -> bool:
         """Leave a hardware fault: clear the devices' latched faults and hold the position.
@@ -198,7 +187,6 @@ class Backend(Protocol):
         Raises:
             HardwareError: re-arming failed (the controller stays stopped).
         """
-        ...
 
     def get_parameters(self, names: Sequence[str] | None) -> dict[str, Any]:
         """Controller parameters in effect: ``{"parameters": {name: value}, "read_only":
@@ -207,7 +195,6 @@ class Backend(Protocol):
         Raises:
             ConfigurationError: a name is not a parameter.
         """
-        ...
 
     async def set_parameters(self, changes: Mapping[str, Any]) -> ParameterChange:
         """Check a change of controller parameters, have the control loop apply it, and
@@ -218,8 +205,6 @@ class Backend(Protocol):
                 configuration file's message); nothing changed.
             HardwareError: the control loop did not answer.
         """
-        ...
 
     def add_observer(self, observer: Observer) -> None:
         """Also report to ``observer`` from now on (after those added before)."""
-        ...

@@ -67,41 +67,29 @@ class Observers:
 
     def state(self, snapshot: dict[str, Any]) -> None:
         """A state snapshot (:func:`state_json`), at ``state_publish_rate``."""
-        for observer in self._observers:
-            try:
-                observer.on_state(snapshot)
-            except Exception:
-                _failed(observer, "on_state")
+        self._tell("on_state", snapshot)
 
     def goal_event(self, event: GoalResult | GoalFeedback) -> None:
         """A goal's feedback or result."""
-        for observer in self._observers:
-            try:
-                observer.on_goal_event(event)
-            except Exception:
-                _failed(observer, "on_goal_event")
+        self._tell("on_goal_event", event)
 
     def command(self, traj: JointTrajectory, goal_id: int | None) -> None:
         """An accepted command as the client sent it (``goal_id`` None: a topic trajectory;
         no points: a stop)."""
-        for observer in self._observers:
-            try:
-                observer.on_command(traj, goal_id)
-            except Exception:
-                _failed(observer, "on_command")
+        self._tell("on_command", traj, goal_id)
 
     def record(self, event: dict[str, Any]) -> None:
         """A result, fault or re-arm as recordings keep it (``goal_events``' JSON)."""
+        self._tell("on_record", event)
+
+    def _tell(self, method: str, *args: Any) -> None:
         for observer in self._observers:
             try:
-                observer.on_record(event)
+                getattr(observer, method)(*args)
             except Exception:
-                _failed(observer, "on_record")
-
-
-def _failed(observer: Observer, method: str) -> None:
-    # An observer (a view, a recorder) must never stop the loop's messages reaching the others.
-    log.exception("%s.%s failed; skipped", type(observer).__name__, method)
+                # An observer (a view, a recorder) must never stop the loop's messages
+                # reaching the others.
+                log.exception("%s.%s failed; skipped", type(observer).__name__, method)
 
 
 def _vector(a: Any) -> list[float | None] | None:

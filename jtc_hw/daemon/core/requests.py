@@ -131,7 +131,6 @@ class Outlet(Protocol):
             False if it cannot be delivered (the client is gone, or has just been
             disconnected as too slow): a result is then counted as discarded.
         """
-        ...
 
     def offer(self, data: bytes) -> bool:
         """Deliver a droppable message (``state``, ``feedback``) if there is room.
@@ -139,7 +138,6 @@ class Outlet(Protocol):
         Returns:
             False if it was dropped (counted in the client's next ``state``).
         """
-        ...
 
 
 @dataclass(eq=False)
@@ -539,8 +537,21 @@ class Requests:
         if isinstance(event, GoalResult) or len(events) < EARLY_EVENTS:
             events.append(event)
 
-    def _recorders(self) -> list[Caller]:
-        return [c for c in self._subscribers if c.commands and not c.outlet.gone]
+    def _to_recorders(self, message: Callable[[], dict[str, Any]], what: str) -> None:
+        """Send ``message()`` (made only if someone listens) to every caller subscribed with
+        ``commands``; an unencodable one is logged as ``what`` and skipped."""
+        if self._closed:
+            return
+        subscribers = [c for c in self._subscribers if c.commands and not c.outlet.gone]
+        if not subscribers:
+            return
+        try:
+            data = encode(message())
+        except (TypeError, ValueError):
+            log.exception("cannot encode %s; skipped", what)
+            return
+        for caller in subscribers:
+            caller.outlet.send(data)
 
     def on_command(self, trajectory: JointTrajectory, goal_id: int | None) -> None:
         """Send an accepted command (a goal's trajectory, a topic trajectory; empty: a stop)
@@ -551,18 +562,8 @@ class Requests:
         Raises:
             Nothing: a command that cannot be encoded is logged and skipped.
         """
-        if self._closed:
-            return
-        subscribers = self._recorders()
-        if not subscribers:
-            return
-        try:
-            data = encode(command_event(trajectory, goal_id, self.backend.now_ns()))
-        except (TypeError, ValueError):
-            log.exception("cannot encode an accepted command; skipped")
-            return
-        for caller in subscribers:
-            caller.outlet.send(data)
+        self._to_recorders(lambda: command_event(trajectory, goal_id, self.backend.now_ns()),
+                           "an accepted command")
 
     def on_record(self, event: dict[str, Any]) -> None:
         """Send a result, fault or re-arm (a ``record`` event) to every caller subscribed
@@ -572,18 +573,7 @@ class Requests:
         Raises:
             Nothing: an event that cannot be encoded is logged and skipped.
         """
-        if self._closed:
-            return
-        subscribers = self._recorders()
-        if not subscribers:
-            return
-        try:
-            data = encode(record_event(event))
-        except (TypeError, ValueError):
-            log.exception("cannot encode a recorded event; skipped")
-            return
-        for caller in subscribers:
-            caller.outlet.send(data)
+        self._to_recorders(lambda: record_event(event), "a recorded event")
 
     def on_state(self, snapshot: dict[str, Any]) -> None:
         """Send a state snapshot to every subscribed caller whose outlet has room, with what

@@ -160,7 +160,6 @@ class ControlLoop:
         self._next_state_ns = 0
         self._next_status_ns = 0
         self._last_state: JointState | None = None
-        self._last_command: JointCommand | None = None
         self._shutdown_reason = "daemon stopping"
         self._stopping_until_ns: int | None = None  # a shutdown waiting for its stop: the cap
         self._rest_written_ns: int | None = None  # that stop's cycle writing the rest command

@@ -46,7 +46,6 @@ class Transport(Protocol):
             JtcHwError: it cannot serve (said in one line, naming the setting); ``OSError``
                 likewise for an address that cannot be bound.
         """
-        ...
 
     async def close(self) -> None:
         """Stop serving, after letting its clients read what is queued. Idempotent.
@@ -54,7 +53,6 @@ class Transport(Protocol):
         Raises:
             Nothing: errors while closing are logged.
         """
-        ...
 
 
 @dataclass(frozen=True)

@@ -42,7 +42,10 @@ GOAL_TOL = 0.01
 START_TIMEOUT_S = 30.0
 
 
-STOP_TIMEOUT_S = 20.0
+STOP_TIMEOUT_S = float(os.environ.get("JTC_HW_TEST_STOP_TIMEOUT_S", "20"))
+"""Bound on waiting for a daemon to exit after SIGTERM (an upper bound, never a claim of speed).
+tools/vcan-hil raises it: under software emulation beside busy processes a daemon's stop, which
+writes its pending flight-recorder bags, took more than 20 s."""
 
 
 WAIT_S = 10.0  # generous bound on waiting for a message that should come promptly

@@ -52,17 +52,23 @@ def loop(tmp_path: Path) -> Iterator[tuple[ControlLoop, Inbox]]:
         loop_end.close()
 
 
-def test_a_skipped_deadline_at_the_stops_end_does_not_end_the_loop_before_the_rest_reading(
-    loop: tuple[ControlLoop, Inbox],
-) -> None:
-    ctl, inbox = loop
+def moving_half_way(ctl: ControlLoop, inbox: Inbox) -> int:
+    """Start the loop on a 2 s goal and cycle to its middle (the joints moving); the time."""
     now = 10_000_000_000
     ctl.start(now)
     trajectory = JointTrajectory(JOINTS, [TrajectoryPoint(2.0, [1.0, -1.0])])
     ctl._handle(Commit(1, ctl.ctrl.plan_goal(now, trajectory)), now)
-    for _ in range(RATE // 2):  # half-way: moving
+    for _ in range(RATE // 2):
         now += PERIOD_NS
         ctl.cycle(now, PERIOD_NS, inbox)
+    return now
+
+
+def test_a_skipped_deadline_at_the_stops_end_does_not_end_the_loop_before_the_rest_reading(
+    loop: tuple[ControlLoop, Inbox],
+) -> None:
+    ctl, inbox = loop
+    now = moving_half_way(ctl, inbox)
     ctl._handle(Request(2, Shutdown("test")), now)
     end = None
     while end is None:
@@ -103,13 +109,7 @@ def test_a_stop_the_host_starved_past_its_bound_ends_the_loop_and_says_so(
     starved beyond that (no cycle for a second here) holds where the joints are, and its log
     says the stop was cut and how many deadlines were skipped, the evidence a reader needs."""
     ctl, inbox = loop
-    now = 10_000_000_000
-    ctl.start(now)
-    trajectory = JointTrajectory(JOINTS, [TrajectoryPoint(2.0, [1.0, -1.0])])
-    ctl._handle(Commit(1, ctl.ctrl.plan_goal(now, trajectory)), now)
-    for _ in range(RATE // 2):  # half-way: moving
-        now += PERIOD_NS
-        ctl.cycle(now, PERIOD_NS, inbox)
+    now = moving_half_way(ctl, inbox)
     bound_s = ctl._begin_shutdown(now)
     assert isinstance(bound_s, float) and bound_s > 0
     for _ in range(3):  # the stop under way

@@ -14,7 +14,8 @@ Emulators given the same ``bus`` object share one receive thread (a *hub*,
 objects (e.g. one virtual bus each, same channel) run their own. On every SYNC (COB-ID
 0x080), in node-id order, each operational drive
 
-1. advances the motor by the monotonic time since its previous SYNC (capped at 0.1 s), with
+1. advances the motor to the SYNC's receive stamp (the drive's servo loop ran on while the
+   hub's thread waited; at most 2 s since the previous step), with
    the set-points in force (CSP: ``Motor.step_position`` toward the target position; CSV:
    ``Motor.step_velocity``; otherwise it coasts);
 2. applies the RPDOs received since the previous SYNC (synchronous RPDOs take effect at the
@@ -74,7 +75,6 @@ _log = logging.getLogger("jtc_hw.drivers.can.cia402_emulator")
 DEFAULT_EDS: Path = c4.DEFAULT_EDS
 """The EDS of the emulated drive (shipped with the package)."""
 
-_MAX_DT_S = 0.1
 _COMM_RANGE = range(0x1000, 0x2000)
 _RPDO_COMM, _RPDO_MAP, _TPDO_COMM, _TPDO_MAP = 0x1400, 0x1600, 0x1800, 0x1A00
 _PDO_PARAM_RANGE = range(0x1400, 0x1C00)
@@ -630,7 +630,7 @@ class Cia402DriveEmulator:
                     self._send(c4.bootup_cob_id(self.node_id), c4.encode_heartbeat(self.nmt_state))
                 self._next_beat = now + self._producer_s
             if self._stopping is not None:
-                self._advance(now, _MAX_GAP_S)
+                self._advance(now)
             wake: float | None = None
             for consumer in self._consumers.values():
                 if consumer.armed and (wake is None or consumer.deadline < wake):
@@ -647,7 +647,7 @@ class Cia402DriveEmulator:
         Monitoring stops until the producer's next heartbeat."""
         consumer.armed = False
         # The drive's own loop ran on with the set-points in force until now.
-        self._advance(now, _MAX_GAP_S)
+        self._advance(now)
         reaction = c4.AbortConnection(self._option(c4.ABORT_CONNECTION_OPTION))
         trip = WatchdogTrip(
             producer=consumer.producer, consumer_time_s=consumer.time_s,
@@ -679,7 +679,7 @@ class Cia402DriveEmulator:
         if self._stopping is None:
             self._stopping = _Stop(c4.Ramp.COAST, None)  # to see when it is at rest
             self._last_step = now
-        self._advance(now, _MAX_GAP_S)
+        self._advance(now)
 
     # -- stops the drive performs by itself -------------------------------------------------------
 
@@ -801,9 +801,14 @@ class Cia402DriveEmulator:
             self._stopping = _Stop(c4.Ramp.COAST, None)
         self.state = new
 
-    def _advance(self, now: float, cap: float = _MAX_DT_S) -> None:
-        """Advance the physics to ``now`` (at most ``cap`` seconds at once)."""
-        last, self._last_step = self._last_step, now
+    def _advance(self, now: float, cap: float = _MAX_GAP_S) -> None:
+        """Advance the physics to ``now`` (at most ``cap`` seconds at once; a ``now`` the
+        physics has already passed, e.g. a SYNC's stamp after a time-driven step, is a no-op).
+        """
+        last = self._last_step
+        if last is not None and now <= last:
+            return
+        self._last_step = now
         if last is not None:
             self._step_physics(min(now - last, cap), now)
 

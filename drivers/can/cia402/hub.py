@@ -270,9 +270,12 @@ class Hub:
         cob = int(msg.arbitration_id)
         data = bytes(msg.data)
         now = time.monotonic()
+        # When the frame crossed the bus (its receive stamp, wall clock), not when this
+        # thread got round to it: a drive's servo loop runs on while this thread waits.
+        at = now - max(0.0, time.time() - msg.timestamp) if msg.timestamp else now
         if cob == c4.SYNC_COB_ID:
             for node_id in sorted(self.drives):
-                self.drives[node_id].on_sync(now)
+                self.drives[node_id].on_sync(at)
                 # Drives work in parallel: what the wire could already carry goes out while
                 # the next drive's physics is computed.
                 self._send_due()
@@ -285,9 +288,6 @@ class Hub:
                 if target in (0, node_id):
                     self.drives[node_id].on_nmt(command)
         elif (beat := c4.decode_heartbeat(cob, data)) is not None:
-            # When the frame crossed the bus (its receive stamp, wall clock), not when this
-            # thread got round to it.
-            at = now - max(0.0, time.time() - msg.timestamp) if msg.timestamp else now
             for node_id in sorted(self.drives):
                 self.drives[node_id].on_heartbeat(beat[0], beat[1], at)
         else:

@@ -227,6 +227,50 @@ def test_csv_velocity_commands(rig: Rig) -> None:
     assert state.velocities == pytest.approx([0.5, -0.5], abs=0.1)
 
 
+def test_a_drive_moves_in_bus_time_when_its_emulator_handles_a_sync_late(rig: Rig) -> None:
+    """A drive's servo loop runs on while the emulator's thread waits for the CPU: a SYNC
+    handled late advances the motor to when the SYNC crossed the bus (its receive stamp),
+    not by a capped step to when it was handled (the VM beside busy processes, issue 22:
+    a re-armed goal fell behind by 0.08 rad)."""
+    hw = rig.make("velocity", watchdog_s=10.0)
+    hw.configure()
+    hw.activate(time.monotonic_ns())
+    drive = rig.drives[3]
+    listener = can.Bus(interface="virtual", channel=rig.channel)
+    stamped = can.Bus(interface="virtual", channel=rig.channel, preserve_timestamps=True)
+    try:
+        deadline = time.monotonic() + BOUND_S
+        while abs(drive.motor.velocity - 0.5) > 1e-4 and time.monotonic() < deadline:
+            hw.read(time.monotonic_ns())
+            hw.write(time.monotonic_ns(), JointCommand(None, [0.5, -0.5]))
+        assert drive.motor.velocity == pytest.approx(0.5, abs=1e-4)
+        # The driver falls silent. The last SYNC it sent, and the motor once the drive has
+        # handled it (its TPDO answer is sent last).
+        seen = list(iter(lambda: listener.recv(timeout=0.0), None))
+        at = max(i for i, m in enumerate(seen) if m.arbitration_id == 0x080)
+        last, answered = seen[at], any(is_tpdo_of_3(m) for m in seen[at:])
+        while not answered and time.monotonic() < deadline:
+            answered = is_tpdo_of_3(listener.recv(timeout=0.05))
+        assert answered
+        before, count = drive.motor.position, drive.syncs_seen
+        # A SYNC that crossed the bus 0.3 s after it, handled 0.3 s later still.
+        while time.time() < last.timestamp + 0.6:
+            listener.recv(timeout=0.05)
+        stamped.send(can.Message(arbitration_id=0x080, data=b"", is_extended_id=False,
+                                 timestamp=last.timestamp + 0.3))
+        while drive.syncs_seen == count and time.monotonic() < deadline:
+            listener.recv(timeout=0.001)
+        assert drive.motor.position - before == pytest.approx(0.5 * 0.3, abs=2e-3)
+    finally:
+        stamped.shutdown()
+        listener.shutdown()
+
+
+def is_tpdo_of_3(msg: can.Message | None) -> bool:
+    cob = msg.arbitration_id if msg is not None else 0
+    return 0x180 <= cob < 0x580 and cob & 0x7F == 3
+
+
 def test_direction_gear_and_offset(rig: Rig) -> None:
     hw = rig.make(direction=[-1, 1], gear_ratio=[2.0, 1.0], offset=[1.0, 0.0])
     hw.configure()

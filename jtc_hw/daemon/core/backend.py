@@ -31,6 +31,7 @@ from typing import Any
 
 import numpy as np
 
+from ...api.events import result_event
 from ...config.controller_file import config_to_dict
 from ...controller.config import ControllerConfig
 from ...controller.goals import ErrorCode, GoalResult, GoalStatus, TrajectoryStopped
@@ -61,7 +62,7 @@ from ..channel.messages import (
 from ..realtime import release_freed_memory
 from ..robot import RobotConfig, joint_position_limits
 from .backend_api import Accepted, Observer
-from .observers import Observers, Recorders, result_record, state_json
+from .observers import Observers, Recorders, state_json
 from .supervision import LoopProcess
 
 log = logging.getLogger("jtc_hw.backend")
@@ -281,7 +282,8 @@ class LoopBackend:
     def _finish_goal(self, result: GoalResult) -> None:
         if self.recorders.flight is not None:
             result = self.recorders.annotate(result)
-            self.observers.record(result_record(result))
+            # As recordings keep it (``goal_events``' JSON): the socket's result event.
+            self.observers.record(result_event(result))
         self._open_goals.pop(result.goal_id, None)
         if result.goal_id == self._active_goal:
             self._active_goal = None

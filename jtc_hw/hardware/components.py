@@ -7,7 +7,7 @@ arrays computed once, and fans the lifecycle, reads and writes out to every comp
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from typing import Any, Final
 
 import numpy as np
@@ -222,18 +222,7 @@ class HardwareSet:
         """
         if self._identity:
             return self._components[0].read(now_ns)
-        n = self._n
-        positions = np.full(n, np.nan)
-        velocities = np.full(n, np.nan) if self._velocity_state else None
-        accelerations = np.full(n, np.nan) if self._acceleration_state else None
-        for comp, index in self._pairs:
-            part = comp.read(now_ns)
-            positions[index] = part.positions
-            if velocities is not None and part.velocities is not None:
-                velocities[index] = part.velocities
-            if accelerations is not None and part.accelerations is not None:
-                accelerations[index] = part.accelerations
-        return JointState(positions, velocities, accelerations)
+        return self._merged((comp.read(now_ns), index) for comp, index in self._pairs)
 
     def monitor(self, now_ns: int) -> JointState | None:
         """Each INACTIVE component's :meth:`HardwareInterface.monitor` (the loop, while
@@ -246,6 +235,10 @@ class HardwareSet:
         parts = [(comp.monitor(now_ns), index) for comp, index in self._pairs]
         if all(part is None for part, _ in parts):
             return None
+        return self._merged(parts)
+
+    def _merged(self, parts: Iterable[tuple[JointState | None, NDArray[np.intp]]]) -> JointState:
+        """The components' states in the controller's joint order (NaN for joints not read)."""
         n = self._n
         positions = np.full(n, np.nan)
         velocities = np.full(n, np.nan) if self._velocity_state else None

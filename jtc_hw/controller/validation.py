@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import math
 import numbers
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from itertools import chain, repeat
 from operator import attrgetter, is_not
 from typing import Any
@@ -151,19 +151,7 @@ def _checked(
     for name in FIELDS:
         arrays[name].setflags(write=False)
         present[name].setflags(write=False)
-    return PreparedTrajectory(
-        joint_indices=joint_index,
-        start_time_ns=int(start_time_ns),
-        times_ns=times,
-        positions=arrays["positions"],
-        velocities=arrays["velocities"],
-        accelerations=arrays["accelerations"],
-        effort=arrays["effort"],
-        has_positions=has_p,
-        has_velocities=has_v,
-        has_accelerations=has_a,
-        has_effort=has_e,
-    )
+    return _prepared(joint_index, start_time_ns, times, arrays, present)
 
 
 def _prepare_points(
@@ -235,18 +223,20 @@ def _prepare_points(
                     "because allow_nonzero_velocity_at_trajectory_end is false"
                 )
     flags = {name: np.array(present[name], dtype=bool) for name in FIELDS}
+    return _prepared(joint_index, msg.start_time_ns, np.array(times, dtype=np.int64), arrays, flags)
+
+
+def _prepared(
+    joint_index: NDArray[np.intp],
+    start_time_ns: int,
+    times: NDArray[np.int64],
+    arrays: Mapping[str, F64],
+    flags: Mapping[str, NDArray[np.bool_]],
+) -> PreparedTrajectory:
+    """The values and ``has_*`` flags, per name of :data:`FIELDS`, as a PreparedTrajectory."""
     return PreparedTrajectory(
-        joint_indices=joint_index,
-        start_time_ns=int(msg.start_time_ns),
-        times_ns=np.array(times, dtype=np.int64),
-        positions=arrays["positions"],
-        velocities=arrays["velocities"],
-        accelerations=arrays["accelerations"],
-        effort=arrays["effort"],
-        has_positions=flags["positions"],
-        has_velocities=flags["velocities"],
-        has_accelerations=flags["accelerations"],
-        has_effort=flags["effort"],
+        joint_index, int(start_time_ns), times,
+        *(arrays[name] for name in FIELDS), *(flags[name] for name in FIELDS),
     )
 
 

@@ -36,7 +36,7 @@ from .controller import (
     not_a_joint,
 )
 from .limits import LIMIT_FIELDS, JointLimits
-from .schema import check_key, check_keys, check_value, expect_mapping, unknown_parameter
+from .schema import check_key, check_keys, check_value, expect_mapping
 from .values import closest, coerce_string_array, describe, did_you_mean
 
 __all__ = [
@@ -223,10 +223,7 @@ def build_config(
         ConfigurationError: an unknown key, a missing required parameter, a value of the wrong
             type or range; the message names the dotted key path.
     """
-    known = [*PARAMETERS, *SECTIONS]
-    for key in params:
-        if check_key(key, "") not in known:
-            raise unknown_parameter(key, known)
+    check_keys(params, [*PARAMETERS, *SECTIONS], "")
     for param in PARAMETERS.values():
         if param.required and param.name not in params:
             raise ConfigurationError(

@@ -48,10 +48,7 @@ class Pid:
         u_max: F64 | float = np.inf,
         error_deadband: F64 | float = 0.0,
     ) -> None:
-        self.p = np.asarray(p, dtype=np.float64)
-        self.i = np.asarray(i, dtype=np.float64)
-        self.d = np.asarray(d, dtype=np.float64)
-        self.i_clamp = np.asarray(i_clamp, dtype=np.float64)
+        self.set_gains(p, i, d, i_clamp)
         self.u_min = np.broadcast_to(np.asarray(u_min, dtype=np.float64), self.p.shape)
         self.u_max = np.broadcast_to(np.asarray(u_max, dtype=np.float64), self.p.shape)
         self.error_deadband = np.broadcast_to(

@@ -206,7 +206,7 @@ def _prepare_points(
                         f"{float(value)!r}; values must be finite"
                     )
             arrays[name][i] = values
-        _check_point_fields(config, i, present, point_index=i)
+        _check_point_fields(config, i, present)
     if any(present["effort"]) and not all(present["effort"]):
         missing = present["effort"].index(False)
         raise GoalRejected(
@@ -272,38 +272,33 @@ def _joint_columns(config: ControllerConfig, msg: JointTrajectory) -> NDArray[np
     return np.asarray(cols, dtype=np.intp)
 
 
-def _check_point_fields(
-    config: ControllerConfig, i: int, present: dict[str, list[bool]], point_index: int
-) -> None:
-    has_p = present["positions"][i]
-    has_v = present["velocities"][i]
-    has_a = present["accelerations"][i]
-    has_e = present["effort"][i]
+def _check_point_fields(config: ControllerConfig, i: int, present: dict[str, list[bool]]) -> None:
+    has_p, has_v, has_a, has_e = (present[name][i] for name in FIELDS)
     if has_e and "effort" not in config.command_interfaces:
         raise GoalRejected(
-            f"point #{point_index}: effort is only used with the 'effort' command interface "
+            f"point #{i}: effort is only used with the 'effort' command interface "
             f"(configured: {', '.join(config.command_interfaces)}); remove the effort field"
         )
     if not (has_p or has_v or has_a):
         raise GoalRejected(
-            f"point #{point_index}: no positions, velocities or accelerations; a point needs "
+            f"point #{i}: no positions, velocities or accelerations; a point needs "
             "positions (or, with allow_integration_in_goal_trajectories, velocities or "
             "accelerations)"
         )
     if not has_p:
         if config.interpolation_method == "none":
             raise GoalRejected(
-                f"point #{point_index}: no positions; interpolation_method 'none' does not "
+                f"point #{i}: no positions; interpolation_method 'none' does not "
                 "integrate derivatives, so every point needs positions"
             )
         if not config.allow_integration_in_goal_trajectories:
             raise GoalRejected(
-                f"point #{point_index}: no positions; velocity- or acceleration-only points are "
+                f"point #{i}: no positions; velocity- or acceleration-only points are "
                 "accepted only with allow_integration_in_goal_trajectories: true"
             )
     elif has_a and not has_v:
         raise GoalRejected(
-            f"point #{point_index}: accelerations without velocities; a quintic spline needs "
+            f"point #{i}: accelerations without velocities; a quintic spline needs "
             "positions, velocities and accelerations (give velocities, or drop accelerations "
             "for linear interpolation)"
         )

@@ -234,10 +234,10 @@ def _prepared(
     flags: Mapping[str, NDArray[np.bool_]],
 ) -> PreparedTrajectory:
     """The values and ``has_*`` flags, per name of :data:`FIELDS`, as a PreparedTrajectory."""
-    return PreparedTrajectory(
-        joint_index, int(start_time_ns), times,
-        *(arrays[name] for name in FIELDS), *(flags[name] for name in FIELDS),
-    )
+    positions, velocities, accelerations, effort = (arrays[name] for name in FIELDS)
+    has_p, has_v, has_a, has_e = (flags[name] for name in FIELDS)
+    return PreparedTrajectory(joint_index, int(start_time_ns), times, positions, velocities,
+                              accelerations, effort, has_p, has_v, has_a, has_e)
 
 
 def _joint_columns(config: ControllerConfig, msg: JointTrajectory) -> NDArray[np.intp]:

@@ -348,7 +348,7 @@ class HardwareInterface(ABC):
         if state is not LifecycleState.ACTIVE and state is not LifecycleState.INACTIVE:
             raise _lifecycle_error(self._owner(), "read", state)
         try:
-            result = self._call("read", self._read, now_ns)
+            result: JointState = self._call("read", self._read, now_ns)
         except Exception:
             self._read_errors += 1
             raise

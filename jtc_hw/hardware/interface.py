@@ -648,12 +648,8 @@ class HardwareInterface(ABC):
 
     def nan_command(self) -> JointCommand:
         """A command holding ``NaN`` for every configured interface (``None`` for the others)."""
-        n = len(self.joints)
-        fields = [
-            np.full(n, np.nan) if iface in self.command_interfaces else None
-            for iface in COMMAND_INTERFACE_TYPES
-        ]
-        return JointCommand(*fields)
+        return JointCommand(*(np.full(self._shape, np.nan) if iface in self.command_interfaces
+                              else None for iface in COMMAND_INTERFACE_TYPES))
 
     # -- primitives ---------------------------------------------------------------------------
 

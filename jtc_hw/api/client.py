@@ -26,7 +26,6 @@ import os
 import socket
 import threading
 from collections.abc import Callable, Mapping, Sequence
-from types import TracebackType
 from typing import Any
 
 from ..controller.messages import JointTrajectory
@@ -596,12 +595,7 @@ class Client:
     def __enter__(self) -> Client:
         return self
 
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.close()
 
     def __repr__(self) -> str:
@@ -621,10 +615,7 @@ class Client:
         request_id = next(self._ids)
         data = encode({"id": request_id, "op": op, **fields})
         with self._lock:
-            if self._lost is not None:
-                raise self._lost
-            if self._closing:
-                raise ClientConnectionError(f"{op}: the client is closed")
+            self._check_open(op)
             self._pending[request_id] = pending
         try:
             with self._send_lock:
@@ -650,6 +641,14 @@ class Client:
             raise pending.error
         assert pending.reply is not None
         return pending.reply
+
+    def _check_open(self, op: str) -> None:
+        """Raise why no request can be made (with ``_lock`` held): the connection is lost, or
+        the client closed."""
+        if self._lost is not None:
+            raise self._lost
+        if self._closing:
+            raise ClientConnectionError(f"{op}: the client is closed")
 
     def _read(self) -> None:
         decoder = MessageDecoder(CLIENT_MAX_MESSAGE_BYTES)

@@ -4,6 +4,7 @@ desired states, trajectories and tolerances (no I/O; :mod:`.framing` encodes the
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Mapping, Sequence
 from typing import Any
 
@@ -146,12 +147,4 @@ def tolerances_to_json(tolerances: Sequence[JointTolerance]) -> list[dict[str, A
     Raises:
         Nothing.
     """
-    return [
-        {
-            "name": t.name,
-            "position": t.position,
-            "velocity": t.velocity,
-            "acceleration": t.acceleration,
-        }
-        for t in tolerances
-    ]
+    return [dataclasses.asdict(t) for t in tolerances]  # name, position, velocity, acceleration

@@ -10,7 +10,6 @@ import collections
 import logging
 import threading
 from collections.abc import Callable, Iterator
-from types import TracebackType
 from typing import Any, Protocol
 
 __all__ = ["FeedbackCallback", "GoalHandle", "StateSubscription"]
@@ -250,10 +249,5 @@ class StateSubscription:
     def __enter__(self) -> StateSubscription:
         return self
 
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.close()

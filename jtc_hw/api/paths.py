@@ -44,6 +44,7 @@ from typing import Final
 __all__ = [
     "ROOT_SOCKET_DIR",
     "SOCKET_NAME",
+    "account_name",
     "client_socket_path",
     "default_socket_path",
     "directory_problem",
@@ -278,7 +279,8 @@ def socket_problem(path: str, uid: int | None = None) -> str | None:
     return None
 
 
-def _name(number: int, group: bool) -> str:
+def account_name(number: int, group: bool = False) -> str:
+    """The name of user (or ``group``) ``number``; the number itself if it has none."""
     try:
         return grp.getgrgid(number).gr_name if group else pwd.getpwuid(number).pw_name
     except KeyError:
@@ -343,9 +345,9 @@ def permission_problem(path: str) -> str:
         st = os.stat(blocker)
     except OSError:
         return f"{intro}: check its permissions (ls -ld {blocker})"
-    group = _name(st.st_gid, group=True)
+    group = account_name(st.st_gid, group=True)
     what = (
-        f"{intro} (owner {_name(st.st_uid, group=False)}, group {group}, "
+        f"{intro} (owner {account_name(st.st_uid)}, group {group}, "
         f"mode {stat.S_IMODE(st.st_mode):04o})"
     )
     if st.st_mode & bit:

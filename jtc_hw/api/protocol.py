@@ -24,7 +24,6 @@ is expected, unknown fields (a misspelt ``time_from_start`` must not silently be
 
 from __future__ import annotations
 
-import difflib
 import math
 from collections.abc import Sequence
 from itertools import chain, compress, repeat
@@ -34,6 +33,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from ..config.schema import join
+from ..config.values import did_you_mean
 from ..controller.limits_check import TIME_SCALING_MODES
 from ..controller.messages import (
     NS_PER_S,
@@ -114,10 +115,6 @@ _POINT_FIELD_SET = frozenset(_POINT_FIELDS)
 _TOLERANCE_FIELDS = ("name", "position", "velocity", "acceleration")
 
 
-def _join(path: str, key: str) -> str:
-    return f"{path}.{key}" if path else key
-
-
 def _time_scaling(f: _Fields) -> str | None:
     """The optional ``time_scaling`` field: one of ``TIME_SCALING_MODES``.
 
@@ -131,15 +128,10 @@ def _time_scaling(f: _Fields) -> str | None:
         raise f.error(
             f"'{mode}' is not one of {', '.join(repr(m) for m in TIME_SCALING_MODES)} ('fit': "
             "slow a goal beyond the joint limits down until it fits, 'reject': refuse it)"
-            f"{_suggest(mode, TIME_SCALING_MODES)}",
+            f"{did_you_mean(mode, TIME_SCALING_MODES)}",
             "time_scaling",
         )
     return mode
-
-
-def _suggest(name: str, choices: Sequence[str]) -> str:
-    close = difflib.get_close_matches(name, choices, n=1, cutoff=0.6)
-    return f"; did you mean '{close[0]}'?" if close else ""
 
 
 class _Fields:
@@ -156,9 +148,8 @@ class _Fields:
         for key in obj:
             if key not in known:
                 listing = ", ".join(known) if known else "none"
-                raise self.error(
-                    f"unknown field '{key}'{_suggest(key, known)} (fields here: {listing})", where
-                )
+                raise self.error(f"unknown field '{key}'{did_you_mean(key, known)} (fields "
+                                 f"here: {listing})", where)
         self.obj: dict[str, Any] = obj
 
     def error(self, problem: str, where: str | None = None) -> RequestError:
@@ -173,26 +164,26 @@ class _Fields:
         return self.obj[key]
 
     def number(self, key: str, value: Any) -> float:
-        return _number(value, _join(self.path, key), self.rid)
+        return _number(value, join(self.path, key), self.rid)
 
     def integer(self, key: str, value: Any, low: int, high: int) -> int:
-        return _integer(value, _join(self.path, key), self.rid, low, high)
+        return _integer(value, join(self.path, key), self.rid, low, high)
 
     def string(self, key: str, value: Any) -> str:
         if not isinstance(value, str):
-            raise self.error(f"expected a string, got {_describe(value)}", _join(self.path, key))
+            raise self.error(f"expected a string, got {_describe(value)}", join(self.path, key))
         return value
 
     def boolean(self, key: str, value: Any) -> bool:
         if not isinstance(value, bool):
             raise self.error(
-                f"expected true or false, got {_describe(value)}", _join(self.path, key)
+                f"expected true or false, got {_describe(value)}", join(self.path, key)
             )
         return value
 
     def array(self, key: str, value: Any) -> list[Any]:
         if not isinstance(value, list):
-            raise self.error(f"expected an array, got {_describe(value)}", _join(self.path, key))
+            raise self.error(f"expected an array, got {_describe(value)}", join(self.path, key))
         return value
 
 
@@ -302,12 +293,12 @@ def parse_trajectory(
     if f.has("start_time_ns"):
         start_time_ns = f.integer("start_time_ns", f.obj["start_time_ns"], 0, MAX_NS)
         try:
-            check_end(points, start_time_ns, _join(path, "points"))
+            check_end(points, start_time_ns, join(path, "points"))
         except RequestError as exc:
             exc.request_id = request_id
             raise
     if f.has("start_in"):
-        start_in = _seconds(f.obj["start_in"], _join(path, "start_in"), request_id)
+        start_in = _seconds(f.obj["start_in"], join(path, "start_in"), request_id)
     return WireTrajectory(names, points, start_time_ns, start_in)
 
 
@@ -394,11 +385,11 @@ def _parse_point(
     obj: Any, path: str, rid: RequestId, joint_names: Sequence[str]
 ) -> TrajectoryPoint:
     f = _Fields(obj, path, path, _POINT_FIELDS, rid)
-    where = _join(path, "time_from_start")
+    where = join(path, "time_from_start")
     t = _seconds(f.required("time_from_start", "seconds after the trajectory's start"), where, rid)
     t_ns = _ns(t, where, rid)
     values = {
-        name: _vector(f.obj[name], _join(path, name), rid, joint_names) if f.has(name) else None
+        name: _vector(f.obj[name], join(path, name), rid, joint_names) if f.has(name) else None
         for name in _POINT_FIELDS[1:]
     }
     return TrajectoryPoint(
@@ -460,7 +451,7 @@ def parse_request(obj: Any) -> Request:
         raise RequestError(BAD_REQUEST, f"op: expected a string, got {_describe(op)}", rid)
     if op not in _OP_FIELDS:
         raise RequestError(
-            UNKNOWN_OP, f"unknown op '{op}'{_suggest(op, OPS)} (ops: {', '.join(OPS)})", rid
+            UNKNOWN_OP, f"unknown op '{op}'{did_you_mean(op, OPS)} (ops: {', '.join(OPS)})", rid
         )
     f = _Fields(obj, "", op, ("id", "op", *_OP_FIELDS[op]), rid)
     o = f.obj

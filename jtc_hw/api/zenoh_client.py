@@ -58,6 +58,7 @@ Zenoh's default port) on this machine."""
 EARLY_GOALS: Final = 64
 EARLY_EVENTS: Final = 256
 INSTALL_HINT: Final = "pip install 'jtc_hw[zenoh]'"
+_UNREADABLE: Final = object()
 
 ZenohConfigLike = str | os.PathLike[str] | Mapping[str, Any] | Any
 """A Zenoh configuration file (JSON5), a mapping of configuration keys to values
@@ -260,10 +261,7 @@ class ZenohClient(Client):
         if op in ("subscribe_state", "unsubscribe_state"):
             return self._subscribe(request_id, op == "subscribe_state")
         with self._lock:
-            if self._lost is not None:
-                raise self._lost
-            if self._closing:
-                raise ClientConnectionError(f"{op}: the client is closed")
+            self._check_open(op)
             if op == "send_goal":
                 self._sending_goals += 1
         try:
@@ -341,20 +339,21 @@ class ZenohClient(Client):
 
     # -- Zenoh's threads ----------------------------------------------------------------------
 
-    def _on_state(self, sample: Any) -> None:
+    def _decode(self, sample: Any, what: str) -> Any:
+        """The sample's JSON payload; ``_UNREADABLE`` (logged) if it is not JSON."""
         try:
-            message = json.loads(sample.payload.to_bytes())
+            return json.loads(sample.payload.to_bytes())
         except ValueError:
-            log.warning("%s: unreadable state message; skipped", self.label)
-            return
-        self._dispatch_event("state", message)
+            log.warning("%s: unreadable %s; skipped", self.label, what)
+            return _UNREADABLE
+
+    def _on_state(self, sample: Any) -> None:
+        message = self._decode(sample, "state message")
+        if message is not _UNREADABLE:
+            self._dispatch_event("state", message)
 
     def _on_event(self, sample: Any) -> None:
-        try:
-            message = json.loads(sample.payload.to_bytes())
-        except ValueError:
-            log.warning("%s: unreadable event; skipped", self.label)
-            return
+        message = self._decode(sample, "event")
         if not isinstance(message, dict):
             return
         event, goal_id = message.get("event"), message.get("goal_id")

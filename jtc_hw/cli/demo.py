@@ -241,12 +241,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
         return _demo(args, hardware, update_rate)
     finally:
         if emulator is not None:
-            emulator.send_signal(signal.SIGTERM)
-            try:
-                emulator.wait(timeout=10)
-            except subprocess.TimeoutExpired:
-                emulator.kill()
-                emulator.wait()
+            _stop(emulator, 10.0)
         if forward is not None:
             forward.join(5.0)  # its last lines (the statistics) after the demo's own
 
@@ -302,7 +297,7 @@ def _demo(args: argparse.Namespace, hardware: list[dict[str, Any]] | None, rate:
             except (OSError, JtcHwError) as exc:
                 if isinstance(exc, ClientConnectionError) and exc.code == NOT_EXPECTED:
                     # another daemon took the path: not ours to move
-                    _stop_daemon(daemon)
+                    _stop(daemon)
                     print(f"error: {_demo_refusal(config_path, str(exc))}", file=sys.stderr)
                     return EXIT_BAD_INPUT
                 if time.monotonic() > deadline:
@@ -345,20 +340,21 @@ def _demo(args: argparse.Namespace, hardware: list[dict[str, Any]] | None, rate:
             )
         finally:
             client.close()
-            status_code = _stop_daemon(daemon)
+            status_code = _stop(daemon)
         print(f"daemon stopped (SIGTERM), exit status {status_code}")
         return code if status_code == 0 else EXIT_NO_DAEMON
 
 
-def _stop_daemon(daemon: subprocess.Popen[str]) -> int:
-    """SIGTERM the demo's daemon and wait for it (SIGKILL after 20 s); its exit status."""
-    if daemon.poll() is None:
-        daemon.send_signal(signal.SIGTERM)
+def _stop(process: subprocess.Popen[str], timeout_s: float = 20.0) -> int:
+    """SIGTERM the demo's daemon or emulator and wait for it (SIGKILL after ``timeout_s``);
+    its exit status."""
+    if process.poll() is None:
+        process.send_signal(signal.SIGTERM)
     try:
-        return daemon.wait(timeout=20)
+        return process.wait(timeout=timeout_s)
     except subprocess.TimeoutExpired:
-        daemon.kill()
-        return daemon.wait()
+        process.kill()
+        return process.wait()
 
 
 def _demo_refusal(config_path: str, reason: str) -> str:

@@ -42,31 +42,26 @@ def cmd_rearm(args: argparse.Namespace) -> int:
         return EXIT_OK
 
 
-def _print_scaling(reply: dict[str, Any], what: str) -> None:
-    factor, target = reply["factor"], reply["target"]
-    ramp = "" if factor == target else f" (ramping from {factor:g})"
-    print(f"{what}: speed scaling {target:g}{ramp}")
+def _set_scaling(args: argparse.Namespace, what: str, **request: Any) -> int:
+    """Send ``set_speed_scaling(**request)`` and print the target (and the ramp) after ``what``."""
+    with connect(args) as client:
+        reply = client.set_speed_scaling(timeout_s=args.timeout, **request)
+        factor, target = reply["factor"], reply["target"]
+        ramp = "" if factor == target else f" (ramping from {factor:g})"
+        print(f"{what}: speed scaling {target:g}{ramp}")
+        return EXIT_OK
 
 
 def cmd_speed(args: argparse.Namespace) -> int:
-    with connect(args) as client:
-        reply = client.set_speed_scaling(args.factor, timeout_s=args.timeout)
-        _print_scaling(reply, "speed set")
-        return EXIT_OK
+    return _set_scaling(args, "speed set", factor=args.factor)
 
 
 def cmd_pause(args: argparse.Namespace) -> int:
-    with connect(args) as client:
-        reply = client.set_speed_scaling(0.0, timeout_s=args.timeout)
-        _print_scaling(reply, "paused ('jtc-hw resume' carries on)")
-        return EXIT_OK
+    return _set_scaling(args, "paused ('jtc-hw resume' carries on)", factor=0.0)
 
 
 def cmd_resume(args: argparse.Namespace) -> int:
-    with connect(args) as client:
-        reply = client.set_speed_scaling(resume=True, timeout_s=args.timeout)
-        _print_scaling(reply, "resumed")
-        return EXIT_OK
+    return _set_scaling(args, "resumed", resume=True)
 
 
 def add_parsers(sub: Any) -> None:

@@ -463,26 +463,21 @@ def _state_combination_reason(interfaces: frozenset[str]) -> str:
 
 
 def _check_interfaces(command: tuple[str, ...], state: tuple[str, ...]) -> None:
-    command_set = frozenset(command)
-    allowed_command = [frozenset(c) for c in ALLOWED_COMMAND_INTERFACE_COMBINATIONS]
-    if command_set not in allowed_command:
-        raise ConfigurationError(
-            f"combination {fmt_list(command)} is not supported: "
-            f"{_command_combination_reason(command_set)}; allowed combinations: "
-            + ", ".join(fmt_list(c) for c in ALLOWED_COMMAND_INTERFACE_COMBINATIONS),
-            "command_interfaces",
-            command,
-        )
-    state_set = frozenset(state)
-    if state_set not in [frozenset(c) for c in ALLOWED_STATE_INTERFACE_COMBINATIONS]:
-        raise ConfigurationError(
-            f"combination {fmt_list(state)} is not supported: "
-            f"{_state_combination_reason(state_set)}"
-            "; allowed combinations: "
-            + ", ".join(fmt_list(c) for c in ALLOWED_STATE_INTERFACE_COMBINATIONS),
-            "state_interfaces",
-            state,
-        )
+    for path, given, allowed, reason in (
+        ("command_interfaces", command, ALLOWED_COMMAND_INTERFACE_COMBINATIONS,
+         _command_combination_reason),
+        ("state_interfaces", state, ALLOWED_STATE_INTERFACE_COMBINATIONS,
+         _state_combination_reason),
+    ):
+        if frozenset(given) not in [frozenset(c) for c in allowed]:
+            raise ConfigurationError(
+                f"combination {fmt_list(given)} is not supported: "
+                f"{reason(frozenset(given))}; allowed combinations: "
+                + ", ".join(fmt_list(c) for c in allowed),
+                path,
+                given,
+            )
+    command_set, state_set = frozenset(command), frozenset(state)
     needs_velocity_state = (
         command_set == {"velocity"} or "effort" in command_set or "acceleration" in command_set
     )

@@ -36,7 +36,7 @@ from .controller import (
     not_a_joint,
 )
 from .limits import LIMIT_FIELDS, JointLimits
-from .schema import check_key, check_keys, check_value, expect_mapping, unknown_parameter
+from .schema import check_key, check_keys, check_value, expect_mapping
 from .values import closest, coerce_string_array, describe, did_you_mean
 
 __all__ = [
@@ -223,10 +223,7 @@ def build_config(
         ConfigurationError: an unknown key, a missing required parameter, a value of the wrong
             type or range; the message names the dotted key path.
     """
-    known = [*PARAMETERS, *SECTIONS]
-    for key in params:
-        if check_key(key, "") not in known:
-            raise unknown_parameter(key, known)
+    check_keys(params, [*PARAMETERS, *SECTIONS], "")
     for param in PARAMETERS.values():
         if param.required and param.name not in params:
             raise ConfigurationError(
@@ -363,6 +360,11 @@ def _plain(value: Any) -> Any:
     return list(value) if isinstance(value, tuple) else value
 
 
+def _values(obj: Any, table: Mapping[str, Any]) -> dict[str, Any]:
+    """The fields of ``obj`` that ``table`` names, by name, in the table's order."""
+    return {name: getattr(obj, name) for name in table}
+
+
 def config_to_dict(cfg: ControllerConfig, *, nested: bool = False) -> dict[str, Any]:
     """Return the configuration as plain data that :func:`load_config` reads back.
 
@@ -375,22 +377,14 @@ def config_to_dict(cfg: ControllerConfig, *, nested: bool = False) -> dict[str, 
     Returns:
         A new dict of dicts, lists, strings, numbers and booleans (YAML-safe).
     """
-    params: dict[str, Any] = {name: _plain(getattr(cfg, name)) for name in PARAMETERS}
-    params["constraints"] = {
-        **{name: getattr(cfg.constraints, name) for name in CONSTRAINT_PARAMETERS},
-        **{
-            joint: {name: getattr(jc, name) for name in JOINT_CONSTRAINT_PARAMETERS}
-            for joint, jc in cfg.constraints.joints.items()
-        },
-    }
-    params["gains"] = {
-        joint: {name: getattr(g, name) for name in GAIN_PARAMETERS}
-        for joint, g in cfg.gains.items()
-    }
+    params = {name: _plain(value) for name, value in _values(cfg, PARAMETERS).items()}
+    params["constraints"] = {**_values(cfg.constraints, CONSTRAINT_PARAMETERS), **{
+        joint: _values(jc, JOINT_CONSTRAINT_PARAMETERS)
+        for joint, jc in cfg.constraints.joints.items()
+    }}
+    params["gains"] = {joint: _values(g, GAIN_PARAMETERS) for joint, g in cfg.gains.items()}
     limits = limits_to_dict(cfg)
-    params["speed_scaling"] = {
-        name: getattr(cfg.speed_scaling, name) for name in SPEED_SCALING_PARAMETERS
-    }
+    params["speed_scaling"] = _values(cfg.speed_scaling, SPEED_SCALING_PARAMETERS)
     if not nested:
         params["limits"] = limits
         return params
@@ -409,7 +403,7 @@ def config_to_dict(cfg: ControllerConfig, *, nested: bool = False) -> dict[str, 
 def limits_to_dict(cfg: ControllerConfig) -> dict[str, Any]:
     """The ``limits`` section of ``cfg``: ``time_scaling`` and, per limited joint (in the
     order of ``joints``), the fields it limits (a URDF's included, so no ``urdf`` key)."""
-    out: dict[str, Any] = {name: getattr(cfg, name) for name in LIMITS_PARAMETERS}
+    out = _values(cfg, LIMITS_PARAMETERS)
     for joint in cfg.joints:
         lim = cfg.limits.get(joint)
         if lim is None:

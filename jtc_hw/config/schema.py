@@ -14,7 +14,7 @@ expected, with a "did you mean" where a name is close to a known one. No I/O.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Iterable, Mapping, Sequence
+from collections.abc import Callable, Collection, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from enum import Enum
 from types import MappingProxyType
@@ -180,9 +180,9 @@ def expect_mapping(value: Any, path: str, of: str = "") -> Mapping[Any, Any]:
 
 
 def check_keys(
-    mapping: Mapping[Any, Any], schema: Mapping[str, ParamSpec], path: str, of: str = ""
+    mapping: Mapping[Any, Any], schema: Collection[str], path: str, of: str = ""
 ) -> None:
-    """Every key of ``mapping`` is a string that a row of ``schema`` names.
+    """Every key of ``mapping`` is a string that ``schema`` names (a table, or the names).
 
     Raises:
         ConfigurationError: a key that is not a string, or unknown (see

@@ -78,13 +78,10 @@ class ControlLaw(SpeedScaling):
             pid_out = self._ff * ahead.velocities + self._pid.compute(
                 error[0], error[1], period_ns / NS_PER_S
             )
-        position = velocity = acceleration = effort = None
-        if self._cmd_pos:
-            position = ahead.positions
-        if self._cmd_vel:
-            velocity = pid_out if pid_out is not None else ahead.velocities
-        if self._cmd_acc:
-            acceleration = ahead.accelerations
+        position = ahead.positions if self._cmd_pos else None
+        velocity = (ahead.velocities if pid_out is None else pid_out) if self._cmd_vel else None
+        acceleration = ahead.accelerations if self._cmd_acc else None
+        effort = None
         if self._cmd_eff:
             assert pid_out is not None
             effort = pid_out + ahead.effort

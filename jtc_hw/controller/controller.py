@@ -123,15 +123,12 @@ class JointTrajectoryController(ControlLaw, Stops):
         *pid_gains, self._ff = self._gains(config)
         self._pid = Pid(*pid_gains)
         cmd = config.command_interfaces
-        self._cmd_pos = "position" in cmd
-        self._cmd_vel = "velocity" in cmd
-        self._cmd_acc = "acceleration" in cmd
-        self._cmd_eff = "effort" in cmd
+        self._cmd_fields = self._cmd_pos, self._cmd_vel, self._cmd_acc, self._cmd_eff = (
+            "position" in cmd, "velocity" in cmd, "acceleration" in cmd, "effort" in cmd)
         self._use_pid = config.use_pid
         self._has_vel_state = "velocity" in config.state_interfaces
         self._has_acc_state = "acceleration" in config.state_interfaces
         self._cmd_mask = _command_mask(config)
-        self._cmd_fields = (self._cmd_pos, self._cmd_vel, self._cmd_acc, self._cmd_eff)
         # Which errors exist (upstream 8.4): a velocity error only where velocity is commanded
         # (velocity or effort), an acceleration error only where acceleration is; otherwise 0,
         # so e.g. stopped_velocity_tolerance never blocks a position-commanded goal.

@@ -48,10 +48,7 @@ class Pid:
         u_max: F64 | float = np.inf,
         error_deadband: F64 | float = 0.0,
     ) -> None:
-        self.p = np.asarray(p, dtype=np.float64)
-        self.i = np.asarray(i, dtype=np.float64)
-        self.d = np.asarray(d, dtype=np.float64)
-        self.i_clamp = np.asarray(i_clamp, dtype=np.float64)
+        self.set_gains(p, i, d, i_clamp)
         self.u_min = np.broadcast_to(np.asarray(u_min, dtype=np.float64), self.p.shape)
         self.u_max = np.broadcast_to(np.asarray(u_max, dtype=np.float64), self.p.shape)
         self.error_deadband = np.broadcast_to(
@@ -65,10 +62,8 @@ class Pid:
     def set_gains(self, p: F64, i: F64, d: F64, i_clamp: F64) -> None:
         """New gains from the next ``compute``; the integral is kept (control_toolbox's
         ``set_gains``, which upstream calls when its parameters change)."""
-        self.p = np.asarray(p, dtype=np.float64)
-        self.i = np.asarray(i, dtype=np.float64)
-        self.d = np.asarray(d, dtype=np.float64)
-        self.i_clamp = np.asarray(i_clamp, dtype=np.float64)
+        self.p, self.i, self.d, self.i_clamp = (
+            np.asarray(gains, dtype=np.float64) for gains in (p, i, d, i_clamp))
 
     def reset(self) -> None:
         """Forget the integral and the previous output (activation, and entering a hold after

@@ -8,6 +8,7 @@ A mixin of :class:`~.controller.JointTrajectoryController`, which sets the state
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import TypeGuard
 
 import numpy as np
 
@@ -109,14 +110,16 @@ class Stops(SpeedScaling):
             Nothing.
         """
         v = state.velocities
-        if self._stop_decel is None or v is None or v.shape != (self._n,):
-            return 0.0
-        if not np.isfinite(v).all():
+        if self._stop_decel is None or not self._usable(v):
             return 0.0
         a = state.accelerations if self._has_acc_state else None
-        if a is None or a.shape != (self._n,) or not np.isfinite(a).all():
+        if not self._usable(a):
             a = np.zeros(self._n)
         return stop_duration_bound_s(v, a, self._stop_decel, self._stop_jerk)
+
+    def _usable(self, values: F64 | None) -> TypeGuard[F64]:
+        """Whether ``values`` are measured values of every joint, all finite."""
+        return values is not None and values.shape == (self._n,) and bool(np.isfinite(values).all())
 
     def _request_stop(self, transition: GoalTransition, reason: str) -> None:
         self._pending_stop = transition
@@ -126,17 +129,11 @@ class Stops(SpeedScaling):
         transition, self._pending_stop = self._pending_stop, None
         ex, self._execution = self._execution, None
         if ex is not None and ex.goal is not None and transition is not None:
-            code = (
-                ErrorCode.SUCCESSFUL
-                if transition is GoalTransition.CANCEL_DONE
-                else ErrorCode.INVALID_GOAL
-            )
             if transition is GoalTransition.CANCEL_DONE:
-                self._finish(
-                    ex.goal, transition, code, CANCELED_ON_REQUEST, now_ns, self._stop_reason
-                )
+                self._finish(ex.goal, transition, ErrorCode.SUCCESSFUL, CANCELED_ON_REQUEST,
+                             now_ns, self._stop_reason)
             else:
-                self._finish(ex.goal, transition, code, self._stop_reason, now_ns)
+                self._finish(ex.goal, transition, ErrorCode.INVALID_GOAL, self._stop_reason, now_ns)
         self._stop(now_ns, state, positions)
         self._commanding = True
 
@@ -159,12 +156,7 @@ class Stops(SpeedScaling):
             Nothing.
         """
         velocities = state.velocities
-        if (
-            self._stop_decel is None
-            or velocities is None
-            or velocities.shape != (self._n,)
-            or not np.isfinite(velocities).all()
-        ):
+        if self._stop_decel is None or not self._usable(velocities):
             self._hold(now_ns, positions)
             return
         # The reference runs on trajectory time (speed scaling): the stop starts there, and

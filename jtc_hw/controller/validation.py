@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import math
 import numbers
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from itertools import chain, repeat
 from operator import attrgetter, is_not
 from typing import Any
@@ -151,19 +151,7 @@ def _checked(
     for name in FIELDS:
         arrays[name].setflags(write=False)
         present[name].setflags(write=False)
-    return PreparedTrajectory(
-        joint_indices=joint_index,
-        start_time_ns=int(start_time_ns),
-        times_ns=times,
-        positions=arrays["positions"],
-        velocities=arrays["velocities"],
-        accelerations=arrays["accelerations"],
-        effort=arrays["effort"],
-        has_positions=has_p,
-        has_velocities=has_v,
-        has_accelerations=has_a,
-        has_effort=has_e,
-    )
+    return _prepared(joint_index, start_time_ns, times, arrays, present)
 
 
 def _prepare_points(
@@ -218,7 +206,7 @@ def _prepare_points(
                         f"{float(value)!r}; values must be finite"
                     )
             arrays[name][i] = values
-        _check_point_fields(config, i, present, point_index=i)
+        _check_point_fields(config, i, present)
     if any(present["effort"]) and not all(present["effort"]):
         missing = present["effort"].index(False)
         raise GoalRejected(
@@ -235,19 +223,21 @@ def _prepare_points(
                     "because allow_nonzero_velocity_at_trajectory_end is false"
                 )
     flags = {name: np.array(present[name], dtype=bool) for name in FIELDS}
-    return PreparedTrajectory(
-        joint_indices=joint_index,
-        start_time_ns=int(msg.start_time_ns),
-        times_ns=np.array(times, dtype=np.int64),
-        positions=arrays["positions"],
-        velocities=arrays["velocities"],
-        accelerations=arrays["accelerations"],
-        effort=arrays["effort"],
-        has_positions=flags["positions"],
-        has_velocities=flags["velocities"],
-        has_accelerations=flags["accelerations"],
-        has_effort=flags["effort"],
-    )
+    return _prepared(joint_index, msg.start_time_ns, np.array(times, dtype=np.int64), arrays, flags)
+
+
+def _prepared(
+    joint_index: NDArray[np.intp],
+    start_time_ns: int,
+    times: NDArray[np.int64],
+    arrays: Mapping[str, F64],
+    flags: Mapping[str, NDArray[np.bool_]],
+) -> PreparedTrajectory:
+    """The values and ``has_*`` flags, per name of :data:`FIELDS`, as a PreparedTrajectory."""
+    positions, velocities, accelerations, effort = (arrays[name] for name in FIELDS)
+    has_p, has_v, has_a, has_e = (flags[name] for name in FIELDS)
+    return PreparedTrajectory(joint_index, int(start_time_ns), times, positions, velocities,
+                              accelerations, effort, has_p, has_v, has_a, has_e)
 
 
 def _joint_columns(config: ControllerConfig, msg: JointTrajectory) -> NDArray[np.intp]:
@@ -282,38 +272,33 @@ def _joint_columns(config: ControllerConfig, msg: JointTrajectory) -> NDArray[np
     return np.asarray(cols, dtype=np.intp)
 
 
-def _check_point_fields(
-    config: ControllerConfig, i: int, present: dict[str, list[bool]], point_index: int
-) -> None:
-    has_p = present["positions"][i]
-    has_v = present["velocities"][i]
-    has_a = present["accelerations"][i]
-    has_e = present["effort"][i]
+def _check_point_fields(config: ControllerConfig, i: int, present: dict[str, list[bool]]) -> None:
+    has_p, has_v, has_a, has_e = (present[name][i] for name in FIELDS)
     if has_e and "effort" not in config.command_interfaces:
         raise GoalRejected(
-            f"point #{point_index}: effort is only used with the 'effort' command interface "
+            f"point #{i}: effort is only used with the 'effort' command interface "
             f"(configured: {', '.join(config.command_interfaces)}); remove the effort field"
         )
     if not (has_p or has_v or has_a):
         raise GoalRejected(
-            f"point #{point_index}: no positions, velocities or accelerations; a point needs "
+            f"point #{i}: no positions, velocities or accelerations; a point needs "
             "positions (or, with allow_integration_in_goal_trajectories, velocities or "
             "accelerations)"
         )
     if not has_p:
         if config.interpolation_method == "none":
             raise GoalRejected(
-                f"point #{point_index}: no positions; interpolation_method 'none' does not "
+                f"point #{i}: no positions; interpolation_method 'none' does not "
                 "integrate derivatives, so every point needs positions"
             )
         if not config.allow_integration_in_goal_trajectories:
             raise GoalRejected(
-                f"point #{point_index}: no positions; velocity- or acceleration-only points are "
+                f"point #{i}: no positions; velocity- or acceleration-only points are "
                 "accepted only with allow_integration_in_goal_trajectories: true"
             )
     elif has_a and not has_v:
         raise GoalRejected(
-            f"point #{point_index}: accelerations without velocities; a quintic spline needs "
+            f"point #{i}: accelerations without velocities; a quintic spline needs "
             "positions, velocities and accelerations (give velocities, or drop accelerations "
             "for linear interpolation)"
         )

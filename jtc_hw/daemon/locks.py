@@ -63,16 +63,15 @@ from __future__ import annotations
 
 import errno
 import fcntl
-import grp
 import logging
 import os
-import pwd
 import stat
 import tempfile
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Final
 
+from ..api.paths import account_name
 from ..errors import HardwareError
 from ..hardware import DeviceName
 
@@ -245,8 +244,8 @@ def check_directory(directory: str) -> str | None:
         return "is not a directory"
     mode = stat.S_IMODE(st.st_mode)
     if st.st_uid not in (0, uid):
-        return (f"belongs to user {_user_name(st.st_uid)} (mode {mode:04o}), who could deny or "
-                f"allow any start: it must be root's or this user's ({_user_name(uid)})")
+        return (f"belongs to user {account_name(st.st_uid)} (mode {mode:04o}), who could deny or "
+                f"allow any start: it must be root's or this user's ({account_name(uid)})")
     if mode & 0o007:
         return (f"mode {mode:04o} lets every user in (any of them could lock a device's file "
                 f"and deny a start): chmod o= {path}")
@@ -261,7 +260,7 @@ def check_directory(directory: str) -> str | None:
             return f"cannot read {parent} ({exc.strerror})"
         up_mode = stat.S_IMODE(up.st_mode)
         if up.st_uid not in (0, uid):
-            return (f"{parent} belongs to user {_user_name(up.st_uid)}, who could replace "
+            return (f"{parent} belongs to user {account_name(up.st_uid)}, who could replace "
                     f"the lock directory: use a directory under root's or this user's")
         if up_mode & (stat.S_IWGRP | stat.S_IWOTH) and not up_mode & stat.S_ISVTX:
             return (f"{parent} (mode {up_mode:04o}) lets other users replace the lock "
@@ -270,24 +269,11 @@ def check_directory(directory: str) -> str | None:
             break
         parent = os.path.dirname(parent)
     if not os.access(path, os.W_OK | os.X_OK):
-        return (f"is not writable by this user ({_user_name(uid)}; it is "
-                f"{_user_name(st.st_uid)}:{_group_name(st.st_gid)} {mode:04o}): add the "
-                f"daemon's user to group {_group_name(st.st_gid)}")
+        group = account_name(st.st_gid, group=True)
+        return (f"is not writable by this user ({account_name(uid)}; it is "
+                f"{account_name(st.st_uid)}:{group} {mode:04o}): add the daemon's user to group "
+                f"{group}")
     return None
-
-
-def _user_name(uid: int) -> str:
-    try:
-        return pwd.getpwuid(uid).pw_name
-    except KeyError:
-        return str(uid)
-
-
-def _group_name(gid: int) -> str:
-    try:
-        return grp.getgrgid(gid).gr_name
-    except KeyError:
-        return str(gid)
 
 
 def socket_lock_path(socket_path: str) -> str:
@@ -516,12 +502,12 @@ def _find_owner(fd: int) -> _Owner:
         except OSError:
             pass  # gone meanwhile, or hidden (ProtectProc=invisible)
         else:
-            return _Owner(pid, recorded.config, _user_name(uid))
+            return _Owner(pid, recorded.config, account_name(uid))
     try:
         file_owner = os.fstat(fd).st_uid
     except OSError:
         return _Owner(pid, recorded.config)
-    return _Owner(pid, recorded.config, _user_name(file_owner), user_is_file_owner=True)
+    return _Owner(pid, recorded.config, account_name(file_owner), user_is_file_owner=True)
 
 
 def _flock_holder(fd: int) -> int | None:

@@ -26,6 +26,7 @@ import os
 import platform
 import resource
 from collections.abc import Sequence
+from typing import Any
 
 from ..errors import ConfigurationError
 
@@ -164,6 +165,16 @@ def _apply_affinity(cpus: frozenset[int]) -> str:
     return f"CPU affinity set to CPUs {_cpu_list(set(cpus))}"
 
 
+def libc_function(name: str) -> Any:
+    """The C library's function ``name`` (``errno`` kept for ``ctypes.get_errno``), or None
+    where there is none. The interpreter is linked against libc: its own symbol table has
+    it, and ``find_library`` would spawn ldconfig to find the same library."""
+    try:
+        return getattr(ctypes.CDLL(None, use_errno=True), name)
+    except (OSError, AttributeError):
+        return None
+
+
 def _mcl_flags() -> tuple[int, int]:
     """``(MCL_CURRENT, MCL_FUTURE)``: most architectures use 1, 2; a few use their own values."""
     machine = platform.machine().lower()
@@ -179,12 +190,8 @@ def _mcl_onfault() -> int:
 
 
 def _apply_memory_lock() -> str:
-    try:
-        # The interpreter is linked against libc: its own symbol table has mlockall, and
-        # find_library would spawn ldconfig to find the same library.
-        libc = ctypes.CDLL(None, use_errno=True)
-        mlockall = libc.mlockall
-    except (OSError, AttributeError):
+    mlockall = libc_function("mlockall")
+    if mlockall is None:
         return "memory locking not supported on this platform (no mlockall in libc); skipped"
     mlockall.argtypes = [ctypes.c_int]
     mlockall.restype = ctypes.c_int
@@ -280,10 +287,8 @@ def keep_freed_memory() -> str:
     Returns:
         A log line saying what was done.
     """
-    try:
-        libc = ctypes.CDLL(None, use_errno=True)
-        mallopt = libc.mallopt
-    except (OSError, AttributeError):
+    mallopt = libc_function("mallopt")
+    if mallopt is None:
         return "allocator left unchanged (no glibc mallopt)"
     ok = mallopt(_M_MMAP_THRESHOLD, ctypes.c_int(_MALLOC_KEEP_BYTES)) == 1
     ok = mallopt(_M_TRIM_THRESHOLD, ctypes.c_int(_MALLOC_KEEP_BYTES)) == 1 and ok
@@ -309,9 +314,8 @@ def return_freed_memory_promptly() -> str:
     Returns:
         A log line saying what was done.
     """
-    try:
-        mallopt = ctypes.CDLL(None, use_errno=True).mallopt
-    except (OSError, AttributeError):
+    mallopt = libc_function("mallopt")
+    if mallopt is None:
         return "allocator left unchanged (no glibc mallopt)"
     if mallopt(_M_TRIM_THRESHOLD, ctypes.c_int(_RETURN_ABOVE_BYTES)) != 1:
         return "allocator left unchanged (mallopt refused)"
@@ -352,10 +356,8 @@ def disable_huge_pages() -> str:
     Raises:
         Nothing.
     """
-    try:
-        libc = ctypes.CDLL(None, use_errno=True)
-        prctl = libc.prctl
-    except (OSError, AttributeError):
+    prctl = libc_function("prctl")
+    if prctl is None:
         return "transparent huge pages left as they are (no prctl)"
     if prctl(_PR_SET_THP_DISABLE, 1, 0, 0, 0) != 0:
         return f"transparent huge pages left as they are (prctl: errno {ctypes.get_errno()})"
@@ -376,8 +378,7 @@ def release_freed_memory() -> bool:
     Raises:
         Nothing.
     """
-    try:
-        trim = ctypes.CDLL(None).malloc_trim
-    except (OSError, AttributeError):
+    trim = libc_function("malloc_trim")
+    if trim is None:
         return False
     return bool(trim(ctypes.c_size_t(0)))

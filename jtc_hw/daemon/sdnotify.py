@@ -36,7 +36,8 @@ class Notifier:
     """Sends state notifications to the service manager named by ``NOTIFY_SOCKET``.
 
     Every sending method returns ``True`` when the datagram was handed to the kernel and ``False``
-    when notification is disabled or the send failed. All methods may be called from any thread.
+    when notification is disabled or the send failed (logged; a failed send never raises). All
+    methods may be called from any thread.
 
     Attributes:
         address: the socket address (``bytes`` with a leading NUL for the abstract namespace,
@@ -77,12 +78,6 @@ class Notifier:
 
         Args:
             status: optional one-line status shown by ``systemctl status``.
-
-        Returns:
-            Whether the datagram was sent.
-
-        Raises:
-            Nothing: send failures are logged and reported by the return value.
         """
         return self.send(_with_status("READY=1", status))
 
@@ -91,24 +86,11 @@ class Notifier:
 
         Args:
             text: the status; newlines are replaced by spaces (the protocol is line based).
-
-        Returns:
-            Whether the datagram was sent.
-
-        Raises:
-            Nothing: send failures are logged and reported by the return value.
         """
         return self.send("STATUS=" + _one_line(text))
 
     def watchdog(self) -> bool:
-        """Pings the service watchdog (``WATCHDOG=1``); call every :attr:`watchdog_interval_s`.
-
-        Returns:
-            Whether the datagram was sent.
-
-        Raises:
-            Nothing: send failures are logged and reported by the return value.
-        """
+        """Pings the service watchdog (``WATCHDOG=1``); call every :attr:`watchdog_interval_s`."""
         return self.send("WATCHDOG=1")
 
     def stopping(self, status: str | None = None) -> bool:
@@ -116,12 +98,6 @@ class Notifier:
 
         Args:
             status: optional one-line status, e.g. what the shutdown is waiting for.
-
-        Returns:
-            Whether the datagram was sent.
-
-        Raises:
-            Nothing: send failures are logged and reported by the return value.
         """
         return self.send(_with_status("STOPPING=1", status))
 
@@ -131,12 +107,6 @@ class Notifier:
         ``MONOTONIC_USEC`` (``CLOCK_MONOTONIC`` now, in microseconds) is included as systemd 253+
         requires for ``Type=notify-reload``; older managers ignore it. Send :meth:`ready` when the
         reload is complete.
-
-        Returns:
-            Whether the datagram was sent.
-
-        Raises:
-            Nothing: send failures are logged and reported by the return value.
         """
         usec = time.clock_gettime_ns(time.CLOCK_MONOTONIC) // 1000
         return self.send(f"RELOADING=1\nMONOTONIC_USEC={usec}")

@@ -433,33 +433,18 @@ def daemon_settings(raw: Any, base_dir: str) -> DaemonSettings:
         )
     else:
         socket = os.path.normpath(os.path.join(base_dir, os.path.expanduser(socket)))
-    tcp = values["tcp"]
-    realtime = values["realtime"]
-    return DaemonSettings(
-        socket=socket,
-        socket_mode=values["socket_mode"],
-        socket_group=values["socket_group"],
-        tcp=None if tcp is None else TcpSettings(**tcp),
-        max_clients=values["max_clients"],
-        idle_timeout_s=values["idle_timeout_s"],
-        max_message_bytes=values["max_message_bytes"],
-        realtime=RealtimeSettings(**realtime),
-        api_stall_s=values["api_stall_s"],
-        log_level=values["log_level"],
-        foxglove=None if values["foxglove"] is None else FoxgloveSettings(**values["foxglove"]),
-        flight_recorder_s=values["flight_recorder_s"],
-        flight_recorder_dir=_flight_recorder_dir(values["flight_recorder_dir"], base_dir),
-        flight_recorder_keep=values["flight_recorder_keep"],
-        record=None if values["record"] is None else _directory(values["record"], base_dir,
-                                                                 "daemon.record"),
-        zenoh=None if values["zenoh"] is None else zenoh_settings(values["zenoh"], base_dir),
-    )
-
-
-def _flight_recorder_dir(value: str | None, base_dir: str) -> str:
-    if value is None:
-        return default_flight_recorder_dir()
-    return _directory(value, base_dir, "daemon.flight_recorder_dir")
+    record, flight_dir = values["record"], values["flight_recorder_dir"]
+    return DaemonSettings(**{
+        **values,
+        "socket": socket,
+        "tcp": None if values["tcp"] is None else TcpSettings(**values["tcp"]),
+        "realtime": RealtimeSettings(**values["realtime"]),
+        "foxglove": None if values["foxglove"] is None else FoxgloveSettings(**values["foxglove"]),
+        "flight_recorder_dir": default_flight_recorder_dir() if flight_dir is None
+        else _directory(flight_dir, base_dir, "daemon.flight_recorder_dir"),
+        "record": None if record is None else _directory(record, base_dir, "daemon.record"),
+        "zenoh": None if values["zenoh"] is None else zenoh_settings(values["zenoh"], base_dir),
+    })
 
 
 def _directory(value: str, base_dir: str, path: str) -> str:

@@ -7,7 +7,7 @@ arrays computed once, and fans the lifecycle, reads and writes out to every comp
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from typing import Any, Final
 
 import numpy as np
@@ -168,18 +168,7 @@ class HardwareSet:
             HardwareError: a component failed to configure (rollback errors attached as notes).
         """
         self._guard("configure")
-        done: list[HardwareInterface] = []
-        for comp in self._components:
-            try:
-                comp.configure()
-            except BaseException as exc:
-                for other in reversed(done):
-                    try:
-                        other.cleanup()
-                    except Exception as rollback:  # noqa: BLE001 - reported as a note
-                        add_note(exc, f"rolling back {other.name!r} failed: {rollback}")
-                raise
-            done.append(comp)
+        self._in_turn(lambda comp, _: comp.configure(), lambda comp: comp.cleanup())
 
     def activate(self, now_ns: int) -> JointCommand:
         """Activate every component; if one fails, deactivate those already active.
@@ -195,23 +184,36 @@ class HardwareSet:
         """
         self._guard("activate")
         held = [np.full(self._n, np.nan) if on else None for on in self._command_fields]
-        done: list[HardwareInterface] = []
-        for comp, index in self._pairs:
-            try:
-                command = comp.activate(now_ns)
-            except BaseException as exc:
-                for other in reversed(done):
-                    try:
-                        other.deactivate(now_ns)
-                    except Exception as rollback:  # noqa: BLE001 - reported as a note
-                        add_note(exc, f"rolling back {other.name!r} failed: {rollback}")
-                raise
-            done.append(comp)
+
+        def activate(comp: HardwareInterface, index: NDArray[np.intp]) -> None:
+            command = comp.activate(now_ns)
             values = (command.positions, command.velocities, command.accelerations, command.effort)
             for merged, part in zip(held, values, strict=True):
                 if merged is not None and part is not None:
                     merged[index] = part
+
+        self._in_turn(activate, lambda comp: comp.deactivate(now_ns))
         return JointCommand(*held)
+
+    def _in_turn(
+        self,
+        step: Callable[[HardwareInterface, NDArray[np.intp]], None],
+        undo: Callable[[HardwareInterface], None],
+    ) -> None:
+        """``step`` on each component (with its joints' indices) in turn; if one fails,
+        ``undo`` on those it succeeded on, last first (their errors attached as notes)."""
+        done: list[HardwareInterface] = []
+        for comp, index in self._pairs:
+            try:
+                step(comp, index)
+            except BaseException as exc:
+                for other in reversed(done):
+                    try:
+                        undo(other)
+                    except Exception as rollback:  # noqa: BLE001 - reported as a note
+                        add_note(exc, f"rolling back {other.name!r} failed: {rollback}")
+                raise
+            done.append(comp)
 
     def read(self, now_ns: int) -> JointState:
         """Read every component once; return the state in the controller's joint order.
@@ -222,18 +224,7 @@ class HardwareSet:
         """
         if self._identity:
             return self._components[0].read(now_ns)
-        n = self._n
-        positions = np.full(n, np.nan)
-        velocities = np.full(n, np.nan) if self._velocity_state else None
-        accelerations = np.full(n, np.nan) if self._acceleration_state else None
-        for comp, index in self._pairs:
-            part = comp.read(now_ns)
-            positions[index] = part.positions
-            if velocities is not None and part.velocities is not None:
-                velocities[index] = part.velocities
-            if accelerations is not None and part.accelerations is not None:
-                accelerations[index] = part.accelerations
-        return JointState(positions, velocities, accelerations)
+        return self._merged((comp.read(now_ns), index) for comp, index in self._pairs)
 
     def monitor(self, now_ns: int) -> JointState | None:
         """Each INACTIVE component's :meth:`HardwareInterface.monitor` (the loop, while
@@ -246,6 +237,10 @@ class HardwareSet:
         parts = [(comp.monitor(now_ns), index) for comp, index in self._pairs]
         if all(part is None for part, _ in parts):
             return None
+        return self._merged(parts)
+
+    def _merged(self, parts: Iterable[tuple[JointState | None, NDArray[np.intp]]]) -> JointState:
+        """The components' states in the controller's joint order (NaN for joints not read)."""
         n = self._n
         positions = np.full(n, np.nan)
         velocities = np.full(n, np.nan) if self._velocity_state else None
@@ -270,16 +265,9 @@ class HardwareSet:
         if self._identity:
             self._components[0].write(now_ns, command)
             return
+        values = (command.positions, command.velocities, command.accelerations, command.effort)
         for comp, index in self._pairs:
-            comp.write(
-                now_ns,
-                JointCommand(
-                    _take(command.positions, index),
-                    _take(command.velocities, index),
-                    _take(command.accelerations, index),
-                    _take(command.effort, index),
-                ),
-            )
+            comp.write(now_ns, JointCommand(*(_take(v, index) for v in values)))
 
     def deactivate(self, now_ns: int) -> None:
         """Deactivate every component (each performs its safe action), even if one fails.

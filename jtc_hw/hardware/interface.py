@@ -348,14 +348,10 @@ class HardwareInterface(ABC):
         if state is not LifecycleState.ACTIVE and state is not LifecycleState.INACTIVE:
             raise _lifecycle_error(self._owner(), "read", state)
         try:
-            result = self._read(now_ns)
-        except JtcHwError as exc:
+            result: JointState = self._call("read", self._read, now_ns)
+        except Exception:
             self._read_errors += 1
-            self._last_fault = str(exc)
             raise
-        except Exception as exc:
-            self._read_errors += 1
-            raise self._wrapped("read", exc) from exc
         if (
             result.positions.shape != self._shape
             or (self._velocity_state and (
@@ -394,14 +390,10 @@ class HardwareInterface(ABC):
         if state is not LifecycleState.ACTIVE:
             raise _lifecycle_error(self._owner(), "write", state)
         try:
-            self._write(now_ns, command)
-        except JtcHwError as exc:
+            self._call("write", self._write, now_ns, command)
+        except Exception:
             self._write_errors += 1
-            self._last_fault = str(exc)
             raise
-        except Exception as exc:
-            self._write_errors += 1
-            raise self._wrapped("write", exc) from exc
         self._writes += 1
 
     def monitor(self, now_ns: int) -> JointState | None:
@@ -656,12 +648,8 @@ class HardwareInterface(ABC):
 
     def nan_command(self) -> JointCommand:
         """A command holding ``NaN`` for every configured interface (``None`` for the others)."""
-        n = len(self.joints)
-        fields = [
-            np.full(n, np.nan) if iface in self.command_interfaces else None
-            for iface in COMMAND_INTERFACE_TYPES
-        ]
-        return JointCommand(*fields)
+        return JointCommand(*(np.full(self._shape, np.nan) if iface in self.command_interfaces
+                              else None for iface in COMMAND_INTERFACE_TYPES))
 
     # -- primitives ---------------------------------------------------------------------------
 
@@ -717,21 +705,20 @@ class HardwareInterface(ABC):
         if self._state not in _ALLOWED[method]:
             raise _lifecycle_error(self._owner(), method, self._state)
 
-    def _wrapped(self, method: str, exc: BaseException) -> HardwareError:
-        error = HardwareError(
-            f"{self._owner()}: {method} failed: {type(exc).__name__}: {one_line(exc)}"
-        )
-        self._last_fault = str(error)
-        return error
-
     def _call(self, method: str, function: Callable[..., Any], *args: Any) -> Any:
+        """``function(*args)``; its error, a foreign one wrapped in a :class:`HardwareError`
+        naming the component, is the last fault."""
         try:
             return function(*args)
         except JtcHwError as exc:
             self._last_fault = str(exc)
             raise
         except Exception as exc:
-            raise self._wrapped(method, exc) from exc
+            error = HardwareError(
+                f"{self._owner()}: {method} failed: {type(exc).__name__}: {one_line(exc)}"
+            )
+            self._last_fault = str(error)
+            raise error from exc
 
     def _held_command(self, held: Any) -> JointCommand:
         if not isinstance(held, JointCommand):

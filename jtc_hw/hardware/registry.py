@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import importlib
 import logging
-from collections.abc import Iterable, Mapping
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from importlib import metadata
 from types import MappingProxyType
@@ -139,14 +139,18 @@ def available_hardware() -> tuple[str, ...]:
     return tuple(sorted(_entries()))
 
 
-def _unknown_kind(kind: Any, path: str, kinds: Iterable[str]) -> ConfigurationError:
-    kinds = sorted(kinds)
-    return ConfigurationError(
-        f"unknown hardware kind {kind!r}; available kinds: {', '.join(kinds)}"
-        f"{did_you_mean(str(kind), kinds)}",
-        path,
-        kind,
-    )
+def _entry(kind: Any, path: str) -> _Entry:
+    """The registration of ``kind`` (unknown: a ConfigurationError listing the known ones)."""
+    entries = _entries()
+    if not isinstance(kind, str) or kind not in entries:
+        kinds = sorted(entries)
+        raise ConfigurationError(
+            f"unknown hardware kind {kind!r}; available kinds: {', '.join(kinds)}"
+            f"{did_you_mean(str(kind), kinds)}",
+            path,
+            kind,
+        )
+    return entries[kind]
 
 
 def check_hardware_kind(kind: Any, path: str = "kind") -> None:
@@ -155,9 +159,7 @@ def check_hardware_kind(kind: Any, path: str = "kind") -> None:
     Raises:
         ConfigurationError: unknown kind; the message lists the available kinds.
     """
-    entries = _entries()
-    if not isinstance(kind, str) or kind not in entries:
-        raise _unknown_kind(kind, path, entries)
+    _entry(kind, path)
 
 
 def _import_factory(kind: str, entry: _Entry, path: str) -> type[HardwareInterface]:
@@ -222,10 +224,7 @@ def hardware_class(kind: str, path: str = "kind") -> type[HardwareInterface]:
             optional dependency (the message names the ``pip install`` to run), or a
             registration that does not lead to a HardwareInterface subclass.
     """
-    entries = _entries()
-    if not isinstance(kind, str) or kind not in entries:
-        raise _unknown_kind(kind, path, entries)
-    return _import_factory(kind, entries[kind], path)
+    return _import_factory(kind, _entry(kind, path), path)
 
 
 @dataclass(frozen=True)

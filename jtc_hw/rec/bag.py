@@ -192,6 +192,10 @@ def typestore() -> Any:
     return store
 
 
+_POINT_FIELDS = ("positions", "velocities", "accelerations", "effort")
+"""The value fields of a ``JointTrajectoryPoint``."""
+
+
 def _floats(values: Sequence[float | None] | None) -> Any:
     """A float64 array for a message field; the socket's ``null`` (no value) becomes NaN."""
     if not values:
@@ -382,17 +386,16 @@ class BagRecorder:
 
         self._guard(f"writing {topic}", write)
 
+    def _trajectory_point(self, values: Sequence[Any], time_from_start: Any) -> Any:
+        """A ``JointTrajectoryPoint`` of the arrays of :data:`_POINT_FIELDS`, in that order."""
+        return self._store.types["trajectory_msgs/msg/JointTrajectoryPoint"](
+            **dict(zip(_POINT_FIELDS, values, strict=True)), time_from_start=time_from_start)
+
     def _point(self, values: Mapping[str, Any] | None) -> Any:
-        Point = self._store.types["trajectory_msgs/msg/JointTrajectoryPoint"]
         values = values or {}
         t = values.get("time_from_start") or 0.0
-        return Point(
-            positions=_floats(values.get("positions")),
-            velocities=_floats(values.get("velocities")),
-            accelerations=_floats(values.get("accelerations")),
-            effort=_floats(values.get("effort")),
-            time_from_start=self._time("Duration", round(t * 1e9)),
-        )
+        return self._trajectory_point([_floats(values.get(name)) for name in _POINT_FIELDS],
+                                      self._time("Duration", round(t * 1e9)))
 
     def _multi_dof_point(self) -> Any:
         Point = self._store.types["trajectory_msgs/msg/MultiDOFJointTrajectoryPoint"]
@@ -438,30 +441,25 @@ class BagRecorder:
             values = row[layout.block(name)]
             return values if not np.isnan(values).all() else np.zeros(0, dtype=np.float64)
 
-        Point = self._store.types["trajectory_msgs/msg/JointTrajectoryPoint"]
+        empty = np.zeros(0, dtype=np.float64)
 
         def point(prefix: str, t: float, effort: bool = True) -> Any:
-            return Point(
-                positions=block(f"{prefix}_positions"),
-                velocities=block(f"{prefix}_velocities"),
-                accelerations=block(f"{prefix}_accelerations"),
-                effort=block(f"{prefix}_effort") if effort else np.zeros(0, dtype=np.float64),
-                time_from_start=self._time("Duration", 0 if math.isnan(t) else round(t * 1e9)))
+            values = [block(f"{prefix}_{name}") for name in _POINT_FIELDS[:3]]
+            return self._trajectory_point(
+                [*values, block(f"{prefix}_effort") if effort else empty],
+                self._time("Duration", 0 if math.isnan(t) else round(t * 1e9)))
 
         ref_t = float(row[layout.column("reference_time_from_start")])
         fb_t = float(row[layout.column("feedback_time_from_start")])
         feedback = point("measured", fb_t, effort=False)
         reference = point("reference", ref_t)
-        empty = np.zeros(0, dtype=np.float64)
 
-        def difference(a: Any, b: Any) -> Any:
+        def difference(name: str) -> Any:
+            a, b = getattr(reference, name), getattr(feedback, name)
             return a - b if len(a) and len(a) == len(b) else empty
 
-        error = Point(
-            positions=difference(reference.positions, feedback.positions),
-            velocities=difference(reference.velocities, feedback.velocities),
-            accelerations=difference(reference.accelerations, feedback.accelerations),
-            effort=empty, time_from_start=reference.time_from_start)
+        error = self._trajectory_point([*map(difference, _POINT_FIELDS[:3]), empty],
+                                       reference.time_from_start)
         scaling = float(row[layout.column("speed_scaling")])
         self._state(time_ns, list(names), reference, feedback, error, point("output", ref_t),
                     1.0 if math.isnan(scaling) else scaling)
@@ -489,13 +487,11 @@ class BagRecorder:
                 topic, "trajectory_msgs/msg/JointTrajectory", typestore=self._store)
             self._connections[topic] = self._command_connection
         types = self._store.types
-        Point = types["trajectory_msgs/msg/JointTrajectoryPoint"]
         Header = types["std_msgs/msg/Header"]
         Message = types["trajectory_msgs/msg/JointTrajectory"]
         points = [
-            Point(positions=_floats(point.positions), velocities=_floats(point.velocities),
-                  accelerations=_floats(point.accelerations), effort=_floats(point.effort),
-                  time_from_start=self._time("Duration", int(point.time_from_start_ns)))
+            self._trajectory_point([_floats(getattr(point, name)) for name in _POINT_FIELDS],
+                                   self._time("Duration", int(point.time_from_start_ns)))
             for point in trajectory.points
         ]
         start = int(trajectory.start_time_ns)

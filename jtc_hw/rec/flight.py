@@ -316,15 +316,12 @@ class FlightRecorder:
                         recorder.command(message, t)
             finally:
                 recorder.close()
-        except RecordingFailed as exc:  # the message names the bag and what it holds
-            with self._lock:
-                self.errors += 1
-            log.error("flight recorder: %s", exc)
-            return
         except Exception as exc:  # noqa: BLE001 - a full disk must not take the daemon down
             with self._lock:
                 self.errors += 1
-            log.error("flight recorder: could not write %s: %s", path, exc)
+            # A RecordingFailed's message names the bag and what it holds.
+            log.error("flight recorder: %s", exc if isinstance(exc, RecordingFailed)
+                      else f"could not write {path}: {exc}")
             return
         with self._lock:
             self.last_file = str(path)

@@ -42,6 +42,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from ..realtime import libc_function
+
 __all__ = ["Inbox", "PlanWriter", "encode_message", "send_framed"]
 
 _HEADER = struct.Struct("!i")
@@ -255,9 +257,8 @@ def _receive_buffer(size: int) -> _Buffer:
 
 def _munlock(address: int, length: int) -> None:
     """``munlock`` a range of this process's memory (errors ignored: best effort)."""
-    try:
-        munlock = ctypes.CDLL(None, use_errno=True).munlock
-    except (OSError, AttributeError):
+    munlock = libc_function("munlock")
+    if munlock is None:
         return
     munlock.argtypes = [ctypes.c_void_p, ctypes.c_size_t]
     munlock(address, length)

@@ -25,12 +25,13 @@ from __future__ import annotations
 import asyncio
 import logging
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
 import numpy as np
 
+from ...api.events import result_event
 from ...config.controller_file import config_to_dict
 from ...controller.config import ControllerConfig
 from ...controller.goals import ErrorCode, GoalResult, GoalStatus, TrajectoryStopped
@@ -61,7 +62,7 @@ from ..channel.messages import (
 from ..realtime import release_freed_memory
 from ..robot import RobotConfig, joint_position_limits
 from .backend_api import Accepted, Observer
-from .observers import Observers, Recorders, result_record, state_json
+from .observers import Observers, Recorders, state_json
 from .supervision import LoopProcess
 
 log = logging.getLogger("jtc_hw.backend")
@@ -281,7 +282,8 @@ class LoopBackend:
     def _finish_goal(self, result: GoalResult) -> None:
         if self.recorders.flight is not None:
             result = self.recorders.annotate(result)
-            self.observers.record(result_record(result))
+            # As recordings keep it (``goal_events``' JSON): the socket's result event.
+            self.observers.record(result_event(result))
         self._open_goals.pop(result.goal_id, None)
         if result.goal_id == self._active_goal:
             self._active_goal = None
@@ -387,30 +389,15 @@ class LoopBackend:
             GoalRejected: invalid goal, beyond the joint limits, or the loop kept refusing the
                 plan.
         """
-        check_position_limits(traj, self._position_limits)
-        sent = traj  # as the client sent it (the observers see it so: stamped on the clock)
-        traj = self._stamp_in_trajectory_time(traj)
-        made: list[Plan] = []  # the last plan made is the one committed
-
-        def make(ref: Trajectory, ver: int, now: int, valid_from: int) -> Plan:
-            plan = self._planner.plan_goal(
-                ref,
-                ver,
-                now,
-                traj,
-                path_tolerance,
-                goal_tolerance,
-                goal_time_tolerance,
-                valid_from,
-                time_scaling,
-            )
-            made.append(plan)
-            return plan
-
-        goal_id = await self._plan_and_commit(make, len(traj.points))
+        goal_id, plan = await self._plan_and_commit(
+            traj,
+            lambda t, ref, ver, now, valid_from: self._planner.plan_goal(
+                ref, ver, now, t, path_tolerance, goal_tolerance, goal_time_tolerance,
+                valid_from, time_scaling,
+            ),
+        )
         assert goal_id is not None
-        self.observers.command(sent, goal_id)
-        return Accepted.of(goal_id, made[-1].time_scaling)
+        return Accepted.of(goal_id, plan.time_scaling)
 
     async def send_trajectory(
         self, traj: JointTrajectory, *, time_scaling: str | None = None
@@ -430,19 +417,12 @@ class LoopBackend:
             await self.loop.request(Stop())
             self.observers.command(traj, None)
             return None
-        check_position_limits(traj, self._position_limits)
-        sent = traj
-        traj = self._stamp_in_trajectory_time(traj)
-        made: list[Plan] = []
-
-        def make(ref: Trajectory, ver: int, now: int, valid_from: int) -> Plan:
-            plan = self._planner.plan_trajectory(ref, ver, now, traj, valid_from, time_scaling)
-            made.append(plan)
-            return plan
-
-        await self._plan_and_commit(make, len(traj.points))
-        self.observers.command(sent, None)
-        return made[-1].time_scaling
+        _, plan = await self._plan_and_commit(
+            traj,
+            lambda t, ref, ver, now, valid_from: self._planner.plan_trajectory(
+                ref, ver, now, t, valid_from, time_scaling),
+        )
+        return plan.time_scaling
 
     async def stop_motion(self) -> bool:
         """End any motion and hold; False if the controller is not active (nothing to stop).
@@ -541,12 +521,6 @@ class LoopBackend:
         planned = tau + round((planned_ns - t) * fastest)
         return planned, min(tau, tau + round((valid_from_ns - t) * min(factor, target)))
 
-    def _stamp_in_trajectory_time(self, traj: JointTrajectory) -> JointTrajectory:
-        if self._timebase is None:
-            return traj
-        t, tau, factor, _ = self._timebase
-        return in_trajectory_time(traj, t, tau, factor)
-
     def _release_memory(self, delay_s: float) -> None:
         """Return freed memory to the system in ``delay_s``, in the planning thread (it walks
         the heap: not in the event loop's thread); one pending release covers them all."""
@@ -569,7 +543,19 @@ class LoopBackend:
         the cycle a small plan waits for."""
         return (-(-nbytes // self.loop.bytes_per_cycle) - 1) * self._period_ns
 
-    async def _plan_and_commit(self, make: Any, points: int) -> int | None:
+    async def _plan_and_commit(
+        self, sent: JointTrajectory, make: Callable[..., Plan]
+    ) -> tuple[int | None, Plan]:
+        """Check ``sent`` against the position limits, plan it in trajectory time with
+        ``make(trajectory, reference, version, now_ns, valid_from_ns)`` (in the planning
+        thread) and commit the plan; once committed the observers see ``sent`` as the client
+        sent it. Returns the plan's goal id (None: a topic trajectory) and the plan."""
+        check_position_limits(sent, self._position_limits)
+        traj = sent
+        if self._timebase is not None:
+            t, tau, factor, _ = self._timebase
+            traj = in_trajectory_time(sent, t, tau, factor)
+        points = len(traj.points)
         aio = asyncio.get_running_loop()
         # Plan far enough ahead for the plan to reach the loop: a 2,000-point plan is 2.4 MB,
         # several cycles of the loop's inbox budget.
@@ -589,7 +575,7 @@ class LoopBackend:
             # up to a period before now: keep the current reference from there.
             valid_from = begin - 2 * self._period_ns
             plan: Plan = await aio.run_in_executor(
-                self._executor, make, ref, version, *self._plan_times(planned, valid_from)
+                self._executor, make, traj, ref, version, *self._plan_times(planned, valid_from)
             )
             took = self.now_ns() - begin
             if points >= 100:  # fixed costs are noise by then
@@ -610,7 +596,8 @@ class LoopBackend:
                 self._release_memory(TRIM_DELAY_S)  # the fitting's temporaries, the request
             match reply:
                 case Committed(goal_id=goal_id):
-                    return goal_id
+                    self.observers.command(sent, goal_id)
+                    return goal_id, plan
                 case Stale(reason=reason) if reason.startswith("not active"):
                     raise GoalRejected(f"the controller is {reason}")
                 case Stale(reason=reason):

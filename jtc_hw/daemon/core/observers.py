@@ -140,15 +140,6 @@ def state_json(state: State, joint_names: Sequence[str]) -> dict[str, Any]:
     }
 
 
-def result_record(result: GoalResult) -> dict[str, Any]:
-    """A result as recordings keep it (``goal_events``' JSON, docs/recording.md)."""
-    return {
-        "event": "result", "goal_id": result.goal_id, "status": result.status.value,
-        "error_code": int(result.error_code), "error_string": result.error_string,
-        "details": result.details, "time_ns": result.time_ns,
-    }
-
-
 class Recorders:
     """The observer writing bags: the flight recorder (made by :meth:`start`, fed every cycle
     through the loop's ring) and ``daemon.record``'s recording.

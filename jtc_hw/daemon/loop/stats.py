@@ -67,12 +67,7 @@ class LoopStats:
         self.window = window
         self._lateness: NDArray[np.int64] = np.zeros(window, dtype=np.int64)
         self._cost: NDArray[np.int64] = np.zeros(window, dtype=np.int64)
-        self._index = 0
-        self._cycles = 0
-        self._overruns = 0
-        self._overrun_cycles = 0
-        self._worst_lateness = _NO_SAMPLE
-        self._worst_cost = _NO_SAMPLE
+        self.reset()
 
     def record(self, lateness_ns: int, cost_ns: int, overruns: int) -> None:
         """Records one cycle; constant time, writes into the preallocated buffers.

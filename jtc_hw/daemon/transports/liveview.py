@@ -110,68 +110,53 @@ _POINT: Final = {
 }
 
 
-def _schema(title: str, properties: dict[str, Any]) -> dict[str, Any]:
-    return {"title": title, "type": "object", "properties": properties}
+def _schema(title: str, properties: dict[str, Any]) -> tuple[str, dict[str, Any]]:
+    return title, {"title": title, "type": "object", "properties": properties}
 
 
 SCHEMAS: Final[Mapping[str, tuple[str, dict[str, Any]]]] = {
-    "joint_states": (
-        "sensor_msgs/msg/JointState",
-        _schema("sensor_msgs/msg/JointState", {
-            "header": _HEADER, "name": _STRINGS, "position": _NUMBERS, "velocity": _NUMBERS,
-            "effort": _NUMBERS,
-        }),
-    ),
-    "controller_state": (
-        "control_msgs/msg/JointTrajectoryControllerState",
-        _schema("control_msgs/msg/JointTrajectoryControllerState", {
-            "header": _HEADER, "joint_names": _STRINGS, "reference": _POINT,
-            "feedback": _POINT, "error": _POINT, "output": _POINT,
-            "speed_scaling_factor": {"type": "number"},
-        }),
-    ),
-    "joint_trajectory": (
-        "trajectory_msgs/msg/JointTrajectory",
-        _schema("trajectory_msgs/msg/JointTrajectory", {
-            "header": _HEADER, "joint_names": _STRINGS,
-            "points": {"type": "array", "items": _POINT},
-        }),
-    ),
-    "goal_events": (
-        "jtc_hw/msg/GoalEvent",
-        _schema("jtc_hw/msg/GoalEvent", {
-            "header": _HEADER,
-            "goal_id": {"type": "integer"},
-            "event": {"enum": ["feedback", "result"]},
-            "status": {"type": "string"},
-            "error_code": {"type": "integer"},
-            "error_string": {"type": "string"},
-            "details": {"type": "string"},
-            "joint_names": _STRINGS,
-            "desired": _POINT,
-            "actual": _POINT,
-            "error": _POINT,
-        }),
-    ),
-    "diagnostics": (
-        "diagnostic_msgs/msg/DiagnosticArray",
-        _schema("diagnostic_msgs/msg/DiagnosticArray", {
-            "header": _HEADER,
-            "status": {"type": "array", "items": {
-                "type": "object",
-                "properties": {
-                    "level": {"type": "integer"},
-                    "name": {"type": "string"},
-                    "message": {"type": "string"},
-                    "hardware_id": {"type": "string"},
-                    "values": {"type": "array", "items": {
-                        "type": "object",
-                        "properties": {"key": {"type": "string"}, "value": {"type": "string"}},
-                    }},
-                },
-            }},
-        }),
-    ),
+    "joint_states": _schema("sensor_msgs/msg/JointState", {
+        "header": _HEADER, "name": _STRINGS, "position": _NUMBERS, "velocity": _NUMBERS,
+        "effort": _NUMBERS,
+    }),
+    "controller_state": _schema("control_msgs/msg/JointTrajectoryControllerState", {
+        "header": _HEADER, "joint_names": _STRINGS, "reference": _POINT,
+        "feedback": _POINT, "error": _POINT, "output": _POINT,
+        "speed_scaling_factor": {"type": "number"},
+    }),
+    "joint_trajectory": _schema("trajectory_msgs/msg/JointTrajectory", {
+        "header": _HEADER, "joint_names": _STRINGS,
+        "points": {"type": "array", "items": _POINT},
+    }),
+    "goal_events": _schema("jtc_hw/msg/GoalEvent", {
+        "header": _HEADER,
+        "goal_id": {"type": "integer"},
+        "event": {"enum": ["feedback", "result"]},
+        "status": {"type": "string"},
+        "error_code": {"type": "integer"},
+        "error_string": {"type": "string"},
+        "details": {"type": "string"},
+        "joint_names": _STRINGS,
+        "desired": _POINT,
+        "actual": _POINT,
+        "error": _POINT,
+    }),
+    "diagnostics": _schema("diagnostic_msgs/msg/DiagnosticArray", {
+        "header": _HEADER,
+        "status": {"type": "array", "items": {
+            "type": "object",
+            "properties": {
+                "level": {"type": "integer"},
+                "name": {"type": "string"},
+                "message": {"type": "string"},
+                "hardware_id": {"type": "string"},
+                "values": {"type": "array", "items": {
+                    "type": "object",
+                    "properties": {"key": {"type": "string"}, "value": {"type": "string"}},
+                }},
+            },
+        }},
+    }),
 }
 """Per role: the schema name (the ROS 2 type the JSON mirrors) and its JSON schema."""
 
@@ -201,15 +186,20 @@ def _floats(values: Any) -> list[float | None]:
     return [float(x) if math.isfinite(x) else None for x in np.asarray(values, dtype=float)]
 
 
+_POINT_FIELDS: Final = ("positions", "velocities", "accelerations", "effort")
+
+
 def _point(part: Mapping[str, Any] | None, tfs_s: float | None = None) -> dict[str, Any]:
     part = part or {}
-    return {
-        "positions": _list(part.get("positions")),
-        "velocities": _list(part.get("velocities")),
-        "accelerations": _list(part.get("accelerations")),
-        "effort": _list(part.get("effort")),
-        "time_from_start": ros_time(round((tfs_s or 0.0) * 1e9)),
-    }
+    return {**{name: _list(part.get(name)) for name in _POINT_FIELDS},
+            "time_from_start": ros_time(round((tfs_s or 0.0) * 1e9))}
+
+
+def _feedback_point(positions: Any, velocities: Any, accelerations: Any, tfs_ns: int
+                    ) -> dict[str, Any]:
+    return {"positions": _floats(positions), "velocities": _floats(velocities),
+            "accelerations": _floats(accelerations), "effort": [],
+            "time_from_start": ros_time(tfs_ns)}
 
 
 def joint_state_message(snapshot: Mapping[str, Any], wall_ns: int) -> dict[str, Any]:
@@ -242,10 +232,7 @@ def controller_state_message(snapshot: Mapping[str, Any], wall_ns: int) -> dict[
 
 def _trajectory_points(points: Any) -> list[dict[str, Any]]:
     if isinstance(points, PointColumns):
-        columns = {}
-        for name in ("positions", "velocities", "accelerations", "effort"):
-            column = points.values(name)
-            columns[name] = column
+        columns = {name: points.values(name) for name in _POINT_FIELDS}
         out = []
         for i, t in enumerate(np.asarray(points.times_ns)):
             point: dict[str, Any] = {"time_from_start": ros_time(int(t))}
@@ -257,13 +244,8 @@ def _trajectory_points(points: Any) -> list[dict[str, Any]]:
             out.append(point)
         return out
     return [
-        {
-            "positions": _floats(p.positions),
-            "velocities": _floats(p.velocities),
-            "accelerations": _floats(p.accelerations),
-            "effort": _floats(p.effort),
-            "time_from_start": ros_time(p.time_from_start_ns),
-        }
+        {**{name: _floats(getattr(p, name)) for name in _POINT_FIELDS},
+         "time_from_start": ros_time(p.time_from_start_ns)}
         for p in points
     ]
 
@@ -298,32 +280,15 @@ def goal_event_message(
             details=event.details,
         )
         return message
-    desired = event.desired
+    desired, tfs_ns = event.desired, round(event.time_from_start * 1e9)
     message.update(
         event="feedback",
         status="executing",
         joint_names=list(joint_names),
-        desired={
-            "positions": _floats(desired.positions),
-            "velocities": _floats(desired.velocities),
-            "accelerations": _floats(desired.accelerations),
-            "effort": [],
-            "time_from_start": ros_time(round(event.time_from_start * 1e9)),
-        },
-        actual={
-            "positions": _floats(event.actual_positions),
-            "velocities": _floats(event.actual_velocities),
-            "accelerations": [],
-            "effort": [],
-            "time_from_start": ros_time(round(event.time_from_start * 1e9)),
-        },
-        error={
-            "positions": _floats(event.error[0]),
-            "velocities": _floats(event.error[1]),
-            "accelerations": _floats(event.error[2]),
-            "effort": [],
-            "time_from_start": ros_time(0),
-        },
+        desired=_feedback_point(
+            desired.positions, desired.velocities, desired.accelerations, tfs_ns),
+        actual=_feedback_point(event.actual_positions, event.actual_velocities, None, tfs_ns),
+        error=_feedback_point(*event.error[:3], 0),
     )
     return message
 
@@ -345,52 +310,38 @@ def diagnostics_message(status: Mapping[str, Any], wall_ns: int) -> dict[str, An
     and one per hardware component (ERROR with a fault, WARN with ``warnings``), each with
     the status's values flattened to ``key: value`` (``counters.reads``, ...)."""
     entries: list[dict[str, Any]] = []
+
+    def entry(level: int, name: str, message: str, hardware_id: str,
+              source: Mapping[str, Any]) -> None:
+        values: list[dict[str, str]] = []
+        _flatten(source, "", values)
+        entries.append({"level": level, "name": name, "message": message,
+                        "hardware_id": hardware_id, "values": values})
+
     loop = status.get("loop")
     if isinstance(loop, Mapping):
-        values: list[dict[str, str]] = []
-        _flatten(loop, "", values)
         stalled = bool(loop.get("api_stalled"))
-        entries.append({
-            "level": WARN if stalled else OK,
-            "name": "jtc_hw: loop",
-            "message": "API process behind" if stalled else "OK",
-            "hardware_id": "",
-            "values": values,
-        })
+        entry(WARN if stalled else OK, "jtc_hw: loop",
+              "API process behind" if stalled else "OK", "", loop)
     controller = status.get("controller")
     if isinstance(controller, Mapping):
-        values = []
-        _flatten(controller, "", values)
         fault = controller.get("fault")
-        entries.append({
-            "level": ERROR if fault else OK,
-            "name": "jtc_hw: controller",
-            "message": str(fault) if fault else (
-                "holding" if controller.get("holding") else
-                "active" if controller.get("active") else "inactive"),
-            "hardware_id": "",
-            "values": values,
-        })
+        entry(ERROR if fault else OK, "jtc_hw: controller", str(fault) if fault else (
+            "holding" if controller.get("holding") else
+            "active" if controller.get("active") else "inactive"), "", controller)
     hardware = status.get("hardware")
     components = hardware.get("components", []) if isinstance(hardware, Mapping) else []
     for component in components:
         if not isinstance(component, Mapping):
             continue
-        values = []
-        _flatten(component, "", values)
         fault = component.get("last_fault")
         warnings = component.get("warnings")
-        level = ERROR if fault else WARN if warnings else OK
         message = str(fault) if fault else (
             "; ".join(map(str, warnings)) if isinstance(warnings, (list, tuple))
             else str(warnings) if warnings else str(component.get("state", "OK")))
-        entries.append({
-            "level": level,
-            "name": f"jtc_hw: hardware {component.get('name', '?')}",
-            "message": message,
-            "hardware_id": str(component.get("kind", "")),
-            "values": values,
-        })
+        entry(ERROR if fault else WARN if warnings else OK,
+              f"jtc_hw: hardware {component.get('name', '?')}", message,
+              str(component.get("kind", "")), component)
     return {"header": _header(wall_ns), "status": entries}
 
 

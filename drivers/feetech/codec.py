@@ -44,6 +44,7 @@ from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from enum import IntEnum, IntFlag
 
+from ..framing import StreamBuffer
 from .control_table import ByteOrder, Model, Register
 
 __all__ = [
@@ -472,7 +473,7 @@ class Packet:
         return StatusError(self.code & 0x7F)
 
 
-class Decoder:
+class Decoder(StreamBuffer):
     """Incremental frame decoder for one direction of the bus (see the module docstring).
 
     Args:
@@ -486,30 +487,15 @@ class Decoder:
     """
 
     def __init__(self, *, status: bool) -> None:
+        super().__init__()
         self.status = status
-        self._buf = bytearray()
         self.checksum_errors = 0
-        self.junk_bytes = 0
-
-    @property
-    def pending(self) -> int:
-        """Bytes held that do not yet form a complete frame."""
-        return len(self._buf)
-
-    def reset(self) -> None:
-        """Drop a partial frame (counted as junk), e.g. after a timeout."""
-        self.junk_bytes += len(self._buf)
-        self._buf.clear()
 
     def _plausible(self, buf: bytearray) -> bool:
         max_id = BROADCAST_ID - 1 if self.status else BROADCAST_ID
         if buf[2] > max_id or not 2 <= buf[3] <= _MAX_LEN_FIELD:
             return False
         return not (self.status and buf[4] > 0x7F)
-
-    def _skip(self, n: int) -> None:
-        self.junk_bytes += n
-        del self._buf[:n]
 
     def feed(self, data: bytes | bytearray | memoryview) -> list[Packet]:
         """Add received bytes; return the frames they complete, in order."""

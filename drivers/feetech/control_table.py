@@ -98,12 +98,13 @@ Sources
 
 from __future__ import annotations
 
-import difflib
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass
 from enum import Enum, IntEnum
 from types import MappingProxyType
+
+from ..lookup import NamedKeyError, did_you_mean
 
 __all__ = [
     "BAUD_RATES",
@@ -152,18 +153,12 @@ class SeriesName(str, Enum):
     SCS = "scs"
 
 
-class UnknownRegisterError(KeyError):
+class UnknownRegisterError(NamedKeyError):
     """A register name that the series does not have."""
 
-    def __str__(self) -> str:
-        return str(self.args[0]) if self.args else "unknown register"
 
-
-class UnknownModelError(KeyError):
+class UnknownModelError(NamedKeyError):
     """A model name that is not in :data:`MODELS`."""
-
-    def __str__(self) -> str:
-        return str(self.args[0]) if self.args else "unknown model"
 
 
 @dataclass(frozen=True)
@@ -239,10 +234,9 @@ class Series:
         try:
             return self.registers[name]
         except KeyError:
-            close = difflib.get_close_matches(name, list(self.registers), n=1)
-            hint = f" (did you mean {close[0]!r}?)" if close else ""
             raise UnknownRegisterError(
-                f"the {self.name.value} series has no register {name!r}{hint}"
+                f"the {self.name.value} series has no register {name!r}"
+                + did_you_mean(name, self.registers)
             ) from None
 
     @property
@@ -428,7 +422,8 @@ def model_by_name(name: str) -> Model:
     if key in MODELS:
         return MODELS[key]
     raise UnknownModelError(
-        f"unknown Feetech model {name!r}; known models: {', '.join(MODELS)}"
+        f"unknown Feetech model {name!r}{did_you_mean(key, MODELS)}; known models: "
+        + ", ".join(MODELS)
     )
 
 

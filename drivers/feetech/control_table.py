@@ -290,7 +290,7 @@ _R = Register
 _STEP = "1 step (0.088 deg)"
 _STEP_S = "1 step/s"
 
-_COMMON_HEAD = (
+_COMMON = (
     _R("firmware_major", 0, 1, writable=False),
     _R("firmware_minor", 1, 1, writable=False),
     _R("model_number", 3, 2, writable=False),
@@ -315,13 +315,17 @@ _COMMON_HEAD = (
     _R("ccw_dead_zone", 27, 1, unit=_STEP),
     _R("torque_enable", 40, 1),
     _R("acceleration", 41, 1),
+    _R("present_voltage", 62, 1, writable=False, unit="0.1 V"),
+    _R("present_temperature", 63, 1, writable=False, unit="1 degC"),
+    _R("status", 65, 1, writable=False),
+    _R("moving", 66, 1, writable=False),
 )
 
 STS_SMS = Series(
     name=SeriesName.STS_SMS,
     byte_order=ByteOrder.LITTLE,
     registers=_table(
-        *_COMMON_HEAD,
+        *_COMMON,
         _R("protection_current", 28, 2, unit="6.5 mA"),
         _R("angular_resolution", 30, 1),
         _R("homing_offset", 31, 2, sign_bit=11, unit=_STEP),
@@ -340,10 +344,6 @@ STS_SMS = Series(
         _R("present_position", 56, 2, writable=False, sign_bit=15, unit=_STEP),
         _R("present_velocity", 58, 2, writable=False, sign_bit=15, unit=_STEP_S),
         _R("present_load", 60, 2, writable=False, sign_bit=10, unit="0.1 %"),
-        _R("present_voltage", 62, 1, writable=False, unit="0.1 V"),
-        _R("present_temperature", 63, 1, writable=False, unit="1 degC"),
-        _R("status", 65, 1, writable=False),
-        _R("moving", 66, 1, writable=False),
         _R("present_current", 69, 2, writable=False, unit="6.5 mA"),
     ),
     lock_register="lock",
@@ -355,7 +355,7 @@ SCS = Series(
     name=SeriesName.SCS,
     byte_order=ByteOrder.BIG,
     registers=_table(
-        *_COMMON_HEAD,
+        *_COMMON,
         _R("protective_torque", 37, 1, unit="1 %"),
         _R("protection_time", 38, 1, unit="10 ms"),
         _R("goal_position", 42, 2, unit="1 step"),
@@ -365,11 +365,7 @@ SCS = Series(
         _R("present_position", 56, 2, writable=False, unit="1 step"),
         _R("present_velocity", 58, 2, writable=False, unit="0.059 rev/min"),
         _R("present_load", 60, 2, writable=False, unit="0.1 %"),
-        _R("present_voltage", 62, 1, writable=False, unit="0.1 V"),
-        _R("present_temperature", 63, 1, writable=False, unit="1 degC"),
         _R("sync_write_flag", 64, 1, writable=False),
-        _R("status", 65, 1, writable=False),
-        _R("moving", 66, 1, writable=False),
     ),
     lock_register="lock",
     sync_read=False,

@@ -54,16 +54,16 @@ gitee.com/ftservo/SCServoSDK/issues/IBY2S6 and saying that the fix exists in Fee
 FTServo_Python, which is not on PyPI. Feetech's fixed ``port_handler.py`` (ftservo/FTServo_Python
 commit cb07f766) indeed allows ``tx_time_per_byte * (n + 3) + LATENCY_TIMER + 20`` ms with
 ``LATENCY_TIMER = 50``, i.e. 70 ms, and its ``writePort`` now flushes (waits for the bytes to
-leave) and drops the adapter's echo before the timer starts. So the reasons are: the timer
-starts when ``writePort`` returns, before the instruction has left the USB adapter, and the
-34 ms allowance does not cover a servo's reply (notably after an EEPROM write) plus the
-adapter's latency; the status byte count also omits the reply's framing. A reply that arrives
-after the deadline is reported as ``COMM_RX_TIMEOUT`` (nothing read) or ``COMM_RX_CORRUPT``
-(part read) and its tail is left in the input buffer for the next transaction. (The issue page
-itself was not reachable from here; the formulas and comments above are what the three sources
-say.) The wrapper should therefore install its own deadline, computed from the wire time of
-both packets, the return delay register and an adapter latency allowance, and clear the input
-buffer after a failed transaction.
+leave) and drops the adapter's echo before the timer starts. Read together (an inference:
+the issue page itself was not reachable from here), the reasons are: the timer starts when
+``writePort`` returns, before the instruction has left the USB adapter, and the 34 ms
+allowance does not cover a servo's reply (notably after an EEPROM write) plus the adapter's
+latency; the status byte count also omits the reply's framing. A reply that arrives after the
+deadline is reported as ``COMM_RX_TIMEOUT`` (nothing read) or ``COMM_RX_CORRUPT`` (part read)
+and its tail is left in the input buffer for the next transaction. The wrapper should
+therefore install its own deadline, computed from the wire time of both packets, the return
+delay register and an adapter latency allowance, and clear the input buffer after a failed
+transaction.
 
 **Byte order is process-global.** ``PacketHandler(end)`` stores ``end`` in a module global of
 ``scservo_def`` (``SCS_SETEND``) that every word packing helper reads, so creating an SCS

@@ -23,7 +23,6 @@ own joint offset on top.
 
 from __future__ import annotations
 
-import difflib
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -33,6 +32,8 @@ from typing import Any, overload
 
 import numpy as np
 import numpy.typing as npt
+
+from ..lookup import NamedKeyError, did_you_mean
 
 __all__ = [
     "BAUD_RATES",
@@ -116,18 +117,12 @@ _TWO_PI = 2.0 * math.pi
 PROFILE_ACCELERATION_UNIT_RPM2 = 214.577
 
 
-class UnknownRegisterError(KeyError):
+class UnknownRegisterError(NamedKeyError):
     """A register name that the model does not have."""
 
-    def __str__(self) -> str:
-        return str(self.args[0]) if self.args else "unknown register"
 
-
-class UnknownModelError(KeyError):
+class UnknownModelError(NamedKeyError):
     """A model name that is not in :data:`MODELS`."""
-
-    def __str__(self) -> str:
-        return str(self.args[0]) if self.args else "unknown model"
 
 
 @dataclass(frozen=True)
@@ -259,8 +254,7 @@ class Model:
         try:
             return self.registers[name]
         except KeyError:
-            close = difflib.get_close_matches(name, list(self.registers), n=1)
-            hint = f" (did you mean {close[0]!r}?)" if close else ""
+            hint = did_you_mean(name, self.registers)
             raise UnknownRegisterError(
                 f"{self.name} has no register {name!r}{hint}; known registers: "
                 + ", ".join(sorted(self.registers, key=lambda n: self.registers[n].address))
@@ -705,8 +699,7 @@ def model_by_name(name: str) -> Model:
             key = key[: -len(suffix)]
     if key in MODELS:
         return MODELS[key]
-    close = difflib.get_close_matches(key, list(MODELS), n=1)
-    hint = f" (did you mean {close[0]!r}?)" if close else ""
+    hint = did_you_mean(key, MODELS)
     raise UnknownModelError(
         f"unknown Dynamixel model {name!r}{hint}; known models: {', '.join(MODELS)}"
     )

@@ -36,6 +36,8 @@ from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from enum import IntEnum
 
+from ..framing import StreamBuffer
+
 __all__ = [
     "ALERT_BIT",
     "BROADCAST_ID",
@@ -279,7 +281,7 @@ class Packet:
         return self.params[1:] if self.is_status else self.params
 
 
-class Decoder:
+class Decoder(StreamBuffer):
     """Incremental packet decoder (see the module docstring).
 
     Args:
@@ -292,21 +294,10 @@ class Decoder:
     """
 
     def __init__(self, max_length: int = 4096) -> None:
+        super().__init__()
         self.max_length = max_length
-        self._buf = bytearray()
         self.crc_errors = 0
-        self.junk_bytes = 0
         self.packets = 0
-
-    @property
-    def pending(self) -> int:
-        """Bytes buffered that are not yet part of a complete packet."""
-        return len(self._buf)
-
-    def reset(self) -> None:
-        """Drop any partial packet (counted as junk), e.g. after a long silence on the bus."""
-        self.junk_bytes += len(self._buf)
-        self._buf.clear()
 
     def feed(self, data: bytes | bytearray | memoryview) -> list[Packet]:
         """Add received bytes; return the packets completed by them, in order."""

@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 import pytest
 from helpers.dynamixel import (
-    DAEMON_TEST_TIMEOUT_MS,
+    DRIVER_TEST_TIMEOUT_MS,
     IDS,
     OFFSET,
     START,
@@ -393,7 +393,7 @@ def test_latency_timer_warning(
     # on a busy host; the warning is what is tested.)
     with caplog.at_level(logging.WARNING), \
             DynamixelBus(str(link), 4_000_000, sysfs_root=tmp_path / "sys",
-                         timeout_ms=DAEMON_TEST_TIMEOUT_MS) as bus:
+                         timeout_ms=DRIVER_TEST_TIMEOUT_MS) as bus:
         assert bus.ping(1) == XM430.model_number
     assert "latency timer is 16 ms" in caplog.text
     assert f"/sys/bus/usb-serial/devices/{tty}/latency_timer" in caplog.text

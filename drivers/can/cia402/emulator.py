@@ -54,6 +54,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from collections import deque
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -235,6 +236,7 @@ class Cia402DriveEmulator:
         self._stopping: _Stop | None = None
         self._hold_at: float | None = None
         self._trips: list[WatchdogTrip] = []
+        self._beats: deque[float] = deque(maxlen=64)  # when it produced its heartbeats
         self._open_trip: int | None = None  # index of the trip whose stop is not complete
         self.heartbeats_seen = 0
         self._hub: Hub | None = None
@@ -333,6 +335,14 @@ class Cia402DriveEmulator:
         """Every heartbeat event of this drive so far, oldest first."""
         with self._lock:
             return list(self._trips)
+
+    @property
+    def heartbeats_produced(self) -> list[float]:
+        """When (``time.monotonic()``) this drive produced its last heartbeats (0x1017), oldest
+        first, at most 64: the drive's own clock, which sets the producer time; the frames'
+        receive stamps add however late the host ran the hub's thread after that."""
+        with self._lock:
+            return list(self._beats)
 
     @property
     def heartbeat_consumers(self) -> dict[int, tuple[int, float, bool]]:
@@ -628,6 +638,7 @@ class Cia402DriveEmulator:
             if self._producer_s > 0.0 and now >= self._next_beat:
                 if self.nmt_state != NmtState.INITIALISING:
                     self._send(c4.bootup_cob_id(self.node_id), c4.encode_heartbeat(self.nmt_state))
+                    self._beats.append(now)
                 self._next_beat = now + self._producer_s
             if self._stopping is not None:
                 self._advance(now)

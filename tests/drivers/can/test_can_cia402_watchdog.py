@@ -156,8 +156,13 @@ def test_the_drive_produces_its_own_heartbeat(master: Master) -> None:
     master.write(c4.PRODUCER_HEARTBEAT_TIME, 0, "<H", 20)
     beats = [next_frame(master.listener, 0x703) for _ in range(3)]
     assert [bytes(m.data) for m in beats] == [bytes((NmtState.PRE_OPERATIONAL,))] * 3
-    gaps = [b.timestamp - a.timestamp for a, b in zip(beats, beats[1:], strict=False)]
-    assert min(gaps) >= 0.02 - 2e-3, gaps  # never faster than the producer time
+    # Never faster than the producer time, on the drive's own clock: the frames' receive
+    # stamps add how late the host ran the emulator's thread after it read that clock
+    # (16.5 ms between two stamps beside two busy processes, tools/ci-under-load).
+    produced = master.drive.heartbeats_produced
+    assert len(produced) >= 3
+    gaps = [b - a for a, b in zip(produced, produced[1:], strict=False)]
+    assert min(gaps) >= 0.02 - 1e-9, gaps  # float rounding of "now + producer time" only
 
 
 def test_a_stored_producer_time_starts_the_heartbeat_after_the_boot_up(tmp_path: Path) -> None:

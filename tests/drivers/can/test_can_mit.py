@@ -301,9 +301,11 @@ def test_silent_motor_is_a_communication_fault_then_rearm(rig: Rig) -> None:
 
 def test_rearm_after_a_bus_loss_and_power_cycle_enables_every_motor(rig: Rig) -> None:
     # The case, in process: every motor goes quiet (the bus is lost), then comes back
-    # power-cycled (out of motor mode, no set-point); the joints sagged meanwhile.
+    # power-cycled (out of motor mode, no set-point); the joints sagged meanwhile. The rig's
+    # generous feedback_timeout: the tracking after the re-arm is not about how soon a silent
+    # motor is noticed, and 50 ms faulted it when a busy host stalled this process for 66 ms.
     emulator = rig.emulate("can0", IDS)
-    hw = rig.make(feedback_timeout=0.05)
+    hw = rig.make()
     hw.configure()
     hw.activate(now())
     for motor_id in IDS:

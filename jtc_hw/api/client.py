@@ -82,9 +82,6 @@ def default_socket_path() -> str:
     """``$JTC_HW_SOCKET`` if set, else where a daemon of this user puts its socket by default
     (:func:`jtc_hw.api.paths.default_socket_path`), or the system service's if nothing is
     there (:func:`jtc_hw.api.paths.client_socket_path`).
-
-    Raises:
-        Nothing.
     """
     explicit = os.environ.get("JTC_HW_SOCKET")
     if explicit:
@@ -578,9 +575,6 @@ class Client:
         """Close the connection and join the reader thread. Idempotent.
 
         A goal still running goes on in the daemon; its result is discarded there.
-
-        Raises:
-            Nothing.
         """
         with self._lock:
             self._closing = True

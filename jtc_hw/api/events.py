@@ -17,11 +17,7 @@ from ..controller.trajectory import QueriedState, TrajectorySample
 
 
 def sample_to_json(sample: TrajectorySample | QueriedState) -> dict[str, Any]:
-    """A desired state as ``{positions, velocities, accelerations, effort}`` arrays.
-
-    Raises:
-        Nothing.
-    """
+    """A desired state as ``{positions, velocities, accelerations, effort}`` arrays."""
     return {
         "positions": sample.positions,
         "velocities": sample.velocities,
@@ -33,9 +29,6 @@ def sample_to_json(sample: TrajectorySample | QueriedState) -> dict[str, Any]:
 def result_event(result: GoalResult) -> dict[str, Any]:
     """The ``result`` event of a goal: ``error_string`` is upstream's text, ``details`` what
     we add (which joint broke which tolerance; ``""`` when nothing).
-
-    Raises:
-        Nothing.
     """
     return {
         "event": "result",
@@ -49,11 +42,7 @@ def result_event(result: GoalResult) -> dict[str, Any]:
 
 
 def feedback_event(feedback: GoalFeedback, joint_names: Sequence[str]) -> dict[str, Any]:
-    """The ``feedback`` event of a goal (``actual.velocities`` is null without a reading).
-
-    Raises:
-        Nothing.
-    """
+    """The ``feedback`` event of a goal (``actual.velocities`` is null without a reading)."""
     error = feedback.error
     return {
         "event": "feedback",
@@ -79,9 +68,6 @@ def command_event(trajectory: JointTrajectory, goal_id: int | None,
     """The ``command`` event: a command the daemon accepted at ``time_ns`` (daemon clock), as
     received (``trajectory_to_json``; ``start_time_ns`` absent: "start now"); ``goal_id`` null
     for a topic trajectory (an empty one: a stop).
-
-    Raises:
-        Nothing.
     """
     return {"event": "command", "time_ns": time_ns, "goal_id": goal_id,
             "trajectory": trajectory_to_json(trajectory)}
@@ -91,9 +77,6 @@ def record_event(event: Mapping[str, Any]) -> dict[str, Any]:
     """The ``record`` event: a goal's result, a hardware fault or a re-arm, as the bags'
     ``goal_events`` hold it (``{"event": "result" | "fault" | "rearm", ..., "time_ns"}``,
     docs/recording.md), for connections subscribed with ``commands`` (``jtc-hw record``).
-
-    Raises:
-        Nothing.
     """
     return {"event": "record", "record": dict(event)}
 
@@ -142,9 +125,5 @@ def trajectory_to_json(
 
 
 def tolerances_to_json(tolerances: Sequence[JointTolerance]) -> list[dict[str, Any]]:
-    """The wire form of tolerance overrides.
-
-    Raises:
-        Nothing.
-    """
+    """The wire form of tolerance overrides."""
     return [dataclasses.asdict(t) for t in tolerances]  # name, position, velocity, acceleration

@@ -65,11 +65,7 @@ unit's ``RuntimeDirectory=`` (``$RUNTIME_DIRECTORY``): where clients look last."
 
 
 def private_fallback_dir(uid: int | None = None) -> str:
-    """``/tmp/jtc-hw-<uid>``: the last resort, for a user without a runtime directory.
-
-    Raises:
-        Nothing.
-    """
+    """``/tmp/jtc-hw-<uid>``: the last resort, for a user without a runtime directory."""
     return f"/tmp/jtc-hw-{os.geteuid() if uid is None else uid}"
 
 
@@ -83,9 +79,6 @@ def default_socket_path(environ: Mapping[str, str] | None = None, uid: int | Non
     Args:
         environ: the environment to look in (default: ``os.environ``).
         uid: whose default (default: this process's effective uid).
-
-    Raises:
-        Nothing.
     """
     env = os.environ if environ is None else environ
     runtime = env.get("RUNTIME_DIRECTORY", "").split(":")[0]
@@ -118,9 +111,6 @@ def client_socket_path(environ: Mapping[str, str] | None = None, uid: int | None
     is at the latter (a login shell's ``$XDG_RUNTIME_DIR`` is not the service's directory), or
     may be: a user kept out of ``/run/jtc-hw`` is told so when connecting, not that nothing
     listens at their own place.
-
-    Raises:
-        Nothing.
     """
     own = default_socket_path(environ, uid)
     service = os.path.join(ROOT_SOCKET_DIR, SOCKET_NAME)
@@ -132,10 +122,8 @@ def client_socket_path(environ: Mapping[str, str] | None = None, uid: int | None
 def service_uid(directory: str) -> int | None:
     """The owner of ``directory`` if it is the service's (:data:`ROOT_SOCKET_DIR`) and only
     root could have made it: its parent is root's and nobody else can write there. That owner
-    was given it by root (systemd's ``RuntimeDirectory=`` with ``User=``). Else ``None``.
-
-    Raises:
-        Nothing: a directory that cannot be examined has no service owner.
+    was given it by root (systemd's ``RuntimeDirectory=`` with ``User=``). Else ``None``,
+    also for a directory that cannot be examined.
     """
     if os.path.normpath(directory) != os.path.normpath(ROOT_SOCKET_DIR):
         return None
@@ -150,20 +138,13 @@ def service_uid(directory: str) -> int | None:
 
 
 def trusted_uid(owner: int, uid: int | None = None) -> bool:
-    """Whether a file or peer of ``owner`` may be trusted by ``uid``: itself or root.
-
-    Raises:
-        Nothing.
-    """
+    """Whether a file or peer of ``owner`` may be trusted by ``uid``: itself or root."""
     return owner in (0, os.geteuid() if uid is None else uid)
 
 
 def group_id(group: str | int) -> int | None:
     """The gid of ``group`` (a name, or a number as an int or a string), or ``None`` if this
     system has no such group.
-
-    Raises:
-        Nothing.
     """
     if isinstance(group, int) or group.isdigit():
         try:
@@ -194,10 +175,8 @@ def listener_problem(
 ) -> str | None:
     """What makes the process ``pid`` (running as ``uid``) listening on a socket
     untrustworthy for user ``me``, or ``None``: it must run as ``me``, as root, or as a member
-    of ``group`` (``daemon.socket_group``; a member by its primary group or the group's list).
-
-    Raises:
-        Nothing: a group unknown here trusts nobody.
+    of ``group`` (``daemon.socket_group``; a member by its primary group or the group's list;
+    a group unknown here trusts nobody).
     """
     me = os.geteuid() if me is None else me
     if trusted_uid(uid, me):
@@ -215,10 +194,7 @@ def directory_problem(directory: str, uid: int | None = None) -> str | None:
     Fit: a real directory (not a symbolic link) owned by ``uid`` or root (or the service's
     directory, :func:`service_uid`) that no one else can write. Anyone who can write it can
     replace the socket with their own. A missing directory is fit (the daemon creates it,
-    0700).
-
-    Raises:
-        Nothing: a directory that cannot be examined is reported as the problem.
+    0700); one that cannot be examined is reported as the problem.
     """
     uid = os.geteuid() if uid is None else uid
     try:
@@ -253,9 +229,6 @@ def socket_problem(path: str, uid: int | None = None) -> str | None:
     (:func:`service_uid`), in a directory fit for it (:func:`directory_problem`).
     A missing file is not a problem here (connecting will say nobody listens), nor one this
     user may not see (connecting will say whose directory keeps them out).
-
-    Raises:
-        Nothing.
     """
     uid = os.geteuid() if uid is None else uid
     problem = directory_problem(os.path.dirname(path) or ".", uid)
@@ -321,9 +294,7 @@ def permission_problem(path: str) -> str:
     Returns, for example, ``"the daemon socket /run/jtc-hw/jtc-hw.sock (owner jtc-hw, group
     jtc-hw, mode 0660): join its group (sudo usermod -aG jtc-hw $USER, then log in again),
     or ..."``; without a cause in the file modes (a security module refused), what to check.
-
-    Raises:
-        Nothing: what cannot be examined is left out.
+    What cannot be examined is left out.
     """
     full = os.path.abspath(path)
     ancestors = [os.path.dirname(full)]

@@ -569,19 +569,13 @@ class Decoder:
         return self._messages.max_message_bytes
 
     def feed(self, data: bytes) -> list[Request | RequestError]:
-        """Requests completed by ``data``, in order; unusable ones as ``RequestError`` values.
-
-        Raises:
-            Nothing: every problem is returned as a value.
-        """
+        """Requests completed by ``data``, in order; unusable ones as ``RequestError`` values
+        (it never raises)."""
         return [self._parse(item) for item in self._messages.feed(data)]
 
     def end(self) -> list[Request | RequestError]:
         """Call at end of input. A last request without its newline is never parsed nor
-        executed (it may be cut off): it comes back as one ``bad_json`` error.
-
-        Raises:
-            Nothing: every problem is returned as a value.
+        executed (it may be cut off): it comes back as one ``bad_json`` error (it never raises).
         """
         return [self._parse(item) for item in self._messages.end()]
 

@@ -390,9 +390,6 @@ class ZenohClient(Client):
     def close(self) -> None:
         """Undeclare the subscribers and close the session (if it is this client's own).
         Idempotent. A goal still running goes on in the daemon.
-
-        Raises:
-            Nothing.
         """
         with self._lock:
             if self._closing:

@@ -110,7 +110,6 @@ class RequestError(ProtocolError):
         return f"RequestError({self.code!r}, {self.message!r}, request_id={self.request_id!r})"
 
 
-
 def _describe(value: Any) -> str:
     """A JSON-flavoured description of a received value, for error messages."""
     if value is None:
@@ -128,7 +127,6 @@ def _describe(value: Any) -> str:
     if isinstance(value, dict):
         return "an object"
     return type(value).__name__  # pragma: no cover - json.loads produces nothing else
-
 
 
 # -- decoding ---------------------------------------------------------------------------------
@@ -520,5 +518,3 @@ def error_reply(
     if error_code is not None:
         error["error_code"] = int(error_code)
     return {"id": request_id, "ok": False, "error": error}
-
-

@@ -243,7 +243,6 @@ def _ns(seconds: float, path: str, rid: RequestId) -> int:
     return ns
 
 
-
 def _vector(
     value: Any, path: str, rid: RequestId, joint_names: Sequence[str] = ()
 ) -> tuple[float, ...]:
@@ -587,4 +586,3 @@ class Decoder:
             return parse_request(item)
         except RequestError as exc:
             return exc
-

@@ -117,4 +117,3 @@ def parse_and_run(argv: Sequence[str] | None = None) -> int:
         return EXIT_NO_DAEMON
     except KeyboardInterrupt:
         return 130
-

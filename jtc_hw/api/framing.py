@@ -390,11 +390,6 @@ class MessageDecoder:
     def __init__(self, max_message_bytes: int = DEFAULT_MAX_MESSAGE_BYTES) -> None:
         self._lines = _Lines(max_message_bytes)
 
-    @property
-    def max_message_bytes(self) -> int:
-        """The line-length limit."""
-        return self._lines.max_bytes
-
     def feed(self, data: bytes) -> list[dict[str, Any] | RequestError]:
         """Messages completed by ``data``, in order; unusable ones as ``RequestError`` values
         (it never raises).

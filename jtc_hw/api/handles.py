@@ -55,8 +55,8 @@ class GoalHandle:
         self._client = client
         self._on_feedback = on_feedback
         self._cond = threading.Condition()
-        self._feedback: collections.deque[dict[str, Any]] = collections.deque()
-        self._maxlen = feedback_maxlen
+        self._feedback: collections.deque[dict[str, Any]] = collections.deque(
+            maxlen=feedback_maxlen)
         self._result: dict[str, Any] | None = None
         self._lost: Exception | None = None
 
@@ -73,8 +73,7 @@ class GoalHandle:
             except Exception:  # a broken callback must not kill the reader thread
                 log.exception("goal %d: the feedback callback failed", self.goal_id)
         with self._cond:
-            if len(self._feedback) >= self._maxlen:
-                self._feedback.popleft()
+            if len(self._feedback) == self._feedback.maxlen:  # the append drops the oldest
                 self.feedback_dropped += 1
             self._feedback.append(message)
             self._cond.notify_all()
@@ -187,16 +186,14 @@ class StateSubscription:
         True)``)."""
         self.dropped_locally = 0
         self._client = client
-        self._maxlen = maxlen
         self._cond = threading.Condition()
-        self._queue: collections.deque[dict[str, Any]] = collections.deque()
+        self._queue: collections.deque[dict[str, Any]] = collections.deque(maxlen=maxlen)
         self._closed = False
         self._lost: Exception | None = None
 
     def _add(self, message: dict[str, Any]) -> None:
         with self._cond:
-            if len(self._queue) >= self._maxlen:
-                self._queue.popleft()
+            if len(self._queue) == self._queue.maxlen:  # the append drops the oldest
                 self.dropped_locally += 1
             self._queue.append(message)
             self._cond.notify_all()

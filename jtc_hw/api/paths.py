@@ -260,14 +260,8 @@ def account_name(number: int, group: bool = False) -> str:
         return str(number)
 
 
-def _searchable(directory: str) -> bool:
-    effective = os.access in os.supports_effective_ids
-    return os.access(directory, os.X_OK, effective_ids=effective)
-
-
-def _writable(path: str) -> bool:
-    effective = os.access in os.supports_effective_ids
-    return os.access(path, os.W_OK, effective_ids=effective)
+def _access(path: str, mode: int) -> bool:
+    return os.access(path, mode, effective_ids=os.access in os.supports_effective_ids)
 
 
 def _ways_in(gid: int, group: str, uid: int | None = None) -> str:
@@ -302,12 +296,12 @@ def permission_problem(path: str) -> str:
         ancestors.append(os.path.dirname(ancestors[-1]))
     blocker, bit, intro = full, stat.S_IWGRP, f"the daemon socket {path}"
     for directory in reversed(ancestors):
-        if not _searchable(directory):
+        if not _access(directory, os.X_OK):
             blocker, bit = directory, stat.S_IXGRP
             intro = f"the daemon socket {path}: its directory {directory}"
             break
     else:
-        if _writable(full):
+        if _access(full, os.W_OK):
             return (
                 f"the daemon socket {path}: its file modes would let you in (a security "
                 "policy such as AppArmor or SELinux may refuse it; see the system log)"

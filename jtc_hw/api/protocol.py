@@ -562,11 +562,6 @@ class Decoder:
     def __init__(self, max_message_bytes: int = DEFAULT_MAX_MESSAGE_BYTES) -> None:
         self._messages = MessageDecoder(max_message_bytes)
 
-    @property
-    def max_message_bytes(self) -> int:
-        """The line-length limit."""
-        return self._messages.max_message_bytes
-
     def feed(self, data: bytes) -> list[Request | RequestError]:
         """Requests completed by ``data``, in order; unusable ones as ``RequestError`` values
         (it never raises)."""

@@ -1,25 +1,19 @@
-"""The daemon's socket API wire format (version 1): newline-delimited JSON, no I/O.
+"""The daemon's socket API wire format (version 1): what a request means, no I/O.
 
 Theory of operation
 -------------------
-Every message is one JSON object on one line, UTF-8, ending with ``\\n`` (a ``\\r`` before it is
-ignored, blank lines are skipped), so ``socat - UNIX-CONNECT:/path`` is a usable client. The
-complete specification, with an example per operation and event, is ``docs/protocol.md``.
-
-This module only turns bytes into values and values into bytes, in the manner of h11: the server
-and the client own the sockets. The line framing and the error codes are
-:mod:`jtc_hw.api.framing`; this module says what a request means: it parses one into the typed
-requests of :mod:`.requests`, and exports them with the JSON forms of :mod:`.events`.
+The complete specification, with an example per operation and event, is ``docs/protocol.md``.
+This module only turns bytes into values, in the manner of h11: the server and the client own
+the sockets. The line framing, its refusals and the error codes are :mod:`jtc_hw.api.framing`;
+this module parses each message into the typed requests of :mod:`.requests`.
 ``Decoder.feed(data)`` takes whatever the socket gave (half a message, several messages) and
 returns the requests completed by it, in order; a message that cannot be used comes back as a
 ``RequestError`` *value* in the same list, carrying the machine code, a message naming the
-offending JSON path, and the request ``id`` when it could be read. A message longer than the
-limit is reported once and skipped up to its newline, so the connection survives it.
+offending JSON path, and the request ``id`` when it could be read.
 
-Things Python's ``json`` accepts but the protocol refuses: ``NaN``/``Infinity`` tokens (not
-JSON), duplicate keys in an object (ambiguous), numbers too large for a float64 where a number
-is expected, unknown fields (a misspelt ``time_from_start`` must not silently become 0).
-``encode`` never emits a non-finite number: ``NaN`` and infinities become ``null``.
+Beyond what the framing refuses, a request is refused for a number too large for a float64
+where a number is expected, and for an unknown field (a misspelt ``time_from_start`` must not
+silently become 0).
 """
 
 from __future__ import annotations

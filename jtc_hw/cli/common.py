@@ -6,8 +6,7 @@ Every client command takes :func:`client_options` and opens its connection with
 unix socket) and turns every "nobody answers" into :class:`NoDaemon` (exit status
 :data:`EXIT_NO_DAEMON`), and a socket that is not trusted or not permitted into
 :class:`~jtc_hw.errors.ConfigurationError` (exit status :data:`EXIT_BAD_INPUT`): a daemon may
-well run there. ``jtc_hw.cli.main`` maps the exceptions to the exit statuses; the command
-modules import only this module of the package, never each other.
+well run there. :mod:`.parser` maps the exceptions to the exit statuses.
 """
 
 from __future__ import annotations

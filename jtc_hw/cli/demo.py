@@ -247,14 +247,9 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 
 def _demo(args: argparse.Namespace, hardware: list[dict[str, Any]] | None, rate: int) -> int:
-    """Start a daemon, send the demo goal to it and to nothing else, stop it.
-
-    The demo moves only a robot it started: with ``--config``, a socket that a running daemon
-    already serves is refused before anything starts, and whatever the configuration, the
-    client checks that the process serving the socket is the daemon started here
-    (``SO_PEERCRED``) before it sends a request, so a daemon that took the path meanwhile
-    is never sent the wave either. Both refusals exit 2 (the configuration cannot be used
-    for a demo now), like ``run`` with a socket in use.
+    """Start a daemon, send the demo goal to it and to nothing else (module docstring; the
+    peer check is ``SO_PEERCRED``), stop it. Both refusals exit 2 (the configuration cannot be
+    used for a demo now), like ``run`` with a socket in use.
     """
     with tempfile.TemporaryDirectory(prefix="jtc-hw-demo-") as tmp:
         if args.config:
@@ -307,22 +302,13 @@ def _demo(args: argparse.Namespace, hardware: list[dict[str, Any]] | None, rate:
                 time.sleep(0.05)  # CLI polling for a socket to appear; not in library code
         try:
             names = client.joint_names
-            if goal is None:
-                goal = {
-                    "joint_names": names,
-                    "points": [
-                        {
-                            "time_from_start": 2.0,
-                            "positions": [0.3] * len(names),
-                            "velocities": [0.0] * len(names),
-                        },
-                        {
-                            "time_from_start": 4.0,
-                            "positions": [0.0] * len(names),
-                            "velocities": [0.0] * len(names),
-                        },
-                    ],
-                }
+            if goal is None:  # --config's joints: to 0.3 and back, at rest at each point
+                points = [
+                    {"time_from_start": t, "positions": [p] * len(names),
+                     "velocities": [0.0] * len(names)}
+                    for t, p in ((2.0, 0.3), (4.0, 0.0))
+                ]
+                goal = {"joint_names": names, "points": points}
             total = goal["points"][-1]["time_from_start"]
             handle = client.send_goal(goal)
             print(

@@ -127,8 +127,8 @@ def cmd_status(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps({k: v for k, v in reply.items() if k not in ("id", "ok")}, indent=2,
                          default=str))
-        return 0
-    print("\n".join(status_lines(reply)))
+    else:
+        print("\n".join(status_lines(reply)))
     return 0
 
 # -- hardware -------------------------------------------------------------------------------

@@ -7,19 +7,14 @@ Waypoints on the executed time base
 -----------------------------------
 A command's waypoint at ``time_from_start`` T is drawn when the reference actually reached it,
 not at the command's start plus T: with speed scaling (and while the factor ramps) the two
-differ, by T x (1 - factor) at a steady factor. The controller's state says where the reference
-is: ``reference.time_from_start`` of ``controller_state`` is the trajectory time since the
-start of the trajectory being followed (the loop's own clock scaled by the factor, the ramp
-included). Where it falls back, the loop switched trajectories (a new command starts below zero: its
-start is ahead by the plan's lead, or at its stamp; a hold after a cancel, abort or fault
-starts at zero). The daemon logs a command once the loop has confirmed it, so the command's
-switch is the last one at or before its log time (or, with states published slower than the
-loop runs, the first one after). Its trajectory is followed from there to the next switch, and
-a waypoint is placed at the stamp where the trajectory time reaches T, interpolated linearly
-between the two states around it. Nothing is
-integrated, so no error accumulates, and a "start now" command needs no guess of when the loop
-started it. A waypoint the reference never reached (a goal preempted, aborted or cancelled
-before it, or a recording that ends first) is not drawn.
+differ, by T x (1 - factor) at a steady factor. ``reference.time_from_start`` of
+``controller_state`` is the trajectory time of the trajectory being followed (the loop's clock
+scaled by the factor, the ramp included); where it falls back, the loop switched trajectories
+(a new command starts below zero, a hold after a cancel, abort or fault at zero). Each command
+is followed from its switch (:func:`executed_waypoints` says which) to the next, and a waypoint
+is placed where the trajectory time reaches T, interpolated between the two states around it.
+Nothing is integrated, so no error accumulates, and a "start now" command needs no guess of
+when the loop started it. A waypoint the reference never reached is not drawn.
 
 Results, faults and re-arms (``goal_events`` entries with a ``text``) are marked with their text,
 coloured by how they ended.

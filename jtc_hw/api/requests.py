@@ -22,6 +22,15 @@ MAX_NS = 2**63 - 1
 
 
 @dataclass(frozen=True)
+class _Request:
+    """What every request has: ``op``, its name (a class constant), and ``id``, the client's,
+    echoed in the reply."""
+
+    op: ClassVar[str]
+    id: RequestId = None
+
+
+@dataclass(frozen=True)
 class WireTrajectory:
     """A trajectory as received: its start is resolved by the server (``to_joint_trajectory``).
 
@@ -62,20 +71,18 @@ class WireTrajectory:
 
 
 @dataclass(frozen=True)
-class Hello:
+class Hello(_Request):
     """``hello``: protocol and server versions, joints, rates, the daemon clock."""
 
     op: ClassVar[str] = "hello"
-    id: RequestId = None
     protocol_version: int | None = None
 
 
 @dataclass(frozen=True)
-class Auth:
+class Auth(_Request):
     """``auth``: the token of a TCP connection (must be its first request)."""
 
     op: ClassVar[str] = "auth"
-    id: RequestId = None
     token: str = ""
 
     def __repr__(self) -> str:  # never log a token
@@ -83,11 +90,10 @@ class Auth:
 
 
 @dataclass(frozen=True)
-class SendGoal:
+class SendGoal(_Request):
     """``send_goal``: a ``follow_joint_trajectory`` action goal."""
 
     op: ClassVar[str] = "send_goal"
-    id: RequestId = None
     trajectory: WireTrajectory = field(default_factory=lambda: WireTrajectory((), ()))
     path_tolerance: tuple[JointTolerance, ...] = ()
     goal_tolerance: tuple[JointTolerance, ...] = ()
@@ -98,42 +104,38 @@ class SendGoal:
 
 
 @dataclass(frozen=True)
-class CancelGoal:
+class CancelGoal(_Request):
     """``cancel_goal``: ask the executing goal ``goal_id`` to stop."""
 
     op: ClassVar[str] = "cancel_goal"
-    id: RequestId = None
     goal_id: int = 0
 
 
 @dataclass(frozen=True)
-class SendTrajectory:
+class SendTrajectory(_Request):
     """``send_trajectory``: the ``joint_trajectory`` topic (no points: stop)."""
 
     op: ClassVar[str] = "send_trajectory"
-    id: RequestId = None
     trajectory: WireTrajectory = field(default_factory=lambda: WireTrajectory((), ()))
     time_scaling: str | None = None
     """As ``SendGoal.time_scaling``."""
 
 
 @dataclass(frozen=True)
-class Stop:
+class Stop(_Request):
     """``stop``: end any motion and hold (cancel the active goal, stop a topic trajectory).
 
     Served even over the connection limit (see ``docs/protocol.md``).
     """
 
     op: ClassVar[str] = "stop"
-    id: RequestId = None
 
 
 @dataclass(frozen=True)
-class QueryState:
+class QueryState(_Request):
     """``query_state``: the desired state at an absolute time or at a time from now."""
 
     op: ClassVar[str] = "query_state"
-    id: RequestId = None
     time_ns: int | None = None
     in_s: float | None = None
 
@@ -157,86 +159,77 @@ class QueryState:
 
 
 @dataclass(frozen=True)
-class SubscribeState:
+class SubscribeState(_Request):
     """``subscribe_state``: receive ``state`` events; with ``commands``, also a ``command``
     event for every command the daemon accepts (any client's goals and topic trajectories)."""
 
     op: ClassVar[str] = "subscribe_state"
-    id: RequestId = None
     commands: bool = False
 
 
 @dataclass(frozen=True)
-class UnsubscribeState:
+class UnsubscribeState(_Request):
     """``unsubscribe_state``: stop receiving ``state`` events."""
 
     op: ClassVar[str] = "unsubscribe_state"
-    id: RequestId = None
 
 
 @dataclass(frozen=True)
-class GetConfig:
+class GetConfig(_Request):
     """``get_config``: the configuration in effect."""
 
     op: ClassVar[str] = "get_config"
-    id: RequestId = None
 
 
 @dataclass(frozen=True)
-class GetStatus:
+class GetStatus(_Request):
     """``get_status``: loop, hardware, controller and server statistics."""
 
     op: ClassVar[str] = "get_status"
-    id: RequestId = None
 
 
 @dataclass(frozen=True)
-class Sim:
+class Sim(_Request):
     """``sim``: freeze or release a simulated component's feedback, or inject a latched
     read fault (``fault``: its message; cleared by ``rearm``)."""
 
     op: ClassVar[str] = "sim"
-    id: RequestId = None
     component: str = ""
     freeze: bool | None = False
     fault: str | None = None
 
 
 @dataclass(frozen=True)
-class Rearm:
+class Rearm(_Request):
     """``rearm``: leave a hardware fault (reboot / fault-reset the devices, hold the position)."""
 
     op: ClassVar[str] = "rearm"
-    id: RequestId = None
 
 
 @dataclass(frozen=True)
-class GetParameters:
+class GetParameters(_Request):
     """``get_parameters``: controller parameter values by ROS-style name (``names``: some of
     them, ``None``: all)."""
 
     op: ClassVar[str] = "get_parameters"
-    id: RequestId = None
     names: tuple[str, ...] | None = None
 
 
 @dataclass(frozen=True)
-class SetParameters:
+class SetParameters(_Request):
     """``set_parameters``: change controller parameters while running (all or nothing); the
     values are checked by the daemon as the configuration file's are."""
 
     op: ClassVar[str] = "set_parameters"
-    id: RequestId = None
     parameters: dict[str, Any] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
-class SetSpeedScaling:
+class SetSpeedScaling(_Request):
     """``set_speed_scaling``: the speed scaling factor to ramp to (``factor``: 1 full speed,
     0 pause), or ``resume``: back to the factor before the pause."""
 
     op: ClassVar[str] = "set_speed_scaling"
-    id: RequestId = None
     factor: float | None = None
     resume: bool = False
 

@@ -36,14 +36,8 @@ _UNSUPPORTED_GOAL_FIELDS = (
 
 
 def split_documents(text: str, path: str) -> str:
-    """The one YAML document of ``ros2 topic echo --once`` output (``---`` separators).
-
-    Args:
-        text: the file's content.
-        path: the file, for errors.
-
-    Returns:
-        The text of the single non-empty document.
+    """The text of the one non-empty YAML document in ``text``, the content of the file
+    ``path`` (named in errors), as ``ros2 topic echo --once`` prints it (``---`` separators).
 
     Raises:
         ConfigurationError: several non-empty documents (several messages were echoed).
@@ -114,11 +108,8 @@ def _trajectory(data: Any, where: str, path: str) -> Any:
 
 
 def ros_goal(data: dict[str, Any], path: str) -> dict[str, Any]:
-    """A goal file's mapping (a trajectory, or a goal wrapping one) in the protocol's form.
-
-    Args:
-        data: the decoded YAML/JSON mapping.
-        path: the file, for errors.
+    """A goal file's decoded mapping (a trajectory, or a goal wrapping one) in the protocol's
+    form; ``path``, the file, is named in errors.
 
     Returns:
         ``{"trajectory": ..., "path_tolerance": ..., ...}`` with durations in seconds, the

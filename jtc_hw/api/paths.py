@@ -1,33 +1,26 @@
 """Where the daemon's socket is when nobody says, and whether a place for it can be trusted.
 
-One rule for the daemon and its clients. The default socket lives in a directory only the
-daemon's user (or root) can write, so that no other local user can put a socket there first
-and have clients talk to it ("squatting"): ``$RUNTIME_DIRECTORY`` (systemd's
-``RuntimeDirectory=``), ``$XDG_RUNTIME_DIR`` (the login session's, mode 0700), ``/run/jtc-hw``
-for root, else a private directory ``/tmp/jtc-hw-<uid>/`` that the daemon creates 0700 and
-that both sides check (owner, mode) before use. The checks here do not raise: they return what
-is wrong, and the daemon and the client each turn it into their own error.
+One rule for the daemon and its clients (docs/protocol.md, "Socket file"). The default socket
+lives in a directory only the daemon's user (or root) can write, so that no other local user can
+put a socket there first and have clients talk to it ("squatting"): ``$RUNTIME_DIRECTORY``
+(systemd's ``RuntimeDirectory=``), ``$XDG_RUNTIME_DIR`` (the login session's, mode 0700),
+``/run/jtc-hw`` for root, else a private directory ``/tmp/jtc-hw-<uid>/`` that the daemon
+creates 0700 and that both sides check (owner, mode) before use. The checks here do not raise:
+they return what is wrong, and the daemon and the client each turn it into their own error.
 
 Whatever the path, named or found, a client talks only to a daemon it can trust: the process
-listening (``SO_PEERCRED``, the kernel's record of who called ``listen``, which cannot be
-forged) must run as the client's own user, as root, or as a member of the group the robot's
-configuration names (``daemon.socket_group``: the service user's group, whose members may
-connect). A socket named in a directory anyone can write, such as ``/tmp``, is otherwise
-anyone's (:func:`listener_problem`).
+listening (``SO_PEERCRED``, which cannot be forged) must run as the client's own user, as root,
+or as a member of the configuration's ``daemon.socket_group`` (:func:`listener_problem`); a
+socket named in a directory anyone can write, such as ``/tmp``, is otherwise anyone's.
 
-A client looks where a daemon of its own user would be, and when nothing is there, at the
-system service's socket ``/run/jtc-hw/jtc-hw.sock`` (config/jtc-hw.service's
-``RuntimeDirectory=jtc-hw``, docs/systemd.md): from a login shell ``$XDG_RUNTIME_DIR`` is set,
-so the per-user place alone would never find the service. That place cannot be squatted
-either: only root can create an entry in ``/run`` (root's, writable by nobody else), so the
-owner of ``/run/jtc-hw`` is the user root (systemd, for the unit's ``User=``) gave it to, and a
-client trusts that user's socket and daemon there besides its own and root's.
+When nothing is where a daemon of its own user would be, a client looks at the system service's
+socket ``/run/jtc-hw/jtc-hw.sock`` (docs/systemd.md; from a login shell ``$XDG_RUNTIME_DIR`` is
+set, so the per-user place alone would never find it). Only root can create an entry in
+``/run``, so that place cannot be squatted either, and a client trusts the user root gave it to
+(:func:`service_uid`) besides its own and root's.
 
-A user the socket's mode keeps out (not its owner, not in its group) gets ``EACCES`` from
-``connect``, on the socket file (no write permission) or on a directory on its way (no search
-permission: the daemon's directory is ``0710``). :func:`permission_problem` finds which one and
-says whose it is and what would let the user in: joining its group, or a configuration that
-gives a group of theirs the socket.
+A user the socket's mode keeps out gets ``EACCES`` from ``connect``; :func:`permission_problem`
+says which file or directory, whose it is and what would let them in.
 """
 
 from __future__ import annotations

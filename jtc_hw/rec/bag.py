@@ -2,22 +2,13 @@
 
 Theory of operation
 -------------------
-A ``BagRecorder`` is fed the socket's messages as plain dicts: ``state`` events (one per
-``state_publish_rate`` tick of the loop), ``get_status`` replies, and changes of the active goal.
-Each becomes the ROS 2 message a ROS user expects on the topic of the same name:
-
-- ``/joint_states`` (``sensor_msgs/msg/JointState``): the measured positions and velocities;
-- ``/<controller>/controller_state`` (``control_msgs/msg/JointTrajectoryControllerState``, the
-  current definition: reference, feedback, error, output, speed_scaling_factor);
-- ``/<controller>/goal_events`` (``std_msgs/msg/String`` holding one JSON object, schema in
-  ``docs/recording.md``): goal changes, results (status and text), faults and re-arms;
-- ``/<controller>/follow_joint_trajectory/_action/status`` (``action_msgs/msg/GoalStatusArray``,
-  the topic a ROS 2 action server publishes its goals' statuses on): each result's status;
-- ``/rosout`` (``rcl_interfaces/msg/Log``): each result's, fault's and re-arm's text, at the
-  level a ROS console shows it (results INFO/WARN/ERROR by status, a fault ERROR, a re-arm
-  INFO);
-- ``/diagnostics`` (``diagnostic_msgs/msg/DiagnosticArray``): loop statistics and each hardware
-  component's status.
+A ``BagRecorder`` is fed the socket's messages as plain dicts (``state`` events, one per
+``state_publish_rate`` tick of the loop; ``get_status`` replies; goal events; accepted commands)
+or the rows of the loop's cycle ring, and writes each as the ROS 2 message a ROS user expects on
+the topic of the same name (:func:`topics`; what each holds: docs/recording.md, "Topics and
+message types"): ``/joint_states``, ``controller_state`` (control_msgs' current definition),
+``goal_events`` (one JSON object each), the action's goal status, ``/rosout`` (each result's,
+fault's and re-arm's text, at the level a ROS console shows it) and ``/diagnostics``.
 
 Timestamps: the daemon clock (CLOCK_MONOTONIC of the loop's deadlines, ``time_ns``) is mapped to
 wall time once, with the offset measured when the recording starts (``clock_offset_ns``), so
@@ -62,17 +53,13 @@ class CycleRowLayout(Protocol):
     (``pyproject.toml``'s contracts)."""
 
     @property
-    def width(self) -> int:
-        ...
+    def width(self) -> int: ...
 
-    def column(self, name: str) -> int:
-        ...
+    def column(self, name: str) -> int: ...
 
-    def block(self, name: str) -> slice:
-        ...
+    def block(self, name: str) -> slice: ...
 
-    def times(self, rows: Any) -> Any:
-        ...
+    def times(self, rows: Any) -> Any: ...
 
 
 RECORD_HINT = "recording needs the rosbags library: pip install 'jtc_hw[record]'"

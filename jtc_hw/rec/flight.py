@@ -2,29 +2,26 @@
 
 Theory of operation
 -------------------
-Runs in the API process (``LoopBackend`` feeds it; the loop never does). It keeps every
-cycle's state (rows of the loop's cycle ring, ``jtc_hw.daemon.channel.cyclering``, copied in by
-:meth:`FlightRecorder.on_cycles` into a preallocated array of ``flight_recorder_s`` + 1.5 seconds
-at the cycle rate), the accepted commands and the goal events of the last ``flight_recorder_s``
-seconds plus one, in memory. Fed published states instead (:meth:`FlightRecorder.on_state`, at
-``state_publish_rate``), it keeps those: that is what a recorder made without a cycle rate
-does. ``trigger(reason)`` (an abort, a hardware fault,
-a rearm, SIGTERM) chooses the bag's name at once, so that the goal's result can name it, and
-writes the bag once a state one second after the trigger has arrived (``flush`` writes at once,
-for a shutdown): the bag covers ``flight_recorder_s`` before and a second after. Writing happens
-in a worker thread, never in the event loop. Only the newest ``flight_recorder_keep`` bags are
-kept in ``flight_recorder_dir``.
+Runs in the API process (``LoopBackend`` feeds it; the loop never does). It keeps in memory
+every cycle's state (rows of the loop's cycle ring, ``jtc_hw.daemon.channel.cyclering``, copied
+by :meth:`FlightRecorder.on_cycles` into a preallocated array of ``flight_recorder_s`` + 1.5
+seconds at the cycle rate; made without a cycle rate, it keeps the published states of
+:meth:`FlightRecorder.on_state` instead), the accepted commands and the goal events of the last
+``flight_recorder_s`` seconds plus one. ``trigger(reason)`` (an abort, a hardware fault, a
+rearm, SIGTERM) names the bag at once, so that the goal's result can name it, and writes it once
+a state one second after the trigger has arrived (``flush`` writes at once, for a shutdown):
+the bag covers ``flight_recorder_s`` before and a second after. Writing happens in a worker
+thread, never in the event loop. Only the newest ``flight_recorder_keep`` bags are kept.
 
 Time: daemon clock (CLOCK_MONOTONIC) mapped to wall time by one offset measured at start.
 
-Without ``rosbags`` the recorder is off (``available`` is False) and says so once in the log,
-at INFO: the plain install is a supported way to run, not a fault (``daemon.record``, which
-asks for recording, is refused without it). Log levels follow what happened: a trigger for
-something that went wrong (an abort, a fault) is a WARNING; a routine one
-(:data:`ROUTINE_TRIGGERS`: a normal shutdown) is INFO.
-A bag whose writing fails (a full disk) is closed with what it holds (``jtc_hw.rec.bag``), one
-line in the log says so and ``errors`` counts it; the next trigger tries again (the disk may
-have room by then). Nothing of it reaches the loop, which never waits for the recorder.
+Without ``rosbags`` the recorder is off (``available`` is False) and says so once, at INFO: the
+plain install is a supported way to run, not a fault (``daemon.record``, which asks for
+recording, is refused without it). A trigger for something that went wrong is logged as a
+WARNING, a routine one (:data:`ROUTINE_TRIGGERS`) at INFO. A bag whose writing fails (a full
+disk) is closed with what it holds (``jtc_hw.rec.bag``), logged and counted in ``errors``; the
+next trigger tries again (the disk may have room by then). Nothing of it reaches the loop, which
+never waits for the recorder.
 """
 
 from __future__ import annotations

@@ -38,23 +38,9 @@ from .calls import (
     Pending,
     reply_error,
 )
+from .events import tolerances_to_json, trajectory_to_json
 from .framing import BUSY, PROTOCOL_VERSION, MessageDecoder, RequestError, encode
 from .handles import FeedbackCallback, GoalHandle, StateSubscription
-
-__all__ = [
-    "CLIENT_MAX_MESSAGE_BYTES",
-    "DEFAULT_TIMEOUT_S",
-    "Client",
-    "ClientConnectionError",
-    "FeedbackCallback",
-    "GoalHandle",
-    "StateSubscription",
-    "NOT_EXPECTED",
-    "PERMISSION",
-    "UNTRUSTED",
-    "default_socket_path",
-]
-from .events import tolerances_to_json, trajectory_to_json
 from .paths import (
     client_socket_path,
     peer_pid,
@@ -62,6 +48,8 @@ from .paths import (
     permission_problem,
     socket_problem,
 )
+
+__all__ = ["CLIENT_MAX_MESSAGE_BYTES", "DEFAULT_TIMEOUT_S", "Client", "default_socket_path"]
 
 log = logging.getLogger("jtc_hw.client")
 
@@ -221,23 +209,22 @@ class Client:
             raise ClientConnectionError(
                 f"cannot connect to the daemon at {label}: {exc.strerror or exc}{hint}"
             ) from None
-        if family == socket.AF_UNIX:
-            try:
+        try:
+            if family == socket.AF_UNIX:
                 _refuse_untrusted(
                     str(address), peer_problem(sock, str(address), trusted_group), listener=True
                 )
-            except BaseException:
-                sock.close()
-                raise
-        if expect_pid is not None:
-            peer = peer_pid(sock)
-            if peer != expect_pid:
-                sock.close()
-                by = "an unidentified process" if peer is None else f"pid {peer}"
-                raise ClientConnectionError(
-                    f"{label} is served by {by}, not by the expected pid {expect_pid}",
-                    NOT_EXPECTED,
-                )
+            if expect_pid is not None:
+                peer = peer_pid(sock)
+                if peer != expect_pid:
+                    by = "an unidentified process" if peer is None else f"pid {peer}"
+                    raise ClientConnectionError(
+                        f"{label} is served by {by}, not by the expected pid {expect_pid}",
+                        NOT_EXPECTED,
+                    )
+        except BaseException:
+            sock.close()
+            raise
         client = cls(sock, timeout_s, label)
         try:
             if tcp is not None:

@@ -13,8 +13,6 @@ from ..controller.messages import FIELDS, NS_PER_S, JointTrajectory, TrajectoryP
 from ..controller.tolerances import JointTolerance
 from ..controller.trajectory import QueriedState, TrajectorySample
 
-# -- events ------------------------------------------------------------------------------------
-
 
 def sample_to_json(sample: TrajectorySample | QueriedState) -> dict[str, Any]:
     """A desired state as ``{positions, velocities, accelerations, effort}`` arrays."""

@@ -414,9 +414,7 @@ def _parse_tolerances(value: Any, path: str, rid: RequestId) -> tuple[JointToler
 
 def _request_id(obj: dict[str, Any]) -> RequestId:
     rid = obj.get("id")
-    if rid is None or isinstance(rid, str):
-        return rid
-    if isinstance(rid, int) and not isinstance(rid, bool):
+    if rid is None or isinstance(rid, str) or (isinstance(rid, int) and not isinstance(rid, bool)):
         return rid
     raise RequestError(
         BAD_REQUEST, f"id: expected an integer or a string, got {_describe(rid)}", None

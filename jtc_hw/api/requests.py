@@ -18,9 +18,6 @@ MAX_NS = 2**63 - 1
 """Largest time in nanoseconds the protocol carries (int64)."""
 
 
-# -- requests ---------------------------------------------------------------------------------
-
-
 @dataclass(frozen=True)
 class _Request:
     """What every request has: ``op``, its name (a class constant), and ``id``, the client's,

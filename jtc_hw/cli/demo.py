@@ -161,10 +161,8 @@ def _start_emulator(
 
 def demo_hardware(kind: str, line: str) -> tuple[list[dict[str, Any]], int]:
     """The demo arm's hardware section and update rate on an emulator (``line``: what
-    ``jtc-hw emulate`` printed: a device path, or ``interface=... host=... port=...``).
-
-    Watchdogs and feedback timeouts are :data:`DEMO_EMULATED_WATCHDOG_S`: the emulator and
-    the daemon share a possibly busy machine (a real arm's are shorter)."""
+    ``jtc-hw emulate`` printed: a device path, or ``interface=... host=... port=...``), with
+    watchdogs and feedback timeouts of :data:`DEMO_EMULATED_WATCHDOG_S`."""
     if kind == "dynamixel":
         params: dict[str, Any] = {
             "port": line,

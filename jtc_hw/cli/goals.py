@@ -44,9 +44,7 @@ def load_goal_file(path: str) -> dict[str, Any]:
 
     YAML/JSON: either a trajectory (``joint_names``, ``points``) or a goal wrapping one
     (``trajectory``, optional ``path_tolerance``, ``goal_tolerance``, ``goal_time_tolerance``),
-    in the protocol's form or as ROS 2 prints them (``ros2 topic echo`` of a JointTrajectory,
-    a FollowJointTrajectory goal: ``header``, ``{sec, nanosec}`` durations; see
-    :mod:`jtc_hw.api.goal_files`).
+    in the protocol's form or as ROS 2 prints them (:mod:`jtc_hw.api.goal_files`).
     CSV: a header ``time_from_start,<joint>,...`` (positions); columns may also be named
     ``<joint>.position``, ``<joint>.velocity``, ``<joint>.acceleration``, ``<joint>.effort``.
 

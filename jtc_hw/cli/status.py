@@ -4,13 +4,11 @@
 components, flight recorder, Zenoh, clients); ``--json`` prints the reply itself (without the
 protocol's ``id``/``ok`` wrapper).
 
-``hardware`` prints the motors' health, per component and motor. The loop process puts each
-component's :meth:`~jtc_hw.hardware.HardwareInterface.health` in the status it publishes at a
-low rate (2 Hz); the ``status`` op returns the latest. This module only formats it: a table per
-component (model, firmware, mode, torque, temperature, voltage, errors, last fault; the bus
-counters in the component's heading), then the warnings that the limits ``temperature_warn_c``
-and ``voltage_range`` raise. ``--json`` prints the health as it came, one object with a
-``components`` list.
+``hardware`` prints the motors' health: each component's
+:meth:`~jtc_hw.hardware.HardwareInterface.health`, which the loop process puts in the status it
+publishes at a low rate (2 Hz). This module only formats it: a table per component (the columns
+of ``_COLUMNS``, the bus counters in its heading), then the warnings that the limits
+``temperature_warn_c`` and ``voltage_range`` raise; ``--json`` prints it as it came.
 
 A motor whose readings are stale (``stale``: its newest reply is older than the driver's
 feedback timeout, e.g. after a bus loss) has them reported as unknown (``None``, their keys

@@ -149,9 +149,8 @@ def _wait_connected(session: Any, expected: int, timeout_s: float) -> None:
     deadline = time.monotonic() + timeout_s
     while True:
         info = session.info
-        if len(info.peers_zid()) + len(info.routers_zid()) >= expected:
-            return
-        if time.monotonic() >= deadline:
+        linked = len(info.peers_zid()) + len(info.routers_zid())
+        if linked >= expected or time.monotonic() >= deadline:
             return
         time.sleep(0.01)  # Zenoh's Python API has no wait for a link: polled, bounded
 

@@ -68,7 +68,6 @@ def load_goal_file(path: str) -> dict[str, Any]:
                 "not valid JSON: nested too deeply for the interpreter's stack; flatten it", path
             ) from None
     else:
-        # ros2 topic echo ends each message with '---'.
         data = load_yaml(split_documents(text, path), path)  # strict, alias expansion bounded
     if not isinstance(data, dict):
         raise ConfigurationError("expected a mapping with joint_names and points", path)

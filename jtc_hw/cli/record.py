@@ -1,13 +1,11 @@
 """``jtc-hw record`` and ``jtc-hw plot``: a running daemon into a ROS 2 bag, and a bag into a plot.
 
-``record`` is a client of a running daemon: it subscribes to the ``state`` stream (every
-``state_publish_rate`` tick) with every accepted command (``command`` events) and every goal
-result, hardware fault and re-arm (``record`` events), asks
-``get_status`` once a second for ``/diagnostics``, and writes a rosbag2/MCAP directory with
-``BagRecorder``. Nothing runs in the loop process. It stops after ``--duration`` seconds of
-daemon time (counted from the first state it receives), or on Ctrl-C/SIGTERM, and always
-finishes the bag so that it opens. A write that fails (a full disk) ends the recording: the bag
-is closed with what it holds (``jtc_hw.rec.bag``), one line says so, exit status 4.
+``record`` is a client of a running daemon (docs/recording.md): it subscribes to the ``state``
+stream with every accepted command (``command`` events) and every goal result, hardware fault
+and re-arm (``record`` events), asks ``get_status`` once a second for ``/diagnostics``, and
+writes them with ``BagRecorder`` until ``--duration`` seconds of daemon time have passed or
+Ctrl-C/SIGTERM, always finishing the bag so that it opens; a failed write (a full disk) ends it
+with what it holds, exit status 4.
 
 Both need optional extras (``jtc_hw[record]``: rosbags; ``jtc_hw[plot]``: matplotlib), which
 :mod:`jtc_hw.rec` imports only when a bag is opened or drawn.

@@ -80,9 +80,6 @@ def stop_decelerations(config: ControllerConfig) -> F64 | None:
     A joint's deceleration is its ``constraints.<joint>.max_deceleration_on_cancel`` when it
     is > 0; otherwise it is derived from its limits: the acceleration limit if there is one,
     else the velocity limit / :data:`DERIVED_STOP_TIME_S`.
-
-    Raises:
-        Nothing.
     """
     if stop_unavailable_reason(config) is not None:
         return None
@@ -90,11 +87,7 @@ def stop_decelerations(config: ControllerConfig) -> F64 | None:
 
 
 def stop_jerks(config: ControllerConfig) -> F64:
-    """Per joint, the jerk limit bounding its stop (``inf`` where there is none).
-
-    Raises:
-        Nothing.
-    """
+    """Per joint, the jerk limit bounding its stop (``inf`` where there is none)."""
     jerks = []
     for joint in config.joints:
         limits = config.limits.get(joint)
@@ -123,9 +116,6 @@ def stop_unavailable_reason(config: ControllerConfig) -> str | None:
     Upstream's preconditions (section 11.3): the option, a velocity state interface, and for
     every joint a deceleration > 0 (given or derived) and a velocity limit > 0 where one is
     configured (``check_joint_limits`` guarantees that).
-
-    Raises:
-        Nothing.
     """
     if not config.constraints.decelerate_on_cancel:
         return "constraints.decelerate_on_cancel is false"
@@ -181,9 +171,6 @@ def stop_phases(
 
     Returns:
         The phases in time order (empty when already at rest) and the rest position.
-
-    Raises:
-        Nothing.
     """
     big_a = deceleration
     if math.isinf(jerk):
@@ -245,9 +232,6 @@ def stop_trajectory(
 
     Returns:
         The reference to follow.
-
-    Raises:
-        Nothing.
     """
     n = positions.shape[0]
     p0 = np.asarray(positions, dtype=np.float64)
@@ -347,9 +331,6 @@ def stop_duration_bound_s(
     """An upper bound of how long the stop from this state lasts, in seconds, without
     building it: ``|v| / A`` per joint, plus ``2 (A + |a|) / J`` with a jerk limit (the
     S-curve's ramps; see :func:`stop_phases`), the largest over the joints.
-
-    Raises:
-        Nothing.
     """
     v = np.abs(np.asarray(velocities, dtype=np.float64))
     a = np.minimum(np.abs(np.asarray(accelerations, dtype=np.float64)), decelerations)
@@ -362,9 +343,6 @@ def warm_up(n_joints: int) -> None:
     """Build and sample a throw-away stop of ``n_joints`` joints (jerk-limited and not), so
     that the first real one, built inside a control cycle, does not pay numpy's first-call
     costs.
-
-    Raises:
-        Nothing.
     """
     ones = np.ones(n_joints)
     jerks = np.where(np.arange(n_joints) % 2 == 0, np.inf, 10.0)

@@ -230,9 +230,6 @@ class HardwareSet:
         """Each INACTIVE component's :meth:`HardwareInterface.monitor` (the loop, while
         faulted); the state in the controller's joint order, NaN for joints not read, or
         ``None`` if none was.
-
-        Raises:
-            Nothing.
         """
         parts = [(comp.monitor(now_ns), index) for comp, index in self._pairs]
         if all(part is None for part, _ in parts):

@@ -6,7 +6,6 @@ arrays computed once, and fans the lifecycle, reads and writes out to every comp
 
 from __future__ import annotations
 
-import logging
 from collections.abc import Callable, Iterable, Sequence
 from typing import Any, Final
 
@@ -23,14 +22,6 @@ from .lifecycle import _A, _ALLOWED, _F, _I, _U, LifecycleState, _lifecycle_erro
 __all__ = [
     "HardwareSet",
 ]
-
-_log = logging.getLogger("jtc_hw.hardware")
-
-
-
-# --------------------------------------------------------------------------------------------
-# Several components forming the controller's joints
-# --------------------------------------------------------------------------------------------
 
 _RANK: Final = {_U: 0, _I: 1, _A: 2}
 
@@ -333,5 +324,3 @@ class HardwareSet:
             except JtcHwError as exc:
                 errors.append(exc)
         _raise_first(errors)
-
-

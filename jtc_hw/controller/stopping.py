@@ -5,23 +5,15 @@ Theory of operation
 Upstream's ``constraints.decelerate_on_cancel`` (jtc_upstream_behaviour.md section 11.3)
 replaces the hold of a stop (cancel, path and goal-time aborts, ``cmd_timeout``, topic stops)
 by a trajectory that decelerates each joint from its *measured* position and velocity at
-``max_deceleration_on_cancel`` until it is at rest, then holds there. Upstream needs the
-option, a deceleration > 0 for every joint, every URDF velocity limit > 0 and a velocity state
-interface; otherwise it falls back to the plain hold. :func:`stop_decelerations` checks the same
-preconditions here, reading the velocity limits from ``ControllerConfig.limits`` and deriving a
-deceleration where none is given (see :func:`stop_decelerations`).
+``max_deceleration_on_cancel`` until it is at rest, then holds there; without its
+preconditions (:func:`stop_unavailable_reason`) a stop is the plain hold.
 
-Upstream stores the stop as one waypoint per update period (positions, velocities and
-accelerations of the constant-deceleration parabola, splined in between). The curve sampled at
-those times is the same here, but it is stored exactly, as the few polynomial pieces it is made
-of (one per phase per joint, on the trajectory's shared breakpoint grid): a 0.5 s stop at 1 kHz
-is then a handful of segments rather than 500, which keeps building it inside the control cycle
-and sending it to the daemon's API process cheap.
-
-Beyond upstream: when a joint has a jerk limit, its stop is an S-curve: the acceleration moves
-from its current value at most at the jerk limit to ``-a_peak`` (``a_peak`` at most the
-deceleration), stays there, and returns to 0 exactly when the velocity reaches 0. Each joint's
-profile is computed in closed form (:func:`stop_phases`).
+Upstream stores the stop as one waypoint per update period; here the same curve is stored
+exactly, as its few polynomial pieces (one per phase per joint, on the trajectory's shared
+breakpoint grid), so that building it inside the control cycle stays cheap. Beyond upstream, a
+joint with a jerk limit stops along an S-curve computed in closed form (:func:`stop_phases`).
+See docs/behaviour.md, "Stopping", for the preconditions, the derived deceleration and the
+cost.
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """The hardware contract: the base class every component derives from.
 
 The lifecycle's states and transition table are in :mod:`.lifecycle`, the shared parameter
-rows in :mod:`.params`; both are re-exported here, with the base class, as the contract.
+rows in :mod:`.params`; :mod:`jtc_hw.hardware` exports them with the base class, as the contract.
 
 Theory of operation
 -------------------
@@ -14,7 +14,7 @@ joints in SI units. It follows ros2_control's ``SystemInterface`` lifecycle::
 
 ``read`` is allowed while INACTIVE or ACTIVE (the daemon shows positions of a disarmed robot),
 ``write`` only while ACTIVE. The base class owns the policy, as python-can's ``BusABC`` does:
-the transition guard (:data:`TRANSITIONS`, one table), parameter validation against the kind's
+the transition guard (:data:`~.lifecycle.TRANSITIONS`, one table), parameter validation against the kind's
 :attr:`HardwareInterface.PARAMS` schema, wrapping of foreign exceptions in
 :class:`~jtc_hw.errors.HardwareError` naming the component, fault bookkeeping and counters.
 Drivers implement the underscore primitives (``_read``, ``_write`` and, if they need them,
@@ -41,35 +41,16 @@ from ..config.values import describe, did_you_mean
 from ..controller.config import COMMAND_INTERFACE_TYPES, STATE_INTERFACE_TYPES
 from ..controller.joints import F64, JointCommand, JointState
 from ..errors import ConfigurationError, HardwareError, JtcHwError, add_note
-from .lifecycle import _ALLOWED, TRANSITIONS, LifecycleState, SafeAction, _lifecycle_error
-from .params import (
-    COMMON_PARAMS,
-    DEFAULT_WATCHDOG_S,
-    JOINT_MAPPING_PARAMS,
-    MIN_WATCHDOG_PERIODS,
-    MISS_RATE_WINDOW,
-    WATCHDOG_PARAM,
-    health_params,
-    miss_rate_param,
-)
+from .lifecycle import _ALLOWED, LifecycleState, SafeAction, _lifecycle_error
+from .params import COMMON_PARAMS, MISS_RATE_WINDOW
 
 __all__ = [
-    "COMMON_PARAMS",
-    "DEFAULT_WATCHDOG_S",
-    "MIN_WATCHDOG_PERIODS",
     "NO_DEVICE_WATCHDOG",
-    "WATCHDOG_PARAM",
     "DeviceName",
     "DeviceWatchdog",
     "HEALTH_FIELDS",
-    "health_params",
-    "miss_rate_param",
     "HardwareInterface",
-    "JOINT_MAPPING_PARAMS",
-    "LifecycleState",
-    "SafeAction",
     "one_line",
-    "TRANSITIONS",
 ]
 
 _log = logging.getLogger("jtc_hw.hardware")

@@ -40,6 +40,7 @@ from ..errors import GoalRejected
 from .interpolation import F64, SegmentKind
 from .messages import NS_PER_S, PreparedTrajectory
 from .trajectory import Trajectory
+from .validation import INVALID_GOAL
 
 __all__ = [
     "FIT",
@@ -59,8 +60,6 @@ REJECT = "reject"
 FIT = "fit"
 TIME_SCALING_MODES = (REJECT, FIT)
 """``time_scaling`` values: reject a goal beyond the limits, or slow it down to fit them."""
-
-INVALID_GOAL = -1
 
 TOLERANCE = 1e-9
 """Relative slack on a limit: a value computed as the limit plus rounding is within it."""

@@ -21,9 +21,8 @@ list of the seeds has neither), which is upstream's behaviour with their default
 from __future__ import annotations
 
 import numpy as np
-from numpy.typing import NDArray
 
-F64 = NDArray[np.float64]
+from .interpolation import F64
 
 
 class Pid:
@@ -72,14 +71,12 @@ class Pid:
         self.output[:] = 0.0
 
     def compute(self, error: F64, error_dot: F64, dt_s: float) -> F64:
-        """One step; ``dt_s`` is the time since the previous step, in seconds.
+        """One step; ``dt_s`` is the time since the previous step, in seconds; the arrays
+        have one value per joint.
 
         Returns:
             The output per joint (a new array; NaN where ``error`` or ``error_dot`` is not
             finite).
-
-        Raises:
-            ValueError: never for valid arrays; shapes must match the joint count.
         """
         if dt_s == 0.0:
             # control_toolbox: no time has passed, so nothing is integrated and the command

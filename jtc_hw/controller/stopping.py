@@ -22,12 +22,12 @@ import math
 from typing import NamedTuple
 
 import numpy as np
-from numpy.typing import NDArray
 
 from .config import ControllerConfig
-from .interpolation import SegmentKind
+from .interpolation import F64, SegmentKind
 from .messages import NS_PER_S
 from .trajectory import Trajectory
+from .validation import FLT_EPSILON
 
 __all__ = [
     "DERIVED_STOP_TIME_S",
@@ -41,11 +41,6 @@ __all__ = [
     "stop_unavailable_reason",
     "warm_up",
 ]
-
-F64 = NDArray[np.float64]
-
-FLT_EPSILON = 1.1920928955078125e-07
-"""C's ``FLT_EPSILON``: upstream treats ``|v0|`` at or below it as already at rest."""
 
 DERIVED_STOP_TIME_S = 0.5
 """With a velocity limit but neither ``max_deceleration_on_cancel`` nor an acceleration limit,

@@ -27,10 +27,9 @@ One ``update(now, period, state)``:
    error measured now: ``u = k_ff v_d + effort_d + k_p e + k_i sum(e dt) + k_d (v_d - v)``;
 5. return the command and the events (goal results, feedback at ``action_monitor_rate``).
 
-Speed scaling (``set_speed_scaling``): the reference lives on trajectory time, which advances by
-the elapsed clock time times a factor that ramps toward its target within the acceleration
-limits; "now" above is that trajectory time (equal to the clock while the factor is 1), and the
-velocities and accelerations sampled are those of the slowed motion (``v s``, ``a s^2 + v ds/dt``).
+Speed scaling (:mod:`.speed_scaling`): "now" above is trajectory time, which advances by the
+elapsed clock time times a ramping factor (the clock while it is 1); the velocities and
+accelerations sampled are those of the slowed motion (``v s``, ``a s^2 + v ds/dt``).
 
 The class is one object in several modules: commands, the lifecycle and the cycle here; the
 planning in :mod:`.planner`, the decisions in :mod:`.outcomes`, and as mixins (their methods

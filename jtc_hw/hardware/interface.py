@@ -155,9 +155,8 @@ class HardwareInterface(ABC):
     """A hardware component serving some joints, with the ros2_control lifecycle.
 
     Subclasses declare :attr:`kind` and :attr:`PARAMS` and implement ``_read`` and ``_write``
-    (plus ``_configure``, ``_activate``, ``_deactivate``, ``_cleanup`` if they need them). The
-    public methods guard the lifecycle, wrap foreign exceptions and count; see the module
-    docstring for the state machine.
+    (the other primitives if they need them); the module docstring has the state machine and
+    the policy the public methods own.
 
     Args:
         name: component name, unique within a robot (used in every message).

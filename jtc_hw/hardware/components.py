@@ -1,8 +1,5 @@
-"""A set of hardware components whose joints together are the controller's joints.
-
-:class:`HardwareSet` maps between the controller's joint order and each component's with index
-arrays computed once, and fans the lifecycle, reads and writes out to every component.
-"""
+"""A set of hardware components whose joints together are the controller's joints:
+:class:`HardwareSet`."""
 
 from __future__ import annotations
 

@@ -164,9 +164,7 @@ class JointTrajectoryController(ControlLaw, Stops):
         self._nan.setflags(write=False)
         self._output = self._nan_command()
         self._ref_start_ns = 0
-        # Speed scaling (upstream section 13): the reference is sampled at trajectory time
-        # ``_tau_ns``, which advances by the elapsed time times the factor; ``_wall_ns`` is the
-        # clock time it was last advanced to.
+        # Speed scaling (upstream section 13; :mod:`.speed_scaling` declares this state).
         self._tau_ns = 0
         self._wall_ns = 0
         self._timebase_started = False

@@ -14,8 +14,8 @@ joints in SI units. It follows ros2_control's ``SystemInterface`` lifecycle::
 
 ``read`` is allowed while INACTIVE or ACTIVE (the daemon shows positions of a disarmed robot),
 ``write`` only while ACTIVE. The base class owns the policy, as python-can's ``BusABC`` does:
-the transition guard (:data:`~.lifecycle.TRANSITIONS`, one table), parameter validation against the kind's
-:attr:`HardwareInterface.PARAMS` schema, wrapping of foreign exceptions in
+the transition guard (:data:`~.lifecycle.TRANSITIONS`, one table), parameter validation
+against the kind's :attr:`HardwareInterface.PARAMS` schema, wrapping of foreign exceptions in
 :class:`~jtc_hw.errors.HardwareError` naming the component, fault bookkeeping and counters.
 Drivers implement the underscore primitives (``_read``, ``_write`` and, if they need them,
 ``_configure``, ``_activate``, ``_deactivate``, ``_cleanup``).
@@ -127,9 +127,8 @@ class DeviceName:
 # --------------------------------------------------------------------------------------------
 
 
-def _check_joint_names(value: Any, path: str) -> tuple[str, ...]:
-    spec = ParamSpec(path, ParamKind.STRINGS, (), "the joints of the component",
-                     unique=True, non_empty=True)
+def _check_names(value: Any, path: str, description: str) -> tuple[str, ...]:
+    spec = ParamSpec(path, ParamKind.STRINGS, (), description, unique=True, non_empty=True)
     names: tuple[str, ...] = check_value(spec, value, path)
     return names
 
@@ -137,9 +136,7 @@ def _check_joint_names(value: Any, path: str) -> tuple[str, ...]:
 def _check_interfaces(
     value: Any, path: str, supported: Sequence[str], owner: str
 ) -> tuple[str, ...]:
-    spec = ParamSpec(path, ParamKind.STRINGS, (), f"{path.replace('_', ' ')}",
-                     unique=True, non_empty=True)
-    names: tuple[str, ...] = check_value(spec, value, path)
+    names = _check_names(value, path, path.replace("_", " "))
     for name in names:
         if name not in supported:
             raise ConfigurationError(
@@ -201,7 +198,7 @@ class HardwareInterface(ABC):
             )
         self.name: str = name
         owner = self._owner()
-        self.joints: tuple[str, ...] = _check_joint_names(joints, "joints")
+        self.joints: tuple[str, ...] = _check_names(joints, "joints", "the joints of the component")
         self.command_interfaces: tuple[str, ...] = _check_interfaces(
             command_interfaces, "command_interfaces", type(self).COMMAND_INTERFACES, owner
         )

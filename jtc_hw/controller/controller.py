@@ -200,16 +200,13 @@ class JointTrajectoryController(ControlLaw, Stops):
     ) -> None:
         """Start: hold the start state, with no jump.
 
-        The start state is the measured one, except -- when
-        ``set_last_command_interface_value_as_state_on_activation`` is true and every joint is
-        a command joint -- for each of position, velocity and acceleration whose command
-        interface is configured and whose ``last_command`` values are all finite: that field
-        is the last command (jtc_upstream_behaviour.md section 3 step 4; a single NaN, "no
-        value", makes that field the measured one). The hold is at the start positions with
-        zero velocity; the start state is also the last commanded state
-        (``last_commanded_state``) and ``last_command`` the first ``output`` of the
-        controller state. Any trajectory or goal from an earlier activation is gone; PID
-        integrators start at zero.
+        The start state is the measured one, except that with
+        ``set_last_command_interface_value_as_state_on_activation`` and every joint a command
+        joint, each commanded field of ``last_command`` that is finite for every joint takes
+        its place (docs/behaviour.md, "Activation and commands"). The hold is at the start
+        positions with zero velocity; the start state is also ``last_commanded_state`` and
+        ``last_command`` the first ``output`` of the controller state. Any trajectory or goal
+        from an earlier activation is gone; PID integrators start at zero.
 
         Raises:
             ControllerStateError: already active.

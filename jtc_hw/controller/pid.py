@@ -11,11 +11,9 @@ quotient) and step ``dt``, per joint::
     I       = clamp(I, i_min, i_max)
 
 So the integral contribution lags one call (the first call after a reset has none), as
-upstream's (jtc_upstream_behaviour.md section 12). The feed-forward terms are added by the
-controller, outside the output clamp. The configuration's symmetric ``i_clamp`` gives
-``i_min = -i_clamp``, ``i_max = +i_clamp`` (so ``i_clamp = 0`` disables the integral; ``jtc-hw
-check`` warns about that); the output clamp and the deadband default to off (the parameter
-list of the seeds has neither), which is upstream's behaviour with their defaults.
+upstream's (jtc_upstream_behaviour.md section 12). ``i_clamp`` gives ``i_min = -i_clamp``,
+``i_max = +i_clamp``; the output clamp and the deadband are off unless given, and feed-forward
+is added by the controller, outside the clamp (docs/behaviour.md, "The PID law").
 """
 
 from __future__ import annotations

@@ -71,9 +71,6 @@ class MotorFault(HardwareError):
 def add_note(exc: BaseException, note: str) -> None:
     """``exc.add_note(note)``: Python 3.11's, or the same ``__notes__`` list on 3.10 (which
     stores it for the log and for code that reads it, but does not print it in tracebacks).
-
-    Raises:
-        Nothing.
     """
     adder = getattr(exc, "add_note", None)
     if adder is not None:

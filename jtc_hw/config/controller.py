@@ -639,6 +639,3 @@ def _validate(cfg: ControllerConfig) -> None:
             initial,
         )
     put("speed_scaling", SpeedScaling(**checked_scaling))
-
-
-# --------------------------------------------------------------------------------------------

@@ -414,5 +414,3 @@ def limits_to_dict(cfg: ControllerConfig) -> dict[str, Any]:
             if getattr(lim, name) is not None
         }
     return out
-
-

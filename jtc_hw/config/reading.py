@@ -399,17 +399,14 @@ def load_config(
     """Read, check and freeze a controller configuration.
 
     Args:
-        source: path of a YAML file, or an already parsed mapping. Either the upstream
-            layout (``<name>: {ros__parameters: {...}}`` plus an optional
-            ``controller_manager`` section whose ``update_rate`` is used), or the parameters
-            directly at the top level (plus an optional ``update_rate``). Top-level
-            ``hardware`` and ``daemon`` keys are skipped (they configure the daemon); a
-            top-level ``limits`` section gives the joint limits (per joint, or ``urdf``: a
-            URDF file's) and ``time_scaling``.
-        controller_name: which controller section to use when there are several. Without
-            it, the only section is used, or the only one the controller manager declares
-            with the joint_trajectory_controller type. For the plain layout it is the
-            resulting name (default ``joint_trajectory_controller``).
+        source: path of a YAML file, or an already parsed mapping, in either layout
+            (:mod:`jtc_hw.config.controller`). Top-level ``hardware`` and ``daemon`` keys are
+            skipped (they configure the daemon); a top-level ``limits`` section gives the
+            joint limits (per joint, or ``urdf``: a URDF file's) and ``time_scaling``.
+        controller_name: which controller section to use when there are several (without
+            it: the only one, or the only one the controller manager declares with the
+            joint_trajectory_controller type); for the plain layout, the resulting name
+            (default ``joint_trajectory_controller``).
         base_dir: the directory a relative ``limits.urdf`` is relative to (default: the
             file's directory, or the current directory for a mapping).
 

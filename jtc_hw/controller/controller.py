@@ -27,10 +27,9 @@ One ``update(now, period, state)``:
    error measured now: ``u = k_ff v_d + effort_d + k_p e + k_i sum(e dt) + k_d (v_d - v)``;
 5. return the command and the events (goal results, feedback at ``action_monitor_rate``).
 
-Speed scaling (``set_speed_scaling``): the reference lives on trajectory time, which advances by
-the elapsed clock time times a factor that ramps toward its target within the acceleration
-limits; "now" above is that trajectory time (equal to the clock while the factor is 1), and the
-velocities and accelerations sampled are those of the slowed motion (``v s``, ``a s^2 + v ds/dt``).
+Speed scaling (:mod:`.speed_scaling`): "now" above is trajectory time, which advances by the
+elapsed clock time times a ramping factor (the clock while it is 1); the velocities and
+accelerations sampled are those of the slowed motion (``v s``, ``a s^2 + v ds/dt``).
 
 The class is one object in several modules: commands, the lifecycle and the cycle here; the
 planning in :mod:`.planner`, the decisions in :mod:`.outcomes`, and as mixins (their methods
@@ -165,9 +164,7 @@ class JointTrajectoryController(ControlLaw, Stops):
         self._nan.setflags(write=False)
         self._output = self._nan_command()
         self._ref_start_ns = 0
-        # Speed scaling (upstream section 13): the reference is sampled at trajectory time
-        # ``_tau_ns``, which advances by the elapsed time times the factor; ``_wall_ns`` is the
-        # clock time it was last advanced to.
+        # Speed scaling (upstream section 13; :mod:`.speed_scaling` declares this state).
         self._tau_ns = 0
         self._wall_ns = 0
         self._timebase_started = False
@@ -203,16 +200,13 @@ class JointTrajectoryController(ControlLaw, Stops):
     ) -> None:
         """Start: hold the start state, with no jump.
 
-        The start state is the measured one, except -- when
-        ``set_last_command_interface_value_as_state_on_activation`` is true and every joint is
-        a command joint -- for each of position, velocity and acceleration whose command
-        interface is configured and whose ``last_command`` values are all finite: that field
-        is the last command (jtc_upstream_behaviour.md section 3 step 4; a single NaN, "no
-        value", makes that field the measured one). The hold is at the start positions with
-        zero velocity; the start state is also the last commanded state
-        (``last_commanded_state``) and ``last_command`` the first ``output`` of the
-        controller state. Any trajectory or goal from an earlier activation is gone; PID
-        integrators start at zero.
+        The start state is the measured one, except that with
+        ``set_last_command_interface_value_as_state_on_activation`` and every joint a command
+        joint, each commanded field of ``last_command`` that is finite for every joint takes
+        its place (docs/behaviour.md, "Activation and commands"). The hold is at the start
+        positions with zero velocity; the start state is also ``last_commanded_state`` and
+        ``last_command`` the first ``output`` of the controller state. Any trajectory or goal
+        from an earlier activation is gone; PID integrators start at zero.
 
         Raises:
             ControllerStateError: already active.

@@ -19,19 +19,10 @@ segment away from the true one, and a quantity is flat at its extremum, so the v
 is the extreme to rounding. Held segments (method ``none``, the state past a joint's last
 point) are constants: their stored velocity and acceleration are checked as they are.
 
-What is checked is what the joints will follow: the reference from the splice time (the
-lead-in from the current reference to the first point, then the points) to the end, and the
-state kept past the end, for the joints the command names. A position that starts outside
-the range (a robot switched on outside it) is not a violation as long as the trajectory goes
-no further out than where it starts: otherwise no goal could bring it back.
-
-Slowing down (``time_scaling: fit``): every time from the goal's start is multiplied by
-``s >= 1``, velocities divided by ``s``, accelerations by ``s**2`` (jerks follow, by
-``s**3``): the same path, traversed more slowly. For the points' own segments the extremes
-scale exactly like that, so the smallest ``s`` is ``max(v / v_max, sqrt(a / a_max),
-cbrt(j / j_max))``. The lead-in starts from the current reference's state, which does not
-scale; when it still exceeds a limit after slowing, ``s`` grows by the remaining ratio and
-the check runs again (a few rounds at most).
+What is checked (the reference from the splice time, lead-in included, and the state kept
+past the end, for the joints the command names; a position starting outside its range may go
+no further out) and how ``time_scaling: fit`` slows a goal down (:func:`fit_factor`,
+:func:`scale_prepared`, rounds in ``Planner``) are in docs/behaviour.md, "Joint limits".
 """
 
 from __future__ import annotations
@@ -49,6 +40,7 @@ from ..errors import GoalRejected
 from .interpolation import F64, SegmentKind
 from .messages import NS_PER_S, PreparedTrajectory
 from .trajectory import Trajectory
+from .validation import INVALID_GOAL
 
 __all__ = [
     "FIT",
@@ -68,8 +60,6 @@ REJECT = "reject"
 FIT = "fit"
 TIME_SCALING_MODES = (REJECT, FIT)
 """``time_scaling`` values: reject a goal beyond the limits, or slow it down to fit them."""
-
-INVALID_GOAL = -1
 
 TOLERANCE = 1e-9
 """Relative slack on a limit: a value computed as the limit plus rounding is within it."""

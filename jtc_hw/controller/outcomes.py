@@ -11,10 +11,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .goals import ErrorCode, GoalHandle, GoalTransition
+from .joints import F64
 from .messages import NS_PER_S
 from .tolerances import SegmentTolerances, violated
-
-F64 = NDArray[np.float64]
 
 PREEMPTED_BY_ACTION = "Current goal cancelled due to new incoming action."
 PREEMPTED_BY_TOPIC = "Current goal cancelled due to new incoming trajectory on the topic interface."

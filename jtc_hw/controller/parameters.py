@@ -158,11 +158,7 @@ class ParameterChange:
     warnings: tuple[str, ...] = ()
 
     def to_json(self) -> dict[str, Any]:
-        """The ``set_parameters`` reply's fields (``docs/protocol.md``).
-
-        Raises:
-            Nothing.
-        """
+        """The ``set_parameters`` reply's fields (``docs/protocol.md``)."""
         return {
             "parameters": dict(self.values),
             "takes_effect": {name: effect.value for name, effect in self.effects.items()},

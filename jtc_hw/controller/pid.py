@@ -11,19 +11,16 @@ quotient) and step ``dt``, per joint::
     I       = clamp(I, i_min, i_max)
 
 So the integral contribution lags one call (the first call after a reset has none), as
-upstream's (jtc_upstream_behaviour.md section 12). The feed-forward terms are added by the
-controller, outside the output clamp. The configuration's symmetric ``i_clamp`` gives
-``i_min = -i_clamp``, ``i_max = +i_clamp`` (so ``i_clamp = 0`` disables the integral; ``jtc-hw
-check`` warns about that); the output clamp and the deadband default to off (the parameter
-list of the seeds has neither), which is upstream's behaviour with their defaults.
+upstream's (jtc_upstream_behaviour.md section 12). ``i_clamp`` gives ``i_min = -i_clamp``,
+``i_max = +i_clamp``; the output clamp and the deadband are off unless given, and feed-forward
+is added by the controller, outside the clamp (docs/behaviour.md, "The PID law").
 """
 
 from __future__ import annotations
 
 import numpy as np
-from numpy.typing import NDArray
 
-F64 = NDArray[np.float64]
+from .interpolation import F64
 
 
 class Pid:
@@ -72,14 +69,12 @@ class Pid:
         self.output[:] = 0.0
 
     def compute(self, error: F64, error_dot: F64, dt_s: float) -> F64:
-        """One step; ``dt_s`` is the time since the previous step, in seconds.
+        """One step; ``dt_s`` is the time since the previous step, in seconds; the arrays
+        have one value per joint.
 
         Returns:
             The output per joint (a new array; NaN where ``error`` or ``error_dot`` is not
             finite).
-
-        Raises:
-            ValueError: never for valid arrays; shapes must match the joint count.
         """
         if dt_s == 0.0:
             # control_toolbox: no time has passed, so nothing is integrated and the command

@@ -41,12 +41,10 @@ class SpeedScaling:
         time times the factor (1: as planned, 0.5: half speed, 0: paused; above 1, where
         ``speed_scaling.max_scaling_factor`` allows it: faster).
 
-        The factor ramps toward the target from the next ``update``, as fast as the
-        acceleration limits allow (``config.limits``; a joint's acceleration
-        ``a s^2 + v ds/dt`` stays within its limit), and for joints without one at
-        ``1 / speed_scaling.ramp_time`` per second; velocity and acceleration commands and
-        feed-forwards are scaled with it. It holds across goals; ``activate`` resets it to
-        ``speed_scaling.initial_scaling_factor``.
+        The factor ramps toward the target from the next ``update`` within the acceleration
+        limits (:meth:`_ramp`; docs/behaviour.md, "Speed scaling"); velocity and acceleration
+        commands and feed-forwards scale with it. It holds across goals; ``activate`` resets it
+        to ``speed_scaling.initial_scaling_factor``.
 
         Example::
 
@@ -159,17 +157,13 @@ class SpeedScaling:
     def _ramp(
         self, ahead: TrajectorySample | None, here: TrajectorySample | None = None
     ) -> None:
-        """Choose the factor's rate of change for the coming period (``_scale_rate``).
-
-        The fastest change toward the target that keeps every joint with an acceleration
-        limit within it, on the reference at the look-ahead time ``ahead``: the joint's
-        acceleration is ``a s^2 + v ds/dt``, so ``|ds/dt| <= (A - |a| s^2) / |v|`` keeps it
-        within ``A`` whatever the signs (0 when the reference alone already uses the whole
-        limit: the factor waits); a joint at rest does not bound it. Joints without a limit
-        bound it by the ramp time. With ``here`` (the reference at the cycle's own trajectory
-        time), the larger speed and acceleration of the two samples count: the period's
-        velocity step is taken between them, and a trajectory slowing down (or one paused,
-        whose time stands still) has a larger speed at ``here`` than at ``ahead``.
+        """Choose the factor's rate of change for the coming period (``_scale_rate``): the
+        fastest toward the target with ``|ds/dt| <= (A - |a| s^2) / |v|`` for every moving joint
+        with an acceleration limit ``A``, at the look-ahead sample ``ahead`` (docs/behaviour.md,
+        "Speed scaling"); the ramp time bounds the others. With ``here`` (the sample at the
+        cycle's own trajectory time) the larger speed and acceleration of the two count: the
+        period's velocity step is taken between them, and a trajectory slowing down (or paused,
+        its time standing still) is faster at ``here`` than at ``ahead``.
         """
         scale, target = self._scale, self._scale_target
         if scale == target:

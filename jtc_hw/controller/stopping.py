@@ -5,23 +5,15 @@ Theory of operation
 Upstream's ``constraints.decelerate_on_cancel`` (jtc_upstream_behaviour.md section 11.3)
 replaces the hold of a stop (cancel, path and goal-time aborts, ``cmd_timeout``, topic stops)
 by a trajectory that decelerates each joint from its *measured* position and velocity at
-``max_deceleration_on_cancel`` until it is at rest, then holds there. Upstream needs the
-option, a deceleration > 0 for every joint, every URDF velocity limit > 0 and a velocity state
-interface; otherwise it falls back to the plain hold. :func:`stop_decelerations` checks the same
-preconditions here, reading the velocity limits from ``ControllerConfig.limits`` and deriving a
-deceleration where none is given (see :func:`stop_decelerations`).
+``max_deceleration_on_cancel`` until it is at rest, then holds there; without its
+preconditions (:func:`stop_unavailable_reason`) a stop is the plain hold.
 
-Upstream stores the stop as one waypoint per update period (positions, velocities and
-accelerations of the constant-deceleration parabola, splined in between). The curve sampled at
-those times is the same here, but it is stored exactly, as the few polynomial pieces it is made
-of (one per phase per joint, on the trajectory's shared breakpoint grid): a 0.5 s stop at 1 kHz
-is then a handful of segments rather than 500, which keeps building it inside the control cycle
-and sending it to the daemon's API process cheap.
-
-Beyond upstream: when a joint has a jerk limit, its stop is an S-curve: the acceleration moves
-from its current value at most at the jerk limit to ``-a_peak`` (``a_peak`` at most the
-deceleration), stays there, and returns to 0 exactly when the velocity reaches 0. Each joint's
-profile is computed in closed form (:func:`stop_phases`).
+Upstream stores the stop as one waypoint per update period; here the same curve is stored
+exactly, as its few polynomial pieces (one per phase per joint, on the trajectory's shared
+breakpoint grid), so that building it inside the control cycle stays cheap. Beyond upstream, a
+joint with a jerk limit stops along an S-curve computed in closed form (:func:`stop_phases`).
+See docs/behaviour.md, "Stopping", for the preconditions, the derived deceleration and the
+cost.
 """
 
 from __future__ import annotations
@@ -30,12 +22,12 @@ import math
 from typing import NamedTuple
 
 import numpy as np
-from numpy.typing import NDArray
 
 from .config import ControllerConfig
-from .interpolation import SegmentKind
+from .interpolation import F64, SegmentKind
 from .messages import NS_PER_S
 from .trajectory import Trajectory
+from .validation import FLT_EPSILON
 
 __all__ = [
     "DERIVED_STOP_TIME_S",
@@ -49,11 +41,6 @@ __all__ = [
     "stop_unavailable_reason",
     "warm_up",
 ]
-
-F64 = NDArray[np.float64]
-
-FLT_EPSILON = 1.1920928955078125e-07
-"""C's ``FLT_EPSILON``: upstream treats ``|v0|`` at or below it as already at rest."""
 
 DERIVED_STOP_TIME_S = 0.5
 """With a velocity limit but neither ``max_deceleration_on_cancel`` nor an acceleration limit,
@@ -80,9 +67,6 @@ def stop_decelerations(config: ControllerConfig) -> F64 | None:
     A joint's deceleration is its ``constraints.<joint>.max_deceleration_on_cancel`` when it
     is > 0; otherwise it is derived from its limits: the acceleration limit if there is one,
     else the velocity limit / :data:`DERIVED_STOP_TIME_S`.
-
-    Raises:
-        Nothing.
     """
     if stop_unavailable_reason(config) is not None:
         return None
@@ -90,11 +74,7 @@ def stop_decelerations(config: ControllerConfig) -> F64 | None:
 
 
 def stop_jerks(config: ControllerConfig) -> F64:
-    """Per joint, the jerk limit bounding its stop (``inf`` where there is none).
-
-    Raises:
-        Nothing.
-    """
+    """Per joint, the jerk limit bounding its stop (``inf`` where there is none)."""
     jerks = []
     for joint in config.joints:
         limits = config.limits.get(joint)
@@ -123,9 +103,6 @@ def stop_unavailable_reason(config: ControllerConfig) -> str | None:
     Upstream's preconditions (section 11.3): the option, a velocity state interface, and for
     every joint a deceleration > 0 (given or derived) and a velocity limit > 0 where one is
     configured (``check_joint_limits`` guarantees that).
-
-    Raises:
-        Nothing.
     """
     if not config.constraints.decelerate_on_cancel:
         return "constraints.decelerate_on_cancel is false"
@@ -181,9 +158,6 @@ def stop_phases(
 
     Returns:
         The phases in time order (empty when already at rest) and the rest position.
-
-    Raises:
-        Nothing.
     """
     big_a = deceleration
     if math.isinf(jerk):
@@ -245,9 +219,6 @@ def stop_trajectory(
 
     Returns:
         The reference to follow.
-
-    Raises:
-        Nothing.
     """
     n = positions.shape[0]
     p0 = np.asarray(positions, dtype=np.float64)
@@ -347,9 +318,6 @@ def stop_duration_bound_s(
     """An upper bound of how long the stop from this state lasts, in seconds, without
     building it: ``|v| / A`` per joint, plus ``2 (A + |a|) / J`` with a jerk limit (the
     S-curve's ramps; see :func:`stop_phases`), the largest over the joints.
-
-    Raises:
-        Nothing.
     """
     v = np.abs(np.asarray(velocities, dtype=np.float64))
     a = np.minimum(np.abs(np.asarray(accelerations, dtype=np.float64)), decelerations)
@@ -362,9 +330,6 @@ def warm_up(n_joints: int) -> None:
     """Build and sample a throw-away stop of ``n_joints`` joints (jerk-limited and not), so
     that the first real one, built inside a control cycle, does not pay numpy's first-call
     costs.
-
-    Raises:
-        Nothing.
     """
     ones = np.ones(n_joints)
     jerks = np.where(np.arange(n_joints) % 2 == 0, np.inf, 10.0)

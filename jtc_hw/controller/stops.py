@@ -105,9 +105,6 @@ class Stops(SpeedScaling):
         hold or ``state`` has no usable velocities; without an acceleration state, the
         acceleration is taken as 0): the daemon's bound for waiting on one. Cheap: no
         trajectory is built.
-
-        Raises:
-            Nothing.
         """
         v = state.velocities
         if self._stop_decel is None or not self._usable(v):
@@ -151,9 +148,6 @@ class Stops(SpeedScaling):
         As upstream, the stop starts from the measured position and velocity; its starting
         acceleration (used only by a jerk-limited joint) is the measured one with an
         acceleration state interface, else the reference's at ``now_ns``.
-
-        Raises:
-            Nothing.
         """
         velocities = state.velocities
         if self._stop_decel is None or not self._usable(velocities):

@@ -17,9 +17,8 @@ from numpy.typing import NDArray
 
 from ..errors import GoalRejected
 from .config import ControllerConfig
+from .validation import INVALID_GOAL, INVALID_JOINTS
 
-INVALID_GOAL = -1
-INVALID_JOINTS = -2
 _ERASE = -1.0
 _FIELDS = ("position", "velocity", "acceleration")
 

@@ -552,16 +552,9 @@ class Trajectory:
         return self._sample(t_ns)
 
     def query(self, t_ns: int, current: TrajectorySample) -> QueriedState:
-        """Upstream's ``query_state`` (section 16) on this trajectory; pure.
-
-        Args:
-            t_ns: the time asked for.
-            current: the current (measured) state, which the answer carries before the start.
-
-        Returns:
-            ``success`` True with the sample strictly between ``state_before_ns`` and the last
-            point; False before ``state_before_ns`` (carrying ``current``) and at or after the
-            last point (carrying the last point's values, as ``sample``).
+        """Upstream's ``query_state`` (section 16) on this trajectory; pure. The answer
+        (:class:`QueriedState`) carries ``current``, the measured state, before
+        ``state_before_ns``, and the last point's values at or after the last point.
         """
         if t_ns < self.state_before_ns:
             return QueriedState(*current, success=False, where=BEFORE_START)

@@ -43,9 +43,6 @@ def prepare(config: ControllerConfig, msg: Any) -> PreparedTrajectory:
         msg: a ``JointTrajectory`` with at least one point (an empty one is a stop request that
             the caller handles).
 
-    Returns:
-        The prepared trajectory.
-
     Raises:
         GoalRejected: with the precise reason and result code.
     """
@@ -157,11 +154,7 @@ def _checked(
 def _prepare_points(
     config: ControllerConfig, msg: JointTrajectory, joint_index: NDArray[np.intp]
 ) -> PreparedTrajectory:
-    """Point by point: raises ``GoalRejected`` naming the first problem, in point order.
-
-    Raises:
-        GoalRejected: the first problem found.
-    """
+    """Point by point: raises ``GoalRejected`` naming the first problem, in point order."""
     k = len(msg.joint_names)
     m = len(msg.points)
     arrays = {name: np.full((m, k), np.nan) for name in FIELDS}

@@ -1,12 +1,8 @@
-"""A set of hardware components whose joints together are the controller's joints.
-
-:class:`HardwareSet` maps between the controller's joint order and each component's with index
-arrays computed once, and fans the lifecycle, reads and writes out to every component.
-"""
+"""A set of hardware components whose joints together are the controller's joints:
+:class:`HardwareSet`."""
 
 from __future__ import annotations
 
-import logging
 from collections.abc import Callable, Iterable, Sequence
 from typing import Any, Final
 
@@ -23,14 +19,6 @@ from .lifecycle import _A, _ALLOWED, _F, _I, _U, LifecycleState, _lifecycle_erro
 __all__ = [
     "HardwareSet",
 ]
-
-_log = logging.getLogger("jtc_hw.hardware")
-
-
-
-# --------------------------------------------------------------------------------------------
-# Several components forming the controller's joints
-# --------------------------------------------------------------------------------------------
 
 _RANK: Final = {_U: 0, _I: 1, _A: 2}
 
@@ -230,9 +218,6 @@ class HardwareSet:
         """Each INACTIVE component's :meth:`HardwareInterface.monitor` (the loop, while
         faulted); the state in the controller's joint order, NaN for joints not read, or
         ``None`` if none was.
-
-        Raises:
-            Nothing.
         """
         parts = [(comp.monitor(now_ns), index) for comp, index in self._pairs]
         if all(part is None for part, _ in parts):
@@ -336,5 +321,3 @@ class HardwareSet:
             except JtcHwError as exc:
                 errors.append(exc)
         _raise_first(errors)
-
-

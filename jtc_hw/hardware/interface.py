@@ -1,7 +1,7 @@
 """The hardware contract: the base class every component derives from.
 
 The lifecycle's states and transition table are in :mod:`.lifecycle`, the shared parameter
-rows in :mod:`.params`; both are re-exported here, with the base class, as the contract.
+rows in :mod:`.params`; :mod:`jtc_hw.hardware` exports them with the base class, as the contract.
 
 Theory of operation
 -------------------
@@ -14,8 +14,8 @@ joints in SI units. It follows ros2_control's ``SystemInterface`` lifecycle::
 
 ``read`` is allowed while INACTIVE or ACTIVE (the daemon shows positions of a disarmed robot),
 ``write`` only while ACTIVE. The base class owns the policy, as python-can's ``BusABC`` does:
-the transition guard (:data:`TRANSITIONS`, one table), parameter validation against the kind's
-:attr:`HardwareInterface.PARAMS` schema, wrapping of foreign exceptions in
+the transition guard (:data:`~.lifecycle.TRANSITIONS`, one table), parameter validation
+against the kind's :attr:`HardwareInterface.PARAMS` schema, wrapping of foreign exceptions in
 :class:`~jtc_hw.errors.HardwareError` naming the component, fault bookkeeping and counters.
 Drivers implement the underscore primitives (``_read``, ``_write`` and, if they need them,
 ``_configure``, ``_activate``, ``_deactivate``, ``_cleanup``).
@@ -41,35 +41,16 @@ from ..config.values import describe, did_you_mean
 from ..controller.config import COMMAND_INTERFACE_TYPES, STATE_INTERFACE_TYPES
 from ..controller.joints import F64, JointCommand, JointState
 from ..errors import ConfigurationError, HardwareError, JtcHwError, add_note
-from .lifecycle import _ALLOWED, TRANSITIONS, LifecycleState, SafeAction, _lifecycle_error
-from .params import (
-    COMMON_PARAMS,
-    DEFAULT_WATCHDOG_S,
-    JOINT_MAPPING_PARAMS,
-    MIN_WATCHDOG_PERIODS,
-    MISS_RATE_WINDOW,
-    WATCHDOG_PARAM,
-    health_params,
-    miss_rate_param,
-)
+from .lifecycle import _ALLOWED, LifecycleState, SafeAction, _lifecycle_error
+from .params import COMMON_PARAMS, MISS_RATE_WINDOW
 
 __all__ = [
-    "COMMON_PARAMS",
-    "DEFAULT_WATCHDOG_S",
-    "MIN_WATCHDOG_PERIODS",
     "NO_DEVICE_WATCHDOG",
-    "WATCHDOG_PARAM",
     "DeviceName",
     "DeviceWatchdog",
     "HEALTH_FIELDS",
-    "health_params",
-    "miss_rate_param",
     "HardwareInterface",
-    "JOINT_MAPPING_PARAMS",
-    "LifecycleState",
-    "SafeAction",
     "one_line",
-    "TRANSITIONS",
 ]
 
 _log = logging.getLogger("jtc_hw.hardware")
@@ -146,9 +127,8 @@ class DeviceName:
 # --------------------------------------------------------------------------------------------
 
 
-def _check_joint_names(value: Any, path: str) -> tuple[str, ...]:
-    spec = ParamSpec(path, ParamKind.STRINGS, (), "the joints of the component",
-                     unique=True, non_empty=True)
+def _check_names(value: Any, path: str, description: str) -> tuple[str, ...]:
+    spec = ParamSpec(path, ParamKind.STRINGS, (), description, unique=True, non_empty=True)
     names: tuple[str, ...] = check_value(spec, value, path)
     return names
 
@@ -156,9 +136,7 @@ def _check_joint_names(value: Any, path: str) -> tuple[str, ...]:
 def _check_interfaces(
     value: Any, path: str, supported: Sequence[str], owner: str
 ) -> tuple[str, ...]:
-    spec = ParamSpec(path, ParamKind.STRINGS, (), f"{path.replace('_', ' ')}",
-                     unique=True, non_empty=True)
-    names: tuple[str, ...] = check_value(spec, value, path)
+    names = _check_names(value, path, path.replace("_", " "))
     for name in names:
         if name not in supported:
             raise ConfigurationError(
@@ -174,9 +152,8 @@ class HardwareInterface(ABC):
     """A hardware component serving some joints, with the ros2_control lifecycle.
 
     Subclasses declare :attr:`kind` and :attr:`PARAMS` and implement ``_read`` and ``_write``
-    (plus ``_configure``, ``_activate``, ``_deactivate``, ``_cleanup`` if they need them). The
-    public methods guard the lifecycle, wrap foreign exceptions and count; see the module
-    docstring for the state machine.
+    (the other primitives if they need them); the module docstring has the state machine and
+    the policy the public methods own.
 
     Args:
         name: component name, unique within a robot (used in every message).
@@ -221,7 +198,7 @@ class HardwareInterface(ABC):
             )
         self.name: str = name
         owner = self._owner()
-        self.joints: tuple[str, ...] = _check_joint_names(joints, "joints")
+        self.joints: tuple[str, ...] = _check_names(joints, "joints", "the joints of the component")
         self.command_interfaces: tuple[str, ...] = _check_interfaces(
             command_interfaces, "command_interfaces", type(self).COMMAND_INTERFACES, owner
         )

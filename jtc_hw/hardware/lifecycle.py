@@ -1,9 +1,9 @@
 """The lifecycle every hardware component follows: its states, one transition table, the
 guard's error.
 
-ros2_control's ``SystemInterface`` lifecycle (the diagram is in :mod:`.interface`): ``read``
-is allowed while INACTIVE or ACTIVE, ``write`` only while ACTIVE; a call in another state is
-refused with the transitions that would lead to one where it is allowed.
+ros2_control's ``SystemInterface`` lifecycle (the diagram and the rules are in
+:mod:`.interface`); a call in a state that does not allow it is refused with the transitions
+that would lead to one that does.
 """
 
 from __future__ import annotations

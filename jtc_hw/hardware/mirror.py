@@ -42,17 +42,16 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..config.schema import ParamKind, ParamSpec, param_table
+from ..controller.config import COMMAND_INTERFACE_TYPES
 from ..controller.joints import F64, JointCommand, JointState
+from ..controller.messages import NS_PER_S
 from ..errors import CommunicationError, ConfigurationError, HardwareError
 from .interface import DeviceWatchdog, HardwareInterface
 from .lifecycle import SafeAction
 
 __all__ = ["MirrorHardware"]
 
-NS_PER_S = 1_000_000_000
-
 _POSITION, _VELOCITY, _ACCELERATION, _EFFORT = 0, 1, 2, 3
-_INTERFACES = ("position", "velocity", "acceleration", "effort")
 
 
 class MirrorHardware(HardwareInterface):
@@ -119,7 +118,7 @@ class MirrorHardware(HardwareInterface):
         # Last finite value written per interface: set points of the mode, and what
         # activate() reports as held.
         self._held = np.full((4, n), np.nan)
-        self._commanded = tuple(i in self.command_interfaces for i in _INTERFACES)
+        self._commanded = tuple(i in self.command_interfaces for i in COMMAND_INTERFACE_TYPES)
         self._t_ns: int | None = None
         self._frozen = False
         self._fault: str | None = None

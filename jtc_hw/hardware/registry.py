@@ -35,10 +35,6 @@ __all__ = [
 
 _log = logging.getLogger("jtc_hw.hardware")
 
-# --------------------------------------------------------------------------------------------
-# Registry
-# --------------------------------------------------------------------------------------------
-
 ENTRY_POINT_GROUP: Final = "jtc_hw.hardware"
 """Entry-point group through which third-party packages add hardware kinds."""
 

@@ -139,9 +139,6 @@ def lock_file_name(name: str) -> str:
     A non-path name keeps its ``:``, which is escaped in paths; one without any ``:``, or
     starting with one, gets a leading ``:``, so that it can never equal a path's name nor
     another non-path name's.
-
-    Raises:
-        Nothing.
     """
     is_path = name.startswith("/")
     if is_path:
@@ -277,11 +274,7 @@ def check_directory(directory: str) -> str | None:
 
 
 def socket_lock_path(socket_path: str) -> str:
-    """The lock file of a socket path: ``<socket>.lock``, next to it.
-
-    Raises:
-        Nothing.
-    """
+    """The lock file of a socket path: ``<socket>.lock``, next to it."""
     return socket_path + ".lock"
 
 

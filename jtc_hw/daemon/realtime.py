@@ -352,9 +352,6 @@ def disable_huge_pages() -> str:
 
     Returns:
         A log line saying what was done.
-
-    Raises:
-        Nothing.
     """
     prctl = libc_function("prctl")
     if prctl is None:
@@ -374,9 +371,6 @@ def release_freed_memory() -> bool:
 
     Returns:
         Whether memory was returned (False also without glibc).
-
-    Raises:
-        Nothing.
     """
     trim = libc_function("malloc_trim")
     if trim is None:

@@ -266,9 +266,6 @@ class CycleRing:
             ``(rows, next_since, lost)``: the complete rows in order (an array of shape
             ``(n, width)``), the sequence number to read from next, and how many rows since
             ``since`` were overwritten before they could be copied (the reader fell behind).
-
-        Raises:
-            Nothing.
         """
         end = int(self._header[_H_COUNT])
         start = max(since, end - self.capacity)

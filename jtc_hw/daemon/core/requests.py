@@ -235,21 +235,13 @@ class Requests:
         self._listening = False
 
     def listen(self) -> None:
-        """Become an observer of the backend (goal events, state). Idempotent.
-
-        Raises:
-            Nothing.
-        """
+        """Become an observer of the backend (goal events, state). Idempotent."""
         if not self._listening:
             self._listening = True
             self.backend.add_observer(self)
 
     def close(self) -> None:
-        """Forget every route and subscriber; later backend events are ignored. Idempotent.
-
-        Raises:
-            Nothing.
-        """
+        """Forget every route and subscriber; later backend events are ignored. Idempotent."""
         self._closed = True
         self._routes.clear()
         self._early.clear()
@@ -260,9 +252,6 @@ class Requests:
     def leave(self, caller: Caller) -> None:
         """``caller``'s client has gone: no more state, commands or records for it. Its goals
         run on; their results are discarded (and counted) when its outlet says it is gone.
-
-        Raises:
-            Nothing.
         """
         self._subscribers.pop(caller, None)
 
@@ -312,9 +301,6 @@ class Requests:
     ) -> Reply:
         """The error reply for ``error`` (its id, else the request's), logged unless
         ``logged``: also for a transport's own refusals (``busy``, ``unauthorized``).
-
-        Raises:
-            Nothing.
         """
         rid = error.request_id if error.request_id is not None or request is None else request.id
         if not logged:

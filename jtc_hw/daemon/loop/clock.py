@@ -99,9 +99,6 @@ class Ticker:
         Args:
             start_ns: the new anchor ``t0`` (default: the clock now); the next deadline is
                 ``t0 + period_ns``.
-
-        Raises:
-            Nothing.
         """
         self._t0 = self._now() if start_ns is None else start_ns
         self._k = 0

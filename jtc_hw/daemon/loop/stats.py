@@ -124,11 +124,7 @@ class LoopStats:
         }
 
     def reset(self) -> None:
-        """Forgets every cycle (e.g. after start-up, or when a client asks); keeps the buffers.
-
-        Raises:
-            Nothing.
-        """
+        """Forgets every cycle (e.g. after start-up, or when a client asks); keeps the buffers."""
         self._index = 0
         self._cycles = 0
         self._overruns = 0

@@ -168,9 +168,5 @@ def peer_identity(kind: str, writer: asyncio.StreamWriter) -> tuple[str, int | N
 
 
 def is_privileged(uid: int | None) -> bool:
-    """The daemon's own user or root (may use the reserved unix slots).
-
-    Raises:
-        Nothing.
-    """
+    """The daemon's own user or root (may use the reserved unix slots)."""
     return uid is not None and (uid == 0 or uid == os.geteuid())

@@ -603,11 +603,7 @@ class Server:
         conn.send(self.requests.refuse(conn.caller, request, error).data)
 
     def stats(self, caller: Caller | None = None) -> dict[str, Any]:
-        """The server's part of ``get_status`` (``server``), as ``caller`` asks it.
-
-        Raises:
-            Nothing.
-        """
+        """The server's part of ``get_status`` (``server``), as ``caller`` asks it."""
         return {
             "version": __version__,
             "protocol_version": PROTOCOL_VERSION,

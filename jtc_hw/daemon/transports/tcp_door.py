@@ -107,9 +107,6 @@ class TcpDoor:
     def enter(self, conn: Waiting, now: float) -> list[Waiting]:
         """Let ``conn`` wait to authenticate: the connections to drop for it (the caller
         closes them).
-
-        Raises:
-            Nothing.
         """
         out: list[Waiting] = []
         hard_cap = HANDSHAKE_HARD_CAP * self.max_unauthenticated
@@ -124,19 +121,11 @@ class TcpDoor:
         return out
 
     def leave(self, conn: Waiting) -> None:
-        """``conn`` authenticated or closed: it waits no more. Idempotent.
-
-        Raises:
-            Nothing.
-        """
+        """``conn`` authenticated or closed: it waits no more. Idempotent."""
         self._waiting.pop(conn.number, None)
 
     def failure(self, host: str, now: float) -> float:
-        """Record a failed handshake from ``host``: the delay before it may be answered.
-
-        Raises:
-            Nothing.
-        """
+        """Record a failed handshake from ``host``: the delay before it may be answered."""
         self.failed += 1
         record = self._failures.get(host)
         if record is None:
@@ -172,11 +161,7 @@ class TcpDoor:
             del self._failures[host]
 
     def stats(self) -> dict[str, Any]:
-        """The door's part of the server's ``get_status``.
-
-        Raises:
-            Nothing.
-        """
+        """The door's part of the server's ``get_status``."""
         return {
             "max_unauthenticated": self.max_unauthenticated,
             "waiting": len(self._waiting),

@@ -149,11 +149,7 @@ NOT_OVER_ZENOH: Final = {
 
 
 def keys(prefix: str) -> dict[str, str]:
-    """The key expressions of a daemon at ``prefix``.
-
-    Raises:
-        Nothing.
-    """
+    """The key expressions of a daemon at ``prefix``."""
     return {
         "liveliness": prefix,
         "state": f"{prefix}/state",
@@ -650,11 +646,7 @@ class ZenohInterface:
             return exc
 
     def stats(self) -> dict[str, Any]:
-        """Counters for logs and tests.
-
-        Raises:
-            Nothing.
-        """
+        """Counters for logs and tests."""
         outbox = self._outbox
         return {
             "prefix": self.prefix,

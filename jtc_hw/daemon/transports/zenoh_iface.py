@@ -27,25 +27,15 @@ events, in the asyncio thread, like the live view); the loop process knows nothi
 
 Credentials: loopback is no door at all on a machine with other users, so every query of an
 operation in :data:`COMMANDS` (everything that moves the robot or changes its settings, ``stop``
-included) must carry ``daemon.zenoh.token`` as its attachment (the token's UTF-8 bytes). It is
-checked in Zenoh's thread before the payload is read or anything is dispatched: a query
-without an attachment is answered ``unauthorized`` at once (a forgotten token is no guess); a
-wrong one after :data:`WRONG_TOKEN_DELAY_S` (a guesser gets two tries a second per waiting
-slot), with at most :data:`MAX_REFUSALS_WAITING` refusals waiting (more are dropped without a
-reply, so refusals never take the slots of authorized queries); both are counted
-(``unauthorized`` in ``get_status``'s ``zenoh``) and logged (the first three, then one line
-per hundred, of each reason). Watching needs no token: ``hello``, ``get_status``,
-``query_state``, ``get_config``, ``get_parameters`` (as ``state`` and ``events``, which any
-peer can subscribe to).
+included) must carry ``daemon.zenoh.token`` as its attachment, checked in Zenoh's thread before
+the payload is read: none is answered ``unauthorized`` at once, a wrong one after
+:data:`WRONG_TOKEN_DELAY_S` with at most :data:`MAX_REFUSALS_WAITING` refusals waiting
+(docs/zenoh.md, "The token"). Watching needs no token.
 
-Memory: Zenoh hands a query over only once it has the whole payload, reassembled in buffers
-its native library allocates with malloc in its own threads; freed, glibc keeps them (a 100 MB
-query left the API process ~100 MB larger for good). So a payload longer than
-``daemon.max_message_bytes`` is answered ``too_large`` from its length, never copied into
-Python, and every query of :data:`RELEASE_AFTER_BYTES` or more, answered or refused, is
-followed by releases of freed memory (``malloc_trim``, :data:`RELEASE_AFTER_S`).
-Zenoh's ``transport/link/rx/max_message_size`` would bound the peak too, but a query over it is
-dropped by the link: no reply at all (docs/zenoh.md, "Memory").
+Memory: Zenoh reassembles a query's whole payload in malloc'd buffers that glibc keeps once
+freed, so a payload longer than ``daemon.max_message_bytes`` is answered ``too_large`` from its
+length, never copied into Python, and every query of :data:`RELEASE_AFTER_BYTES` or more is
+followed by releases of freed memory (:data:`RELEASE_AFTER_S`; docs/zenoh.md, "Memory").
 
 Threads: Zenoh's Python API is synchronous and calls back in its own threads. A query callback
 only hands the query to the event loop (``call_soon_threadsafe``; at most

@@ -73,11 +73,6 @@ class PlanWriter:
     (``sendmsg(MSG_DONTWAIT)``, the arrays' memory itself: no copy) and says whether
     everything was written; the owner calls it again when the socket is writable.
 
-    A plan of megabytes used to be written with a blocking send from the asyncio thread,
-    which then waited for the loop to read it, a budget per cycle (a 75,000-point plan:
-    hundreds of milliseconds), while no other client was served; and a stop sent meanwhile
-    queued behind the whole plan.
-
     Args:
         conn: the connection (its socket is duplicated; the connection stays open).
     """
@@ -323,11 +318,7 @@ class Inbox:
     chunk record at a time. A 2,000-point plan then arrives over one or two cycles, each
     paying a bounded copy. In the API process it lets the event loop read the loop's messages
     (``multiprocessing``'s format) without waiting for the rest of one the loop wrote in part.
-
-    A plan's arrays of :data:`LARGE_MESSAGE_BYTES` or more are received into memory that is
-    not zero-filled first (the reads touch it, a budget at a time), and those of
-    :data:`RETURNED_MESSAGE_BYTES` or more into a mapping of their own, which
-    :meth:`release` hands back to the system once nothing unpickled from it is alive.
+    How a plan's large arrays are received and given back: :func:`_receive_buffer`.
 
     Args:
         conn: the connection (its socket is duplicated; the connection stays open).

@@ -40,17 +40,12 @@ _CAP_SYS_NICE = 23
 
 
 def apply_realtime(priority: int, lock_memory: bool, cpu_affinity: Sequence[int]) -> list[str]:
-    """Applies CPU affinity, memory locking and SCHED_FIFO to the calling thread's process.
-
-    The scheduling policy applies to the calling thread (Linux schedules threads), the affinity
-    to the calling thread, and the memory lock to the whole process; call it from the loop's
-    thread before starting other threads.
+    """Applies CPU affinity, memory locking and SCHED_FIFO (module docstring: to what, when).
 
     Args:
         priority: SCHED_FIFO priority, 1 (lowest) to 99 (highest); 0 keeps normal
-            scheduling. Stay below the kernel's
-            threaded interrupt handlers (50 by default) unless the bus driver's IRQ thread is
-            raised above the loop too.
+            scheduling. Stay below the kernel's threaded interrupt handlers (50 by default)
+            unless the bus driver's IRQ thread is raised above the loop too.
         lock_memory: whether to lock all current and future pages in RAM.
         cpu_affinity: CPUs to run on; empty leaves the affinity unchanged.
 
@@ -265,8 +260,6 @@ def _has_capability(bit: int) -> bool:
 
 def _limit(value: int) -> str:
     return "infinity" if value == resource.RLIM_INFINITY else str(value)
-
-
 
 
 _M_TRIM_THRESHOLD = -1

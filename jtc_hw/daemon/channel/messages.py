@@ -226,11 +226,7 @@ class Failed:
 
     def exception(self) -> JtcHwError:
         """The error to raise in the API process: of the loop's class (a ``HardwareError``
-        for a class the API process has no answer of its own for), with the loop's text.
-
-        Raises:
-            Nothing: it returns the exception.
-        """
+        for a class the API process has no answer of its own for), with the loop's text."""
         kind = self.kind if issubclass(self.kind, _ANSWERED_BY_KIND) else HardwareError
         return kind(self.text)
 

@@ -4,14 +4,8 @@ Theory of operation
 -------------------
 The loop runs in its own process so that API work (parsing, fitting a 2,000-point goal,
 serving clients) never shares an interpreter lock with it. It talks to the API process over
-one duplex ``multiprocessing`` connection:
-
-- in (records of ``pipe.PlanWriter``, a plan's arrays out of band in chunks): the records of
-  :mod:`.messages`: ``Commit(plan_id, Plan)`` and ``Request(request_id, op)`` (ops:
-  ``Cancel``, ``Stop``, ``Sim``, ``Rearm``, ``SetParameters`` with a configuration the API
-  process checked, ``SetSpeedScaling`` (a factor, or ``None`` to resume), ``Shutdown``);
-- out: ``Ready``, ``Reference``, ``Committed`` | ``Stale`` (per commit), ``Events``,
-  ``State``, ``Status``, ``Reply`` | ``Failed`` (per request), ``Log``, ``Fault``, ``Exit``.
+one duplex ``multiprocessing`` connection, in the records :mod:`.messages` draws (in:
+``Commit`` and ``Request``, framed by ``pipe.PlanWriter``; out: everything else).
 
 Every change of the controller's reference is reported, in order, so the API process keeps an
 exact replica to plan against: a committed plan by its id (the API process made it), a hold by
@@ -507,11 +501,7 @@ class ControlLoop:
     def _monitor(self, now_ns: int) -> None:
         """While faulted: what the hardware can read without commanding anything (its motors'
         health, the joints' positions, see ``HardwareInterface.monitor``), so that the status
-        and the cycle ring (the flight recorder's second after the fault) stay current.
-
-        Raises:
-            Nothing: ``monitor`` never raises.
-        """
+        and the cycle ring (the flight recorder's second after the fault) stay current."""
         measured = self.hardware.monitor(now_ns)
         ring = self.ring
         if ring is not None and measured is not None:
@@ -521,11 +511,7 @@ class ControlLoop:
     def status(self) -> dict[str, Any]:
         """The loop's statistics (``outbox``: how its messages to the API process fare, see
         :meth:`Outbox.snapshot`; ``api_stalls``: goals ended because the API process stopped
-        reading; ``api_stalled``: it has not caught up since), hardware and controller.
-
-        Raises:
-            Nothing: it only reads state.
-        """
+        reading; ``api_stalled``: it has not caught up since), hardware and controller."""
         return {
             "loop": {
                 **self.stats.snapshot(),
@@ -592,9 +578,6 @@ class ControlLoop:
         period earlier. Committing at a deadline whose sample was already taken changes
         nothing the joints got: a plan keeps the reference it replaces from its
         ``valid_from_ns`` up to its planned time.
-
-        Raises:
-            Nothing: see :meth:`serve_outbox` and :meth:`Inbox.pump`.
         """
         self.serve_outbox(deadline_ns)
         inbox.pump(deadline_ns + self.period_ns - self.inbox_spare_ns)

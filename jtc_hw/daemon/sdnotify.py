@@ -120,9 +120,6 @@ class Notifier:
         Args:
             usec: the extension, in microseconds; must be positive.
 
-        Returns:
-            Whether the datagram was sent.
-
         Raises:
             ValueError: ``usec`` is not a positive integer (a programming error, not a send
                 failure).
@@ -143,10 +140,6 @@ class Notifier:
         Returns:
             ``True`` when the kernel accepted the datagram; ``False`` when notification is
             disabled or the send failed (no listener, permission denied, queue full, ...).
-
-        Raises:
-            Nothing: every ``OSError`` is caught, logged once at warning, and reported as
-                ``False``.
         """
         if self.address is None:
             return False

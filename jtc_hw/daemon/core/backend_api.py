@@ -72,38 +72,23 @@ class Backend(Protocol):
 
     The synchronous methods are called from the asyncio loop and must return at once (no
     waiting on the control loop): answer from replicas and caches. The coroutines may wait on
-    the control loop; only the requesting client waits for them.
+    the control loop; only the requesting client waits for them. An unexpected exception
+    becomes an ``internal`` error reply.
     """
 
     joint_names: tuple[str, ...]
 
     def now_ns(self) -> int:
-        """The daemon's monotonic clock, in nanoseconds.
-
-        Raises:
-            Nothing expected: an exception becomes an ``internal`` error reply.
-        """
+        """The daemon's monotonic clock, in nanoseconds."""
 
     def hello(self) -> dict[str, Any]:
-        """Facts for a new client (``update_rate``, ``state_publish_rate``, ...).
-
-        Raises:
-            Nothing expected: an exception becomes an ``internal`` error reply.
-        """
+        """Facts for a new client (``update_rate``, ``state_publish_rate``, ...)."""
 
     def config_dict(self) -> dict[str, Any]:
-        """The configuration in effect, JSON-able.
-
-        Raises:
-            Nothing expected: an exception becomes an ``internal`` error reply.
-        """
+        """The configuration in effect, JSON-able."""
 
     def status(self) -> dict[str, Any]:
-        """Loop statistics, hardware and controller status, JSON-able.
-
-        Raises:
-            Nothing expected: an exception becomes an ``internal`` error reply.
-        """
+        """Loop statistics, hardware and controller status, JSON-able."""
 
     async def send_goal(
         self,

@@ -107,9 +107,6 @@ class LoopStats:
 
         Returns:
             A new dict; later cycles do not change it.
-
-        Raises:
-            Nothing: it only reads state.
         """
         n = min(self._cycles, self.window)
         return {

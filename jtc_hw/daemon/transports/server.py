@@ -58,7 +58,7 @@ from ...api.framing import (
 from ...api.protocol import Decoder
 from ...api.requests import Auth, Request, Stop
 from ...errors import ControllerStateError
-from ..core.backend_api import Backend, Observer
+from ..core.backend_api import Backend
 from ..core.requests import Caller, Requests
 from ..settings import DaemonSettings
 from .connection import (
@@ -72,11 +72,7 @@ from .connection import (
 from .tcp_door import TcpDoor
 from .unix_socket import bind_unix, remove_socket_file
 
-__all__ = [
-    "Backend",
-    "Observer",
-    "Server",
-]
+__all__ = ["Server"]
 
 log = logging.getLogger("jtc_hw.server")
 

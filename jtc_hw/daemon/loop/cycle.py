@@ -13,13 +13,11 @@ value (a constant trajectory, a few bytes). The loop process has a single thread
 cycle it reads whatever has arrived, a bounded amount, without blocking (:class:`~.pipe.Inbox`),
 and the next cycle pops the completed messages. What it sends goes through a
 :class:`~.outbox.Outbox`, written at the end of each cycle without ever blocking: the loop never
-waits for the API process. If the API process stops reading (stopped, swapped out, wedged) for
-``daemon.api_stall_s``, the loop ends the active goal ``ABORTED`` with that reason, holds the
-measured position, refuses new goals, keeps cycling and publishing into the outbox (``State``
-and ``Status`` coalesced, everything else kept in order), and serves again once the API process
-has read the backlog. Before it configures any hardware, the loop process locks every device
-its components drive (``HardwareInterface.devices()``, :mod:`.locks`): a second daemon on the
-same hardware stops there, having sent nothing.
+waits for the API process. If the API process stops reading for ``daemon.api_stall_s``, the loop
+ends the active goal, holds and refuses new goals, cycling on, until the API process has read
+the backlog (docs/safety.md, "API stall"). Before it configures any hardware, the loop process
+locks every device its components drive (``HardwareInterface.devices()``, :mod:`.locks`): a
+second daemon on the same hardware stops there, having sent nothing.
 
 One cycle at deadline ``t``: drain requests -> ``hardware.read(t)`` -> ``controller.update`` ->
 ``hardware.write`` -> report events; a state snapshot at ``state_publish_rate``, statistics at

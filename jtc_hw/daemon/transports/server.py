@@ -12,25 +12,20 @@ worker thread, so that no client's big goal holds the event loop (an operator's 
 
 Per client, a reader task handles requests one after another (so replies come back in request
 order; each reply is queued before the reader awaits anything else, as the request layer
-asks) and a writer task drains a bounded outgoing queue:
+asks) and a writer task drains a bounded outgoing queue: ``state`` and ``feedback`` are
+dropped (and counted) beyond ``client_queue_size`` messages, replies and results never; a
+client whose queue reaches ``client_queue_hard_cap`` is disconnected (docs/protocol.md, "Slow
+subscribers").
 
-- ``state`` and ``feedback`` events are dropped while the queue holds ``client_queue_size``
-  messages; the loss is counted per client, reported in the next ``state`` event's ``dropped``
-  and in ``get_status``;
-- replies and goal ``result`` events are never dropped; a client so slow that its queue reaches
-  ``client_queue_hard_cap`` messages is disconnected (and logged).
-
-Admission (a stop always gets through): the unix socket and TCP have separate limits
-(``max_clients``, ``tcp.max_clients``); ``RESERVED_UNIX_CLIENTS`` more unix connections are
-admitted for peers whose ``SO_PEERCRED`` uid is the daemon's or root's. A unix connection over
-its limit is served by ``_serve_over_limit``: one ``stop`` within ``OVER_LIMIT_DEADLINE_S``,
-else ``busy``; then it is closed. A TCP connection first waits to authenticate in a room of its
-own (``TcpDoor``: at most ``tcp.max_unauthenticated``, the longest waiting dropped for a
-newcomer, failed handshakes answered slowly per address), so strangers never take
-``tcp.max_clients`` slots; authenticated over that limit, it may send one ``stop`` (``stop_only``).
-Admitted connections are closed by their deadlines: a TCP connection that has not authenticated
-``tcp.auth_timeout_s`` after opening, and a connection idle (no request, no subscription, no
-goal running) for ``idle_timeout_s``.
+Admission (docs/protocol.md, "A stop always gets through"): the unix socket and TCP have
+separate limits (``max_clients``, ``tcp.max_clients``); ``RESERVED_UNIX_CLIENTS`` more unix
+connections are admitted for peers whose ``SO_PEERCRED`` uid is the daemon's or root's. A
+connection over its limit may send one ``stop`` within ``OVER_LIMIT_DEADLINE_S``
+(``_serve_over_limit``; on TCP once authenticated, ``stop_only``), then it is closed. A TCP
+connection first waits to authenticate in the ``TcpDoor``'s room, so strangers never take
+``tcp.max_clients`` slots. Admitted connections are closed by their deadlines:
+``tcp.auth_timeout_s`` to authenticate, ``idle_timeout_s`` idle (no request, no subscription,
+no goal running).
 """
 
 from __future__ import annotations

@@ -100,17 +100,8 @@ ZENOH_PARAMETERS: Final[Mapping[str, ParamSpec]] = param_table(
 
 @dataclass(frozen=True)
 class ZenohSettings:
-    """``daemon.zenoh``: the daemon's Zenoh interface (``jtc_hw.daemon.transports.zenoh_iface``).
-
-    Attributes:
-        prefix: key expression of this daemon, or ``None`` for :func:`default_prefix`.
-        mode: ``peer`` or ``client``, or ``None`` (the configuration file's, else peer).
-        connect: endpoints to connect to.
-        listen: endpoints to listen on, or ``None`` (the file's, else none).
-        config: absolute path of a Zenoh configuration file, or ``None``.
-        multicast_scouting: discover peers by multicast.
-        token: the secret a query must carry to command the robot (module docstring).
-    """
+    """``daemon.zenoh``: the daemon's Zenoh interface (``jtc_hw.daemon.transports.zenoh_iface``);
+    one field per row of :data:`ZENOH_PARAMETERS` (``config`` an absolute path here)."""
 
     prefix: str | None = None
     mode: str | None = None

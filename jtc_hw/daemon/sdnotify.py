@@ -74,19 +74,12 @@ class Notifier:
         return self.address is not None
 
     def ready(self, status: str | None = None) -> bool:
-        """Tells the service manager that start-up is complete (``READY=1``).
-
-        Args:
-            status: optional one-line status shown by ``systemctl status``.
-        """
+        """Tells the service manager that start-up is complete (``READY=1``), with an optional
+        one-line ``status`` for ``systemctl status``."""
         return self.send(_with_status("READY=1", status))
 
     def status(self, text: str) -> bool:
-        """Updates the free-form status line (``STATUS=...``).
-
-        Args:
-            text: the status; newlines are replaced by spaces (the protocol is line based).
-        """
+        """Updates the free-form status line (``STATUS=...``; newlines become spaces)."""
         return self.send("STATUS=" + _one_line(text))
 
     def watchdog(self) -> bool:
@@ -94,11 +87,8 @@ class Notifier:
         return self.send("WATCHDOG=1")
 
     def stopping(self, status: str | None = None) -> bool:
-        """Tells the service manager that an orderly shutdown has begun (``STOPPING=1``).
-
-        Args:
-            status: optional one-line status, e.g. what the shutdown is waiting for.
-        """
+        """Tells the service manager that an orderly shutdown has begun (``STOPPING=1``), with
+        an optional one-line ``status`` (what the shutdown is waiting for)."""
         return self.send(_with_status("STOPPING=1", status))
 
     def reloading(self) -> bool:
@@ -129,13 +119,8 @@ class Notifier:
         return self.send(f"EXTEND_TIMEOUT_USEC={usec}")
 
     def send(self, message: str) -> bool:
-        """Sends ``message`` (newline-separated ``KEY=VALUE`` lines) as one datagram.
-
-        The primitive behind the other methods, for assignments they do not cover
-        (e.g. ``ERRNO=5`` or ``MAINPID=...``).
-
-        Args:
-            message: the assignments, UTF-8 encoded on the wire.
+        """Sends ``message`` (newline-separated ``KEY=VALUE`` lines, UTF-8 on the wire) as one
+        datagram: the primitive behind the other methods (also ``ERRNO=5``, ``MAINPID=...``).
 
         Returns:
             ``True`` when the kernel accepted the datagram; ``False`` when notification is

@@ -94,12 +94,8 @@ class Ticker:
         return self._t0 + (self._k + 1) * self.period_ns
 
     def reset(self, start_ns: int | None = None) -> None:
-        """Re-anchors the deadlines (e.g. when the loop resumes after a deliberate pause).
-
-        Args:
-            start_ns: the new anchor ``t0`` (default: the clock now); the next deadline is
-                ``t0 + period_ns``.
-        """
+        """Re-anchors the deadlines at ``start_ns`` (default: the clock now), e.g. when the loop
+        resumes after a deliberate pause; the next deadline is ``start_ns + period_ns``."""
         self._t0 = self._now() if start_ns is None else start_ns
         self._k = 0
         self.skipped_total = 0

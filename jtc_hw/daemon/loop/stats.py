@@ -47,11 +47,7 @@ class LoopStats:
     """
 
     def __init__(self, rate_hz: float, window: int | None = None) -> None:
-        """Preallocates the ring buffers.
-
-        Args:
-            rate_hz: the loop's nominal rate, reported back and used for the default window.
-            window: number of most recent cycles kept for percentiles; default 10 s of cycles.
+        """Preallocates the ring buffers (``window``: default 10 s of cycles at ``rate_hz``).
 
         Raises:
             ValueError: ``rate_hz`` is not a positive finite number or ``window`` is not a

@@ -43,12 +43,9 @@ class _Entry:
 class Outbox:
     """The loop's messages to the API process: queued, written without ever blocking.
 
-    :meth:`put` encodes and queues; :meth:`flush` (once per cycle) writes what the socket
-    takes now, in order, resuming a partial write where it stopped. A message put with a
-    ``key`` is droppable: while it waits, a newer message with the same key replaces it (in
-    place if nothing was queued after it, otherwise the old one is dropped and the new one
-    queued last, so that it still follows everything queued before it). Messages without a key
-    are never dropped.
+    A message put with a ``key`` is droppable: while it waits, a newer message with the same key
+    replaces it (in place if nothing was queued after it, otherwise the old one is dropped and
+    the new one queued last, so that it still follows everything queued before it).
 
     The queue is bounded in two ways: droppable messages by their keys (one waiting per key),
     ordered ones by ``capacity_bytes``: beyond it :attr:`overflow` is true, and the owner is

@@ -2,12 +2,9 @@
 
 Theory of operation
 -------------------
-A transport turns what arrives on its medium into ``protocol.Request`` values, has
-``Requests.answer`` execute them, and sends the ``Reply`` back; it implements the request
-layer's ``Outlet`` for what comes later (``jtc_hw.daemon.core.requests``). What it adds is its
-own: framing, authentication, slots, key expressions. It never reaches into another transport.
-
-Adding one (ROS 2, say) is one module and one line::
+A transport is a peer over the request layer (``jtc_hw.daemon.core.requests`` draws them);
+what it adds is its own (framing, authentication, slots, key expressions), and it never
+reaches into another transport. Adding one (ROS 2, say) is one module and one line::
 
     1. transports/ros2_iface.py: a class with ``async start()`` and ``async close()``
        (``Transport``) over a ``Requests``; a ``Caller`` per client or per request, its

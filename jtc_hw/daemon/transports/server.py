@@ -176,11 +176,8 @@ class Server:
 
     async def close(self) -> None:
         """Stop listening, give each client up to ``close_timeout_s`` to read what is queued,
-        disconnect them, and remove the socket file (if it is still ours). Idempotent.
-
-        Raises:
-            Nothing: errors while closing are logged.
-        """
+        disconnect them, and remove the socket file (if it is still ours). Idempotent; as
+        ``Transport.close``, errors while closing are logged."""
         if self._closed:
             return
         self._closed = True

@@ -328,11 +328,7 @@ class ZenohInterface:
 
     async def close(self) -> None:
         """Withdraw the token, send what is waiting (the last results) and close the session
-        (idempotent).
-
-        Raises:
-            Nothing: errors while closing are logged.
-        """
+        (idempotent; errors while closing are logged)."""
         session, self._session = self._session, None
         if session is None:
             return

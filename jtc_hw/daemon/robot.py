@@ -66,9 +66,7 @@ DEFAULT_HARDWARE_NAME: Final = "mirror"
 """Name of the mirror component used when the ``hardware`` section is absent."""
 
 
-# --------------------------------------------------------------------------------------------
-# Schema
-# --------------------------------------------------------------------------------------------
+# -- Schema ------------------------------------------------------------------------------------
 
 HARDWARE_KEYS: Final[Mapping[str, ParamSpec]] = param_table(
     ParamSpec("name", ParamKind.STRING, "", "unique component name", required=True),
@@ -81,9 +79,7 @@ HARDWARE_KEYS: Final[Mapping[str, ParamSpec]] = param_table(
 """Keys of one ``hardware[]`` entry."""
 
 
-# --------------------------------------------------------------------------------------------
-# Result types
-# --------------------------------------------------------------------------------------------
+# -- Result types ------------------------------------------------------------------------------
 
 
 @dataclass(frozen=True)
@@ -104,9 +100,7 @@ class RobotConfig:
     source_path: str | None = None
 
 
-# --------------------------------------------------------------------------------------------
-# Loading
-# --------------------------------------------------------------------------------------------
+# -- Loading -----------------------------------------------------------------------------------
 
 
 def _parse_hardware(raw: Any, controller: ControllerConfig) -> tuple[HardwareSpec, ...]:

@@ -73,9 +73,7 @@ _OCTAL_MODE = re.compile(r"(?:0o|0)?([0-7]{1,4})")
 _A_STRING: Final = ParamSpec("string", ParamKind.STRING, "", "a string")
 
 
-# --------------------------------------------------------------------------------------------
-# The checks a row's kind does not cover
-# --------------------------------------------------------------------------------------------
+# -- The checks a row's kind does not cover ----------------------------------------------------
 
 
 def _loopback_host(value: Any, path: str) -> str:
@@ -140,9 +138,7 @@ def _socket_mode(value: Any, path: str) -> int:
     return mode
 
 
-# --------------------------------------------------------------------------------------------
-# Schema
-# --------------------------------------------------------------------------------------------
+# -- Schema ------------------------------------------------------------------------------------
 
 TCP_PARAMETERS: Final[Mapping[str, ParamSpec]] = param_table(
     ParamSpec("host", ParamKind.STRING, "127.0.0.1", "loopback address to listen on",
@@ -259,9 +255,7 @@ def default_flight_recorder_dir() -> str:
     return os.path.join(xdg, "jtc-hw", "flight")
 
 
-# --------------------------------------------------------------------------------------------
-# Result types: every default is its row's
-# --------------------------------------------------------------------------------------------
+# -- Result types: every default is its row's --------------------------------------------------
 
 _TCP, _RT, _FOX, _D, _S = (
     TCP_PARAMETERS, REALTIME_PARAMETERS, FOXGLOVE_PARAMETERS, DAEMON_PARAMETERS, SERVER_PARAMETERS
@@ -395,9 +389,7 @@ class DaemonSettings:
             )
 
 
-# --------------------------------------------------------------------------------------------
-# Reading the section
-# --------------------------------------------------------------------------------------------
+# -- Reading the section -----------------------------------------------------------------------
 
 
 def daemon_settings(raw: Any, base_dir: str) -> DaemonSettings:

@@ -14,16 +14,13 @@ docs/zenoh.md)::
     <prefix>/rpc/<op>   a queryable per socket operation: the query's payload is the socket's
                         request body (``op`` may be left out), the reply the socket's reply
 
-What this adds to the request layer (``jtc_hw.daemon.core.requests``, which executes every
-operation): **key expressions** (one queryable per operation, the publications above), the
-**token attachment** (below), and Zenoh's **threads and memory** (below). A query is answered
-by ``Requests.answer``, as a socket request is, so replies and errors are byte for byte the
-socket's. Its querier is a ``Caller`` of its own whose outlet discards what is routed to it
-later: a goal sent over Zenoh has its ``accepted`` reply as the query's reply; its feedback
-and its one result are published on ``events``, as are those of every goal (a socket client's
-too), so a querier that vanishes leaves nothing waiting on it and the result is never lost.
-The publications come from its being an observer of the backend (state snapshots and goal
-events, in the asyncio thread, like the live view); the loop process knows nothing of it.
+A query is answered by ``Requests.answer`` (``jtc_hw.daemon.core.requests``), as a socket
+request is, so replies and errors are byte for byte the socket's. Its querier is a ``Caller``
+of its own whose outlet discards what is routed to it later: a goal's ``accepted`` reply is
+the query's reply, its feedback and its one result are published on ``events`` as those of
+every goal are, so a querier that vanishes leaves nothing waiting and the result is never
+lost. The publications come from its being an observer of the backend, in the asyncio
+thread; the loop process knows nothing of it.
 
 Credentials: loopback is no door at all on a machine with other users, so every query of an
 operation in :data:`COMMANDS` (everything that moves the robot or changes its settings, ``stop``

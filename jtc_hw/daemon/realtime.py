@@ -170,18 +170,12 @@ def libc_function(name: str) -> Any:
         return None
 
 
-def _mcl_flags() -> tuple[int, int]:
-    """``(MCL_CURRENT, MCL_FUTURE)``: most architectures use 1, 2; a few use their own values."""
-    machine = platform.machine().lower()
-    if machine.startswith(("ppc", "powerpc", "sparc", "alpha")):
-        return 0x2000, 0x4000
-    return 1, 2
-
-
-def _mcl_onfault() -> int:
-    """``MCL_ONFAULT`` (Linux 4.4+): 4 on most architectures, 0x8000 where the others differ."""
-    machine = platform.machine().lower()
-    return 0x8000 if machine.startswith(("ppc", "powerpc", "sparc", "alpha")) else 4
+def _mcl_flags() -> tuple[int, int, int]:
+    """``(MCL_CURRENT, MCL_FUTURE, MCL_ONFAULT)`` (the last: Linux 4.4+): most architectures
+    use 1, 2, 4; a few use their own values."""
+    if platform.machine().lower().startswith(("ppc", "powerpc", "sparc", "alpha")):
+        return 0x2000, 0x4000, 0x8000
+    return 1, 2, 4
 
 
 def _apply_memory_lock() -> str:
@@ -190,13 +184,13 @@ def _apply_memory_lock() -> str:
         return "memory locking not supported on this platform (no mlockall in libc); skipped"
     mlockall.argtypes = [ctypes.c_int]
     mlockall.restype = ctypes.c_int
-    current, future = _mcl_flags()
+    current, future, on_fault = _mcl_flags()
     if mlockall(current | future) == 0:
         # What is mapped now is faulted in and locked. Later mappings are locked as they are
         # touched (MCL_ONFAULT), not all at once when made: a large plan's receive buffer
         # (90 MB for 75,000 points) would otherwise be faulted in by the one read that
         # allocates it, tens of milliseconds in one cycle. Pages stay locked once touched.
-        onfault = mlockall(current | future | _mcl_onfault()) == 0
+        onfault = mlockall(current | future | on_fault) == 0
         how = (
             "; later mappings locked as they are touched (MCL_ONFAULT)"
             if onfault

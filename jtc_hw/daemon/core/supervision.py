@@ -25,6 +25,7 @@ exits non-zero (systemd restarts it). Meanwhile the device-side watchdogs stop t
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import itertools
 import logging
 import multiprocessing
@@ -258,24 +259,18 @@ class LoopProcess:
         """Stop watching the process and close the pipe (after :meth:`stop`)."""
         aio = asyncio.get_running_loop()
         if self._process is not None:
-            try:
+            with contextlib.suppress(ValueError, OSError):
                 aio.remove_reader(self._process.sentinel)
-            except (ValueError, OSError):
-                pass
         if self._conn is not None:
-            try:
+            with contextlib.suppress(ValueError, OSError):
                 aio.remove_reader(self._conn.fileno())
-            except (ValueError, OSError):
-                pass
             if self._inbox is not None:
                 self._inbox.close()
                 self._inbox = None
             if self._writer is not None:
                 if self._writing:
-                    try:
+                    with contextlib.suppress(ValueError, OSError):
                         aio.remove_writer(self._conn.fileno())
-                    except (ValueError, OSError):
-                        pass
                     self._writing = False
                 self._writer.close()
                 self._writer = None

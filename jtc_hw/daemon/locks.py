@@ -281,12 +281,9 @@ class DeviceLock:
         return self._fd is not None
 
     def release(self) -> None:
-        """Remove the lock file (while still holding it) and unlock. Idempotent.
-
-        Raises:
-            Nothing: a file that cannot be removed (another user's, in a sticky directory)
-            stays; it is unlocked anyway.
-        """
+        """Remove the lock file (while still holding it) and unlock. Idempotent. Never raises: a
+        file that cannot be removed (another user's, in a sticky directory) stays; it is
+        unlocked anyway."""
         fd, self._fd = self._fd, None
         if fd is None:
             return
@@ -355,15 +352,11 @@ def held_by(name: str, path: str, *, what: str = "driven") -> DeviceBusy | None:
     """Whether another process holds the lock ``path`` (as :func:`acquire` would find), without
     locking, creating or changing anything: the busy error :func:`acquire` would raise, or None.
 
-    For a client that must not touch what a running daemon serves (``jtc-hw demo --config``):
-    it reads the holder from ``/proc/locks`` only, so a daemon starting at the same moment
-    never finds the file locked by the one who asked. Where ``/proc/locks`` does not list it
-    (not Linux), the answer is None: a check, not a guarantee; the caller must not rely on it
-    alone.
-
-    Raises:
-        Nothing: a file that is missing or cannot be opened is not held by anyone it can see.
-    """
+    For a client that must not touch what a running daemon serves (``jtc-hw demo --config``): it
+    reads the holder from ``/proc/locks`` only, so a daemon starting at the same moment never
+    finds the file locked by the one who asked. Where ``/proc/locks`` does not list it (not
+    Linux), the answer is None: a check, not a guarantee; the caller must not rely on it alone.
+    Never raises: a file that is missing or cannot be opened is not held by anyone it can see."""
     try:
         fd = os.open(path, os.O_RDONLY | os.O_CLOEXEC | os.O_NOFOLLOW)
     except OSError:

@@ -247,10 +247,7 @@ def security_warnings(robot: RobotConfig) -> list[str]:
     """What in ``robot``'s file is exposed to other users (``jtc-hw check`` and ``run`` print
     it): a socket mode that lets every user connect; a TCP or Zenoh token in a file that group
     or others may read; a live view (which has no authentication) on a non-loopback address.
-
-    Raises:
-        Nothing: a file that cannot be examined gives no warning.
-    """
+    Never raises: a file that cannot be examined gives no warning."""
     return [*_socket_mode_warnings(robot), *_token_warnings(robot), *_foxglove_warnings(robot)]
 
 

@@ -51,15 +51,13 @@ class Notifier:
 
         The environment is read once, here; later changes to it are not seen. The variables are
         not removed from ``os.environ`` (child processes that must not notify should be started
-        with an environment lacking ``NOTIFY_SOCKET``; ``NotifyAccess=main`` makes systemd ignore
-        them anyway).
+        with an environment lacking ``NOTIFY_SOCKET``; ``NotifyAccess=main`` makes systemd
+        ignore them anyway). Never raises: malformed values disable the feature concerned and
+        are logged at warning.
 
         Args:
             environ: the environment to read ``NOTIFY_SOCKET``, ``WATCHDOG_USEC`` and
                 ``WATCHDOG_PID`` from.
-
-        Raises:
-            Nothing: malformed values disable the feature concerned and are logged at warning.
         """
         env = os.environ if environ is None else environ
         self.address: str | bytes | None = _parse_address(env.get("NOTIFY_SOCKET", ""))

@@ -282,11 +282,8 @@ def session_config(settings: ZenohSettings) -> Any:
 
 def endpoint_is_loopback(endpoint: str) -> bool:
     """Whether a Zenoh endpoint (``tcp/127.0.0.1:7447``, ``tls/[::1]:0#iface=lo``) can only be
-    reached from this machine: a loopback address, ``localhost``, or a Unix socket.
-
-    Raises:
-        Nothing: anything unreadable counts as reachable from elsewhere.
-    """
+    reached from this machine: a loopback address, ``localhost``, or a Unix socket. Never
+    raises: anything unreadable counts as reachable from elsewhere."""
     protocol, _, rest = endpoint.partition("/")
     if protocol.startswith("unixsock"):
         return True

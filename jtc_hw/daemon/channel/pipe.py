@@ -112,13 +112,11 @@ class PlanWriter:
         self._bulk.append(collections.deque(_records(message)))
 
     def flush(self) -> bool:
-        """Write what the socket takes now; never blocks.
+        """Write what the socket takes now; never blocks. Never raises: a failing socket (the
+        loop exited) sets :attr:`closed` and drops the queue.
 
         Returns:
             True if nothing is left to write.
-
-        Raises:
-            Nothing: a failing socket (the loop exited) sets :attr:`closed` and drops the queue.
         """
         while not self.closed:
             if not self._current and not self._next():
@@ -354,13 +352,10 @@ class Inbox:
         self._sock.close()
 
     def pump(self, until_ns: int | None = None) -> None:
-        """Read what has arrived, at most ``budget`` bytes (and, with ``until_ns``, no more
-        once that time on the monotonic clock has passed, checked after each read of a plan's
-        memory: headers and requests are read whatever the time); never blocks.
-
-        Raises:
-            Nothing: a failing socket sets :attr:`closed`.
-        """
+        """Read what has arrived, at most ``budget`` bytes (and, with ``until_ns``, no more once
+        that time on the monotonic clock has passed, checked after each read of a plan's memory:
+        headers and requests are read whatever the time); never blocks. Never raises: a failing
+        socket sets :attr:`closed`."""
         budget = self._budget
         while budget > 0 and not self.closed:
             want = min(len(self._view) - self._filled, budget)

@@ -263,12 +263,9 @@ class Requests:
     # -- requests -----------------------------------------------------------------------------
 
     async def answer(self, caller: Caller, item: Request | RequestError) -> Reply:
-        """Execute one request for ``caller``: its reply, success or error (logged).
-
-        Raises:
-            Nothing: a failure is an error reply (``internal`` for the unexpected, logged
-            with its traceback).
-        """
+        """Execute one request for ``caller``: its reply, success or error (logged). Never
+        raises: a failure is an error reply (``internal`` for the unexpected, logged with its
+        traceback)."""
         if isinstance(item, RequestError):
             return self.refuse(caller, None, item)
         try:
@@ -457,11 +454,8 @@ class Requests:
     # -- Observer -----------------------------------------------------------------------------
 
     def on_goal_event(self, event: GoalEvent) -> None:
-        """Route a goal's event to the caller that sent the goal.
-
-        Raises:
-            Nothing: a result whose caller has gone is logged and discarded.
-        """
+        """Route a goal's event to the caller that sent the goal. Never raises: a result whose
+        caller has gone is logged and discarded."""
         if self._closed:
             return
         waiting = self._releasing.get(event.goal_id)
@@ -540,34 +534,23 @@ class Requests:
             caller.outlet.send(data)
 
     def on_command(self, trajectory: JointTrajectory, goal_id: int | None) -> None:
-        """Send an accepted command (a goal's trajectory, a topic trajectory; empty: a stop)
-        to every caller subscribed with ``commands`` (``jtc-hw record``). Not droppable: a
-        recording must have every command; a transport disconnects a client that stops
-        reading, as for results.
-
-        Raises:
-            Nothing: a command that cannot be encoded is logged and skipped.
-        """
+        """Send an accepted command (a goal's trajectory, a topic trajectory; empty: a stop) to
+        every caller subscribed with ``commands`` (``jtc-hw record``). Not droppable: a
+        recording must have every command; a transport disconnects a client that stops reading,
+        as for results. Never raises: a command that cannot be encoded is logged and skipped."""
         self._to_recorders(lambda: command_event(trajectory, goal_id, self.backend.now_ns()),
                            "an accepted command")
 
     def on_record(self, event: dict[str, Any]) -> None:
-        """Send a result, fault or re-arm (a ``record`` event) to every caller subscribed
-        with ``commands`` (``jtc-hw record`` writes them into its bag). Not droppable, as
-        commands.
-
-        Raises:
-            Nothing: an event that cannot be encoded is logged and skipped.
-        """
+        """Send a result, fault or re-arm (a ``record`` event) to every caller subscribed with
+        ``commands`` (``jtc-hw record`` writes them into its bag). Not droppable, as commands.
+        Never raises: an event that cannot be encoded is logged and skipped."""
         self._to_recorders(lambda: record_event(event), "a recorded event")
 
     def on_state(self, snapshot: dict[str, Any]) -> None:
         """Send a state snapshot to every subscribed caller whose outlet has room, with what
-        that caller was not sent since its last one (``dropped``, ``dropped_total``).
-
-        Raises:
-            Nothing: a snapshot that cannot be encoded is logged and skipped.
-        """
+        that caller was not sent since its last one (``dropped``, ``dropped_total``). Never
+        raises: a snapshot that cannot be encoded is logged and skipped."""
         if self._closed:
             return
         subscribers = [c for c in self._subscribers if not c.outlet.gone]

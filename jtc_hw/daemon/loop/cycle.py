@@ -236,11 +236,8 @@ class ControlLoop:
         ``on_deactivate`` leaves it in the command interfaces for the next write.
 
         Only components that are active and have not faulted get it: upstream's controller
-        manager no longer writes to a component in error.
-
-        Raises:
-            Nothing: a failed write is logged; the safe action follows anyway.
-        """
+        manager no longer writes to a component in error. Never raises: a failed write is
+        logged; the safe action follows anyway."""
         command = self.ctrl.deactivation_command
         if command.velocities is None and command.accelerations is None and command.effort is None:
             return  # position only: nothing changes ("write nothing")
@@ -377,14 +374,12 @@ class ControlLoop:
         raise JtcHwError(f"unknown loop request {op!r}")
 
     def _begin_shutdown(self, now_ns: int) -> bool | float:
-        """Stop cycling now, or -- with decelerating stops -- once the joints are at rest.
+        """Stop cycling now, or -- with decelerating stops -- once the joints are at rest. Never
+        raises: the controller is active whenever ``stop`` is asked of it.
 
         Returns:
             True when the loop ends at once; else the longest it keeps cycling, in seconds
             (the API process waits that much longer for it to exit).
-
-        Raises:
-            Nothing: the controller is active whenever ``stop`` is asked of it.
         """
         if self._stopping_until_ns is not None:
             return (self._stopping_until_ns - now_ns) / 1e9
@@ -534,11 +529,8 @@ class ControlLoop:
 
     def serve_outbox(self, now_ns: int) -> None:
         """Write the cycle's messages without blocking; end the active goal if the API process
-        has not taken an ordered message for ``api_stall_s`` (or the backlog overflows).
-
-        Raises:
-            Nothing: an API process that has gone away stops the loop (``running``).
-        """
+        has not taken an ordered message for ``api_stall_s`` (or the backlog overflows). Never
+        raises: an API process that has gone away stops the loop (``running``)."""
         outbox = self.outbox
         outbox.flush()
         if outbox.closed:

@@ -147,14 +147,11 @@ class Outbox:
     # -- writing -----------------------------------------------------------------------------
 
     def flush(self) -> bool:
-        """Write what the socket takes now; never blocks.
+        """Write what the socket takes now; never blocks. Never raises: a failing socket (the
+        reader exited) sets :attr:`closed` and clears the queue.
 
         Returns:
             True if everything was written.
-
-        Raises:
-            Nothing: a failing socket (the reader exited) sets :attr:`closed` and clears the
-            queue.
         """
         entries = self._entries
         if not entries:
@@ -227,14 +224,11 @@ class Outbox:
         self.pending_bytes = self.ordered_bytes = self._written = 0
 
     def drain(self, timeout_s: float) -> bool:
-        """Write everything, waiting up to ``timeout_s`` for the reader (not for use in a
-        cycle: it blocks).
+        """Write everything, waiting up to ``timeout_s`` for the reader (not for use in a cycle:
+        it blocks). Never raises: a failing socket sets :attr:`closed` (and returns False).
 
         Returns:
             True if everything was written.
-
-        Raises:
-            Nothing: a failing socket sets :attr:`closed` (and returns False).
         """
         deadline = time.monotonic() + timeout_s
         poller = select.poll()

@@ -143,12 +143,9 @@ class Connection:
 
 
 def peer_identity(kind: str, writer: asyncio.StreamWriter) -> tuple[str, int | None, str]:
-    """A label for the log; on the unix socket, the peer's uid (``SO_PEERCRED``: the
-    kernel's record of who connected, which the peer cannot forge); on TCP, its address.
-
-    Raises:
-        Nothing: an unknown peer is labelled by its transport, its uid ``None``.
-    """
+    """A label for the log; on the unix socket, the peer's uid (``SO_PEERCRED``: the kernel's
+    record of who connected, which the peer cannot forge); on TCP, its address. Never raises: an
+    unknown peer is labelled by its transport, its uid ``None``."""
     sock = writer.get_extra_info("socket")
     if kind == "tcp":
         address = writer.get_extra_info("peername")

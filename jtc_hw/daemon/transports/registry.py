@@ -45,11 +45,8 @@ class Transport(Protocol):
         """
 
     async def close(self) -> None:
-        """Stop serving, after letting its clients read what is queued. Idempotent.
-
-        Raises:
-            Nothing: errors while closing are logged.
-        """
+        """Stop serving, after letting its clients read what is queued. Idempotent. Never
+        raises: errors while closing are logged."""
 
 
 @dataclass(frozen=True)

@@ -596,12 +596,8 @@ class ZenohInterface:
 
     @staticmethod
     def decode(op: str, body: bytes, max_message_bytes: int) -> Request | RequestError:
-        """A query's request: the body read as a socket message (the same errors), with the
-        key expression's ``op``.
-
-        Raises:
-            Nothing: every problem is returned as a value.
-        """
+        """A query's request: the body read as a socket message (the same errors), with the key
+        expression's ``op``. Never raises: every problem is returned as a value."""
         if not body.strip():
             obj: dict[str, Any] | RequestError = {}
         else:

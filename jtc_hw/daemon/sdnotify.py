@@ -36,8 +36,7 @@ class Notifier:
     """Sends state notifications to the service manager named by ``NOTIFY_SOCKET``.
 
     Every sending method returns ``True`` when the datagram was handed to the kernel and ``False``
-    when notification is disabled or the send failed (logged; a failed send never raises). All
-    methods may be called from any thread.
+    when notification is disabled or the send failed (module docstring).
 
     Attributes:
         address: the socket address (``bytes`` with a leading NUL for the abstract namespace,
@@ -47,17 +46,14 @@ class Notifier:
     """
 
     def __init__(self, environ: Mapping[str, str] | None = None) -> None:
-        """Reads the notification settings from ``environ`` (default ``os.environ``).
+        """Reads ``NOTIFY_SOCKET``, ``WATCHDOG_USEC`` and ``WATCHDOG_PID`` from ``environ``
+        (default ``os.environ``).
 
         The environment is read once, here; later changes to it are not seen. The variables are
         not removed from ``os.environ`` (child processes that must not notify should be started
         with an environment lacking ``NOTIFY_SOCKET``; ``NotifyAccess=main`` makes systemd
         ignore them anyway). Never raises: malformed values disable the feature concerned and
         are logged at warning.
-
-        Args:
-            environ: the environment to read ``NOTIFY_SOCKET``, ``WATCHDOG_USEC`` and
-                ``WATCHDOG_PID`` from.
         """
         env = os.environ if environ is None else environ
         self.address: str | bytes | None = _parse_address(env.get("NOTIFY_SOCKET", ""))

@@ -1,10 +1,6 @@
-"""One client connection of the socket server.
-
-:class:`Connection` is one client: its streams, its bounded outgoing queue (droppable
-``state`` / ``feedback``, never-dropped replies and results up to a hard cap), its deadlines
-(authentication, idleness) and its counters. It is the request layer's ``Outlet`` for its
-client, whose ``Caller`` (subscription, goals, drop counters) it holds. The bounds are the
-daemon's settings (:class:`~jtc_hw.daemon.settings.DaemonSettings`).
+"""One client connection of the socket server (:class:`Connection`), the peer's identity, and
+the slots beyond a transport's limit. The queue's bounds are the daemon's settings
+(``client_queue_size``, ``client_queue_hard_cap``).
 """
 
 from __future__ import annotations
@@ -40,8 +36,9 @@ first) before it gets ``busy``."""
 
 
 class Connection:
-    """One client: its streams, outgoing queue and deadlines; the ``Outlet`` of its
-    ``caller`` (the request layer's record of it: subscription, goals, drop counters)."""
+    """One client: its streams, bounded outgoing queue (droppable ``state`` / ``feedback``,
+    never-dropped replies and results up to a hard cap), deadlines and counters; the ``Outlet``
+    of its ``caller`` (the request layer's record of it: subscription, goals, drop counters)."""
 
     def __init__(
         self,

@@ -24,10 +24,9 @@ transport are byte for byte the same. What comes later goes through the caller's
 :class:`Outlet`, which the transport implements: ``send`` for what must not be dropped (goal
 results, accepted commands and records), ``offer`` for what may be (``state``, ``feedback``).
 
-This layer knows nothing of sockets, framing, authentication, slots or key expressions: a
-transport admits and authenticates its clients before it calls :meth:`Requests.answer`, and
-answers its own refusals (``busy``, ``unauthorized``, ``idle``) with :meth:`Requests.refuse`
-so that they are logged as every other rejection.
+A transport admits and authenticates its clients before it calls :meth:`Requests.answer`,
+and answers its own refusals (``busy``, ``unauthorized``, ``idle``) with
+:meth:`Requests.refuse`, so that they are logged as every other rejection.
 
 Goal routing: a goal's events go to the caller that sent it. ``Backend.send_goal`` returns the
 id and the route is registered before anything else is awaited, so no event can overtake the

@@ -5,14 +5,12 @@ Theory of operation
 :class:`LoopProcess` spawns the loop process (``jtc_hw.daemon.loop.cycle.loop_main``) on one duplex
 pipe and waits for its ``Ready``. From then on it is the only one that talks to it:
 
-- out: ``Commit`` and ``Request`` records (:mod:`.messages`), written without blocking
-  (:class:`~.pipe.PlanWriter`, the rest when the pipe is writable), a request before what is
-  left of a plan, so the event loop never waits for the loop to read a plan of megabytes;
-- in: the loop's messages, read without blocking (:class:`~.pipe.Inbox`) whatever the loop has
-  written in part. It answers the futures waiting for a ``Committed``/``Stale`` or a
-  ``Reply``/``Failed`` (a failure raised again as its own class), logs the loop's ``Log``
-  and ``Fault`` lines, and hands every message on to its owner (``on_message``: the backend's
-  replica and observers).
+- out: ``Commit`` and ``Request`` records (:mod:`.messages`), written without blocking by a
+  :class:`~.pipe.PlanWriter` (a request before what is left of a plan, see :mod:`.pipe`);
+- in: the loop's messages, read without blocking (:class:`~.pipe.Inbox`). It answers the
+  futures waiting for a ``Committed``/``Stale`` or a ``Reply``/``Failed`` (a failure raised
+  again as its own class), logs the loop's ``Log`` and ``Fault`` lines, and hands every
+  message on to its owner (``on_message``: the backend's replica and observers).
 
 The loop's death is a result, not a silence: when its process ends (its sentinel) without
 having been asked to stop, :attr:`LoopProcess.death` says how ("control loop died: <how>"),

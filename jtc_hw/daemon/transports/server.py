@@ -293,14 +293,11 @@ class Server:
         )
 
     async def _serve_over_limit(self, conn: Connection) -> None:
-        """Serve a unix connection over the limit: its first request, if it comes within
-        ``OVER_LIMIT_DEADLINE_S`` and is ``stop``, is executed and answered; anything else is
-        answered ``busy``. Then the connection is closed (TCP: ``Connection.stop_only``).
-
-        A stop must get through when every slot is taken (by forgotten clients, or by
-        someone holding them on purpose); the deadline and ``OVER_LIMIT_CLIENTS`` bound what
-        the connections over the limit can hold in turn.
-        """
+        """Serve a unix connection over the limit: one ``stop`` within ``OVER_LIMIT_DEADLINE_S``,
+        else ``busy``; then close it (TCP: ``Connection.stop_only``). A stop must get through
+        when every slot is taken (by forgotten clients, or by someone holding them on purpose);
+        the deadline and ``OVER_LIMIT_CLIENTS`` bound what the connections over the limit can
+        hold in turn."""
         self._refused_busy += 1
         kind, writer = conn.kind, conn.writer
         if self._over_limit[kind] >= OVER_LIMIT_CLIENTS:

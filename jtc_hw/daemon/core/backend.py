@@ -466,11 +466,10 @@ class LoopBackend:
         checks. Changes are serialised, each made from the configuration the previous left.
 
         Raises:
-            ConfigurationError: an unknown or read-only parameter or a bad value; nothing
-                changed.
+            ConfigurationError, HardwareError: as :meth:`Backend.set_parameters`; after a
+                HardwareError the loop may or may not have applied the change
+                (``get_parameters`` shows the API process's copy, unchanged).
             ControllerStateError: the control loop is not running.
-            HardwareError: the control loop did not answer (it may or may not have applied
-                the change; ``get_parameters`` shows the API process's copy, unchanged).
         """
         async with self._parameters_lock:
             aio = asyncio.get_running_loop()

@@ -190,10 +190,7 @@ class Reply:
 
 def accepted_goal(accepted: Accepted) -> tuple[int, dict[str, float]]:
     """The goal id and the ``accepted`` reply's fitting fields (``time_scale``,
-    ``duration_s``; none when the goal was checked as sent) from ``Backend.send_goal``'s value.
-
-    The one place that reads that value: its type belongs to the loop<->API messages.
-    """
+    ``duration_s``; none when the goal was checked as sent) from ``Backend.send_goal``'s value."""
     if accepted.time_scaling is None:
         return accepted.goal_id, {}
     return accepted.goal_id, {

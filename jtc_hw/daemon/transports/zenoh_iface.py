@@ -233,9 +233,8 @@ class ZenohInterface:
         controller: the controller's name (the default prefix's last chunk).
         requests: the request layer, which executes the queries.
         status: the backend's ``status`` (polled for faults).
-        add_observer: the backend's ``add_observer``: once started, the interface is an
-            observer of the backend (every state, goal event and accepted command, which it
-            publishes).
+        add_observer: the backend's ``add_observer``: once started, the interface observes the
+            backend, and publishes every state, goal event and accepted command.
     """
 
     def __init__(

@@ -56,7 +56,6 @@ def apply_realtime(priority: int, lock_memory: bool, cpu_affinity: Sequence[int]
         ConfigurationError: ``priority`` is not an integer in 1..99 (path
             ``daemon.realtime.priority``), or ``cpu_affinity`` names a CPU that this machine
             does not have or this process may never use (path ``daemon.realtime.cpu_affinity``).
-            Nothing has been changed when it is raised.
     """
     _check_priority(priority)
     cpus = _check_cpus(cpu_affinity)

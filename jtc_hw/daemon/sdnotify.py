@@ -96,13 +96,9 @@ class Notifier:
         return self.send(f"RELOADING=1\nMONOTONIC_USEC={usec}")
 
     def extend_timeout(self, usec: int) -> bool:
-        """Asks for more time for the current start-up, reload or shutdown.
-
-        The service manager extends the running timeout so that it expires ``usec`` from now;
-        send it again before that to keep extending (``EXTEND_TIMEOUT_USEC=...``).
-
-        Args:
-            usec: the extension, in microseconds; must be positive.
+        """Asks for more time for the current start-up, reload or shutdown
+        (``EXTEND_TIMEOUT_USEC=...``): the service manager extends the running timeout so that it
+        expires ``usec`` microseconds from now; send it again before that to keep extending.
 
         Raises:
             ValueError: ``usec`` is not a positive integer (a programming error, not a send

@@ -490,13 +490,9 @@ class Inbox:
         self._queue.append(pickle.loads(body))
 
     def release(self) -> bool:
-        """Give back a chunk of the memory of the large messages nothing uses any more.
-
-        Call in spare time: costs at most one ``madvise`` of :data:`RELEASE_CHUNK_BYTES`.
-
-        Returns:
-            Whether there was something to give back.
-        """
+        """Give back a chunk of the memory of the large messages nothing uses any more; whether
+        there was something to give back. Call in spare time: costs at most one ``madvise`` of
+        :data:`RELEASE_CHUNK_BYTES`."""
         for mapped in self._mapped:
             if mapped.unused():
                 if mapped.give_back(RELEASE_CHUNK_BYTES):

@@ -50,8 +50,7 @@ class Ticker:
     """Yields absolute deadlines ``t0 + k * period_ns`` and sleeps until each.
 
     Attributes:
-        period_ns: the period, in nanoseconds.
-        spin_ns: how much of each wait is spent busy-polling the clock instead of sleeping.
+        period_ns, spin_ns: as given (:meth:`__init__`).
         skipped_total: deadlines skipped since construction or :meth:`reset`.
     """
 

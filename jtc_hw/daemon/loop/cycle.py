@@ -695,11 +695,9 @@ def loop_main(source: str | dict[str, Any], controller_name: str | None, conn: C
             pid=os.getppid(),
         )
         rt = robot.daemon.realtime
-        for line in apply_realtime(rt.priority, rt.lock_memory, rt.cpu_affinity):
+        for line in (*apply_realtime(rt.priority, rt.lock_memory, rt.cpu_affinity),
+                     reduce_timer_slack(), keep_freed_memory(), disable_huge_pages()):
             loop.send(Log(logging.INFO, line))
-        loop.send(Log(logging.INFO, reduce_timer_slack()))
-        loop.send(Log(logging.INFO, keep_freed_memory()))
-        loop.send(Log(logging.INFO, disable_huge_pages()))
         now = time.monotonic_ns()
         loop.start(now)
         loop._report_reference()  # before Ready: the API process plans against it at once

@@ -271,9 +271,7 @@ class TcpSettings:
     (``Server.tcp_address``).
 
     Raises:
-        ConfigurationError: at construction, a value :data:`TCP_PARAMETERS` refuses: ``host``
-            not a loopback address, ``port`` out of range, ``token`` shorter than
-            :data:`MIN_TOKEN_LENGTH` characters, ...
+        ConfigurationError: at construction, a value :data:`TCP_PARAMETERS` refuses.
     """
 
     host: str = _TCP["host"].default

@@ -2,10 +2,8 @@
 
 :class:`Backend` is implemented for real by :class:`jtc_hw.daemon.core.backend.LoopBackend` (the
 control loop in its own process) and in tests by a small controller host. Everything that
-consumes the loop's output is an :class:`Observer`: the request layer
-(:class:`jtc_hw.daemon.core.requests.Requests`, subscriptions and goal routing for every
-transport), the live view, the Zenoh interface and the recorders
-(:mod:`jtc_hw.daemon.core.observers`).
+consumes the loop's output is an :class:`Observer` (:mod:`jtc_hw.daemon.core.observers` draws
+them).
 """
 
 from __future__ import annotations

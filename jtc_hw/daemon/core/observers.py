@@ -138,8 +138,7 @@ def state_json(state: State, joint_names: Sequence[str]) -> dict[str, Any]:
 
 
 class Recorders:
-    """The observer writing bags: the flight recorder (made by :meth:`start`, fed every cycle
-    through the loop's ring) and ``daemon.record``'s recording.
+    """The observer writing bags (module docstring).
 
     Args:
         daemon: the daemon's settings (``flight_recorder_*``, ``record``).

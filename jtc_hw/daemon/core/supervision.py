@@ -378,9 +378,8 @@ class LoopProcess:
         return next(self._ids)
 
     def _send(self, message: Commit | Request, bulk: bool = False) -> None:
-        """Queue ``message`` for the loop and write what the pipe takes now; the rest is written
-        when it becomes writable (the event loop never waits for the loop to read a plan).
-        A request (not ``bulk``) goes before what is left of a plan being written.
+        """Queue ``message`` for the loop (a plan ``bulk``), write what the pipe takes now, and
+        the rest when it becomes writable (module docstring).
 
         Raises:
             ControllerStateError: the loop is not running (:meth:`refusal`), or just exited.

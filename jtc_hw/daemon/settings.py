@@ -335,8 +335,7 @@ class DaemonSettings:
     One field per row of :data:`DAEMON_PARAMETERS` (which says what each is; ``socket`` and
     the directories are absolute here, ``socket_group`` a group name or gid or ``None`` for
     the daemon's, and the sections are their own settings or ``None``: off), then one per row
-    of :data:`SERVER_PARAMETERS`. ``max_clients`` leaves ``RESERVED_UNIX_CLIENTS`` more
-    connections to the daemon's user and root; a client over a limit may still send ``stop``.
+    of :data:`SERVER_PARAMETERS`; a client over a limit may still send ``stop``.
 
     Raises:
         ConfigurationError: at construction, a value the rows refuse, a socket path that is

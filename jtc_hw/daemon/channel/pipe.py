@@ -307,16 +307,15 @@ class Inbox:
     """Messages read without ever blocking, a bounded amount at a time.
 
     In the loop process, a receiving thread would compete with the loop thread for the
-    interpreter lock: measured, a thread receiving a 2.4 MB plan stretched cycles by
-    milliseconds (each time the loop thread released the lock in a system call, the receiver
-    took it for up to the switch interval). So the loop process has one thread, and
-    :meth:`pump` reads what has arrived, at most ``budget`` bytes (and not past a time it is
-    given), straight into the memory of what is being received (``MSG_DONTWAIT``: the
-    connection stays blocking for sends): a plan's arrays are read where they will stay, a
-    chunk record at a time. A 2,000-point plan then arrives over one or two cycles, each
-    paying a bounded copy. In the API process it lets the event loop read the loop's messages
-    (``multiprocessing``'s format) without waiting for the rest of one the loop wrote in part.
-    How a plan's large arrays are received and given back: :func:`_receive_buffer`.
+    interpreter lock (measured: cycles stretched by milliseconds, docs/decisions.md 12), so the
+    loop process has one thread, and :meth:`pump` reads what has arrived, at most ``budget``
+    bytes (and not past a time it is given), straight into the memory of what is being received
+    (``MSG_DONTWAIT``: the connection stays blocking for sends): a plan's arrays are read where
+    they will stay, a chunk record at a time. A 2,000-point plan then arrives over one or two
+    cycles, each paying a bounded copy. In the API process it lets the event loop read the
+    loop's messages (``multiprocessing``'s format) without waiting for the rest of one the loop
+    wrote in part. How a plan's large arrays are received and given back:
+    :func:`_receive_buffer`.
 
     Args:
         conn: the connection (its socket is duplicated; the connection stays open).

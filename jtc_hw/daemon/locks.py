@@ -214,12 +214,10 @@ def _prepare(directory: str, what: str) -> None:
 
 
 def check_directory(directory: str) -> str | None:
-    """Why ``directory`` cannot hold device locks, or ``None``: the safety rules of the
-    module docstring (owner root or this user up the whole path; the directory grants others
-    nothing; group-writable only with the sticky bit; a directory above that others may write
-    is sticky), then that this user may write it. The text names the directory's owner
-    and mode.
-    """
+    """Why ``directory`` cannot hold device locks (naming its owner and mode), or ``None``: owner
+    root or this user up the whole path; the directory grants others nothing; group-writable
+    only with the sticky bit; a directory above that others may write is sticky; and this user
+    may write it."""
     uid = os.geteuid()
     path = os.path.abspath(directory)
     try:

@@ -118,8 +118,7 @@ class ZenohSettings:
 
 def default_prefix(controller: str) -> str:
     """``jtc/<hostname>/<controller>``, with characters a key expression cannot hold in a
-    chunk (``/ * $ ? #``) replaced by ``_``.
-    """
+    chunk (``/ * $ ? #``) replaced by ``_``."""
     host = socket.gethostname().split(".")[0] or "localhost"
     return "/".join(("jtc", *(re.sub(r"[/*$?#\s]", "_", c) for c in (host, controller))))
 

@@ -247,8 +247,7 @@ class Requests:
 
     def leave(self, caller: Caller) -> None:
         """``caller``'s client has gone: no more state, commands or records for it. Its goals
-        run on; their results are discarded (and counted) when its outlet says it is gone.
-        """
+        run on; their results are discarded (and counted) when its outlet says it is gone."""
         self._subscribers.pop(caller, None)
 
     @property
@@ -293,8 +292,7 @@ class Requests:
         logged: bool = False,
     ) -> Reply:
         """The error reply for ``error`` (its id, else the request's), logged unless
-        ``logged``: also for a transport's own refusals (``busy``, ``unauthorized``).
-        """
+        ``logged``: also for a transport's own refusals (``busy``, ``unauthorized``)."""
         rid = error.request_id if error.request_id is not None or request is None else request.id
         if not logged:
             op = request.op if request is not None else "request"

@@ -398,8 +398,7 @@ class ControlLoop:
     def _shutdown_stop_done(self, now_ns: int) -> bool:
         """Whether a shutdown waiting for its decelerating stop can end the loop now: the stop
         has ended (a cycle after its end has read the joints at rest), the controller or
-        hardware stopped otherwise, or the bound has passed.
-        """
+        hardware stopped otherwise, or the bound has passed."""
         cap = self._stopping_until_ns
         if cap is None or self.fault is not None or not self.ctrl.active:
             return True

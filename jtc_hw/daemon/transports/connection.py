@@ -87,10 +87,8 @@ class Connection:
         return max(self.last_activity, self.caller.goals_ended_at)
 
     def send(self, data: bytes) -> bool:
-        """Queue a message that must not be dropped; False if it cannot be sent.
-
-        A client whose queue reaches the hard cap is disconnected here.
-        """
+        """Queue a message that must not be dropped; False if it cannot be sent (a client whose
+        queue reaches the hard cap is disconnected here)."""
         if self.gone:
             return False
         if len(self.queue) >= self.hard_cap:

@@ -99,8 +99,7 @@ class TcpDoor:
 
     def enter(self, conn: Waiting, now: float) -> list[Waiting]:
         """Let ``conn`` wait to authenticate: the connections to drop for it (the caller
-        closes them).
-        """
+        closes them)."""
         out: list[Waiting] = []
         hard_cap = HANDSHAKE_HARD_CAP * self.max_unauthenticated
         while len(self._waiting) >= self.max_unauthenticated:

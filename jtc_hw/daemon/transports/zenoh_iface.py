@@ -34,14 +34,13 @@ freed, so a payload longer than ``daemon.max_message_bytes`` is answered ``too_l
 length, never copied into Python, and every query of :data:`RELEASE_AFTER_BYTES` or more is
 followed by releases of freed memory (:data:`RELEASE_AFTER_S`; docs/zenoh.md, "Memory").
 
-Threads: Zenoh's Python API is synchronous and calls back in its own threads. A query callback
-only hands the query to the event loop (``call_soon_threadsafe``; at most
-:data:`MAX_QUERIES` in flight, more are answered ``busy`` at once). Everything sent to Zenoh
-(publications and replies) goes through one bounded outbox drained by a thread of ours, so the
-event loop never waits on Zenoh: ``state`` and ``feedback`` are dropped when
-:data:`OUTBOX_SIZE` messages wait (counted in the next state's ``dropped``), replies, results
-and faults only beyond :data:`OUTBOX_HARD_CAP` (logged). A Zenoh failure is logged; it never
-reaches the loop.
+Threads (docs/decisions.md 21): Zenoh's Python API is synchronous and calls back in its own
+threads. A query callback only hands the query to the event loop (at most :data:`MAX_QUERIES` in
+flight, more are answered ``busy`` at once). Everything sent to Zenoh goes through one bounded
+outbox drained by a thread of ours, so the event loop never waits on Zenoh: ``state`` and
+``feedback`` are dropped beyond :data:`OUTBOX_SIZE` waiting (counted), replies, results and
+faults only beyond :data:`OUTBOX_HARD_CAP` (logged). A Zenoh failure is logged; it never reaches
+the loop.
 """
 
 from __future__ import annotations

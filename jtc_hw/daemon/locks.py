@@ -9,9 +9,8 @@ the process that took it lives (the kernel releases it when the process dies, ev
 SIGKILL: no stale lock can block a restart), and the file records the holder (the daemon's
 pid and its configuration file) for the error a second daemon prints: "/dev/ttyUSB0 is
 already driven by pid 4242 (/etc/jtc-hw/robot.yaml), user jtc-hw; stop that daemon first".
-A second daemon stops there, before it has sent anything. If the file does not name the
-holder (it could not write it), the holder is found in ``/proc/locks`` (the pid holding the
-file's inode) and its user from ``/proc/<pid>``; failing that, the file's owner is named.
+A second daemon stops there, before it has sent anything (who holds a lock the file does not
+name: :func:`_find_owner`).
 
 What a lock names: the device, not its spelling. A :class:`~jtc_hw.hardware.DeviceName` has
 a canonical ``key`` (a serial port's real path, a SocketCAN interface's index, a socketcand

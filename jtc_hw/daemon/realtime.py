@@ -261,18 +261,15 @@ _MALLOC_KEEP_BYTES = 1 << 30
 
 
 def keep_freed_memory() -> str:
-    """Make glibc's allocator keep freed memory instead of returning it to the kernel.
+    """Make glibc's allocator keep freed memory instead of returning it to the kernel; a log
+    line saying what was done.
 
     A new plan brings megabytes of arrays; by default glibc maps each large block separately
     and unmaps it when freed. Unmapping changes the page tables of the whole process, which
     stalls its other thread (the control loop) for up to milliseconds on a virtual machine
     (measured: deadlines skipped after each committed 2,000-point goal). Served from the heap
     and kept there, the memory of one plan is reused by the next: no unmapping and, after the
-    first plans, no page faults. The cost is that the loop process keeps its peak size.
-
-    Returns:
-        A log line saying what was done.
-    """
+    first plans, no page faults. The cost is that the loop process keeps its peak size."""
     mallopt = libc_function("mallopt")
     if mallopt is None:
         return "allocator left unchanged (no glibc mallopt)"
@@ -287,7 +284,8 @@ _RETURN_ABOVE_BYTES = 128 * 1024
 
 
 def return_freed_memory_promptly() -> str:
-    """Make glibc return freed memory above 128 KiB at the top of any arena to the kernel.
+    """Make glibc return freed memory above 128 KiB at the top of any arena to the kernel; a
+    log line saying what was done.
 
     The API process with Zenoh on (docs/decisions.md 29): a 100 MB query is copied by Zenoh's
     threads into a per-thread arena; once freed, glibc's dynamic trim threshold (raised by the
@@ -295,11 +293,7 @@ def return_freed_memory_promptly() -> str:
     non-main arena's top either, so about one large query in four left up to 60 MB resident.
     A fixed trim threshold (which also fixes the mmap threshold at its 128 KiB default: large
     blocks are mapped and unmapped) brought the process back to its size after each query.
-    Not for the loop process, which keeps its memory on purpose (:func:`keep_freed_memory`).
-
-    Returns:
-        A log line saying what was done.
-    """
+    Not for the loop process, which keeps its memory on purpose (:func:`keep_freed_memory`)."""
     mallopt = libc_function("mallopt")
     if mallopt is None:
         return "allocator left unchanged (no glibc mallopt)"
@@ -328,17 +322,14 @@ _PR_SET_THP_DISABLE = 41
 
 
 def disable_huge_pages() -> str:
-    """Turn transparent huge pages off for this process (``prctl(PR_SET_THP_DISABLE)``).
+    """Turn transparent huge pages off for this process (``prctl(PR_SET_THP_DISABLE)``); a log
+    line saying what was done.
 
     numpy asks for huge pages for every array of 4 MB or more (``madvise(MADV_HUGEPAGE)``).
     The first touch of each 2 MB page then zeroes it, and may first compact memory to find
     one: measured, receiving a 75,000-point plan (90 MB) had single reads of 5-7 ms where
     4 kB pages cost at most 0.8 ms. The loop process touches little memory; it does not need
-    the fewer TLB misses.
-
-    Returns:
-        A log line saying what was done.
-    """
+    the fewer TLB misses."""
     prctl = libc_function("prctl")
     if prctl is None:
         return "transparent huge pages left as they are (no prctl)"

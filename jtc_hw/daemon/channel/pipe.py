@@ -67,11 +67,8 @@ _TIMED_READ_BYTES = 4096
 class PlanWriter:
     """The API process's writer to the loop: never blocks, requests before the rest of a plan.
 
-    :meth:`put` queues a message: with ``bulk`` (a plan), its arrays are sent out of band in
-    ``CHUNK`` records; otherwise (a request) as one ``WHOLE`` record, written before any
-    bulk record not yet started. :meth:`flush` writes what the socket takes now
-    (``sendmsg(MSG_DONTWAIT)``, the arrays' memory itself: no copy) and says whether
-    everything was written; the owner calls it again when the socket is writable.
+    :meth:`flush` writes what the socket takes now (``sendmsg(MSG_DONTWAIT)``, a plan's arrays
+    from their own memory: no copy); the owner calls it again when the socket is writable.
 
     Args:
         conn: the connection (its socket is duplicated; the connection stays open).

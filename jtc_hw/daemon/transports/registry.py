@@ -57,9 +57,7 @@ class Wiring:
         requests: the request layer every transport shares.
         daemon: the robot file's ``daemon`` settings (each transport reads its own).
         controller: the controller's name (Zenoh's default prefix).
-        add_observer: have the backend also send its state snapshots, goal events, accepted
-            commands and records to an ``Observer`` (a transport that publishes them all, as
-            Zenoh does).
+        add_observer: the backend's, for a transport that publishes all it observes (Zenoh).
         status: the backend's ``get_status`` facts, for a transport that watches them.
     """
 

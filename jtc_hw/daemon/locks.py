@@ -27,7 +27,8 @@ lock file first in a directory every user may write. So the directory is the dae
 - devices: ``/run/jtc-hw-locks`` (:data:`LOCK_DIR`; in ``/run`` only root can create it),
   made by the systemd unit as root or by a daemon that finds it missing, mode 3770 (setgid:
   the daemons of its group can take over a file another left behind; sticky: one cannot
-  remove another's held file). If it is missing and cannot be created, the fallback is
+  remove another's held file; daemons of several users: ``install -d -m 3770 -g <their
+  group> /run/jtc-hw-locks``). If it is missing and cannot be created, the fallback is
   ``jtc-hw-lock`` in the temporary directory, with a warning: daemons that use different
   directories do not see each other. A directory that exists but cannot be used is an error,
   never a reason to fall back (another daemon may hold its locks there). ``JTC_HW_LOCK_DIR``

@@ -178,9 +178,8 @@ def load_robot(
     """Read, check and freeze a robot configuration.
 
     Args:
-        source: path of a YAML file, or an already parsed mapping: a controller configuration
-            in either layout :func:`~jtc_hw.config.reading.load_config` reads, plus optional
-            top-level ``hardware`` and ``daemon`` sections (see the module docstring).
+        source: path of a YAML file, or an already parsed mapping (the module docstring
+            says what it holds).
         controller_name: which controller section to use when there are several.
 
     Returns:

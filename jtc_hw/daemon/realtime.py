@@ -339,16 +339,13 @@ def disable_huge_pages() -> str:
 
 
 def release_freed_memory() -> bool:
-    """Give the memory the allocator keeps free back to the system (glibc ``malloc_trim(0)``).
+    """Give the memory the allocator keeps free back to the system (glibc ``malloc_trim(0)``);
+    whether memory was returned (False also without glibc).
 
     For the API process after a large goal: fitting a 75,000-point goal leaves tens of MB of
     freed temporaries in the heap, which glibc keeps (its RSS stayed at 110 MB, 45 before).
     Not for the loop process, which keeps freed memory on purpose (:func:`keep_freed_memory`).
-    It walks the heap (milliseconds for a large one): call it outside any time-critical path.
-
-    Returns:
-        Whether memory was returned (False also without glibc).
-    """
+    It walks the heap (milliseconds for a large one): call it outside any time-critical path."""
     trim = libc_function("malloc_trim")
     if trim is None:
         return False

@@ -109,11 +109,8 @@ class PlanWriter:
         self._bulk.append(collections.deque(_records(message)))
 
     def flush(self) -> bool:
-        """Write what the socket takes now; never blocks. Never raises: a failing socket (the
-        loop exited) sets :attr:`closed` and drops the queue.
-
-        Returns:
-            True if nothing is left to write.
+        """Write what the socket takes now, never blocking; True if nothing is left to write.
+        Never raises: a failing socket (the loop exited) sets :attr:`closed` and drops the queue.
         """
         while not self.closed:
             if not self._current and not self._next():

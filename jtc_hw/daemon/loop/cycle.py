@@ -430,11 +430,8 @@ class ControlLoop:
     # -- the cycle ----------------------------------------------------------------------------
 
     def handle_inbox(self, inbox: Inbox, now_ns: int) -> bool:
-        """Handle every completed message, in order, at deadline ``now_ns``.
-
-        Returns:
-            Whether there was any.
-        """
+        """Handle every completed message, in order, at deadline ``now_ns``; whether there was
+        any."""
         message = inbox.pop()
         if message is None:
             return False

@@ -147,12 +147,9 @@ class Outbox:
     # -- writing -----------------------------------------------------------------------------
 
     def flush(self) -> bool:
-        """Write what the socket takes now; never blocks. Never raises: a failing socket (the
-        reader exited) sets :attr:`closed` and clears the queue.
-
-        Returns:
-            True if everything was written.
-        """
+        """Write what the socket takes now, never blocking; True if everything was written.
+        Never raises: a failing socket (the reader exited) sets :attr:`closed` and clears the
+        queue."""
         entries = self._entries
         if not entries:
             return True
@@ -225,11 +222,8 @@ class Outbox:
 
     def drain(self, timeout_s: float) -> bool:
         """Write everything, waiting up to ``timeout_s`` for the reader (not for use in a cycle:
-        it blocks). Never raises: a failing socket sets :attr:`closed` (and returns False).
-
-        Returns:
-            True if everything was written.
-        """
+        it blocks); True if everything was written. Never raises: a failing socket sets
+        :attr:`closed` (and returns False)."""
         deadline = time.monotonic() + timeout_s
         poller = select.poll()
         poller.register(self._sock.fileno(), select.POLLOUT)

@@ -111,10 +111,7 @@ class Notifier:
     def send(self, message: str) -> bool:
         """Sends ``message`` (newline-separated ``KEY=VALUE`` lines, UTF-8 on the wire) as one
         datagram: the primitive behind the other methods (also ``ERRNO=5``, ``MAINPID=...``).
-
-        Returns:
-            ``True`` when the kernel accepted the datagram; ``False`` when notification is
-            disabled or the send failed (no listener, permission denied, queue full, ...).
+        A send fails with no listener, permission denied, a full queue, ...
         """
         if self.address is None:
             return False

@@ -9,9 +9,8 @@ the process that took it lives (the kernel releases it when the process dies, ev
 SIGKILL: no stale lock can block a restart), and the file records the holder (the daemon's
 pid and its configuration file) for the error a second daemon prints: "/dev/ttyUSB0 is
 already driven by pid 4242 (/etc/jtc-hw/robot.yaml), user jtc-hw; stop that daemon first".
-A second daemon stops there, before it has sent anything. If the file does not name the
-holder (it could not write it), the holder is found in ``/proc/locks`` (the pid holding the
-file's inode) and its user from ``/proc/<pid>``; failing that, the file's owner is named.
+A second daemon stops there, before it has sent anything (who holds a lock the file does not
+name: :func:`_find_owner`).
 
 What a lock names: the device, not its spelling. A :class:`~jtc_hw.hardware.DeviceName` has
 a canonical ``key`` (a serial port's real path, a SocketCAN interface's index, a socketcand
@@ -19,32 +18,24 @@ server's resolved address and port; on a CAN bus one key per motor id or node id
 for a bus-wide role such as the CANopen master: see the drivers' ``devices()``) that names
 the file, and a ``label`` for messages. A plain string is both.
 
-Where the files are, and who may use them
------------------------------------------
-Two things matter: (a) two daemons on one device never both run, whoever runs them, and (b)
-a stranger (a user who runs no daemon) cannot deny a start. A directory that every user may
-write to (the old ``/run/lock/jtc-hw``, mode 1777) fails (b): anyone could create a device's
-lock file first and hold its ``flock``. So the directory is the daemons' only:
+Where the files are, and who may use them (docs/decisions.md 25)
+-----------------------------------------------------------------
+Two duties: (a) two daemons on one device never both run, whoever runs them, and (b) a
+stranger (a user who runs no daemon) cannot deny a start, as one could by taking a device's
+lock file first in a directory every user may write. So the directory is the daemons' only:
 
-- devices: ``/run/jtc-hw-locks`` (:data:`LOCK_DIR`). ``/run`` is root's, so nobody else can
-  create it first (in ``/run/lock``, mode 1777, a stranger could); the systemd unit creates it
-  as root, mode 1770 (``ExecStartPre=+``); where daemons of several users share the machine,
-  give it their group: ``install -d -m 3770 -g jtc-hw /run/jtc-hw-locks`` (or tmpfiles.d
-  ``d /run/jtc-hw-locks 3770 root jtc-hw -``); the setgid bit gives every lock file that
-  group, so each member can take over a file another left behind. A daemon that finds it
-  missing creates it itself (mode 3770, its own user and group). If ``/run`` is not writable
-  by this user and the directory does not exist (a workstation, no service installed), the
-  fallback is ``jtc-hw-lock`` in the temporary directory, with a warning: daemons that use
-  different directories do not see each other. A directory that exists but cannot be used is
-  an error, never a reason to fall back (another daemon may hold its locks there).
-  ``JTC_HW_LOCK_DIR`` overrides both (all daemons of a machine must agree on it).
-- Every start checks the directory before it locks anything (:func:`check_directory`): it and
-  each directory above it must belong to root or to this daemon's user; the lock directory
-  must grant others nothing (so nobody outside its owner and group can open, let alone
-  ``flock``, a file in it) and, if its group may write, be sticky (so one member cannot remove
-  another's held lock file and let a third daemon in); a directory above it that others may
-  write must be sticky (``/tmp``). Otherwise the start is refused, naming the directory, its
-  owner and its mode. Lock files are created mode 0660.
+- devices: ``/run/jtc-hw-locks`` (:data:`LOCK_DIR`; in ``/run`` only root can create it),
+  made by the systemd unit as root or by a daemon that finds it missing, mode 3770 (setgid:
+  the daemons of its group can take over a file another left behind; sticky: one cannot
+  remove another's held file; daemons of several users: ``install -d -m 3770 -g <their
+  group> /run/jtc-hw-locks``). If it is missing and cannot be created, the fallback is
+  ``jtc-hw-lock`` in the temporary directory, with a warning: daemons that use different
+  directories do not see each other. A directory that exists but cannot be used is an error,
+  never a reason to fall back (another daemon may hold its locks there). ``JTC_HW_LOCK_DIR``
+  overrides both (all daemons of a machine must agree on it).
+- Every start checks the directory and the path above it before it locks anything
+  (:func:`check_directory`), and refuses one that another user could use to deny a start,
+  naming the directory, its owner and its mode. Lock files are created mode 0660.
 - A file is named after its device's key (:func:`lock_file_name`): ``/dev/ttyUSB0`` ->
   ``dev-ttyUSB0.lock``.
 - the socket: next to it, ``<socket>.lock``: whoever can use the socket path can use its
@@ -139,9 +130,6 @@ def lock_file_name(name: str) -> str:
     A non-path name keeps its ``:``, which is escaped in paths; one without any ``:``, or
     starting with one, gets a leading ``:``, so that it can never equal a path's name nor
     another non-path name's.
-
-    Raises:
-        Nothing.
     """
     is_path = name.startswith("/")
     if is_path:
@@ -226,14 +214,10 @@ def _prepare(directory: str, what: str) -> None:
 
 
 def check_directory(directory: str) -> str | None:
-    """Why ``directory`` cannot hold device locks, or ``None``: the safety rules of the
-    module docstring (owner root or this user up the whole path; the directory grants others
-    nothing; group-writable only with the sticky bit; a directory above that others may write
-    is sticky), then that this user may write it.
-
-    Raises:
-        Nothing: a problem is the returned text, naming the directory, its owner and mode.
-    """
+    """Why ``directory`` cannot hold device locks (naming its owner and mode), or ``None``: owner
+    root or this user up the whole path; the directory grants others nothing; group-writable
+    only with the sticky bit; a directory above that others may write is sticky; and this user
+    may write it."""
     uid = os.geteuid()
     path = os.path.abspath(directory)
     try:
@@ -277,11 +261,7 @@ def check_directory(directory: str) -> str | None:
 
 
 def socket_lock_path(socket_path: str) -> str:
-    """The lock file of a socket path: ``<socket>.lock``, next to it.
-
-    Raises:
-        Nothing.
-    """
+    """The lock file of a socket path: ``<socket>.lock``, next to it."""
     return socket_path + ".lock"
 
 
@@ -299,12 +279,9 @@ class DeviceLock:
         return self._fd is not None
 
     def release(self) -> None:
-        """Remove the lock file (while still holding it) and unlock. Idempotent.
-
-        Raises:
-            Nothing: a file that cannot be removed (another user's, in a sticky directory)
-            stays; it is unlocked anyway.
-        """
+        """Remove the lock file (while still holding it) and unlock. Idempotent. Never raises: a
+        file that cannot be removed (another user's, in a sticky directory) stays; it is
+        unlocked anyway."""
         fd, self._fd = self._fd, None
         if fd is None:
             return
@@ -373,15 +350,11 @@ def held_by(name: str, path: str, *, what: str = "driven") -> DeviceBusy | None:
     """Whether another process holds the lock ``path`` (as :func:`acquire` would find), without
     locking, creating or changing anything: the busy error :func:`acquire` would raise, or None.
 
-    For a client that must not touch what a running daemon serves (``jtc-hw demo --config``):
-    it reads the holder from ``/proc/locks`` only, so a daemon starting at the same moment
-    never finds the file locked by the one who asked. Where ``/proc/locks`` does not list it
-    (not Linux), the answer is None: a check, not a guarantee; the caller must not rely on it
-    alone.
-
-    Raises:
-        Nothing: a file that is missing or cannot be opened is not held by anyone it can see.
-    """
+    For a client that must not touch what a running daemon serves (``jtc-hw demo --config``): it
+    reads the holder from ``/proc/locks`` only, so a daemon starting at the same moment never
+    finds the file locked by the one who asked. Where ``/proc/locks`` does not list it (not
+    Linux), the answer is None: a check, not a guarantee; the caller must not rely on it alone.
+    Never raises: a file that is missing or cannot be opened is not held by anyone it can see."""
     try:
         fd = os.open(path, os.O_RDONLY | os.O_CLOEXEC | os.O_NOFOLLOW)
     except OSError:

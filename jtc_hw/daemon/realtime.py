@@ -40,17 +40,12 @@ _CAP_SYS_NICE = 23
 
 
 def apply_realtime(priority: int, lock_memory: bool, cpu_affinity: Sequence[int]) -> list[str]:
-    """Applies CPU affinity, memory locking and SCHED_FIFO to the calling thread's process.
-
-    The scheduling policy applies to the calling thread (Linux schedules threads), the affinity
-    to the calling thread, and the memory lock to the whole process; call it from the loop's
-    thread before starting other threads.
+    """Applies CPU affinity, memory locking and SCHED_FIFO (module docstring: to what, when).
 
     Args:
         priority: SCHED_FIFO priority, 1 (lowest) to 99 (highest); 0 keeps normal
-            scheduling. Stay below the kernel's
-            threaded interrupt handlers (50 by default) unless the bus driver's IRQ thread is
-            raised above the loop too.
+            scheduling. Stay below the kernel's threaded interrupt handlers (50 by default)
+            unless the bus driver's IRQ thread is raised above the loop too.
         lock_memory: whether to lock all current and future pages in RAM.
         cpu_affinity: CPUs to run on; empty leaves the affinity unchanged.
 
@@ -61,7 +56,6 @@ def apply_realtime(priority: int, lock_memory: bool, cpu_affinity: Sequence[int]
         ConfigurationError: ``priority`` is not an integer in 1..99 (path
             ``daemon.realtime.priority``), or ``cpu_affinity`` names a CPU that this machine
             does not have or this process may never use (path ``daemon.realtime.cpu_affinity``).
-            Nothing has been changed when it is raised.
     """
     _check_priority(priority)
     cpus = _check_cpus(cpu_affinity)
@@ -175,18 +169,12 @@ def libc_function(name: str) -> Any:
         return None
 
 
-def _mcl_flags() -> tuple[int, int]:
-    """``(MCL_CURRENT, MCL_FUTURE)``: most architectures use 1, 2; a few use their own values."""
-    machine = platform.machine().lower()
-    if machine.startswith(("ppc", "powerpc", "sparc", "alpha")):
-        return 0x2000, 0x4000
-    return 1, 2
-
-
-def _mcl_onfault() -> int:
-    """``MCL_ONFAULT`` (Linux 4.4+): 4 on most architectures, 0x8000 where the others differ."""
-    machine = platform.machine().lower()
-    return 0x8000 if machine.startswith(("ppc", "powerpc", "sparc", "alpha")) else 4
+def _mcl_flags() -> tuple[int, int, int]:
+    """``(MCL_CURRENT, MCL_FUTURE, MCL_ONFAULT)`` (the last: Linux 4.4+): most architectures
+    use 1, 2, 4; a few use their own values."""
+    if platform.machine().lower().startswith(("ppc", "powerpc", "sparc", "alpha")):
+        return 0x2000, 0x4000, 0x8000
+    return 1, 2, 4
 
 
 def _apply_memory_lock() -> str:
@@ -195,13 +183,13 @@ def _apply_memory_lock() -> str:
         return "memory locking not supported on this platform (no mlockall in libc); skipped"
     mlockall.argtypes = [ctypes.c_int]
     mlockall.restype = ctypes.c_int
-    current, future = _mcl_flags()
+    current, future, on_fault = _mcl_flags()
     if mlockall(current | future) == 0:
         # What is mapped now is faulted in and locked. Later mappings are locked as they are
         # touched (MCL_ONFAULT), not all at once when made: a large plan's receive buffer
         # (90 MB for 75,000 points) would otherwise be faulted in by the one read that
         # allocates it, tens of milliseconds in one cycle. Pages stay locked once touched.
-        onfault = mlockall(current | future | _mcl_onfault()) == 0
+        onfault = mlockall(current | future | on_fault) == 0
         how = (
             "; later mappings locked as they are touched (MCL_ONFAULT)"
             if onfault
@@ -267,26 +255,21 @@ def _limit(value: int) -> str:
     return "infinity" if value == resource.RLIM_INFINITY else str(value)
 
 
-
-
 _M_TRIM_THRESHOLD = -1
 _M_MMAP_THRESHOLD = -3
 _MALLOC_KEEP_BYTES = 1 << 30
 
 
 def keep_freed_memory() -> str:
-    """Make glibc's allocator keep freed memory instead of returning it to the kernel.
+    """Make glibc's allocator keep freed memory instead of returning it to the kernel; a log
+    line saying what was done.
 
     A new plan brings megabytes of arrays; by default glibc maps each large block separately
     and unmaps it when freed. Unmapping changes the page tables of the whole process, which
     stalls its other thread (the control loop) for up to milliseconds on a virtual machine
     (measured: deadlines skipped after each committed 2,000-point goal). Served from the heap
     and kept there, the memory of one plan is reused by the next: no unmapping and, after the
-    first plans, no page faults. The cost is that the loop process keeps its peak size.
-
-    Returns:
-        A log line saying what was done.
-    """
+    first plans, no page faults. The cost is that the loop process keeps its peak size."""
     mallopt = libc_function("mallopt")
     if mallopt is None:
         return "allocator left unchanged (no glibc mallopt)"
@@ -301,7 +284,8 @@ _RETURN_ABOVE_BYTES = 128 * 1024
 
 
 def return_freed_memory_promptly() -> str:
-    """Make glibc return freed memory above 128 KiB at the top of any arena to the kernel.
+    """Make glibc return freed memory above 128 KiB at the top of any arena to the kernel; a
+    log line saying what was done.
 
     The API process with Zenoh on (docs/decisions.md 29): a 100 MB query is copied by Zenoh's
     threads into a per-thread arena; once freed, glibc's dynamic trim threshold (raised by the
@@ -309,11 +293,7 @@ def return_freed_memory_promptly() -> str:
     non-main arena's top either, so about one large query in four left up to 60 MB resident.
     A fixed trim threshold (which also fixes the mmap threshold at its 128 KiB default: large
     blocks are mapped and unmapped) brought the process back to its size after each query.
-    Not for the loop process, which keeps its memory on purpose (:func:`keep_freed_memory`).
-
-    Returns:
-        A log line saying what was done.
-    """
+    Not for the loop process, which keeps its memory on purpose (:func:`keep_freed_memory`)."""
     mallopt = libc_function("mallopt")
     if mallopt is None:
         return "allocator left unchanged (no glibc mallopt)"
@@ -342,20 +322,14 @@ _PR_SET_THP_DISABLE = 41
 
 
 def disable_huge_pages() -> str:
-    """Turn transparent huge pages off for this process (``prctl(PR_SET_THP_DISABLE)``).
+    """Turn transparent huge pages off for this process (``prctl(PR_SET_THP_DISABLE)``); a log
+    line saying what was done.
 
     numpy asks for huge pages for every array of 4 MB or more (``madvise(MADV_HUGEPAGE)``).
     The first touch of each 2 MB page then zeroes it, and may first compact memory to find
     one: measured, receiving a 75,000-point plan (90 MB) had single reads of 5-7 ms where
     4 kB pages cost at most 0.8 ms. The loop process touches little memory; it does not need
-    the fewer TLB misses.
-
-    Returns:
-        A log line saying what was done.
-
-    Raises:
-        Nothing.
-    """
+    the fewer TLB misses."""
     prctl = libc_function("prctl")
     if prctl is None:
         return "transparent huge pages left as they are (no prctl)"
@@ -365,19 +339,13 @@ def disable_huge_pages() -> str:
 
 
 def release_freed_memory() -> bool:
-    """Give the memory the allocator keeps free back to the system (glibc ``malloc_trim(0)``).
+    """Give the memory the allocator keeps free back to the system (glibc ``malloc_trim(0)``);
+    whether memory was returned (False also without glibc).
 
     For the API process after a large goal: fitting a 75,000-point goal leaves tens of MB of
     freed temporaries in the heap, which glibc keeps (its RSS stayed at 110 MB, 45 before).
     Not for the loop process, which keeps freed memory on purpose (:func:`keep_freed_memory`).
-    It walks the heap (milliseconds for a large one): call it outside any time-critical path.
-
-    Returns:
-        Whether memory was returned (False also without glibc).
-
-    Raises:
-        Nothing.
-    """
+    It walks the heap (milliseconds for a large one): call it outside any time-critical path."""
     trim = libc_function("malloc_trim")
     if trim is None:
         return False

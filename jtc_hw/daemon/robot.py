@@ -8,23 +8,11 @@ layout); this module adds two top-level sections that ``load_config`` skips::
         kind: mirror          # a registry kind (see jtc_hw.hardware.available_hardware)
         joints: [joint1, joint2]
         params: {lag_s: 0.0}  # kind-specific, checked by the kind's PARAMS when created
-    daemon:                   # optional, every key optional
-      socket: /run/jtc-hw/jtc-hw.sock
-      socket_mode: 0o660
-      socket_group: robot     # default: the daemon's group
-      tcp: {host: 127.0.0.1, port: 0, token: "at least sixteen characters", max_clients: 8,
-            max_unauthenticated: 16, auth_timeout_s: 1.0, auth_failure_delay_s: 0.5}
-      max_clients: 16
-      idle_timeout_s: 300
-      max_message_bytes: 4194304
+    daemon:                   # optional, every key optional (each with its default:
+      socket: /run/jtc-hw/jtc-hw.sock           # settings.DAEMON_PARAMETERS)
+      tcp: {host: 127.0.0.1, port: 0, token: "at least sixteen characters"}
       realtime: {priority: 0, lock_memory: false, cpu_affinity: []}
-      api_stall_s: 0.5
-      log_level: info
-      foxglove: {host: 127.0.0.1, port: 8765, rate: null}   # live view, off when absent
-      flight_recorder_s: 10          # 0: off
-      flight_recorder_dir: /var/lib/jtc-hw/flight
-      flight_recorder_keep: 20
-      record: /var/lib/jtc-hw/runs   # optional: record every run from its start
+      foxglove: {host: 127.0.0.1, port: 8765}   # live view, off when absent
       zenoh: {prefix: jtc/lab/arm1, connect: [tcp/10.0.0.2:7447]}  # off when absent
 
 The keys, types, defaults and ranges of both sections live in schema tables of the one engine
@@ -44,7 +32,7 @@ from dataclasses import dataclass
 from types import MappingProxyType
 from typing import Any, Final
 
-from ..api.paths import SOCKET_NAME, default_socket_path
+from ..api.paths import default_socket_path
 from ..config.controller import ControllerConfig
 from ..config.reading import load_config, read_source
 from ..config.values import describe, did_you_mean, fmt_list
@@ -65,7 +53,6 @@ from .settings import DaemonSettings, daemon_settings, is_loopback
 __all__ = [
     "DEFAULT_HARDWARE_NAME",
     "HARDWARE_KEYS",
-    "SOCKET_NAME",
     "DaemonSettings",
     "RobotConfig",
     "create_hardware_set",
@@ -79,9 +66,7 @@ DEFAULT_HARDWARE_NAME: Final = "mirror"
 """Name of the mirror component used when the ``hardware`` section is absent."""
 
 
-# --------------------------------------------------------------------------------------------
-# Schema
-# --------------------------------------------------------------------------------------------
+# -- Schema ------------------------------------------------------------------------------------
 
 HARDWARE_KEYS: Final[Mapping[str, ParamSpec]] = param_table(
     ParamSpec("name", ParamKind.STRING, "", "unique component name", required=True),
@@ -94,9 +79,7 @@ HARDWARE_KEYS: Final[Mapping[str, ParamSpec]] = param_table(
 """Keys of one ``hardware[]`` entry."""
 
 
-# --------------------------------------------------------------------------------------------
-# Result types
-# --------------------------------------------------------------------------------------------
+# -- Result types ------------------------------------------------------------------------------
 
 
 @dataclass(frozen=True)
@@ -117,9 +100,7 @@ class RobotConfig:
     source_path: str | None = None
 
 
-# --------------------------------------------------------------------------------------------
-# Loading
-# --------------------------------------------------------------------------------------------
+# -- Loading -----------------------------------------------------------------------------------
 
 
 def _parse_hardware(raw: Any, controller: ControllerConfig) -> tuple[HardwareSpec, ...]:
@@ -197,9 +178,8 @@ def load_robot(
     """Read, check and freeze a robot configuration.
 
     Args:
-        source: path of a YAML file, or an already parsed mapping: a controller configuration
-            in either layout :func:`~jtc_hw.config.reading.load_config` reads, plus optional
-            top-level ``hardware`` and ``daemon`` sections (see the module docstring).
+        source: path of a YAML file, or an already parsed mapping (the module docstring
+            says what it holds).
         controller_name: which controller section to use when there are several.
 
     Returns:
@@ -212,9 +192,8 @@ def load_robot(
             ``hardware`` entry with an unknown or missing key, an unknown kind (the message
             lists the kinds), a joint that is not the controller's or is given twice, a
             controller joint no component provides; ``command_joints`` naming other joints
-            than ``joints`` (a controller chain); a ``daemon`` key that is unknown, of the
-            wrong type or out of range, a TCP host that is not a loopback address, a token
-            shorter than 16 characters. The message names the dotted key path.
+            than ``joints`` (a controller chain); what :func:`~.settings.daemon_settings`
+            refuses. The message names the dotted key path.
         TypeError: ``source`` is neither a path nor a mapping.
     """
     data = read_source(source)
@@ -267,10 +246,7 @@ def security_warnings(robot: RobotConfig) -> list[str]:
     """What in ``robot``'s file is exposed to other users (``jtc-hw check`` and ``run`` print
     it): a socket mode that lets every user connect; a TCP or Zenoh token in a file that group
     or others may read; a live view (which has no authentication) on a non-loopback address.
-
-    Raises:
-        Nothing: a file that cannot be examined gives no warning.
-    """
+    Never raises: a file that cannot be examined gives no warning."""
     return [*_socket_mode_warnings(robot), *_token_warnings(robot), *_foxglove_warnings(robot)]
 
 

@@ -36,8 +36,7 @@ class Notifier:
     """Sends state notifications to the service manager named by ``NOTIFY_SOCKET``.
 
     Every sending method returns ``True`` when the datagram was handed to the kernel and ``False``
-    when notification is disabled or the send failed (logged; a failed send never raises). All
-    methods may be called from any thread.
+    when notification is disabled or the send failed (module docstring).
 
     Attributes:
         address: the socket address (``bytes`` with a leading NUL for the abstract namespace,
@@ -47,19 +46,14 @@ class Notifier:
     """
 
     def __init__(self, environ: Mapping[str, str] | None = None) -> None:
-        """Reads the notification settings from ``environ`` (default ``os.environ``).
+        """Reads ``NOTIFY_SOCKET``, ``WATCHDOG_USEC`` and ``WATCHDOG_PID`` from ``environ``
+        (default ``os.environ``).
 
         The environment is read once, here; later changes to it are not seen. The variables are
         not removed from ``os.environ`` (child processes that must not notify should be started
-        with an environment lacking ``NOTIFY_SOCKET``; ``NotifyAccess=main`` makes systemd ignore
-        them anyway).
-
-        Args:
-            environ: the environment to read ``NOTIFY_SOCKET``, ``WATCHDOG_USEC`` and
-                ``WATCHDOG_PID`` from.
-
-        Raises:
-            Nothing: malformed values disable the feature concerned and are logged at warning.
+        with an environment lacking ``NOTIFY_SOCKET``; ``NotifyAccess=main`` makes systemd
+        ignore them anyway). Never raises: malformed values disable the feature concerned and
+        are logged at warning.
         """
         env = os.environ if environ is None else environ
         self.address: str | bytes | None = _parse_address(env.get("NOTIFY_SOCKET", ""))
@@ -74,19 +68,12 @@ class Notifier:
         return self.address is not None
 
     def ready(self, status: str | None = None) -> bool:
-        """Tells the service manager that start-up is complete (``READY=1``).
-
-        Args:
-            status: optional one-line status shown by ``systemctl status``.
-        """
+        """Tells the service manager that start-up is complete (``READY=1``), with an optional
+        one-line ``status`` for ``systemctl status``."""
         return self.send(_with_status("READY=1", status))
 
     def status(self, text: str) -> bool:
-        """Updates the free-form status line (``STATUS=...``).
-
-        Args:
-            text: the status; newlines are replaced by spaces (the protocol is line based).
-        """
+        """Updates the free-form status line (``STATUS=...``; newlines become spaces)."""
         return self.send("STATUS=" + _one_line(text))
 
     def watchdog(self) -> bool:
@@ -94,11 +81,8 @@ class Notifier:
         return self.send("WATCHDOG=1")
 
     def stopping(self, status: str | None = None) -> bool:
-        """Tells the service manager that an orderly shutdown has begun (``STOPPING=1``).
-
-        Args:
-            status: optional one-line status, e.g. what the shutdown is waiting for.
-        """
+        """Tells the service manager that an orderly shutdown has begun (``STOPPING=1``), with
+        an optional one-line ``status`` (what the shutdown is waiting for)."""
         return self.send(_with_status("STOPPING=1", status))
 
     def reloading(self) -> bool:
@@ -112,16 +96,9 @@ class Notifier:
         return self.send(f"RELOADING=1\nMONOTONIC_USEC={usec}")
 
     def extend_timeout(self, usec: int) -> bool:
-        """Asks for more time for the current start-up, reload or shutdown.
-
-        The service manager extends the running timeout so that it expires ``usec`` from now;
-        send it again before that to keep extending (``EXTEND_TIMEOUT_USEC=...``).
-
-        Args:
-            usec: the extension, in microseconds; must be positive.
-
-        Returns:
-            Whether the datagram was sent.
+        """Asks for more time for the current start-up, reload or shutdown
+        (``EXTEND_TIMEOUT_USEC=...``): the service manager extends the running timeout so that it
+        expires ``usec`` microseconds from now; send it again before that to keep extending.
 
         Raises:
             ValueError: ``usec`` is not a positive integer (a programming error, not a send
@@ -132,21 +109,9 @@ class Notifier:
         return self.send(f"EXTEND_TIMEOUT_USEC={usec}")
 
     def send(self, message: str) -> bool:
-        """Sends ``message`` (newline-separated ``KEY=VALUE`` lines) as one datagram.
-
-        The primitive behind the other methods, for assignments they do not cover
-        (e.g. ``ERRNO=5`` or ``MAINPID=...``).
-
-        Args:
-            message: the assignments, UTF-8 encoded on the wire.
-
-        Returns:
-            ``True`` when the kernel accepted the datagram; ``False`` when notification is
-            disabled or the send failed (no listener, permission denied, queue full, ...).
-
-        Raises:
-            Nothing: every ``OSError`` is caught, logged once at warning, and reported as
-                ``False``.
+        """Sends ``message`` (newline-separated ``KEY=VALUE`` lines, UTF-8 on the wire) as one
+        datagram: the primitive behind the other methods (also ``ERRNO=5``, ``MAINPID=...``).
+        A send fails with no listener, permission denied, a full queue, ...
         """
         if self.address is None:
             return False

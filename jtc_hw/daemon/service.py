@@ -70,7 +70,6 @@ class Daemon:
 
     def __init__(self, robot: RobotConfig, source: str | dict[str, Any]) -> None:
         self.robot = robot
-        self.source = source
         self.notifier = Notifier()
         self.backend = LoopBackend(robot, source)
         self._stop = asyncio.Event()

@@ -1,18 +1,13 @@
 """The robot file's ``daemon:`` section: its schema tables and the frozen settings they make.
 
 Declared with the one schema engine (:mod:`jtc_hw.config.schema`), like the controller's
-parameters and each hardware kind's: :data:`DAEMON_PARAMETERS`, :data:`TCP_PARAMETERS`,
-:data:`REALTIME_PARAMETERS`, :data:`FOXGLOVE_PARAMETERS` (and ``daemon.zenoh``'s,
-:mod:`.zenoh_config`). A row gives a setting's type, default, range and, where a rule needs
-more, its check (the TCP host's loopback rule, the token's length, the socket's mode), so each
-rule is written once. :func:`daemon_settings` reads the section; each settings dataclass checks
-its fields against the same rows when built (:func:`~jtc_hw.config.schema.check_fields`), so an
-instance a program builds directly (the tests' servers) is as valid as one read from a file.
-
-:class:`DaemonSettings` is what the server and the transports take: where and how the daemon
-listens (the unix socket, the optional loopback TCP endpoint, the Zenoh interface), its limits,
-the loop's scheduling and the observers. :data:`SERVER_PARAMETERS` are the server's queue and
-closing bounds, settings of a program, not of the file.
+parameters and each hardware kind's (``daemon.zenoh``'s in :mod:`.zenoh_config`). A row gives a
+setting's type, default, range and, where a rule needs more, its check (the TCP host's loopback
+rule, the token's length, the socket's mode), so each rule is written once.
+:func:`daemon_settings` reads the section; each settings dataclass checks its fields against the
+same rows when built (:func:`~jtc_hw.config.schema.check_fields`), so an instance a program
+builds directly (the tests' servers) is as valid as one read from a file.
+:class:`DaemonSettings` is what the server and the transports take.
 """
 
 from __future__ import annotations
@@ -78,9 +73,7 @@ _OCTAL_MODE = re.compile(r"(?:0o|0)?([0-7]{1,4})")
 _A_STRING: Final = ParamSpec("string", ParamKind.STRING, "", "a string")
 
 
-# --------------------------------------------------------------------------------------------
-# The checks a row's kind does not cover
-# --------------------------------------------------------------------------------------------
+# -- The checks a row's kind does not cover ----------------------------------------------------
 
 
 def _loopback_host(value: Any, path: str) -> str:
@@ -145,9 +138,7 @@ def _socket_mode(value: Any, path: str) -> int:
     return mode
 
 
-# --------------------------------------------------------------------------------------------
-# Schema
-# --------------------------------------------------------------------------------------------
+# -- Schema ------------------------------------------------------------------------------------
 
 TCP_PARAMETERS: Final[Mapping[str, ParamSpec]] = param_table(
     ParamSpec("host", ParamKind.STRING, "127.0.0.1", "loopback address to listen on",
@@ -264,9 +255,7 @@ def default_flight_recorder_dir() -> str:
     return os.path.join(xdg, "jtc-hw", "flight")
 
 
-# --------------------------------------------------------------------------------------------
-# Result types: every default is its row's
-# --------------------------------------------------------------------------------------------
+# -- Result types: every default is its row's --------------------------------------------------
 
 _TCP, _RT, _FOX, _D, _S = (
     TCP_PARAMETERS, REALTIME_PARAMETERS, FOXGLOVE_PARAMETERS, DAEMON_PARAMETERS, SERVER_PARAMETERS
@@ -282,9 +271,7 @@ class TcpSettings:
     (``Server.tcp_address``).
 
     Raises:
-        ConfigurationError: at construction, a value :data:`TCP_PARAMETERS` refuses: ``host``
-            not a loopback address, ``port`` out of range, ``token`` shorter than
-            :data:`MIN_TOKEN_LENGTH` characters, ...
+        ConfigurationError: at construction, a value :data:`TCP_PARAMETERS` refuses.
     """
 
     host: str = _TCP["host"].default
@@ -301,13 +288,8 @@ class TcpSettings:
 
 @dataclass(frozen=True)
 class RealtimeSettings:
-    """``daemon.realtime``: scheduling of the control loop's process.
-
-    Attributes:
-        priority: SCHED_FIFO priority 1..99, or 0 for normal scheduling.
-        lock_memory: lock the process's memory (``mlockall``).
-        cpu_affinity: CPUs the loop may run on; empty: any.
-    """
+    """``daemon.realtime``: scheduling of the control loop's process (:mod:`.realtime`); one
+    field per row of :data:`REALTIME_PARAMETERS`, which says what each is."""
 
     priority: int = _RT["priority"].default
     lock_memory: bool = _RT["lock_memory"].default
@@ -319,13 +301,9 @@ class RealtimeSettings:
 
 @dataclass(frozen=True)
 class FoxgloveSettings:
-    """``daemon.foxglove``: the live view (``jtc_hw.daemon.transports.liveview``).
-
-    Attributes:
-        host: address to listen on; the protocol has no authentication, so a non-loopback
-            address shows the robot's state to anyone who can reach it (``security_warnings``).
-        port: TCP port (0: any free port).
-        rate: states published per second, Hz (None: every state the loop publishes).
+    """``daemon.foxglove``: the live view (``jtc_hw.daemon.transports.liveview``); one field per
+    row of :data:`FOXGLOVE_PARAMETERS`. The protocol has no authentication, so a non-loopback
+    ``host`` shows the robot's state to anyone who can reach it (``security_warnings``).
 
     Raises:
         ConfigurationError: ``host`` is not an IP address or ``localhost`` (at construction).
@@ -357,8 +335,7 @@ class DaemonSettings:
     One field per row of :data:`DAEMON_PARAMETERS` (which says what each is; ``socket`` and
     the directories are absolute here, ``socket_group`` a group name or gid or ``None`` for
     the daemon's, and the sections are their own settings or ``None``: off), then one per row
-    of :data:`SERVER_PARAMETERS`. ``max_clients`` leaves ``RESERVED_UNIX_CLIENTS`` more
-    connections to the daemon's user and root; a client over a limit may still send ``stop``.
+    of :data:`SERVER_PARAMETERS`; a client over a limit may still send ``stop``.
 
     Raises:
         ConfigurationError: at construction, a value the rows refuse, a socket path that is
@@ -409,9 +386,7 @@ class DaemonSettings:
             )
 
 
-# --------------------------------------------------------------------------------------------
-# Reading the section
-# --------------------------------------------------------------------------------------------
+# -- Reading the section -----------------------------------------------------------------------
 
 
 def daemon_settings(raw: Any, base_dir: str) -> DaemonSettings:
@@ -424,31 +399,23 @@ def daemon_settings(raw: Any, base_dir: str) -> DaemonSettings:
             insecure Zenoh section; the message names the dotted key path.
     """
     values = validate_params(DAEMON_PARAMETERS, raw, "daemon")
-    socket = values["socket"]
-    if socket is None:
-        socket = default_socket_path()
-    elif not socket.strip():
-        raise ConfigurationError(
-            "is empty; give a path, or remove the key for the default", "daemon.socket", socket
-        )
-    else:
-        socket = os.path.normpath(os.path.join(base_dir, os.path.expanduser(socket)))
-    record, flight_dir = values["record"], values["flight_recorder_dir"]
+    socket, record, flight_dir = values["socket"], values["record"], values["flight_recorder_dir"]
     return DaemonSettings(**{
         **values,
-        "socket": socket,
+        "socket": default_socket_path() if socket is None
+        else _absolute(socket, base_dir, "daemon.socket", "a path"),
         "tcp": None if values["tcp"] is None else TcpSettings(**values["tcp"]),
         "realtime": RealtimeSettings(**values["realtime"]),
         "foxglove": None if values["foxglove"] is None else FoxgloveSettings(**values["foxglove"]),
         "flight_recorder_dir": default_flight_recorder_dir() if flight_dir is None
-        else _directory(flight_dir, base_dir, "daemon.flight_recorder_dir"),
-        "record": None if record is None else _directory(record, base_dir, "daemon.record"),
+        else _absolute(flight_dir, base_dir, "daemon.flight_recorder_dir"),
+        "record": None if record is None else _absolute(record, base_dir, "daemon.record"),
         "zenoh": None if values["zenoh"] is None else zenoh_settings(values["zenoh"], base_dir),
     })
 
 
-def _directory(value: str, base_dir: str, path: str) -> str:
+def _absolute(value: str, base_dir: str, path: str, what: str = "a directory") -> str:
     if not value.strip():
-        raise ConfigurationError("is empty; give a directory, or remove the key for the default",
+        raise ConfigurationError(f"is empty; give {what}, or remove the key for the default",
                                  path, value)
     return os.path.normpath(os.path.join(base_dir, os.path.expanduser(value)))

@@ -43,11 +43,7 @@ def private_tmp_warnings(
     config_path: str, socket_path: str, unit_dirs: Sequence[str] | None = None
 ) -> list[str]:
     """One warning per installed unit that runs ``config_path`` with ``PrivateTmp=`` on while
-    ``socket_path`` is under /tmp; none otherwise. ``unit_dirs``: default :data:`UNIT_DIRS`.
-
-    Raises:
-        Nothing: a directory or unit that cannot be read is skipped.
-    """
+    ``socket_path`` is under /tmp; none otherwise. ``unit_dirs``: default :data:`UNIT_DIRS`."""
     if not os.path.normpath(socket_path).startswith("/tmp/"):
         return []
     config = os.path.realpath(config_path)

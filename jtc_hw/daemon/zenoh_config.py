@@ -12,24 +12,19 @@
         multicast_scouting: false     # discovery by multicast: off unless set here or in config
         token: "at least sixteen characters"  # required: commands carry it (below)
 
-The Zenoh configuration is the file (if any) with this section's keys applied on top; what the
-section does not give is left to the file: ``listen`` (when absent, and the file sets no
-listen endpoint, the daemon listens nowhere: a Zenoh peer's default is every interface),
-multicast scouting (off unless the file or ``multicast_scouting`` turns it on), and the
-session lease (:data:`LEASE_MS` / :data:`KEEP_ALIVE` unless the file sets another).
+The Zenoh configuration is the file (if any) with this section's keys applied on top; where
+neither says, our defaults apply: no listen endpoint (a Zenoh peer's own is every interface), no
+multicast scouting, and the session lease :data:`LEASE_MS` / :data:`KEEP_ALIVE`
+(docs/zenoh.md, "Configuration").
 
-Credential rule (the TCP door's token, for every Zenoh peer): ``token`` is required, at least
-:data:`MIN_TOKEN_LENGTH` characters; a section without one is refused at load, saying how to
-make one. Every query that commands the robot carries it in its attachment
-(``jtc_hw.daemon.transports.zenoh_iface``); without it a peer may only watch. Loopback is no
-protection on a machine with other users: any of them reaches ``tcp/127.0.0.1``.
-
-Security rule (the TCP listener's, on the network): a listen endpoint that is not loopback
-needs TLS (a ``tls/`` or ``quic/`` locator, with ``transport.link.tls.listen_certificate`` and
-``listen_private_key``) or authentication (``transport.auth.usrpwd`` or ``transport.auth.pubkey``)
-in the configuration file; otherwise the configuration is refused at load, so ``jtc-hw check``
-says it too. Reading a configuration file needs the ``eclipse-zenoh`` package (its parser
-is the reference for its JSON5); a section without one is checked without it.
+Two rules, both checked at load (so ``jtc-hw check`` says them too; docs/zenoh.md, "Security"):
+``token`` is required, at least :data:`MIN_TOKEN_LENGTH` characters, and every query that
+commands the robot carries it (``jtc_hw.daemon.transports.zenoh_iface``): loopback is no
+protection on a machine with other users. A listen endpoint that is not loopback needs TLS (a
+``tls/`` or ``quic/`` locator with a listen certificate and key) or authentication
+(``transport.auth.usrpwd`` or ``pubkey``) in the configuration file. Reading a configuration
+file needs the ``eclipse-zenoh`` package (its parser is the reference for its JSON5); a section
+without one is checked without it.
 """
 
 from __future__ import annotations
@@ -74,8 +69,7 @@ KEEP_ALIVE: Final = 4
 """Keep-alive messages per lease (Zenoh's default), so the lease survives a lost one."""
 
 MIN_TOKEN_LENGTH: Final = 16
-"""As ``daemon.tcp.token`` (``jtc_hw.daemon.robot.MIN_TOKEN_LENGTH``; not imported: the robot
-file's loader imports this module)."""
+"""Shortest ``daemon.zenoh.token``, and ``daemon.tcp.token`` (:mod:`.settings` imports it)."""
 TOKEN_HINT: Final = "generate one with: python -c 'import secrets; print(secrets.token_hex(16))'"
 
 _KEY_CHUNK = re.compile(r"[^/*$?#]+")
@@ -106,17 +100,8 @@ ZENOH_PARAMETERS: Final[Mapping[str, ParamSpec]] = param_table(
 
 @dataclass(frozen=True)
 class ZenohSettings:
-    """``daemon.zenoh``: the daemon's Zenoh interface (``jtc_hw.daemon.transports.zenoh_iface``).
-
-    Attributes:
-        prefix: key expression of this daemon, or ``None`` for :func:`default_prefix`.
-        mode: ``peer`` or ``client``, or ``None`` (the configuration file's, else peer).
-        connect: endpoints to connect to.
-        listen: endpoints to listen on, or ``None`` (the file's, else none).
-        config: absolute path of a Zenoh configuration file, or ``None``.
-        multicast_scouting: discover peers by multicast.
-        token: the secret a query must carry to command the robot (module docstring).
-    """
+    """``daemon.zenoh``: the daemon's Zenoh interface (``jtc_hw.daemon.transports.zenoh_iface``);
+    one field per row of :data:`ZENOH_PARAMETERS` (``config`` an absolute path here)."""
 
     prefix: str | None = None
     mode: str | None = None
@@ -133,11 +118,7 @@ class ZenohSettings:
 
 def default_prefix(controller: str) -> str:
     """``jtc/<hostname>/<controller>``, with characters a key expression cannot hold in a
-    chunk (``/ * $ ? #``) replaced by ``_``.
-
-    Raises:
-        Nothing.
-    """
+    chunk (``/ * $ ? #``) replaced by ``_``."""
     host = socket.gethostname().split(".")[0] or "localhost"
     return "/".join(("jtc", *(re.sub(r"[/*$?#\s]", "_", c) for c in (host, controller))))
 
@@ -300,11 +281,8 @@ def session_config(settings: ZenohSettings) -> Any:
 
 def endpoint_is_loopback(endpoint: str) -> bool:
     """Whether a Zenoh endpoint (``tcp/127.0.0.1:7447``, ``tls/[::1]:0#iface=lo``) can only be
-    reached from this machine: a loopback address, ``localhost``, or a Unix socket.
-
-    Raises:
-        Nothing: anything unreadable counts as reachable from elsewhere.
-    """
+    reached from this machine: a loopback address, ``localhost``, or a Unix socket. Never
+    raises: anything unreadable counts as reachable from elsewhere."""
     protocol, _, rest = endpoint.partition("/")
     if protocol.startswith("unixsock"):
         return True

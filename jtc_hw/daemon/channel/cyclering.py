@@ -83,12 +83,8 @@ SHM_DIR = "/dev/shm"
 
 def remove_stale(directory: str = SHM_DIR) -> list[str]:
     """Remove the cycle rings left by daemons that no longer run (killed with their resource
-    tracker); the names removed.
-
-    Raises:
-        Nothing: a directory that cannot be listed (not Linux) or a segment that cannot be
-            removed (another user's) is left alone.
-    """
+    tracker); the names removed. Never raises: a directory that cannot be listed (not Linux) or
+    a segment that cannot be removed (another user's) is left alone."""
     try:
         names = os.listdir(directory)
     except OSError:
@@ -266,9 +262,6 @@ class CycleRing:
             ``(rows, next_since, lost)``: the complete rows in order (an array of shape
             ``(n, width)``), the sequence number to read from next, and how many rows since
             ``since`` were overwritten before they could be copied (the reader fell behind).
-
-        Raises:
-            Nothing.
         """
         end = int(self._header[_H_COUNT])
         start = max(since, end - self.capacity)

@@ -225,12 +225,8 @@ class Failed:
         return cls(request_id, type(exc), str(exc))
 
     def exception(self) -> JtcHwError:
-        """The error to raise in the API process: of the loop's class (a ``HardwareError``
-        for a class the API process has no answer of its own for), with the loop's text.
-
-        Raises:
-            Nothing: it returns the exception.
-        """
+        """The error to raise in the API process, with the loop's text: of the loop's class if
+        the API process answers it (``_ANSWERED_BY_KIND``), else a ``HardwareError``."""
         kind = self.kind if issubclass(self.kind, _ANSWERED_BY_KIND) else HardwareError
         return kind(self.text)
 

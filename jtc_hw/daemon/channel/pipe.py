@@ -67,16 +67,8 @@ _TIMED_READ_BYTES = 4096
 class PlanWriter:
     """The API process's writer to the loop: never blocks, requests before the rest of a plan.
 
-    :meth:`put` queues a message: with ``bulk`` (a plan), its arrays are sent out of band in
-    ``CHUNK`` records; otherwise (a request) as one ``WHOLE`` record, written before any
-    bulk record not yet started. :meth:`flush` writes what the socket takes now
-    (``sendmsg(MSG_DONTWAIT)``, the arrays' memory itself: no copy) and says whether
-    everything was written; the owner calls it again when the socket is writable.
-
-    A plan of megabytes used to be written with a blocking send from the asyncio thread,
-    which then waited for the loop to read it, a budget per cycle (a 75,000-point plan:
-    hundreds of milliseconds), while no other client was served; and a stop sent meanwhile
-    queued behind the whole plan.
+    :meth:`flush` writes what the socket takes now (``sendmsg(MSG_DONTWAIT)``, a plan's arrays
+    from their own memory: no copy); the owner calls it again when the socket is writable.
 
     Args:
         conn: the connection (its socket is duplicated; the connection stays open).
@@ -117,13 +109,8 @@ class PlanWriter:
         self._bulk.append(collections.deque(_records(message)))
 
     def flush(self) -> bool:
-        """Write what the socket takes now; never blocks.
-
-        Returns:
-            True if nothing is left to write.
-
-        Raises:
-            Nothing: a failing socket (the loop exited) sets :attr:`closed` and drops the queue.
+        """Write what the socket takes now, never blocking; True if nothing is left to write.
+        Never raises: a failing socket (the loop exited) sets :attr:`closed` and drops the queue.
         """
         while not self.closed:
             if not self._current and not self._next():
@@ -314,20 +301,15 @@ class Inbox:
     """Messages read without ever blocking, a bounded amount at a time.
 
     In the loop process, a receiving thread would compete with the loop thread for the
-    interpreter lock: measured, a thread receiving a 2.4 MB plan stretched cycles by
-    milliseconds (each time the loop thread released the lock in a system call, the receiver
-    took it for up to the switch interval). So the loop process has one thread, and
-    :meth:`pump` reads what has arrived, at most ``budget`` bytes (and not past a time it is
-    given), straight into the memory of what is being received (``MSG_DONTWAIT``: the
-    connection stays blocking for sends): a plan's arrays are read where they will stay, a
-    chunk record at a time. A 2,000-point plan then arrives over one or two cycles, each
-    paying a bounded copy. In the API process it lets the event loop read the loop's messages
-    (``multiprocessing``'s format) without waiting for the rest of one the loop wrote in part.
-
-    A plan's arrays of :data:`LARGE_MESSAGE_BYTES` or more are received into memory that is
-    not zero-filled first (the reads touch it, a budget at a time), and those of
-    :data:`RETURNED_MESSAGE_BYTES` or more into a mapping of their own, which
-    :meth:`release` hands back to the system once nothing unpickled from it is alive.
+    interpreter lock (measured: cycles stretched by milliseconds, docs/decisions.md 12), so the
+    loop process has one thread, and :meth:`pump` reads what has arrived, at most ``budget``
+    bytes (and not past a time it is given), straight into the memory of what is being received
+    (``MSG_DONTWAIT``: the connection stays blocking for sends): a plan's arrays are read where
+    they will stay, a chunk record at a time. A 2,000-point plan then arrives over one or two
+    cycles, each paying a bounded copy. In the API process it lets the event loop read the
+    loop's messages (``multiprocessing``'s format) without waiting for the rest of one the loop
+    wrote in part. How a plan's large arrays are received and given back:
+    :func:`_receive_buffer`.
 
     Args:
         conn: the connection (its socket is duplicated; the connection stays open).
@@ -363,13 +345,10 @@ class Inbox:
         self._sock.close()
 
     def pump(self, until_ns: int | None = None) -> None:
-        """Read what has arrived, at most ``budget`` bytes (and, with ``until_ns``, no more
-        once that time on the monotonic clock has passed, checked after each read of a plan's
-        memory: headers and requests are read whatever the time); never blocks.
-
-        Raises:
-            Nothing: a failing socket sets :attr:`closed`.
-        """
+        """Read what has arrived, at most ``budget`` bytes (and, with ``until_ns``, no more once
+        that time on the monotonic clock has passed, checked after each read of a plan's memory:
+        headers and requests are read whatever the time); never blocks. Never raises: a failing
+        socket sets :attr:`closed`."""
         budget = self._budget
         while budget > 0 and not self.closed:
             want = min(len(self._view) - self._filled, budget)
@@ -504,13 +483,9 @@ class Inbox:
         self._queue.append(pickle.loads(body))
 
     def release(self) -> bool:
-        """Give back a chunk of the memory of the large messages nothing uses any more.
-
-        Call in spare time: costs at most one ``madvise`` of :data:`RELEASE_CHUNK_BYTES`.
-
-        Returns:
-            Whether there was something to give back.
-        """
+        """Give back a chunk of the memory of the large messages nothing uses any more; whether
+        there was something to give back. Call in spare time: costs at most one ``madvise`` of
+        :data:`RELEASE_CHUNK_BYTES`."""
         for mapped in self._mapped:
             if mapped.unused():
                 if mapped.give_back(RELEASE_CHUNK_BYTES):

@@ -376,14 +376,11 @@ class LoopBackend:
         *,
         time_scaling: str | None = None,
     ) -> Accepted:
-        """Plan and commit an action goal.
+        """Plan and commit an action goal (:meth:`Backend.send_goal`).
 
         Args:
             time_scaling: ``"reject"`` or ``"fit"`` a goal beyond the joint limits (None:
                 ``limits.time_scaling``).
-
-        Returns:
-            The goal's id, and how it was fitted to the joint limits.
 
         Raises:
             GoalRejected: invalid goal, beyond the joint limits, or the loop kept refusing the
@@ -402,13 +399,10 @@ class LoopBackend:
     async def send_trajectory(
         self, traj: JointTrajectory, *, time_scaling: str | None = None
     ) -> TimeScaling | None:
-        """Plan and commit a topic trajectory; an empty one stops.
+        """Plan and commit a topic trajectory; an empty one stops (:meth:`Backend.send_trajectory`).
 
         Args:
             time_scaling: as for ``send_goal``.
-
-        Returns:
-            How it was fitted to the joint limits (None: as sent, or a stop).
 
         Raises:
             GoalRejected: invalid trajectory, beyond the joint limits, or not active.
@@ -443,15 +437,8 @@ class LoopBackend:
         return bool(await self.loop.request(Cancel(goal_id)))
 
     async def rearm(self) -> bool:
-        """Leave a hardware fault: re-open the devices, clear their latched faults
-        (``recover``) and hold the measured position.
-
-        Raises:
-            HardwareError: re-arming failed (the controller stays stopped).
-
-        Returns:
-            False if there was nothing to re-arm (no fault, the controller is running).
-        """
+        """Leave a hardware fault (:meth:`Backend.rearm`): the loop re-opens the devices first,
+        then clears their latched faults (``recover``) and holds the measured position."""
         rearmed = bool(await self.loop.request(Rearm()))
         if rearmed:
             self.observers.record({"event": "rearm",
@@ -479,11 +466,10 @@ class LoopBackend:
         checks. Changes are serialised, each made from the configuration the previous left.
 
         Raises:
-            ConfigurationError: an unknown or read-only parameter or a bad value; nothing
-                changed.
+            ConfigurationError, HardwareError: as :meth:`Backend.set_parameters`; after a
+                HardwareError the loop may or may not have applied the change
+                (``get_parameters`` shows the API process's copy, unchanged).
             ControllerStateError: the control loop is not running.
-            HardwareError: the control loop did not answer (it may or may not have applied
-                the change; ``get_parameters`` shows the API process's copy, unchanged).
         """
         async with self._parameters_lock:
             aio = asyncio.get_running_loop()

@@ -2,10 +2,8 @@
 
 :class:`Backend` is implemented for real by :class:`jtc_hw.daemon.core.backend.LoopBackend` (the
 control loop in its own process) and in tests by a small controller host. Everything that
-consumes the loop's output is an :class:`Observer`: the request layer
-(:class:`jtc_hw.daemon.core.requests.Requests`, subscriptions and goal routing for every
-transport), the live view, the Zenoh interface and the recorders
-(:mod:`jtc_hw.daemon.core.observers`).
+consumes the loop's output is an :class:`Observer` (:mod:`jtc_hw.daemon.core.observers` draws
+them).
 """
 
 from __future__ import annotations
@@ -72,38 +70,23 @@ class Backend(Protocol):
 
     The synchronous methods are called from the asyncio loop and must return at once (no
     waiting on the control loop): answer from replicas and caches. The coroutines may wait on
-    the control loop; only the requesting client waits for them.
+    the control loop; only the requesting client waits for them. An unexpected exception
+    becomes an ``internal`` error reply.
     """
 
     joint_names: tuple[str, ...]
 
     def now_ns(self) -> int:
-        """The daemon's monotonic clock, in nanoseconds.
-
-        Raises:
-            Nothing expected: an exception becomes an ``internal`` error reply.
-        """
+        """The daemon's monotonic clock, in nanoseconds."""
 
     def hello(self) -> dict[str, Any]:
-        """Facts for a new client (``update_rate``, ``state_publish_rate``, ...).
-
-        Raises:
-            Nothing expected: an exception becomes an ``internal`` error reply.
-        """
+        """Facts for a new client (``update_rate``, ``state_publish_rate``, ...)."""
 
     def config_dict(self) -> dict[str, Any]:
-        """The configuration in effect, JSON-able.
-
-        Raises:
-            Nothing expected: an exception becomes an ``internal`` error reply.
-        """
+        """The configuration in effect, JSON-able."""
 
     def status(self) -> dict[str, Any]:
-        """Loop statistics, hardware and controller status, JSON-able.
-
-        Raises:
-            Nothing expected: an exception becomes an ``internal`` error reply.
-        """
+        """Loop statistics, hardware and controller status, JSON-able."""
 
     async def send_goal(
         self,

@@ -65,21 +65,18 @@ class Observers:
     def __bool__(self) -> bool:
         return bool(self._observers)
 
+    # Each tells every observer through its ``Observer`` method ``on_<name>`` (which says what).
+
     def state(self, snapshot: dict[str, Any]) -> None:
-        """A state snapshot (:func:`state_json`), at ``state_publish_rate``."""
         self._tell("on_state", snapshot)
 
     def goal_event(self, event: GoalResult | GoalFeedback) -> None:
-        """A goal's feedback or result."""
         self._tell("on_goal_event", event)
 
     def command(self, traj: JointTrajectory, goal_id: int | None) -> None:
-        """An accepted command as the client sent it (``goal_id`` None: a topic trajectory;
-        no points: a stop)."""
         self._tell("on_command", traj, goal_id)
 
     def record(self, event: dict[str, Any]) -> None:
-        """A result, fault or re-arm as recordings keep it (``goal_events``' JSON)."""
         self._tell("on_record", event)
 
     def _tell(self, method: str, *args: Any) -> None:
@@ -141,8 +138,7 @@ def state_json(state: State, joint_names: Sequence[str]) -> dict[str, Any]:
 
 
 class Recorders:
-    """The observer writing bags: the flight recorder (made by :meth:`start`, fed every cycle
-    through the loop's ring) and ``daemon.record``'s recording.
+    """The observer writing bags (module docstring).
 
     Args:
         daemon: the daemon's settings (``flight_recorder_*``, ``record``).

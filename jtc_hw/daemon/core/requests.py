@@ -24,10 +24,9 @@ transport are byte for byte the same. What comes later goes through the caller's
 :class:`Outlet`, which the transport implements: ``send`` for what must not be dropped (goal
 results, accepted commands and records), ``offer`` for what may be (``state``, ``feedback``).
 
-This layer knows nothing of sockets, framing, authentication, slots or key expressions: a
-transport admits and authenticates its clients before it calls :meth:`Requests.answer`, and
-answers its own refusals (``busy``, ``unauthorized``, ``idle``) with :meth:`Requests.refuse`
-so that they are logged as every other rejection.
+A transport admits and authenticates its clients before it calls :meth:`Requests.answer`,
+and answers its own refusals (``busy``, ``unauthorized``, ``idle``) with
+:meth:`Requests.refuse`, so that they are logged as every other rejection.
 
 Goal routing: a goal's events go to the caller that sent it. ``Backend.send_goal`` returns the
 id and the route is registered before anything else is awaited, so no event can overtake the
@@ -191,10 +190,7 @@ class Reply:
 
 def accepted_goal(accepted: Accepted) -> tuple[int, dict[str, float]]:
     """The goal id and the ``accepted`` reply's fitting fields (``time_scale``,
-    ``duration_s``; none when the goal was checked as sent) from ``Backend.send_goal``'s value.
-
-    The one place that reads that value: its type belongs to the loop<->API messages.
-    """
+    ``duration_s``; none when the goal was checked as sent) from ``Backend.send_goal``'s value."""
     if accepted.time_scaling is None:
         return accepted.goal_id, {}
     return accepted.goal_id, {
@@ -235,21 +231,13 @@ class Requests:
         self._listening = False
 
     def listen(self) -> None:
-        """Become an observer of the backend (goal events, state). Idempotent.
-
-        Raises:
-            Nothing.
-        """
+        """Become an observer of the backend (goal events, state). Idempotent."""
         if not self._listening:
             self._listening = True
             self.backend.add_observer(self)
 
     def close(self) -> None:
-        """Forget every route and subscriber; later backend events are ignored. Idempotent.
-
-        Raises:
-            Nothing.
-        """
+        """Forget every route and subscriber; later backend events are ignored. Idempotent."""
         self._closed = True
         self._routes.clear()
         self._early.clear()
@@ -259,11 +247,7 @@ class Requests:
 
     def leave(self, caller: Caller) -> None:
         """``caller``'s client has gone: no more state, commands or records for it. Its goals
-        run on; their results are discarded (and counted) when its outlet says it is gone.
-
-        Raises:
-            Nothing.
-        """
+        run on; their results are discarded (and counted) when its outlet says it is gone."""
         self._subscribers.pop(caller, None)
 
     @property
@@ -274,12 +258,9 @@ class Requests:
     # -- requests -----------------------------------------------------------------------------
 
     async def answer(self, caller: Caller, item: Request | RequestError) -> Reply:
-        """Execute one request for ``caller``: its reply, success or error (logged).
-
-        Raises:
-            Nothing: a failure is an error reply (``internal`` for the unexpected, logged
-            with its traceback).
-        """
+        """Execute one request for ``caller``: its reply, success or error (logged). Never
+        raises: a failure is an error reply (``internal`` for the unexpected, logged with its
+        traceback)."""
         if isinstance(item, RequestError):
             return self.refuse(caller, None, item)
         try:
@@ -311,11 +292,7 @@ class Requests:
         logged: bool = False,
     ) -> Reply:
         """The error reply for ``error`` (its id, else the request's), logged unless
-        ``logged``: also for a transport's own refusals (``busy``, ``unauthorized``).
-
-        Raises:
-            Nothing.
-        """
+        ``logged``: also for a transport's own refusals (``busy``, ``unauthorized``)."""
         rid = error.request_id if error.request_id is not None or request is None else request.id
         if not logged:
             op = request.op if request is not None else "request"
@@ -471,11 +448,8 @@ class Requests:
     # -- Observer -----------------------------------------------------------------------------
 
     def on_goal_event(self, event: GoalEvent) -> None:
-        """Route a goal's event to the caller that sent the goal.
-
-        Raises:
-            Nothing: a result whose caller has gone is logged and discarded.
-        """
+        """Route a goal's event to the caller that sent the goal. Never raises: a result whose
+        caller has gone is logged and discarded."""
         if self._closed:
             return
         waiting = self._releasing.get(event.goal_id)
@@ -554,34 +528,23 @@ class Requests:
             caller.outlet.send(data)
 
     def on_command(self, trajectory: JointTrajectory, goal_id: int | None) -> None:
-        """Send an accepted command (a goal's trajectory, a topic trajectory; empty: a stop)
-        to every caller subscribed with ``commands`` (``jtc-hw record``). Not droppable: a
-        recording must have every command; a transport disconnects a client that stops
-        reading, as for results.
-
-        Raises:
-            Nothing: a command that cannot be encoded is logged and skipped.
-        """
+        """Send an accepted command (a goal's trajectory, a topic trajectory; empty: a stop) to
+        every caller subscribed with ``commands`` (``jtc-hw record``). Not droppable: a
+        recording must have every command; a transport disconnects a client that stops reading,
+        as for results. Never raises: a command that cannot be encoded is logged and skipped."""
         self._to_recorders(lambda: command_event(trajectory, goal_id, self.backend.now_ns()),
                            "an accepted command")
 
     def on_record(self, event: dict[str, Any]) -> None:
-        """Send a result, fault or re-arm (a ``record`` event) to every caller subscribed
-        with ``commands`` (``jtc-hw record`` writes them into its bag). Not droppable, as
-        commands.
-
-        Raises:
-            Nothing: an event that cannot be encoded is logged and skipped.
-        """
+        """Send a result, fault or re-arm (a ``record`` event) to every caller subscribed with
+        ``commands`` (``jtc-hw record`` writes them into its bag). Not droppable, as commands.
+        Never raises: an event that cannot be encoded is logged and skipped."""
         self._to_recorders(lambda: record_event(event), "a recorded event")
 
     def on_state(self, snapshot: dict[str, Any]) -> None:
         """Send a state snapshot to every subscribed caller whose outlet has room, with what
-        that caller was not sent since its last one (``dropped``, ``dropped_total``).
-
-        Raises:
-            Nothing: a snapshot that cannot be encoded is logged and skipped.
-        """
+        that caller was not sent since its last one (``dropped``, ``dropped_total``). Never
+        raises: a snapshot that cannot be encoded is logged and skipped."""
         if self._closed:
             return
         subscribers = [c for c in self._subscribers if not c.outlet.gone]

@@ -5,14 +5,12 @@ Theory of operation
 :class:`LoopProcess` spawns the loop process (``jtc_hw.daemon.loop.cycle.loop_main``) on one duplex
 pipe and waits for its ``Ready``. From then on it is the only one that talks to it:
 
-- out: ``Commit`` and ``Request`` records (:mod:`.messages`), written without blocking
-  (:class:`~.pipe.PlanWriter`, the rest when the pipe is writable), a request before what is
-  left of a plan, so the event loop never waits for the loop to read a plan of megabytes;
-- in: the loop's messages, read without blocking (:class:`~.pipe.Inbox`) whatever the loop has
-  written in part. It answers the futures waiting for a ``Committed``/``Stale`` or a
-  ``Reply``/``Failed`` (a failure raised again as its own class), logs the loop's ``Log``
-  and ``Fault`` lines, and hands every message on to its owner (``on_message``: the backend's
-  replica and observers).
+- out: ``Commit`` and ``Request`` records (:mod:`.messages`), written without blocking by a
+  :class:`~.pipe.PlanWriter` (a request before what is left of a plan, see :mod:`.pipe`);
+- in: the loop's messages, read without blocking (:class:`~.pipe.Inbox`). It answers the
+  futures waiting for a ``Committed``/``Stale`` or a ``Reply``/``Failed`` (a failure raised
+  again as its own class), logs the loop's ``Log`` and ``Fault`` lines, and hands every
+  message on to its owner (``on_message``: the backend's replica and observers).
 
 The loop's death is a result, not a silence: when its process ends (its sentinel) without
 having been asked to stop, :attr:`LoopProcess.death` says how ("control loop died: <how>"),
@@ -25,6 +23,7 @@ exits non-zero (systemd restarts it). Meanwhile the device-side watchdogs stop t
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import itertools
 import logging
 import multiprocessing
@@ -258,24 +257,18 @@ class LoopProcess:
         """Stop watching the process and close the pipe (after :meth:`stop`)."""
         aio = asyncio.get_running_loop()
         if self._process is not None:
-            try:
+            with contextlib.suppress(ValueError, OSError):
                 aio.remove_reader(self._process.sentinel)
-            except (ValueError, OSError):
-                pass
         if self._conn is not None:
-            try:
+            with contextlib.suppress(ValueError, OSError):
                 aio.remove_reader(self._conn.fileno())
-            except (ValueError, OSError):
-                pass
             if self._inbox is not None:
                 self._inbox.close()
                 self._inbox = None
             if self._writer is not None:
                 if self._writing:
-                    try:
+                    with contextlib.suppress(ValueError, OSError):
                         aio.remove_writer(self._conn.fileno())
-                    except (ValueError, OSError):
-                        pass
                     self._writing = False
                 self._writer.close()
                 self._writer = None
@@ -385,9 +378,8 @@ class LoopProcess:
         return next(self._ids)
 
     def _send(self, message: Commit | Request, bulk: bool = False) -> None:
-        """Queue ``message`` for the loop and write what the pipe takes now; the rest is written
-        when it becomes writable (the event loop never waits for the loop to read a plan).
-        A request (not ``bulk``) goes before what is left of a plan being written.
+        """Queue ``message`` for the loop (a plan ``bulk``), write what the pipe takes now, and
+        the rest when it becomes writable (module docstring).
 
         Raises:
             ControllerStateError: the loop is not running (:meth:`refusal`), or just exited.

@@ -50,8 +50,7 @@ class Ticker:
     """Yields absolute deadlines ``t0 + k * period_ns`` and sleeps until each.
 
     Attributes:
-        period_ns: the period, in nanoseconds.
-        spin_ns: how much of each wait is spent busy-polling the clock instead of sleeping.
+        period_ns, spin_ns: as given (:meth:`__init__`).
         skipped_total: deadlines skipped since construction or :meth:`reset`.
     """
 
@@ -94,15 +93,8 @@ class Ticker:
         return self._t0 + (self._k + 1) * self.period_ns
 
     def reset(self, start_ns: int | None = None) -> None:
-        """Re-anchors the deadlines (e.g. when the loop resumes after a deliberate pause).
-
-        Args:
-            start_ns: the new anchor ``t0`` (default: the clock now); the next deadline is
-                ``t0 + period_ns``.
-
-        Raises:
-            Nothing.
-        """
+        """Re-anchors the deadlines at ``start_ns`` (default: the clock now), e.g. when the loop
+        resumes after a deliberate pause; the next deadline is ``start_ns + period_ns``."""
         self._t0 = self._now() if start_ns is None else start_ns
         self._k = 0
         self.skipped_total = 0

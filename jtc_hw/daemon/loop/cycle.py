@@ -4,14 +4,8 @@ Theory of operation
 -------------------
 The loop runs in its own process so that API work (parsing, fitting a 2,000-point goal,
 serving clients) never shares an interpreter lock with it. It talks to the API process over
-one duplex ``multiprocessing`` connection:
-
-- in (records of ``pipe.PlanWriter``, a plan's arrays out of band in chunks): the records of
-  :mod:`.messages`: ``Commit(plan_id, Plan)`` and ``Request(request_id, op)`` (ops:
-  ``Cancel``, ``Stop``, ``Sim``, ``Rearm``, ``SetParameters`` with a configuration the API
-  process checked, ``SetSpeedScaling`` (a factor, or ``None`` to resume), ``Shutdown``);
-- out: ``Ready``, ``Reference``, ``Committed`` | ``Stale`` (per commit), ``Events``,
-  ``State``, ``Status``, ``Reply`` | ``Failed`` (per request), ``Log``, ``Fault``, ``Exit``.
+one duplex ``multiprocessing`` connection, in the records :mod:`.messages` draws (in:
+``Commit`` and ``Request``, framed by ``pipe.PlanWriter``; out: everything else).
 
 Every change of the controller's reference is reported, in order, so the API process keeps an
 exact replica to plan against: a committed plan by its id (the API process made it), a hold by
@@ -19,13 +13,11 @@ value (a constant trajectory, a few bytes). The loop process has a single thread
 cycle it reads whatever has arrived, a bounded amount, without blocking (:class:`~.pipe.Inbox`),
 and the next cycle pops the completed messages. What it sends goes through a
 :class:`~.outbox.Outbox`, written at the end of each cycle without ever blocking: the loop never
-waits for the API process. If the API process stops reading (stopped, swapped out, wedged) for
-``daemon.api_stall_s``, the loop ends the active goal ``ABORTED`` with that reason, holds the
-measured position, refuses new goals, keeps cycling and publishing into the outbox (``State``
-and ``Status`` coalesced, everything else kept in order), and serves again once the API process
-has read the backlog. Before it configures any hardware, the loop process locks every device
-its components drive (``HardwareInterface.devices()``, :mod:`.locks`): a second daemon on the
-same hardware stops there, having sent nothing.
+waits for the API process. If the API process stops reading for ``daemon.api_stall_s``, the loop
+ends the active goal, holds and refuses new goals, cycling on, until the API process has read
+the backlog (docs/safety.md, "API stall"). Before it configures any hardware, the loop process
+locks every device its components drive (``HardwareInterface.devices()``, :mod:`.locks`): a
+second daemon on the same hardware stops there, having sent nothing.
 
 One cycle at deadline ``t``: drain requests -> ``hardware.read(t)`` -> ``controller.update`` ->
 ``hardware.write`` -> report events; a state snapshot at ``state_publish_rate``, statistics at
@@ -244,11 +236,8 @@ class ControlLoop:
         ``on_deactivate`` leaves it in the command interfaces for the next write.
 
         Only components that are active and have not faulted get it: upstream's controller
-        manager no longer writes to a component in error.
-
-        Raises:
-            Nothing: a failed write is logged; the safe action follows anyway.
-        """
+        manager no longer writes to a component in error. Never raises: a failed write is
+        logged; the safe action follows anyway."""
         command = self.ctrl.deactivation_command
         if command.velocities is None and command.accelerations is None and command.effort is None:
             return  # position only: nothing changes ("write nothing")
@@ -385,14 +374,12 @@ class ControlLoop:
         raise JtcHwError(f"unknown loop request {op!r}")
 
     def _begin_shutdown(self, now_ns: int) -> bool | float:
-        """Stop cycling now, or -- with decelerating stops -- once the joints are at rest.
+        """Stop cycling now, or -- with decelerating stops -- once the joints are at rest. Never
+        raises: the controller is active whenever ``stop`` is asked of it.
 
         Returns:
             True when the loop ends at once; else the longest it keeps cycling, in seconds
             (the API process waits that much longer for it to exit).
-
-        Raises:
-            Nothing: the controller is active whenever ``stop`` is asked of it.
         """
         if self._stopping_until_ns is not None:
             return (self._stopping_until_ns - now_ns) / 1e9
@@ -411,11 +398,7 @@ class ControlLoop:
     def _shutdown_stop_done(self, now_ns: int) -> bool:
         """Whether a shutdown waiting for its decelerating stop can end the loop now: the stop
         has ended (a cycle after its end has read the joints at rest), the controller or
-        hardware stopped otherwise, or the bound has passed.
-
-        Raises:
-            Nothing.
-        """
+        hardware stopped otherwise, or the bound has passed."""
         cap = self._stopping_until_ns
         if cap is None or self.fault is not None or not self.ctrl.active:
             return True
@@ -447,11 +430,8 @@ class ControlLoop:
     # -- the cycle ----------------------------------------------------------------------------
 
     def handle_inbox(self, inbox: Inbox, now_ns: int) -> bool:
-        """Handle every completed message, in order, at deadline ``now_ns``.
-
-        Returns:
-            Whether there was any.
-        """
+        """Handle every completed message, in order, at deadline ``now_ns``; whether there was
+        any."""
         message = inbox.pop()
         if message is None:
             return False
@@ -510,11 +490,7 @@ class ControlLoop:
     def _monitor(self, now_ns: int) -> None:
         """While faulted: what the hardware can read without commanding anything (its motors'
         health, the joints' positions, see ``HardwareInterface.monitor``), so that the status
-        and the cycle ring (the flight recorder's second after the fault) stay current.
-
-        Raises:
-            Nothing: ``monitor`` never raises.
-        """
+        and the cycle ring (the flight recorder's second after the fault) stay current."""
         measured = self.hardware.monitor(now_ns)
         ring = self.ring
         if ring is not None and measured is not None:
@@ -524,11 +500,7 @@ class ControlLoop:
     def status(self) -> dict[str, Any]:
         """The loop's statistics (``outbox``: how its messages to the API process fare, see
         :meth:`Outbox.snapshot`; ``api_stalls``: goals ended because the API process stopped
-        reading; ``api_stalled``: it has not caught up since), hardware and controller.
-
-        Raises:
-            Nothing: it only reads state.
-        """
+        reading; ``api_stalled``: it has not caught up since), hardware and controller."""
         return {
             "loop": {
                 **self.stats.snapshot(),
@@ -553,11 +525,8 @@ class ControlLoop:
 
     def serve_outbox(self, now_ns: int) -> None:
         """Write the cycle's messages without blocking; end the active goal if the API process
-        has not taken an ordered message for ``api_stall_s`` (or the backlog overflows).
-
-        Raises:
-            Nothing: an API process that has gone away stops the loop (``running``).
-        """
+        has not taken an ordered message for ``api_stall_s`` (or the backlog overflows). Never
+        raises: an API process that has gone away stops the loop (``running``)."""
         outbox = self.outbox
         outbox.flush()
         if outbox.closed:
@@ -595,9 +564,6 @@ class ControlLoop:
         period earlier. Committing at a deadline whose sample was already taken changes
         nothing the joints got: a plan keeps the reference it replaces from its
         ``valid_from_ns`` up to its planned time.
-
-        Raises:
-            Nothing: see :meth:`serve_outbox` and :meth:`Inbox.pump`.
         """
         self.serve_outbox(deadline_ns)
         inbox.pump(deadline_ns + self.period_ns - self.inbox_spare_ns)
@@ -725,11 +691,9 @@ def loop_main(source: str | dict[str, Any], controller_name: str | None, conn: C
             pid=os.getppid(),
         )
         rt = robot.daemon.realtime
-        for line in apply_realtime(rt.priority, rt.lock_memory, rt.cpu_affinity):
+        for line in (*apply_realtime(rt.priority, rt.lock_memory, rt.cpu_affinity),
+                     reduce_timer_slack(), keep_freed_memory(), disable_huge_pages()):
             loop.send(Log(logging.INFO, line))
-        loop.send(Log(logging.INFO, reduce_timer_slack()))
-        loop.send(Log(logging.INFO, keep_freed_memory()))
-        loop.send(Log(logging.INFO, disable_huge_pages()))
         now = time.monotonic_ns()
         loop.start(now)
         loop._report_reference()  # before Ready: the API process plans against it at once

@@ -43,12 +43,9 @@ class _Entry:
 class Outbox:
     """The loop's messages to the API process: queued, written without ever blocking.
 
-    :meth:`put` encodes and queues; :meth:`flush` (once per cycle) writes what the socket
-    takes now, in order, resuming a partial write where it stopped. A message put with a
-    ``key`` is droppable: while it waits, a newer message with the same key replaces it (in
-    place if nothing was queued after it, otherwise the old one is dropped and the new one
-    queued last, so that it still follows everything queued before it). Messages without a key
-    are never dropped.
+    A message put with a ``key`` is droppable: while it waits, a newer message with the same key
+    replaces it (in place if nothing was queued after it, otherwise the old one is dropped and
+    the new one queued last, so that it still follows everything queued before it).
 
     The queue is bounded in two ways: droppable messages by their keys (one waiting per key),
     ordered ones by ``capacity_bytes``: beyond it :attr:`overflow` is true, and the owner is
@@ -150,15 +147,9 @@ class Outbox:
     # -- writing -----------------------------------------------------------------------------
 
     def flush(self) -> bool:
-        """Write what the socket takes now; never blocks.
-
-        Returns:
-            True if everything was written.
-
-        Raises:
-            Nothing: a failing socket (the reader exited) sets :attr:`closed` and clears the
-            queue.
-        """
+        """Write what the socket takes now, never blocking; True if everything was written.
+        Never raises: a failing socket (the reader exited) sets :attr:`closed` and clears the
+        queue."""
         entries = self._entries
         if not entries:
             return True
@@ -230,15 +221,9 @@ class Outbox:
         self.pending_bytes = self.ordered_bytes = self._written = 0
 
     def drain(self, timeout_s: float) -> bool:
-        """Write everything, waiting up to ``timeout_s`` for the reader (not for use in a
-        cycle: it blocks).
-
-        Returns:
-            True if everything was written.
-
-        Raises:
-            Nothing: a failing socket sets :attr:`closed` (and returns False).
-        """
+        """Write everything, waiting up to ``timeout_s`` for the reader (not for use in a cycle:
+        it blocks); True if everything was written. Never raises: a failing socket sets
+        :attr:`closed` (and returns False)."""
         deadline = time.monotonic() + timeout_s
         poller = select.poll()
         poller.register(self._sock.fileno(), select.POLLOUT)

@@ -6,15 +6,15 @@ it. ``record`` stores the two durations in preallocated ``int64`` ring buffers a
 integer counters: no buffer is allocated (only the interpreter's own short-lived int objects),
 nothing is sorted, and the only data-dependent work is two comparisons for the all-time worst
 cases. :meth:`LoopStats.snapshot`, called off the hot path (by the publisher a few times a
-second, or on request), copies the window, sorts it and reads the percentiles.
+second, or on request), selects the percentiles from the window (``np.partition``).
 
 Why ring buffers rather than a fixed-bin histogram: the percentiles are exact (the nearest-rank
 sample, an actual measured cycle, at any resolution and any range, where bins would quantise a
 10 us lateness and a 10 ms stall alike or need a log scale and a range guess), they describe a
 sliding window of the most recent cycles (a histogram accumulates since reset unless it also
 keeps the samples to subtract), and the memory is small and fixed: two ``int64`` per cycle of
-window, 160 kB for 10 s at 1 kHz. The cost of exactness, an ``O(n log n)`` sort, is paid only in
-``snapshot()``.
+window, 160 kB for 10 s at 1 kHz. The cost of exactness, a selection over the window, is paid
+only in ``snapshot()``.
 
 Percentiles use the nearest-rank definition: ``pP`` is the smallest sample with at least P % of
 the window at or below it, i.e. ``sorted[ceil(P/100 * n) - 1]``.
@@ -47,11 +47,7 @@ class LoopStats:
     """
 
     def __init__(self, rate_hz: float, window: int | None = None) -> None:
-        """Preallocates the ring buffers.
-
-        Args:
-            rate_hz: the loop's nominal rate, reported back and used for the default window.
-            window: number of most recent cycles kept for percentiles; default 10 s of cycles.
+        """Preallocates the ring buffers (``window``: default 10 s of cycles at ``rate_hz``).
 
         Raises:
             ValueError: ``rate_hz`` is not a positive finite number or ``window`` is not a
@@ -95,7 +91,8 @@ class LoopStats:
             self._worst_cost = cost_ns
 
     def snapshot(self) -> dict[str, Any]:
-        """The statistics as a JSON-able dict (sorting happens here, not in :meth:`record`).
+        """The statistics as a new JSON-able dict, which later cycles do not change (selecting
+        the percentiles happens here, not in :meth:`record`).
 
         Keys: ``rate_hz``; ``period_us``; ``cycles`` recorded since reset; ``overruns``, the
         deadlines skipped since reset; ``overrun_cycles``, cycles that followed a skip;
@@ -104,12 +101,6 @@ class LoopStats:
         ``p50``/``p99``/``max`` describe the window and ``worst`` is the maximum since reset
         (a spike stays visible after it leaves the window). Durations are microseconds
         (floats); percentiles are ``None`` before the first cycle.
-
-        Returns:
-            A new dict; later cycles do not change it.
-
-        Raises:
-            Nothing: it only reads state.
         """
         n = min(self._cycles, self.window)
         return {
@@ -124,11 +115,7 @@ class LoopStats:
         }
 
     def reset(self) -> None:
-        """Forgets every cycle (e.g. after start-up, or when a client asks); keeps the buffers.
-
-        Raises:
-            Nothing.
-        """
+        """Forgets every cycle (e.g. after start-up, or when a client asks); keeps the buffers."""
         self._index = 0
         self._cycles = 0
         self._overruns = 0

@@ -1,10 +1,6 @@
-"""One client connection of the socket server.
-
-:class:`Connection` is one client: its streams, its bounded outgoing queue (droppable
-``state`` / ``feedback``, never-dropped replies and results up to a hard cap), its deadlines
-(authentication, idleness) and its counters. It is the request layer's ``Outlet`` for its
-client, whose ``Caller`` (subscription, goals, drop counters) it holds. The bounds are the
-daemon's settings (:class:`~jtc_hw.daemon.settings.DaemonSettings`).
+"""One client connection of the socket server (:class:`Connection`), the peer's identity, and
+the slots beyond a transport's limit. The queue's bounds are the daemon's settings
+(``client_queue_size``, ``client_queue_hard_cap``).
 """
 
 from __future__ import annotations
@@ -40,8 +36,9 @@ first) before it gets ``busy``."""
 
 
 class Connection:
-    """One client: its streams, outgoing queue and deadlines; the ``Outlet`` of its
-    ``caller`` (the request layer's record of it: subscription, goals, drop counters)."""
+    """One client: its streams, bounded outgoing queue (droppable ``state`` / ``feedback``,
+    never-dropped replies and results up to a hard cap), deadlines and counters; the ``Outlet``
+    of its ``caller`` (the request layer's record of it: subscription, goals, drop counters)."""
 
     def __init__(
         self,
@@ -90,10 +87,8 @@ class Connection:
         return max(self.last_activity, self.caller.goals_ended_at)
 
     def send(self, data: bytes) -> bool:
-        """Queue a message that must not be dropped; False if it cannot be sent.
-
-        A client whose queue reaches the hard cap is disconnected here.
-        """
+        """Queue a message that must not be dropped; False if it cannot be sent (a client whose
+        queue reaches the hard cap is disconnected here)."""
         if self.gone:
             return False
         if len(self.queue) >= self.hard_cap:
@@ -143,12 +138,9 @@ class Connection:
 
 
 def peer_identity(kind: str, writer: asyncio.StreamWriter) -> tuple[str, int | None, str]:
-    """A label for the log; on the unix socket, the peer's uid (``SO_PEERCRED``: the
-    kernel's record of who connected, which the peer cannot forge); on TCP, its address.
-
-    Raises:
-        Nothing: an unknown peer is labelled by its transport, its uid ``None``.
-    """
+    """A label for the log; on the unix socket, the peer's uid (``SO_PEERCRED``: the kernel's
+    record of who connected, which the peer cannot forge); on TCP, its address. Never raises: an
+    unknown peer is labelled by its transport, its uid ``None``."""
     sock = writer.get_extra_info("socket")
     if kind == "tcp":
         address = writer.get_extra_info("peername")
@@ -168,9 +160,5 @@ def peer_identity(kind: str, writer: asyncio.StreamWriter) -> tuple[str, int | N
 
 
 def is_privileged(uid: int | None) -> bool:
-    """The daemon's own user or root (may use the reserved unix slots).
-
-    Raises:
-        Nothing.
-    """
+    """The daemon's own user or root (may use the reserved unix slots)."""
     return uid is not None and (uid == 0 or uid == os.geteuid())

@@ -2,12 +2,9 @@
 
 Theory of operation
 -------------------
-A transport turns what arrives on its medium into ``protocol.Request`` values, has
-``Requests.answer`` execute them, and sends the ``Reply`` back; it implements the request
-layer's ``Outlet`` for what comes later (``jtc_hw.daemon.core.requests``). What it adds is its
-own: framing, authentication, slots, key expressions. It never reaches into another transport.
-
-Adding one (ROS 2, say) is one module and one line::
+A transport is a peer over the request layer (``jtc_hw.daemon.core.requests`` draws them);
+what it adds is its own (framing, authentication, slots, key expressions), and it never
+reaches into another transport. Adding one (ROS 2, say) is one module and one line::
 
     1. transports/ros2_iface.py: a class with ``async start()`` and ``async close()``
        (``Transport``) over a ``Requests``; a ``Caller`` per client or per request, its
@@ -48,11 +45,8 @@ class Transport(Protocol):
         """
 
     async def close(self) -> None:
-        """Stop serving, after letting its clients read what is queued. Idempotent.
-
-        Raises:
-            Nothing: errors while closing are logged.
-        """
+        """Stop serving, after letting its clients read what is queued. Idempotent. Never
+        raises: errors while closing are logged."""
 
 
 @dataclass(frozen=True)
@@ -63,9 +57,7 @@ class Wiring:
         requests: the request layer every transport shares.
         daemon: the robot file's ``daemon`` settings (each transport reads its own).
         controller: the controller's name (Zenoh's default prefix).
-        add_observer: have the backend also send its state snapshots, goal events, accepted
-            commands and records to an ``Observer`` (a transport that publishes them all, as
-            Zenoh does).
+        add_observer: the backend's, for a transport that publishes all it observes (Zenoh).
         status: the backend's ``get_status`` facts, for a transport that watches them.
     """
 

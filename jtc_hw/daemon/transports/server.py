@@ -12,25 +12,20 @@ worker thread, so that no client's big goal holds the event loop (an operator's 
 
 Per client, a reader task handles requests one after another (so replies come back in request
 order; each reply is queued before the reader awaits anything else, as the request layer
-asks) and a writer task drains a bounded outgoing queue:
+asks) and a writer task drains a bounded outgoing queue: ``state`` and ``feedback`` are
+dropped (and counted) beyond ``client_queue_size`` messages, replies and results never; a
+client whose queue reaches ``client_queue_hard_cap`` is disconnected (docs/protocol.md, "Slow
+subscribers").
 
-- ``state`` and ``feedback`` events are dropped while the queue holds ``client_queue_size``
-  messages; the loss is counted per client, reported in the next ``state`` event's ``dropped``
-  and in ``get_status``;
-- replies and goal ``result`` events are never dropped; a client so slow that its queue reaches
-  ``client_queue_hard_cap`` messages is disconnected (and logged).
-
-Admission (a stop always gets through): the unix socket and TCP have separate limits
-(``max_clients``, ``tcp.max_clients``); ``RESERVED_UNIX_CLIENTS`` more unix connections are
-admitted for peers whose ``SO_PEERCRED`` uid is the daemon's or root's. A unix connection over
-its limit is served by ``_serve_over_limit``: one ``stop`` within ``OVER_LIMIT_DEADLINE_S``,
-else ``busy``; then it is closed. A TCP connection first waits to authenticate in a room of its
-own (``TcpDoor``: at most ``tcp.max_unauthenticated``, the longest waiting dropped for a
-newcomer, failed handshakes answered slowly per address), so strangers never take
-``tcp.max_clients`` slots; authenticated over that limit, it may send one ``stop`` (``stop_only``).
-Admitted connections are closed by their deadlines: a TCP connection that has not authenticated
-``tcp.auth_timeout_s`` after opening, and a connection idle (no request, no subscription, no
-goal running) for ``idle_timeout_s``.
+Admission (docs/protocol.md, "A stop always gets through"): the unix socket and TCP have
+separate limits (``max_clients``, ``tcp.max_clients``); ``RESERVED_UNIX_CLIENTS`` more unix
+connections are admitted for peers whose ``SO_PEERCRED`` uid is the daemon's or root's. A
+connection over its limit may send one ``stop`` within ``OVER_LIMIT_DEADLINE_S``
+(``_serve_over_limit``; on TCP once authenticated, ``stop_only``), then it is closed. A TCP
+connection first waits to authenticate in the ``TcpDoor``'s room, so strangers never take
+``tcp.max_clients`` slots. Admitted connections are closed by their deadlines:
+``tcp.auth_timeout_s`` to authenticate, ``idle_timeout_s`` idle (no request, no subscription,
+no goal running).
 """
 
 from __future__ import annotations
@@ -58,7 +53,7 @@ from ...api.framing import (
 from ...api.protocol import Decoder
 from ...api.requests import Auth, Request, Stop
 from ...errors import ControllerStateError
-from ..core.backend_api import Backend, Observer
+from ..core.backend_api import Backend
 from ..core.requests import Caller, Requests
 from ..settings import DaemonSettings
 from .connection import (
@@ -72,11 +67,7 @@ from .connection import (
 from .tcp_door import TcpDoor
 from .unix_socket import bind_unix, remove_socket_file
 
-__all__ = [
-    "Backend",
-    "Observer",
-    "Server",
-]
+__all__ = ["Server"]
 
 log = logging.getLogger("jtc_hw.server")
 
@@ -185,11 +176,8 @@ class Server:
 
     async def close(self) -> None:
         """Stop listening, give each client up to ``close_timeout_s`` to read what is queued,
-        disconnect them, and remove the socket file (if it is still ours). Idempotent.
-
-        Raises:
-            Nothing: errors while closing are logged.
-        """
+        disconnect them, and remove the socket file (if it is still ours). Idempotent; as
+        ``Transport.close``, errors while closing are logged."""
         if self._closed:
             return
         self._closed = True
@@ -305,14 +293,11 @@ class Server:
         )
 
     async def _serve_over_limit(self, conn: Connection) -> None:
-        """Serve a unix connection over the limit: its first request, if it comes within
-        ``OVER_LIMIT_DEADLINE_S`` and is ``stop``, is executed and answered; anything else is
-        answered ``busy``. Then the connection is closed (TCP: ``Connection.stop_only``).
-
-        A stop must get through when every slot is taken (by forgotten clients, or by
-        someone holding them on purpose); the deadline and ``OVER_LIMIT_CLIENTS`` bound what
-        the connections over the limit can hold in turn.
-        """
+        """Serve a unix connection over the limit: one ``stop`` within ``OVER_LIMIT_DEADLINE_S``,
+        else ``busy``; then close it (TCP: ``Connection.stop_only``). A stop must get through
+        when every slot is taken (by forgotten clients, or by someone holding them on purpose);
+        the deadline and ``OVER_LIMIT_CLIENTS`` bound what the connections over the limit can
+        hold in turn."""
         self._refused_busy += 1
         kind, writer = conn.kind, conn.writer
         if self._over_limit[kind] >= OVER_LIMIT_CLIENTS:
@@ -603,11 +588,7 @@ class Server:
         conn.send(self.requests.refuse(conn.caller, request, error).data)
 
     def stats(self, caller: Caller | None = None) -> dict[str, Any]:
-        """The server's part of ``get_status`` (``server``), as ``caller`` asks it.
-
-        Raises:
-            Nothing.
-        """
+        """The server's part of ``get_status`` (``server``), as ``caller`` asks it."""
         return {
             "version": __version__,
             "protocol_version": PROTOCOL_VERSION,

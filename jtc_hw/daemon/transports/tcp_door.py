@@ -1,16 +1,12 @@
 """The TCP endpoint's door: who may wait to authenticate, and how fast a wrong token is answered.
 
-What TCP adds to the request layer, beside the framing and slots it shares with the unix socket
-(``jtc_hw.daemon.transports.server``): **authentication**. Loopback is open to every local
-user, so a TCP client's first request must be ``auth`` with the token; this module keeps the
-room where connections wait to do so, the server runs the handshake.
-
 Theory of operation
 -------------------
-A TCP connection goes through two rooms. First the **handshake**: it has ``tcp.auth_timeout_s``
-(1 s) from its opening to send ``auth`` with the token. Then, authenticated, it takes one of
-``tcp.max_clients`` slots (or, with every slot taken, it may still send one ``stop``). Only a
-token holder reaches the second room, so strangers can fill the first one only::
+Loopback is open to every local user, so a TCP client's first request must be ``auth`` with the
+token; this module keeps the room where connections wait to do so, the server
+(``jtc_hw.daemon.transports.server``) runs the handshake. Only a token holder reaches the
+second room, so strangers can fill the first one only (docs/protocol.md, "A stop always gets
+through")::
 
     connect --> [ handshake: at most max_unauthenticated waiting ] --auth--> [ max_clients ]
                   | full: the oldest waiting connection (open for at
@@ -21,20 +17,17 @@ token holder reaches the second room, so strangers can fill the first one only::
 
 The newcomer always gets its chance: when ``max_unauthenticated`` connections wait, the one
 waiting longest goes (it had the most time to authenticate), never one younger than
-``HANDSHAKE_GRACE_S``. A client with the token sends ``auth`` as it connects, so it is read
-before it can become the oldest: however many strangers connect, the operator's ``stop`` gets
-in. Only when every waiting connection is younger than the grace (a burst) does the room grow
-past ``max_unauthenticated``, up to ``HANDSHAKE_HARD_CAP`` times it; there the oldest goes
-whatever its age. A newcomer is never refused: refusing would let a flood keep the operator out
-for as long as it lasts, whereas dropping the oldest only shortens the strangers' wait.
+``HANDSHAKE_GRACE_S`` (up to ``HANDSHAKE_HARD_CAP``). A client with the token sends ``auth`` as
+it connects, so it is read before it can become the oldest: however many strangers connect,
+the operator's ``stop`` gets in. A newcomer is never refused: refusing would let a flood keep
+the operator out for as long as it lasts, whereas dropping the oldest only shortens the
+strangers' wait.
 
-**Wrong tokens are slowed per peer** (its IP address): the answer to a failed handshake
-(a wrong token, or a first request that is not ``auth``) is sent ``tcp.auth_failure_delay_s``
-after the previous one for the same address, and at least that long after the failure; the
-connection is closed with it. Parallel connections do not multiply the rate: a peer gets at
-most one such answer per delay. The right token is never delayed (an operator on the same
-address as a guesser is not slowed). The first failure of an address is logged, then one line
-per ``FAILURE_LOG_EVERY_S`` with the count meanwhile, never one per attempt.
+**Wrong tokens are slowed per peer** (its IP address): a failed handshake (a wrong token, or a
+first request that is not ``auth``) is answered ``tcp.auth_failure_delay_s`` after the previous
+one of the same address, however many connections it opens, and then closed. The right token
+is never delayed (an operator on the same address as a guesser is not slowed). The first
+failure of an address is logged, then one line per ``FAILURE_LOG_EVERY_S``.
 
 No I/O and no clock: the server passes the time and closes what this module names.
 """
@@ -106,11 +99,7 @@ class TcpDoor:
 
     def enter(self, conn: Waiting, now: float) -> list[Waiting]:
         """Let ``conn`` wait to authenticate: the connections to drop for it (the caller
-        closes them).
-
-        Raises:
-            Nothing.
-        """
+        closes them)."""
         out: list[Waiting] = []
         hard_cap = HANDSHAKE_HARD_CAP * self.max_unauthenticated
         while len(self._waiting) >= self.max_unauthenticated:
@@ -124,19 +113,11 @@ class TcpDoor:
         return out
 
     def leave(self, conn: Waiting) -> None:
-        """``conn`` authenticated or closed: it waits no more. Idempotent.
-
-        Raises:
-            Nothing.
-        """
+        """``conn`` authenticated or closed: it waits no more. Idempotent."""
         self._waiting.pop(conn.number, None)
 
     def failure(self, host: str, now: float) -> float:
-        """Record a failed handshake from ``host``: the delay before it may be answered.
-
-        Raises:
-            Nothing.
-        """
+        """Record a failed handshake from ``host``: the delay before it may be answered."""
         self.failed += 1
         record = self._failures.get(host)
         if record is None:
@@ -172,11 +153,7 @@ class TcpDoor:
             del self._failures[host]
 
     def stats(self) -> dict[str, Any]:
-        """The door's part of the server's ``get_status``.
-
-        Raises:
-            Nothing.
-        """
+        """The door's part of the server's ``get_status``."""
         return {
             "max_unauthenticated": self.max_unauthenticated,
             "waiting": len(self._waiting),

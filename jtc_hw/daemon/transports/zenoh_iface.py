@@ -14,47 +14,33 @@ docs/zenoh.md)::
     <prefix>/rpc/<op>   a queryable per socket operation: the query's payload is the socket's
                         request body (``op`` may be left out), the reply the socket's reply
 
-What this adds to the request layer (``jtc_hw.daemon.core.requests``, which executes every
-operation): **key expressions** (one queryable per operation, the publications above), the
-**token attachment** (below), and Zenoh's **threads and memory** (below). A query is answered
-by ``Requests.answer``, as a socket request is, so replies and errors are byte for byte the
-socket's. Its querier is a ``Caller`` of its own whose outlet discards what is routed to it
-later: a goal sent over Zenoh has its ``accepted`` reply as the query's reply; its feedback
-and its one result are published on ``events``, as are those of every goal (a socket client's
-too), so a querier that vanishes leaves nothing waiting on it and the result is never lost.
-The publications come from its being an observer of the backend (state snapshots and goal
-events, in the asyncio thread, like the live view); the loop process knows nothing of it.
+A query is answered by ``Requests.answer`` (``jtc_hw.daemon.core.requests``), as a socket
+request is, so replies and errors are byte for byte the socket's. Its querier is a ``Caller``
+of its own whose outlet discards what is routed to it later: a goal's ``accepted`` reply is
+the query's reply, its feedback and its one result are published on ``events`` as those of
+every goal are, so a querier that vanishes leaves nothing waiting and the result is never
+lost. The publications come from its being an observer of the backend, in the asyncio
+thread; the loop process knows nothing of it.
 
 Credentials: loopback is no door at all on a machine with other users, so every query of an
 operation in :data:`COMMANDS` (everything that moves the robot or changes its settings, ``stop``
-included) must carry ``daemon.zenoh.token`` as its attachment (the token's UTF-8 bytes). It is
-checked in Zenoh's thread before the payload is read or anything is dispatched: a query
-without an attachment is answered ``unauthorized`` at once (a forgotten token is no guess); a
-wrong one after :data:`WRONG_TOKEN_DELAY_S` (a guesser gets two tries a second per waiting
-slot), with at most :data:`MAX_REFUSALS_WAITING` refusals waiting (more are dropped without a
-reply, so refusals never take the slots of authorized queries); both are counted
-(``unauthorized`` in ``get_status``'s ``zenoh``) and logged (the first three, then one line
-per hundred, of each reason). Watching needs no token: ``hello``, ``get_status``,
-``query_state``, ``get_config``, ``get_parameters`` (as ``state`` and ``events``, which any
-peer can subscribe to).
+included) must carry ``daemon.zenoh.token`` as its attachment, checked in Zenoh's thread before
+the payload is read: none is answered ``unauthorized`` at once, a wrong one after
+:data:`WRONG_TOKEN_DELAY_S` with at most :data:`MAX_REFUSALS_WAITING` refusals waiting
+(docs/zenoh.md, "The token"). Watching needs no token.
 
-Memory: Zenoh hands a query over only once it has the whole payload, reassembled in buffers
-its native library allocates with malloc in its own threads; freed, glibc keeps them (a 100 MB
-query left the API process ~100 MB larger for good). So a payload longer than
-``daemon.max_message_bytes`` is answered ``too_large`` from its length, never copied into
-Python, and every query of :data:`RELEASE_AFTER_BYTES` or more, answered or refused, is
-followed by releases of freed memory (``malloc_trim``, :data:`RELEASE_AFTER_S`).
-Zenoh's ``transport/link/rx/max_message_size`` would bound the peak too, but a query over it is
-dropped by the link: no reply at all (docs/zenoh.md, "Memory").
+Memory: Zenoh reassembles a query's whole payload in malloc'd buffers that glibc keeps once
+freed, so a payload longer than ``daemon.max_message_bytes`` is answered ``too_large`` from its
+length, never copied into Python, and every query of :data:`RELEASE_AFTER_BYTES` or more is
+followed by releases of freed memory (:data:`RELEASE_AFTER_S`; docs/zenoh.md, "Memory").
 
-Threads: Zenoh's Python API is synchronous and calls back in its own threads. A query callback
-only hands the query to the event loop (``call_soon_threadsafe``; at most
-:data:`MAX_QUERIES` in flight, more are answered ``busy`` at once). Everything sent to Zenoh
-(publications and replies) goes through one bounded outbox drained by a thread of ours, so the
-event loop never waits on Zenoh: ``state`` and ``feedback`` are dropped when
-:data:`OUTBOX_SIZE` messages wait (counted in the next state's ``dropped``), replies, results
-and faults only beyond :data:`OUTBOX_HARD_CAP` (logged). A Zenoh failure is logged; it never
-reaches the loop.
+Threads (docs/decisions.md 21): Zenoh's Python API is synchronous and calls back in its own
+threads. A query callback only hands the query to the event loop (at most :data:`MAX_QUERIES` in
+flight, more are answered ``busy`` at once). Everything sent to Zenoh goes through one bounded
+outbox drained by a thread of ours, so the event loop never waits on Zenoh: ``state`` and
+``feedback`` are dropped beyond :data:`OUTBOX_SIZE` waiting (counted), replies, results and
+faults only beyond :data:`OUTBOX_HARD_CAP` (logged). A Zenoh failure is logged; it never reaches
+the loop.
 """
 
 from __future__ import annotations
@@ -149,11 +135,7 @@ NOT_OVER_ZENOH: Final = {
 
 
 def keys(prefix: str) -> dict[str, str]:
-    """The key expressions of a daemon at ``prefix``.
-
-    Raises:
-        Nothing.
-    """
+    """The key expressions of a daemon at ``prefix``."""
     return {
         "liveliness": prefix,
         "state": f"{prefix}/state",
@@ -250,9 +232,8 @@ class ZenohInterface:
         controller: the controller's name (the default prefix's last chunk).
         requests: the request layer, which executes the queries.
         status: the backend's ``status`` (polled for faults).
-        add_observer: the backend's ``add_observer``: once started, the interface is an
-            observer of the backend (every state, goal event and accepted command, which it
-            publishes).
+        add_observer: the backend's ``add_observer``: once started, the interface observes the
+            backend, and publishes every state, goal event and accepted command.
     """
 
     def __init__(
@@ -342,11 +323,7 @@ class ZenohInterface:
 
     async def close(self) -> None:
         """Withdraw the token, send what is waiting (the last results) and close the session
-        (idempotent).
-
-        Raises:
-            Nothing: errors while closing are logged.
-        """
+        (idempotent; errors while closing are logged)."""
         session, self._session = self._session, None
         if session is None:
             return
@@ -617,12 +594,8 @@ class ZenohInterface:
 
     @staticmethod
     def decode(op: str, body: bytes, max_message_bytes: int) -> Request | RequestError:
-        """A query's request: the body read as a socket message (the same errors), with the
-        key expression's ``op``.
-
-        Raises:
-            Nothing: every problem is returned as a value.
-        """
+        """A query's request: the body read as a socket message (the same errors), with the key
+        expression's ``op``. Never raises: every problem is returned as a value."""
         if not body.strip():
             obj: dict[str, Any] | RequestError = {}
         else:
@@ -650,11 +623,7 @@ class ZenohInterface:
             return exc
 
     def stats(self) -> dict[str, Any]:
-        """Counters for logs and tests.
-
-        Raises:
-            Nothing.
-        """
+        """Counters for logs and tests."""
         outbox = self._outbox
         return {
             "prefix": self.prefix,

@@ -40,7 +40,8 @@ Torque Enable .. Present Position proves each servo enabled and obeying (no hard
 torque 1, watchdog armed, the goal the one just written); otherwise activation is undone and
 fails with one line naming the servo and what to check. A rearm that succeeds is holding.
 
-**Faults.** A failed Sync Read is retried up to ``max_retries`` times within the cycle; then a
+**Faults.** A failed Sync Read is retried up to ``max_retries`` times within the cycle, as are
+the pings and register reads of configuration (reads, so a retry repeats nothing); then a
 :class:`~jtc_hw.errors.CommunicationError` names the servo (id and joint) and the cause. A status
 packet with the alert bit makes the driver read that servo's Hardware Error Status and raise
 :class:`~jtc_hw.errors.MotorFault` naming the cause (overload, overheating, ...). A failed read
@@ -56,8 +57,8 @@ import logging
 import math
 import os
 import time
-from collections.abc import Mapping, Sequence
-from typing import Any, ClassVar, Final
+from collections.abc import Callable, Mapping, Sequence
+from typing import Any, ClassVar, Final, TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
@@ -107,6 +108,7 @@ from .units import JointUnits
 __all__ = ["DynamixelHardware"]
 
 _log = logging.getLogger(__name__)
+_T = TypeVar("_T")
 
 F64 = NDArray[np.float64]
 
@@ -369,10 +371,7 @@ class DynamixelHardware(HardwareInterface):
 
     def _check_model(self, i: int, servo_id: int) -> None:
         bus = self._require_bus()
-        try:
-            number = bus.ping(servo_id)
-        except ServoCommunicationError as exc:
-            raise self._comm_error(exc, "ping at configure") from exc
+        number = self._retried(lambda: bus.ping(servo_id), "ping at configure")
         expected = self.models[i]
         if number != expected.model_number:
             found = model_by_number(number)
@@ -401,10 +400,8 @@ class DynamixelHardware(HardwareInterface):
     def _read_register(self, servo_id: int, name: str) -> int:
         bus = self._require_bus()
         reg = self.models[self._index_of[servo_id]].register(name)
-        try:
-            raw = bus.read_bytes(servo_id, reg.address, reg.size)
-        except ServoCommunicationError as exc:
-            raise self._comm_error(exc, f"reading {name}") from exc
+        raw = self._retried(lambda: bus.read_bytes(servo_id, reg.address, reg.size),
+                            f"reading {name}")
         value: int = reg.decode(raw)
         return value
 
@@ -653,20 +650,24 @@ class DynamixelHardware(HardwareInterface):
 
     def _sync_read_present(self) -> SyncReadResult:
         bus = self._require_bus()
+        return self._retried(
+            lambda: bus.sync_read(self.ids, PRESENT_BLOCK_ADDRESS, PRESENT_BLOCK_SIZE,
+                                  fast=self.params["fast_sync_read"]),
+            "reading the present state",
+        )
+
+    def _retried(self, transaction: Callable[[], _T], what: str) -> _T:
+        """``transaction`` (a read) tried up to ``max_retries`` + 1 times: a missed or corrupt
+        reply is retried and counted; the last one's error names the servo and ``what``."""
         attempts = self.params["max_retries"] + 1
-        last: ServoCommunicationError | None = None
-        for _ in range(attempts):
+        for attempt in range(1, attempts + 1):
             try:
-                return bus.sync_read(
-                    self.ids, PRESENT_BLOCK_ADDRESS, PRESENT_BLOCK_SIZE,
-                    fast=self.params["fast_sync_read"],
-                )
+                return transaction()
             except ServoCommunicationError as exc:
-                last = exc
+                if attempt == attempts:
+                    raise self._comm_error(exc, what, attempts) from exc
                 self._retries += 1
-        self._retries -= 1  # the last attempt was not a retry
-        assert last is not None
-        raise self._comm_error(last, "reading the present state", attempts) from last
+        raise AssertionError("unreachable: the last attempt returns or raises")
 
     def _check_silence(self) -> None:
         """Before a cycle's transaction: after a bus silence longer than half the watchdog time

@@ -218,6 +218,23 @@ def test_missing_servo_at_configure(make_hw: Callable[..., DynamixelHardware]) -
     assert "timeout" in str(info.value)
 
 
+def test_a_missed_reply_at_configure_is_retried(
+    make_hw: Callable[..., DynamixelHardware], emulator: DynamixelEmulator
+) -> None:
+    """A ping (or register read) of configuration whose reply is lost is retried, as the
+    cycle's Sync Read is (``max_retries``): one lost reply on a busy host made the demo's
+    daemon refuse to start (tools/ci-under-load, issue 22). Without retries it is still an
+    error naming the servo."""
+    emulator.drop_replies(2, 1)  # servo 2's first packet is its ping
+    hw = make_hw(max_retries=1)
+    hw.configure()
+    assert hw.status()["details"]["retries"] == 1
+    emulator.drop_replies(2, 1)
+    strict = make_hw(max_retries=0)
+    with pytest.raises(CommunicationError, match=r"servo 2 \(joint 'elbow'\): ping at configure"):
+        strict.configure()
+
+
 # -- faults -------------------------------------------------------------------------------------
 
 

@@ -587,11 +587,3 @@ class Trajectory:
         breakpoints ``(s + 1,)``, blocks ``(s, 4, 6, n)``, origins and kinds ``(s, n)``, and
         the state past the end ``(4, n)``."""
         return self._breaks, self._blocks, self._origins, self._kinds, self._final
-
-    def kinds_at(self, t_ns: int) -> NDArray[np.int8]:
-        """Per joint, the ``SegmentKind`` in effect at ``t_ns`` (HOLD past the end)."""
-        if not self._blocks.shape[0] or t_ns >= self._end:
-            return np.zeros(self.n_joints, dtype=np.int8)
-        i = max(int(self._breaks.searchsorted(t_ns, side="right")) - 1, 0)
-        kinds: NDArray[np.int8] = self._kinds[i].copy()
-        return kinds

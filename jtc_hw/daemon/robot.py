@@ -32,7 +32,6 @@ from dataclasses import dataclass
 from types import MappingProxyType
 from typing import Any, Final
 
-from ..api.paths import default_socket_path
 from ..config.controller import ControllerConfig
 from ..config.reading import load_config, read_source
 from ..config.values import describe, did_you_mean, fmt_list
@@ -56,7 +55,6 @@ __all__ = [
     "DaemonSettings",
     "RobotConfig",
     "create_hardware_set",
-    "default_socket_path",
     "joint_position_limits",
     "load_robot",
     "security_warnings",

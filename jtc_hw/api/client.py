@@ -83,8 +83,10 @@ class Client:
     Every method takes an optional ``timeout_s`` (default: the one given to ``connect``).
     Errors reported by the daemon raise ``GoalRejected`` (goal rejections, with
     ``error_code``) or ``RequestError`` (a ``ProtocolError`` with the machine ``code``), with
-    the daemon's message. Methods may be called from several threads, but not from inside a
-    feedback callback (it runs in the reader thread, which would then wait for itself).
+    the daemon's message; every request raises ``TimeoutError`` when no reply arrives within
+    its timeout and ``ClientConnectionError`` when the connection is lost (the methods' Raises
+    sections list what else). Methods may be called from several threads, but not from inside
+    a feedback callback (it runs in the reader thread, which would then wait for itself).
 
     Attributes:
         info: the ``hello`` reply received at connection (joint names, rates, versions).
@@ -251,8 +253,6 @@ class Client:
 
         Raises:
             RequestError: the daemon refused it.
-            TimeoutError: no reply within the timeout.
-            ClientConnectionError: the connection is lost.
         """
         return self._request("hello", {}, timeout_s)
 
@@ -298,7 +298,6 @@ class Client:
             RequestError: the request was malformed (``bad_request``, naming the field).
             TimeoutError: no reply within the timeout (the goal may still have been accepted;
                 its events are then ignored).
-            ClientConnectionError: the connection is lost.
         """
         fields: dict[str, Any] = {"trajectory": _trajectory(trajectory, start_in)}
         if path_tolerance:
@@ -319,8 +318,6 @@ class Client:
 
         Raises:
             RequestError: ``not_found`` when the goal is not executing.
-            TimeoutError: no reply within the timeout.
-            ClientConnectionError: the connection is lost.
         """
         return self._request("cancel_goal", {"goal_id": goal_id}, timeout_s)
 
@@ -340,8 +337,6 @@ class Client:
         Raises:
             GoalRejected: the daemon refused the trajectory.
             RequestError: the request was malformed.
-            TimeoutError: no reply within the timeout.
-            ClientConnectionError: the connection is lost.
         """
         fields: dict[str, Any] = {"trajectory": _trajectory(trajectory, start_in)}
         if time_scaling is not None:
@@ -360,8 +355,6 @@ class Client:
         Raises:
             RequestError: ``hardware``: the daemon could not reach its control loop;
                 ``busy``: not served (it was not the first request over the limit).
-            TimeoutError: no reply within the timeout.
-            ClientConnectionError: the connection is lost.
         """
         return self._request("stop", {}, timeout_s)
 
@@ -385,8 +378,6 @@ class Client:
         Raises:
             ValueError: not exactly one of ``in_s`` and ``time_ns``.
             RequestError: ``not_active`` when the controller is not active.
-            TimeoutError: no reply within the timeout.
-            ClientConnectionError: the connection is lost.
         """
         if (in_s is None) == (time_ns is None):
             raise ValueError("give exactly one of in_s (seconds from now) and time_ns")
@@ -405,10 +396,6 @@ class Client:
                 (any client's) and a ``record`` event for every goal result, hardware fault
                 and re-arm, in order with the states (their ``event`` field tells them
                 apart).
-
-        Raises:
-            TimeoutError: no reply within the timeout.
-            ClientConnectionError: the connection is lost.
         """
         timeout = self.timeout_s if timeout_s is None else timeout_s
         subscription = StateSubscription(self, timeout, maxlen, commands)
@@ -436,19 +423,11 @@ class Client:
 
     def get_status(self, timeout_s: float | None = None) -> dict[str, Any]:
         """Loop, hardware, controller and server statistics.
-
-        Raises:
-            TimeoutError: no reply within the timeout.
-            ClientConnectionError: the connection is lost.
         """
         return self._request("get_status", {}, timeout_s)
 
     def get_config(self, timeout_s: float | None = None) -> dict[str, Any]:
         """The configuration in effect (the reply's ``config``).
-
-        Raises:
-            TimeoutError: no reply within the timeout.
-            ClientConnectionError: the connection is lost.
         """
         return dict(self._request("get_config", {}, timeout_s)["config"])
 
@@ -464,8 +443,6 @@ class Client:
 
         Raises:
             RequestError: a name is not a parameter (``bad_request``, naming it).
-            TimeoutError: no reply within the timeout.
-            ClientConnectionError: the connection is lost.
         """
         fields: dict[str, Any] = {} if names is None else {"names": list(names)}
         return self._request("get_parameters", fields, timeout_s)
@@ -487,8 +464,6 @@ class Client:
         Raises:
             RequestError: ``bad_request``: an unknown or read-only parameter, or a value the
                 configuration file would refuse (the same message); nothing changed.
-            TimeoutError: no reply within the timeout.
-            ClientConnectionError: the connection is lost.
         """
         return self._request("set_parameters", {"parameters": dict(changes)}, timeout_s)
 
@@ -505,8 +480,6 @@ class Client:
 
         Raises:
             RequestError: no such simulated component (``bad_request``), or it failed.
-            TimeoutError: no reply within the timeout.
-            ClientConnectionError: the connection is lost.
         """
         fields: dict[str, Any] = {"component": component}
         if freeze is not None:
@@ -522,8 +495,6 @@ class Client:
         Raises:
             RequestError: nothing to re-arm (the controller is running), or re-arming failed
                 (the message says why; the daemon stays in its safe state).
-            TimeoutError: no reply within the timeout.
-            ClientConnectionError: the connection is lost.
         """
         return self._request("rearm", {}, timeout_s)
 
@@ -548,8 +519,6 @@ class Client:
             RequestError: a factor out of [0, max] (max: the daemon's
                 ``speed_scaling.max_scaling_factor``, 1 by default) or not a number
                 (``bad_request``, naming the range).
-            TimeoutError: no reply within the timeout.
-            ClientConnectionError: the connection is lost.
         """
         if (factor is None) != resume:
             raise ValueError("give either a factor or resume=True")

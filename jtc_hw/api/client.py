@@ -19,6 +19,7 @@ Example::
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import itertools
 import logging
@@ -416,10 +417,9 @@ class Client:
             last = not self._subscriptions
             usable = self._lost is None and not self._closing
         if last and usable:
-            try:
+            # the connection is gone, and with it the subscription
+            with contextlib.suppress(ClientConnectionError):
                 self._request("unsubscribe_state", {}, timeout_s)
-            except ClientConnectionError:
-                pass  # the connection is gone, and with it the subscription
 
     def get_status(self, timeout_s: float | None = None) -> dict[str, Any]:
         """Loop, hardware, controller and server statistics.
@@ -534,10 +534,8 @@ class Client:
         """
         with self._lock:
             self._closing = True
-        try:
+        with contextlib.suppress(OSError):
             self._sock.shutdown(socket.SHUT_RDWR)
-        except OSError:
-            pass
         if self._reader is not threading.current_thread():
             self._reader.join()
         self._sock.close()

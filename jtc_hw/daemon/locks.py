@@ -52,6 +52,7 @@ once it holds its lock, that the path no longer names its file, and starts over.
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import fcntl
 import logging
@@ -285,11 +286,9 @@ class DeviceLock:
         fd, self._fd = self._fd, None
         if fd is None:
             return
-        try:
+        with contextlib.suppress(OSError):
             if _same_file(fd, self.path):
                 os.unlink(self.path)
-        except OSError:
-            pass
         os.close(fd)  # the lock goes with the last descriptor of the open file
 
     def __enter__(self) -> DeviceLock:
@@ -338,11 +337,10 @@ def acquire(name: str, path: str, *, config: str | None, pid: int | None = None,
             break
         os.close(fd)
     record = f"{os.getpid() if pid is None else pid}\n{config or ''}\n".encode()
-    try:
+    # opened read-only (another user's file): locked, owner not recorded
+    with contextlib.suppress(OSError):
         os.ftruncate(fd, 0)
         os.pwrite(fd, record, 0)
-    except OSError:
-        pass  # opened read-only (another user's file): locked, owner not recorded
     return DeviceLock(name, path, fd)
 
 
@@ -443,11 +441,9 @@ def _open(name: str, path: str) -> int:
         except OSError as exc:
             raise HardwareError(f"{name}: cannot create the lock file {path}: "
                                 f"{exc.strerror}") from None
-        try:
+        with contextlib.suppress(OSError):
             # Whoever of its group locks it next records its own pid, whatever the umask.
             os.fchmod(fd, LOCK_FILE_MODE)
-        except OSError:
-            pass
         return fd
 
 

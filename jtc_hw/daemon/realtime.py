@@ -20,6 +20,7 @@ machine does not have) raise :class:`~jtc_hw.errors.ConfigurationError`.
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import errno
 import os
@@ -241,13 +242,11 @@ def _apply_fifo(priority: int) -> str:
 
 def has_capability(bit: int) -> bool:
     """Whether ``bit`` is in this process's effective capability set (Linux ``/proc``)."""
-    try:
+    with contextlib.suppress(OSError, ValueError, IndexError):
         with open("/proc/self/status", encoding="utf-8") as f:
             for line in f:
                 if line.startswith("CapEff:"):
                     return bool(int(line.split()[1], 16) >> bit & 1)
-    except (OSError, ValueError, IndexError):
-        pass
     return False
 
 

@@ -38,6 +38,7 @@ affect one sample of a recording, never control.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import secrets
 from dataclasses import dataclass
@@ -291,7 +292,5 @@ class CycleRing:
         self._blocks = {}
         self._shm.close()
         if self.owner:
-            try:
+            with contextlib.suppress(FileNotFoundError):
                 self._shm.unlink()
-            except FileNotFoundError:
-                pass

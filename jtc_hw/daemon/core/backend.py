@@ -23,6 +23,7 @@ loop process dies, each gets one ``ABORTED`` result "control loop died: <how>".
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 import time
 from collections.abc import Callable, Mapping, Sequence
@@ -516,10 +517,9 @@ class LoopBackend:
 
         def release() -> None:
             self._trim = None
-            try:
+            # the executor was shut down: the daemon is stopping
+            with contextlib.suppress(RuntimeError):
                 aio.run_in_executor(self._executor, release_freed_memory)
-            except RuntimeError:  # the executor was shut down: the daemon is stopping
-                pass
 
         self._trim = aio.call_later(delay_s, release)
 

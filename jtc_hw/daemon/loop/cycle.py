@@ -40,6 +40,7 @@ goals meanwhile.
 from __future__ import annotations
 
 import collections
+import contextlib
 import gc
 import logging
 import math
@@ -278,10 +279,8 @@ class ControlLoop:
             log.error("%s", self.fault)
             self.send(Status(self.status()))
             if hardware.state is LifecycleState.ACTIVE:
-                try:
+                with contextlib.suppress(JtcHwError):
                     hardware.deactivate(now_ns)
-                except JtcHwError:
-                    pass
             raise
         self.fault = self.fault_cause = None
         log.info("re-armed: holding the measured position")

@@ -52,9 +52,7 @@ UrdfReader = Callable[[str, Sequence[str]], dict[str, JointLimits]]
 """Reads ``limits.urdf`` (the path as written) for the given joints: :mod:`.reading`'s."""
 
 
-# --------------------------------------------------------------------------------------------
-# In: the source layouts
-# --------------------------------------------------------------------------------------------
+# -- In: the source layouts -----------------------------------------------------------------------
 
 
 def _is_section(value: Any) -> bool:
@@ -255,9 +253,7 @@ def build_config(
     return ControllerConfig(name=name, **kwargs)
 
 
-# --------------------------------------------------------------------------------------------
-# Joint limits: the ``limits`` section
-# --------------------------------------------------------------------------------------------
+# -- Joint limits: the ``limits`` section ---------------------------------------------------------
 
 URDF_KEY = "urdf"
 """``limits.urdf``: a URDF file whose joint limits are read (relative to the YAML file)."""
@@ -351,9 +347,7 @@ def _parse_limits(
     return {joint: lim for joint, lim in limits.items() if not lim.empty}, scaling
 
 
-# --------------------------------------------------------------------------------------------
-# Out: plain data that reads back
-# --------------------------------------------------------------------------------------------
+# -- Out: plain data that reads back --------------------------------------------------------------
 
 
 def _plain(value: Any) -> Any:

@@ -50,9 +50,7 @@ MAX_DEPTH = 100
 robot file or a goal file needs fewer than ten; the parser recurses once per level."""
 
 
-# --------------------------------------------------------------------------------------------
-# Strict YAML
-# --------------------------------------------------------------------------------------------
+# -- Strict YAML ----------------------------------------------------------------------------------
 
 
 class AliasExpansionError(yaml.YAMLError):
@@ -281,9 +279,7 @@ def read_source(source: str | os.PathLike[str] | Mapping[str, Any]) -> Mapping[A
     return data
 
 
-# --------------------------------------------------------------------------------------------
-# URDF joint limits
-# --------------------------------------------------------------------------------------------
+# -- URDF joint limits ----------------------------------------------------------------------------
 
 
 def _urdf_error(filename: str, message: str) -> ConfigurationError:
@@ -385,9 +381,7 @@ def read_urdf_limits(filename: str, joints: Sequence[str]) -> dict[str, JointLim
     return limits
 
 
-# --------------------------------------------------------------------------------------------
-# The controller's configuration
-# --------------------------------------------------------------------------------------------
+# -- The controller's configuration ---------------------------------------------------------------
 
 
 def load_config(

@@ -161,10 +161,9 @@ class LimitTable:
         return cols
 
 
-# --------------------------------------------------------------------------------------------
-# Polynomials, vectorised: a polynomial is a list of coefficient arrays (one value per row),
-# lowest degree first; its length is the highest degree any row uses, plus one
-# --------------------------------------------------------------------------------------------
+# -- Polynomials, vectorised ----------------------------------------------------------------------
+# A polynomial is a list of coefficient arrays (one value per row), lowest degree first; its length
+# is the highest degree any row uses, plus one.
 
 Poly = list[F64]
 
@@ -259,9 +258,7 @@ def _roots(poly: Poly, low: F64, high: F64, split: list[F64] | None) -> list[F64
     return closed
 
 
-# --------------------------------------------------------------------------------------------
-# The check
-# --------------------------------------------------------------------------------------------
+# -- The check ------------------------------------------------------------------------------------
 
 
 def check(

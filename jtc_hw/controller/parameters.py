@@ -131,9 +131,7 @@ def explain(cfg: ControllerConfig) -> list[str]:
     return warnings
 
 
-# --------------------------------------------------------------------------------------------
-# Runtime parameters
-# --------------------------------------------------------------------------------------------
+# -- Runtime parameters ---------------------------------------------------------------------------
 
 _SECTION_TABLES: dict[str, Mapping[str, ParamSpec]] = {
     "constraints": JOINT_CONSTRAINT_PARAMETERS,

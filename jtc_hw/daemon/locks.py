@@ -41,10 +41,9 @@ lock file first in a directory every user may write. So the directory is the dae
 - the socket: next to it, ``<socket>.lock``: whoever can use the socket path can use its
   directory, which is the socket's own (``RuntimeDirectory=`` under systemd, mode 0750).
 
-Not done: ``flock`` on the serial device itself (pyserial's ``exclusive=True``, which other
-tools honour) would need the second daemon to *open* the port to find out, and opening a tty
-raises DTR/RTS and closing it drops them (``HUPCL``), which alone resets some boards: exactly
-the touch this lock must prevent. The driver that opens the port may still lock it that way.
+Not done: ``flock`` on the serial device itself (pyserial's ``exclusive=True``): finding out
+would mean opening the port, which alone resets some boards (docs/decisions.md 15), exactly the
+touch this lock must prevent. The driver that opens the port may still lock it that way.
 
 A released lock file is removed while still locked; a daemon that opened it meanwhile finds,
 once it holds its lock, that the path no longer names its file, and starts over.

@@ -377,11 +377,8 @@ class LoopBackend:
         *,
         time_scaling: str | None = None,
     ) -> Accepted:
-        """Plan and commit an action goal (:meth:`Backend.send_goal`).
-
-        Args:
-            time_scaling: ``"reject"`` or ``"fit"`` a goal beyond the joint limits (None:
-                ``limits.time_scaling``).
+        """Plan and commit an action goal (:meth:`Backend.send_goal`); ``time_scaling``
+        ``"reject"`` or ``"fit"`` a goal beyond the joint limits (None: ``limits.time_scaling``).
 
         Raises:
             GoalRejected: invalid goal, beyond the joint limits, or the loop kept refusing the
@@ -401,9 +398,6 @@ class LoopBackend:
         self, traj: JointTrajectory, *, time_scaling: str | None = None
     ) -> TimeScaling | None:
         """Plan and commit a topic trajectory; an empty one stops (:meth:`Backend.send_trajectory`).
-
-        Args:
-            time_scaling: as for ``send_goal``.
 
         Raises:
             GoalRejected: invalid trajectory, beyond the joint limits, or not active.

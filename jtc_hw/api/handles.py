@@ -106,10 +106,8 @@ class GoalHandle:
             return self._result
 
     def wait(self, timeout_s: float) -> dict[str, Any]:
-        """Block until the goal's result arrives.
-
-        Returns:
-            The ``result`` event; a failed goal is a result too (``status`` ``aborted``).
+        """Block until the goal's result arrives; return the ``result`` event (a failed goal is a
+        result too: ``status`` ``aborted``).
 
         Raises:
             TimeoutError: no result within ``timeout_s`` (the goal keeps running).

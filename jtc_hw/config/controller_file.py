@@ -360,16 +360,14 @@ def _values(obj: Any, table: Mapping[str, Any]) -> dict[str, Any]:
 
 
 def config_to_dict(cfg: ControllerConfig, *, nested: bool = False) -> dict[str, Any]:
-    """Return the configuration as plain data that :func:`load_config` reads back.
+    """The configuration as plain data that :func:`load_config` reads back: a new dict of
+    dicts, lists, strings, numbers and booleans (YAML-safe).
 
     Args:
         cfg: the configuration.
         nested: give the upstream layout (controller section under ``cfg.name`` and a
             ``controller_manager`` section with ``update_rate`` and the controller type)
             instead of the plain mapping. Only the nested layout keeps the name.
-
-    Returns:
-        A new dict of dicts, lists, strings, numbers and booleans (YAML-safe).
     """
     params = {name: _plain(value) for name, value in _values(cfg, PARAMETERS).items()}
     params["constraints"] = {**_values(cfg.constraints, CONSTRAINT_PARAMETERS), **{

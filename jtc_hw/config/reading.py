@@ -390,7 +390,7 @@ def load_config(
     *,
     base_dir: str | os.PathLike[str] | None = None,
 ) -> ControllerConfig:
-    """Read, check and freeze a controller configuration.
+    """Read, check and freeze a controller configuration, with defaults filled for every joint.
 
     Args:
         source: path of a YAML file, or an already parsed mapping, in either layout
@@ -403,9 +403,6 @@ def load_config(
             (default ``joint_trajectory_controller``).
         base_dir: the directory a relative ``limits.urdf`` is relative to (default: the
             file's directory, or the current directory for a mapping).
-
-    Returns:
-        The validated configuration, with defaults filled for every joint.
 
     Raises:
         ConfigurationError: the file cannot be read or parsed, a key is unknown, a required

@@ -430,13 +430,11 @@ class JointTrajectoryController(ControlLaw, Stops):
         )
 
     def commit(self, plan: Plan, now_ns: int) -> int | None:
-        """Second half: swap in a planned reference (O(1), no fitting).
+        """Second half: swap in a planned reference (O(1), no fitting); the goal id for a goal
+        plan, None for a topic plan.
 
         The plan's times are trajectory times (:attr:`trajectory_time_ns`; equal to the clock
         while the speed scaling factor has always been 1); ``now_ns`` is the clock's.
-
-        Returns:
-            The goal id for a goal plan, None for a topic plan.
 
         Raises:
             GoalRejected: the controller is not active.

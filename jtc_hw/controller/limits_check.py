@@ -208,11 +208,8 @@ def _quadratic_roots(poly: Poly) -> list[F64]:
 def _bracketed_roots(poly: Poly, low: F64, high: F64, split: list[F64]) -> list[F64]:
     """Real roots in ``[low, high]`` of each row's polynomial, given the roots of its
     derivative (``split``, NaN for none): between two of them it is monotonic, so it has at
-    most one root there, found by bisection.
-
-    Returns:
-        ``len(split) + 1`` arrays of roots, NaN where a piece has none.
-    """
+    most one root there, found by bisection: ``len(split) + 1`` arrays of roots, NaN where a
+    piece has none."""
     inner = [np.where(np.isnan(r), high, np.clip(r, low, high)) for r in split]
     points = np.sort(np.stack((low, *inner, high), axis=1), axis=1)
     values = np.stack([_evaluate(poly, points[:, i]) for i in range(points.shape[1])], axis=1)

@@ -315,7 +315,8 @@ def read_only_differences(old: ControllerConfig, new: ControllerConfig) -> list[
 
 
 def set_parameters(cfg: ControllerConfig, changes: Mapping[str, Any]) -> ParameterChange:
-    """Check a runtime change of parameters and return the configuration with it applied.
+    """Check a runtime change of parameters; the configuration with it applied, the changed
+    values and when each takes effect.
 
     All or nothing: the names are looked up, read-only ones refused, then the configuration is
     built again from ``cfg`` with the new values by the configuration file's parser.
@@ -324,9 +325,6 @@ def set_parameters(cfg: ControllerConfig, changes: Mapping[str, Any]) -> Paramet
         cfg: the configuration in effect.
         changes: new values by ROS-style name (``{"gains.j1.p": 10.0}``), as YAML or JSON
             would give them.
-
-    Returns:
-        The new configuration, the changed values and when each takes effect.
 
     Raises:
         ConfigurationError: nothing to change, an unknown name, read-only parameters (all of

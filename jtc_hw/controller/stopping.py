@@ -203,7 +203,7 @@ def stop_trajectory(
     decelerations: F64,
     jerks: F64,
 ) -> Trajectory:
-    """The decelerating stop of every joint, starting at ``now_ns`` from the given state.
+    """The reference that stops every joint, decelerating, from the given state at ``now_ns``.
 
     Each joint follows :func:`stop_phases` (computed here for all joints at once, with the same
     formulas); once at rest it holds its rest position with zero velocity and acceleration,
@@ -216,9 +216,6 @@ def stop_trajectory(
         positions, velocities, accelerations: the state it starts from, per joint.
         decelerations: per joint, > 0 (:func:`stop_decelerations`).
         jerks: per joint, > 0 or ``inf`` (:func:`stop_jerks`).
-
-    Returns:
-        The reference to follow.
     """
     n = positions.shape[0]
     p0 = np.asarray(positions, dtype=np.float64)

@@ -266,7 +266,8 @@ class Trajectory:
         wraparound: NDArray[np.bool_] | None = None,
         keep_from_ns: int | None = None,
     ) -> Trajectory:
-        """Combine this trajectory with a new command (the reference's trajectory replacement).
+        """The new reference: this trajectory combined with a new command (the reference's
+        trajectory replacement); ``self`` is unchanged.
 
         Args:
             now_ns: the current time.
@@ -278,9 +279,6 @@ class Trajectory:
             keep_from_ns: the earliest time the result will be sampled, if before ``now_ns``
                 (a plan made ahead of time and swapped in early); this trajectory is kept from
                 there, so the result equals it on ``[keep_from_ns, max(start, now_ns))``.
-
-        Returns:
-            The new reference; ``self`` is unchanged.
 
         Raises:
             GoalRejected: every point of ``new`` lies before ``now_ns`` (``OLD_HEADER_TIMESTAMP``),

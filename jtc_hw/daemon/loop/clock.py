@@ -88,10 +88,8 @@ class Ticker:
         self.skipped_total = 0
 
     def wait(self) -> Tick:
-        """Waits for the next deadline, skipping those already missed by a period or more.
-
-        Returns:
-            ``(deadline_ns, woke_ns, skipped)``; see the module docstring for the three cases.
+        """Waits for the next deadline, skipping those already missed by a period or more
+        (the module docstring has the three cases).
 
         Raises:
             Exception: whatever the injected ``now`` or ``sleep`` raises (``time.sleep`` raises

@@ -475,11 +475,8 @@ class JointTrajectoryController(ControlLaw, Stops):
 
     def cancel_goal(self, goal_id: int) -> bool:
         """Request cancellation; the goal ends ``CANCELED`` at the next ``update``, which holds
-        the measured position.
-
-        Returns:
-            False if ``goal_id`` is not the executing goal (unknown, finished or canceling).
-        """
+        the measured position. Returns False if ``goal_id`` is not the executing goal
+        (unknown, finished or canceling)."""
         ex = self._execution
         if ex is None or ex.goal is None or ex.goal.goal_id != goal_id:
             return False

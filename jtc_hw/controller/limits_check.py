@@ -265,7 +265,8 @@ def check(
     joints: NDArray[np.intp],
     start_positions: F64,
 ) -> dict[str, Excess]:
-    """The worst excess of each quantity over its limit, from ``from_ns`` on.
+    """The worst excess of each quantity over its limit, from ``from_ns`` on: by field, beyond
+    :data:`TOLERANCE`; empty when within every limit.
 
     Args:
         reference: the spliced reference.
@@ -274,9 +275,6 @@ def check(
         joints: the controller joint indices to check (the command's).
         start_positions: every joint's reference position at ``from_ns``: the position range
             is widened to include it (see the module docstring).
-
-    Returns:
-        By field, the worst excess beyond :data:`TOLERANCE`; empty when within every limit.
     """
     cols = table.columns(joints)
     if not cols.size:

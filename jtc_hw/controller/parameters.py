@@ -46,15 +46,9 @@ __all__ = [
 
 
 def explain(cfg: ControllerConfig) -> list[str]:
-    """List settings that are valid but probably not what was meant.
-
-    Args:
-        cfg: the configuration.
-
-    Returns:
-        One human-readable warning per finding, each starting with the dotted key path;
-        empty if nothing looks suspicious.
-    """
+    """Settings of ``cfg`` that are valid but probably not what was meant: one human-readable
+    warning per finding, each starting with the dotted key path; empty if nothing looks
+    suspicious."""
     warnings: list[str] = []
     goal_time = cfg.constraints.goal_time
     if cfg.cmd_timeout > 0.0 and cfg.cmd_timeout <= goal_time:

@@ -136,7 +136,8 @@ def _advance(phase: Phase, dt: float) -> tuple[float, float, float]:
 def stop_phases(
     position: float, velocity: float, acceleration: float, deceleration: float, jerk: float
 ) -> tuple[list[Phase], float]:
-    """One joint's stop, in closed form: its moving phases and the position it rests at.
+    """One joint's stop, in closed form: its moving phases in time order (none when already at
+    rest) and the position it rests at.
 
     Without a jerk limit (``jerk`` infinite) this is upstream's profile: the acceleration is
     ``-dir * deceleration`` from the start (``acceleration`` is ignored) until the velocity is
@@ -155,9 +156,6 @@ def stop_phases(
         position, velocity, acceleration: the state the stop starts from.
         deceleration: the largest ``|acceleration|`` of the stop, > 0.
         jerk: the largest ``|jerk|``, > 0, or ``inf``.
-
-    Returns:
-        The phases in time order (empty when already at rest) and the rest position.
     """
     big_a = deceleration
     if math.isinf(jerk):

@@ -41,7 +41,8 @@ CAP_SYS_NICE = 23
 
 
 def apply_realtime(priority: int, lock_memory: bool, cpu_affinity: Sequence[int]) -> list[str]:
-    """Applies CPU affinity, memory locking and SCHED_FIFO (module docstring: to what, when).
+    """Applies CPU affinity, memory locking and SCHED_FIFO (module docstring: to what, when);
+    returns one line per step, saying what was applied or why it was not and how to allow it.
 
     Args:
         priority: SCHED_FIFO priority, 1 (lowest) to 99 (highest); 0 keeps normal
@@ -49,9 +50,6 @@ def apply_realtime(priority: int, lock_memory: bool, cpu_affinity: Sequence[int]
             unless the bus driver's IRQ thread is raised above the loop too.
         lock_memory: whether to lock all current and future pages in RAM.
         cpu_affinity: CPUs to run on; empty leaves the affinity unchanged.
-
-    Returns:
-        One line per step, saying what was applied or why it was not and how to allow it.
 
     Raises:
         ConfigurationError: ``priority`` is not an integer in 1..99 (path

@@ -347,11 +347,9 @@ class Client:
     def stop(self, timeout_s: float | None = None) -> dict[str, Any]:
         """End any motion and hold the measured position: the active goal ends ``canceled``,
         a topic trajectory stops. The daemon serves it even when every client slot is taken
-        (connect with ``hello=False`` and make it the first request).
-
-        Returns:
-            The reply: ``stopped`` is False (with a ``message``) when there was nothing to
-            stop, the controller not being active (e.g. stopped by a hardware fault).
+        (connect with ``hello=False`` and make it the first request). The reply's ``stopped``
+        is False (with a ``message``) when there was nothing to stop, the controller not being
+        active (e.g. stopped by a hardware fault).
 
         Raises:
             RequestError: ``hardware``: the daemon could not reach its control loop;
@@ -435,11 +433,8 @@ class Client:
         self, names: Sequence[str] | None = None, timeout_s: float | None = None
     ) -> dict[str, Any]:
         """Controller parameter values by ROS-style name (``gains.<joint>.p``): all of them,
-        or ``names``.
-
-        Returns:
-            The reply: ``parameters`` (name to value) and ``read_only`` (those of them that
-            cannot change while the daemon runs).
+        or ``names``. The reply has ``parameters`` (name to value) and ``read_only`` (those of
+        them that cannot change while the daemon runs).
 
         Raises:
             RequestError: a name is not a parameter (``bad_request``, naming it).
@@ -504,15 +499,12 @@ class Client:
         """Set the speed scaling factor (1: as planned, 0.5: half speed, 0: pause), or with
         ``resume=True`` go back to the factor before the pause. The factor ramps to its new
         value within the joints' acceleration limits; the state stream's ``speed_scaling``
-        shows it.
+        shows it. The reply has ``factor`` (in force now) and ``target`` (what it ramps to).
 
         Example::
 
             client.set_speed_scaling(0.0)            # pause smoothly
             client.set_speed_scaling(resume=True)    # carry on
-
-        Returns:
-            The reply: ``factor`` (in force now) and ``target`` (what it ramps to).
 
         Raises:
             ValueError: neither or both of ``factor`` and ``resume`` given.

@@ -295,8 +295,7 @@ class JointTrajectoryController(ControlLaw, Stops):
             reason: the result's ``error_string`` (default: upstream's deactivation message;
                 the daemon names the fault or the shutdown).
 
-        Returns:
-            The events not yet delivered, ending with the goal's result if one was active.
+        Returns the events not yet delivered, ending with the goal's result if one was active.
 
         Raises:
             ControllerStateError: not active.

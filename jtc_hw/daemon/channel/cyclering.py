@@ -257,13 +257,10 @@ class CycleRing:
     # -- reader (the API process) -------------------------------------------------------------
 
     def read(self, since: int) -> tuple[Any, int, int]:
-        """The rows written from sequence number ``since`` on, as a copy.
-
-        Returns:
-            ``(rows, next_since, lost)``: the complete rows in order (an array of shape
-            ``(n, width)``), the sequence number to read from next, and how many rows since
-            ``since`` were overwritten before they could be copied (the reader fell behind).
-        """
+        """The rows written from sequence number ``since`` on, as a copy: ``(rows, next_since,
+        lost)``, the complete rows in order (an array of shape ``(n, width)``), the sequence
+        number to read from next, and how many rows since ``since`` were overwritten before
+        they could be copied (the reader fell behind)."""
         end = int(self._header[_H_COUNT])
         start = max(since, end - self.capacity)
         if end <= start:

@@ -391,11 +391,7 @@ class JointTrajectoryController(ControlLaw, Stops):
         time_scaling: str | None = None,
     ) -> Plan:
         """First half of ``send_goal``: validate and fit against the current reference
-        (``Plan.time_scaling`` says how a ``fit`` goal was slowed).
-
-        Raises:
-            GoalRejected: see ``send_goal``.
-        """
+        (``Plan.time_scaling`` says how a ``fit`` goal was slowed); raises as ``send_goal`` does."""
         self._require_active_for_commands()
         tau = self._traj_time(now_ns)
         return self._planner.plan_goal(
@@ -413,11 +409,7 @@ class JointTrajectoryController(ControlLaw, Stops):
     def plan_trajectory(
         self, now_ns: int, trajectory: JointTrajectory, *, time_scaling: str | None = None
     ) -> Plan:
-        """First half of ``send_trajectory`` for a non-empty trajectory.
-
-        Raises:
-            GoalRejected: see ``send_trajectory``.
-        """
+        """First half of ``send_trajectory`` for a non-empty trajectory; raises as it does."""
         self._require_active_for_commands()
         tau = self._traj_time(now_ns)
         return self._planner.plan_trajectory(

@@ -314,10 +314,8 @@ def joint_position_limits(robot: RobotConfig) -> dict[str, tuple[float, float]]:
     """Each joint's finite ``position_limits`` from its hardware component (no I/O).
 
     The components are created (which validates their parameters) and dropped; joints whose
-    component has no ``position_limits`` parameter, or an unlimited one, are left out.
-
-    Raises:
-        ConfigurationError, HardwareError: as :func:`create_hardware_set`.
+    component has no ``position_limits`` parameter, or an unlimited one, are left out. Raises
+    as :func:`create_hardware_set`.
     """
     limits: dict[str, tuple[float, float]] = {}
     for spec in robot.hardware:

@@ -450,11 +450,9 @@ class Client:
 
         Upstream's timing: gains from the next control cycle, default tolerances and the goal
         checks from the next goal or trajectory (the running one keeps its own), ``cmd_timeout``
-        and the activation settings at the next activation.
-
-        Returns:
-            The reply: ``parameters`` (the new values), ``takes_effect`` (when, per name) and
-            ``warnings`` (settings the change made suspicious, as ``jtc-hw check`` says).
+        and the activation settings at the next activation. The reply has ``parameters`` (the
+        new values), ``takes_effect`` (when, per name) and ``warnings`` (settings the change
+        made suspicious, as ``jtc-hw check`` says).
 
         Raises:
             RequestError: ``bad_request``: an unknown or read-only parameter, or a value the

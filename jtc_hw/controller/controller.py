@@ -328,15 +328,13 @@ class JointTrajectoryController(ControlLaw, Stops):
         """Accept an action goal (``follow_joint_trajectory``) or raise why not.
 
         On acceptance the trajectory is spliced into the reference and the previous goal, if
-        any, is canceled (its result is delivered with the next ``update``).
+        any, is canceled (its result is delivered with the next ``update``). Returns the goal
+        id; its result arrives exactly once among ``update``/``deactivate`` events.
 
         Args:
             time_scaling: a goal beyond the joint limits is rejected (``"reject"``) or slowed
                 down to fit them (``"fit"``); None: ``config.time_scaling``. With ``fit``,
                 ``last_time_scaling`` then says the factor and the new duration.
-
-        Returns:
-            The goal id; its result arrives exactly once among ``update``/``deactivate`` events.
 
         Raises:
             GoalRejected: inactive controller, invalid trajectory or tolerances, a trajectory

@@ -173,17 +173,14 @@ def _parse_hardware(raw: Any, controller: ControllerConfig) -> tuple[HardwareSpe
 def load_robot(
     source: str | os.PathLike[str] | Mapping[str, Any], controller_name: str | None = None
 ) -> RobotConfig:
-    """Read, check and freeze a robot configuration.
+    """Read, check and freeze a robot configuration. Without a ``hardware`` section: one
+    ``mirror`` component named ``mirror`` serving every joint. A relative ``daemon.socket`` is
+    taken relative to the file's directory (the current directory for a mapping).
 
     Args:
         source: path of a YAML file, or an already parsed mapping (the module docstring
             says what it holds).
         controller_name: which controller section to use when there are several.
-
-    Returns:
-        The configuration. Without a ``hardware`` section: one ``mirror`` component named
-        ``mirror`` serving every joint. A relative ``daemon.socket`` is taken relative to the
-        file's directory (the current directory for a mapping).
 
     Raises:
         ConfigurationError: anything :func:`~jtc_hw.config.reading.load_config` rejects; a

@@ -415,7 +415,7 @@ class Client:
             last = not self._subscriptions
             usable = self._lost is None and not self._closing
         if last and usable:
-            # the connection is gone, and with it the subscription
+            # ClientConnectionError: the connection is gone, and with it the subscription
             with contextlib.suppress(ClientConnectionError):
                 self._request("unsubscribe_state", {}, timeout_s)
 

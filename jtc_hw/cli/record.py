@@ -135,7 +135,7 @@ def _record(client: Client, recorder: BagRecorder, args: argparse.Namespace) -> 
             while take(subscription.get(timeout_s=0)):
                 pass
     finally:
-        # the connection may be gone; the bag is still finished
+        # The connection may be gone; the bag is still finished.
         with contextlib.suppress(Exception):
             subscription.close()
 

@@ -336,7 +336,7 @@ def acquire(name: str, path: str, *, config: str | None, pid: int | None = None,
             break
         os.close(fd)
     record = f"{os.getpid() if pid is None else pid}\n{config or ''}\n".encode()
-    # opened read-only (another user's file): locked, owner not recorded
+    # OSError: opened read-only (another user's file): locked, owner not recorded
     with contextlib.suppress(OSError):
         os.ftruncate(fd, 0)
         os.pwrite(fd, record, 0)

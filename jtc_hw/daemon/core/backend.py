@@ -511,7 +511,7 @@ class LoopBackend:
 
         def release() -> None:
             self._trim = None
-            # the executor was shut down: the daemon is stopping
+            # RuntimeError: the executor was shut down, the daemon is stopping
             with contextlib.suppress(RuntimeError):
                 aio.run_in_executor(self._executor, release_freed_memory)
 

@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from jtc_hw import JointCommand, JointState, JointTrajectoryController, load_config
+from jtc_hw import JointCommand, JointState, JointTrajectoryController, Trajectory, load_config
 from jtc_hw.api import Client
 from jtc_hw.controller.config import COMMAND_INTERFACE_TYPES, ControllerConfig
 from jtc_hw.hardware.mirror import MirrorHardware
@@ -223,6 +223,15 @@ def frange(start: int, stop: int, step: int) -> Iterator[int]:
     while t <= stop:
         yield t
         t += step
+
+
+def kinds_at(traj: Trajectory, t_ns: int) -> Any:
+    """Per joint, the ``SegmentKind`` a trajectory uses at ``t_ns`` (HOLD past the end), read
+    from ``Trajectory.pieces()``: the oracle of the segment-kind tests."""
+    breaks, blocks, _, kinds, _ = traj.pieces()
+    if not blocks.shape[0] or t_ns >= breaks[-1]:
+        return np.zeros(traj.n_joints, dtype=np.int8)
+    return kinds[max(int(breaks.searchsorted(t_ns, side="right")) - 1, 0)].copy()
 
 
 def _socket_fds() -> set[str]:

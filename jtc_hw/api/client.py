@@ -19,6 +19,7 @@ Example::
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import itertools
 import logging
@@ -83,8 +84,10 @@ class Client:
     Every method takes an optional ``timeout_s`` (default: the one given to ``connect``).
     Errors reported by the daemon raise ``GoalRejected`` (goal rejections, with
     ``error_code``) or ``RequestError`` (a ``ProtocolError`` with the machine ``code``), with
-    the daemon's message. Methods may be called from several threads, but not from inside a
-    feedback callback (it runs in the reader thread, which would then wait for itself).
+    the daemon's message; every request raises ``TimeoutError`` when no reply arrives within
+    its timeout and ``ClientConnectionError`` when the connection is lost (the methods' Raises
+    sections list what else). Methods may be called from several threads, but not from inside
+    a feedback callback (it runs in the reader thread, which would then wait for itself).
 
     Attributes:
         info: the ``hello`` reply received at connection (joint names, rates, versions).
@@ -251,8 +254,6 @@ class Client:
 
         Raises:
             RequestError: the daemon refused it.
-            TimeoutError: no reply within the timeout.
-            ClientConnectionError: the connection is lost.
         """
         return self._request("hello", {}, timeout_s)
 
@@ -298,7 +299,6 @@ class Client:
             RequestError: the request was malformed (``bad_request``, naming the field).
             TimeoutError: no reply within the timeout (the goal may still have been accepted;
                 its events are then ignored).
-            ClientConnectionError: the connection is lost.
         """
         fields: dict[str, Any] = {"trajectory": _trajectory(trajectory, start_in)}
         if path_tolerance:
@@ -319,8 +319,6 @@ class Client:
 
         Raises:
             RequestError: ``not_found`` when the goal is not executing.
-            TimeoutError: no reply within the timeout.
-            ClientConnectionError: the connection is lost.
         """
         return self._request("cancel_goal", {"goal_id": goal_id}, timeout_s)
 
@@ -340,8 +338,6 @@ class Client:
         Raises:
             GoalRejected: the daemon refused the trajectory.
             RequestError: the request was malformed.
-            TimeoutError: no reply within the timeout.
-            ClientConnectionError: the connection is lost.
         """
         fields: dict[str, Any] = {"trajectory": _trajectory(trajectory, start_in)}
         if time_scaling is not None:
@@ -351,17 +347,13 @@ class Client:
     def stop(self, timeout_s: float | None = None) -> dict[str, Any]:
         """End any motion and hold the measured position: the active goal ends ``canceled``,
         a topic trajectory stops. The daemon serves it even when every client slot is taken
-        (connect with ``hello=False`` and make it the first request).
-
-        Returns:
-            The reply: ``stopped`` is False (with a ``message``) when there was nothing to
-            stop, the controller not being active (e.g. stopped by a hardware fault).
+        (connect with ``hello=False`` and make it the first request). The reply's ``stopped``
+        is False (with a ``message``) when there was nothing to stop, the controller not being
+        active (e.g. stopped by a hardware fault).
 
         Raises:
             RequestError: ``hardware``: the daemon could not reach its control loop;
                 ``busy``: not served (it was not the first request over the limit).
-            TimeoutError: no reply within the timeout.
-            ClientConnectionError: the connection is lost.
         """
         return self._request("stop", {}, timeout_s)
 
@@ -385,8 +377,6 @@ class Client:
         Raises:
             ValueError: not exactly one of ``in_s`` and ``time_ns``.
             RequestError: ``not_active`` when the controller is not active.
-            TimeoutError: no reply within the timeout.
-            ClientConnectionError: the connection is lost.
         """
         if (in_s is None) == (time_ns is None):
             raise ValueError("give exactly one of in_s (seconds from now) and time_ns")
@@ -405,10 +395,6 @@ class Client:
                 (any client's) and a ``record`` event for every goal result, hardware fault
                 and re-arm, in order with the states (their ``event`` field tells them
                 apart).
-
-        Raises:
-            TimeoutError: no reply within the timeout.
-            ClientConnectionError: the connection is lost.
         """
         timeout = self.timeout_s if timeout_s is None else timeout_s
         subscription = StateSubscription(self, timeout, maxlen, commands)
@@ -429,26 +415,17 @@ class Client:
             last = not self._subscriptions
             usable = self._lost is None and not self._closing
         if last and usable:
-            try:
+            # ClientConnectionError: the connection is gone, and with it the subscription
+            with contextlib.suppress(ClientConnectionError):
                 self._request("unsubscribe_state", {}, timeout_s)
-            except ClientConnectionError:
-                pass  # the connection is gone, and with it the subscription
 
     def get_status(self, timeout_s: float | None = None) -> dict[str, Any]:
         """Loop, hardware, controller and server statistics.
-
-        Raises:
-            TimeoutError: no reply within the timeout.
-            ClientConnectionError: the connection is lost.
         """
         return self._request("get_status", {}, timeout_s)
 
     def get_config(self, timeout_s: float | None = None) -> dict[str, Any]:
         """The configuration in effect (the reply's ``config``).
-
-        Raises:
-            TimeoutError: no reply within the timeout.
-            ClientConnectionError: the connection is lost.
         """
         return dict(self._request("get_config", {}, timeout_s)["config"])
 
@@ -456,16 +433,11 @@ class Client:
         self, names: Sequence[str] | None = None, timeout_s: float | None = None
     ) -> dict[str, Any]:
         """Controller parameter values by ROS-style name (``gains.<joint>.p``): all of them,
-        or ``names``.
-
-        Returns:
-            The reply: ``parameters`` (name to value) and ``read_only`` (those of them that
-            cannot change while the daemon runs).
+        or ``names``. The reply has ``parameters`` (name to value) and ``read_only`` (those of
+        them that cannot change while the daemon runs).
 
         Raises:
             RequestError: a name is not a parameter (``bad_request``, naming it).
-            TimeoutError: no reply within the timeout.
-            ClientConnectionError: the connection is lost.
         """
         fields: dict[str, Any] = {} if names is None else {"names": list(names)}
         return self._request("get_parameters", fields, timeout_s)
@@ -478,17 +450,13 @@ class Client:
 
         Upstream's timing: gains from the next control cycle, default tolerances and the goal
         checks from the next goal or trajectory (the running one keeps its own), ``cmd_timeout``
-        and the activation settings at the next activation.
-
-        Returns:
-            The reply: ``parameters`` (the new values), ``takes_effect`` (when, per name) and
-            ``warnings`` (settings the change made suspicious, as ``jtc-hw check`` says).
+        and the activation settings at the next activation. The reply has ``parameters`` (the
+        new values), ``takes_effect`` (when, per name) and ``warnings`` (settings the change
+        made suspicious, as ``jtc-hw check`` says).
 
         Raises:
             RequestError: ``bad_request``: an unknown or read-only parameter, or a value the
                 configuration file would refuse (the same message); nothing changed.
-            TimeoutError: no reply within the timeout.
-            ClientConnectionError: the connection is lost.
         """
         return self._request("set_parameters", {"parameters": dict(changes)}, timeout_s)
 
@@ -505,8 +473,6 @@ class Client:
 
         Raises:
             RequestError: no such simulated component (``bad_request``), or it failed.
-            TimeoutError: no reply within the timeout.
-            ClientConnectionError: the connection is lost.
         """
         fields: dict[str, Any] = {"component": component}
         if freeze is not None:
@@ -522,8 +488,6 @@ class Client:
         Raises:
             RequestError: nothing to re-arm (the controller is running), or re-arming failed
                 (the message says why; the daemon stays in its safe state).
-            TimeoutError: no reply within the timeout.
-            ClientConnectionError: the connection is lost.
         """
         return self._request("rearm", {}, timeout_s)
 
@@ -533,23 +497,18 @@ class Client:
         """Set the speed scaling factor (1: as planned, 0.5: half speed, 0: pause), or with
         ``resume=True`` go back to the factor before the pause. The factor ramps to its new
         value within the joints' acceleration limits; the state stream's ``speed_scaling``
-        shows it.
+        shows it. The reply has ``factor`` (in force now) and ``target`` (what it ramps to).
 
         Example::
 
             client.set_speed_scaling(0.0)            # pause smoothly
             client.set_speed_scaling(resume=True)    # carry on
 
-        Returns:
-            The reply: ``factor`` (in force now) and ``target`` (what it ramps to).
-
         Raises:
             ValueError: neither or both of ``factor`` and ``resume`` given.
             RequestError: a factor out of [0, max] (max: the daemon's
                 ``speed_scaling.max_scaling_factor``, 1 by default) or not a number
                 (``bad_request``, naming the range).
-            TimeoutError: no reply within the timeout.
-            ClientConnectionError: the connection is lost.
         """
         if (factor is None) != resume:
             raise ValueError("give either a factor or resume=True")
@@ -565,10 +524,8 @@ class Client:
         """
         with self._lock:
             self._closing = True
-        try:
+        with contextlib.suppress(OSError):
             self._sock.shutdown(socket.SHUT_RDWR)
-        except OSError:
-            pass
         if self._reader is not threading.current_thread():
             self._reader.join()
         self._sock.close()

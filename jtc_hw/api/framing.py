@@ -402,9 +402,7 @@ class MessageDecoder:
     def end(self) -> list[dict[str, Any] | RequestError]:
         """Call at end of input. A last message without its newline is never decoded: it may
         be cut off (the peer died mid-write), and a truncated request must not be executed.
-
-        Returns:
-            Nothing, or one ``bad_json`` error for the unterminated rest (it never raises).
+        Returns nothing, or one ``bad_json`` error for the unterminated rest (it never raises).
         """
         lineno = self._lines.end()
         if lineno is None:

@@ -109,11 +109,8 @@ def _trajectory(data: Any, where: str, path: str) -> Any:
 
 def ros_goal(data: dict[str, Any], path: str) -> dict[str, Any]:
     """A goal file's decoded mapping (a trajectory, or a goal wrapping one) in the protocol's
-    form; ``path``, the file, is named in errors.
-
-    Returns:
-        ``{"trajectory": ..., "path_tolerance": ..., ...}`` with durations in seconds, the
-        header and empty per-point lists removed.
+    form, ``{"trajectory": ..., "path_tolerance": ..., ...}`` with durations in seconds, the
+    header and empty per-point lists removed; ``path``, the file, is named in errors.
 
     Raises:
         ConfigurationError: a Duration that is not ``{sec, nanosec}`` integers, or a non-empty

@@ -106,10 +106,8 @@ class GoalHandle:
             return self._result
 
     def wait(self, timeout_s: float) -> dict[str, Any]:
-        """Block until the goal's result arrives.
-
-        Returns:
-            The ``result`` event; a failed goal is a result too (``status`` ``aborted``).
+        """Block until the goal's result arrives; return the ``result`` event (a failed goal is a
+        result too: ``status`` ``aborted``).
 
         Raises:
             TimeoutError: no result within ``timeout_s`` (the goal keeps running).
@@ -158,13 +156,8 @@ class GoalHandle:
             yield item
 
     def cancel(self, timeout_s: float | None = None) -> dict[str, Any]:
-        """Ask the daemon to cancel this goal; its result (``canceled``) follows.
-
-        Raises:
-            RequestError: ``not_found`` when the goal is no longer executing.
-            TimeoutError: no reply within the timeout.
-            ClientConnectionError: the connection is lost.
-        """
+        """Ask the daemon to cancel this goal; its result (``canceled``) follows. Raises as
+        :meth:`Client.cancel` does (``not_found`` when the goal is no longer executing)."""
         return self._client.cancel(self.goal_id, timeout_s=timeout_s)
 
 

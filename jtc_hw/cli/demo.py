@@ -25,6 +25,7 @@ import yaml
 
 from ..api.calls import NOT_EXPECTED, ClientConnectionError
 from ..api.client import Client
+from ..daemon.realtime import CAP_SYS_NICE, has_capability
 from ..errors import JtcHwError
 from .common import EXIT_BAD_INPUT, EXIT_NO_DAEMON, goal_result
 
@@ -70,14 +71,7 @@ def fifo_permitted(priority: int) -> bool:
     soft, _hard = resource.getrlimit(resource.RLIMIT_RTPRIO)
     if soft == resource.RLIM_INFINITY or soft >= priority:
         return True
-    try:
-        with open("/proc/self/status", encoding="utf-8") as f:
-            for line in f:
-                if line.startswith("CapEff:"):
-                    return bool(int(line.split()[1], 16) >> 23 & 1)  # CAP_SYS_NICE
-    except (OSError, ValueError, IndexError):
-        pass
-    return False
+    return has_capability(CAP_SYS_NICE)
 
 
 def demo_config(

@@ -14,6 +14,7 @@ Both need optional extras (``jtc_hw[record]``: rosbags; ``jtc_hw[plot]``: matplo
 from __future__ import annotations
 
 import argparse
+import contextlib
 import signal
 import sys
 import time
@@ -129,17 +130,14 @@ def _record(client: Client, recorder: BagRecorder, args: argparse.Namespace) -> 
         # What the daemon had sent before the interrupt is written too: its reply to a request
         # comes after every event it queued before on this connection, so once get_status has
         # answered, all of it is in the subscription's buffer.
-        try:
+        with contextlib.suppress(Exception, KeyboardInterrupt):  # buffer empty, or gone: done
             client.get_status(timeout_s=DRAIN_TIMEOUT_S)
             while take(subscription.get(timeout_s=0)):
                 pass
-        except (Exception, KeyboardInterrupt):  # noqa: BLE001 - buffer empty, or gone: done
-            pass
     finally:
-        try:
+        # The connection may be gone; the bag is still finished.
+        with contextlib.suppress(Exception):
             subscription.close()
-        except Exception:  # noqa: BLE001 - the connection may be gone; the bag is still finished
-            pass
 
 
 def cmd_plot(args: argparse.Namespace) -> int:

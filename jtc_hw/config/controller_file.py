@@ -52,9 +52,7 @@ UrdfReader = Callable[[str, Sequence[str]], dict[str, JointLimits]]
 """Reads ``limits.urdf`` (the path as written) for the given joints: :mod:`.reading`'s."""
 
 
-# --------------------------------------------------------------------------------------------
-# In: the source layouts
-# --------------------------------------------------------------------------------------------
+# -- In: the source layouts -----------------------------------------------------------------------
 
 
 def _is_section(value: Any) -> bool:
@@ -255,9 +253,7 @@ def build_config(
     return ControllerConfig(name=name, **kwargs)
 
 
-# --------------------------------------------------------------------------------------------
-# Joint limits: the ``limits`` section
-# --------------------------------------------------------------------------------------------
+# -- Joint limits: the ``limits`` section ---------------------------------------------------------
 
 URDF_KEY = "urdf"
 """``limits.urdf``: a URDF file whose joint limits are read (relative to the YAML file)."""
@@ -351,9 +347,7 @@ def _parse_limits(
     return {joint: lim for joint, lim in limits.items() if not lim.empty}, scaling
 
 
-# --------------------------------------------------------------------------------------------
-# Out: plain data that reads back
-# --------------------------------------------------------------------------------------------
+# -- Out: plain data that reads back --------------------------------------------------------------
 
 
 def _plain(value: Any) -> Any:
@@ -366,16 +360,14 @@ def _values(obj: Any, table: Mapping[str, Any]) -> dict[str, Any]:
 
 
 def config_to_dict(cfg: ControllerConfig, *, nested: bool = False) -> dict[str, Any]:
-    """Return the configuration as plain data that :func:`load_config` reads back.
+    """The configuration as plain data that :func:`load_config` reads back: a new dict of
+    dicts, lists, strings, numbers and booleans (YAML-safe).
 
     Args:
         cfg: the configuration.
         nested: give the upstream layout (controller section under ``cfg.name`` and a
             ``controller_manager`` section with ``update_rate`` and the controller type)
             instead of the plain mapping. Only the nested layout keeps the name.
-
-    Returns:
-        A new dict of dicts, lists, strings, numbers and booleans (YAML-safe).
     """
     params = {name: _plain(value) for name, value in _values(cfg, PARAMETERS).items()}
     params["constraints"] = {**_values(cfg.constraints, CONSTRAINT_PARAMETERS), **{

@@ -50,9 +50,7 @@ MAX_DEPTH = 100
 robot file or a goal file needs fewer than ten; the parser recurses once per level."""
 
 
-# --------------------------------------------------------------------------------------------
-# Strict YAML
-# --------------------------------------------------------------------------------------------
+# -- Strict YAML ----------------------------------------------------------------------------------
 
 
 class AliasExpansionError(yaml.YAMLError):
@@ -281,9 +279,7 @@ def read_source(source: str | os.PathLike[str] | Mapping[str, Any]) -> Mapping[A
     return data
 
 
-# --------------------------------------------------------------------------------------------
-# URDF joint limits
-# --------------------------------------------------------------------------------------------
+# -- URDF joint limits ----------------------------------------------------------------------------
 
 
 def _urdf_error(filename: str, message: str) -> ConfigurationError:
@@ -385,9 +381,7 @@ def read_urdf_limits(filename: str, joints: Sequence[str]) -> dict[str, JointLim
     return limits
 
 
-# --------------------------------------------------------------------------------------------
-# The controller's configuration
-# --------------------------------------------------------------------------------------------
+# -- The controller's configuration ---------------------------------------------------------------
 
 
 def load_config(
@@ -396,7 +390,7 @@ def load_config(
     *,
     base_dir: str | os.PathLike[str] | None = None,
 ) -> ControllerConfig:
-    """Read, check and freeze a controller configuration.
+    """Read, check and freeze a controller configuration, with defaults filled for every joint.
 
     Args:
         source: path of a YAML file, or an already parsed mapping, in either layout
@@ -409,9 +403,6 @@ def load_config(
             (default ``joint_trajectory_controller``).
         base_dir: the directory a relative ``limits.urdf`` is relative to (default: the
             file's directory, or the current directory for a mapping).
-
-    Returns:
-        The validated configuration, with defaults filled for every joint.
 
     Raises:
         ConfigurationError: the file cannot be read or parsed, a key is unknown, a required

@@ -295,8 +295,7 @@ class JointTrajectoryController(ControlLaw, Stops):
             reason: the result's ``error_string`` (default: upstream's deactivation message;
                 the daemon names the fault or the shutdown).
 
-        Returns:
-            The events not yet delivered, ending with the goal's result if one was active.
+        Returns the events not yet delivered, ending with the goal's result if one was active.
 
         Raises:
             ControllerStateError: not active.
@@ -329,15 +328,13 @@ class JointTrajectoryController(ControlLaw, Stops):
         """Accept an action goal (``follow_joint_trajectory``) or raise why not.
 
         On acceptance the trajectory is spliced into the reference and the previous goal, if
-        any, is canceled (its result is delivered with the next ``update``).
+        any, is canceled (its result is delivered with the next ``update``). Returns the goal
+        id; its result arrives exactly once among ``update``/``deactivate`` events.
 
         Args:
             time_scaling: a goal beyond the joint limits is rejected (``"reject"``) or slowed
                 down to fit them (``"fit"``); None: ``config.time_scaling``. With ``fit``,
                 ``last_time_scaling`` then says the factor and the new duration.
-
-        Returns:
-            The goal id; its result arrives exactly once among ``update``/``deactivate`` events.
 
         Raises:
             GoalRejected: inactive controller, invalid trajectory or tolerances, a trajectory
@@ -392,11 +389,7 @@ class JointTrajectoryController(ControlLaw, Stops):
         time_scaling: str | None = None,
     ) -> Plan:
         """First half of ``send_goal``: validate and fit against the current reference
-        (``Plan.time_scaling`` says how a ``fit`` goal was slowed).
-
-        Raises:
-            GoalRejected: see ``send_goal``.
-        """
+        (``Plan.time_scaling`` says how a ``fit`` goal was slowed); raises as ``send_goal`` does."""
         self._require_active_for_commands()
         tau = self._traj_time(now_ns)
         return self._planner.plan_goal(
@@ -414,11 +407,7 @@ class JointTrajectoryController(ControlLaw, Stops):
     def plan_trajectory(
         self, now_ns: int, trajectory: JointTrajectory, *, time_scaling: str | None = None
     ) -> Plan:
-        """First half of ``send_trajectory`` for a non-empty trajectory.
-
-        Raises:
-            GoalRejected: see ``send_trajectory``.
-        """
+        """First half of ``send_trajectory`` for a non-empty trajectory; raises as it does."""
         self._require_active_for_commands()
         tau = self._traj_time(now_ns)
         return self._planner.plan_trajectory(
@@ -430,13 +419,11 @@ class JointTrajectoryController(ControlLaw, Stops):
         )
 
     def commit(self, plan: Plan, now_ns: int) -> int | None:
-        """Second half: swap in a planned reference (O(1), no fitting).
+        """Second half: swap in a planned reference (O(1), no fitting); the goal id for a goal
+        plan, None for a topic plan.
 
         The plan's times are trajectory times (:attr:`trajectory_time_ns`; equal to the clock
         while the speed scaling factor has always been 1); ``now_ns`` is the clock's.
-
-        Returns:
-            The goal id for a goal plan, None for a topic plan.
 
         Raises:
             GoalRejected: the controller is not active.
@@ -477,11 +464,8 @@ class JointTrajectoryController(ControlLaw, Stops):
 
     def cancel_goal(self, goal_id: int) -> bool:
         """Request cancellation; the goal ends ``CANCELED`` at the next ``update``, which holds
-        the measured position.
-
-        Returns:
-            False if ``goal_id`` is not the executing goal (unknown, finished or canceling).
-        """
+        the measured position. Returns False if ``goal_id`` is not the executing goal
+        (unknown, finished or canceling)."""
         ex = self._execution
         if ex is None or ex.goal is None or ex.goal.goal_id != goal_id:
             return False

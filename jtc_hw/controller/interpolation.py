@@ -77,8 +77,9 @@ def segment_blocks(
 ) -> F64:
     """Blocks ``(m, 4, 6, n)`` of ``m`` segments, each joining two knots.
 
-    Row 0 of a block is the position polynomial of the segment's kind, rows 1 and 2 its
-    derivatives, row 3 the effort, linear from one knot to the next.
+    Row 0 of a block is the position polynomial of the segment's kind (``c`` with
+    ``p(tau) = sum(c[k] * tau**k)``), rows 1 and 2 its derivatives, row 3 the effort, linear
+    from one knot to the next.
 
     Args:
         kinds: ``(m,)`` linear, cubic or quintic per segment.
@@ -88,9 +89,6 @@ def segment_blocks(
             derivatives are ignored beyond what the kind uses).
         end: the same at the end knots.
         out: where to write the blocks, all zeros (default: a new array).
-
-    Returns:
-        The blocks; row 0 of block ``i`` is ``c`` with ``p(tau) = sum(c[k] * tau**k)``.
     """
     p0, v0, a0, e0 = start
     p1, v1, a1, e1 = end

@@ -161,10 +161,9 @@ class LimitTable:
         return cols
 
 
-# --------------------------------------------------------------------------------------------
-# Polynomials, vectorised: a polynomial is a list of coefficient arrays (one value per row),
-# lowest degree first; its length is the highest degree any row uses, plus one
-# --------------------------------------------------------------------------------------------
+# -- Polynomials, vectorised ----------------------------------------------------------------------
+# A polynomial is a list of coefficient arrays (one value per row), lowest degree first; its length
+# is the highest degree any row uses, plus one.
 
 Poly = list[F64]
 
@@ -209,11 +208,8 @@ def _quadratic_roots(poly: Poly) -> list[F64]:
 def _bracketed_roots(poly: Poly, low: F64, high: F64, split: list[F64]) -> list[F64]:
     """Real roots in ``[low, high]`` of each row's polynomial, given the roots of its
     derivative (``split``, NaN for none): between two of them it is monotonic, so it has at
-    most one root there, found by bisection.
-
-    Returns:
-        ``len(split) + 1`` arrays of roots, NaN where a piece has none.
-    """
+    most one root there, found by bisection: ``len(split) + 1`` arrays of roots, NaN where a
+    piece has none."""
     inner = [np.where(np.isnan(r), high, np.clip(r, low, high)) for r in split]
     points = np.sort(np.stack((low, *inner, high), axis=1), axis=1)
     values = np.stack([_evaluate(poly, points[:, i]) for i in range(points.shape[1])], axis=1)
@@ -259,9 +255,7 @@ def _roots(poly: Poly, low: F64, high: F64, split: list[F64] | None) -> list[F64
     return closed
 
 
-# --------------------------------------------------------------------------------------------
-# The check
-# --------------------------------------------------------------------------------------------
+# -- The check ------------------------------------------------------------------------------------
 
 
 def check(
@@ -271,7 +265,8 @@ def check(
     joints: NDArray[np.intp],
     start_positions: F64,
 ) -> dict[str, Excess]:
-    """The worst excess of each quantity over its limit, from ``from_ns`` on.
+    """The worst excess of each quantity over its limit, from ``from_ns`` on: by field, beyond
+    :data:`TOLERANCE`; empty when within every limit.
 
     Args:
         reference: the spliced reference.
@@ -280,9 +275,6 @@ def check(
         joints: the controller joint indices to check (the command's).
         start_positions: every joint's reference position at ``from_ns``: the position range
             is widened to include it (see the module docstring).
-
-    Returns:
-        By field, the worst excess beyond :data:`TOLERANCE`; empty when within every limit.
     """
     cols = table.columns(joints)
     if not cols.size:

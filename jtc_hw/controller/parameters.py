@@ -46,15 +46,9 @@ __all__ = [
 
 
 def explain(cfg: ControllerConfig) -> list[str]:
-    """List settings that are valid but probably not what was meant.
-
-    Args:
-        cfg: the configuration.
-
-    Returns:
-        One human-readable warning per finding, each starting with the dotted key path;
-        empty if nothing looks suspicious.
-    """
+    """Settings of ``cfg`` that are valid but probably not what was meant: one human-readable
+    warning per finding, each starting with the dotted key path; empty if nothing looks
+    suspicious."""
     warnings: list[str] = []
     goal_time = cfg.constraints.goal_time
     if cfg.cmd_timeout > 0.0 and cfg.cmd_timeout <= goal_time:
@@ -131,9 +125,7 @@ def explain(cfg: ControllerConfig) -> list[str]:
     return warnings
 
 
-# --------------------------------------------------------------------------------------------
-# Runtime parameters
-# --------------------------------------------------------------------------------------------
+# -- Runtime parameters ---------------------------------------------------------------------------
 
 _SECTION_TABLES: dict[str, Mapping[str, ParamSpec]] = {
     "constraints": JOINT_CONSTRAINT_PARAMETERS,
@@ -317,7 +309,8 @@ def read_only_differences(old: ControllerConfig, new: ControllerConfig) -> list[
 
 
 def set_parameters(cfg: ControllerConfig, changes: Mapping[str, Any]) -> ParameterChange:
-    """Check a runtime change of parameters and return the configuration with it applied.
+    """Check a runtime change of parameters; the configuration with it applied, the changed
+    values and when each takes effect.
 
     All or nothing: the names are looked up, read-only ones refused, then the configuration is
     built again from ``cfg`` with the new values by the configuration file's parser.
@@ -326,9 +319,6 @@ def set_parameters(cfg: ControllerConfig, changes: Mapping[str, Any]) -> Paramet
         cfg: the configuration in effect.
         changes: new values by ROS-style name (``{"gains.j1.p": 10.0}``), as YAML or JSON
             would give them.
-
-    Returns:
-        The new configuration, the changed values and when each takes effect.
 
     Raises:
         ConfigurationError: nothing to change, an unknown name, read-only parameters (all of

@@ -70,12 +70,8 @@ class Pid:
 
     def compute(self, error: F64, error_dot: F64, dt_s: float) -> F64:
         """One step; ``dt_s`` is the time since the previous step, in seconds; the arrays
-        have one value per joint.
-
-        Returns:
-            The output per joint (a new array; NaN where ``error`` or ``error_dot`` is not
-            finite).
-        """
+        have one value per joint, as has the output (a new array; NaN where ``error`` or
+        ``error_dot`` is not finite)."""
         if dt_s == 0.0:
             # control_toolbox: no time has passed, so nothing is integrated and the command
             # is the previous one.

@@ -78,11 +78,7 @@ class SpeedScaling:
 
     def resume_speed_scaling(self) -> float:
         """Ramp back to the last non-zero factor set (the one before a pause; initially
-        ``initial_scaling_factor``, or 1 if that is 0).
-
-        Returns:
-            The target it ramps to.
-        """
+        ``initial_scaling_factor``, or 1 if that is 0); returns that target."""
         self._scale_target = self._resume_scale
         return self._resume_scale
 

@@ -136,7 +136,8 @@ def _advance(phase: Phase, dt: float) -> tuple[float, float, float]:
 def stop_phases(
     position: float, velocity: float, acceleration: float, deceleration: float, jerk: float
 ) -> tuple[list[Phase], float]:
-    """One joint's stop, in closed form: its moving phases and the position it rests at.
+    """One joint's stop, in closed form: its moving phases in time order (none when already at
+    rest) and the position it rests at.
 
     Without a jerk limit (``jerk`` infinite) this is upstream's profile: the acceleration is
     ``-dir * deceleration`` from the start (``acceleration`` is ignored) until the velocity is
@@ -155,9 +156,6 @@ def stop_phases(
         position, velocity, acceleration: the state the stop starts from.
         deceleration: the largest ``|acceleration|`` of the stop, > 0.
         jerk: the largest ``|jerk|``, > 0, or ``inf``.
-
-    Returns:
-        The phases in time order (empty when already at rest) and the rest position.
     """
     big_a = deceleration
     if math.isinf(jerk):
@@ -203,7 +201,7 @@ def stop_trajectory(
     decelerations: F64,
     jerks: F64,
 ) -> Trajectory:
-    """The decelerating stop of every joint, starting at ``now_ns`` from the given state.
+    """The reference that stops every joint, decelerating, from the given state at ``now_ns``.
 
     Each joint follows :func:`stop_phases` (computed here for all joints at once, with the same
     formulas); once at rest it holds its rest position with zero velocity and acceleration,
@@ -216,9 +214,6 @@ def stop_trajectory(
         positions, velocities, accelerations: the state it starts from, per joint.
         decelerations: per joint, > 0 (:func:`stop_decelerations`).
         jerks: per joint, > 0 or ``inf`` (:func:`stop_jerks`).
-
-    Returns:
-        The reference to follow.
     """
     n = positions.shape[0]
     p0 = np.asarray(positions, dtype=np.float64)

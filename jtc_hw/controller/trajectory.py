@@ -266,7 +266,8 @@ class Trajectory:
         wraparound: NDArray[np.bool_] | None = None,
         keep_from_ns: int | None = None,
     ) -> Trajectory:
-        """Combine this trajectory with a new command (the reference's trajectory replacement).
+        """The new reference: this trajectory combined with a new command (the reference's
+        trajectory replacement); ``self`` is unchanged.
 
         Args:
             now_ns: the current time.
@@ -278,9 +279,6 @@ class Trajectory:
             keep_from_ns: the earliest time the result will be sampled, if before ``now_ns``
                 (a plan made ahead of time and swapped in early); this trajectory is kept from
                 there, so the result equals it on ``[keep_from_ns, max(start, now_ns))``.
-
-        Returns:
-            The new reference; ``self`` is unchanged.
 
         Raises:
             GoalRejected: every point of ``new`` lies before ``now_ns`` (``OLD_HEADER_TIMESTAMP``),
@@ -587,11 +585,3 @@ class Trajectory:
         breakpoints ``(s + 1,)``, blocks ``(s, 4, 6, n)``, origins and kinds ``(s, n)``, and
         the state past the end ``(4, n)``."""
         return self._breaks, self._blocks, self._origins, self._kinds, self._final
-
-    def kinds_at(self, t_ns: int) -> NDArray[np.int8]:
-        """Per joint, the ``SegmentKind`` in effect at ``t_ns`` (HOLD past the end)."""
-        if not self._blocks.shape[0] or t_ns >= self._end:
-            return np.zeros(self.n_joints, dtype=np.int8)
-        i = max(int(self._breaks.searchsorted(t_ns, side="right")) - 1, 0)
-        kinds: NDArray[np.int8] = self._kinds[i].copy()
-        return kinds

@@ -41,10 +41,9 @@ lock file first in a directory every user may write. So the directory is the dae
 - the socket: next to it, ``<socket>.lock``: whoever can use the socket path can use its
   directory, which is the socket's own (``RuntimeDirectory=`` under systemd, mode 0750).
 
-Not done: ``flock`` on the serial device itself (pyserial's ``exclusive=True``, which other
-tools honour) would need the second daemon to *open* the port to find out, and opening a tty
-raises DTR/RTS and closing it drops them (``HUPCL``), which alone resets some boards: exactly
-the touch this lock must prevent. The driver that opens the port may still lock it that way.
+Not done: ``flock`` on the serial device itself (pyserial's ``exclusive=True``): finding out
+would mean opening the port, which alone resets some boards (docs/decisions.md 15), exactly the
+touch this lock must prevent. The driver that opens the port may still lock it that way.
 
 A released lock file is removed while still locked; a daemon that opened it meanwhile finds,
 once it holds its lock, that the path no longer names its file, and starts over.
@@ -52,6 +51,7 @@ once it holds its lock, that the path no longer names its file, and starts over.
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import fcntl
 import logging
@@ -285,11 +285,9 @@ class DeviceLock:
         fd, self._fd = self._fd, None
         if fd is None:
             return
-        try:
+        with contextlib.suppress(OSError):
             if _same_file(fd, self.path):
                 os.unlink(self.path)
-        except OSError:
-            pass
         os.close(fd)  # the lock goes with the last descriptor of the open file
 
     def __enter__(self) -> DeviceLock:
@@ -338,11 +336,10 @@ def acquire(name: str, path: str, *, config: str | None, pid: int | None = None,
             break
         os.close(fd)
     record = f"{os.getpid() if pid is None else pid}\n{config or ''}\n".encode()
-    try:
+    # OSError: opened read-only (another user's file): locked, owner not recorded
+    with contextlib.suppress(OSError):
         os.ftruncate(fd, 0)
         os.pwrite(fd, record, 0)
-    except OSError:
-        pass  # opened read-only (another user's file): locked, owner not recorded
     return DeviceLock(name, path, fd)
 
 
@@ -443,11 +440,9 @@ def _open(name: str, path: str) -> int:
         except OSError as exc:
             raise HardwareError(f"{name}: cannot create the lock file {path}: "
                                 f"{exc.strerror}") from None
-        try:
+        with contextlib.suppress(OSError):
             # Whoever of its group locks it next records its own pid, whatever the umask.
             os.fchmod(fd, LOCK_FILE_MODE)
-        except OSError:
-            pass
         return fd
 
 

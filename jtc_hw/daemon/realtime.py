@@ -20,6 +20,7 @@ machine does not have) raise :class:`~jtc_hw.errors.ConfigurationError`.
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import errno
 import os
@@ -30,17 +31,18 @@ from typing import Any
 
 from ..errors import ConfigurationError
 
-__all__ = ["apply_realtime", "set_process_name"]
+__all__ = ["CAP_SYS_NICE", "apply_realtime", "has_capability", "set_process_name"]
 
 _PATH = "daemon.realtime"
 
 # Linux capability numbers (linux/capability.h).
 _CAP_IPC_LOCK = 14
-_CAP_SYS_NICE = 23
+CAP_SYS_NICE = 23
 
 
 def apply_realtime(priority: int, lock_memory: bool, cpu_affinity: Sequence[int]) -> list[str]:
-    """Applies CPU affinity, memory locking and SCHED_FIFO (module docstring: to what, when).
+    """Applies CPU affinity, memory locking and SCHED_FIFO (module docstring: to what, when);
+    returns one line per step, saying what was applied or why it was not and how to allow it.
 
     Args:
         priority: SCHED_FIFO priority, 1 (lowest) to 99 (highest); 0 keeps normal
@@ -48,9 +50,6 @@ def apply_realtime(priority: int, lock_memory: bool, cpu_affinity: Sequence[int]
             unless the bus driver's IRQ thread is raised above the loop too.
         lock_memory: whether to lock all current and future pages in RAM.
         cpu_affinity: CPUs to run on; empty leaves the affinity unchanged.
-
-    Returns:
-        One line per step, saying what was applied or why it was not and how to allow it.
 
     Raises:
         ConfigurationError: ``priority`` is not an integer in 1..99 (path
@@ -196,7 +195,7 @@ def _apply_memory_lock() -> str:
             else "; later mappings are faulted in whole when made (no MCL_ONFAULT: Linux < 4.4)"
         )
         soft, _hard = resource.getrlimit(resource.RLIMIT_MEMLOCK)
-        if soft != resource.RLIM_INFINITY and not _has_capability(_CAP_IPC_LOCK):
+        if soft != resource.RLIM_INFINITY and not has_capability(_CAP_IPC_LOCK):
             return (
                 f"memory locked (mlockall MCL_CURRENT|MCL_FUTURE){how}; note RLIMIT_MEMLOCK is "
                 f"{soft} bytes without CAP_IPC_LOCK, so allocations beyond it will fail: "
@@ -223,7 +222,7 @@ def _apply_fifo(priority: int) -> str:
         os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
     except PermissionError:
         hint = ""
-        if os.geteuid() == 0 and _has_capability(_CAP_SYS_NICE):
+        if os.geteuid() == 0 and has_capability(CAP_SYS_NICE):
             # Privileged, yet refused: real-time bandwidth is not granted to our cgroup.
             hint = (
                 " (privileged, so the real-time CPU budget is likely zero for this cgroup: "
@@ -239,15 +238,13 @@ def _apply_fifo(priority: int) -> str:
     return f"SCHED_FIFO priority {priority} applied"
 
 
-def _has_capability(bit: int) -> bool:
+def has_capability(bit: int) -> bool:
     """Whether ``bit`` is in this process's effective capability set (Linux ``/proc``)."""
-    try:
+    with contextlib.suppress(OSError, ValueError, IndexError):
         with open("/proc/self/status", encoding="utf-8") as f:
             for line in f:
                 if line.startswith("CapEff:"):
                     return bool(int(line.split()[1], 16) >> bit & 1)
-    except (OSError, ValueError, IndexError):
-        pass
     return False
 
 

@@ -32,7 +32,6 @@ from dataclasses import dataclass
 from types import MappingProxyType
 from typing import Any, Final
 
-from ..api.paths import default_socket_path
 from ..config.controller import ControllerConfig
 from ..config.reading import load_config, read_source
 from ..config.values import describe, did_you_mean, fmt_list
@@ -56,7 +55,6 @@ __all__ = [
     "DaemonSettings",
     "RobotConfig",
     "create_hardware_set",
-    "default_socket_path",
     "joint_position_limits",
     "load_robot",
     "security_warnings",
@@ -175,17 +173,14 @@ def _parse_hardware(raw: Any, controller: ControllerConfig) -> tuple[HardwareSpe
 def load_robot(
     source: str | os.PathLike[str] | Mapping[str, Any], controller_name: str | None = None
 ) -> RobotConfig:
-    """Read, check and freeze a robot configuration.
+    """Read, check and freeze a robot configuration. Without a ``hardware`` section: one
+    ``mirror`` component named ``mirror`` serving every joint. A relative ``daemon.socket`` is
+    taken relative to the file's directory (the current directory for a mapping).
 
     Args:
         source: path of a YAML file, or an already parsed mapping (the module docstring
             says what it holds).
         controller_name: which controller section to use when there are several.
-
-    Returns:
-        The configuration. Without a ``hardware`` section: one ``mirror`` component named
-        ``mirror`` serving every joint. A relative ``daemon.socket`` is taken relative to the
-        file's directory (the current directory for a mapping).
 
     Raises:
         ConfigurationError: anything :func:`~jtc_hw.config.reading.load_config` rejects; a
@@ -316,10 +311,8 @@ def joint_position_limits(robot: RobotConfig) -> dict[str, tuple[float, float]]:
     """Each joint's finite ``position_limits`` from its hardware component (no I/O).
 
     The components are created (which validates their parameters) and dropped; joints whose
-    component has no ``position_limits`` parameter, or an unlimited one, are left out.
-
-    Raises:
-        ConfigurationError, HardwareError: as :func:`create_hardware_set`.
+    component has no ``position_limits`` parameter, or an unlimited one, are left out. Raises
+    as :func:`create_hardware_set`.
     """
     limits: dict[str, tuple[float, float]] = {}
     for spec in robot.hardware:

@@ -24,7 +24,6 @@ from __future__ import annotations
 import logging
 import os
 import socket
-import time
 from collections.abc import Mapping
 
 __all__ = ["Notifier"]
@@ -84,29 +83,6 @@ class Notifier:
         """Tells the service manager that an orderly shutdown has begun (``STOPPING=1``), with
         an optional one-line ``status`` (what the shutdown is waiting for)."""
         return self.send(_with_status("STOPPING=1", status))
-
-    def reloading(self) -> bool:
-        """Tells the service manager that a configuration reload has begun (``RELOADING=1``).
-
-        ``MONOTONIC_USEC`` (``CLOCK_MONOTONIC`` now, in microseconds) is included as systemd 253+
-        requires for ``Type=notify-reload``; older managers ignore it. Send :meth:`ready` when the
-        reload is complete.
-        """
-        usec = time.clock_gettime_ns(time.CLOCK_MONOTONIC) // 1000
-        return self.send(f"RELOADING=1\nMONOTONIC_USEC={usec}")
-
-    def extend_timeout(self, usec: int) -> bool:
-        """Asks for more time for the current start-up, reload or shutdown
-        (``EXTEND_TIMEOUT_USEC=...``): the service manager extends the running timeout so that it
-        expires ``usec`` microseconds from now; send it again before that to keep extending.
-
-        Raises:
-            ValueError: ``usec`` is not a positive integer (a programming error, not a send
-                failure).
-        """
-        if isinstance(usec, bool) or not isinstance(usec, int) or usec <= 0:
-            raise ValueError(f"extend_timeout: usec must be a positive integer, got {usec!r}")
-        return self.send(f"EXTEND_TIMEOUT_USEC={usec}")
 
     def send(self, message: str) -> bool:
         """Sends ``message`` (newline-separated ``KEY=VALUE`` lines, UTF-8 on the wire) as one

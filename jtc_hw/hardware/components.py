@@ -159,10 +159,8 @@ class HardwareSet:
         self._in_turn(lambda comp, _: comp.configure(), lambda comp: comp.cleanup())
 
     def activate(self, now_ns: int) -> JointCommand:
-        """Activate every component; if one fails, deactivate those already active.
-
-        Returns:
-            The merged held commands in the controller's joint order (``NaN`` where none).
+        """Activate every component; if one fails, deactivate those already active. Returns
+        the merged held commands in the controller's joint order (``NaN`` where none).
 
         Leaves ACTIVE on success; INACTIVE if it fails.
 

@@ -122,9 +122,7 @@ class DeviceName:
     label: str
 
 
-# --------------------------------------------------------------------------------------------
-# The contract
-# --------------------------------------------------------------------------------------------
+# -- The contract ---------------------------------------------------------------------------------
 
 
 def _check_names(value: Any, path: str, description: str) -> tuple[str, ...]:
@@ -383,13 +381,10 @@ class HardwareInterface(ABC):
         CAN drivers, whose frames are commands or whose answers need the drive active, read
         nothing (the default).
 
-        Returns:
-            The joints' measured state if the driver read it, else ``None``.
-
-        Raises:
-            Nothing: a failed read is counted (``read_errors``) and gives ``None``, and the
-            next attempt waits ``MONITOR_RETRY_NS`` (a silent device would otherwise cost every
-            cycle its reply timeout); the next activation is what decides about the device.
+        Returns the joints' measured state if the driver read it, else ``None``. Never raises:
+        a failed read is counted (``read_errors``) and gives ``None``, and the next attempt waits
+        ``MONITOR_RETRY_NS`` (a silent device would otherwise cost every cycle its reply timeout);
+        the next activation is what decides about the device.
         """
         if self._state is not LifecycleState.INACTIVE:
             return None

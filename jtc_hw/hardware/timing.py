@@ -16,14 +16,12 @@ _PR_SET_TIMERSLACK = 29
 
 
 def reduce_timer_slack(slack_ns: int = 1) -> str:
-    """Shrink this thread's timer slack so sleeps end on time (Linux; a no-op elsewhere).
+    """Shrink this thread's timer slack so sleeps end on time (Linux; a no-op elsewhere);
+    returns a log line saying what was done.
 
     Linux lets a normally scheduled thread's timers fire up to its slack late (50 us by
     default) to batch wake-ups; for a control loop that is pure lateness. SCHED_FIFO threads
     have no slack, so this matters when real-time scheduling is off or refused.
-
-    Returns:
-        A log line saying what was done.
     """
     if not os.path.exists("/proc/self/timerslack_ns"):
         return "timer slack left unchanged (not Linux)"

@@ -34,6 +34,7 @@ the install hint.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
@@ -326,10 +327,8 @@ class BagRecorder:
             self._writer.close()
             kept = "it is closed and readable"
         except Exception as again:  # noqa: BLE001 - no room even now: leave what is on disk
-            try:
+            with contextlib.suppress(Exception):  # the file is closed either way
                 self._writer.abort()
-            except Exception:  # noqa: BLE001 - the file is closed either way
-                pass
             kept = (f"it could not be finished ({getattr(again, 'strerror', None) or again}): "
                     "the .mcap has no summary or metadata.yaml")
         count = sum(self.counts.values())

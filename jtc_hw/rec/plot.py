@@ -135,16 +135,13 @@ def read_series(bag: str | Path, controller: str) -> dict[str, Any]:
 def executed_waypoints(
     t: Any, tfs: Any, commands: Sequence[tuple[float, Sequence[tuple[float, str, float]]]],
 ) -> list[tuple[float, str, float]]:
-    """Each command's waypoints at the time the reference reached them (see the module
-    docstring).
+    """Each command's waypoints at the time the reference reached them, as (time, joint,
+    position) (see the module docstring).
 
     Args:
         t: the states' times (seconds, increasing).
         tfs: the states' ``reference.time_from_start`` (seconds).
         commands: (log time, [(time_from_start, joint, position)]) per command, in order.
-
-    Returns:
-        (time, joint, position) of every waypoint the reference reached.
     """
     out: list[tuple[float, str, float]] = []
     n = len(t)

@@ -51,7 +51,7 @@ from jtc_hw.controller.trajectory import TrajectorySample, shortest_angular_dist
 from jtc_hw.controller.validation import prepare
 from jtc_hw.errors import StalePlan
 
-from conftest import MS, Mirror, S, make_config
+from conftest import MS, Mirror, S, kinds_at, make_config
 
 JOINTS = tuple(f"j{i}" for i in range(1, 7))
 HOLD, LINEAR, CUBIC, QUINTIC = (int(k) for k in SegmentKind)
@@ -271,7 +271,7 @@ def test_samples_pass_through_every_waypoint(sc: Scenario) -> None:
     if times[0] > sc.splice_at:
         s = traj.sample(sc.splice_at)
         bridge = kind_of(exp.has_v[0], exp.has_a[0])
-        assert (traj.kinds_at(sc.splice_at)[cols] == bridge).all()
+        assert (kinds_at(traj, sc.splice_at)[cols] == bridge).all()
         np.testing.assert_array_equal(s.positions, p0)
         np.testing.assert_array_equal(s.effort, e0)
         if bridge >= CUBIC:
@@ -289,13 +289,13 @@ def test_samples_pass_through_every_waypoint(sc: Scenario) -> None:
         if point.effort is not None:
             np.testing.assert_array_equal(s.effort[cols], point.effort, err_msg=f"point {i}")
         if i == m - 1:  # the last point as given, its velocity and acceleration kept (issue 11)
-            assert (traj.kinds_at(t) == HOLD).all()
+            assert (kinds_at(traj, t) == HOLD).all()
             np.testing.assert_allclose(vel, exp.vel[i], rtol=1e-9, atol=1e-9)
             np.testing.assert_array_equal(acc, exp.acc[i])
             assert traj.end_ns == t
             continue
         kind = kind_of(exp.has_v[i] and exp.has_v[i + 1], exp.has_a[i] and exp.has_a[i + 1])
-        assert (traj.kinds_at(t)[cols] == kind).all(), (i, traj.kinds_at(t), kind)
+        assert (kinds_at(traj, t)[cols] == kind).all(), (i, kinds_at(traj, t), kind)
         if kind >= CUBIC:
             if point.velocities is not None:
                 np.testing.assert_array_equal(vel, point.velocities, err_msg=f"point {i}")
@@ -325,12 +325,12 @@ def test_continuity_at_interior_knots_matches_segment_kind(sc: Scenario) -> None
     problems = []
     # The splice: the bridge leaves the previous state with the continuity its kind allows.
     if times[0] > sc.splice_at:
-        level = int(traj.kinds_at(sc.splice_at).min())
+        level = int(kinds_at(traj, sc.splice_at).min())
         problems += continuity_violations(traj, sc.splice_at, level, sc.base)
     for t in times[:-1]:
         if t == sc.splice_at:
             continue  # a first point due at the splice time: no lead-in, a jump is allowed
-        level = int(min(traj.kinds_at(t - 1).min(), traj.kinds_at(t).min()))
+        level = int(min(kinds_at(traj, t - 1).min(), kinds_at(traj, t).min()))
         assert level in (LINEAR, CUBIC, QUINTIC)
         problems += continuity_violations(traj, t, level)
     # The last knot: position is continuous (the velocity becomes the last point's there).
@@ -387,7 +387,7 @@ def test_sample_is_pure(sc: Scenario, data: st.DataObject) -> None:
     probes += data.draw(st.lists(st.integers(sc.now - S, times[-1] + S), max_size=15))
     probes = [t for t in probes if t >= traj.state_before_ns]  # defined from there (issue 11)
     first = {t: snapshot(traj.sample(t)) for t in probes}
-    kinds = {t: traj.kinds_at(t).tobytes() for t in probes}
+    kinds = {t: kinds_at(traj, t).tobytes() for t in probes}
     # Mutating what sample returned must not leak into later samples (writes may be refused).
     for t in probes:
         s = traj.sample(t)
@@ -398,7 +398,7 @@ def test_sample_is_pure(sc: Scenario, data: st.DataObject) -> None:
                 pass
     for t in data.draw(st.permutations(probes)) + list(reversed(probes)):
         assert snapshot(traj.sample(t)) == first[t], t
-        assert traj.kinds_at(t).tobytes() == kinds[t], t
+        assert kinds_at(traj, t).tobytes() == kinds[t], t
 
 
 # -- 1e. replacement keeps the past ----------------------------------------------------------------
@@ -473,7 +473,7 @@ def test_replacement_keeps_the_current_trajectory_until_the_splice(
     kept = [t for t in abs_times if t >= now2]
     if kept[0] > ts:  # a bridge: it starts from the current reference, in position continuously
         np.testing.assert_array_equal(second.sample(ts).positions, first.sample(ts).positions)
-        kind = second.kinds_at(ts)
+        kind = kinds_at(second, ts)
         cubic = cols[kind[cols] >= CUBIC]
         np.testing.assert_array_equal(
             second.sample(ts).velocities[cubic], first.sample(ts).velocities[cubic]

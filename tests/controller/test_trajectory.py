@@ -18,7 +18,7 @@ from jtc_hw.controller.goals import ErrorCode
 from jtc_hw.controller.interpolation import SegmentKind
 from jtc_hw.controller.validation import prepare
 
-from conftest import MS, S, frange, make_config
+from conftest import MS, S, frange, kinds_at, make_config
 
 T0 = 7 * S
 GRID = [0.5, 1.0, 1.5, 2.0]
@@ -99,7 +99,7 @@ def test_linear_when_only_positions_given() -> None:
     assert s.positions[0] == pytest.approx(1.5)
     assert s.velocities[0] == pytest.approx(2.0)
     assert s.accelerations[0] == 0.0
-    assert traj.kinds_at(T0 + 750 * MS)[0] == SegmentKind.LINEAR
+    assert kinds_at(traj, T0 + 750 * MS)[0] == SegmentKind.LINEAR
     j = jumps(traj, INNER)
     assert j[:, 0].max() < 1e-6  # C0
     assert j[:, 1].max() > 0.5  # velocity is not continuous: linear only guarantees C0
@@ -112,7 +112,7 @@ def test_cubic_when_positions_and_velocities_given() -> None:
     for t, p, v in zip(KNOTS, POS, VEL):
         s = traj.sample(t)
         assert (s.positions[0], s.velocities[0]) == (p, v)
-    assert traj.kinds_at(T0 + 600 * MS)[0] == SegmentKind.CUBIC
+    assert kinds_at(traj, T0 + 600 * MS)[0] == SegmentKind.CUBIC
     j = jumps(traj, INNER)
     assert j[:, :2].max() < 1e-6  # C1
     assert j[:, 2].max() > 0.1  # acceleration is not continuous for cubic
@@ -124,7 +124,7 @@ def test_quintic_when_positions_velocities_accelerations_given() -> None:
         s = traj.sample(t)
         assert (s.positions[0], s.velocities[0], s.accelerations[0]) == (p, v, a)
     assert traj.sample(KNOTS[-1]).positions[0] == POS[-1]  # then held
-    assert traj.kinds_at(T0 + 600 * MS)[0] == SegmentKind.QUINTIC
+    assert kinds_at(traj, T0 + 600 * MS)[0] == SegmentKind.QUINTIC
     assert jumps(traj, INNER).max() < 1e-6  # C2
 
 
@@ -160,13 +160,13 @@ def test_acceleration_only_integrates_by_heun_and_equals_full_input() -> None:
     explicit = build(config, pts(pos=ps, vel=vs, acc=ACC))
     for (_, a), (_, b) in zip(samples(from_acc), samples(explicit)):
         np.testing.assert_allclose(a.positions, b.positions, atol=1e-12)
-    assert from_acc.kinds_at(T0 + 600 * MS)[0] == SegmentKind.QUINTIC
+    assert kinds_at(from_acc, T0 + 600 * MS)[0] == SegmentKind.QUINTIC
     assert jumps(from_acc, INNER).max() < 1e-6  # C2
 
 
 def test_velocity_and_acceleration_only_is_quintic() -> None:
     traj = build(one_joint(), pts(vel=VEL, acc=ACC))
-    assert traj.kinds_at(T0 + 600 * MS)[0] == SegmentKind.QUINTIC
+    assert kinds_at(traj, T0 + 600 * MS)[0] == SegmentKind.QUINTIC
     assert jumps(traj, INNER).max() < 1e-6
 
 

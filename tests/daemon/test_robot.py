@@ -10,12 +10,8 @@ from typing import Any
 import numpy as np
 import pytest
 
-from jtc_hw.daemon.robot import (
-    RobotConfig,
-    create_hardware_set,
-    default_socket_path,
-    load_robot,
-)
+from jtc_hw.api.paths import default_socket_path
+from jtc_hw.daemon.robot import RobotConfig, create_hardware_set, load_robot
 from jtc_hw.daemon.settings import DaemonSettings, RealtimeSettings, TcpSettings
 from jtc_hw.errors import ConfigurationError
 from jtc_hw.hardware import HardwareSpec, LifecycleState

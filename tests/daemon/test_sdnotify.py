@@ -65,8 +65,6 @@ def test_each_message_exact_bytes(listener: tuple[socket.socket, str]) -> None:
     assert received(sock) == b"STOPPING=1\nSTATUS=holding position"
     assert n.status("goal 3 active")
     assert received(sock) == b"STATUS=goal 3 active"
-    assert n.extend_timeout(5_000_000)
-    assert received(sock) == b"EXTEND_TIMEOUT_USEC=5000000"
     assert n.send("ERRNO=5")
     assert received(sock) == b"ERRNO=5"
 
@@ -76,19 +74,6 @@ def test_status_is_kept_on_one_line_and_utf8(listener: tuple[socket.socket, str]
     n = Notifier({"NOTIFY_SOCKET": path})
     assert n.status("joint1 fault:\noverload\r\nµ")
     assert received(sock) == "STATUS=joint1 fault: overload  µ".encode()
-
-
-def test_reloading_carries_monotonic_usec(listener: tuple[socket.socket, str]) -> None:
-    sock, path = listener
-    n = Notifier({"NOTIFY_SOCKET": path})
-    before = time.clock_gettime_ns(time.CLOCK_MONOTONIC) // 1000
-    assert n.reloading()
-    after = time.clock_gettime_ns(time.CLOCK_MONOTONIC) // 1000
-    head, usec_line = received(sock).split(b"\n")
-    assert head == b"RELOADING=1"
-    key, value = usec_line.split(b"=")
-    assert key == b"MONOTONIC_USEC"
-    assert before <= int(value) <= after
 
 
 def test_abstract_namespace_socket(abstract_listener: tuple[socket.socket, str]) -> None:
@@ -136,8 +121,6 @@ def test_without_notify_socket_everything_is_a_no_op() -> None:
     assert n.status("x") is False
     assert n.watchdog() is False
     assert n.stopping() is False
-    assert n.reloading() is False
-    assert n.extend_timeout(1) is False
 
 
 def test_default_environment_is_os_environ(
@@ -231,9 +214,3 @@ def test_malformed_watchdog_is_disabled_with_warning(
     with caplog.at_level(logging.WARNING, logger="jtc_hw.sdnotify"):
         assert Notifier(env).watchdog_interval_s is None
     assert "WATCHDOG" in caplog.text
-
-
-@pytest.mark.parametrize("bad", [0, -1, True, 1.5])
-def test_extend_timeout_rejects_non_positive(bad: object) -> None:
-    with pytest.raises(ValueError, match="usec"):
-        Notifier({}).extend_timeout(bad)  # type: ignore[arg-type]

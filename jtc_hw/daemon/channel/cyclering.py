@@ -38,6 +38,7 @@ affect one sample of a recording, never control.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import secrets
 from dataclasses import dataclass
@@ -256,13 +257,10 @@ class CycleRing:
     # -- reader (the API process) -------------------------------------------------------------
 
     def read(self, since: int) -> tuple[Any, int, int]:
-        """The rows written from sequence number ``since`` on, as a copy.
-
-        Returns:
-            ``(rows, next_since, lost)``: the complete rows in order (an array of shape
-            ``(n, width)``), the sequence number to read from next, and how many rows since
-            ``since`` were overwritten before they could be copied (the reader fell behind).
-        """
+        """The rows written from sequence number ``since`` on, as a copy: ``(rows, next_since,
+        lost)``, the complete rows in order (an array of shape ``(n, width)``), the sequence
+        number to read from next, and how many rows since ``since`` were overwritten before
+        they could be copied (the reader fell behind)."""
         end = int(self._header[_H_COUNT])
         start = max(since, end - self.capacity)
         if end <= start:
@@ -291,7 +289,5 @@ class CycleRing:
         self._blocks = {}
         self._shm.close()
         if self.owner:
-            try:
+            with contextlib.suppress(FileNotFoundError):
                 self._shm.unlink()
-            except FileNotFoundError:
-                pass

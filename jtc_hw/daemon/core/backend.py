@@ -23,6 +23,7 @@ loop process dies, each gets one ``ABORTED`` result "control loop died: <how>".
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 import time
 from collections.abc import Callable, Mapping, Sequence
@@ -376,11 +377,8 @@ class LoopBackend:
         *,
         time_scaling: str | None = None,
     ) -> Accepted:
-        """Plan and commit an action goal (:meth:`Backend.send_goal`).
-
-        Args:
-            time_scaling: ``"reject"`` or ``"fit"`` a goal beyond the joint limits (None:
-                ``limits.time_scaling``).
+        """Plan and commit an action goal (:meth:`Backend.send_goal`); ``time_scaling``
+        ``"reject"`` or ``"fit"`` a goal beyond the joint limits (None: ``limits.time_scaling``).
 
         Raises:
             GoalRejected: invalid goal, beyond the joint limits, or the loop kept refusing the
@@ -400,9 +398,6 @@ class LoopBackend:
         self, traj: JointTrajectory, *, time_scaling: str | None = None
     ) -> TimeScaling | None:
         """Plan and commit a topic trajectory; an empty one stops (:meth:`Backend.send_trajectory`).
-
-        Args:
-            time_scaling: as for ``send_goal``.
 
         Raises:
             GoalRejected: invalid trajectory, beyond the joint limits, or not active.
@@ -516,10 +511,9 @@ class LoopBackend:
 
         def release() -> None:
             self._trim = None
-            try:
+            # RuntimeError: the executor was shut down, the daemon is stopping
+            with contextlib.suppress(RuntimeError):
                 aio.run_in_executor(self._executor, release_freed_memory)
-            except RuntimeError:  # the executor was shut down: the daemon is stopping
-                pass
 
         self._trim = aio.call_later(delay_s, release)
 

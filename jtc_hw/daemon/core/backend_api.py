@@ -140,10 +140,8 @@ class Backend(Protocol):
     async def stop_motion(self) -> bool:
         """End any motion and hold the measured position: cancel the active goal (its result
         is ``canceled``) or stop a topic trajectory. Must not wait on anything but the loop.
-
-        Returns:
-            False if there was nothing to stop (the controller is not active: stopped after a
-            fault, or not started).
+        Returns False if there was nothing to stop (the controller is not active: stopped
+        after a fault, or not started).
 
         Raises:
             HardwareError: the request could not reach the control loop.
@@ -151,10 +149,8 @@ class Backend(Protocol):
 
     async def set_speed_scaling(self, factor: float | None) -> dict[str, float]:
         """Set the speed scaling factor's target (``None``: resume, back to the factor before
-        the pause); the control loop's controller ramps to it from its next cycle.
-
-        Returns:
-            ``{"factor": in force now, "target": what it ramps to}``.
+        the pause); the control loop's controller ramps to it from its next cycle. Returns
+        ``{"factor": in force now, "target": what it ramps to}``.
 
         Raises:
             ConfigurationError: not a number in ``[0, speed_scaling.max_scaling_factor]``.
@@ -162,10 +158,8 @@ class Backend(Protocol):
         """
 
     async def rearm(self) -> bool:
-        """Leave a hardware fault: clear the devices' latched faults and hold the position.
-
-        Returns:
-            False if there was nothing to re-arm (the controller is running, no fault).
+        """Leave a hardware fault: clear the devices' latched faults and hold the position;
+        False if there was nothing to re-arm (the controller is running, no fault).
 
         Raises:
             HardwareError: re-arming failed (the controller stays stopped).

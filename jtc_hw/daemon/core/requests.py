@@ -124,19 +124,13 @@ class Outlet(Protocol):
     """The client cannot be sent anything any more (disconnected)."""
 
     def send(self, data: bytes) -> bool:
-        """Deliver a message that must not be dropped (a goal result, a command, a record).
-
-        Returns:
-            False if it cannot be delivered (the client is gone, or has just been
-            disconnected as too slow): a result is then counted as discarded.
-        """
+        """Deliver a message that must not be dropped (a goal result, a command, a record);
+        False if it cannot be delivered (the client is gone, or has just been disconnected as
+        too slow): a result is then counted as discarded."""
 
     def offer(self, data: bytes) -> bool:
-        """Deliver a droppable message (``state``, ``feedback``) if there is room.
-
-        Returns:
-            False if it was dropped (counted in the client's next ``state``).
-        """
+        """Deliver a droppable message (``state``, ``feedback``) if there is room; False if it
+        was dropped (counted in the client's next ``state``)."""
 
 
 @dataclass(eq=False)

@@ -51,7 +51,7 @@ class Ticker:
 
     Attributes:
         period_ns, spin_ns: as given (:meth:`__init__`).
-        skipped_total: deadlines skipped since construction or :meth:`reset`.
+        skipped_total: deadlines skipped since construction.
     """
 
     def __init__(
@@ -87,23 +87,9 @@ class Ticker:
         self._k = 0
         self.skipped_total = 0
 
-    @property
-    def next_deadline_ns(self) -> int:
-        """The deadline the next :meth:`wait` aims at, unless it has to skip."""
-        return self._t0 + (self._k + 1) * self.period_ns
-
-    def reset(self, start_ns: int | None = None) -> None:
-        """Re-anchors the deadlines at ``start_ns`` (default: the clock now), e.g. when the loop
-        resumes after a deliberate pause; the next deadline is ``start_ns + period_ns``."""
-        self._t0 = self._now() if start_ns is None else start_ns
-        self._k = 0
-        self.skipped_total = 0
-
     def wait(self) -> Tick:
-        """Waits for the next deadline, skipping those already missed by a period or more.
-
-        Returns:
-            ``(deadline_ns, woke_ns, skipped)``; see the module docstring for the three cases.
+        """Waits for the next deadline, skipping those already missed by a period or more
+        (the module docstring has the three cases).
 
         Raises:
             Exception: whatever the injected ``now`` or ``sleep`` raises (``time.sleep`` raises

@@ -40,6 +40,7 @@ goals meanwhile.
 from __future__ import annotations
 
 import collections
+import contextlib
 import gc
 import logging
 import math
@@ -278,10 +279,8 @@ class ControlLoop:
             log.error("%s", self.fault)
             self.send(Status(self.status()))
             if hardware.state is LifecycleState.ACTIVE:
-                try:
+                with contextlib.suppress(JtcHwError):
                     hardware.deactivate(now_ns)
-                except JtcHwError:
-                    pass
             raise
         self.fault = self.fault_cause = None
         log.info("re-armed: holding the measured position")
@@ -374,13 +373,9 @@ class ControlLoop:
         raise JtcHwError(f"unknown loop request {op!r}")
 
     def _begin_shutdown(self, now_ns: int) -> bool | float:
-        """Stop cycling now, or -- with decelerating stops -- once the joints are at rest. Never
-        raises: the controller is active whenever ``stop`` is asked of it.
-
-        Returns:
-            True when the loop ends at once; else the longest it keeps cycling, in seconds
-            (the API process waits that much longer for it to exit).
-        """
+        """Stop cycling now (True), or -- with decelerating stops -- once the joints are at rest
+        (the longest it keeps cycling, in seconds: the API process waits that much longer for
+        it to exit). Never raises: the controller is active whenever ``stop`` is asked of it."""
         if self._stopping_until_ns is not None:
             return (self._stopping_until_ns - now_ns) / 1e9
         if self.fault is not None or not self.ctrl.active or not self.ctrl.decelerates:

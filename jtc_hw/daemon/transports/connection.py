@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import asyncio
 import collections
+import contextlib
 import os
 import socket
 import struct
@@ -149,13 +150,11 @@ def peer_identity(kind: str, writer: asyncio.StreamWriter) -> tuple[str, int | N
         return f"tcp {address[0]}:{address[1]}", None, str(address[0])
     peercred = getattr(socket, "SO_PEERCRED", None)
     if sock is not None and peercred is not None:
-        try:
+        with contextlib.suppress(OSError):
             pid, uid, _gid = struct.unpack(
                 "3i", sock.getsockopt(socket.SOL_SOCKET, peercred, struct.calcsize("3i"))
             )
             return f"unix pid {pid} uid {uid}", uid, ""
-        except OSError:
-            pass
     return "unix", None, ""
 
 

@@ -35,6 +35,7 @@ dates in Foxglove.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import logging
 import math
@@ -445,10 +446,8 @@ class LiveView:
         """Stop publishing and close the server (idempotent)."""
         if self._diagnostics is not None:
             self._diagnostics.cancel()
-            try:
+            with contextlib.suppress(asyncio.CancelledError):
                 await self._diagnostics
-            except asyncio.CancelledError:
-                pass
             self._diagnostics = None
         worker, self._worker = self._worker, None
         if worker is not None:  # the commands being published go first

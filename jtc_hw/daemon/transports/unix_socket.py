@@ -14,6 +14,7 @@ not a socket, is refused. On close the file is removed only if it is still the o
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import socket
@@ -165,10 +166,8 @@ def _remove_stale(path: Path) -> None:
         probe.connect(str(path))
     except (ConnectionRefusedError, FileNotFoundError):
         log.info("replacing stale socket %s (no daemon listening)", path)
-        try:
+        with contextlib.suppress(FileNotFoundError):
             os.unlink(path)
-        except FileNotFoundError:
-            pass
         return
     except OSError as exc:
         raise ConfigurationError(

@@ -47,6 +47,7 @@ from __future__ import annotations
 
 import asyncio
 import collections
+import contextlib
 import hmac
 import logging
 import threading
@@ -491,10 +492,8 @@ class ZenohInterface:
             if self._release_pending or aio is None:
                 return
             self._release_pending = True
-        try:
+        with contextlib.suppress(RuntimeError):  # the event loop is closed: the daemon is exiting
             aio.call_soon_threadsafe(self._schedule_releases)
-        except RuntimeError:  # the event loop is closed: the daemon is exiting
-            pass
 
     def _schedule_releases(self) -> None:
         aio = asyncio.get_running_loop()

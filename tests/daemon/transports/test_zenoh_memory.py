@@ -108,8 +108,12 @@ def test_a_100_mb_query_is_answered_too_large_and_the_api_process_does_not_keep_
         # Flat: never more than part of one message held, and most queries leave nothing.
         assert max(grown) < HELD_MB, grown
         assert sorted(grown)[len(grown) // 2] <= BOUND_MB, grown
-        # What Zenoh holds it gives back with its next large message: never two in a row.
-        assert all(a <= BOUND_MB or b <= BOUND_MB for a, b in zip(grown, grown[1:])), grown
+        # Nothing accumulates: what Zenoh holds after one query is reused by the next, not
+        # added to (the code before the fix: +61, +163, +251). Beside two busy processes the
+        # held part once outlived a second query and was back at +4.6 MB with the third
+        # (29.2, 33.7, 4.6, 4.6, 4.6 MB; tools/ci-under-load, 2026-12-06), so "given back by
+        # the very next query" is not a property of Zenoh's to assert.
+        assert all(b <= max(a, 0.0) + BOUND_MB for a, b in zip(grown, grown[1:])), grown
         del big
         status = _reply(session, daemon, "get_status", b"{}", None)
     finally:

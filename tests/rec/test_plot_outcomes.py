@@ -28,6 +28,10 @@ JOINTS = [f"joint{i}" for i in range(1, 7)]
 UPDATE_RATE = 500
 CYCLE_S = 1 / UPDATE_RATE
 CONTROLLER = "joint_trajectory_controller"
+LOOSE = [{"name": j, "position": 1.0} for j in JOINTS]
+"""The goals' path tolerance: what is recorded and drawn is tested here, not the path
+tolerance. At 0.5 rad/s, a normally scheduled loop stalled 166 ms beside busy processes broke
+the configured 0.05 rad (tools/ci-under-load); 1 rad takes a 2 s stall."""
 
 
 def _goal(offset: float) -> dict[str, Any]:
@@ -73,7 +77,7 @@ def test_waypoints_are_drawn_where_the_reference_reached_them_at_half_speed(
             client.set_speed_scaling(0.5)
             start = next_state(sub, lambda s: s["speed_scaling"]["factor"] == 0.5)
             offset = start["actual"]["positions"][0]
-            result = client.send_goal(_goal(offset)).wait(timeout_s=WAIT_S + 4)
+            result = client.send_goal(_goal(offset), LOOSE).wait(timeout_s=WAIT_S + 4)
             assert result["status"] == "succeeded", result
             bag = Path(client.get_status()["recording"]["file"])
     finally:
@@ -111,9 +115,9 @@ def test_results_faults_and_rearms_are_in_the_bag_and_on_the_plot(tmp_path: Path
         d.wait_ready()
         with connect(d) as client, client.subscribe_state() as sub:
             offset = next_state(sub, lambda s: True)["actual"]["positions"][0]
-            done = client.send_goal(_goal(offset)).wait(timeout_s=WAIT_S)
+            done = client.send_goal(_goal(offset), LOOSE).wait(timeout_s=WAIT_S)
             assert done["status"] == "succeeded", done
-            goal = client.send_goal(_goal(offset + 1.0))
+            goal = client.send_goal(_goal(offset + 1.0), LOOSE)
             next(goal.feedback(timeout_s=WAIT_S))  # executing
             client.sim("arm", fault=fault)
             aborted = goal.wait(timeout_s=WAIT_S)

@@ -423,7 +423,7 @@ def test_latency_timer_warning(
 
 
 def test_sync_read_is_all_or_nothing(emulator: DynamixelEmulator) -> None:
-    with DynamixelBus(emulator.device_path, 4_000_000, timeout_ms=30.0,
+    with DynamixelBus(emulator.device_path, 4_000_000, timeout_ms=DRIVER_TEST_TIMEOUT_MS,
                       latency_timer_warn=False) as bus:
         result = bus.sync_read(IDS, 132, 4)
         assert sorted(result.data) == IDS and result.errors == {}
@@ -474,11 +474,13 @@ def test_the_sdk_port_uses_the_monotonic_clock(emulator: DynamixelEmulator) -> N
 def test_a_late_reply_is_not_taken_for_the_next_one(
     make_hw: Callable[..., DynamixelHardware], emulator: DynamixelEmulator
 ) -> None:
-    hw = make_hw(max_retries=0, timeout_ms=20.0)
+    # The test's usual reply timeout, and a reply twice as late: with 20 ms (and 40 ms late)
+    # a later read of the loop below timed out beside two busy processes (tools/ci-under-load).
+    hw = make_hw(max_retries=0)
     hw.configure()
     hw.activate(now_ns())
     good = hw.read(now_ns()).positions
-    emulator.delay_replies(1, 0.04)  # answers after the timeout
+    emulator.delay_replies(1, 2 * DRIVER_TEST_TIMEOUT_MS / 1000)  # answers after the timeout
     with pytest.raises(CommunicationError, match="servo 1"):
         hw.read(now_ns())
     emulator.delay_replies(1, 0.0)
@@ -502,7 +504,7 @@ def test_the_shipped_configurations_load() -> None:
 
 
 def test_a_refused_write_names_the_servo_and_cause(emulator: DynamixelEmulator) -> None:
-    with DynamixelBus(emulator.device_path, 4_000_000, timeout_ms=30.0,
+    with DynamixelBus(emulator.device_path, 4_000_000, timeout_ms=DRIVER_TEST_TIMEOUT_MS,
                       latency_timer_warn=False) as bus:
         bus.write(2, 64, 1, 1)  # torque on: the EEPROM area is locked
         with pytest.raises(ServoStatusError, match="servo 2 .*access error") as info:

@@ -460,7 +460,8 @@ class PtyBusEmulator(Generic[P]):
 
 
 def add_bus_arguments(
-    p: argparse.ArgumentParser, *, model: str, baud: int, return_delay: str
+    p: argparse.ArgumentParser, *, model: str, baud: int, return_delay: str,
+    paced: bool = False,
 ) -> None:
     """The options every serial-bus emulator takes: ``--ids --model --baud --pace --link --stats
     --return-delay-us --priority`` (a family adds its own after them).
@@ -470,16 +471,18 @@ def add_bus_arguments(
         model: the default ``--model``.
         baud: the default ``--baud``, bit/s.
         return_delay: the servo's factory return delay, in words (``"500"``), for the help.
+        paced: pace by default (then ``--no-pace`` turns it off).
     """
     p.add_argument("--ids", default="1", help="servo ids, e.g. 1-6 or 1,2,5-7 (default 1)")
     p.add_argument("--model", default=model, help=f"servo model (default {model})")
     p.add_argument("--baud", type=int, default=baud,
                    help=f"servo baud rate, bit/s (default {baud})")
-    p.add_argument(
-        "--pace",
-        action="store_true",
-        help="hold replies back to the wire time of a real bus at that baud rate",
-    )
+    pace_help = "hold replies back to the wire time of a real bus at that baud rate"
+    if paced:
+        p.add_argument("--pace", action=argparse.BooleanOptionalAction, default=True,
+                       help=pace_help + " (default; --no-pace: as soon as they are due)")
+    else:
+        p.add_argument("--pace", action="store_true", help=pace_help)
     p.add_argument("--link", default=None, help="also create this symlink to the pty")
     p.add_argument(
         "--stats",

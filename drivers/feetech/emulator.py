@@ -383,7 +383,7 @@ class FeetechEmulator(PtyBusEmulator[Packet]):
         return s, encode_status(servo_id, s.status, data)
 
 
-# -- command line -----------------------------------------------------------------------------------
+# -- command line ---------------------------------------------------------------------------------
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -170,7 +170,6 @@ _COMMON_DEFAULTS = {
     "minimum_startup_force": 16,
     "cw_dead_zone": 1,
     "ccw_dead_zone": 1,
-    "torque_limit": 1000,
     "lock": 1,
 }
 
@@ -181,6 +180,7 @@ DEFAULTS: Mapping[SeriesName, Mapping[str, int]] = MappingProxyType({
         **_COMMON_DEFAULTS,
         "max_position_limit": 4095,
         "max_voltage_limit": 140,
+        "torque_limit": 1000,
         "protection_current": 500,
         "angular_resolution": 1,
         "protective_torque": 20,
@@ -453,7 +453,9 @@ class EmulatedServo(ReplyFaults):
         return bool(self.get("unloading_condition") & self.status & ~StatusError.OVERLOAD)
 
     def _torque_limit_nm(self) -> float:
-        limit = self.physics.stall_torque_nm * min(self.get("torque_limit"), 1000) / 1000.0
+        # SCS has no RAM Torque Limit register in the control table: its EEPROM maximum.
+        name = "torque_limit" if "torque_limit" in self.series.registers else "max_torque_limit"
+        limit = self.physics.stall_torque_nm * min(self.get(name), 1000) / 1000.0
         if self.overloaded:  # overload protection without unloading: Protective Torque
             limit = min(limit, self.physics.stall_torque_nm
                         * self.get("protective_torque") / 100.0)

@@ -35,7 +35,7 @@ protocol::
   the serving thread) until ~100 us before the moment and spins the rest: this is a test device,
   and a sleep alone wakes 20-70 us late.
 
-Command line (:func:`add_bus_arguments`, :func:`run_emulator`): ``--ids --model --baud --pace
+Command line (:func:`bus_parser`, :func:`run_emulator`): ``--ids --model --baud --pace
 --link --stats --return-delay-us --priority``, the SCHED_FIFO priority asked for before any
 thread starts (:mod:`~jtc_hw.drivers.emulation_cli`), the device path on stdout, then serving
 until SIGINT/SIGTERM with the packet statistics on stderr.
@@ -54,20 +54,20 @@ import threading
 import time
 import tty
 from collections.abc import Callable, Iterable, Sequence
-from types import TracebackType
 from typing import Any, Generic, Protocol, TypeVar
 
 from jtc_hw.hardware.timing import reduce_timer_slack
 
-from .emulation_cli import DEFAULT_PRIORITY, parse_ids, realtime_priority
+from .emulation_cli import DEFAULT_PRIORITY, apply_priority, parse_ids
 
 __all__ = [
+    "BusServo",
     "FrameDecoder",
     "PtyBusEmulator",
     "ReplyFaults",
     "corrupt_last_byte",
     "faulted",
-    "add_bus_arguments",
+    "bus_parser",
     "run_emulator",
     "wire_time_s",
 ]
@@ -88,8 +88,9 @@ _PARTIAL_TIMEOUT_S = 0.1
 
 P = TypeVar("P")
 P_co = TypeVar("P_co", covariant=True)
-_E = TypeVar("_E", bound="PtyBusEmulator[Any]")
+_E = TypeVar("_E", bound="PtyBusEmulator[Any, Any]")
 _S = TypeVar("_S", bound="ReplyFaults")
+S = TypeVar("S", bound="BusServo")
 
 
 def wire_time_s(n_bytes: int, baud: int) -> float:
@@ -98,7 +99,7 @@ def wire_time_s(n_bytes: int, baud: int) -> float:
 
 
 class ReplyFaults:
-    """The reply faults a test injects into one emulated servo (a servo class inherits them).
+    """The reply faults a test injects into one emulated servo (:class:`BusServo` has them).
 
     Attributes:
         drop: how many of its next replies are left unsent.
@@ -130,6 +131,27 @@ class ReplyFaults:
         return False
 
 
+class BusServo(ReplyFaults):
+    """What the shared machinery needs of an emulated servo: its id, its clock, its faults."""
+
+    @property
+    def id(self) -> int:
+        """The servo's present id."""
+        raise NotImplementedError
+
+    def step(self, now: float) -> None:
+        """Advance the servo to ``now`` (``time.monotonic()``)."""
+        raise NotImplementedError
+
+    def value(self, name: str) -> int:
+        """The value register ``name`` holds now (present registers brought up to date).
+
+        Raises:
+            KeyError: no such register.
+        """
+        raise NotImplementedError
+
+
 def corrupt_last_byte(data: bytes) -> bytes:
     """``data`` with its last byte (a checksum or a CRC's high byte) inverted."""
     return data[:-1] + bytes((data[-1] ^ 0xFF,))
@@ -148,6 +170,8 @@ def faulted(replies: Iterable[tuple[_S, bytes]]) -> list[tuple[_S, bytes]]:
 class FrameDecoder(Protocol[P_co]):
     """What the serving thread needs of a family's packet decoder."""
 
+    junk_bytes: int
+
     @property
     def pending(self) -> int: ...
 
@@ -156,12 +180,12 @@ class FrameDecoder(Protocol[P_co]):
     def feed(self, data: bytes) -> list[P_co]: ...
 
 
-class PtyBusEmulator(Generic[P]):
+class PtyBusEmulator(Generic[P, S]):
     """One bus of emulated servos on a pseudo-terminal (see the module docstring).
 
-    A subclass sets :attr:`_decoder` and implements :meth:`_handle` and :meth:`_step_servos`;
-    it calls :meth:`_schedule` then :meth:`_send` to answer, :meth:`_hold_bus` for a packet
-    nobody answers. :attr:`_lock` guards the servos: the serving thread takes it around
+    A subclass sets :attr:`_decoder` and :attr:`_servos` and implements :meth:`_handle`; it
+    calls :meth:`_schedule` then :meth:`_send` to answer, :meth:`_hold_bus` for a packet nobody
+    answers. :attr:`_lock` guards the servos: the serving thread takes it around
     :meth:`_step_servos`, and a subclass around its own dispatch.
 
     Args:
@@ -172,6 +196,7 @@ class PtyBusEmulator(Generic[P]):
     """
 
     _decoder: FrameDecoder[P]
+    _servos: list[S]
 
     def __init__(self, *, baud: int, pace: bool, link: str | None, thread_name: str) -> None:
         self.pace = pace
@@ -188,7 +213,9 @@ class PtyBusEmulator(Generic[P]):
         # mode; the last reply's due time, unpaced).
         self._bus_free = 0.0
         self._last_step = 0.0  # when every servo was last stepped (idle stepping)
+        self.packets_served = 0
         self.replies_sent = 0
+        self.errors_sent = 0  # status packets carrying an error
         self.bytes_dropped = 0
 
     # -- what a family provides -----------------------------------------------------------------
@@ -200,23 +227,60 @@ class PtyBusEmulator(Generic[P]):
 
     def _step_servos(self, now: float) -> None:
         """Advance every servo to ``now`` (called with :attr:`_lock` held)."""
+        for s in self._servos:
+            s.step(now)
+
+    def _checksum_errors(self) -> tuple[str, int]:
+        """The family's name for requests received with a bad checksum or CRC, and their count."""
         raise NotImplementedError
 
     def stats(self) -> dict[str, int]:
-        """Counters for the command line's statistics line."""
-        raise NotImplementedError
+        """Counters: packets served, replies sent, replies with an error status, requests with
+        a bad checksum / CRC, junk bytes seen, reply bytes the pty could not take."""
+        with self._lock:
+            name, count = self._checksum_errors()
+            return {
+                "packets_served": self.packets_served,
+                "replies_sent": self.replies_sent,
+                "errors_sent": self.errors_sent,
+                name: count,
+                "junk_bytes": self._decoder.junk_bytes,
+                "bytes_dropped": self.bytes_dropped,
+            }
 
     def describe(self) -> str:
         """What is served, for the command line's banner (``"6 x STS3215"``)."""
         raise NotImplementedError
 
-    def _servo(self, servo_id: int) -> ReplyFaults:
+    def _servo(self, servo_id: int) -> S:
         """The servo ``servo_id``.
 
         Raises:
             KeyError: no such servo.
         """
-        raise NotImplementedError
+        for s in self._servos:
+            if s.id == servo_id:
+                return s
+        raise KeyError(f"no emulated servo with id {servo_id}")
+
+    def _servo_now(self, servo_id: int) -> S:
+        """The servo ``servo_id``, advanced to now (call it with :attr:`_lock` held).
+
+        Raises:
+            KeyError: no such servo.
+        """
+        s = self._servo(servo_id)
+        s.step(time.monotonic())
+        return s
+
+    def register(self, servo_id: int, name: str) -> int:
+        """The value of register ``name`` of servo ``servo_id`` now (present values refreshed).
+
+        Raises:
+            KeyError: unknown servo or register.
+        """
+        with self._lock:
+            return self._servo_now(servo_id).value(name)
 
     # -- faults (thread-safe) -----------------------------------------------------------------
 
@@ -305,12 +369,7 @@ class PtyBusEmulator(Generic[P]):
             self.start()
         return self
 
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
+    def __exit__(self, *exc_info: object) -> None:
         self.close()
 
     @property
@@ -456,23 +515,27 @@ class PtyBusEmulator(Generic[P]):
             self.replies_sent += len(replies)
 
 
-# -- command line -----------------------------------------------------------------------------------
+# -- command line ---------------------------------------------------------------------------------
 
 
-def add_bus_arguments(
-    p: argparse.ArgumentParser, *, model: str, baud: int, return_delay: str,
+def bus_parser(
+    prog: str, description: str, *, model: str, baud: int, return_delay: str,
     paced: bool = False,
-) -> None:
-    """The options every serial-bus emulator takes: ``--ids --model --baud --pace --link --stats
-    --return-delay-us --priority`` (a family adds its own after them).
+) -> argparse.ArgumentParser:
+    """An emulator's argument parser with the options every serial-bus emulator takes: ``--ids
+    --model --baud --pace --link --stats --return-delay-us --priority`` (a family adds its own
+    after them).
 
     Args:
-        p: the parser to add them to.
+        prog: the command (``"jtc-hw emulate feetech"``).
+        description: what it serves, for ``--help``.
         model: the default ``--model``.
         baud: the default ``--baud``, bit/s.
         return_delay: the servo's factory return delay, in words (``"500"``), for the help.
         paced: pace by default (then ``--no-pace`` turns it off).
     """
+    p = argparse.ArgumentParser(prog=prog, description=description + " Prints the device "
+                                "path, then serves until SIGINT/SIGTERM.")
     p.add_argument("--ids", default="1", help="servo ids, e.g. 1-6 or 1,2,5-7 (default 1)")
     p.add_argument("--model", default=model, help=f"servo model (default {model})")
     p.add_argument("--baud", type=int, default=baud,
@@ -507,6 +570,7 @@ def add_bus_arguments(
         f"{DEFAULT_PRIORITY} where permitted, so that a busy host does not delay the replies "
         "as it would never delay real servos)",
     )
+    return p
 
 
 def run_emulator(
@@ -530,12 +594,7 @@ def run_emulator(
         ``parser.error``.
     """
     prog = parser.prog
-    if args.priority is not None and not 0 <= args.priority <= 99:
-        parser.error(f"--priority must be 0..99, got {args.priority}")
-    refused = realtime_priority(DEFAULT_PRIORITY if args.priority is None else args.priority,
-                                whole_process=True)
-    if refused is not None and args.priority is not None:  # asked for: say it was not given
-        print(f"{prog}: {refused}", file=sys.stderr)
+    apply_priority(parser, args.priority)
     try:
         ids = parse_ids(args.ids, valid=valid_ids)
         emulator = make(ids)

@@ -63,7 +63,7 @@ from .. import emulation_cli
 from ..pty_emulator import (
     IDLE_STEP_S,
     PtyBusEmulator,
-    add_bus_arguments,
+    bus_parser,
     corrupt_last_byte,
     faulted,
     run_emulator,
@@ -95,7 +95,7 @@ class _Reply:
     data: bytes
 
 
-class DynamixelEmulator(PtyBusEmulator[Packet]):
+class DynamixelEmulator(PtyBusEmulator[Packet, EmulatedServo]):
     """One bus of emulated servos on a pseudo-terminal (see the module docstring).
 
     Args:
@@ -156,39 +156,14 @@ class DynamixelEmulator(PtyBusEmulator[Packet]):
             for s in self._servos:
                 s.set_firmware(firmware_version)
         self._decoder = Decoder()
-        self.packets_served = 0
-        self.errors_sent = 0
 
     # -- observation and faults ---------------------------------------------------------------
-
-    def _servo(self, servo_id: int) -> EmulatedServo:
-        for s in self._servos:
-            if s.id == servo_id:
-                return s
-        raise KeyError(f"no emulated servo with id {servo_id}")
 
     def positions(self) -> dict[int, float]:
         """id -> Present Position in rad (``present_position * 2*pi / ticks_per_rev``), now."""
         with self._lock:
-            now = time.monotonic()
-            out = {}
-            for s in self._servos:
-                s.step(now)
-                out[s.id] = self.model.ticks_to_rad(s.present_ticks())
-            return out
-
-    def register(self, servo_id: int, name: str) -> int:
-        """The value of register ``name`` of servo ``servo_id`` (present values refreshed).
-
-        Raises:
-            KeyError: unknown servo or register.
-        """
-        with self._lock:
-            s = self._servo(servo_id)
-            s.step(time.monotonic())
-            s.sync_present()
-            self.model.register(name)
-            return s.get(name)
+            self._step_servos(time.monotonic())
+            return {s.id: self.model.ticks_to_rad(s.present_ticks()) for s in self._servos}
 
     def corrupt_crc(self, servo_id: int, count: int) -> None:
         """Servo ``servo_id`` sends its next ``count`` replies with a wrong CRC.
@@ -205,8 +180,7 @@ class DynamixelEmulator(PtyBusEmulator[Packet]):
             KeyError: unknown servo.
         """
         with self._lock:
-            s = self._servo(servo_id)
-            s.step(time.monotonic())
+            s = self._servo_now(servo_id)
             s.set("hardware_error_status", s.get("hardware_error_status") | int(bits))
             s.set("torque_enable", 0)
 
@@ -221,8 +195,7 @@ class DynamixelEmulator(PtyBusEmulator[Packet]):
             KeyError: unknown servo.
         """
         with self._lock:
-            s = self._servo(servo_id)
-            s.step(time.monotonic())
+            s = self._servo_now(servo_id)
             s.temperature_c = float(celsius)
             s.stale = True
             if round(celsius) > s.get("temperature_limit"):
@@ -240,8 +213,7 @@ class DynamixelEmulator(PtyBusEmulator[Packet]):
             KeyError: unknown servo.
         """
         with self._lock:
-            s = self._servo(servo_id)
-            s.step(time.monotonic())
+            s = self._servo_now(servo_id)
             s.voltage_v = None if volts is None else float(volts)
             s.stale = True
             tenths = round((s.model.nominal_voltage_v if volts is None else volts) * 10.0)
@@ -338,17 +310,8 @@ class DynamixelEmulator(PtyBusEmulator[Packet]):
         with self._lock:
             return self._servo(servo_id).last_instruction
 
-    def stats(self) -> dict[str, int]:
-        """Counters: packets served, replies sent, CRC errors and junk bytes seen, ..."""
-        with self._lock:
-            return {
-                "packets_served": self.packets_served,
-                "replies_sent": self.replies_sent,
-                "errors_sent": self.errors_sent,
-                "crc_errors": self._decoder.crc_errors,
-                "junk_bytes": self._decoder.junk_bytes,
-                "bytes_dropped": self.bytes_dropped,
-            }
+    def _checksum_errors(self) -> tuple[str, int]:
+        return "crc_errors", self._decoder.crc_errors
 
     @property
     def crc_errors(self) -> int:
@@ -356,11 +319,6 @@ class DynamixelEmulator(PtyBusEmulator[Packet]):
         return self._decoder.crc_errors
 
     # -- serving ------------------------------------------------------------------------------
-
-    def _step_servos(self, now: float) -> None:
-        # The idle bus only needs the watchdog and the coasting motors to move on now and then.
-        for s in self._servos:
-            s.step(now)
 
     def describe(self) -> str:
         return f"{len(self._servos)} x {self.model.name}"
@@ -583,12 +541,9 @@ def parse_ids(text: str) -> list[int]:
 
 def build_parser() -> argparse.ArgumentParser:
     """The ``jtc-hw emulate dynamixel`` argument parser."""
-    p = argparse.ArgumentParser(
-        prog="jtc-hw emulate dynamixel",
-        description="Emulated Dynamixel X-series servos (Protocol 2.0) on a pseudo-terminal. "
-        "Prints the device path, then serves until SIGINT/SIGTERM.",
-    )
-    add_bus_arguments(p, model="XM430-W350", baud=4_000_000, return_delay="500")
+    p = bus_parser("jtc-hw emulate dynamixel", "Emulated Dynamixel X-series servos (Protocol "
+                   "2.0) on a pseudo-terminal.", model="XM430-W350", baud=4_000_000,
+                   return_delay="500")
     p.add_argument(
         "--firmware",
         type=int,

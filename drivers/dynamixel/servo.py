@@ -70,7 +70,7 @@ import time
 from collections.abc import Callable, Mapping
 
 from ..motor_model import Motor, MotorParams
-from ..pty_emulator import ReplyFaults
+from ..pty_emulator import BusServo
 from .control_table import (
     BAUD_RATES,
     BUS_WATCHDOG_FIRMWARE,
@@ -228,7 +228,7 @@ def _layout(model: Model) -> _Layout:
     return layout
 
 
-class EmulatedServo(ReplyFaults):
+class EmulatedServo(BusServo):
     """One emulated servo: its control table, motor and injected faults."""
 
     def __init__(
@@ -305,6 +305,16 @@ class EmulatedServo(ReplyFaults):
             self.table[address:end] = value.to_bytes(end - address, "little", signed=signed)
             self._values[name] = value
             self.stale = True
+
+    def value(self, name: str) -> int:
+        """The value of register ``name`` now (present registers rewritten from the motor).
+
+        Raises:
+            KeyError: the model has no such register (``UnknownRegisterError``).
+        """
+        self.sync_present()
+        self.model.register(name)
+        return self.get(name)
 
     @property
     def direction(self) -> int:

@@ -62,7 +62,7 @@ import threading
 import time
 from collections.abc import Mapping, Sequence
 
-from ..pty_emulator import PtyBusEmulator, add_bus_arguments, faulted, run_emulator
+from ..pty_emulator import PtyBusEmulator, bus_parser, faulted, run_emulator
 from .codec import (
     BROADCAST_ID,
     Decoder,
@@ -86,7 +86,7 @@ _Reply = tuple[EmulatedServo, bytes]
 _ALWAYS_ANSWERED = frozenset({Instruction.PING, Instruction.READ, Instruction.SYNC_READ})
 
 
-class FeetechEmulator(PtyBusEmulator[Packet]):
+class FeetechEmulator(PtyBusEmulator[Packet, EmulatedServo]):
     """One bus of emulated Feetech servos on a pseudo-terminal (see the module docstring).
 
     Args:
@@ -104,18 +104,10 @@ class FeetechEmulator(PtyBusEmulator[Packet]):
         KeyError: unknown model (``UnknownModelError``).
     """
 
-    def __init__(
-        self,
-        ids: Sequence[int],
-        model: str = "STS3215",
-        *,
-        baud: int = 1_000_000,
-        pace: bool = False,
-        link: str | None = None,
-        initial_positions: Mapping[int, int] | None = None,
-        return_delay_us: float | None = None,
-        supply_v: float | None = None,
-    ) -> None:
+    def __init__(self, ids: Sequence[int], model: str = "STS3215", *, baud: int = 1_000_000,
+                 pace: bool = False, link: str | None = None,
+                 initial_positions: Mapping[int, int] | None = None,
+                 return_delay_us: float | None = None, supply_v: float | None = None) -> None:
         ids = list(ids)
         if not ids or any(not 0 <= i < BROADCAST_ID for i in ids) or len(set(ids)) != len(ids):
             raise ValueError(f"ids must be distinct values in 0..253, got {ids}")
@@ -141,14 +133,6 @@ class FeetechEmulator(PtyBusEmulator[Packet]):
                 s.set("return_delay_time", max(0, min(254, round(return_delay_us / 2.0))))
             s.stored = bytes(s.memory[:EEPROM_END])  # the factory settings of this bus
         self._decoder = Decoder(status=False)
-        self.packets_served = 0
-        self.errors_sent = 0  # status packets with a status bit set
-
-    def _servo(self, servo_id: int) -> EmulatedServo:
-        for s in self._servos:
-            if s.id == servo_id:
-                return s
-        raise KeyError(f"no emulated servo with id {servo_id}")
 
     def describe(self) -> str:
         return f"{len(self._servos)} x {self.model.name}"
@@ -158,22 +142,8 @@ class FeetechEmulator(PtyBusEmulator[Packet]):
     def positions(self) -> dict[int, int]:
         """id -> Present Position, steps, now."""
         with self._lock:
-            now = time.monotonic()
-            for s in self._servos:
-                s.step(now)
+            self._step_servos(time.monotonic())
             return {s.id: s.present_steps() for s in self._servos}
-
-    def register(self, servo_id: int, name: str) -> int:
-        """The value of register ``name`` of servo ``servo_id`` now (sign decoded).
-
-        Raises:
-            KeyError: unknown servo or register.
-        """
-        with self._lock:
-            s = self._servo(servo_id)
-            s.step(time.monotonic())
-            s.refresh()
-            return s.get(name)
 
     def stored_register(self, servo_id: int, name: str) -> int:
         """What register ``name`` (EEPROM) of servo ``servo_id`` would read after a power cycle.
@@ -187,9 +157,7 @@ class FeetechEmulator(PtyBusEmulator[Packet]):
     def protection_events(self, since_s: float = -math.inf) -> list[ProtectionEvent]:
         """Every protection a servo entered at or after ``since_s`` (``time.monotonic()``)."""
         with self._lock:
-            now = time.monotonic()
-            for s in self._servos:
-                s.step(now)  # an overload due by now is recorded even if nothing stepped yet
+            self._step_servos(time.monotonic())  # an overload due by now is recorded
             events = [e for s in self._servos for e in s.events if e.at_s >= since_s]
         return sorted(events, key=lambda e: (e.at_s, e.servo_id))
 
@@ -217,17 +185,8 @@ class FeetechEmulator(PtyBusEmulator[Packet]):
                                        f"within {timeout_s:g} s (events: {s.events})")
                 self._changed.wait(min(deadline - now, 0.05))
 
-    def stats(self) -> dict[str, int]:
-        """Counters: packets served, replies sent, checksum errors and junk bytes seen, ..."""
-        with self._lock:
-            return {
-                "packets_served": self.packets_served,
-                "replies_sent": self.replies_sent,
-                "errors_sent": self.errors_sent,
-                "checksum_errors": self._decoder.checksum_errors,
-                "junk_bytes": self._decoder.junk_bytes,
-                "bytes_dropped": self.bytes_dropped,
-            }
+    def _checksum_errors(self) -> tuple[str, int]:
+        return "checksum_errors", self._decoder.checksum_errors
 
     # -- faults -----------------------------------------------------------------------------------
 
@@ -248,9 +207,7 @@ class FeetechEmulator(PtyBusEmulator[Packet]):
             KeyError: unknown servo.
         """
         with self._lock:
-            s = self._servo(servo_id)
-            s.step(time.monotonic())
-            s.blocked = bool(blocked)
+            self._servo_now(servo_id).blocked = bool(blocked)
 
     def set_temperature(self, servo_id: int, celsius: float) -> None:
         """Servo ``servo_id``'s temperature reads ``celsius`` from now on; above Max
@@ -280,9 +237,7 @@ class FeetechEmulator(PtyBusEmulator[Packet]):
             KeyError: unknown servo.
         """
         with self._lock:
-            s = self._servo(servo_id)
-            s.angle_fault = bool(fault)
-            s.stale = True
+            self._servo_now(servo_id).set_angle_fault(fault)
 
     def power_cycle(self, servo_id: int) -> None:
         """Switch servo ``servo_id`` off and on: what the EPROM lock let it store survives.
@@ -294,10 +249,6 @@ class FeetechEmulator(PtyBusEmulator[Packet]):
             self._servo(servo_id).power_cycle(time.monotonic())
 
     # -- serving ----------------------------------------------------------------------------------
-
-    def _step_servos(self, now: float) -> None:
-        for s in self._servos:
-            s.step(now)
 
     def _handle(self, packet: Packet, arrival: float, first_byte: float) -> None:
         with self._lock:
@@ -388,13 +339,9 @@ class FeetechEmulator(PtyBusEmulator[Packet]):
 
 def build_parser() -> argparse.ArgumentParser:
     """The ``jtc-hw emulate feetech`` argument parser."""
-    p = argparse.ArgumentParser(
-        prog="jtc-hw emulate feetech",
-        description="Emulated Feetech STS/SMS or SCS servos (LeRobot's SO-100/SO-101 arm: six "
-        "STS3215) on a pseudo-terminal. Prints the device path, then serves until "
-        "SIGINT/SIGTERM.",
-    )
-    add_bus_arguments(p, model="STS3215", baud=1_000_000, return_delay="500", paced=True)
+    p = bus_parser("jtc-hw emulate feetech", "Emulated Feetech STS/SMS or SCS servos "
+                   "(LeRobot's SO-100/SO-101 arm: six STS3215) on a pseudo-terminal.",
+                   model="STS3215", baud=1_000_000, return_delay="500", paced=True)
     p.add_argument("--supply-v", type=float, default=None,
                    help="the supply voltage the servos read, V (default: the model's nominal)")
     return p

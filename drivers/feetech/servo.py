@@ -97,19 +97,12 @@ from collections.abc import Callable, Mapping
 from types import MappingProxyType
 
 from ..motor_model import Motor, MotorParams
-from ..pty_emulator import ReplyFaults
+from ..pty_emulator import BusServo
 from .codec import StatusError, decode_value, encode_value
 from .control_table import EEPROM_END, Model, Register, SeriesName
 
-__all__ = [
-    "DEFAULTS",
-    "MEMORY_SIZE",
-    "PHYSICS",
-    "SCS_DIRECTION_BITS",
-    "EmulatedServo",
-    "Physics",
-    "ProtectionEvent",
-]
+__all__ = ["DEFAULTS", "MEMORY_SIZE", "PHYSICS", "SCS_DIRECTION_BITS", "EmulatedServo", "Physics",
+           "ProtectionEvent"]
 
 #: Bytes of emulated memory (addresses are one byte on the wire).
 MEMORY_SIZE = 256
@@ -221,7 +214,7 @@ class ProtectionEvent:
     torque_off: bool
 
 
-class EmulatedServo(ReplyFaults):
+class EmulatedServo(BusServo):
     """One emulated servo: its memory, motor, protections and injected faults.
 
     Args:
@@ -327,6 +320,15 @@ class EmulatedServo(ReplyFaults):
         if bit != reg.sign_bit:
             reg = dataclasses.replace(reg, sign_bit=bit)
         return decode_value(reg, raw, self._order)
+
+    def value(self, name: str) -> int:
+        """The value register ``name`` holds now (sign decoded, present registers refreshed).
+
+        Raises:
+            KeyError: the series has no such register (``UnknownRegisterError``).
+        """
+        self.refresh()
+        return self.get(name)
 
     def stored_value(self, name: str) -> int:
         """What register ``name`` will read after a power cycle (EEPROM: what was stored).
@@ -533,6 +535,11 @@ class EmulatedServo(ReplyFaults):
         if self.status & StatusError.VOLTAGE and not was:
             unload = bool(self.get("unloading_condition") & StatusError.VOLTAGE)
             self._enter(StatusError.VOLTAGE, now, unload and self.torque_on)
+        self.stale = True
+
+    def set_angle_fault(self, fault: bool) -> None:
+        """The position sensor reports a fault (the angle bit) while ``fault``."""
+        self.angle_fault = bool(fault)
         self.stale = True
 
     def refresh(self) -> None:

@@ -27,7 +27,7 @@ from jtc_hw.drivers.feetech.emulator import FeetechEmulator
 from jtc_hw.drivers.pty_emulator import wire_time_s
 
 scs = pytest.importorskip("scservo_sdk", reason="feetech-servo-sdk (jtc_hw[feetech]) is missing")
-from scservo_sdk import port_handler  # noqa: E402
+from scservo_sdk import port_handler, scservo_def  # noqa: E402
 
 STS = ct.STS_SMS
 ADDR = {name: reg.address for name, reg in STS.registers.items()}
@@ -36,13 +36,12 @@ ADDR = {name: reg.address for name, reg in STS.registers.items()}
 @pytest.fixture(autouse=True)
 def sdk_timing(monkeypatch: pytest.MonkeyPatch) -> Iterator[None]:
     monkeypatch.setattr(port_handler, "LATENCY_TIMER", 250)
-    old = sys.getswitchinterval()
+    # PacketHandler(1) sets the SDK's module-global byte order: back to 0 afterwards.
+    monkeypatch.setattr(scservo_def, "SCS_END", 0)
+    interval = sys.getswitchinterval()
     sys.setswitchinterval(0.0005)
-    try:
-        yield
-    finally:
-        sys.setswitchinterval(old)
-        scs.SCS_SETEND(0)  # PacketHandler(1) flips a module global of the SDK
+    yield
+    sys.setswitchinterval(interval)
 
 
 class Bus:
@@ -77,10 +76,8 @@ def emu() -> Iterator[FeetechEmulator]:
 @pytest.fixture
 def bus(emu: FeetechEmulator) -> Iterator[Bus]:
     b = Bus(emu)
-    try:
-        yield b
-    finally:
-        b.port.closePort()
+    yield b
+    b.port.closePort()
 
 
 def test_read_write_and_reg_write_action(bus: Bus) -> None:
@@ -219,35 +216,27 @@ def test_bad_options_are_refused() -> None:
 
 def test_jtc_hw_emulate_feetech_serves_until_sigterm(tmp_path: Path) -> None:
     link = str(tmp_path / "fee")
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "jtc_hw", "emulate", "feetech", "--ids", "1-2", "--model",
-         "SCS0009", "--link", link, "--return-delay-us", "0", "--stats", "exit"],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-    )
-    try:
-        assert proc.stdout is not None and proc.stderr is not None
-        assert proc.stdout.readline().strip() == link
-        assert os.path.islink(link)
-        port = scs.PortHandler(link)
-        ph = scs.PacketHandler(1)
+    argv = [sys.executable, "-m", "jtc_hw", "emulate", "feetech", "--ids", "1-2", "--model",
+            "SCS0009", "--link", link, "--return-delay-us", "0", "--stats", "exit"]
+    with subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                          text=True) as proc:
         try:
+            assert proc.stdout is not None
+            assert proc.stdout.readline().strip() == link and os.path.islink(link)
+            port = scs.PortHandler(link)
             assert port.openPort() and port.setBaudRate(1_000_000)
-            assert ph.ping(port, 2)[:2] == (1284, scs.COMM_SUCCESS)
-        finally:
+            pinged = scs.PacketHandler(1).ping(port, 2)
             port.closePort()
-        proc.send_signal(signal.SIGTERM)
-        assert proc.wait(timeout=10) == 0
-        err = proc.stderr.read()
-        assert "serving 2 x SCS0009 (ids 1-2) at 1000000 bit/s paced" in err
-        assert "packets_served=2" in err
-        assert not os.path.exists(link)  # removed on exit
-    finally:
-        if proc.poll() is None:
+            assert pinged[:2] == (1284, scs.COMM_SUCCESS)
+            proc.send_signal(signal.SIGTERM)
+            _, err = proc.communicate(timeout=10)
+        except BaseException:
             proc.kill()
-            proc.wait()
-        for stream in (proc.stdout, proc.stderr):
-            if stream is not None:
-                stream.close()
+            raise
+    assert proc.returncode == 0
+    assert "serving 2 x SCS0009 (ids 1-2) at 1000000 bit/s paced" in err
+    assert "packets_served=2" in err
+    assert not os.path.exists(link)  # removed on exit
 
 
 def test_the_command_line_refuses_a_bad_baud_in_one_line() -> None:

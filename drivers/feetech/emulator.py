@@ -35,11 +35,16 @@ addressed servos (:class:`~jtc_hw.drivers.feetech.servo.EmulatedServo`) would::
 
 Why the host's timeout matters here: the PyPI SDK allows the wire time of the expected status
 bytes plus ``2 * LATENCY_TIMER + 2`` = 34 ms for a reply, measured with ``time.time()`` from
-when ``writePort`` returned (``port_handler.py``). LeRobot patches it to 50 ms plus the wire
-time (``patch_setPacketTimeout``); see :mod:`.control_table` for what Feetech's own fix says.
-On a pty nothing waits for a USB adapter, so the emulator's replies come well inside either
-allowance; a reply can only miss it when the emulator itself is scheduled late, which its
-SCHED_FIFO priority (the command line's default) prevents on a busy host.
+when ``writePort`` returned (``port_handler.py``), and LeRobot patches it to the wire time plus
+50 ms (``patch_setPacketTimeout``; :mod:`.control_table` says what Feetech's own fix does). On a
+pty nothing waits for a USB adapter, so the emulator's replies come well inside either
+allowance when it is scheduled on time, which its SCHED_FIFO priority (the command line's
+default) sees to on a busy host. The host's side is another matter: ``rxPacket`` checks the
+deadline after an empty read and before reading again, so an SDK thread descheduled for longer
+than the allowance reports ``COMM_RX_TIMEOUT`` for a reply that has arrived (seen once in ten
+runs of the acceptance test with 50 ms, its test process normally scheduled beside busy ones).
+A timeout against the emulator is therefore not proof that a servo was silent; what the
+emulator did is in its counters and its protection events.
 
 Faults for tests (all thread-safe): :meth:`~FeetechEmulator.set_silent`,
 :meth:`~FeetechEmulator.drop_replies`, :meth:`~FeetechEmulator.delay_replies`,

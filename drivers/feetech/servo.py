@@ -99,7 +99,7 @@ from types import MappingProxyType
 from ..motor_model import Motor, MotorParams
 from ..pty_emulator import BusServo
 from .codec import StatusError, decode_value, encode_value
-from .control_table import EEPROM_END, Model, Register, SeriesName
+from .control_table import EEPROM_END, Model, Register, Series, SeriesName
 
 __all__ = ["DEFAULTS", "MEMORY_SIZE", "PHYSICS", "SCS_DIRECTION_BITS", "EmulatedServo", "Physics",
            "ProtectionEvent"]
@@ -195,6 +195,19 @@ DEFAULTS: Mapping[SeriesName, Mapping[str, int]] = MappingProxyType({
 #: The present registers the motor drives, rewritten together by :meth:`EmulatedServo.refresh`.
 _PRESENT = ("present_position", "present_velocity", "present_load", "present_voltage",
             "present_temperature", "status", "moving", "present_current")
+
+
+_READ_ONLY: dict[SeriesName, frozenset[int]] = {}
+
+
+def _read_only(series: Series) -> frozenset[int]:
+    """The addresses of ``series``' read-only registers (built once per series)."""
+    found = _READ_ONLY.get(series.name)
+    if found is None:
+        found = frozenset(at for reg in series.registers.values() if not reg.writable
+                          for at in range(reg.address, reg.address + reg.size))
+        _READ_ONLY[series.name] = found
+    return found
 
 
 @dataclasses.dataclass(frozen=True)
@@ -396,10 +409,8 @@ class EmulatedServo(BusServo):
         self.stale = True
 
     def _writable(self, address: int) -> bool:
-        for reg in self.series.registers.values():
-            if reg.address <= address < reg.address + reg.size:
-                return reg.writable
-        return True  # an address no register names: kept, as a real servo's spare byte
+        # An address no register names is kept, as a real servo's spare byte would be.
+        return address not in _read_only(self.series)
 
     def _torque_switched_on(self) -> None:
         if self._unloading():

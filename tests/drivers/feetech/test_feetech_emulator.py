@@ -118,6 +118,15 @@ def test_scs_has_no_sync_read_and_no_broadcast_ping() -> None:
             # The SDK reads SCS servos one at a time, big-endian.
             value, result, _ = b.ph.read2ByteTxRx(b.port, 2, 56)
             assert (value, result) == (512, scs.COMM_SUCCESS)
+            # Sync Write they know (the SDK packs the words big-endian with end 1).
+            assert b.ph.write1ByteTxRx(b.port, 2, 40, 1) == (scs.COMM_SUCCESS, 0)
+            writer = scs.GroupSyncWrite(b.port, b.ph, 42, 2)
+            writer.addParam(2, [scs.SCS_LOBYTE(600), scs.SCS_HIBYTE(600)])
+            assert writer.txPacket() == scs.COMM_SUCCESS
+            deadline = time.monotonic() + 5.0
+            while b.ph.read2ByteTxRx(b.port, 2, 56)[0] != 600:
+                assert time.monotonic() < deadline, "the SCS servo did not reach 600"
+            assert emulator.register(2, "goal_position") == 600
         finally:
             b.port.closePort()
         assert emulator.stats()["packets_served"] >= 4

@@ -21,8 +21,13 @@ protocol::
   :class:`~jtc_hw.drivers.framing.StreamBuffer` with ``feed``) and hands each packet to the
   subclass's :meth:`~PtyBusEmulator._handle` with two stamps: when its chunk arrived and when its
   first byte did (where a paced reply is timed from). A partial packet older than the servos'
-  inter-byte timeout is dropped. While the bus is idle, the subclass's
-  :meth:`~PtyBusEmulator._step_servos` advances the physics every few milliseconds.
+  inter-byte timeout is dropped. While the bus is idle,
+  :meth:`~PtyBusEmulator._step_servos` advances every servo (a :class:`BusServo`: its id, its
+  ``step(now)``, its :class:`ReplyFaults`) every few milliseconds.
+- Observation shared by the families: :meth:`~PtyBusEmulator.register` (a servo's register
+  now), :meth:`~PtyBusEmulator.stats` (the counters) and the reply faults every servo has
+  (:meth:`~PtyBusEmulator.set_silent`, :meth:`~PtyBusEmulator.drop_replies`,
+  :meth:`~PtyBusEmulator.delay_replies`; a family names its checksum fault).
 - Timing (:meth:`~PtyBusEmulator._schedule`, :meth:`~PtyBusEmulator._send`): a subclass computes
   a request's replies at once, then asks when each is due. Unpaced, a reply is due after its
   servo's return delay (and any injected delay); due replies are written together and waits

@@ -290,7 +290,12 @@ class EmulatedServo(BusServo):
         return self.memory[5]
 
     def _register(self, name: str) -> Register:
-        return self.series.register(name)
+        """Register ``name`` with the sign bit the servo stores it with (on SCS: the SCSCL
+        library's direction bits, :data:`SCS_DIRECTION_BITS`)."""
+        reg = self.series.register(name)
+        if self.series.name is SeriesName.SCS and name in SCS_DIRECTION_BITS:
+            return dataclasses.replace(reg, sign_bit=SCS_DIRECTION_BITS[name])
+        return reg
 
     def get(self, name: str) -> int:
         """The value register ``name`` holds (sign decoded).
@@ -299,8 +304,7 @@ class EmulatedServo(BusServo):
             KeyError: the series has no such register (``UnknownRegisterError``).
         """
         reg = self._register(name)
-        raw = self.memory[reg.address : reg.address + reg.size]
-        return self._decode(reg, raw)
+        return decode_value(reg, self.memory[reg.address : reg.address + reg.size], self._order)
 
     def set(self, name: str, value: int) -> None:
         """Store ``value`` in register ``name``, clamped to what the register holds.
@@ -309,30 +313,9 @@ class EmulatedServo(BusServo):
             KeyError: the series has no such register (``UnknownRegisterError``).
         """
         reg = self._register(name)
-        low, high = self._limits(reg)
-        value = max(low, min(high, int(value)))
-        self.memory[reg.address : reg.address + reg.size] = self._encode(reg, value)
-
-    def _sign_bit(self, reg: Register) -> int | None:
-        if reg.sign_bit is not None or self.series.name is not SeriesName.SCS:
-            return reg.sign_bit
-        return SCS_DIRECTION_BITS.get(reg.name)
-
-    def _limits(self, reg: Register) -> tuple[int, int]:
-        bit = self._sign_bit(reg)
-        return reg.limits if bit is None else dataclasses.replace(reg, sign_bit=bit).limits
-
-    def _encode(self, reg: Register, value: int) -> bytes:
-        bit = self._sign_bit(reg)
-        if bit != reg.sign_bit:
-            reg = dataclasses.replace(reg, sign_bit=bit)
-        return encode_value(reg, value, self._order)
-
-    def _decode(self, reg: Register, raw: bytes | bytearray) -> int:
-        bit = self._sign_bit(reg)
-        if bit != reg.sign_bit:
-            reg = dataclasses.replace(reg, sign_bit=bit)
-        return decode_value(reg, raw, self._order)
+        low, high = reg.limits
+        encoded = encode_value(reg, max(low, min(high, int(value))), self._order)
+        self.memory[reg.address : reg.address + reg.size] = encoded
 
     def value(self, name: str) -> int:
         """The value register ``name`` holds now (sign decoded, present registers refreshed).
@@ -352,7 +335,7 @@ class EmulatedServo(BusServo):
         reg = self._register(name)
         if not reg.eeprom:
             return DEFAULTS[self.series.name].get(name, 0)
-        return self._decode(reg, self.stored[reg.address : reg.address + reg.size])
+        return decode_value(reg, self.stored[reg.address : reg.address + reg.size], self._order)
 
     def read(self, address: int, length: int) -> bytes:
         """``length`` bytes from ``address`` (present registers refreshed; beyond the memory:

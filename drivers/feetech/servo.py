@@ -29,8 +29,8 @@ are applied where they matter:
   off and 1 with it on, ``feetech.py``). The lock reads 1 after power-on (emulator choice,
   matching that bracket: an unlocked default would make it pointless).
 - **Torque enable** (40): 1 drives the shaft to the goal, anything else lets it coast.
-  Switching it on copies Present Position into Goal Position so that nothing jumps (emulator
-  choice, as the Dynamixel emulator does). While a protection that unloads the servo (below)
+  Switching it on copies Present Position into Goal Position so that nothing jumps, unless the
+  same write carries a goal (emulator choice, as the Dynamixel emulator does). While a protection that unloads the servo (below)
   persists, the torque stays off.
 - **Goal position** (42) is clamped to Min/Max Position Limit (9, 11) when Max > Min; the shaft
   turns at most at Goal Velocity (46; 0: the motor's no-load speed) and accelerates at most at
@@ -388,21 +388,25 @@ class EmulatedServo(BusServo):
                     stored[at] = self.memory[at]
             self.stored = bytes(stored)
         if self.torque_on and not was_on:
-            self._torque_switched_on()
+            goal = self._register("goal_position").address
+            self._torque_switched_on(keep_goal=goal in written)
         self.stale = True
 
     def _writable(self, address: int) -> bool:
         # An address no register names is kept, as a real servo's spare byte would be.
         return address not in _read_only(self.series)
 
-    def _torque_switched_on(self) -> None:
+    def _torque_switched_on(self, keep_goal: bool) -> None:
+        """Torque Enable went to 1: hold where the shaft is, unless the same write gave a goal
+        (emulator choice, see the module docstring)."""
         if self._unloading():
             self.set("torque_enable", 0)  # the protection holds the torque off
             return
         self.overloaded = False
         self._over_since = None
         self.motor.reset_reference()
-        self.set("goal_position", self.present_steps())
+        if not keep_goal:
+            self.set("goal_position", self.present_steps())
 
     def power_cycle(self, now: float) -> None:
         """Power off and on: RAM back to its defaults, EEPROM back to what was stored, torque

@@ -195,3 +195,14 @@ def test_voltage_out_of_range_is_reported_not_unloaded() -> None:
     assert s.get("present_voltage") == 150
     s.set_supply(12.0, 0.2)
     assert not s.status
+
+
+def test_torque_on_holds_unless_the_same_write_gives_a_goal() -> None:
+    s = servo()
+    write(s, "goal_position", 3000, 0.0)  # torque off: kept, not acted on
+    write(s, "torque_enable", 1, 0.1)
+    assert s.get("goal_position") == 2048  # switched on where the shaft is
+    write(s, "torque_enable", 0, 0.2)
+    # Torque Enable (40), Acceleration (41) and Goal Position (42) in one write.
+    s.write(40, bytes((1, 0)) + (2500).to_bytes(2, "little"), 0.3)
+    assert s.torque_on and s.get("goal_position") == 2500

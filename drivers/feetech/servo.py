@@ -44,7 +44,9 @@ are applied where they matter:
   no homing offset.
 
 Present registers: position (steps), velocity (steps/s on STS/SMS, 0.059 rev/min on SCS), load
-(the motor's torque in 0.1 % of the stall torque), voltage (0.1 V), temperature (1 degC),
+(the motor's torque in 0.1 % of the stall torque; Feetech's SCSCL library calls it the share of
+the supply voltage driven into the motor, which equals it at stall: an approximation while the
+shaft turns), voltage (0.1 V), temperature (1 degC),
 current (6.5 mA, STS/SMS: the torque's share of the stall current), Moving (66: 1 while
 Present Velocity is not 0) and Status (65).
 

@@ -30,8 +30,8 @@ are applied where they matter:
   matching that bracket: an unlocked default would make it pointless).
 - **Torque enable** (40): 1 drives the shaft to the goal, anything else lets it coast.
   Switching it on copies Present Position into Goal Position so that nothing jumps, unless the
-  same write carries a goal (emulator choice, as the Dynamixel emulator does). While a protection that unloads the servo (below)
-  persists, the torque stays off.
+  same write carries a goal (emulator choice, as the Dynamixel emulator does). While a
+  protection that unloads the servo (below) persists, the torque stays off.
 - **Goal position** (42) is clamped to Min/Max Position Limit (9, 11) when Max > Min; the shaft
   turns at most at Goal Velocity (46; 0: the motor's no-load speed) and accelerates at most at
   Acceleration (41, 100 steps/s^2 per count on STS/SMS; 0: no ramp; SCS: none), through the

@@ -5,16 +5,19 @@ One syntax for every bus: ``"1-6"``, ``"1,3,5"``, ``"1-3,7"``; each number in Py
 integer-literal syntax (decimal, or ``0x1F`` as CAN ids are often written). A family's own
 id range (Dynamixel 0..252) is checked by passing it as ``valid``.
 
-An emulator process asks for SCHED_FIFO :data:`DEFAULT_PRIORITY` (:func:`realtime_priority`):
-it is scheduled as the hardware it stands for, not as one more program on a busy host.
+An emulator process asks for SCHED_FIFO :data:`DEFAULT_PRIORITY` (:func:`realtime_priority`,
+or :func:`apply_priority` for a command line's ``--priority``): it is scheduled as the hardware
+it stands for, not as one more program on a busy host.
 """
 
 from __future__ import annotations
 
+import argparse
 import contextlib
 import os
+import sys
 
-__all__ = ["DEFAULT_PRIORITY", "parse_ids", "realtime_priority"]
+__all__ = ["DEFAULT_PRIORITY", "apply_priority", "parse_ids", "realtime_priority"]
 
 DEFAULT_PRIORITY = 1
 """SCHED_FIFO priority an emulator process asks for unless told otherwise: the lowest, so a
@@ -83,3 +86,17 @@ def realtime_priority(priority: int, whole_process: bool = False) -> str | None:
                 "its replies may come late: run it as root, with CAP_SYS_NICE, or with "
                 "`ulimit -r` >= the priority")
     return None
+
+
+def apply_priority(parser: argparse.ArgumentParser, priority: int | None) -> None:
+    """An emulator command line's ``--priority``: check it (``parser.error``, exit 2, when out
+    of 0..99), then run the whole process at it (``None``: :data:`DEFAULT_PRIORITY` where
+    permitted, silently normal otherwise; a priority asked for and refused is said on stderr).
+    Call it before any thread starts: they inherit the policy.
+    """
+    if priority is not None and not 0 <= priority <= 99:
+        parser.error(f"--priority must be 0..99, got {priority}")
+    refused = realtime_priority(DEFAULT_PRIORITY if priority is None else priority,
+                                whole_process=True)
+    if refused is not None and priority is not None:  # asked for: say it was not given
+        print(f"{parser.prog}: {refused}", file=sys.stderr)

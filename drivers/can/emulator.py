@@ -43,7 +43,7 @@ from typing import Any
 
 import can
 
-from ..emulation_cli import DEFAULT_PRIORITY, parse_ids, realtime_priority
+from ..emulation_cli import DEFAULT_PRIORITY, apply_priority, parse_ids
 from ..motor_model import MotorParams
 from .cia402.emulator import Cia402DriveEmulator
 from .emulation import ControlSocket
@@ -193,13 +193,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         parser.error(str(exc))
     if (scheduled or args.control) and args.protocol != "mit":
         parser.error("--fault and --control are for MIT motors (--protocol mit)")
-    if args.priority is not None and not 0 <= args.priority <= 99:
-        parser.error(f"--priority must be 0..99, got {args.priority}")
-    # Before any thread starts: they inherit the policy.
-    refused = realtime_priority(DEFAULT_PRIORITY if args.priority is None else args.priority,
-                                whole_process=True)
-    if refused is not None and args.priority is not None:  # asked for: say it was not given
-        print(f"jtc-hw emulate can: {refused}", file=sys.stderr)
+    apply_priority(parser, args.priority)  # before any thread starts: they inherit it
 
     tag = uuid.uuid4().hex[:8]
     # The python-can channel each bus opens: a private virtual one behind socketcand, else

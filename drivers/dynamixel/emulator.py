@@ -6,7 +6,9 @@ Theory of operation
 symlink to it) to any Protocol 2.0 host: the official SDK, our driver, a terminal tool. One thread
 waits on the master side with ``select`` (so :meth:`~DynamixelEmulator.close` is prompt), feeds
 the bytes to the shared :class:`~jtc_hw.drivers.dynamixel.packets.Decoder` and answers each
-instruction packet as the addressed servos would:
+instruction packet as the addressed servos would (the pty, the serving thread, the pacing and
+the command line's frame are :mod:`~jtc_hw.drivers.pty_emulator`'s, shared with the Feetech
+emulator):
 
 - PING, READ, WRITE, REG_WRITE, ACTION, REBOOT, CLEAR (multi-turn), SYNC_READ, SYNC_WRITE,
   BULK_READ, BULK_WRITE, FAST_SYNC_READ, FAST_BULK_READ; FACTORY_RESET is refused with a
@@ -49,25 +51,23 @@ until REBOOT: alert bit in every status, torque off, torque cannot be enabled),
 from __future__ import annotations
 
 import argparse
-import contextlib
 import dataclasses
-import errno
 import json
 import math
-import os
-import select
-import signal
 import sys
 import threading
 import time
-import tty
 from collections.abc import Iterable, Mapping, Sequence
-from types import TracebackType
-
-from jtc_hw.hardware.timing import reduce_timer_slack
 
 from .. import emulation_cli
-from ..emulation_cli import DEFAULT_PRIORITY, realtime_priority
+from ..pty_emulator import (
+    IDLE_STEP_S,
+    PtyBusEmulator,
+    bus_parser,
+    corrupt_last_byte,
+    faulted,
+    run_emulator,
+)
 from .control_table import BUS_WATCHDOG_FIRMWARE, HardwareError, model_by_name
 from .packets import (
     BROADCAST_ID,
@@ -81,25 +81,11 @@ from .packets import (
     parse_bulk_write,
     parse_sync_read,
     parse_sync_write,
-    wire_time_s,
 )
 from .servo import EmulatedServo, WatchdogTrip
 
 __all__ = ["DynamixelEmulator", "build_parser", "main", "parse_ids"]
 
-#: Physics advance period while the bus is idle, s.
-_IDLE_STEP_S = 0.005
-#: Unpaced: waits shorter than this are skipped (sleeping that briefly is not accurate), s.
-_MIN_WAIT_S = 0.0002
-#: Paced: the last part of a wait is spun rather than slept (a sleep wakes ~20-35 us late even
-#: with a 1 us timer slack on this kind of machine), s.
-_SPIN_S = 0.0001
-#: Paced waits longer than this sleep on the stop event so that close() stays prompt, s.
-_PROMPT_WAIT_S = 0.002
-#: Timer slack asked for the serving thread (Linux ``PR_SET_TIMERSLACK``; default 50 us), ns.
-_TIMER_SLACK_NS = 1000
-#: A partial packet older than this is dropped (the servos' inter-byte timeout), s.
-_PARTIAL_TIMEOUT_S = 0.1
 #: CLEAR's fixed parameters (option 0x01 "clear multi-turn" and the "DXL" key + 0x22).
 _CLEAR_MULTI_TURN = bytes((0x01, 0x44, 0x58, 0x4C, 0x22))
 
@@ -109,7 +95,7 @@ class _Reply:
     data: bytes
 
 
-class DynamixelEmulator:
+class DynamixelEmulator(PtyBusEmulator[Packet, EmulatedServo]):
     """One bus of emulated servos on a pseudo-terminal (see the module docstring).
 
     Args:
@@ -151,11 +137,9 @@ class DynamixelEmulator:
             raise ValueError(
                 f"{self.model.name} does not support {baud} bit/s; choose one of {sorted(values)}"
             )
-        self.pace = pace
+        super().__init__(baud=baud, pace=pace, link=link, thread_name="dxl-emulator")
         self.reboot_time_s = reboot_time_s
-        self._link = link
         positions = dict(initial_positions or {})
-        self._lock = threading.Lock()
         # Signalled (under the lock) when a servo's Bus Watchdog trips or the servo comes to
         # rest after a trip: wait_watchdog_stopped() blocks on it.
         self._changed = threading.Condition(self._lock)
@@ -171,143 +155,15 @@ class DynamixelEmulator:
         if firmware_version is not None:
             for s in self._servos:
                 s.set_firmware(firmware_version)
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
-        self._master = -1
-        self._slave = -1
-        self._slave_path = ""
         self._decoder = Decoder()
-        self._baud = baud
-        # When the bus is next idle (the end of the last request or reply on the wire, paced
-        # mode; the last reply's due time, unpaced).
-        self._bus_free = 0.0
-        self._last_step = 0.0  # when every servo was last stepped (idle stepping)
-        self.packets_served = 0
-        self.replies_sent = 0
-        self.bytes_dropped = 0
-        self.errors_sent = 0
-
-    # -- lifecycle ----------------------------------------------------------------------------
-
-    def start(self) -> DynamixelEmulator:
-        """Open the pty (and the link) and start serving.
-
-        Raises:
-            RuntimeError: already started.
-            OSError: the pty or the link cannot be created.
-            FileExistsError: ``link`` exists and is not a symlink.
-        """
-        if self._thread is not None:
-            raise RuntimeError("the emulator is already started")
-        self._master, self._slave = os.openpty()
-        try:
-            # Raw mode: no echo, no line discipline translating bytes such as 0x0D or 0x11.
-            tty.setraw(self._slave)
-            os.set_blocking(self._master, False)
-            self._slave_path = os.ttyname(self._slave)
-            if self._link:
-                if os.path.islink(self._link):
-                    os.unlink(self._link)
-                elif os.path.exists(self._link):
-                    raise FileExistsError(f"{self._link} exists and is not a symlink")
-                os.symlink(self._slave_path, self._link)
-        except BaseException:
-            os.close(self._master)
-            os.close(self._slave)
-            self._master = self._slave = -1
-            raise
-        self._stop.clear()
-        self._thread = threading.Thread(target=self._serve, name="dxl-emulator", daemon=True)
-        self._thread.start()
-        return self
-
-    def close(self) -> None:
-        """Stop serving, join the thread, close the pty and remove the link (idempotent)."""
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join(timeout=5.0)
-            self._thread = None
-        for fd in (self._master, self._slave):
-            if fd >= 0:
-                with contextlib.suppress(OSError):
-                    os.close(fd)
-        self._master = self._slave = -1
-        if self._link and os.path.islink(self._link):
-            with contextlib.suppress(OSError):
-                if os.readlink(self._link) == self._slave_path:
-                    os.unlink(self._link)
-
-    def __enter__(self) -> DynamixelEmulator:
-        if self._thread is None:
-            self.start()
-        return self
-
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        self.close()
-
-    @property
-    def device_path(self) -> str:
-        """The path a host opens: the link if one was asked for, else ``/dev/pts/N``."""
-        return self._link or self._slave_path
-
-    @property
-    def slave_path(self) -> str:
-        """The pty slave's path (``/dev/pts/N``)."""
-        return self._slave_path
 
     # -- observation and faults ---------------------------------------------------------------
-
-    def _servo(self, servo_id: int) -> EmulatedServo:
-        for s in self._servos:
-            if s.id == servo_id:
-                return s
-        raise KeyError(f"no emulated servo with id {servo_id}")
 
     def positions(self) -> dict[int, float]:
         """id -> Present Position in rad (``present_position * 2*pi / ticks_per_rev``), now."""
         with self._lock:
-            now = time.monotonic()
-            out = {}
-            for s in self._servos:
-                s.step(now)
-                out[s.id] = self.model.ticks_to_rad(s.present_ticks())
-            return out
-
-    def register(self, servo_id: int, name: str) -> int:
-        """The value of register ``name`` of servo ``servo_id`` (present values refreshed).
-
-        Raises:
-            KeyError: unknown servo or register.
-        """
-        with self._lock:
-            s = self._servo(servo_id)
-            s.step(time.monotonic())
-            s.sync_present()
-            self.model.register(name)
-            return s.get(name)
-
-    def drop_replies(self, servo_id: int, count: int) -> None:
-        """Servo ``servo_id`` leaves its next ``count`` replies unsent.
-
-        Raises:
-            KeyError: unknown servo.
-        """
-        with self._lock:
-            self._servo(servo_id).drop = max(0, int(count))
-
-    def delay_replies(self, servo_id: int, seconds: float) -> None:
-        """Servo ``servo_id`` answers ``seconds`` late (0 to stop).
-
-        Raises:
-            KeyError: unknown servo.
-        """
-        with self._lock:
-            self._servo(servo_id).delay_s = max(0.0, float(seconds))
+            self._step_servos(time.monotonic())
+            return {s.id: self.model.ticks_to_rad(s.present_ticks()) for s in self._servos}
 
     def corrupt_crc(self, servo_id: int, count: int) -> None:
         """Servo ``servo_id`` sends its next ``count`` replies with a wrong CRC.
@@ -315,17 +171,7 @@ class DynamixelEmulator:
         Raises:
             KeyError: unknown servo.
         """
-        with self._lock:
-            self._servo(servo_id).corrupt = max(0, int(count))
-
-    def set_silent(self, servo_id: int, silent: bool) -> None:
-        """Servo ``servo_id`` never answers (group reads included) while ``silent``.
-
-        Raises:
-            KeyError: unknown servo.
-        """
-        with self._lock:
-            self._servo(servo_id).silent = bool(silent)
+        self._corrupt_replies(servo_id, count)
 
     def raise_hardware_error(self, servo_id: int, bits: HardwareError) -> None:
         """Latch hardware error ``bits`` on servo ``servo_id`` until it is rebooted.
@@ -334,8 +180,7 @@ class DynamixelEmulator:
             KeyError: unknown servo.
         """
         with self._lock:
-            s = self._servo(servo_id)
-            s.step(time.monotonic())
+            s = self._servo_now(servo_id)
             s.set("hardware_error_status", s.get("hardware_error_status") | int(bits))
             s.set("torque_enable", 0)
 
@@ -350,8 +195,7 @@ class DynamixelEmulator:
             KeyError: unknown servo.
         """
         with self._lock:
-            s = self._servo(servo_id)
-            s.step(time.monotonic())
+            s = self._servo_now(servo_id)
             s.temperature_c = float(celsius)
             s.stale = True
             if round(celsius) > s.get("temperature_limit"):
@@ -369,8 +213,7 @@ class DynamixelEmulator:
             KeyError: unknown servo.
         """
         with self._lock:
-            s = self._servo(servo_id)
-            s.step(time.monotonic())
+            s = self._servo_now(servo_id)
             s.voltage_v = None if volts is None else float(volts)
             s.stale = True
             tenths = round((s.model.nominal_voltage_v if volts is None else volts) * 10.0)
@@ -453,9 +296,9 @@ class DynamixelEmulator:
                         f"servos {missing} did not stop on their Bus Watchdog within "
                         f"{timeout_s:g} s (trips: {[t for s in servos for t in s.trips]})"
                     )
-                # The serving thread steps the servos at least every _IDLE_STEP_S and notifies
+                # The serving thread steps the servos at least every IDLE_STEP_S and notifies
                 # on every trip and stop; the bounded wait also steps them itself.
-                self._changed.wait(min(remaining, 10 * _IDLE_STEP_S))
+                self._changed.wait(min(remaining, 10 * IDLE_STEP_S))
 
     def last_instruction_s(self, servo_id: int) -> float:
         """When servo ``servo_id`` last received an instruction packet (its id or broadcast,
@@ -467,17 +310,8 @@ class DynamixelEmulator:
         with self._lock:
             return self._servo(servo_id).last_instruction
 
-    def stats(self) -> dict[str, int]:
-        """Counters: packets served, replies sent, CRC errors and junk bytes seen, ..."""
-        with self._lock:
-            return {
-                "packets_served": self.packets_served,
-                "replies_sent": self.replies_sent,
-                "errors_sent": self.errors_sent,
-                "crc_errors": self._decoder.crc_errors,
-                "junk_bytes": self._decoder.junk_bytes,
-                "bytes_dropped": self.bytes_dropped,
-            }
+    def _checksum_errors(self) -> tuple[str, int]:
+        return "crc_errors", self._decoder.crc_errors
 
     @property
     def crc_errors(self) -> int:
@@ -486,47 +320,8 @@ class DynamixelEmulator:
 
     # -- serving ------------------------------------------------------------------------------
 
-    def _serve(self) -> None:
-        reduce_timer_slack(_TIMER_SLACK_NS)  # best effort: else the spin absorbs the slack
-        last_rx = time.monotonic()
-        first_byte = last_rx  # when the first byte of the packet being received arrived
-        while not self._stop.is_set():
-            try:
-                readable, _, _ = select.select([self._master], [], [], _IDLE_STEP_S)
-            except (OSError, ValueError):
-                return
-            now = time.monotonic()
-            if readable:
-                try:
-                    data = os.read(self._master, 4096)
-                except BlockingIOError:
-                    data = b""
-                except OSError as exc:
-                    if exc.errno == errno.EIO:  # no slave open (cannot happen: we hold one)
-                        self._stop.wait(_IDLE_STEP_S)
-                        continue
-                    return
-                if data:
-                    if self._decoder.pending and now - last_rx > _PARTIAL_TIMEOUT_S:
-                        self._decoder.reset()
-                    if not self._decoder.pending:
-                        first_byte = now
-                    last_rx = now
-                    arrival = now
-                    for packet in self._decoder.feed(data):
-                        self._handle(packet, arrival, first_byte)
-                        # Further packets of this chunk began on the wire with it at the
-                        # latest (pacing queues them behind the previous one anyway).
-                        first_byte = now
-                        arrival = time.monotonic()
-            # Physics runs once per request (in _handle); the idle bus only needs the watchdog
-            # and the coasting motors to move on now and then.
-            now = time.monotonic()
-            if now - self._last_step >= _IDLE_STEP_S:
-                with self._lock:
-                    for s in self._servos:
-                        s.step(now)
-                    self._last_step = now
+    def describe(self) -> str:
+        return f"{len(self._servos)} x {self.model.name}"
 
     def _handle(self, packet: Packet, arrival: float, first_byte: float) -> None:
         """Step the physics to ``arrival``, execute ``packet`` and send its replies.
@@ -555,11 +350,8 @@ class DynamixelEmulator:
                 self.packets_served += 1
         if replies or fast:
             self._transmit(packet, replies, fast, first_byte if self.pace else arrival)
-        elif self.pace:
-            # No reply, but the packet held the bus for its wire time: a request right behind
-            # it (a Sync Read after a Sync Write) starts on the wire only after it.
-            start = max(first_byte, self._bus_free)
-            self._bus_free = start + wire_time_s(len(packet.raw), self._baud)
+        else:
+            self._hold_bus(first_byte, len(packet.raw))
 
     def _awake(self, now: float) -> list[EmulatedServo]:
         return [s for s in self._servos if s.rebooting_until <= now]
@@ -701,9 +493,6 @@ class DynamixelEmulator:
         """
         with self._lock:  # register reads go through the servos' decoded-value caches
             bus_baud = replies[0].servo.baud() if replies else fast[0].servo.baud()
-        t = max(start, self._bus_free)
-        if self.pace:
-            t += wire_time_s(len(request.raw), bus_baud)
         chunks: list[tuple[EmulatedServo, bytes]]
         if fast:
             chunks = []
@@ -711,96 +500,19 @@ class DynamixelEmulator:
                 entries = [(r.servo.id, r.data[0], r.data[1:]) for r in fast]
                 parts = fast_status_parts(entries)
                 for r, part in zip(fast, parts, strict=True):
-                    if self._consume_drop(r.servo):
+                    if r.servo.take_drop():
                         break
                     chunks.append((r.servo, part))
-                if any([self._consume_corrupt(servo) for servo, _ in chunks]):
+                if any([servo.take_corrupt() for servo, _ in chunks]):
                     servo, last = chunks[-1]
-                    chunks[-1] = (servo, last[:-1] + bytes((last[-1] ^ 0xFF,)))
+                    chunks[-1] = (servo, corrupt_last_byte(last))
         else:
-            chunks = []
             with self._lock:
-                for r in replies:
-                    if self._consume_drop(r.servo):
-                        continue
-                    data = r.data
-                    if self._consume_corrupt(r.servo):
-                        data = data[:-1] + bytes((data[-1] ^ 0xFF,))
-                    chunks.append((r.servo, data))
-        due: list[tuple[float, bytes]] = []
+                chunks = faulted((r.servo, r.data) for r in replies)
         with self._lock:
-            for servo, data in chunks:
-                t += servo.return_delay_s() + servo.delay_s
-                if self.pace:
-                    t += wire_time_s(len(data), servo.baud())
-                due.append((t, data))
-        self._bus_free = t
-        if self.pace:
-            for when, data in due:
-                if self._wait_until(when):
-                    return
-                self._write([data])
-            return
-        # Unpaced, replies already due are written together: every wait costs the host a
-        # thread switch when it shares our interpreter (tests), so waits shorter than
-        # _MIN_WAIT_S are skipped.
-        pending: list[bytes] = []
-        for when, data in due:
-            remaining = when - time.monotonic()
-            if remaining > _MIN_WAIT_S:
-                if pending:
-                    self._write(pending)
-                    pending = []
-                if self._stop.wait(remaining):
-                    return
-            pending.append(data)
-        if pending:
-            self._write(pending)
-
-    def _wait_until(self, deadline: float) -> bool:
-        """Wait until ``time.monotonic()`` reaches ``deadline``; ``True`` if stopped meanwhile.
-
-        Sleeps (on the stop event when long, else in ``select``) until _SPIN_S before the
-        deadline, then spins: a test device's pacing, bounded to ~_SPIN_S of busy waiting.
-        """
-        while True:
-            remaining = deadline - time.monotonic()
-            if remaining <= _SPIN_S:
-                break
-            if remaining > _PROMPT_WAIT_S:
-                if self._stop.wait(remaining - _SPIN_S):
-                    return True
-            else:
-                select.select([], [], [], remaining - _SPIN_S)
-        while time.monotonic() < deadline:
-            pass
-        return self._stop.is_set()
-
-    def _consume_drop(self, s: EmulatedServo) -> bool:
-        if s.silent:
-            return True
-        if s.drop > 0:
-            s.drop -= 1
-            return True
-        return False
-
-    def _consume_corrupt(self, s: EmulatedServo) -> bool:
-        if s.corrupt > 0:
-            s.corrupt -= 1
-            return True
-        return False
-
-    def _write(self, replies: list[bytes]) -> None:
-        data = b"".join(replies)
-        try:
-            written = os.write(self._master, data)
-        except BlockingIOError:
-            written = 0  # nobody reads the slave and its buffer is full: the bytes are lost
-        except OSError:
-            return
-        self.bytes_dropped += len(data) - written
-        if written:
-            self.replies_sent += len(replies)
+            timed = [(servo.return_delay_s() + servo.delay_s, data, servo.baud())
+                     for servo, data in chunks]
+        self._send(self._schedule(start, len(request.raw), bus_baud, timed))
 
 
 _GROUP = frozenset(
@@ -829,51 +541,15 @@ def parse_ids(text: str) -> list[int]:
 
 def build_parser() -> argparse.ArgumentParser:
     """The ``jtc-hw emulate dynamixel`` argument parser."""
-    p = argparse.ArgumentParser(
-        prog="jtc-hw emulate dynamixel",
-        description="Emulated Dynamixel X-series servos (Protocol 2.0) on a pseudo-terminal. "
-        "Prints the device path, then serves until SIGINT/SIGTERM.",
-    )
-    p.add_argument("--ids", default="1", help="servo ids, e.g. 1-6 or 1,2,5-7 (default 1)")
-    p.add_argument("--model", default="XM430-W350", help="servo model (default XM430-W350)")
-    p.add_argument(
-        "--baud", type=int, default=4_000_000, help="servo baud rate, bit/s (default 4000000)"
-    )
-    p.add_argument(
-        "--pace",
-        action="store_true",
-        help="hold replies back to the wire time of a real bus at that baud rate",
-    )
-    p.add_argument("--link", default=None, help="also create this symlink to the pty")
-    p.add_argument(
-        "--stats",
-        choices=("live", "exit"),
-        default="live",
-        help="packet statistics on stderr: live (a line whenever they changed, at most 5 a "
-        "second; the default) or exit (one line when it stops: a terminal that shows "
-        "something else meanwhile, such as the demo's progress bar, stays readable)",
-    )
+    p = bus_parser("jtc-hw emulate dynamixel", "Emulated Dynamixel X-series servos (Protocol "
+                   "2.0) on a pseudo-terminal.", model="XM430-W350", baud=4_000_000,
+                   return_delay="500")
     p.add_argument(
         "--firmware",
         type=int,
         default=None,
         help=f"Firmware Version the servos report (default: the model's; below "
         f"{BUS_WATCHDOG_FIRMWARE}: no Bus Watchdog)",
-    )
-    p.add_argument(
-        "--return-delay-us",
-        type=float,
-        default=None,
-        help="Return Delay Time in us (default: the servo's, 500)",
-    )
-    p.add_argument(
-        "--priority",
-        type=int,
-        default=None,
-        metavar="N",
-        help=f"SCHED_FIFO priority of the process, 1..99, 0: normal scheduling (default: "
-        f"{DEFAULT_PRIORITY} where permitted, so that a busy host does not delay the replies "
-        "as it would never delay real servos)",
     )
     return p
 
@@ -882,17 +558,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Run the emulator from the command line; 0 on a clean stop, 2 on bad options."""
     parser = build_parser()
     args = parser.parse_args(argv)
-    if args.priority is not None and not 0 <= args.priority <= 99:
-        parser.error(f"--priority must be 0..99, got {args.priority}")
-    # Before the serving thread starts: it inherits the policy. A normally scheduled emulator
-    # missed the daemon's 20 ms ping at configure on a busy machine (issue 22).
-    refused = realtime_priority(DEFAULT_PRIORITY if args.priority is None else args.priority,
-                                whole_process=True)
-    if refused is not None and args.priority is not None:  # asked for: say it was not given
-        print(f"jtc-hw emulate dynamixel: {refused}", file=sys.stderr)
-    try:
-        ids = parse_ids(args.ids)
-        emulator = DynamixelEmulator(
+
+    def make(ids: list[int]) -> DynamixelEmulator:
+        return DynamixelEmulator(
             ids,
             args.model,
             baud=args.baud,
@@ -901,51 +569,20 @@ def main(argv: Sequence[str] | None = None) -> int:
             return_delay_us=args.return_delay_us,
             firmware_version=args.firmware,
         )
-    except (ValueError, KeyError) as exc:
-        print(f"jtc-hw emulate dynamixel: {exc}", file=sys.stderr)
-        return 2
-    stop = threading.Event()
 
-    def on_signal(signum: int, frame: object) -> None:
-        stop.set()
+    reported: set[tuple[int, float]] = set()
 
-    previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
-    try:
-        with emulator:
-            print(emulator.device_path, flush=True)
-            print(
-                f"serving {len(ids)} x {emulator.model.name} (ids {args.ids}) at {args.baud} "
-                f"bit/s{' paced' if args.pace else ''} on {emulator.slave_path}",
-                file=sys.stderr,
-                flush=True,
-            )
-            last: dict[str, int] = {}
-            reported: set[tuple[int, float]] = set()
-            while not stop.wait(0.2):
-                stats = emulator.stats()
-                if stats != last and args.stats == "live":
-                    print(
-                        " ".join(f"{k}={v}" for k, v in stats.items()), file=sys.stderr, flush=True
-                    )
-                    last = stats
-                # One JSON line per Bus Watchdog trip once the servo is at rest, for a tool in
-                # another process (times: CLOCK_MONOTONIC, shared by the machine's processes).
-                for trip in emulator.watchdog_trips():
-                    key = (trip.servo_id, trip.expired_s)
-                    if trip.stopped_s is not None and key not in reported:
-                        reported.add(key)
-                        print("watchdog " + json.dumps(dataclasses.asdict(trip)),
-                              file=sys.stderr, flush=True)
-            if args.stats == "exit":
-                print(" ".join(f"{k}={v}" for k, v in emulator.stats().items()),
-                      file=sys.stderr, flush=True)
-    except OSError as exc:
-        print(f"jtc-hw emulate dynamixel: {exc}", file=sys.stderr)
-        return 2
-    finally:
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
-    return 0
+    def report_trips(emulator: DynamixelEmulator) -> None:
+        # One JSON line per Bus Watchdog trip once the servo is at rest, for a tool in another
+        # process (times: CLOCK_MONOTONIC, shared by the machine's processes).
+        for trip in emulator.watchdog_trips():
+            key = (trip.servo_id, trip.expired_s)
+            if trip.stopped_s is not None and key not in reported:
+                reported.add(key)
+                print("watchdog " + json.dumps(dataclasses.asdict(trip)), file=sys.stderr,
+                      flush=True)
+
+    return run_emulator(parser, args, make, valid_ids=range(253), tick=report_trips)
 
 
 if __name__ == "__main__":

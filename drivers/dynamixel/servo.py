@@ -70,6 +70,7 @@ import time
 from collections.abc import Callable, Mapping
 
 from ..motor_model import Motor, MotorParams
+from ..pty_emulator import BusServo
 from .control_table import (
     BAUD_RATES,
     BUS_WATCHDOG_FIRMWARE,
@@ -227,7 +228,7 @@ def _layout(model: Model) -> _Layout:
     return layout
 
 
-class EmulatedServo:
+class EmulatedServo(BusServo):
     """One emulated servo: its control table, motor and injected faults."""
 
     def __init__(
@@ -238,6 +239,7 @@ class EmulatedServo:
         baud_value: int,
         notify: Callable[[], None] = lambda: None,
     ) -> None:
+        super().__init__()  # the reply faults: drop, delay_s, corrupt, silent
         self.model = model
         self.table = model.defaults()
         self._layout = _layout(model)
@@ -274,10 +276,6 @@ class EmulatedServo:
         self.notify = notify
         # faults
         self.torque_on_fault = 0  # hardware error bits latched by the next torque on
-        self.drop = 0
-        self.delay_s = 0.0
-        self.corrupt = 0
-        self.silent = False
         # Health: what the temperature and supply sensors read (set_temperature /
         # set_input_voltage); None: the model's nominal voltage.
         self.temperature_c = 35.0
@@ -307,6 +305,16 @@ class EmulatedServo:
             self.table[address:end] = value.to_bytes(end - address, "little", signed=signed)
             self._values[name] = value
             self.stale = True
+
+    def value(self, name: str) -> int:
+        """The value of register ``name`` now (present registers rewritten from the motor).
+
+        Raises:
+            KeyError: the model has no such register (``UnknownRegisterError``).
+        """
+        self.sync_present()
+        self.model.register(name)
+        return self.get(name)
 
     @property
     def direction(self) -> int:

@@ -17,6 +17,7 @@ EMULATE_EXIT_HELP = "Exit status: 0 stopped by Ctrl-C/SIGTERM; 2 bad emulator op
 
 _EMULATORS = {
     "dynamixel": "jtc_hw.drivers.dynamixel.emulator",
+    "feetech": "jtc_hw.drivers.feetech.emulator",
     "can": "jtc_hw.drivers.can.emulator",
 }
 
@@ -32,11 +33,15 @@ def cmd_emulate(args: argparse.Namespace) -> int:
 def add_parsers(sub: Any) -> None:
     p = sub.add_parser(
         "emulate",
-        help="run an emulated motor bus (Dynamixel on a pty, CAN motors) to test without a robot",
+        help="run an emulated motor bus (Dynamixel or Feetech on a pty, CAN motors) to test "
+        "without a robot",
         description=(
             "Run emulated motors speaking the real wire protocol, until Ctrl-C. "
             "'jtc-hw emulate dynamixel --ids 1-6 --model XM430-W350' opens a pseudo-terminal "
             "and prints its path: put it as the 'port' of a dynamixel hardware component. "
+            "'jtc-hw emulate feetech --ids 1-6 --model STS3215' serves Feetech STS/SCS "
+            "servos (LeRobot's SO-101 arm) the same way, at 1 Mbit/s unless --baud says "
+            "otherwise. "
             "'jtc-hw emulate can --protocol mit --ids 1-6' serves MIT-mode motors (or "
             "--protocol cia402 drives) and prints how python-can connects to them. "
             "'jtc-hw emulate dynamixel --help' lists each emulator's options."

@@ -40,8 +40,8 @@ Torque Enable .. Present Position proves each servo enabled and obeying (no hard
 torque 1, watchdog armed, the goal the one just written); otherwise activation is undone and
 fails with one line naming the servo and what to check. A rearm that succeeds is holding.
 
-**Faults.** A failed Sync Read is retried up to ``max_retries`` times within the cycle, as are
-the pings and register reads of configuration (reads, so a retry repeats nothing); then a
+**Faults.** A failed read (the cycle's Sync Read, a register read, a ping at configuration) is
+retried up to ``max_retries`` times at once (a read, so a retry repeats nothing); then a
 :class:`~jtc_hw.errors.CommunicationError` names the servo (id and joint) and the cause. A status
 packet with the alert bit makes the driver read that servo's Hardware Error Status and raise
 :class:`~jtc_hw.errors.MotorFault` naming the cause (overload, overheating, ...). A failed read
@@ -371,7 +371,7 @@ class DynamixelHardware(HardwareInterface):
 
     def _check_model(self, i: int, servo_id: int) -> None:
         bus = self._require_bus()
-        number = self._retried(lambda: bus.ping(servo_id), "ping at configure")
+        number = self._retried("ping at configure", bus.ping, servo_id)
         expected = self.models[i]
         if number != expected.model_number:
             found = model_by_number(number)
@@ -400,8 +400,7 @@ class DynamixelHardware(HardwareInterface):
     def _read_register(self, servo_id: int, name: str) -> int:
         bus = self._require_bus()
         reg = self.models[self._index_of[servo_id]].register(name)
-        raw = self._retried(lambda: bus.read_bytes(servo_id, reg.address, reg.size),
-                            f"reading {name}")
+        raw = self._retried(f"reading {name}", bus.read_bytes, servo_id, reg.address, reg.size)
         value: int = reg.decode(raw)
         return value
 
@@ -650,24 +649,24 @@ class DynamixelHardware(HardwareInterface):
 
     def _sync_read_present(self) -> SyncReadResult:
         bus = self._require_bus()
-        return self._retried(
-            lambda: bus.sync_read(self.ids, PRESENT_BLOCK_ADDRESS, PRESENT_BLOCK_SIZE,
-                                  fast=self.params["fast_sync_read"]),
-            "reading the present state",
-        )
+        return self._retried("reading the present state", bus.sync_read, self.ids,
+                             PRESENT_BLOCK_ADDRESS, PRESENT_BLOCK_SIZE,
+                             fast=self.params["fast_sync_read"])
 
-    def _retried(self, transaction: Callable[[], _T], what: str) -> _T:
-        """``transaction`` (a read) tried up to ``max_retries`` + 1 times: a missed or corrupt
-        reply is retried and counted; the last one's error names the servo and ``what``."""
-        attempts = self.params["max_retries"] + 1
-        for attempt in range(1, attempts + 1):
+    def _retried(self, what: str, read: Callable[..., _T], *args: Any, **kwargs: Any) -> _T:
+        """``read(*args, **kwargs)`` retried up to ``max_retries`` times after a missed or
+        corrupt reply, each retry counted; the last attempt's error names the servo and
+        ``what``."""
+        retries = self.params["max_retries"]
+        for _ in range(retries):
             try:
-                return transaction()
-            except ServoCommunicationError as exc:
-                if attempt == attempts:
-                    raise self._comm_error(exc, what, attempts) from exc
+                return read(*args, **kwargs)
+            except ServoCommunicationError:
                 self._retries += 1
-        raise AssertionError("unreachable: the last attempt returns or raises")
+        try:
+            return read(*args, **kwargs)
+        except ServoCommunicationError as exc:
+            raise self._comm_error(exc, what, retries + 1) from exc
 
     def _check_silence(self) -> None:
         """Before a cycle's transaction: after a bus silence longer than half the watchdog time

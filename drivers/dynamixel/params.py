@@ -86,8 +86,8 @@ PARAMS: Final[Mapping[str, ParamSpec]] = param_table(
               "allowance beyond the wire time before a reply counts as missing, ms",
               minimum=0.1, maximum=1000.0),
     ParamSpec("max_retries", ParamKind.INT, 1,
-              "retries of a failed read (within one cycle, or at configuration) before it is a "
-              "fault",
+              "retries of a failed read (Sync Read, register read, ping), at once, before it is "
+              "a fault",
               minimum=0, maximum=10),
     ParamSpec("reboot_timeout_s", ParamKind.FLOAT, 2.0,
               "how long recover() waits for a rebooted servo to answer, s",

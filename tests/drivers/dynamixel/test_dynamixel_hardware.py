@@ -474,21 +474,37 @@ def test_the_sdk_port_uses_the_monotonic_clock(emulator: DynamixelEmulator) -> N
 def test_a_late_reply_is_not_taken_for_the_next_one(
     make_hw: Callable[..., DynamixelHardware], emulator: DynamixelEmulator
 ) -> None:
-    # The test's usual reply timeout, and a reply twice as late: with 20 ms (and 40 ms late)
-    # a later read of the loop below timed out beside two busy processes (tools/ci-under-load).
+    """A Sync Read times out, its replies arrive afterwards, and the next read returns the
+    servos' new positions, never the stale ones waiting in the port.
+
+    Ordered by events, not by the host's timing: the late replies are on the wire (the
+    emulator counted them sent) before the servos move and before the next request. Before,
+    a late reply raced the next read beside busy processes (a "short reply" once on an idle
+    run, 2026-12-06)."""
     hw = make_hw(max_retries=0)
     hw.configure()
     hw.activate(now_ns())
     good = hw.read(now_ns()).positions
+    sent = emulator.stats()["replies_sent"]
     emulator.delay_replies(1, 2 * DRIVER_TEST_TIMEOUT_MS / 1000)  # answers after the timeout
     with pytest.raises(CommunicationError, match="servo 1"):
         hw.read(now_ns())
     emulator.delay_replies(1, 0.0)
+    deadline = time.monotonic() + WAIT_S
+    while emulator.stats()["replies_sent"] < sent + len(IDS):  # all three, late, holding `good`
+        assert time.monotonic() < deadline, "the late replies were never sent"
+        time.sleep(0.005)
     target = good + 0.3
+    before = [emulator.register(i, "goal_position") for i in IDS]
     hw.write(now_ns(), JointCommand(positions=target))
-    # Every later read is a fresh, complete answer (never the stale one, never garbage).
-    reached = read_until(hw, lambda p: bool(np.all(np.abs(p - target) < 2 * TICK)))
-    assert reached == pytest.approx(target, abs=2 * TICK)
+    while True:  # the write served, then the servos at their new goals
+        goals = [emulator.register(i, "goal_position") for i in IDS]
+        present = [emulator.register(i, "present_position") for i in IDS]
+        if all(g != b and abs(p - g) <= 1 for g, b, p in zip(goals, before, present)):
+            break
+        assert time.monotonic() < deadline, f"servos at {present}, goals {goals}"
+        time.sleep(0.005)
+    assert hw.read(now_ns()).positions == pytest.approx(target, abs=2 * TICK)
 
 
 def test_the_shipped_configurations_load() -> None:

@@ -5,8 +5,8 @@ test's thread and a busy host. Normally scheduled, the emulator then answers lat
 the host is busy, and the driver counts a real motor's or servo's reply as missed (issue 22:
 the suite failed at a load average of 5-10). Real devices answer in microseconds whatever the
 host does, so their emulators' threads run at the SCHED_FIFO priority ``jtc-hw emulate`` takes
-for its whole process; the test's own thread, and the daemons it forks, keep normal
-scheduling.
+for its whole process; the test's own thread keeps normal scheduling (a daemon's loop takes
+its own: conftest's ``TEST_LOOP_REALTIME``).
 """
 
 from __future__ import annotations
@@ -25,7 +25,8 @@ def start_as_hardware(*starts: Callable[[], None]) -> str | None:
     thread running at SCHED_FIFO :data:`DEFAULT_PRIORITY`, as ``jtc-hw emulate can`` runs its
     whole process: the threads they start inherit that policy, so the emulated motors answer
     as soon as a frame wakes them however busy the host is (motors do not slow down when the
-    host does), while the test's own thread and the daemon it forks keep normal scheduling.
+    host does), while the test's own thread keeps normal scheduling (the daemon's loop
+    takes its own, conftest's ``TEST_LOOP_REALTIME``).
 
     Returns:
         ``None``, or the line saying why the priority was refused (no CAP_SYS_NICE): the

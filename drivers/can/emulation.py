@@ -6,6 +6,8 @@
 - :class:`Timer`: frames due at set times, released by a one-thread socketcand server.
 - :class:`ControlSocket`: fault commands to an emulator process, one line each, on a unix
   socket (what a test or an operator in another process uses to brown a motor out).
+- :func:`clocks_now`: the monotonic and the wall clock read together, to place a frame's
+  receive stamp (wall clock) on the monotonic clock.
 
 The MIT-mode emulator, the CiA 402 emulator and the socketcand server all import this module
 and none imports another's, so there is no import circle among them.
@@ -24,7 +26,28 @@ from typing import Any, Protocol
 
 import can
 
-__all__ = ["ControlSocket", "PushSink", "Timer", "WakeEarly", "attach_sink"]
+__all__ = ["ControlSocket", "PushSink", "Timer", "WakeEarly", "attach_sink", "clocks_now"]
+
+
+_CLOCK_PAIR_TRIES = 3
+_CLOCK_PAIR_WINDOW_S = 1e-3
+
+
+def clocks_now() -> tuple[float, float]:
+    """``(monotonic, wall)`` read as one instant.
+
+    The wall reading is taken between two monotonic readings and kept when they are less than
+    a millisecond apart (up to three tries; else the last): a thread preempted between the two
+    reads (100 ms beside busy processes) would otherwise shift every receive stamp placed on
+    the monotonic clock by as much, and the emulated motor would move for the wrong time.
+    """
+    for _ in range(_CLOCK_PAIR_TRIES):
+        before = time.monotonic()
+        wall = time.time()
+        after = time.monotonic()
+        if after - before < _CLOCK_PAIR_WINDOW_S:
+            break
+    return (before + after) / 2.0, wall
 
 
 class WakeEarly:

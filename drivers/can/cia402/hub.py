@@ -23,7 +23,7 @@ import can
 import canopen
 
 from ..bus import wire_time_s
-from ..emulation import PushSink, WakeEarly, attach_sink
+from ..emulation import PushSink, WakeEarly, attach_sink, clocks_now
 from . import codec as c4
 
 __all__ = ["Hub", "HubDrive"]
@@ -227,10 +227,10 @@ class Hub:
         """A frame on the bus: occupies the modelled wire, then reaches the drives."""
         if msg.is_error_frame:
             return
-        now = time.monotonic()
+        now, wall = clocks_now()
         # The frame took the wire when it was sent (its receive stamp on a virtual bus, wall
         # clock), not when this thread got round to it.
-        sent = msg.timestamp - (time.time() - now) if msg.timestamp else now
+        sent = msg.timestamp - (wall - now) if msg.timestamp else now
         end = self._occupy(msg, min(now, max(sent, now - 0.01)))
         if msg.arbitration_id == c4.SYNC_COB_ID and not msg.is_extended_id:
             self._answer_at = end if self.pace_bitrate is not None else None
@@ -269,10 +269,10 @@ class Hub:
             return
         cob = int(msg.arbitration_id)
         data = bytes(msg.data)
-        now = time.monotonic()
+        now, wall = clocks_now()
         # When the frame crossed the bus (its receive stamp, wall clock), not when this
         # thread got round to it: a drive's servo loop runs on while this thread waits.
-        at = now - max(0.0, time.time() - msg.timestamp) if msg.timestamp else now
+        at = now - max(0.0, wall - msg.timestamp) if msg.timestamp else now
         if cob == c4.SYNC_COB_ID:
             for node_id in sorted(self.drives):
                 self.drives[node_id].on_sync(at)

@@ -67,7 +67,7 @@ from jtc_hw.hardware.timing import reduce_timer_slack
 
 from ...motor_model import Motor, MotorParams
 from ..bus import CAN_ERR_BUSOFF, wire_time_s
-from ..emulation import PushSink, WakeEarly, attach_sink
+from ..emulation import PushSink, WakeEarly, attach_sink, clocks_now
 from .codec import (
     DAMIAO_TIMEOUT_RID,
     DAMIAO_TIMEOUT_UNIT_S,
@@ -584,10 +584,10 @@ class MitBusEmulator:
         the wire, earlier than when this thread got to it. Only the frame's age is taken from
         the wall clock (bounded to [0, 50 ms], so a clock step cannot move it far).
         """
-        now = time.monotonic()
+        now, wall = clocks_now()
         if not msg.timestamp:
             return now
-        age = min(max(time.time() - msg.timestamp, 0.0), 0.05)
+        age = min(max(wall - msg.timestamp, 0.0), 0.05)
         return now - age
 
     def _deliver_due(self, now: float) -> None:

@@ -23,6 +23,7 @@ from jtc_hw.controller.joints import JointCommand
 from jtc_hw.drivers.can.cia402.codec import State
 from jtc_hw.drivers.can.cia402.emulator import Cia402DriveEmulator, NmtState
 from jtc_hw.drivers.can.cia402.hardware import Cia402Hardware
+from jtc_hw.drivers.can.emulation import clocks_now
 from jtc_hw.errors import CommunicationError, ConfigurationError, HardwareError, MotorFault
 from jtc_hw.hardware import HardwareSpec, LifecycleState, create_hardware
 
@@ -264,6 +265,21 @@ def test_a_drive_moves_in_bus_time_when_its_emulator_handles_a_sync_late(rig: Ri
     finally:
         stamped.shutdown()
         listener.shutdown()
+
+
+def test_a_stamp_is_placed_with_clocks_read_as_one_instant(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A thread preempted between its monotonic and its wall reading (100 ms beside busy
+    processes) would place every receive stamp that much off, and the emulated drive moved
+    for 0.2 s instead of 0.3 s (the test above, tools/ci-under-load at c85e9a7): a pair whose
+    monotonic readings are too far apart is read again."""
+    monotonic = iter([10.0, 10.1, 20.0, 20.0002])
+    wall = iter([1000.05, 2000.0])
+    monkeypatch.setattr(time, "monotonic", lambda: next(monotonic))
+    monkeypatch.setattr(time, "time", lambda: next(wall))
+    now, at = clocks_now()
+    assert (now, at) == (pytest.approx(20.0001), 2000.0)
 
 
 def is_tpdo_of_3(msg: can.Message | None) -> bool:

@@ -82,10 +82,13 @@ SHM_DIR = "/dev/shm"
 """Where POSIX shared memory segments appear on Linux (for :func:`remove_stale`)."""
 
 
-def remove_stale(directory: str = SHM_DIR) -> list[str]:
+def remove_stale(directory: str | None = None) -> list[str]:
     """Remove the cycle rings left by daemons that no longer run (killed with their resource
-    tracker); the names removed. Never raises: a directory that cannot be listed (not Linux) or
-    a segment that cannot be removed (another user's) is left alone."""
+    tracker) from ``directory`` (default :data:`SHM_DIR`, read at the call); the names removed.
+    Never raises: a directory that cannot be listed (not Linux) or a segment that cannot be
+    removed (another user's) is left alone."""
+    if directory is None:
+        directory = SHM_DIR
     try:
         names = os.listdir(directory)
     except OSError:

@@ -16,13 +16,12 @@ import os
 import sys
 import time
 from collections.abc import Callable, Sequence
-from typing import Any, Final
+from typing import TYPE_CHECKING, Any, Final
 
-from ..api.calls import PERMISSION, UNTRUSTED, ClientConnectionError
-from ..api.client import Client, default_socket_path
-from ..api.paths import client_socket_path
-from ..api.paths import default_socket_path as default_rule
 from ..errors import ConfigurationError, JtcHwError
+
+if TYPE_CHECKING:
+    from ..api.client import Client
 
 __all__ = [
     "CLIENT_EXIT_HELP", "EXIT_BAD_INPUT", "EXIT_GOAL_FAILED", "EXIT_NO_DAEMON", "EXIT_OK",
@@ -92,6 +91,10 @@ def _socket(args: argparse.Namespace, robot: Any) -> tuple[str, bool]:
     ``robot``: ``--config``'s robot file, or ``None``."""
     if getattr(args, "socket", None):
         return str(args.socket), True
+    from ..api.client import default_socket_path  # start-up time: see connect()
+    from ..api.paths import client_socket_path
+    from ..api.paths import default_socket_path as default_rule
+
     if robot is not None:
         path = robot.daemon.socket
         if path == default_rule():  # not in the file: the default place, or the service's
@@ -158,6 +161,12 @@ def connect(args: argparse.Namespace, hello: bool = True) -> Client:
         ConfigurationError: an unreadable ``--config``/``--zenoh-config``, a bad ``--tcp``,
             or a socket not served by a daemon you trust or that you may not connect to.
     """
+    # Start-up time: the client (and numpy, the controller's messages) load here, once the
+    # command has shown that it started (send's progress bar), not when the command's module
+    # is imported.
+    from ..api.calls import PERMISSION, UNTRUSTED, ClientConnectionError
+    from ..api.client import Client
+
     if getattr(args, "zenoh", None):
         token = zenoh_token(args)
         try:
@@ -213,7 +222,13 @@ def print_warnings(warnings: Sequence[str], stream: Any = None) -> None:
 
 
 class Progress:
-    """A one-line progress bar: time along the trajectory and the tracking error."""
+    """A one-line progress bar: time along the trajectory and the tracking error.
+
+    On a terminal, :meth:`stage` shows the bar empty with what happens before the goal runs
+    (reading the file, sending it), as soon as the command starts: a 20,000-point goal takes
+    a second or more to read and send, which a user would otherwise watch as a silent prompt.
+    Elsewhere (a pipe, a log) stages print nothing and the bar prints a line every 0.5 s.
+    """
 
     def __init__(self, total_s: float, stream: Any = None, width: int = 30) -> None:
         self.total_s = max(total_s, 1e-9)
@@ -221,6 +236,19 @@ class Progress:
         self.width = width
         self.tty = hasattr(self.stream, "isatty") and self.stream.isatty()
         self._last_print = 0.0
+        self._shown = 0  # the length of the line on the terminal (stages are cleared)
+
+    def stage(self, text: str) -> None:
+        """Show the empty bar with ``text`` (a terminal only)."""
+        if self.tty:
+            self._show(f"[{'.' * self.width}] {text}")
+
+    def clear(self) -> None:
+        """Take a stage off the terminal's line, so the next print starts on an empty line."""
+        if self.tty and self._shown:
+            self.stream.write("\r" + " " * self._shown + "\r")
+            self.stream.flush()
+            self._shown = 0
 
     def update(self, feedback: dict[str, Any]) -> None:
         t = max(0.0, float(feedback.get("time_from_start") or 0.0))
@@ -235,8 +263,7 @@ class Progress:
             f"  max |error| {worst:.4f}"
         )
         if self.tty:
-            self.stream.write("\r" + line)
-            self.stream.flush()
+            self._show(line)
         elif time.monotonic() - self._last_print >= 0.5:
             self._last_print = time.monotonic()
             print(line, file=self.stream)
@@ -244,13 +271,27 @@ class Progress:
     def finish(self) -> None:
         if self.tty:
             self.stream.write("\n")
+            self._shown = 0
+
+    def _show(self, line: str) -> None:
+        pad = " " * max(0, self._shown - len(line))  # the rest of a longer line before it
+        self.stream.write("\r" + line + pad)
+        self.stream.flush()
+        self._shown = len(line)
 
 
-def goal_result(handle: Any, total_s: float, quiet: bool, timeout_s: float) -> int:
-    """Watch a sent goal to its result (``send``, ``demo``): the progress bar unless ``quiet``,
-    Ctrl-C cancels it; print the result; :data:`EXIT_OK` if it succeeded, else
-    :data:`EXIT_GOAL_FAILED`."""
-    progress = None if quiet else Progress(total_s)
+def goal_result(
+    handle: Any, total_s: float, quiet: bool, timeout_s: float, progress: Progress | None = None
+) -> int:
+    """Watch a sent goal to its result (``send``, ``demo``): the progress bar unless ``quiet``
+    (``progress``: the one already showing the stages before, else a new one), Ctrl-C cancels
+    it; print the result; :data:`EXIT_OK` if it succeeded, else :data:`EXIT_GOAL_FAILED`."""
+    if quiet:
+        progress = None
+    elif progress is None:
+        progress = Progress(total_s)
+    else:
+        progress.total_s = max(total_s, 1e-9)
     try:
         for feedback in handle.feedback(timeout_s=timeout_s):
             if progress is not None:

@@ -16,10 +16,8 @@ import math
 from pathlib import Path
 from typing import Any
 
-from ..api.goal_files import ros_goal, split_documents
-from ..config.reading import decode_text, load_yaml
 from ..errors import ConfigurationError
-from .common import EXIT_GOAL_FAILED, EXIT_OK, client_options, connect, goal_result
+from .common import EXIT_GOAL_FAILED, EXIT_OK, Progress, client_options, connect, goal_result
 
 __all__ = ["EXIT_CODES_HELP", "add_parsers", "cmd_cancel", "cmd_send", "load_goal_file"]
 
@@ -51,6 +49,10 @@ def load_goal_file(path: str) -> dict[str, Any]:
     Raises:
         ConfigurationError: unreadable file or malformed content, naming the line/field.
     """
+    # Start-up time: imported when a file is read, after send has shown its progress bar.
+    from ..api.goal_files import ros_goal, split_documents
+    from ..config.reading import decode_text, load_yaml
+
     p = Path(path)
     try:
         text = decode_text(p.read_bytes(), path)
@@ -119,6 +121,19 @@ def _csv_trajectory(text: str, path: str) -> dict[str, Any]:
 
 
 def cmd_send(args: argparse.Namespace) -> int:
+    # The bar shows at once, before the file is read and the client loads (issue 24: within
+    # 100 ms of the command's start for a 20,000-point CSV; bench/send_start.py measures it).
+    progress = None if args.quiet or args.topic else Progress(0.0)
+    if progress is not None:
+        progress.stage(f"reading {args.file}")
+    try:
+        return _send(args, progress)
+    finally:
+        if progress is not None:
+            progress.clear()
+
+
+def _send(args: argparse.Namespace, progress: Progress | None) -> int:
     goal = load_goal_file(args.file)
     trajectory = goal["trajectory"]
     points = (trajectory.get("points") if isinstance(trajectory, dict) else None) or []
@@ -135,6 +150,8 @@ def cmd_send(args: argparse.Namespace) -> int:
             f"{goal_time_tolerance!r}",
             args.file,
         )
+    if progress is not None:
+        progress.stage(f"sending {len(points)} points")
     with connect(args) as client:
         if args.topic:
             sent = client.send_trajectory(
@@ -156,11 +173,15 @@ def cmd_send(args: argparse.Namespace) -> int:
         )
         if handle.duration_s is not None:
             total = handle.duration_s
+        if progress is not None:
+            progress.clear()
         print(
             f"goal {handle.goal_id} accepted: {len(points)} points over {total:.2f} s"
             f"{_slowed(handle.time_scale)}"
         )
-        return goal_result(handle, total + (args.start_in or 0.0), args.quiet, args.wait)
+        return goal_result(
+            handle, total + (args.start_in or 0.0), args.quiet, args.wait, progress
+        )
 
 
 def _slowed(factor: float | None) -> str:

@@ -9,15 +9,14 @@ request: 2).
 from __future__ import annotations
 
 import argparse
+import importlib
 import os
 import sys
 from collections.abc import Sequence
 
 from .. import __version__
-from ..api.framing import RequestError
 from ..daemon.logs import VERBOSE_ENV
 from ..errors import ConfigurationError, GoalRejected, JtcHwError
-from . import demo, emulate, fleet, goals, motion, params, record, run, state, status
 from .common import CLIENT_EXIT_HELP, EXIT_BAD_INPUT, EXIT_NO_DAEMON, EXIT_OK, NoDaemon
 
 __all__ = ["DESCRIPTION", "build_parser", "parse_and_run"]
@@ -51,8 +50,27 @@ commands there need its token (--zenoh-token-file FILE or $JTC_HW_ZENOH_TOKEN).
 """
 
 
-def build_parser() -> argparse.ArgumentParser:
-    """``jtc-hw``'s parser: the subcommands in the order ``--help`` lists them."""
+GROUPS: dict[str, tuple[str, ...]] = {
+    "run": ("run", "check"),
+    "demo": ("demo",),
+    "goals": ("send", "cancel"),
+    "state": ("state", "query"),
+    "motion": ("stop", "rearm", "speed", "pause", "resume"),
+    "params": ("param",),
+    "emulate": ("emulate",),
+    "status": ("status", "hardware"),
+    "record": ("record", "plot"),
+    "fleet": ("fleet",),
+}
+"""The command group modules in the order ``--help`` lists them, each with its subcommands."""
+
+def build_parser(command: str | None = None) -> argparse.ArgumentParser:
+    """``jtc-hw``'s parser: the subcommands in the order ``--help`` lists them.
+
+    With ``command`` (a subcommand's name), only the group that holds it is imported and added:
+    a command starts without importing every other command's modules (the daemon, the
+    recorders, plotting). Its parsing and its ``--help`` are the same as in the whole parser.
+    """
     parser = argparse.ArgumentParser(
         prog="jtc-hw",
         description=DESCRIPTION,
@@ -66,16 +84,9 @@ def build_parser() -> argparse.ArgumentParser:
         help="keep the INFO logs of third-party libraries (canopen, python-can)",
     )
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
-    run.add_parsers(sub)  # run, check
-    demo.add_parsers(sub)
-    goals.add_parsers(sub)  # send, cancel
-    state.add_parsers(sub)  # state, query
-    motion.add_parsers(sub)  # stop, rearm, speed, pause, resume
-    params.add_parsers(sub)  # param
-    emulate.add_parsers(sub)
-    status.add_parsers(sub)  # status, hardware
-    record.add_parsers(sub)  # record, plot
-    fleet.add_parsers(sub)
+    for group, commands in GROUPS.items():
+        if command is None or command in commands:
+            importlib.import_module(f"{__package__}.{group}").add_parsers(sub)
     for command in sub.choices.values():
         # Every subcommand's --help states its exit statuses (unless its description does);
         # a command group sets its own where they are not the client commands' usual ones.
@@ -86,19 +97,18 @@ def build_parser() -> argparse.ArgumentParser:
 
 def parse_and_run(argv: Sequence[str] | None = None) -> int:
     """Run the command of ``argv`` (default: ``sys.argv[1:]``); its exit status."""
-    parser = build_parser()
+    argv = sys.argv[1:] if argv is None else list(argv)
+    parser = build_parser(_command_of(argv))
     args, extra = parser.parse_known_args(argv)
     if args.verbose:
         os.environ[VERBOSE_ENV] = "1"  # inherited by the daemon and emulators we start
-    if extra and args.func is params.cmd_param and not any(e.startswith("--") for e in extra):
+    if extra and args.command == "param" and not any(e.startswith("--") for e in extra):
         args.items.extend(extra)  # argparse ends a positional list at the first option
     elif extra:
         parser.error(f"unrecognized arguments: {' '.join(extra)}")
     try:
         return int(args.func(args))
-    except (ConfigurationError, RequestError) as exc:
-        # RequestError: the daemon answered and refused the request (bad request, not active,
-        # busy...).
+    except ConfigurationError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
     except GoalRejected as exc:
@@ -112,8 +122,29 @@ def parse_and_run(argv: Sequence[str] | None = None) -> int:
         os.dup2(devnull, sys.stdout.fileno())
         return EXIT_OK
     except (NoDaemon, JtcHwError, TimeoutError) as exc:
-        # Nobody answers, the connection was lost, or no reply in time: no daemon answers.
         print(f"error: {exc}", file=sys.stderr)
-        return EXIT_NO_DAEMON
+        # The daemon answered and refused the request (bad request, not active, busy...): bad
+        # input. Else nobody answers, the connection was lost, or no reply in time.
+        return EXIT_BAD_INPUT if _refused(exc) else EXIT_NO_DAEMON
     except KeyboardInterrupt:
         return 130
+
+
+def _command_of(argv: Sequence[str]) -> str | None:
+    """The subcommand ``argv`` names (its first word that is not an option), if it is one;
+    ``None`` for ``jtc-hw --help``, a mistyped command and the like (the whole parser)."""
+    for word in argv:
+        if word == "--":
+            return None
+        if not word.startswith("-"):
+            return word if any(word in commands for commands in GROUPS.values()) else None
+    return None
+
+
+def _refused(exc: BaseException) -> bool:
+    """Whether ``exc`` is the daemon's refusal (:class:`~jtc_hw.api.framing.RequestError`)."""
+    # Imported here, once the command has failed: a command that never reached a daemon
+    # (check, emulate) does not load the client's modules at start.
+    from ..api.framing import RequestError
+
+    return isinstance(exc, RequestError)

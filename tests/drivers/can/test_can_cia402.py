@@ -184,17 +184,21 @@ def test_csp_trajectory_tracks(rig: Rig) -> None:
     start = hw.read(time.monotonic_ns()).positions.copy()
     t0 = time.monotonic()
     worst = 0.0
-    previous = start.copy()
+    sent = [start.copy()] * 3  # the last three targets written, the newest last
     cycles = 0
     while (elapsed := time.monotonic() - t0) < 0.6:
         state = hw.read(time.monotonic_ns())
         if cycles > 5:
-            worst = max(worst, float(np.max(np.abs(state.positions - previous))))
-        # A smooth 0.3 rad move: feedback lags the command by about a cycle.
+            # A smooth 0.3 rad move: feedback lags the command by about a cycle and the motor's
+            # tracking error. What a cycle adds is the last commanded step (or the one before),
+            # as long as the cycle: a cycle this process was held up for is a long step (beside
+            # busy processes, one of 55 ms broke the bound when it was counted in).
+            steps = np.maximum(np.abs(sent[2] - sent[1]), np.abs(sent[1] - sent[0]))
+            worst = max(worst, float(np.max(np.abs(state.positions - sent[2]) - steps)))
         s = min(elapsed / 0.5, 1.0)
         target = start + 0.3 * (3 * s * s - 2 * s * s * s) * np.array([1.0, -1.0])
         hw.write(time.monotonic_ns(), JointCommand(target))
-        previous = target
+        sent = [sent[1], sent[2], target]
         cycles += 1
     assert cycles > 50
     assert worst < 0.05, worst

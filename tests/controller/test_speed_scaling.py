@@ -149,9 +149,12 @@ def test_pause_at_half_ramps_to_rest_within_the_bound_and_resume_finishes(
         assert (max_step(run.actual_v[start:]) <= bound * 1.02 + 1e-12).all()
         np.testing.assert_allclose(run.actual_v[-1], 0.0, atol=1e-12)
     if interfaces == "position_velocity_acceleration":
-        # The acceleration command is the derivative of the velocity command (a s^2 + v ds/dt).
-        v = np.array([c.velocities for c in run.commands[start:ramp_end]])
-        a = np.array([c.accelerations for c in run.commands[start:ramp_end]])
+        # The acceleration command is the derivative of the velocity command (a s^2 + v ds/dt)
+        # from the first update after the pause was asked: that update already takes the ramp's
+        # first velocity step (upstream: in force from the next update), so the acceleration
+        # written by the update before it, when no pause had been asked, cannot include it.
+        v = np.array([c.velocities for c in run.commands[start + 1:ramp_end]])
+        a = np.array([c.accelerations for c in run.commands[start + 1:ramp_end]])
         np.testing.assert_allclose(np.diff(v, axis=0) / dt, a[:-1], atol=0.05 * max(ACCEL.values()))
     paused_at = run.mirror.p.copy()
     assert run.results() == [], "no result while paused"
@@ -219,19 +222,19 @@ def test_without_limits_the_factor_ramps_over_the_ramp_time() -> None:
     run.ctrl.send_goal(run.now, goal())
     run.until(lambda out: out.state.reference_time_from_start >= 0.5)
     run.ctrl.set_speed_scaling(0.0)
-    # The rate is chosen in a cycle for the period that follows: the factor moves from the next.
+    # As upstream, a factor set between two updates is in force from the next: that update
+    # takes the ramp's first step, and the 20th reaches the target.
     factors = [run.step().state.speed_scaling_factor for _ in range(25)]
-    assert factors[0] == 1.0
-    assert factors[1] == pytest.approx(0.95)
+    assert factors[0] == pytest.approx(0.95)
     assert np.all(np.diff(factors) <= 0.0)
-    assert factors.index(0.0) == 20
-    np.testing.assert_allclose(np.diff(factors[:21]), -0.05)
+    assert factors.index(0.0) == 19
+    np.testing.assert_allclose(np.diff([1.0, *factors[:20]]), -0.05)
 
 
 def test_ramp_time_zero_steps_as_upstream() -> None:
     run = Run(make_config(NAMES, speed_scaling={"ramp_time": 0.0}))
     run.ctrl.set_speed_scaling(0.3)
-    run.step()
+    assert run.step().state.speed_scaling_factor == 0.3
     assert run.step().state.speed_scaling_factor == 0.3
 
 
@@ -350,7 +353,11 @@ def test_a_new_target_mid_ramp_turns_the_ramp_without_a_jump() -> None:
     factors += [run.step().state.speed_scaling_factor for _ in range(20)]
     steps = np.diff(factors)
     assert np.abs(steps).max() <= 0.05 + 1e-12, steps
-    assert min(factors) == pytest.approx(0.7)  # the period already under way ends at 0.7
+    # The first update is at the activation's time (no time elapsed, no step); the new target
+    # is in force from the next update, which turns the ramp where the factor is.
+    assert factors[:6] == pytest.approx([1.0, 0.95, 0.9, 0.85, 0.8, 0.75])
+    assert min(factors) == pytest.approx(0.75)
+    assert factors[6] == pytest.approx(0.8)
     assert factors[-1] == 0.9
 
 
@@ -398,7 +405,7 @@ def test_upstreams_parameters_are_read_only_and_the_ramp_time_changes_next_cycle
     change = run.ctrl.set_parameters({"speed_scaling.ramp_time": 1.0})
     assert change.effects["speed_scaling.ramp_time"].value == "next cycle"
     run.ctrl.set_speed_scaling(0.0)
-    run.step()
+    run.step()  # at the activation's time: no time elapsed, no step
     assert run.step().state.speed_scaling_factor == pytest.approx(0.99)  # 1 / 1.0 s at 100 Hz
 
 
@@ -408,3 +415,49 @@ def test_check_warns_when_the_controller_starts_paused() -> None:
     assert not [w for w in explain(make_config(NAMES)) if "speed_scaling" in w]
     warnings = explain(make_config(NAMES, speed_scaling={"initial_scaling_factor": 0.0}))
     assert [w for w in warnings if w.startswith("speed_scaling.initial_scaling_factor: is 0")]
+
+
+def test_a_factor_set_between_updates_is_in_force_from_the_next_update() -> None:
+    """Upstream (section 7 step 1, its ``setting_scaling_factor_works_correctly``): with no ramp,
+    the update right after the set reports the new factor, advances trajectory time by the
+    period times it and commands the velocity of the slowed time. Before this was fixed the
+    factor and the velocity lagged one update, and trajectory time two."""
+    cfg = make_config(NAMES, command_interfaces=("position", "velocity"),
+                      speed_scaling={"ramp_time": 0.0})
+    run = Run(cfg)
+    run.ctrl.send_goal(run.now, goal())
+    for _ in range(30):
+        run.step()
+    for factor in (0.765, 0.5, 0.0, 1.0):
+        before_tau = run.ctrl.trajectory_time_ns
+        before_ref = run.states[-1].reference_time_from_start
+        run.ctrl.set_speed_scaling(factor)
+        out = run.step()
+        assert out.state.speed_scaling_factor == factor
+        assert run.ctrl.trajectory_time_ns - before_tau == round(run.period * factor)
+        assert out.state.reference_time_from_start - before_ref == pytest.approx(
+            run.period * factor / S, abs=1e-12)
+        # The command samples one unscaled period ahead (upstream section 7 step 7), at the
+        # velocity of the slowed time.
+        ahead = run.ctrl.reference.sample(run.ctrl.trajectory_time_ns + run.period)
+        np.testing.assert_array_equal(out.command.positions, ahead.positions)
+        np.testing.assert_allclose(out.command.velocities, ahead.velocities * factor, rtol=1e-12)
+        # ... and it stays in force.
+        tau = run.ctrl.trajectory_time_ns
+        assert run.step().state.speed_scaling_factor == factor
+        assert run.ctrl.trajectory_time_ns - tau == round(run.period * factor)
+
+
+def test_a_ramp_takes_its_first_step_at_the_next_update() -> None:
+    """With acceleration limits the factor ramps; its first step is the update right after the
+    set, and that update's trajectory time advances at the factor it reports."""
+    run = Run(config("position_velocity"))
+    run.ctrl.send_goal(run.now, goal())
+    run.until(lambda out: out.state.reference_time_from_start >= 1.0)
+    tau = run.ctrl.trajectory_time_ns
+    run.ctrl.set_speed_scaling(0.0)
+    out = run.step()
+    factor = out.state.speed_scaling_factor
+    assert 0.0 < factor < 1.0
+    assert run.ctrl.trajectory_time_ns - tau == round(run.period * factor)
+    assert out.state.speed_scaling_target == 0.0

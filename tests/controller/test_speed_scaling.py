@@ -382,9 +382,17 @@ def test_a_reactivation_after_slowing_commands_at_once() -> None:
 
 
 def test_the_parameters_are_checked_and_named() -> None:
+    # Upstream's interface names are '<component>/<interface>' here (which component offers
+    # it is checked when the hardware is created: tests/daemon/test_robot.py).
+    accepted = make_config(NAMES, speed_scaling={"state_interface": "arm/speed_scaling",
+                                                 "command_interface": "arm/x"})
+    assert accepted.speed_scaling.state_interface == "arm/speed_scaling"
     for bad, message in [
-        ({"state_interface": "arm/speed_scaling"}, "speed_scaling.state_interface: 'arm/"),
-        ({"command_interface": "x"}, "the daemon has no named interfaces"),
+        ({"state_interface": "arm"}, "speed_scaling.state_interface: 'arm': expected "
+                                     "'<component>/<interface>'"),
+        ({"command_interface": "a/b/c"}, "speed_scaling.command_interface: 'a/b/c': expected"),
+        ({"command_interface": "/x"}, "expected '<component>/<interface>'"),
+        ({"command_interface": "arm/x "}, "expected '<component>/<interface>'"),
         ({"initial_scaling_factor": -0.5}, "speed_scaling.initial_scaling_factor: must be >= 0"),
         ({"ramp_time": -1}, "speed_scaling.ramp_time: must be >= 0"),
         ({"ramp": 1}, "did you mean 'ramp_time'"),

@@ -36,6 +36,7 @@ class SpeedScaling:
     _ramp_target: float
     _scale_jump: bool  # the rate's target is reached in one step: nothing bounds the ramp
     _resume_scale: float
+    _scale_request: float  # what set_speed_scaling asked: the command interface's value
     _commanding: bool
 
     def set_speed_scaling(self, factor: float) -> None:
@@ -57,10 +58,18 @@ class SpeedScaling:
             ctrl.set_speed_scaling(0.0)   # pause smoothly
             ctrl.resume_speed_scaling()   # back to the factor before the pause
 
+        With ``speed_scaling.state_interface`` the hardware's factor is the target, read each
+        cycle (:meth:`set_speed_scaling_state`): this only asks for ``factor`` through
+        ``speed_scaling.command_interface`` (:attr:`speed_scaling_request`), and the factor
+        changes when the hardware's does.
+
         Raises:
             ConfigurationError: ``factor`` is not a number in ``[0, max_scaling_factor]``
-                (upstream's ``[0, 1]`` by default); the message names the range.
+                (upstream's ``[0, 1]`` by default); the message names the range. Or the factor
+                is read from a state interface and there is no command interface to ask the
+                hardware for another.
         """
+        self._check_requestable()
         most = self.config.speed_scaling.max_scaling_factor
         if (
             isinstance(factor, bool)
@@ -78,17 +87,58 @@ class SpeedScaling:
                 "factor",
                 factor,
             )
-        self._scale_target = float(factor)
+        self._request(float(factor))
         if factor > 0.0:
             self._resume_scale = float(factor)
-        self._plan_ramp()
 
     def resume_speed_scaling(self) -> float:
         """Ramp back to the last non-zero factor set (the one before a pause; initially
-        ``initial_scaling_factor``, or 1 if that is 0); returns that target."""
-        self._scale_target = self._resume_scale
-        self._plan_ramp()
+        ``initial_scaling_factor``, or 1 if that is 0); returns that target. Raises as
+        :meth:`set_speed_scaling` does without a command interface to ask the hardware."""
+        self._check_requestable()
+        self._request(self._resume_scale)
         return self._resume_scale
+
+    def set_speed_scaling_state(self, factor: float) -> None:
+        """The factor the hardware's ``speed_scaling.state_interface`` reads this cycle (a
+        speed slider, a safety controller's reduced mode): the target from the next
+        ``update`` on, as from :meth:`set_speed_scaling` (upstream reads it first thing in
+        ``update``; the ramp applies as to any target). The loop calls it each cycle between
+        ``read`` and ``update``. A value that is not a finite number >= 0 (a device that did
+        not report it) is ignored: the target stays; above ``max_scaling_factor`` it is that
+        bound (docs/behaviour.md, "Speed scaling")."""
+        if not 0.0 <= factor < math.inf:  # False for NaN
+            return
+        factor = min(float(factor), self.config.speed_scaling.max_scaling_factor)
+        if factor != self._scale_target:
+            self._scale_target = factor
+            self._plan_ramp()
+
+    @property
+    def speed_scaling_request(self) -> float:
+        """The factor asked for (:meth:`set_speed_scaling`, :meth:`resume_speed_scaling`;
+        ``initial_scaling_factor`` at activation): what the loop writes to
+        ``speed_scaling.command_interface`` each cycle (upstream's ``scaling_factor_cmd``).
+        Without a state interface it is also the target."""
+        return self._scale_request
+
+    def _check_requestable(self) -> None:
+        scaling = self.config.speed_scaling
+        if scaling.state_interface and not scaling.command_interface:
+            raise ConfigurationError(
+                f"the speed scaling factor is read from the hardware's "
+                f"{scaling.state_interface!r} each cycle and no "
+                "speed_scaling.command_interface is configured to ask it for another; change "
+                "it on the robot (its speed slider), or configure a command interface",
+                "speed_scaling.state_interface",
+                scaling.state_interface,
+            )
+
+    def _request(self, factor: float) -> None:
+        self._scale_request = factor
+        if not self.config.speed_scaling.state_interface:
+            self._scale_target = factor
+            self._plan_ramp()
 
     @property
     def speed_scaling_factor(self) -> float:
@@ -97,7 +147,8 @@ class SpeedScaling:
 
     @property
     def speed_scaling_target(self) -> float:
-        """The factor the speed scaling ramps toward (``set_speed_scaling``)."""
+        """The factor the speed scaling ramps toward (``set_speed_scaling``, or the hardware's
+        with a state interface: :meth:`set_speed_scaling_state`)."""
         return self._scale_target
 
     @property

@@ -469,3 +469,62 @@ def test_a_ramp_takes_its_first_step_at_the_next_update() -> None:
     assert 0.0 < factor < 1.0
     assert run.ctrl.trajectory_time_ns - tau == round(run.period * factor)
     assert out.state.speed_scaling_target == 0.0
+
+
+def scaled_by_hardware(**scaling: Any) -> Run:
+    return Run(make_config(NAMES, command_interfaces=("position", "velocity"),
+                           speed_scaling={"ramp_time": 0.0, **scaling}))
+
+
+def test_the_state_interface_sets_the_factor_from_the_next_update() -> None:
+    """Upstream's ``scaling_state_interface_sets_value``: with ``speed_scaling.state_interface``
+    the hardware's value, read before an update, is that update's factor; what a client sets
+    cannot override it, and without a command interface it is refused rather than lost."""
+    run = scaled_by_hardware(state_interface="arm/speed_scaling_factor")
+    run.ctrl.send_goal(run.now, goal())
+    for _ in range(30):
+        run.step()
+    tau = run.ctrl.trajectory_time_ns
+    run.ctrl.set_speed_scaling_state(0.5)
+    out = run.step()
+    assert (out.state.speed_scaling_factor, out.state.speed_scaling_target) == (0.5, 0.5)
+    assert run.ctrl.trajectory_time_ns - tau == run.period // 2
+    ahead = run.ctrl.reference.sample(run.ctrl.trajectory_time_ns + run.period)
+    np.testing.assert_allclose(out.command.velocities, ahead.velocities * 0.5, rtol=1e-12)
+    with pytest.raises(ConfigurationError, match="read from the hardware's "
+                       "'arm/speed_scaling_factor' each cycle and no "
+                       "speed_scaling.command_interface"):
+        run.ctrl.set_speed_scaling(0.2)
+    with pytest.raises(ConfigurationError, match="no speed_scaling.command_interface"):
+        run.ctrl.resume_speed_scaling()
+    # A value the device did not report (NaN), or not a factor, leaves the factor as it is;
+    # one above max_scaling_factor is that bound.
+    for unreadable in (float("nan"), -0.5, float("inf")):
+        run.ctrl.set_speed_scaling_state(unreadable)
+        assert run.step().state.speed_scaling_factor == 0.5
+    run.ctrl.set_speed_scaling_state(3.0)
+    assert run.step().state.speed_scaling_factor == 1.0
+    run.until(lambda out: bool(run.results()))
+    assert run.results()[0].status is GoalStatus.SUCCEEDED
+
+
+def test_the_command_interface_carries_the_factor_asked_for() -> None:
+    """Upstream's ``scaling_command_interface_sets_value``: the factor asked for is written to
+    the command interface each cycle; hardware that loops it back to the state interface shows
+    it at the next read, so the factor is in force from the second update after the set."""
+    run = scaled_by_hardware(state_interface="arm/speed_scaling_factor",
+                             command_interface="arm/speed_scaling_factor",
+                             initial_scaling_factor=0.5)
+    assert run.ctrl.speed_scaling_request == 0.5
+    hardware = 1.0  # the robot's slider, before the controller first writes it
+    factors = []
+    for k in range(4):
+        if k == 1:
+            before = run.ctrl.speed_scaling_target
+            run.ctrl.set_speed_scaling(0.765)
+            assert run.ctrl.speed_scaling_target == before  # the hardware decides
+            assert run.ctrl.speed_scaling_request == 0.765
+        run.ctrl.set_speed_scaling_state(hardware)  # read
+        factors.append(run.step().state.speed_scaling_factor)
+        hardware = run.ctrl.speed_scaling_request  # written, looped back
+    assert factors == [1.0, 0.5, 0.765, 0.765]

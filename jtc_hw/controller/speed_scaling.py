@@ -275,11 +275,12 @@ class SpeedScaling:
         between two updates, so that the next ``update`` already takes its step (upstream: a
         factor set between two updates is in force from the next one). The rate is bounded as
         the last ``update`` would have bounded it: at its trajectory time and one look-ahead
-        period later."""
+        period later (or where a reference installed since begins)."""
         if self._scale == self._scale_target or not self._commanding:
             self._ramp(None)
             return
-        tau = self._tau_ns
+        # A reference installed since that update (a command committed, a stop) starts later.
+        tau = max(self._tau_ns, self._ref.state_before_ns)
         self._ramp(self._ref.sample(tau + self._lookahead_ns), self._ref.sample(tau))
 
     def _scaled(self, sample: TrajectorySample) -> TrajectorySample:

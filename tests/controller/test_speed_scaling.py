@@ -471,6 +471,23 @@ def test_a_ramp_takes_its_first_step_at_the_next_update() -> None:
     assert out.state.speed_scaling_target == 0.0
 
 
+@pytest.mark.parametrize("ramp_time", [0.0, 0.2])
+def test_a_factor_set_after_a_command_installed_between_updates(ramp_time: float) -> None:
+    """The rate of the next update's step is chosen at the set, from the reference: one
+    committed since the last update starts after that update's trajectory time, so it is
+    sampled from its start (the fuzz bench found ``resume`` after a goal failing with
+    'cannot sample the trajectory at ...: it is defined from ... on')."""
+    run = Run(config("position", speed_scaling={"ramp_time": ramp_time}))
+    for _ in range(3):
+        run.step()
+    gid = run.ctrl.send_goal(run.now, goal())  # the clock is a period past the last update
+    assert run.ctrl.reference.state_before_ns > run.ctrl.trajectory_time_ns
+    run.ctrl.set_speed_scaling(0.5)
+    assert run.step().state.speed_scaling_factor < 1.0
+    run.until(lambda out: bool(run.results()))
+    assert [(r.goal_id, r.status) for r in run.results()] == [(gid, GoalStatus.SUCCEEDED)]
+
+
 def scaled_by_hardware(**scaling: Any) -> Run:
     return Run(make_config(NAMES, command_interfaces=("position", "velocity"),
                            speed_scaling={"ramp_time": 0.0, **scaling}))

@@ -55,6 +55,10 @@ def cmd_check(args: argparse.Namespace) -> int:
     )
     law = "PID (gains per joint)" if c.use_pid else "desired values forwarded"
     print(f"  control law     {law}; interpolation {c.interpolation_method}")
+    scaling = c.speed_scaling  # its interfaces resolved by create_hardware_set above
+    if scaling.state_interface or scaling.command_interface:
+        print(f"  speed scaling   read from {scaling.state_interface or '(none)'}, asked "
+              f"through {scaling.command_interface or '(none)'}")
     print(f"  tolerances      {'joint':<14} {'path':>8} {'goal':>8}   (0: not checked)")
     for j in c.joints:
         jc = c.constraints.joints[j]

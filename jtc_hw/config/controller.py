@@ -239,12 +239,15 @@ SPEED_SCALING_PARAMETERS: Final[Mapping[str, ParamSpec]] = param_table(
               "largest speed scaling factor accepted (1: upstream's bound; above 1 lets "
               "set_speed_scaling run trajectories faster than planned)", minimum=1.0,
               maximum=MAX_SCALING_CEILING, read_only=True, coerce=_max_scaling_factor),
-    # Upstream names a controller manager's interface here; the daemon has none (only "" is
-    # accepted, see _validate), and the factor is set through set_speed_scaling instead.
-    ParamSpec("state_interface", _S, "", "interface the factor is read from (\"\": none)",
-              read_only=True),
-    ParamSpec("command_interface", _S, "", "interface the factor is written to (\"\": none)",
-              read_only=True),
+    # Upstream's fully qualified interface names: here a hardware component's scalar
+    # interface, "<component>/<interface>" (the syntax checked in _validate, the name when the
+    # hardware is created: HardwareSet.scalar_interface).
+    ParamSpec("state_interface", _S, "",
+              "scalar state interface the factor is read from each cycle, "
+              "'<component>/<interface>' (\"\": none)", read_only=True),
+    ParamSpec("command_interface", _S, "",
+              "scalar command interface the factor asked for is written to each cycle, "
+              "'<component>/<interface>' (\"\": none)", read_only=True),
     # Not upstream's: how fast the factor moves when no acceleration limit bounds it.
     ParamSpec("ramp_time", _F, 0.5,
               "seconds a change of factor by 1 takes when no acceleration limit bounds it "
@@ -616,13 +619,16 @@ def _validate(cfg: ControllerConfig) -> None:
     scaling = _instance(cfg.speed_scaling, SpeedScaling, "speed_scaling")
     checked_scaling = _checked_fields(scaling, SPEED_SCALING_PARAMETERS, "speed_scaling")
     for name in ("state_interface", "command_interface"):
-        if checked_scaling[name]:
+        value = checked_scaling[name]
+        component, _, interface = value.partition("/")
+        if value and (not component or not interface or "/" in interface
+                      or value != value.strip()):
             raise ConfigurationError(
-                f"{checked_scaling[name]!r}: the daemon has no named interfaces (no controller "
-                "manager); leave it empty and set the factor with set_speed_scaling "
-                "(jtc-hw speed)",
+                f"{value!r}: expected '<component>/<interface>', a scalar interface of one of "
+                "the robot's hardware components (e.g. 'arm/speed_scaling_factor' on mirror "
+                "hardware), or \"\" for none",
                 f"speed_scaling.{name}",
-                checked_scaling[name],
+                value,
             )
     initial, most = checked_scaling["initial_scaling_factor"], checked_scaling["max_scaling_factor"]
     if initial > most:

@@ -174,7 +174,9 @@ class JointTrajectoryController(ControlLaw, Stops):
         self._scale_target = initial
         self._scale_rate = 0.0  # d(factor)/dt in force since _wall_ns, 1/s
         self._ramp_target = initial  # what _scale_rate aims at (the target may change since)
+        self._scale_jump = False
         self._resume_scale = initial if initial > 0.0 else 1.0
+        self._scale_request = initial
         self._set_ramp_bounds(config)
 
     # -- lifecycle ----------------------------------------------------------------------------
@@ -238,8 +240,9 @@ class JointTrajectoryController(ControlLaw, Stops):
         self._timebase_started = True
         self._wall_ns = now_ns
         initial = self.config.speed_scaling.initial_scaling_factor
-        self._scale = self._scale_target = initial
+        self._scale = self._scale_target = self._scale_request = initial
         self._scale_rate = 0.0
+        self._scale_jump = False
         self._set_reference(Trajectory.constant(self._tau_ns, start))
         self._measured = state
         self._last_command_positions = start.copy()

@@ -290,6 +290,8 @@ def create_hardware_set(robot: RobotConfig) -> HardwareSet:
             dependency: the message names the ``pip install``) or its parameters are invalid
             (path ``hardware[<i>].params.<key>``), including a ``watchdog_s`` shorter than
             three loop periods.
+        ConfigurationError: ``speed_scaling.state_interface`` or ``command_interface`` is
+            not a scalar interface of a component (:meth:`HardwareSet.scalar_interface`).
         HardwareError: a driver's constructor failed otherwise.
     """
     components = [create_hardware(spec) for spec in robot.hardware]
@@ -304,7 +306,12 @@ def create_hardware_set(robot: RobotConfig) -> HardwareSet:
                 f"hardware[{index}].params.watchdog_s",
                 watchdog_s,
             )
-    return HardwareSet(components, robot.controller.joints)
+    hardware = HardwareSet(components, robot.controller.joints)
+    scaling = robot.controller.speed_scaling
+    for kind, name in (("state", scaling.state_interface), ("command", scaling.command_interface)):
+        if name:
+            hardware.scalar_interface(name, kind)
+    return hardware
 
 
 def joint_position_limits(robot: RobotConfig) -> dict[str, tuple[float, float]]:

@@ -135,6 +135,34 @@ class HardwareSet:
             )
         return found
 
+    def scalar_interface(self, qualified: str, kind: str) -> tuple[HardwareInterface, str]:
+        """The component and name of the scalar ``kind`` (``"state"`` or ``"command"``)
+        interface ``qualified``, ``<component>/<name>`` (``speed_scaling.state_interface`` /
+        ``command_interface``; :attr:`HardwareInterface.SCALAR_STATE_INTERFACES`).
+
+        Raises:
+            ConfigurationError: no component has that name, or it offers no such scalar
+                interface; the message lists those the robot's components offer.
+        """
+        component, _, name = qualified.partition("/")
+        offered = [
+            f"{c.name}/{n}" for c in self._components
+            for n in (c.SCALAR_STATE_INTERFACES if kind == "state"
+                      else c.SCALAR_COMMAND_INTERFACES)
+        ]
+        found = self._by_name.get(component)
+        if found is None or qualified not in offered:
+            what = (f"no hardware component is named {component!r}" if found is None else
+                    f"{found.kind} hardware {component!r} offers no scalar {kind} interface "
+                    f"{name!r}")
+            raise ConfigurationError(
+                f"{qualified!r}: {what}; scalar {kind} interfaces of this robot: "
+                f"{', '.join(offered) or 'none'}{did_you_mean(qualified, offered)}",
+                f"speed_scaling.{kind}_interface",
+                qualified,
+            )
+        return found, name
+
     @property
     def state(self) -> LifecycleState:
         """The components' common state (FINALIZED if any is; else the least advanced)."""

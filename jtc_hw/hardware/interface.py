@@ -179,6 +179,16 @@ class HardwareInterface(ABC):
     STATE_INTERFACES: ClassVar[tuple[str, ...]] = STATE_INTERFACE_TYPES
     """State interfaces the kind can serve."""
 
+    SCALAR_STATE_INTERFACES: ClassVar[tuple[str, ...]] = ()
+    """Scalar state interfaces the kind offers beside its joints' (ros2_control's GPIO
+    interfaces): a robot's speed slider, its safety controller's reduced-speed factor. The
+    controller names one ``<component>/<name>`` (``speed_scaling.state_interface``) and reads
+    it each cycle after ``read`` with :meth:`scalar_state`."""
+
+    SCALAR_COMMAND_INTERFACES: ClassVar[tuple[str, ...]] = ()
+    """Scalar command interfaces (``speed_scaling.command_interface``): the loop sets one each
+    cycle with :meth:`set_scalar_command` before ``write``, which sends it."""
+
     def __init__(
         self,
         name: str,
@@ -618,6 +628,18 @@ class HardwareInterface(ABC):
         """
         return ()
 
+    def scalar_state(self, name: str) -> float:
+        """The scalar state interface ``name`` (one of :attr:`SCALAR_STATE_INTERFACES`) as the
+        last ``read`` left it; no I/O. ``NaN``: not known (nothing read yet, or the device did
+        not report it in that read)."""
+        return float(self._scalar_state(name))
+
+    def set_scalar_command(self, name: str, value: float) -> None:
+        """Set the scalar command interface ``name`` (one of
+        :attr:`SCALAR_COMMAND_INTERFACES`) to ``value``; no I/O: the next ``write`` sends it,
+        in the cycle's one bus transaction where the device allows."""
+        self._set_scalar_command(name, float(value))
+
     def nan_command(self) -> JointCommand:
         """A command holding ``NaN`` for every configured interface (``None`` for the others)."""
         return JointCommand(*(np.full(self._shape, np.nan) if iface in self.command_interfaces
@@ -653,6 +675,15 @@ class HardwareInterface(ABC):
 
     def _cleanup(self) -> None:  # noqa: B027 - optional primitive, no-op by default
         """Release the device. Default: nothing to do."""
+
+    def _scalar_state(self, name: str) -> float:
+        """A scalar state interface's value as of the last read (no I/O). Default: ``NaN``
+        (the kind declares none)."""
+        return float("nan")
+
+    def _set_scalar_command(self, name: str, value: float) -> None:  # noqa: B027
+        """Keep a scalar command interface's value for the next ``_write``. Default: nothing
+        (the kind declares none)."""
 
     def _details(self) -> Mapping[str, Any]:
         """Driver-specific JSON-able status entries (bus statistics, temperatures, ...)."""

@@ -23,6 +23,13 @@ and set point, as a real drive keeps its registers.
 * **effort**: a unit inertia with viscous ``damping``: ``dv/dt = effort - damping v``
   (``velocity_limit`` does not apply: a torque-driven joint has no velocity loop).
 
+One scalar interface, ``speed_scaling_factor``, is both a state and a command interface (a
+controller's ``speed_scaling.state_interface`` / ``command_interface``,
+``<component>/speed_scaling_factor``): as GenericSystem mirrors, a value written is the state
+from the next read; before any write the state is the ``speed_scaling_factor`` parameter (a
+robot whose speed slider or safety controller has slowed it: with only the state interface
+configured, nothing writes it). While frozen, it keeps its value too.
+
 ``position_limits`` clamp the position; a joint driven into a limit stops there (velocity and
 acceleration 0). Before the first command, while inactive, and after a deactivation, a joint is
 held by a position servo (its target: its last position command, or where it stood).
@@ -82,7 +89,13 @@ class MirrorHardware(HardwareInterface):
         ParamSpec("damping", ParamKind.FLOAT, 0.0,
                   "viscous damping of effort-driven joints (unit inertia), N*m*s/rad",
                   minimum=0.0),
+        ParamSpec("speed_scaling_factor", ParamKind.FLOAT, 1.0,
+                  "the scalar interface speed_scaling_factor's state until a value is written "
+                  "to it (module docstring)", minimum=0.0),
     )
+
+    SCALAR_STATE_INTERFACES: ClassVar[tuple[str, ...]] = ("speed_scaling_factor",)
+    SCALAR_COMMAND_INTERFACES: ClassVar[tuple[str, ...]] = ("speed_scaling_factor",)
 
     def __init__(
         self,
@@ -122,6 +135,11 @@ class MirrorHardware(HardwareInterface):
         self._t_ns: int | None = None
         self._frozen = False
         self._fault: str | None = None
+        # speed_scaling_factor: as the last read left it, written (for the next read), set
+        # (for the next write).
+        self._scalar_read = math.nan
+        self._scalar_written: float = p["speed_scaling_factor"]
+        self._scalar_set = math.nan
 
     # -- test knobs ---------------------------------------------------------------------------
 
@@ -193,6 +211,8 @@ class MirrorHardware(HardwareInterface):
         if self._fault is not None:
             raise CommunicationError(self._fault)
         self._advance(now_ns)
+        if not self._frozen or math.isnan(self._scalar_read):
+            self._scalar_read = self._scalar_written
         return JointState(
             self._p.copy(),
             self._v.copy() if self._velocity_state else None,
@@ -201,6 +221,8 @@ class MirrorHardware(HardwareInterface):
 
     def _write(self, now_ns: int, command: JointCommand) -> None:
         self._advance(now_ns)
+        if not math.isnan(self._scalar_set):
+            self._scalar_written = self._scalar_set
         claimed = np.zeros(len(self.joints), dtype=bool)
         fields = (command.positions, command.velocities, command.accelerations, command.effort)
         for mode, (on, values) in enumerate(zip(self._commanded, fields, strict=True)):
@@ -224,8 +246,17 @@ class MirrorHardware(HardwareInterface):
         else:
             self._hold_here(self._mode != _POSITION)
 
+    def _scalar_state(self, name: str) -> float:
+        return self._scalar_read
+
+    def _set_scalar_command(self, name: str, value: float) -> None:
+        self._scalar_set = value
+
     def _details(self) -> Mapping[str, Any]:
-        return {"frozen": self._frozen, "injected_fault": self._fault}
+        return {"frozen": self._frozen, "injected_fault": self._fault,
+                "speed_scaling_factor": {  # None: not read / not written yet
+                    "state": None if math.isnan(self._scalar_read) else self._scalar_read,
+                    "command": None if math.isnan(self._scalar_set) else self._scalar_set}}
 
     # -- physics ------------------------------------------------------------------------------
 

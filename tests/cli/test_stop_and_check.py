@@ -148,3 +148,22 @@ def test_check_refuses_what_run_would_refuse_in_the_hardware_parameters(
     assert main(["check", str(config)]) == 2
     err = capsys.readouterr().err
     assert "hardware[0].params.lag_s" in err and "OK" not in err
+
+
+def test_check_resolves_the_speed_scaling_interfaces(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """As ``run`` would: an interface no component offers is refused, naming those offered."""
+    hardware = "hardware:\n  - {name: m, kind: mirror, joints: [j1]}\n"
+    config = tmp_path / "robot.yaml"
+    config.write_text(CONFIG + hardware + "speed_scaling: {state_interface: m/speed_scaling_factor,"
+                      " command_interface: m/speed_scaling_factor}\n")
+    assert main(["check", str(config)]) == EXIT_OK
+    assert ("speed scaling   read from m/speed_scaling_factor, asked through "
+            "m/speed_scaling_factor") in capsys.readouterr().out
+    config.write_text(CONFIG + hardware + "speed_scaling: {state_interface: m/speed}\n")
+    assert main(["check", str(config)]) == EXIT_BAD_INPUT
+    err = capsys.readouterr().err
+    assert "speed_scaling.state_interface" in err
+    assert "mirror hardware 'm' offers no scalar state interface 'speed'" in err
+    assert "scalar state interfaces of this robot: m/speed_scaling_factor" in err

@@ -149,9 +149,12 @@ def test_pause_at_half_ramps_to_rest_within_the_bound_and_resume_finishes(
         assert (max_step(run.actual_v[start:]) <= bound * 1.02 + 1e-12).all()
         np.testing.assert_allclose(run.actual_v[-1], 0.0, atol=1e-12)
     if interfaces == "position_velocity_acceleration":
-        # The acceleration command is the derivative of the velocity command (a s^2 + v ds/dt).
-        v = np.array([c.velocities for c in run.commands[start:ramp_end]])
-        a = np.array([c.accelerations for c in run.commands[start:ramp_end]])
+        # The acceleration command is the derivative of the velocity command (a s^2 + v ds/dt)
+        # from the first update after the pause was asked: that update already takes the ramp's
+        # first velocity step (upstream: in force from the next update), so the acceleration
+        # written by the update before it, when no pause had been asked, cannot include it.
+        v = np.array([c.velocities for c in run.commands[start + 1:ramp_end]])
+        a = np.array([c.accelerations for c in run.commands[start + 1:ramp_end]])
         np.testing.assert_allclose(np.diff(v, axis=0) / dt, a[:-1], atol=0.05 * max(ACCEL.values()))
     paused_at = run.mirror.p.copy()
     assert run.results() == [], "no result while paused"
@@ -219,19 +222,19 @@ def test_without_limits_the_factor_ramps_over_the_ramp_time() -> None:
     run.ctrl.send_goal(run.now, goal())
     run.until(lambda out: out.state.reference_time_from_start >= 0.5)
     run.ctrl.set_speed_scaling(0.0)
-    # The rate is chosen in a cycle for the period that follows: the factor moves from the next.
+    # As upstream, a factor set between two updates is in force from the next: that update
+    # takes the ramp's first step, and the 20th reaches the target.
     factors = [run.step().state.speed_scaling_factor for _ in range(25)]
-    assert factors[0] == 1.0
-    assert factors[1] == pytest.approx(0.95)
+    assert factors[0] == pytest.approx(0.95)
     assert np.all(np.diff(factors) <= 0.0)
-    assert factors.index(0.0) == 20
-    np.testing.assert_allclose(np.diff(factors[:21]), -0.05)
+    assert factors.index(0.0) == 19
+    np.testing.assert_allclose(np.diff([1.0, *factors[:20]]), -0.05)
 
 
 def test_ramp_time_zero_steps_as_upstream() -> None:
     run = Run(make_config(NAMES, speed_scaling={"ramp_time": 0.0}))
     run.ctrl.set_speed_scaling(0.3)
-    run.step()
+    assert run.step().state.speed_scaling_factor == 0.3
     assert run.step().state.speed_scaling_factor == 0.3
 
 
@@ -350,7 +353,11 @@ def test_a_new_target_mid_ramp_turns_the_ramp_without_a_jump() -> None:
     factors += [run.step().state.speed_scaling_factor for _ in range(20)]
     steps = np.diff(factors)
     assert np.abs(steps).max() <= 0.05 + 1e-12, steps
-    assert min(factors) == pytest.approx(0.7)  # the period already under way ends at 0.7
+    # The first update is at the activation's time (no time elapsed, no step); the new target
+    # is in force from the next update, which turns the ramp where the factor is.
+    assert factors[:6] == pytest.approx([1.0, 0.95, 0.9, 0.85, 0.8, 0.75])
+    assert min(factors) == pytest.approx(0.75)
+    assert factors[6] == pytest.approx(0.8)
     assert factors[-1] == 0.9
 
 
@@ -375,9 +382,17 @@ def test_a_reactivation_after_slowing_commands_at_once() -> None:
 
 
 def test_the_parameters_are_checked_and_named() -> None:
+    # Upstream's interface names are '<component>/<interface>' here (which component offers
+    # it is checked when the hardware is created: tests/daemon/test_robot.py).
+    accepted = make_config(NAMES, speed_scaling={"state_interface": "arm/speed_scaling",
+                                                 "command_interface": "arm/x"})
+    assert accepted.speed_scaling.state_interface == "arm/speed_scaling"
     for bad, message in [
-        ({"state_interface": "arm/speed_scaling"}, "speed_scaling.state_interface: 'arm/"),
-        ({"command_interface": "x"}, "the daemon has no named interfaces"),
+        ({"state_interface": "arm"}, "speed_scaling.state_interface: 'arm': expected "
+                                     "'<component>/<interface>'"),
+        ({"command_interface": "a/b/c"}, "speed_scaling.command_interface: 'a/b/c': expected"),
+        ({"command_interface": "/x"}, "expected '<component>/<interface>'"),
+        ({"command_interface": "arm/x "}, "expected '<component>/<interface>'"),
         ({"initial_scaling_factor": -0.5}, "speed_scaling.initial_scaling_factor: must be >= 0"),
         ({"ramp_time": -1}, "speed_scaling.ramp_time: must be >= 0"),
         ({"ramp": 1}, "did you mean 'ramp_time'"),
@@ -398,7 +413,7 @@ def test_upstreams_parameters_are_read_only_and_the_ramp_time_changes_next_cycle
     change = run.ctrl.set_parameters({"speed_scaling.ramp_time": 1.0})
     assert change.effects["speed_scaling.ramp_time"].value == "next cycle"
     run.ctrl.set_speed_scaling(0.0)
-    run.step()
+    run.step()  # at the activation's time: no time elapsed, no step
     assert run.step().state.speed_scaling_factor == pytest.approx(0.99)  # 1 / 1.0 s at 100 Hz
 
 
@@ -408,3 +423,125 @@ def test_check_warns_when_the_controller_starts_paused() -> None:
     assert not [w for w in explain(make_config(NAMES)) if "speed_scaling" in w]
     warnings = explain(make_config(NAMES, speed_scaling={"initial_scaling_factor": 0.0}))
     assert [w for w in warnings if w.startswith("speed_scaling.initial_scaling_factor: is 0")]
+
+
+def test_a_factor_set_between_updates_is_in_force_from_the_next_update() -> None:
+    """Upstream (section 7 step 1, its ``setting_scaling_factor_works_correctly``): with no ramp,
+    the update right after the set reports the new factor, advances trajectory time by the
+    period times it and commands the velocity of the slowed time. Before this was fixed the
+    factor and the velocity lagged one update, and trajectory time two."""
+    cfg = make_config(NAMES, command_interfaces=("position", "velocity"),
+                      speed_scaling={"ramp_time": 0.0})
+    run = Run(cfg)
+    run.ctrl.send_goal(run.now, goal())
+    for _ in range(30):
+        run.step()
+    for factor in (0.765, 0.5, 0.0, 1.0):
+        before_tau = run.ctrl.trajectory_time_ns
+        before_ref = run.states[-1].reference_time_from_start
+        run.ctrl.set_speed_scaling(factor)
+        out = run.step()
+        assert out.state.speed_scaling_factor == factor
+        assert run.ctrl.trajectory_time_ns - before_tau == round(run.period * factor)
+        assert out.state.reference_time_from_start - before_ref == pytest.approx(
+            run.period * factor / S, abs=1e-12)
+        # The command samples one unscaled period ahead (upstream section 7 step 7), at the
+        # velocity of the slowed time.
+        ahead = run.ctrl.reference.sample(run.ctrl.trajectory_time_ns + run.period)
+        np.testing.assert_array_equal(out.command.positions, ahead.positions)
+        np.testing.assert_allclose(out.command.velocities, ahead.velocities * factor, rtol=1e-12)
+        # ... and it stays in force.
+        tau = run.ctrl.trajectory_time_ns
+        assert run.step().state.speed_scaling_factor == factor
+        assert run.ctrl.trajectory_time_ns - tau == round(run.period * factor)
+
+
+def test_a_ramp_takes_its_first_step_at_the_next_update() -> None:
+    """With acceleration limits the factor ramps; its first step is the update right after the
+    set, and that update's trajectory time advances at the factor it reports."""
+    run = Run(config("position_velocity"))
+    run.ctrl.send_goal(run.now, goal())
+    run.until(lambda out: out.state.reference_time_from_start >= 1.0)
+    tau = run.ctrl.trajectory_time_ns
+    run.ctrl.set_speed_scaling(0.0)
+    out = run.step()
+    factor = out.state.speed_scaling_factor
+    assert 0.0 < factor < 1.0
+    assert run.ctrl.trajectory_time_ns - tau == round(run.period * factor)
+    assert out.state.speed_scaling_target == 0.0
+
+
+@pytest.mark.parametrize("ramp_time", [0.0, 0.2])
+def test_a_factor_set_after_a_command_installed_between_updates(ramp_time: float) -> None:
+    """The rate of the next update's step is chosen at the set, from the reference: one
+    committed since the last update starts after that update's trajectory time, so it is
+    sampled from its start (the fuzz bench found ``resume`` after a goal failing with
+    'cannot sample the trajectory at ...: it is defined from ... on')."""
+    run = Run(config("position", speed_scaling={"ramp_time": ramp_time}))
+    for _ in range(3):
+        run.step()
+    gid = run.ctrl.send_goal(run.now, goal())  # the clock is a period past the last update
+    assert run.ctrl.reference.state_before_ns > run.ctrl.trajectory_time_ns
+    run.ctrl.set_speed_scaling(0.5)
+    assert run.step().state.speed_scaling_factor < 1.0
+    run.until(lambda out: bool(run.results()))
+    assert [(r.goal_id, r.status) for r in run.results()] == [(gid, GoalStatus.SUCCEEDED)]
+
+
+def scaled_by_hardware(**scaling: Any) -> Run:
+    return Run(make_config(NAMES, command_interfaces=("position", "velocity"),
+                           speed_scaling={"ramp_time": 0.0, **scaling}))
+
+
+def test_the_state_interface_sets_the_factor_from_the_next_update() -> None:
+    """Upstream's ``scaling_state_interface_sets_value``: with ``speed_scaling.state_interface``
+    the hardware's value, read before an update, is that update's factor; what a client sets
+    cannot override it, and without a command interface it is refused rather than lost."""
+    run = scaled_by_hardware(state_interface="arm/speed_scaling_factor")
+    run.ctrl.send_goal(run.now, goal())
+    for _ in range(30):
+        run.step()
+    tau = run.ctrl.trajectory_time_ns
+    run.ctrl.set_speed_scaling_state(0.5)
+    out = run.step()
+    assert (out.state.speed_scaling_factor, out.state.speed_scaling_target) == (0.5, 0.5)
+    assert run.ctrl.trajectory_time_ns - tau == run.period // 2
+    ahead = run.ctrl.reference.sample(run.ctrl.trajectory_time_ns + run.period)
+    np.testing.assert_allclose(out.command.velocities, ahead.velocities * 0.5, rtol=1e-12)
+    with pytest.raises(ConfigurationError, match="read from the hardware's "
+                       "'arm/speed_scaling_factor' each cycle and no "
+                       "speed_scaling.command_interface"):
+        run.ctrl.set_speed_scaling(0.2)
+    with pytest.raises(ConfigurationError, match="no speed_scaling.command_interface"):
+        run.ctrl.resume_speed_scaling()
+    # A value the device did not report (NaN), or not a factor, leaves the factor as it is;
+    # one above max_scaling_factor is that bound.
+    for unreadable in (float("nan"), -0.5, float("inf")):
+        run.ctrl.set_speed_scaling_state(unreadable)
+        assert run.step().state.speed_scaling_factor == 0.5
+    run.ctrl.set_speed_scaling_state(3.0)
+    assert run.step().state.speed_scaling_factor == 1.0
+    run.until(lambda out: bool(run.results()))
+    assert run.results()[0].status is GoalStatus.SUCCEEDED
+
+
+def test_the_command_interface_carries_the_factor_asked_for() -> None:
+    """Upstream's ``scaling_command_interface_sets_value``: the factor asked for is written to
+    the command interface each cycle; hardware that loops it back to the state interface shows
+    it at the next read, so the factor is in force from the second update after the set."""
+    run = scaled_by_hardware(state_interface="arm/speed_scaling_factor",
+                             command_interface="arm/speed_scaling_factor",
+                             initial_scaling_factor=0.5)
+    assert run.ctrl.speed_scaling_request == 0.5
+    hardware = 1.0  # the robot's slider, before the controller first writes it
+    factors = []
+    for k in range(4):
+        if k == 1:
+            before = run.ctrl.speed_scaling_target
+            run.ctrl.set_speed_scaling(0.765)
+            assert run.ctrl.speed_scaling_target == before  # the hardware decides
+            assert run.ctrl.speed_scaling_request == 0.765
+        run.ctrl.set_speed_scaling_state(hardware)  # read
+        factors.append(run.step().state.speed_scaling_factor)
+        hardware = run.ctrl.speed_scaling_request  # written, looped back
+    assert factors == [1.0, 0.5, 0.765, 0.765]

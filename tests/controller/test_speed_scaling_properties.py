@@ -72,9 +72,9 @@ def test_random_factor_changes_keep_the_limits_and_one_result(
     steps = np.abs(np.diff(np.array(run.desired_v), axis=0))
     assert (steps <= bound).all(), steps.max(axis=0)
     assert all(0.0 <= f <= 1.0 for f in factors)
-    for f0, f1, t in zip(factors, factors[1:], targets, strict=False):
-        # Toward the target the period's rate was chosen for (the one in force at f0's cycle),
-        # never past it.
+    for f0, f1, t in zip(factors, factors[1:], targets[1:], strict=False):
+        # Toward the target in force at f1's cycle (set before that update: upstream, it is in
+        # force from the next update), never past it.
         assert (f1 - f0) * (t - f0) >= 0.0
         assert min(f0, t) - 1e-12 <= f1 <= max(f0, t) + 1e-12
     errors = np.array([np.abs(s.error[0]) for s in run.states])

@@ -518,3 +518,28 @@ def test_a_socket_mode_that_lets_every_user_in_gets_a_warning(tmp_path: Path) ->
     assert "socket_mode 0606" in warnings("0606")[0]  # any bit for others
     assert warnings("0604") != [] and warnings("0601") != []
     assert warnings("0660") == [] and warnings("0600") == []  # the group is the door
+
+
+def test_speed_scaling_interfaces_are_a_components_scalar_interfaces() -> None:
+    """Upstream's ``speed_scaling.state_interface`` / ``command_interface``: a component's
+    scalar interface ``<component>/<name>``, resolved when the hardware is created (the daemon's
+    start and ``jtc-hw check``); an unknown one is a clear error listing those offered."""
+    good = {"state_interface": "hand/speed_scaling_factor",
+            "command_interface": "arm/speed_scaling_factor"}
+    hardware = create_hardware_set(load_robot(robot(hardware=two_components(),
+                                                    speed_scaling=good)))
+    component, name = hardware.scalar_interface("hand/speed_scaling_factor", "state")
+    assert (component.name, name) == ("hand", "speed_scaling_factor")
+    for scaling, message in [
+        ({"state_interface": "hand/speed_scaling"},
+         "'hand/speed_scaling': mirror hardware 'hand' offers no scalar state interface "
+         "'speed_scaling'; scalar state interfaces of this robot: arm/speed_scaling_factor, "
+         "hand/speed_scaling_factor; did you mean 'hand/speed_scaling_factor'?"),
+        ({"command_interface": "hnad/speed_scaling_factor"},
+         "'hnad/speed_scaling_factor': no hardware component is named 'hnad'"),
+    ]:
+        cfg = load_robot(robot(hardware=two_components(), speed_scaling=scaling))
+        with pytest.raises(ConfigurationError) as info:
+            create_hardware_set(cfg)
+        assert message in str(info.value)
+        assert info.value.path == f"speed_scaling.{next(iter(scaling))}"

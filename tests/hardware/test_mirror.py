@@ -56,8 +56,12 @@ def test_parameters_defaults_and_status() -> None:
         "velocity_limit": (0.0, 0.0),
         "initial_positions": (0.0, 0.0),
         "damping": 0.0,
+        "speed_scaling_factor": 1.0,
     }
-    assert hw.status()["details"] == {"frozen": False, "injected_fault": None}
+    assert hw.status()["details"] == {
+        "frozen": False, "injected_fault": None,
+        "speed_scaling_factor": {"state": None, "command": None},
+    }
     assert MirrorHardware.kind == "mirror"
 
 
@@ -414,3 +418,34 @@ def test_reactivation_resumes_from_the_held_command() -> None:
     held = hw.activate(loop.now)
     assert held.positions is not None
     np.testing.assert_allclose(held.positions, [0.3, 0.3], atol=1e-12)
+
+
+def test_the_speed_scaling_scalar_interface_mirrors_what_is_written() -> None:
+    """One scalar interface, state and command (docs/behaviour.md, "Speed scaling"): the
+    parameter's value until a write, then what was written, from the next read on, as
+    GenericSystem mirrors; what the last read left, with no I/O in between."""
+    hw = MirrorHardware("sim", ["a"], ["position"], ["position"], {"speed_scaling_factor": 0.5})
+    assert hw.SCALAR_STATE_INTERFACES == hw.SCALAR_COMMAND_INTERFACES == ("speed_scaling_factor",)
+    hw.configure()
+    hw.activate(0)
+    assert math.isnan(hw.scalar_state("speed_scaling_factor"))  # nothing read yet
+    hw.read(0)
+    assert hw.scalar_state("speed_scaling_factor") == 0.5
+    hw.set_scalar_command("speed_scaling_factor", 0.8)
+    hw.read(MS)
+    assert hw.scalar_state("speed_scaling_factor") == 0.5  # set, not yet written
+    hw.write(MS, hw.nan_command())
+    assert hw.scalar_state("speed_scaling_factor") == 0.5  # written, not yet read
+    hw.read(2 * MS)
+    assert hw.scalar_state("speed_scaling_factor") == 0.8
+    assert hw.status()["details"]["speed_scaling_factor"] == {"state": 0.8, "command": 0.8}
+    hw.set_frozen(True)  # frozen feedback: the state keeps its value too
+    hw.set_scalar_command("speed_scaling_factor", 0.2)
+    hw.write(3 * MS, hw.nan_command())
+    hw.read(4 * MS)
+    assert hw.scalar_state("speed_scaling_factor") == 0.8
+    hw.set_frozen(False)
+    hw.read(5 * MS)
+    assert hw.scalar_state("speed_scaling_factor") == 0.2
+    with pytest.raises(ConfigurationError, match="must be >= 0"):
+        MirrorHardware("sim", ["a"], ["position"], ["position"], {"speed_scaling_factor": -1})

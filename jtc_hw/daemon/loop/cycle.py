@@ -140,6 +140,15 @@ class ControlLoop:
             np.array([joint_index[j] for j in comp.joints], dtype=np.intp)
             for comp in self.hardware.components
         ]
+        # Upstream's speed scaling interfaces (docs/behaviour.md, "Speed scaling"): the
+        # factor read from a component's scalar state interface before each update, the one
+        # asked for written to its scalar command interface before each write.
+        scaling = self.config.speed_scaling
+        self._scaling_state = (self.hardware.scalar_interface(scaling.state_interface, "state")
+                               if scaling.state_interface else None)
+        self._scaling_command = (
+            self.hardware.scalar_interface(scaling.command_interface, "command")
+            if scaling.command_interface else None)
         self.stats = LoopStats(self.config.update_rate)
         self.state_every_ns = round(1e9 / self.config.state_publish_rate)
         self.fault: str | None = None
@@ -359,9 +368,11 @@ class ControlLoop:
                     self.ctrl.resume_speed_scaling()
                 else:
                     self.ctrl.set_speed_scaling(factor)
+                # The target asked for: with a state interface the hardware's factor is the
+                # controller's target, and this the factor it is asked to take.
                 return {
                     "factor": self.ctrl.speed_scaling_factor,
-                    "target": self.ctrl.speed_scaling_target,
+                    "target": self.ctrl.speed_scaling_request,
                 }
             case Rearm():
                 done = self._rearm(now_ns)
@@ -444,7 +455,13 @@ class ControlLoop:
             return
         try:
             state = self.hardware.read(now_ns)
+            if self._scaling_state is not None:
+                component, name = self._scaling_state
+                self.ctrl.set_speed_scaling_state(component.scalar_state(name))
             out = self.ctrl.update(now_ns, period_ns, state)
+            if self._scaling_command is not None:
+                component, name = self._scaling_command
+                component.set_scalar_command(name, self.ctrl.speed_scaling_request)
             self.hardware.write(now_ns, out.command)
             self._last_state = state
         except HardwareError as exc:

@@ -119,6 +119,11 @@ class MirrorHardware(HardwareInterface):
         # activate() reports as held.
         self._held = np.full((4, n), np.nan)
         self._commanded = tuple(i in self.command_interfaces for i in COMMAND_INTERFACE_TYPES)
+        # Per-cycle shortcuts, decided once: a position-only command, no speed limit, no
+        # position limit (the usual simulated arm) skip work whose result is known.
+        self._position_only = self._commanded == (True, False, False, False)
+        self._speed_limited = bool(np.isfinite(self._vmax).any())
+        self._bounded = bool(np.isfinite(self._lower).any() or np.isfinite(self._upper).any())
         self._t_ns: int | None = None
         self._frozen = False
         self._fault: str | None = None
@@ -201,6 +206,13 @@ class MirrorHardware(HardwareInterface):
 
     def _write(self, now_ns: int, command: JointCommand) -> None:
         self._advance(now_ns)
+        values = command.positions
+        if self._position_only and values is not None and np.isfinite(values).all():
+            # Every joint given a position (the usual cycle): what the loop below does.
+            self._held[_POSITION] = values
+            self._mode.fill(_POSITION)
+            np.clip(values, self._lower, self._upper, out=self._target)
+            return
         claimed = np.zeros(len(self.joints), dtype=bool)
         fields = (command.positions, command.velocities, command.accelerations, command.effort)
         for mode, (on, values) in enumerate(zip(self._commanded, fields, strict=True)):
@@ -247,24 +259,20 @@ class MirrorHardware(HardwareInterface):
         if dt_ns == 0 or self._frozen:
             return
         dt = dt_ns / NS_PER_S
-        p0, v0 = self._p, self._v
-        p, v, a = p0.copy(), v0.copy(), self._a.copy()
         mode = self._mode
-        steps = (
-            (_POSITION, self._position_step),
-            (_VELOCITY, self._velocity_step),
-            (_ACCELERATION, self._acceleration_step),
-            (_EFFORT, self._effort_step),
-        )
-        first = mode[0]
+        first = int(mode[0])
         if (mode == first).all():
             # Every joint driven the same way (the usual case): one step on whole arrays.
-            p, v, a = steps[int(first)][1](slice(None), dt)
+            p, v, a = _STEPS[first](self, _ALL, dt)
         else:
-            for m, step in steps:
+            p, v, a = self._p.copy(), self._v.copy(), self._a.copy()
+            for m, step in enumerate(_STEPS):
                 index = np.flatnonzero(mode == m)
                 if index.size:
-                    p[index], v[index], a[index] = step(index, dt)
+                    p[index], v[index], a[index] = step(self, index, dt)
+        if not self._bounded:
+            self._p, self._v, self._a = p, v, a
+            return
         over = (p < self._lower) | (p > self._upper)
         if over.any():
             p = np.clip(p, self._lower, self._upper)
@@ -275,6 +283,14 @@ class MirrorHardware(HardwareInterface):
     def _position_step(self, i: NDArray[np.intp] | slice, dt: float) -> tuple[F64, F64, F64]:
         p0, v0 = self._p[i], self._v[i]
         target = self._target[i]
+        if not self._speed_limited:
+            # What the general case below gives without a speed limit, in fewer operations.
+            if self._lag_s == 0.0:
+                p = target.copy()
+            else:
+                p = target - (target - p0) * np.exp(-dt / self._lag_s)
+            v = (p - p0) / dt
+            return p, v, (v - v0) / dt
         vmax = self._vmax[i]
         error = target - p0
         if self._lag_s == 0.0:
@@ -330,3 +346,13 @@ class MirrorHardware(HardwareInterface):
         v = v_end + (v0 - v_end) * decay
         p = p0 + v_end * dt + (v0 - v_end) * (1.0 - decay) / c
         return p, v, u - c * v
+
+
+_ALL = slice(None)
+_STEPS = (
+    MirrorHardware._position_step,
+    MirrorHardware._velocity_step,
+    MirrorHardware._acceleration_step,
+    MirrorHardware._effort_step,
+)
+"""The step of each mode, in the order of ``_POSITION`` ... ``_EFFORT``."""

@@ -114,6 +114,9 @@ class MirrorHardware(HardwareInterface):
         self._v = np.zeros(n)
         self._a = np.zeros(n)
         self._mode = np.full(n, _POSITION, dtype=np.int8)
+        self._same_mode: int | None = _POSITION
+        """The mode of every joint when they share one (the usual case), else None; kept
+        with ``_mode`` by :meth:`_modes_changed`."""
         self._target = self._p.copy()
         # Last finite value written per interface: set points of the mode, and what
         # activate() reports as held.
@@ -211,6 +214,7 @@ class MirrorHardware(HardwareInterface):
             # Every joint given a position (the usual cycle): what the loop below does.
             self._held[_POSITION] = values
             self._mode.fill(_POSITION)
+            self._same_mode = _POSITION
             np.clip(values, self._lower, self._upper, out=self._target)
             return
         claimed = np.zeros(len(self.joints), dtype=bool)
@@ -222,6 +226,7 @@ class MirrorHardware(HardwareInterface):
             self._held[mode][given] = values[given]
             take = given & ~claimed
             self._mode[take] = mode
+            self._modes_changed()
             if mode == _POSITION:
                 self._target[take] = np.clip(values[take], self._lower[take], self._upper[take])
             claimed |= given
@@ -243,7 +248,13 @@ class MirrorHardware(HardwareInterface):
 
     def _hold_here(self, which: NDArray[np.bool_]) -> None:
         self._mode[which] = _POSITION
+        self._modes_changed()
         self._target[which] = self._p[which]
+
+    def _modes_changed(self) -> None:
+        mode = self._mode
+        first = int(mode[0])
+        self._same_mode = first if (mode == first).all() else None
 
     def _advance(self, now_ns: int) -> None:
         if self._t_ns is None:
@@ -259,12 +270,12 @@ class MirrorHardware(HardwareInterface):
         if dt_ns == 0 or self._frozen:
             return
         dt = dt_ns / NS_PER_S
-        mode = self._mode
-        first = int(mode[0])
-        if (mode == first).all():
+        same = self._same_mode
+        if same is not None:
             # Every joint driven the same way (the usual case): one step on whole arrays.
-            p, v, a = _STEPS[first](self, _ALL, dt)
+            p, v, a = _STEPS[same](self, _ALL, dt)
         else:
+            mode = self._mode
             p, v, a = self._p.copy(), self._v.copy(), self._a.copy()
             for m, step in enumerate(_STEPS):
                 index = np.flatnonzero(mode == m)

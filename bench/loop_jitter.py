@@ -51,8 +51,8 @@ With ``--breakdown`` the loop process times each phase of its period (``JTC_HW_L
 ``jtc_hw.daemon.loop.phases``: read, update, write, the cycle ring, the State, the statistics,
 the status, the outbox, the inbox, gc, ...) and each run prints their p50, p99, max and mean
 over its cycles, with ``period``, the whole work between two wake-ups; the wrappers that time
-the phases add about 0.2 us per phase to it. ``--joints N`` runs the daemon on N mirror joints
-(default 6, the demo arm's).
+the phases add about 0.25 us per call, 3-4 us, to it. ``--joints N`` runs the daemon on N
+mirror joints (default 6, the demo arm's).
 
 Everything the daemon writes (its socket, configuration, log, flight recordings, the phase
 file) goes into one temporary directory, removed when the daemon has stopped.

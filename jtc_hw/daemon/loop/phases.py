@@ -22,8 +22,8 @@ The file (``int64`` throughout)::
 A reader (the bench, another process) copies the rows between two counts it read
 (:func:`read_rows`) and summarises them (:func:`summarise`). Nested phases (``read`` inside
 ``cycle``) each hold their own inclusive time; :func:`summarise` adds each parent's remainder
-(``cycle: rest``, ``period: rest``), where the wrappers' own overhead (about 0.2 us a call)
-lands as well.
+(``cycle: rest``, ``period: rest``), where the wrappers' own overhead lands as well
+(measured: about 0.25 us a call, 3-4 us a period).
 """
 
 from __future__ import annotations

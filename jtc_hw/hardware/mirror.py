@@ -127,11 +127,19 @@ class MirrorHardware(HardwareInterface):
         self._v = np.zeros(n)
         self._a = np.zeros(n)
         self._mode = np.full(n, _POSITION, dtype=np.int8)
+        self._same_mode: int | None = _POSITION
+        """The mode of every joint when they share one (the usual case), else None; kept
+        with ``_mode`` by :meth:`_modes_changed`."""
         self._target = self._p.copy()
         # Last finite value written per interface: set points of the mode, and what
         # activate() reports as held.
         self._held = np.full((4, n), np.nan)
         self._commanded = tuple(i in self.command_interfaces for i in COMMAND_INTERFACE_TYPES)
+        # Per-cycle shortcuts, decided once: a position-only command, no speed limit, no
+        # position limit (the usual simulated arm) skip work whose result is known.
+        self._position_only = self._commanded == (True, False, False, False)
+        self._speed_limited = bool(np.isfinite(self._vmax).any())
+        self._bounded = bool(np.isfinite(self._lower).any() or np.isfinite(self._upper).any())
         self._t_ns: int | None = None
         self._frozen = False
         self._fault: str | None = None
@@ -223,6 +231,17 @@ class MirrorHardware(HardwareInterface):
         self._advance(now_ns)
         if not math.isnan(self._scalar_set):
             self._scalar_written = self._scalar_set
+        values = command.positions
+        # Every joint given a finite position (the usual cycle): what the loop below does. A
+        # finite sum says every value is finite (one that overflows takes the loop, which
+        # gives the same); ufuncs called directly skip numpy's Python-level wrappers (~1 us).
+        if (self._position_only and values is not None
+                and math.isfinite(np.add.reduce(values))):
+            self._held[_POSITION] = values
+            self._mode.fill(_POSITION)
+            self._same_mode = _POSITION
+            np.minimum(np.maximum(values, self._lower), self._upper, out=self._target)
+            return
         claimed = np.zeros(len(self.joints), dtype=bool)
         fields = (command.positions, command.velocities, command.accelerations, command.effort)
         for mode, (on, values) in enumerate(zip(self._commanded, fields, strict=True)):
@@ -232,6 +251,7 @@ class MirrorHardware(HardwareInterface):
             self._held[mode][given] = values[given]
             take = given & ~claimed
             self._mode[take] = mode
+            self._modes_changed()
             if mode == _POSITION:
                 self._target[take] = np.clip(values[take], self._lower[take], self._upper[take])
             claimed |= given
@@ -262,7 +282,13 @@ class MirrorHardware(HardwareInterface):
 
     def _hold_here(self, which: NDArray[np.bool_]) -> None:
         self._mode[which] = _POSITION
+        self._modes_changed()
         self._target[which] = self._p[which]
+
+    def _modes_changed(self) -> None:
+        mode = self._mode
+        first = int(mode[0])
+        self._same_mode = first if (mode == first).all() else None
 
     def _advance(self, now_ns: int) -> None:
         if self._t_ns is None:
@@ -278,24 +304,20 @@ class MirrorHardware(HardwareInterface):
         if dt_ns == 0 or self._frozen:
             return
         dt = dt_ns / NS_PER_S
-        p0, v0 = self._p, self._v
-        p, v, a = p0.copy(), v0.copy(), self._a.copy()
-        mode = self._mode
-        steps = (
-            (_POSITION, self._position_step),
-            (_VELOCITY, self._velocity_step),
-            (_ACCELERATION, self._acceleration_step),
-            (_EFFORT, self._effort_step),
-        )
-        first = mode[0]
-        if (mode == first).all():
+        same = self._same_mode
+        if same is not None:
             # Every joint driven the same way (the usual case): one step on whole arrays.
-            p, v, a = steps[int(first)][1](slice(None), dt)
+            p, v, a = _STEPS[same](self, _ALL, dt)
         else:
-            for m, step in steps:
+            mode = self._mode
+            p, v, a = self._p.copy(), self._v.copy(), self._a.copy()
+            for m, step in enumerate(_STEPS):
                 index = np.flatnonzero(mode == m)
                 if index.size:
-                    p[index], v[index], a[index] = step(index, dt)
+                    p[index], v[index], a[index] = step(self, index, dt)
+        if not self._bounded:
+            self._p, self._v, self._a = p, v, a
+            return
         over = (p < self._lower) | (p > self._upper)
         if over.any():
             p = np.clip(p, self._lower, self._upper)
@@ -306,6 +328,14 @@ class MirrorHardware(HardwareInterface):
     def _position_step(self, i: NDArray[np.intp] | slice, dt: float) -> tuple[F64, F64, F64]:
         p0, v0 = self._p[i], self._v[i]
         target = self._target[i]
+        if not self._speed_limited:
+            # What the general case below gives without a speed limit, in fewer operations.
+            if self._lag_s == 0.0:
+                p = target.copy()
+            else:
+                p = target - (target - p0) * np.exp(-dt / self._lag_s)
+            v = (p - p0) / dt
+            return p, v, (v - v0) / dt
         vmax = self._vmax[i]
         error = target - p0
         if self._lag_s == 0.0:
@@ -361,3 +391,13 @@ class MirrorHardware(HardwareInterface):
         v = v_end + (v0 - v_end) * decay
         p = p0 + v_end * dt + (v0 - v_end) * (1.0 - decay) / c
         return p, v, u - c * v
+
+
+_ALL = slice(None)
+_STEPS = (
+    MirrorHardware._position_step,
+    MirrorHardware._velocity_step,
+    MirrorHardware._acceleration_step,
+    MirrorHardware._effort_step,
+)
+"""The step of each mode, in the order of ``_POSITION`` ... ``_EFFORT``."""

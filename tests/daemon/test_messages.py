@@ -87,6 +87,32 @@ def test_the_state_is_a_named_record() -> None:
             assert (t, holding, tau) == (5, True, 5)
 
 
+def test_the_state_crosses_with_every_array_its_own() -> None:
+    """State packs its arrays into one buffer to cross (messages.State.__reduce__): each must
+    come back with its values, shape and None-ness, writable, and a State holding something
+    else than float64 arrays crosses as it is."""
+    x = np.linspace(0.0, 1.0, 3)
+    sent = State(7, np.stack((x, x + 1, x + 2, x + 3)), x + 4, x + 5,
+                 np.stack((x * 2, x * 3, x * 4)), JointCommand(x + 6, None, x + 7, None),
+                 False, 3, 0.5, 0.25, None, JointCommand(None, x + 8, None, x + 9), 0.5, 1.0, 9)
+    got = crossed(sent)
+    assert isinstance(got, State)
+    for field in State._fields:
+        a, b = getattr(sent, field), getattr(got, field)
+        pairs = [(a, b)]
+        if isinstance(a, JointCommand):
+            names = ("positions", "velocities", "accelerations", "effort")
+            pairs = [(getattr(a, name), getattr(b, name)) for name in names]
+        for u, v in pairs:
+            if isinstance(u, np.ndarray):
+                assert v.shape == u.shape and v.dtype == u.dtype and np.array_equal(u, v), field
+                assert v.flags.writeable, field
+            else:
+                assert type(v) is type(u) and v == u, field
+    odd = sent._replace(positions=[1.0, 2.0, 3.0])
+    assert crossed(odd).positions == [1.0, 2.0, 3.0]
+
+
 def test_a_request_is_matched_by_its_op_class() -> None:
     def name(request: Request) -> str:
         match request:

@@ -163,8 +163,11 @@ class CycleRing:
         self._c_scale = layout.column("speed_scaling")
         self._c_rtfs = layout.column("reference_time_from_start")
         self._c_ftfs = layout.column("feedback_time_from_start")
-        # Per block, a (capacity, joints) view: writing a row's block is one assignment.
-        self._blocks = {name: self._rows[:, layout.block(name)] for name in BLOCKS}
+        # Per block, its columns: writing a row's block is one slice assignment.
+        (self._s_mpos, self._s_mvel, self._s_macc, self._s_rpos, self._s_rvel, self._s_racc,
+         self._s_reff, self._s_opos, self._s_ovel, self._s_oacc, self._s_oeff) = (
+            layout.block(name) for name in BLOCKS)
+        self._s_reference = slice(self._s_rpos.start, self._s_reff.stop)
         self._count = int(header[_H_COUNT])
 
     @property
@@ -220,10 +223,10 @@ class CycleRing:
         Raises:
             ValueError: an array does not have one value per joint (a programming error).
         """
+        # One row view, then a slice assignment per block: no tuple, dict or getattr per cycle.
         count = self._count
         i = count % self.capacity
         row = self._rows[i]
-        blocks = self._blocks
         nan = np.nan
         row[self._c_goal] = nan if active_goal is None else active_goal
         row[self._c_hold] = 1.0 if holding else 0.0
@@ -232,27 +235,29 @@ class CycleRing:
         row[self._c_rtfs] = reference_time_from_start
         row[self._c_ftfs] = feedback_time_from_start
         self._ints[i, self._c_time] = time_ns
-        for name, value in (
-            ("measured_positions", measured.positions),
-            ("measured_velocities", measured.velocities),
-            ("measured_accelerations", measured.accelerations),
-        ):
-            blocks[name][i] = nan if value is None else value
+        row[self._s_mpos] = measured.positions
+        value = measured.velocities
+        row[self._s_mvel] = nan if value is None else value
+        value = measured.accelerations
+        row[self._s_macc] = nan if value is None else value
         if reference is None:
-            for name in ("reference_positions", "reference_velocities",
-                         "reference_accelerations", "reference_effort"):
-                blocks[name][i] = nan
+            row[self._s_reference] = nan
         else:
-            blocks["reference_positions"][i] = reference.positions
-            blocks["reference_velocities"][i] = reference.velocities
-            blocks["reference_accelerations"][i] = reference.accelerations
-            blocks["reference_effort"][i] = reference.effort
-        for name, attr in (("output_positions", "positions"),
-                           ("output_velocities", "velocities"),
-                           ("output_accelerations", "accelerations"),
-                           ("output_effort", "effort")):
-            value = None if output is None else getattr(output, attr)
-            blocks[name][i] = nan if value is None else value
+            row[self._s_rpos] = reference.positions
+            row[self._s_rvel] = reference.velocities
+            row[self._s_racc] = reference.accelerations
+            row[self._s_reff] = reference.effort
+        if output is None:
+            row[self._s_opos.start:self._s_oeff.stop] = nan
+        else:
+            value = output.positions
+            row[self._s_opos] = nan if value is None else value
+            value = output.velocities
+            row[self._s_ovel] = nan if value is None else value
+            value = output.accelerations
+            row[self._s_oacc] = nan if value is None else value
+            value = output.effort
+            row[self._s_oeff] = nan if value is None else value
         self._ints[i, self._c_seq] = count  # the row is complete
         self._count = count + 1
         self._header[_H_COUNT] = count + 1  # published
@@ -289,7 +294,6 @@ class CycleRing:
     def close(self) -> None:
         """Release this process's mapping; the owner also removes the segment."""
         self._header = self._rows = self._ints = None
-        self._blocks = {}
         self._shm.close()
         if self.owner:
             with contextlib.suppress(FileNotFoundError):

@@ -321,6 +321,8 @@ class Inbox:
 
     def __init__(self, conn: Connection, budget: int, *, framed: bool = True) -> None:
         self._sock = socket.socket(fileno=os.dup(conn.fileno()))
+        self._poll = select.poll()
+        self._poll.register(self._sock.fileno(), select.POLLIN)
         self._budget = budget
         self._framed = framed
         self._queue: collections.deque[Any] = collections.deque()
@@ -349,6 +351,10 @@ class Inbox:
         that time on the monotonic clock has passed, checked after each read of a plan's memory:
         headers and requests are read whatever the time); never blocks. Never raises: a failing
         socket sets :attr:`closed`."""
+        if not self._poll.poll(0):
+            # Nothing arrived (most cycles): a poll costs 0.6 us, a recv that fails with
+            # EAGAIN 1.5 us (the exception). A closed or failed socket reports an event.
+            return
         budget = self._budget
         while budget > 0 and not self.closed:
             want = min(len(self._view) - self._filled, budget)

@@ -99,6 +99,7 @@ from ..realtime import (
 from ..robot import RobotConfig, create_hardware_set, load_robot
 from .clock import Ticker
 from .outbox import Outbox
+from .phases import PhaseRecorder
 from .stats import LoopStats
 
 log = logging.getLogger("jtc_hw.loop")
@@ -172,6 +173,9 @@ class ControlLoop:
         self.api_stalled = False
         self.api_stalls = 0
         self.locks: list[DeviceLock] = []
+        self.collect_garbage = gc.collect
+        self.phases: PhaseRecorder | None = None
+        """Set before :meth:`run` to time each phase of the period (``phases.PHASES_ENV``)."""
 
     # -- messaging ----------------------------------------------------------------------------
 
@@ -585,6 +589,8 @@ class ControlLoop:
     def run(self, inbox: Inbox) -> None:
         """Cycle until asked to stop or the API process disappears."""
         ticker = Ticker(self.period_ns)
+        if self.phases is not None:
+            self.phases.instrument(self, ticker, inbox)
         clock = time.monotonic_ns
         gc.collect()
         gc.freeze()
@@ -611,7 +617,7 @@ class ControlLoop:
                 if self._retired:
                     self._retired.popleft()
                 elif not inbox.release():
-                    gc.collect(0)
+                    self.collect_garbage(0)
         self.shutdown(clock())
 
     def shutdown(self, now_ns: int) -> None:
@@ -695,6 +701,7 @@ def loop_main(source: str | dict[str, Any], controller_name: str | None, conn: C
         robot = load_robot(source, controller_name)
         ring = None if ring_name is None else CycleRing.attach(ring_name)
         loop = ControlLoop(robot, outbox, ring)  # creates the components: no I/O yet
+        loop.phases = PhaseRecorder.from_env()  # bench/loop_jitter.py --breakdown
         # One daemon per hardware: before anything is sent to a device. The owner recorded is
         # the daemon (our parent), the process a user would stop.
         loop.locks = lock_devices(
@@ -733,6 +740,8 @@ def loop_main(source: str | dict[str, Any], controller_name: str | None, conn: C
             for lock in loop.locks:
                 lock.release()
             loop.ring = None
+            if loop.phases is not None:
+                loop.phases.close()
         if ring is not None:
             ring.close()
     outbox.put(Exit(code))

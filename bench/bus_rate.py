@@ -147,7 +147,10 @@ def measure(bitrate: int, duration_s: float, pace: bool,
             "bench", joints, ["position"], ["position", "velocity"],
             {"port": device, "baud_rate": bitrate, "ids": list(range(1, MOTORS + 1)),
              "offset": -math.pi, "return_delay_time_us": RETURN_DELAY_US,
-             "timeout_ms": 50.0, "latency_timer_warn": False, **health},
+             "timeout_ms": 50.0, "latency_timer_warn": False,
+             # The servos' Bus Watchdog: long, so that a stall of this (not real-time)
+             # process on a busy machine does not stop them mid-run (as bus_rate_cia402.py).
+             "watchdog_s": 1.0, **health},
         )
         hw.configure()
         try:

@@ -56,6 +56,8 @@ def test_bus_rate_breakdown_alternates_idle_and_neighbour_runs() -> None:
         assert {"cycle_us", "wire_us", "ratio", "driver_cpu_us", "target_met"} <= set(row)
         parts = row["breakdown"]
         assert parts["cycles"] > 0 and parts["wire_us"] == row["wire_us"]
-        # The SDK boundary was crossed (the cycle's Sync Read) and timed.
-        assert parts["calls_per_cycle"] >= 1 and parts["sdk_cpu_p50_us"] > 0
-        assert parts["driver_cpu_p50_us"] >= 0 and parts["blocked_p50_us"] >= 0
+        # The usual cycle makes no call into dynamixel-sdk (the Sync Read request is our
+        # codec's, kept): the boundary is watched, and nothing crosses it.
+        assert parts["calls_per_cycle"] == 0 and parts["sdk_cpu_p50_us"] == 0
+        assert 0 < parts["driver_cpu_p50_us"] < parts["cycle_p50_us"]
+        assert parts["blocked_p50_us"] >= 0

@@ -141,12 +141,11 @@ from .codec import (
     REGISTER_ID,
     REGISTER_WRITE,
     SET_ZERO,
-    MitCommand,
+    CommandEncoder,
     MitLimits,
     RegisterFrame,
     decode_register_frame,
     decode_reply,
-    encode_command,
     encode_register_frame,
     reply_motor_id,
     timeout_register_value,
@@ -281,6 +280,7 @@ class MitHardware(HardwareInterface):
                 raise ConfigurationError(
                     f"joint {joint!r}: {p['model'][i]} replies carry ids 1..15, got "
                     f"{self._ids[i]}", f"params.ids.{joint}", self._ids[i])
+        self._encoders = [CommandEncoder(limits) for limits in self._limits]
         self._links: dict[str, _Link] = {}
         for bus_name, settings in buses.items():
             members = [i for i in range(n) if self._bus_of[i] == bus_name]
@@ -661,11 +661,9 @@ class MitHardware(HardwareInterface):
         return result
 
     def _setpoint(self, i: int) -> bytes:
-        return encode_command(
-            MitCommand(float(self._held_p[i]), float(self._held_v[i]), float(self._held_kp[i]),
-                       float(self._held_kd[i]), float(self._held_t[i])),
-            self._limits[i],
-        )
+        return self._encoders[i](self._held_p.item(i), self._held_v.item(i),
+                                 self._held_kp.item(i), self._held_kd.item(i),
+                                 self._held_t.item(i))
 
     def _bus_fault(self, link: _Link, message: str) -> CommunicationError:
         """A failure of a bus as a whole: every motor on it is in an unknown state (it may

@@ -87,6 +87,7 @@ first line.
 
 from __future__ import annotations
 
+import functools
 import logging
 import math
 import time
@@ -183,6 +184,7 @@ class _Link:
     latest: dict[int, can.Message] = field(default_factory=dict)
     pending: set[int] = field(default_factory=set)
     index_of: dict[int, int] = field(default_factory=dict)  # motor id -> joint index
+    on_reply: Any = None  # (motor id, frame) -> None: decodes a reply as it is received
     sent_at: float = 0.0  # monotonic time the last exchange's first frame was queued
     exchange_s: float = 0.0  # wire time of a set-point and its reply, worst-case stuffing
 
@@ -301,6 +303,7 @@ class MitHardware(HardwareInterface):
             link = _Link(settings, members, ids, BusHealth(settings),
                          frozenset(p["master_id"][i] for i in members), formats.pop())
             link.index_of = {self._ids[i]: i for i in members}
+            link.on_reply = functools.partial(self._take_reply, link.index_of)
             link.exchange_s = 2 * wire_bits(
                 can.Message(arbitration_id=0x7FF, is_extended_id=False, data=bytes(8)),
                 "worst") / settings.bitrate
@@ -739,10 +742,13 @@ class MitHardware(HardwareInterface):
             on_wire = link.sent_at + len(link.pending) * link.exchange_s
             deadline = max(time.monotonic(), on_wire) + timeout
             try:
+                # Each reply is decoded as it is received (on_reply), while the others are
+                # still on the wire: after the last one only its own decoding is left.
                 if link.pending:
-                    result = collect_until(bus, link.latest, link.pending, deadline, link.key)
+                    result = collect_until(bus, link.latest, link.pending, deadline, link.key,
+                                           link.on_reply)
                 else:
-                    result = drain_latest(bus, link.latest, link.key)
+                    result = drain_latest(bus, link.latest, link.key, on_stored=link.on_reply)
             except (can.CanError, OSError) as exc:
                 raise self._bus_fault(
                     link, f"{self._owner()}: receiving on {link.settings.describe()} failed: "
@@ -755,19 +761,24 @@ class MitHardware(HardwareInterface):
             for motor_id in link.pending:
                 self._missed[link.index_of[motor_id]] += 1
             link.pending.clear()
-            for motor_id, msg in link.latest.items():
-                i = link.index_of[motor_id]
-                reply = decode_reply(msg.data, self._limits[i])
-                self._p[i], self._v[i], self._t[i] = reply.position, reply.velocity, reply.torque
-                self._rx_ns[i] = stamp
-                self._temperature[i] = reply.temperature
-                self._state_code[i] = reply.error_code
-                self._rotor_temperature[i] = reply.rotor_temperature
+            for motor_id in link.latest:
+                self._rx_ns[link.index_of[motor_id]] = stamp
             link.latest.clear()
             try:
                 link.health.check(bus, self._owner())
             except CommunicationError as exc:
                 raise self._bus_fault(link, str(exc)) from exc
+
+    def _take_reply(self, index_of: Mapping[int, int], motor_id: int,
+                    msg: can.Message) -> None:
+        """Decode the reply ``msg`` of ``motor_id`` (its key: a reply of the link's format)
+        into the motor's state; a newer reply in the same collection overwrites it."""
+        i = index_of[motor_id]
+        reply = decode_reply(msg.data, self._limits[i])
+        self._p[i], self._v[i], self._t[i] = reply.position, reply.velocity, reply.torque
+        self._temperature[i] = reply.temperature
+        self._state_code[i] = reply.error_code
+        self._rotor_temperature[i] = reply.rotor_temperature
 
     def _exchange(self, frame_of: Any, setup: bool) -> None:
         """Send, collect, and require an answer from every motor that was sent a frame."""

@@ -51,7 +51,6 @@ from __future__ import annotations
 import logging
 import os
 import select
-import termios
 import time
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
@@ -62,7 +61,7 @@ import dynamixel_sdk as _sdk  # type: ignore[import-untyped]
 
 from jtc_hw.errors import CommunicationError, HardwareError
 
-from .packets import STATUS_OVERHEAD, Decoder, crc16, encode_sync_read, encode_sync_write
+from .packets import Decoder, crc16, encode_sync_read, encode_sync_write
 
 __all__ = [
     "BROADCAST_ID",
@@ -213,7 +212,6 @@ class _Port(_sdk.PortHandler):  # type: ignore[misc]
         # and the longest interval between two of them since DynamixelBus.take_silence_s().
         self.last_broadcast_s = -float("inf")
         self.longest_gap_s = 0.0
-        self._vmin = 0  # the tty's VMIN as last set here (0: pyserial's, unknown)
 
     # The SDK's names are kept on this subclass only: they are what it calls.
     def getCurrentTime(self) -> float:  # noqa: N802 - SDK override
@@ -226,26 +224,7 @@ class _Port(_sdk.PortHandler):  # type: ignore[misc]
     def setupPort(self, cflag_baud: int) -> bool:  # noqa: N802 - SDK override
         ok = bool(super().setupPort(cflag_baud))
         self.fd = self.ser.fileno()
-        self._vmin = 0  # pyserial configured the port afresh
         return ok
-
-    def wake_after(self, count: int) -> None:
-        """Make ``select`` report the port readable only once ``count`` bytes (1..255) have
-        arrived: the tty's VMIN, with VTIME 0 (a raw tty's poll waits for VMIN bytes; a
-        non-blocking read still returns whatever is there). A Sync Read then wakes the
-        driver once, when the last reply is in, not once per reply; every other read sets 1.
-        """
-        count = 1 if count < 1 else min(count, 255)
-        if count == self._vmin:
-            return
-        try:
-            attrs = termios.tcgetattr(self.fd)
-            attrs[6][termios.VMIN] = count
-            attrs[6][termios.VTIME] = 0
-            termios.tcsetattr(self.fd, termios.TCSANOW, attrs)
-        except termios.error as exc:  # the port is gone: as a failed read or write would
-            raise OSError(*exc.args) from exc
-        self._vmin = count
 
     def clearPort(self) -> None:  # noqa: N802 - SDK override
         self._rx.clear()
@@ -260,9 +239,10 @@ class _Port(_sdk.PortHandler):  # type: ignore[misc]
         rx = self._rx
         if not rx:
             remaining_s = (self.packet_timeout - self.getTimeSinceStart()) / 1000.0
-            select.select([self.fd], [], [], max(0.0, remaining_s))
+            ready, _, _ = select.select([self.fd], [], [], max(0.0, remaining_s))
+            if not ready:
+                return b""
             try:
-                # Also when select timed out: what arrived short of wake_after's count.
                 rx += os.read(self.fd, 4096)
             except BlockingIOError:
                 return b""
@@ -294,7 +274,6 @@ class _Port(_sdk.PortHandler):  # type: ignore[misc]
         """Discard input until the line has been quiet for ``quiet_s``; bytes discarded."""
         discarded = len(self._rx)
         self._rx.clear()
-        self.wake_after(1)
         deadline = time.monotonic() + 10 * quiet_s  # bounded even if a servo keeps talking
         while time.monotonic() < deadline:
             ready, _, _ = select.select([self.fd], [], [], quiet_s)
@@ -589,8 +568,6 @@ class DynamixelBus:
             # The request was encoded once by our codec (it is the same every cycle); sending
             # it is what the SDK's syncReadTx does after building it: flush the input, write,
             # arm the packet timeout with the SDK's formula.
-            # Wake once all the status packets are in (unless they are more than VMIN holds).
-            port.wake_after(1 if fast else len(id_list) * (STATUS_OVERHEAD + size))
             port.clearPort()
             if port.writePort(packet) != len(packet):
                 raise self._comm_error(None, _cause(_sdk.COMM_TX_FAIL), what)
@@ -660,7 +637,6 @@ class DynamixelBus:
                 index += 1
                 if index == count:
                     return SyncReadResult(data, errors)
-            port.wake_after(1)  # more to come (a stuffed reply is longer): byte by byte
 
     def _fast_sync_read_rx(self, ids: list[int], size: int, what: str) -> SyncReadResult:
         packet, result = self._handler.rxPacket(self._port, True)
@@ -733,7 +709,6 @@ class DynamixelBus:
             )
         self.stats.transactions += 1
         try:
-            self._port.wake_after(1)  # the SDK reads a packet piece by piece
             value, result, error = call()
         except Exception as exc:
             self._recover_port()

@@ -28,8 +28,16 @@ CAN rows (``--bus can-mit`` / ``can-cia402``) come from ``bench/bus_rate_can.py`
 (``mit_rows(duration_s)``) and ``bench/bus_rate_cia402.py`` (``cia402_rows(duration_s)``) when
 those files exist; otherwise those buses are reported as not available.
 
+``--breakdown`` splits each measured cycle into wire time, time inside dynamixel-sdk's /
+python-can's calls, our own driver code's CPU and time blocked, and prints the p50 of each
+(keys under ``breakdown`` in ``--json`` rows; bench/bus_breakdown.py says how they are taken).
+``--neighbour`` runs beside one busy Python process that the bench starts for each measurement
+and stops after (rows say ``neighbour: true``); ``--neighbour both`` alternates an idle run and
+a run with the neighbour for each configuration, so their ratios compare in one sitting.
+
 Usage:  python bench/bus_rate.py [--duration 3] [--bus dynamixel can-mit can-cia402]
                                  [--bitrates 1000000 2000000 4000000] [--profile] [--json]
+                                 [--breakdown] [--neighbour [on|both]]
 """
 
 from __future__ import annotations
@@ -61,10 +69,21 @@ from jtc_hw.drivers.dynamixel.packets import (  # noqa: E402
     wire_time_s,
 )
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bus_breakdown import (  # noqa: E402
+    NEIGHBOUR_MODES,
+    Breakdown,
+    breakdown_line,
+    neighbour,
+    neighbour_modes,
+)
+
 MOTORS = 6
 BITRATES = (1_000_000, 2_000_000, 4_000_000)
 TARGET_RATIO = 1.3
 RETURN_DELAY_US = 0  # written to the servos by the driver (return_delay_time_us)
+SDK_CALLS = ("syncReadTx", "rxPacket", "readTxRx", "writeTxRx", "ping", "reboot")
+"""The dynamixel-sdk packet handler's methods our bus module calls (the SDK boundary)."""
 CAN_SOURCES = {
     "can-mit": ("bus_rate_can.py", "mit_rows"),
     "can-cia402": ("bus_rate_cia402.py", "cia402_rows"),
@@ -116,17 +135,22 @@ def return_delays_us() -> float:
 
 
 def measure(bitrate: int, duration_s: float, pace: bool,
-            health_period_s: float | None = None) -> dict[str, float]:
+            health_period_s: float | None = None,
+            breakdown: Breakdown | None = None, busy: bool = False) -> dict[str, float]:
     """Run the driver's cycle for ``duration_s``; mean cycle, read and write times, us
-    (``health_period_s``: the driver's health reads, ``None``: its default)."""
+    (``health_period_s``: the driver's health reads, ``None``: its default; ``breakdown``:
+    sample each cycle and the SDK's calls into it; ``busy``: with a busy neighbour process)."""
     health = {} if health_period_s is None else {"health_period_s": health_period_s}
-    with emulator_process(bitrate, pace) as device:
+    with neighbour(busy), emulator_process(bitrate, pace) as device:
         joints = [f"joint{i}" for i in range(1, MOTORS + 1)]
         hw = DynamixelHardware(
             "bench", joints, ["position"], ["position", "velocity"],
             {"port": device, "baud_rate": bitrate, "ids": list(range(1, MOTORS + 1)),
              "offset": -math.pi, "return_delay_time_us": RETURN_DELAY_US,
-             "timeout_ms": 50.0, "latency_timer_warn": False, **health},
+             "timeout_ms": 50.0, "latency_timer_warn": False,
+             # The servos' Bus Watchdog: long, so that a stall of this (not real-time)
+             # process on a busy machine does not stop them mid-run (as bus_rate_cia402.py).
+             "watchdog_s": 1.0, **health},
         )
         hw.configure()
         try:
@@ -137,6 +161,10 @@ def measure(bitrate: int, duration_s: float, pace: bool,
             for _ in range(20):  # warm up
                 hw.read(time.monotonic_ns())
                 hw.write(time.monotonic_ns(), command)
+            if breakdown is not None:
+                assert hw.bus is not None
+                # The calls our bus module makes into dynamixel-sdk's packet handler.
+                breakdown.wrap(hw.bus._handler, *SDK_CALLS)
             gc.collect()
             gc.disable()
             read_ns = write_ns = worst_ns = 0
@@ -146,11 +174,15 @@ def measure(bitrate: int, duration_s: float, pace: bool,
             end = start + int(duration_s * 1e9)
             now = start
             while now < end:
+                if breakdown is not None:
+                    breakdown.begin()
                 t0 = clock()
                 hw.read(t0)
                 t1 = clock()
                 hw.write(t1, command)
                 now = clock()
+                if breakdown is not None:
+                    breakdown.end()
                 read_ns += t1 - t0
                 write_ns += now - t1
                 worst_ns = max(worst_ns, now - t0)
@@ -171,46 +203,63 @@ def measure(bitrate: int, duration_s: float, pace: bool,
 
 
 def dynamixel_rows(duration_s: float, bitrates: list[int], profile: bool,
-                   health_period_s: float | None = None) -> list[dict[str, Any]]:
+                   health_period_s: float | None = None, breakdown: bool = False,
+                   neighbours: list[bool] | None = None) -> list[dict[str, Any]]:
+    """A row per bit rate and neighbour mode (``neighbours``: idle ``False`` and/or with a busy
+    neighbour ``True``, run in that order for each bit rate; default idle only)."""
     rows = []
     for bitrate in bitrates:
-        paced = measure(bitrate, duration_s, pace=True, health_period_s=health_period_s)
-        wire = wire_us(bitrate)
-        delays = return_delays_us()
-        row: dict[str, Any] = {
-            "bus": "dynamixel",
-            "bitrate": bitrate,
-            "motors": MOTORS,
-            "buses": 1,
-            "rate_hz": round(1e6 / paced["cycle_us"], 1),
-            "cycle_us": round(paced["cycle_us"], 1),
-            "wire_us": round(wire, 1),
-            "ratio": round((paced["cycle_us"] - delays) / wire, 2),
-            "delay_us": round(delays, 1),
-            "target_us": round(TARGET_RATIO * wire + delays, 1),
-            "target_met": paced["cycle_us"] <= TARGET_RATIO * wire + delays,
-            # The driver's own CPU per cycle (SDK, Python, numpy): what a real bus adds to the
-            # wire time at most if nothing overlaps, whatever the emulator costs.
-            "driver_cpu_us": round(paced["driver_cpu_us"], 1),
-            "driver_ratio": round((wire + paced["driver_cpu_us"]) / wire, 2),
-            # The slowest cycle: one with a health read (a third Sync Read) if any.
-            "max_cycle_us": round(paced["max_cycle_us"], 1),
-            "health_period_s": health_period_s,
-        }
-        if profile:
-            unpaced = measure(bitrate, duration_s, pace=False)
-            row["profile"] = {
-                "read_us": round(paced["read_us"], 1),
-                "write_us": round(paced["write_us"], 1),
-                "unpaced_cycle_us": round(unpaced["cycle_us"], 1),
-                "unpaced_read_us": round(unpaced["read_us"], 1),
-                "unpaced_write_us": round(unpaced["write_us"], 1),
-            }
-        rows.append(row)
+        for busy in neighbours or [False]:
+            rows.append(_dynamixel_row(bitrate, duration_s, profile, health_period_s,
+                                       breakdown, busy))
     return rows
 
 
-def can_rows(bus: str, duration_s: float) -> list[dict[str, Any]] | str:
+def _dynamixel_row(bitrate: int, duration_s: float, profile: bool,
+                   health_period_s: float | None, breakdown: bool,
+                   busy: bool) -> dict[str, Any]:
+    samples = Breakdown() if breakdown else None
+    paced = measure(bitrate, duration_s, pace=True, health_period_s=health_period_s,
+                    breakdown=samples, busy=busy)
+    wire = wire_us(bitrate)
+    delays = return_delays_us()
+    row: dict[str, Any] = {
+        "bus": "dynamixel",
+        "bitrate": bitrate,
+        "motors": MOTORS,
+        "buses": 1,
+        "rate_hz": round(1e6 / paced["cycle_us"], 1),
+        "cycle_us": round(paced["cycle_us"], 1),
+        "wire_us": round(wire, 1),
+        "ratio": round((paced["cycle_us"] - delays) / wire, 2),
+        "delay_us": round(delays, 1),
+        "target_us": round(TARGET_RATIO * wire + delays, 1),
+        "target_met": paced["cycle_us"] <= TARGET_RATIO * wire + delays,
+        # The driver's own CPU per cycle (SDK, Python, numpy): what a real bus adds to the
+        # wire time at most if nothing overlaps, whatever the emulator costs.
+        "driver_cpu_us": round(paced["driver_cpu_us"], 1),
+        "driver_ratio": round((wire + paced["driver_cpu_us"]) / wire, 2),
+        # The slowest cycle: one with a health read (a third Sync Read) if any.
+        "max_cycle_us": round(paced["max_cycle_us"], 1),
+        "health_period_s": health_period_s,
+        "neighbour": busy,
+    }
+    if samples is not None:
+        row["breakdown"] = samples.summary(wire)
+    if profile:
+        unpaced = measure(bitrate, duration_s, pace=False, busy=busy)
+        row["profile"] = {
+            "read_us": round(paced["read_us"], 1),
+            "write_us": round(paced["write_us"], 1),
+            "unpaced_cycle_us": round(unpaced["cycle_us"], 1),
+            "unpaced_read_us": round(unpaced["read_us"], 1),
+            "unpaced_write_us": round(unpaced["write_us"], 1),
+        }
+    return row
+
+
+def can_rows(bus: str, duration_s: float, breakdown: bool = False,
+             neighbours: list[bool] | None = None) -> list[dict[str, Any]] | str:
     """Rows from another helper's bench module, or why there are none."""
     filename, function = CAN_SOURCES[bus]
     path = Path(__file__).resolve().parent / filename
@@ -221,22 +270,27 @@ def can_rows(bus: str, duration_s: float) -> list[dict[str, Any]] | str:
         return f"{bus}: cannot load bench/{filename}"
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
-    produce: Callable[[float], list[dict[str, Any]]] = getattr(module, function)
-    return list(produce(duration_s))
+    produce: Callable[..., list[dict[str, Any]]] = getattr(module, function)
+    if not breakdown and neighbours is None:
+        return list(produce(duration_s))
+    return list(produce(duration_s, breakdown=breakdown, neighbours=neighbours or [False]))
 
 
 def print_table(rows: list[dict[str, Any]], notes: list[str]) -> None:
-    print(f"{'bus':<21} {'bit/s':>9} {'motors':>6} {'buses':>5} {'rate Hz':>9} "
+    print(f"{'bus':<21} {'bit/s':>9} {'motors':>6} {'buses':>5} {'nb':>3} {'rate Hz':>9} "
           f"{'cycle us':>9} {'wire us':>9} {'ratio':>6} {'cpu us':>7} {'cpu ratio':>9}")
     for r in rows:
         flag = ""
         if r["bus"] == "dynamixel" and r["bitrate"] == 4_000_000:
             flag = "  ok" if r["target_met"] else f"  above target {TARGET_RATIO}"
         label = r["bus"] + (f"/{r['transport']}" if "transport" in r else "")
-        print(f"{label:<21} {r['bitrate']:>9} {r['motors']:>6} {r['buses']:>5} "
+        busy = "yes" if r.get("neighbour") else "no"
+        print(f"{label:<21} {r['bitrate']:>9} {r['motors']:>6} {r['buses']:>5} {busy:>3} "
               f"{r['rate_hz']:>9.1f} {r['cycle_us']:>9.1f} {r['wire_us']:>9.1f} "
               f"{r['ratio']:>6.2f} {r.get('driver_cpu_us', float('nan')):>7.1f} "
               f"{r.get('driver_ratio', float('nan')):>9.2f}{flag}")
+        if r.get("breakdown"):
+            print(breakdown_line("", r["breakdown"]))
         if "profile" in r:
             p = r["profile"]
             print(f"{'':<21} paced: read {p['read_us']:.1f} us + write {p['write_us']:.1f} us; "
@@ -254,7 +308,8 @@ def verdict(row: dict[str, Any]) -> str:
     met = row["target_met"]
     scope = "target" if row["bitrate"] == 4_000_000 else "same bound (not the issue's target)"
     return (
-        f"{row['bitrate'] / 1e6:g} Mbit/s {scope}: cycle {row['cycle_us']:.1f} us "
+        f"{row['bitrate'] / 1e6:g} Mbit/s{' with a neighbour' if row.get('neighbour') else ''}"
+        f" {scope}: cycle {row['cycle_us']:.1f} us "
         f"{'<=' if met else '>'} {TARGET_RATIO} x wire {row['wire_us']:.1f} us + return delays "
         f"{row['delay_us']:.1f} us = {row['target_us']:.1f} us (ratio {row['ratio']:.2f}): "
         f"{'met' if met else 'NOT met'}"
@@ -279,16 +334,26 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--health-period-s", type=float, default=None,
                         help="Dynamixel: the driver's health_period_s (default: the driver's; "
                         "60 all but switches the health reads off, for a comparison)")
+    parser.add_argument("--breakdown", action="store_true",
+                        help="split each cycle into wire, SDK / python-can and our driver "
+                        "code; print the p50 of each (bench/bus_breakdown.py)")
+    parser.add_argument("--neighbour", nargs="?", const="on", default="off",
+                        choices=NEIGHBOUR_MODES,
+                        help="run beside one busy process the bench starts and stops "
+                        "('on', the default when given bare), or 'both': an idle run then a "
+                        "run with the neighbour, for each configuration")
     parser.add_argument("--json", action="store_true", help="one JSON object per line")
     args = parser.parse_args(argv)
+    neighbours = neighbour_modes(args.neighbour)
     rows: list[dict[str, Any]] = []
     notes: list[str] = []
     for bus in args.bus:
         if bus == "dynamixel":
             rows += dynamixel_rows(args.duration, args.bitrates, args.profile,
-                                   args.health_period_s)
+                                   args.health_period_s, args.breakdown, neighbours)
         else:
-            got = can_rows(bus, args.duration)
+            got = can_rows(bus, args.duration, args.breakdown,
+                           None if args.neighbour == "off" else neighbours)
             if isinstance(got, str):
                 notes.append(got)
             else:

@@ -57,6 +57,12 @@ from jtc_hw.drivers.can.mit.codec import (  # noqa: E402
 from jtc_hw.drivers.can.mit.hardware import MitHardware  # noqa: E402
 from jtc_hw.hardware.timing import reduce_timer_slack  # noqa: E402
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bus_breakdown import Breakdown, breakdown_line, neighbour  # noqa: E402
+
+CAN_CALLS = ("send", "recv")
+"""The python-can bus methods our driver calls each cycle (the python-can boundary)."""
+
 BITRATE = 1_000_000
 MOTORS = 6
 TARGET_RATIO = 1.3
@@ -124,19 +130,22 @@ def emulator_processes(
 def parallel_check(rows: list[dict[str, Any]]) -> list[str]:
     """Verdict lines: each row against the ratio target, two buses against one bus of 3."""
     lines = []
-    by_layout = {(r["motors"], r["buses"]): r for r in rows}
     for r in rows:
         ok = r["ratio"] <= TARGET_RATIO
-        lines.append(f"{r['bus']} {r['motors']} motors on {r['buses']} bus(es): ratio "
+        beside = " with a neighbour" if r.get("neighbour") else ""
+        lines.append(f"{r['bus']} {r['motors']} motors on {r['buses']} bus(es){beside}: ratio "
                      f"{r['ratio']:.2f} {'<=' if ok else '>'} {TARGET_RATIO}: "
                      f"{'ok' if ok else 'MISSED'}")
-    two, alone = by_layout.get((MOTORS, 2)), by_layout.get((MOTORS // 2, 1))
-    if two is not None and alone is not None:
-        share = two["rate_hz"] / alone["rate_hz"]
+    for two in rows:
+        if "parallel" not in two:
+            continue
+        share = two["parallel"]
         ok = share >= PARALLEL_TARGET
-        lines.append(f"{two['bus']} two buses of {MOTORS // 2}: {two['rate_hz']:.0f} Hz = "
-                     f"{share:.2f} x one bus of {MOTORS // 2} alone ({alone['rate_hz']:.0f} Hz;"
-                     f" >= {PARALLEL_TARGET} counts as parallel): {'ok' if ok else 'MISSED'}")
+        beside = " with a neighbour" if two.get("neighbour") else ""
+        lines.append(f"{two['bus']} two buses of {MOTORS // 2}{beside}: {two['rate_hz']:.0f} Hz "
+                     f"= {share:.2f} x one bus of {MOTORS // 2} alone "
+                     f"({two['alone_rate_hz']:.0f} Hz; >= {PARALLEL_TARGET} counts as "
+                     f"parallel): {'ok' if ok else 'MISSED'}")
     return lines
 
 
@@ -149,12 +158,17 @@ class CycleRun(NamedTuple):
     read_s: float  # time spent in read(): mostly waiting for the replies
 
 
-def run_cycles(hw: Any, command: JointCommand, duration_s: float) -> CycleRun:
-    """Warm up, then run ``hw.write`` + ``hw.read`` back to back for ``duration_s``."""
+def run_cycles(hw: Any, command: JointCommand, duration_s: float,
+               breakdown: Breakdown | None = None, buses: Sequence[Any] = ()) -> CycleRun:
+    """Warm up, then run ``hw.write`` + ``hw.read`` back to back for ``duration_s``
+    (``breakdown``: sample each cycle, timing python-can's calls on ``buses``)."""
     clock = time.monotonic_ns
     for _ in range(50):  # warm up (caches, TCP windows)
         hw.write(clock(), command)
         hw.read(clock())
+    if breakdown is not None:
+        for bus in buses:
+            breakdown.wrap(bus, *CAN_CALLS)
     gc.collect()
     gc.freeze()
     try:
@@ -165,10 +179,14 @@ def run_cycles(hw: Any, command: JointCommand, duration_s: float) -> CycleRun:
         t0 = now()
         end = t0 + duration_s
         while (t := now()) < end:
+            if breakdown is not None:
+                breakdown.begin()
             hw.write(clock(), command)
             t = now()
             hw.read(clock())
             read_s += now() - t
+            if breakdown is not None:
+                breakdown.end()
             cycles += 1
         elapsed = now() - t0
         cpu = time.thread_time() - cpu0
@@ -177,13 +195,16 @@ def run_cycles(hw: Any, command: JointCommand, duration_s: float) -> CycleRun:
     return CycleRun(cycles, elapsed, cpu, read_s)
 
 
-def measure(motors: int, buses: int, duration_s: float) -> dict[str, Any]:
+def measure(motors: int, buses: int, duration_s: float, breakdown: bool = False,
+            busy: bool = False) -> dict[str, Any]:
     """One row: ``motors`` MIT motors spread over ``buses`` paced buses, emulated by one
     one-thread process behind a socketcand server, reached with python-can's stock ``socketcand``
-    client (``tcp_tune`` on)."""
+    client (``tcp_tune`` on); ``breakdown``: with the per-cycle split; ``busy``: beside one busy
+    process (bench/bus_breakdown.py)."""
     per_bus = motors // buses
     layout = {f"can{b}": list(range(1, per_bus + 1)) for b in range(buses)}
-    with emulator_processes("mit", layout, ("--model", MODEL)) as bus_params:
+    samples = Breakdown() if breakdown else None
+    with neighbour(busy), emulator_processes("mit", layout, ("--model", MODEL)) as bus_params:
         joints = [f"j{i}" for i in range(motors)]
         hw = MitHardware("bench", joints, ["position"], ["position", "velocity"], {
             "buses": {name: {**settings, "bitrate": BITRATE, "receive_timeout": 0.05}
@@ -195,7 +216,8 @@ def measure(motors: int, buses: int, duration_s: float) -> dict[str, Any]:
         try:
             hw.configure()
             hold = hw.activate(time.monotonic_ns())
-            run = run_cycles(hw, JointCommand(positions=hold.positions), duration_s)
+            run = run_cycles(hw, JointCommand(positions=hold.positions), duration_s, samples,
+                             [link.bus for link in hw._links.values()])
             cycles, elapsed, cpu = run.cycles, run.elapsed_s, run.cpu_s
             missed = sum(m["missed_replies"] for m in hw.status()["details"]["motors"].values())
         finally:
@@ -215,25 +237,33 @@ def measure(motors: int, buses: int, duration_s: float) -> dict[str, Any]:
         "driver_cpu_us": round(cpu / max(cycles, 1) * 1e6, 1),
         "driver_ratio": round((wire_us + cpu / max(cycles, 1) * 1e6) / wire_us, 3),
         "missed_replies": missed,
+        "neighbour": busy,
+        **({"breakdown": samples.summary(wire_us)} if samples is not None else {}),
     }
 
 
-def mit_rows(duration_s: float, reference: bool = True) -> list[dict[str, Any]]:
+def mit_rows(duration_s: float, reference: bool = True, breakdown: bool = False,
+             neighbours: Sequence[bool] = (False,)) -> list[dict[str, Any]]:
     """Rows for 6 motors on one bus and on two buses of 3 and, with ``reference``, 3 motors
-    on one bus alone (the parallelism check); see the module docstring."""
+    on one bus alone (the parallelism check); see the module docstring. Each layout runs once
+    per entry of ``neighbours`` (idle ``False``, beside a busy process ``True``), in turn."""
     layouts = [(MOTORS, 1), (MOTORS, 2)] + ([(MOTORS // 2, 1)] if reference else [])
-    rows = [measure(motors, buses, duration_s) for motors, buses in layouts]
+    rows = [measure(motors, buses, duration_s, breakdown, busy)
+            for motors, buses in layouts for busy in neighbours]
     _mark_parallel(rows)
     return rows
 
 
 def _mark_parallel(rows: list[dict[str, Any]]) -> None:
-    """Add to the two-bus row the rate of one bus of 3 alone and the fraction reached."""
-    by_layout = {(r["motors"], r["buses"]): r for r in rows}
-    two, alone = by_layout.get((MOTORS, 2)), by_layout.get((MOTORS // 2, 1))
-    if two is not None and alone is not None:
-        two["alone_rate_hz"] = alone["rate_hz"]
-        two["parallel"] = round(two["rate_hz"] / alone["rate_hz"], 3)
+    """Add to the two-bus row the rate of one bus of 3 alone (with the same neighbour) and
+    the fraction reached."""
+    by_layout = {(r["motors"], r["buses"], r.get("neighbour", False)): r for r in rows}
+    for busy in (False, True):
+        two = by_layout.get((MOTORS, 2, busy))
+        alone = by_layout.get((MOTORS // 2, 1, busy))
+        if two is not None and alone is not None:
+            two["alone_rate_hz"] = alone["rate_hz"]
+            two["parallel"] = round(two["rate_hz"] / alone["rate_hz"], 3)
 
 
 def main(argv: list[str] | None = None) -> int:

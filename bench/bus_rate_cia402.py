@@ -35,6 +35,7 @@ import argparse
 import json
 import sys
 import time
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -47,6 +48,7 @@ from jtc_hw.drivers.can.cia402.hardware import Cia402Hardware
 from jtc_hw.hardware.timing import reduce_timer_slack
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bus_breakdown import Breakdown, neighbour  # noqa: E402
 from bus_rate_can import (  # noqa: E402
     _mark_parallel,
     emulator_processes,
@@ -75,13 +77,15 @@ def _cycle_frames(node_ids: list[int]) -> list[can.Message]:
 
 
 def _run(
-    buses: int, duration_s: float, profile: bool = False, motors: int = MOTORS
+    buses: int, duration_s: float, profile: bool = False, motors: int = MOTORS,
+    breakdown: bool = False, busy: bool = False,
 ) -> dict[str, Any]:
     per_bus = motors // buses
     layout = {f"can{i}": list(range(1, per_bus + 1)) for i in range(buses)}
     joints = [f"j{i}" for i in range(motors)]
+    samples = Breakdown() if breakdown else None
 
-    with emulator_processes("cia402", layout) as bus_params:
+    with neighbour(busy), emulator_processes("cia402", layout) as bus_params:
         params = {
             "buses": {name: {**settings, "bitrate": BITRATE, "receive_timeout": 0.05,
                              "setup_timeout": 0.5}
@@ -99,7 +103,8 @@ def _run(
             held = hw.activate(time.monotonic_ns())
             target = held.positions
             assert target is not None
-            run = run_cycles(hw, JointCommand(target.copy()), duration_s)
+            run = run_cycles(hw, JointCommand(target.copy()), duration_s, samples,
+                             [b.bus for b in hw._buses.values()])
             cycles, elapsed, cpu, waited = run.cycles, run.elapsed_s, run.cpu_s, run.read_s
             missed = sum(v["missed"] for v in hw.status()["details"]["drives"].values())
         finally:
@@ -118,7 +123,10 @@ def _run(
         "transport": "socketcand",
         "driver_cpu_us": round(cpu / max(cycles, 1) * 1e6, 1),
         "driver_ratio": round((wire_s + cpu / max(cycles, 1)) / wire_s, 3),
+        "neighbour": busy,
     }
+    if samples is not None:
+        row["breakdown"] = samples.summary(wire_s * 1e6)
     if profile:
         row["read_wait_us"] = round(waited / max(cycles, 1) * 1e6, 1)
         row["missed_answers"] = int(missed)
@@ -126,17 +134,21 @@ def _run(
 
 
 def cia402_rows(
-    duration_s: float, profile: bool = False, reference: bool = True
+    duration_s: float, profile: bool = False, reference: bool = True, breakdown: bool = False,
+    neighbours: Sequence[bool] = (False,),
 ) -> list[dict[str, Any]]:
     """Rows for six drives on one 1 Mbit/s bus, on two buses of three and, with
     ``reference``, three drives on one bus alone (the parallelism check; module docstring).
+    Each layout runs once per entry of ``neighbours`` (idle ``False``, beside a busy process
+    ``True``), in turn; ``breakdown`` adds the per-cycle split (bench/bus_breakdown.py).
 
     Raises:
         jtc_hw.errors.HardwareError: the emulated drives could not be configured or enabled.
         RuntimeError: an emulator process did not start.
     """
     layouts = [(MOTORS, 1), (MOTORS, 2)] + ([(MOTORS // 2, 1)] if reference else [])
-    rows = [_run(buses, duration_s, profile, motors=motors) for motors, buses in layouts]
+    rows = [_run(buses, duration_s, profile, motors=motors, breakdown=breakdown, busy=busy)
+            for motors, buses in layouts for busy in neighbours]
     _mark_parallel(rows)
     return rows
 

@@ -35,3 +35,29 @@ def test_bench_runs_and_prints_json_lines(script: str, args: list[str], key: str
     assert done.returncode == 0, done.stderr
     rows = [json.loads(line) for line in done.stdout.splitlines() if line.strip()]
     assert rows and all(row["joints"] == 6 and key in row for row in rows)
+
+
+def test_bus_rate_breakdown_alternates_idle_and_neighbour_runs() -> None:
+    """``bus_rate.py --breakdown --neighbour both``: per bit rate an idle row then a row beside
+    the busy process, each with the per-cycle split; the existing keys are still there."""
+    done = subprocess.run(
+        [sys.executable, str(ROOT / "bench" / "bus_rate.py"), "--bus", "dynamixel",
+         "--bitrates", "4000000", "--duration", "0.2", "--breakdown", "--neighbour", "both",
+         "--json"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=False,
+    )
+    assert done.returncode == 0, done.stderr
+    rows = [json.loads(line) for line in done.stdout.splitlines() if line.strip()]
+    assert [row["neighbour"] for row in rows] == [False, True]
+    for row in rows:
+        assert {"cycle_us", "wire_us", "ratio", "driver_cpu_us", "target_met"} <= set(row)
+        parts = row["breakdown"]
+        assert parts["cycles"] > 0 and parts["wire_us"] == row["wire_us"]
+        # The usual cycle makes no call into dynamixel-sdk (the Sync Read request is our
+        # codec's, kept): the boundary is watched, and nothing crosses it.
+        assert parts["calls_per_cycle"] == 0 and parts["sdk_cpu_p50_us"] == 0
+        assert 0 < parts["driver_cpu_p50_us"] < parts["cycle_p50_us"]
+        assert parts["blocked_p50_us"] >= 0

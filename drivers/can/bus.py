@@ -563,11 +563,16 @@ def _arbitration_id(msg: can.Message) -> int:
     return int(msg.arbitration_id)
 
 
+OnStored = Callable[[int, can.Message], object]
+"""Called with ``(key, frame)`` for each frame stored, as it is received (``None``: not)."""
+
+
 def _take(
     msg: can.Message,
     latest: MutableMapping[int, can.Message],
     key: Callable[[can.Message], int | None],
     result: DrainResult,
+    on_stored: OnStored | None = None,
 ) -> int | None:
     if msg.is_error_frame:
         result.errors.append(msg)
@@ -578,6 +583,8 @@ def _take(
         return None
     latest[k] = msg
     result.stored += 1
+    if on_stored is not None:
+        on_stored(k, msg)
     return k
 
 
@@ -586,6 +593,7 @@ def drain_latest(
     latest: MutableMapping[int, can.Message],
     key: Callable[[can.Message], int | None] = _arbitration_id,
     limit: int = 10_000,
+    on_stored: OnStored | None = None,
 ) -> DrainResult:
     """Receive, without blocking, every frame already queued; keep the newest per key.
 
@@ -595,6 +603,8 @@ def drain_latest(
         key: the key of a frame (default: its arbitration id); ``None`` ignores the frame
             (e.g. not a reply of ours).
         limit: at most this many frames (a babbling node cannot hold the loop forever).
+        on_stored: called with each stored frame and its key as it is received, so that a
+            caller can decode while later frames are still on the wire.
 
     Returns:
         Counts and the error frames seen.
@@ -607,7 +617,7 @@ def drain_latest(
         msg = bus.recv(timeout=0.0)
         if msg is None:
             break
-        _take(msg, latest, key, result)
+        _take(msg, latest, key, result, on_stored)
     return result
 
 
@@ -617,16 +627,18 @@ def collect_until(
     want: set[int],
     deadline: float,
     key: Callable[[can.Message], int | None] = _arbitration_id,
+    on_stored: OnStored | None = None,
 ) -> DrainResult:
     """Receive until every key in ``want`` got a frame, or ``time.monotonic()`` passes
     ``deadline``; keep the newest per key. ``want`` is consumed (what is left did not come).
+    ``on_stored``: as for :func:`drain_latest`.
 
     Raises:
         can.CanError: the interface failed.
     """
     # Callers remove the keys they wait for from `latest` before sending the requests, so a
     # key present after the drain is an answer to this cycle's request.
-    result = drain_latest(bus, latest, key)
+    result = drain_latest(bus, latest, key, on_stored=on_stored)
     want.difference_update([k for k in want if k in latest])
     while want:
         remaining = deadline - time.monotonic()
@@ -635,7 +647,7 @@ def collect_until(
         msg = bus.recv(timeout=remaining)
         if msg is None:
             break
-        k = _take(msg, latest, key, result)
+        k = _take(msg, latest, key, result, on_stored)
         if k is not None:
             want.discard(k)
     return result

@@ -4,6 +4,7 @@ its newest feedback (filled by the cycle in :mod:`~jtc_hw.drivers.can.cia402.har
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 import can
 import canopen
@@ -89,6 +90,7 @@ class DriveBus:
     nodes: dict[int, canopen.RemoteNode] = field(default_factory=dict)
     next_beat: float = 0.0
     beats: int = 0
+    on_frame: Any = None  # (COB-ID, frame) -> None: decodes a frame as it is received
 
     def __post_init__(self) -> None:
         for d in self.drives:

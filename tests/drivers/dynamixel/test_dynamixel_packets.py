@@ -61,6 +61,26 @@ def test_crc_of_known_vectors() -> None:
     assert pk.crc16(PING_1[4:8], pk.crc16(PING_1[:4])) == pk.crc16(PING_1[:8])
 
 
+def _crc_bitwise(data: bytes, crc: int = 0) -> int:
+    """CRC-16, polynomial 0x8005, MSB first, one bit at a time (the e-Manual's definition)."""
+    for byte in data:
+        crc ^= byte << 8
+        for _ in range(8):
+            crc = ((crc << 1) ^ 0x8005) if crc & 0x8000 else crc << 1
+            crc &= 0xFFFF
+    return crc
+
+
+def test_crc_two_bytes_at_a_time_equals_the_bitwise_definition() -> None:
+    rng = np.random.default_rng(24)
+    for length in [*range(0, 8), 21, 42, 43, 300, 301]:
+        for _ in range(20):
+            data = rng.integers(0, 256, length, dtype=np.uint8).tobytes()
+            start = int(rng.integers(0, 1 << 16))
+            assert pk.crc16(data, start) == _crc_bitwise(data, start), (length, start)
+            assert pk.crc16(bytearray(data)) == pk.crc16(memoryview(data)) == _crc_bitwise(data)
+
+
 def test_decoder_reads_the_examples() -> None:
     dec = pk.Decoder()
     packets = dec.feed(READ_1 + READ_1_STATUS)

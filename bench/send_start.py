@@ -11,7 +11,8 @@ as a user at a terminal would. From the moment the command is spawned it reads t
 - ``accepted_ms``: the ``goal N accepted`` line (the file read, the client loaded, the goal
   sent, parsed, checked and planned by the daemon);
 
-then sends Ctrl-C (SIGINT), which cancels the goal, and waits for the command to exit.
+then, both seen, sends Ctrl-C (SIGINT), which cancels the goal, and waits for the command to
+exit. (Before issue 24 the bar came with the goal's first feedback, after ``accepted``.)
 ``python_ms`` is the floor: the same interpreter spawned on the same terminal, printing one
 character (``python -c``; no site-packages work of ours).
 
@@ -74,12 +75,10 @@ def command() -> list[str]:
     return [str(script)] if script.exists() else [sys.executable, "-m", "jtc_hw"]
 
 
-def on_terminal(argv: list[str], marks: dict[str, bytes], interrupt_at: str | None) -> dict[
-    str, float
-]:
+def on_terminal(argv: list[str], marks: dict[str, bytes], interrupt: bool) -> dict[str, float]:
     """Run ``argv`` on a new pseudo-terminal; ms from the spawn to each mark's first sight.
 
-    ``interrupt_at``: the mark after which the command gets SIGINT (Ctrl-C).
+    ``interrupt``: the command gets SIGINT (Ctrl-C) once every mark has shown.
 
     Raises:
         RuntimeError: a mark never showed (the output is quoted).
@@ -107,9 +106,8 @@ def on_terminal(argv: list[str], marks: dict[str, bytes], interrupt_at: str | No
             for name, mark in marks.items():
                 if name not in seen and mark in output:
                     seen[name] = (now - begin) * 1e3
-            if interrupt_at in seen and process.poll() is None:
+            if interrupt and len(seen) == len(marks) and process.poll() is None:
                 process.send_signal(signal.SIGINT)
-                interrupt_at = None
         if len(seen) < len(marks):
             raise RuntimeError(f"{argv[-3:]}: no {set(marks) - set(seen)} in: {output[-2000:]!r}")
         # Drain the terminal until the command exits (it cancels its goal on Ctrl-C).
@@ -144,8 +142,8 @@ def measure(args: argparse.Namespace, note: Any) -> dict[str, Any]:
             daemon.connect().close()
             argv = [*command(), "send", str(csv_path), "--socket", daemon.socket]
             for run in range(args.runs + 1):  # the first run warms the file cache
-                marks = on_terminal(argv, {"bar": b"[", "accepted": b"accepted"}, "accepted")
-                ms = on_terminal([sys.executable, "-c", "print('[')"], {"bar": b"["}, None)
+                marks = on_terminal(argv, {"bar": b"[", "accepted": b"accepted"}, True)
+                ms = on_terminal([sys.executable, "-c", "print('[')"], {"bar": b"["}, False)
                 if run == 0:
                     continue
                 bars.append(marks["bar"])

@@ -492,7 +492,8 @@ class MessageDecoder:
     def __init__(self, max_message_bytes: int = DEFAULT_MAX_MESSAGE_BYTES) -> None:
         self._lines = _Lines(max_message_bytes)
         self._frame: tuple[int, dict[str, Any], int] | None = None  # awaiting its raw bytes
-        self._skipped: RequestError | None = None  # a too_large frame, once it is skipped
+        self._skipped = False  # the awaited frame's bytes are skipped (too_large)
+        self._refusal: RequestError | None = None  # the awaited frame's reply, if refused
         self.broken = False
         """A ``bad_frame`` was returned: the stream is out of sync, nothing more is read."""
 
@@ -567,19 +568,19 @@ class MessageDecoder:
         """The awaited frame's message once its raw bytes and newline are in, else None."""
         assert self._frame is not None
         lineno, obj, length = self._frame
-        skipped = self._skipped
-        raw = self._lines.take(1 if skipped is not None else length + 1)
+        raw = self._lines.take(1 if self._skipped else length + 1)
         if raw is None:
             return None
-        self._frame, self._skipped = None, None
+        refusal = self._refusal
+        self._frame, self._skipped, self._refusal = None, False, None
         if raw[-1:] != b"\n":
             return self._bad_frame(
                 f"line {lineno}: the attachment's {length} bytes are not followed by \\n "
                 f"(byte {raw[-1]:#04x}): its length is wrong",
                 _readable_id(obj),
             )
-        if skipped is not None:
-            return skipped
+        if refusal is not None:
+            return refusal
         return {**obj, "attachment": Attachment(raw[:-1], obj["attachment"])}
 
     def _decode(self, lineno: int, line: bytes | None) -> dict[str, Any] | RequestError | None:
@@ -593,28 +594,35 @@ class MessageDecoder:
             )
         if not line.strip():
             return None
+        refusal: RequestError | None = None
         try:
             with gc_paused(len(line) >= FAST_DECODE_BYTES):
                 obj = _loads_line(line, lineno)
         except RequestError as exc:
-            if b'"attachment"' in line:
+            if b'"attachment"' not in line:
+                return exc
+            if exc.code != BAD_REQUEST:
                 return self._bad_frame(f"{exc.message}; the line names an attachment, whose "
                                        "length cannot be read")
-            return exc
+            # JSON, but a string in it is not Unicode (a lone surrogate escape): the length
+            # can be read, the frame is skipped whole and refused.
+            obj, refusal = json.loads(line.decode("utf-8")), exc
         if not isinstance(obj, dict):
-            return RequestError(
+            return refusal or RequestError(
                 BAD_REQUEST,
                 f"line {lineno}: a message must be a JSON object, got {_describe(obj)}",
             )
         if "attachment" not in obj:
-            return obj
+            return obj if refusal is None else refusal
         length = _frame_length(obj, self._lines.max_bytes)
         if isinstance(length, str):
             return self._bad_frame(f"line {lineno}: {length}", _readable_id(obj))
         self._frame = (lineno, obj, length)
+        self._refusal = refusal
         if length > self._lines.max_bytes:
             self._lines.skip(length)
-            self._skipped = RequestError(
+            self._skipped = True
+            self._refusal = refusal or RequestError(
                 TOO_LARGE,
                 f"line {lineno}: attachment of {length} bytes, longer than the limit of "
                 f"{self._lines.max_bytes} bytes; it was skipped and the request not executed",

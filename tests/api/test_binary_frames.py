@@ -186,3 +186,16 @@ def test_a_json_attachment_without_raw_bytes_is_refused_by_the_parser() -> None:
         parse_request({**GOAL, "attachment": header})  # e.g. a Zenoh body with no payload
     trajectory = parse_trajectory({"joint_names": NAMES}, attachment=Attachment(b"", header))
     assert len(trajectory.points) == 0  # no points: as "points": []
+
+
+def test_a_header_with_a_lone_surrogate_is_refused_and_its_bytes_skipped() -> None:
+    data = frame(columns=["time_from_start", "positions.j1", "positions.\\ud800"])
+    data = data.replace(b"\\\\ud800", b"\\ud800")  # the JSON escape itself, not its text
+    assert b'"positions.\\ud800"' in data
+    error, hello = Decoder().feed(data + b'{"op": "hello"}\n')
+    assert isinstance(error, RequestError) and error.code == "bad_request", error
+    assert "lone UTF-16 surrogate" in error.message and error.request_id == 2
+    assert not isinstance(hello, RequestError)
+    # Not a frame at all, the word only in a string: refused as before, never executed.
+    (plain,) = Decoder().feed(b'{"op": "sim", "component": "attachment", "fault": "\\udc00"}\n')
+    assert isinstance(plain, RequestError) and "lone UTF-16 surrogate" in plain.message

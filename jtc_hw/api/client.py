@@ -42,7 +42,7 @@ from .calls import (
     Pending,
     reply_error,
 )
-from .events import tolerances_to_json, trajectory_columns, trajectory_to_json
+from .events import BINARY_MIN_POINTS, tolerances_to_json, trajectory_columns, trajectory_to_json
 from .framing import BUSY, PROTOCOL_VERSION, MessageDecoder, RequestError, encode, encode_frame
 from .handles import FeedbackCallback, GoalHandle, StateSubscription
 from .paths import (
@@ -96,6 +96,9 @@ class Client:
 
     Attributes:
         info: the ``hello`` reply received at connection (joint names, rates, versions).
+        binary_min_points: trajectories of this many points or more go as binary frames
+            when ``info`` says protocol version 2 (docs/protocol.md, "Binary frames");
+            ``None``: always JSON.
     """
 
     def __init__(self, sock: socket.socket, timeout_s: float, label: str) -> None:
@@ -111,6 +114,7 @@ class Client:
         self.timeout_s = timeout_s
         self.label = label
         self.info: dict[str, Any] = {}
+        self.binary_min_points: int | None = BINARY_MIN_POINTS
         self._ids = itertools.count(1)
         self._lock = threading.Lock()  # pending, goals, subscriptions, lost
         self._send_lock = threading.Lock()
@@ -355,8 +359,8 @@ class Client:
         """The request's ``trajectory`` field, and its points as a binary frame's columns when
         the daemon speaks version 2 and there are ``BINARY_MIN_POINTS`` or more (then the
         field has no ``points``; docs/protocol.md, "Binary frames")."""
-        if self.info.get("protocol_version", 1) >= 2:
-            binary = trajectory_columns(trajectory, start_in)
+        if self.binary_min_points is not None and self.info.get("protocol_version", 1) >= 2:
+            binary = trajectory_columns(trajectory, start_in, self.binary_min_points)
             if binary is not None:
                 head, values, columns = binary
                 return {"trajectory": head}, (values, columns)

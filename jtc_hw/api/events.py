@@ -146,12 +146,14 @@ _POINT_KEYS = frozenset({"time_from_start", *FIELDS})
 
 
 def trajectory_columns(
-    trajectory: JointTrajectory | Mapping[str, Any], start_in: float | None = None
+    trajectory: JointTrajectory | Mapping[str, Any],
+    start_in: float | None = None,
+    min_points: int = BINARY_MIN_POINTS,
 ) -> tuple[dict[str, Any], NDArray[np.float64], list[str]] | None:
     """A trajectory as a binary frame's parts: its wire form without ``points``, the points as
     an ``(m, columns)`` float64 array and the column names (docs/protocol.md, "Binary frames").
 
-    ``None`` when it must go as JSON: fewer than :data:`BINARY_MIN_POINTS` points, or points
+    ``None`` when it must go as JSON: fewer than ``min_points`` points, or points
     that are not regular (a field only some points carry, a vector not one value per joint, a
     value that is not a number, an unknown key): the daemon then names the problem as it does
     for JSON.
@@ -161,7 +163,7 @@ def trajectory_columns(
             ``trajectory_to_json``).
     """
     if isinstance(trajectory, JointTrajectory):
-        if len(trajectory.points) < BINARY_MIN_POINTS:
+        if len(trajectory.points) < max(1, min_points):
             return None
         head = trajectory_to_json(JointTrajectory(trajectory.joint_names, (),
                                                   trajectory.start_time_ns), start_in)
@@ -170,7 +172,7 @@ def trajectory_columns(
     else:
         points = trajectory.get("points")
         names = trajectory.get("joint_names")
-        if not isinstance(points, list) or len(points) < BINARY_MIN_POINTS:
+        if not isinstance(points, list) or len(points) < max(1, min_points):
             return None
         if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
             return None

@@ -544,13 +544,13 @@ class MessageDecoder:
                 f"line {lineno}: the connection ended after {held} of the attachment's "
                 f"{length} bytes and its newline; the request was not executed",
                 _readable_id(obj))]
-        lineno = self._lines.end()
-        if lineno is None:
+        rest = self._lines.end()
+        if rest is None:
             return []
         return [
             RequestError(
                 BAD_JSON,
-                f"line {lineno}: the connection ended before this message's newline; it was "
+                f"line {rest}: the connection ended before this message's newline; it was "
                 "not executed (end every message with \\n)",
             )
         ]

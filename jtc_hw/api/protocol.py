@@ -427,8 +427,8 @@ def attachment_columns(
     if bad.any():
         row, col = (int(i) for i in np.argwhere(bad)[0])
         raise _attachment_error(
-            f": point {row}, column {json.dumps(columns[col])}: {float(values[row, col])!r} is not a "
-            "finite number (NaN and infinities are refused)", rid)
+            f": point {row}, column {json.dumps(columns[col])}: {float(values[row, col])!r} "
+            "is not a finite number (NaN and infinities are refused)", rid)
     times = values[:, 0]
     ns_float = np.rint(times * NS_PER_S)  # as seconds_to_ns: rounded half to even
     over = (np.abs(times) > _MAX_SECONDS) | (np.abs(ns_float) >= 2.0**63)
@@ -442,12 +442,14 @@ def attachment_columns(
     if over.any():
         row, col = (int(i) for i in np.argwhere(over)[0])
         raise _attachment_error(
-            f": point {row}, column {json.dumps(columns[col + 1])}: {float(joints[row, col])!r} is out "
-            f"of range; a joint value must be at most {MAX_JOINT_VALUE:g} in magnitude", rid)
+            f": point {row}, column {json.dumps(columns[col + 1])}: "
+            f"{float(joints[row, col])!r} is out of range; a joint value must be at most "
+            f"{MAX_JOINT_VALUE:g} in magnitude", rid)
     ns = ns_float.astype(np.int64)
     k = len(names)
-    arrays = {f: values[:, 1 + j * k : 1 + (j + 1) * k] for j, f in enumerate(fields)}
-    return PointColumns(ns, **arrays)
+    arrays: dict[str, NDArray[np.float64]] = {
+        f: values[:, 1 + j * k : 1 + (j + 1) * k] for j, f in enumerate(fields)}
+    return PointColumns(ns, present=None, **arrays)
 
 
 _MISSING = object()

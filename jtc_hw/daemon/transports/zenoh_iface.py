@@ -25,10 +25,10 @@ thread; the loop process knows nothing of it.
 Credentials: loopback is no door at all on a machine with other users, so every query of an
 operation in :data:`COMMANDS` (everything that moves the robot or changes its settings, ``stop``
 included) must carry ``daemon.zenoh.token`` as its attachment (a binary frame's query: the
-token, ``\\n``, the request line, ``\\n``; its payload the raw bytes: :func:`split_attachment`), checked in Zenoh's thread before
-the payload is read: none is answered ``unauthorized`` at once, a wrong one after
-:data:`WRONG_TOKEN_DELAY_S` with at most :data:`MAX_REFUSALS_WAITING` refusals waiting
-(docs/zenoh.md, "The token"). Watching needs no token.
+token, ``\\n``, the request line, ``\\n``; its payload the raw bytes: :func:`split_attachment`),
+checked in Zenoh's thread before the payload is read: none is answered ``unauthorized`` at
+once, a wrong one after :data:`WRONG_TOKEN_DELAY_S` with at most :data:`MAX_REFUSALS_WAITING`
+refusals waiting (docs/zenoh.md, "The token"). Watching needs no token.
 
 Memory: Zenoh reassembles a query's whole payload in malloc'd buffers that glibc keeps once
 freed, so a payload longer than ``daemon.max_message_bytes`` is answered ``too_large`` from its

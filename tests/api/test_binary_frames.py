@@ -199,3 +199,23 @@ def test_a_header_with_a_lone_surrogate_is_refused_and_its_bytes_skipped() -> No
     # Not a frame at all, the word only in a string: refused as before, never executed.
     (plain,) = Decoder().feed(b'{"op": "sim", "component": "attachment", "fault": "\\udc00"}\n')
     assert isinstance(plain, RequestError) and "lone UTF-16 surrogate" in plain.message
+
+
+@pytest.mark.parametrize("seed", range(20))
+def test_a_frame_decodes_to_the_trajectory_its_json_form_does(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    m = int(rng.integers(1, 300))
+    fields = [f for f in ("positions", "velocities", "accelerations", "effort")
+              if rng.random() < 0.6] or ["positions"]
+    times = np.cumsum(rng.uniform(1e-4, 0.5, m))
+    blocks = [rng.uniform(-1e6, 1e6, (m, len(NAMES))) for _ in fields]
+    values = np.column_stack([times, *blocks])
+    request = {"id": seed, "op": "send_trajectory",
+               "trajectory": {"joint_names": NAMES, "start_in": 0.25}}
+    (binary,) = Decoder().feed(encode_frame(request, values, column_names(NAMES, fields)))
+    points = [{"time_from_start": float(t),
+               **{f: block[i].tolist() for f, block in zip(fields, blocks, strict=True)}}
+              for i, t in enumerate(times)]
+    as_json = dict(request, trajectory={**request["trajectory"], "points": points})
+    (text,) = Decoder().feed(json.dumps(as_json).encode() + b"\n")
+    assert isinstance(binary, SendTrajectory) and binary == text

@@ -622,7 +622,9 @@ class ZenohInterface:
             if not header.strip():
                 return RequestError(BAD_FRAME, "the query's attachment ends with a newline "
                                     "but holds no request line after the token")
-            items = MessageDecoder(max_message_bytes).feed(header + b"\n" + body + b"\n")
+            frames = MessageDecoder(max_message_bytes)
+            # A payload shorter than the header says leaves the frame waiting: end() names it.
+            items = frames.feed(header + b"\n" + body + b"\n") or frames.end()
             obj: dict[str, Any] | RequestError = items[0] if items else {}
         elif not body.strip():
             obj = {}

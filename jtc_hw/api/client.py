@@ -613,7 +613,7 @@ class Client:
             raise ClientConnectionError(f"{op}: the client is closed")
 
     def _read(self) -> None:
-        decoder = MessageDecoder(CLIENT_MAX_MESSAGE_BYTES)
+        decoder = MessageDecoder(CLIENT_MAX_MESSAGE_BYTES, frames=False)
         reason = "the daemon closed the connection"
         try:
             while True:

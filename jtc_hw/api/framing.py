@@ -487,10 +487,16 @@ class MessageDecoder:
     Args:
         max_message_bytes: longest accepted line, without its newline, and longest accepted
             attachment.
+        frames: read binary frames (a daemon's requests); ``False``: NDJSON only, an
+            ``attachment`` being a field like any other (a client reading the daemon's
+            messages: the daemon sends no frames).
     """
 
-    def __init__(self, max_message_bytes: int = DEFAULT_MAX_MESSAGE_BYTES) -> None:
+    def __init__(
+        self, max_message_bytes: int = DEFAULT_MAX_MESSAGE_BYTES, frames: bool = True
+    ) -> None:
         self._lines = _Lines(max_message_bytes)
+        self._frames = frames
         self._frame: tuple[int, dict[str, Any], int] | None = None  # awaiting its raw bytes
         self._skipped = False  # the awaited frame's bytes are skipped (too_large)
         self._refusal: RequestError | None = None  # the awaited frame's reply, if refused
@@ -599,7 +605,7 @@ class MessageDecoder:
             with gc_paused(len(line) >= FAST_DECODE_BYTES):
                 obj = _loads_line(line, lineno)
         except RequestError as exc:
-            if b'"attachment"' not in line:
+            if not self._frames or b'"attachment"' not in line:
                 return exc
             if exc.code != BAD_REQUEST:
                 return self._bad_frame(f"{exc.message}; the line names an attachment, whose "
@@ -612,7 +618,7 @@ class MessageDecoder:
                 BAD_REQUEST,
                 f"line {lineno}: a message must be a JSON object, got {_describe(obj)}",
             )
-        if "attachment" not in obj:
+        if not self._frames or "attachment" not in obj:
             return obj if refusal is None else refusal
         length = _frame_length(obj, self._lines.max_bytes)
         if isinstance(length, str):

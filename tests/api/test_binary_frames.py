@@ -219,3 +219,12 @@ def test_a_frame_decodes_to_the_trajectory_its_json_form_does(seed: int) -> None
     as_json = dict(request, trajectory={**request["trajectory"], "points": points})
     (text,) = Decoder().feed(json.dumps(as_json).encode() + b"\n")
     assert isinstance(binary, SendTrajectory) and binary == text
+
+
+def test_a_decoder_without_frames_reads_an_attachment_field_as_any_other() -> None:
+    """The client's decoder of the daemon's messages: the daemon sends no frames."""
+    message = b'{"event": "x", "attachment": {"bytes": 5}}\n{"id": 1, "ok": true}\n'
+    assert MessageDecoder(frames=False).feed(message) == [
+        {"event": "x", "attachment": {"bytes": 5}}, {"id": 1, "ok": True}]
+    (error,) = MessageDecoder(frames=False).feed(b'{"attachment": \n')
+    assert isinstance(error, RequestError) and error.code == "bad_json"

@@ -368,7 +368,7 @@ class Attachment:
         return f"Attachment({len(self.data)} bytes, {self.header!r:.120})"
 
 
-def _frame_length(obj: dict[str, Any], limit: int) -> int | str:
+def _frame_length(obj: dict[str, Any]) -> int | str:
     """The raw byte count a message's ``attachment`` announces, or why it cannot be trusted."""
     header = obj["attachment"]
     if not isinstance(header, dict):
@@ -620,7 +620,7 @@ class MessageDecoder:
             )
         if not self._frames or "attachment" not in obj:
             return obj if refusal is None else refusal
-        length = _frame_length(obj, self._lines.max_bytes)
+        length = _frame_length(obj)
         if isinstance(length, str):
             return self._bad_frame(f"line {lineno}: {length}", _readable_id(obj))
         self._frame = (lineno, obj, length)

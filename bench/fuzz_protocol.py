@@ -85,6 +85,9 @@ def run(messages: int, seed: int, binary: float = BINARY) -> dict[str, Any]:
         x.startswith("ERROR jtc_hw.server") and x.endswith(" failed") for x in log.splitlines()
     )
     summary["tracebacks"] = log.count("Traceback")
+    if summary["first_problem"] or summary["tracebacks"]:
+        print(f"daemon log (last 40 lines):\n{''.join(log.splitlines(True)[-40:])}",
+              file=sys.stderr)
     return {"counts": counts, "summary": summary}
 
 
@@ -104,7 +107,13 @@ def exchange_segment(daemon: DaemonProcess, lines: list[Line], tally: _Tally) ->
     """Send ``lines`` on a connection of their own and read their replies (and, after a
     line that ``closes``, the end of the stream); False when the run must stop."""
     sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-    sock.connect(str(daemon.socket))
+    try:
+        sock.connect(str(daemon.socket))
+    except OSError as exc:
+        sock.close()
+        code = daemon.proc.poll() if daemon.proc is not None else None
+        tally.problem(f"cannot connect to the daemon ({exc}); its exit status: {code}")
+        return False
     failed: list[BaseException] = []
     writer = threading.Thread(target=send_all, args=(sock, lines, failed), name="fuzz-writer")
     writer.start()

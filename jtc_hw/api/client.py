@@ -29,6 +29,9 @@ import threading
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
+import numpy as np
+from numpy.typing import NDArray
+
 from ..controller.messages import JointTrajectory
 from ..controller.tolerances import JointTolerance
 from .calls import (
@@ -39,8 +42,8 @@ from .calls import (
     Pending,
     reply_error,
 )
-from .events import tolerances_to_json, trajectory_to_json
-from .framing import BUSY, PROTOCOL_VERSION, MessageDecoder, RequestError, encode
+from .events import BINARY_MIN_POINTS, tolerances_to_json, trajectory_columns, trajectory_to_json
+from .framing import BUSY, PROTOCOL_VERSION, MessageDecoder, RequestError, encode, encode_frame
 from .handles import FeedbackCallback, GoalHandle, StateSubscription
 from .paths import (
     client_socket_path,
@@ -65,6 +68,8 @@ this module, which that one builds on, does not import it."""
 
 TrajectoryLike = JointTrajectory | Mapping[str, Any]
 ToleranceLike = JointTolerance | Mapping[str, Any]
+Frame = tuple[NDArray[np.float64], list[str]]
+"""A binary frame's values and column names (``framing.encode_frame``)."""
 
 
 def default_socket_path() -> str:
@@ -91,6 +96,9 @@ class Client:
 
     Attributes:
         info: the ``hello`` reply received at connection (joint names, rates, versions).
+        binary_min_points: trajectories of this many points or more go as binary frames
+            when ``info`` says protocol version 2 (docs/protocol.md, "Binary frames");
+            ``None``: always JSON.
     """
 
     def __init__(self, sock: socket.socket, timeout_s: float, label: str) -> None:
@@ -106,6 +114,7 @@ class Client:
         self.timeout_s = timeout_s
         self.label = label
         self.info: dict[str, Any] = {}
+        self.binary_min_points: int | None = BINARY_MIN_POINTS
         self._ids = itertools.count(1)
         self._lock = threading.Lock()  # pending, goals, subscriptions, lost
         self._send_lock = threading.Lock()
@@ -300,7 +309,7 @@ class Client:
             TimeoutError: no reply within the timeout (the goal may still have been accepted;
                 its events are then ignored).
         """
-        fields: dict[str, Any] = {"trajectory": _trajectory(trajectory, start_in)}
+        fields, frame = self._trajectory_fields(trajectory, start_in)
         if path_tolerance:
             fields["path_tolerance"] = _tolerances(path_tolerance)
         if goal_tolerance:
@@ -310,7 +319,7 @@ class Client:
         if time_scaling is not None:
             fields["time_scaling"] = time_scaling
         pending = Pending("send_goal", on_feedback, feedback_maxlen)
-        self._request("send_goal", fields, timeout_s, pending)
+        self._request("send_goal", fields, timeout_s, pending, frame)
         assert pending.goal is not None
         return pending.goal
 
@@ -339,10 +348,23 @@ class Client:
             GoalRejected: the daemon refused the trajectory.
             RequestError: the request was malformed.
         """
-        fields: dict[str, Any] = {"trajectory": _trajectory(trajectory, start_in)}
+        fields, frame = self._trajectory_fields(trajectory, start_in)
         if time_scaling is not None:
             fields["time_scaling"] = time_scaling
-        return self._request("send_trajectory", fields, timeout_s)
+        return self._request("send_trajectory", fields, timeout_s, None, frame)
+
+    def _trajectory_fields(
+        self, trajectory: TrajectoryLike, start_in: float | None
+    ) -> tuple[dict[str, Any], Frame | None]:
+        """The request's ``trajectory`` field, and its points as a binary frame's columns when
+        the daemon speaks version 2 and there are ``BINARY_MIN_POINTS`` or more (then the
+        field has no ``points``; docs/protocol.md, "Binary frames")."""
+        if self.binary_min_points is not None and self.info.get("protocol_version", 1) >= 2:
+            binary = trajectory_columns(trajectory, start_in, self.binary_min_points)
+            if binary is not None:
+                head, values, columns = binary
+                return {"trajectory": head}, (values, columns)
+        return {"trajectory": _trajectory(trajectory, start_in)}, None
 
     def stop(self, timeout_s: float | None = None) -> dict[str, Any]:
         """End any motion and hold the measured position: the active goal ends ``canceled``,
@@ -547,11 +569,13 @@ class Client:
         fields: dict[str, Any],
         timeout_s: float | None,
         pending: Pending | None = None,
+        frame: Frame | None = None,
     ) -> dict[str, Any]:
         timeout = self.timeout_s if timeout_s is None else timeout_s
         pending = pending or Pending(op, None, 0)
         request_id = next(self._ids)
-        data = encode({"id": request_id, "op": op, **fields})
+        message = {"id": request_id, "op": op, **fields}
+        data = encode(message) if frame is None else encode_frame(message, *frame)
         with self._lock:
             self._check_open(op)
             self._pending[request_id] = pending
@@ -589,7 +613,7 @@ class Client:
             raise ClientConnectionError(f"{op}: the client is closed")
 
     def _read(self) -> None:
-        decoder = MessageDecoder(CLIENT_MAX_MESSAGE_BYTES)
+        decoder = MessageDecoder(CLIENT_MAX_MESSAGE_BYTES, frames=False)
         reason = "the daemon closed the connection"
         try:
             while True:

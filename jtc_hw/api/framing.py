@@ -5,6 +5,20 @@ ignored, blank lines are skipped). :class:`MessageDecoder` turns whatever the so
 complete JSON objects, with the refusals the protocol adds to Python's ``json`` (``NaN`` tokens,
 duplicate keys, lone surrogate escapes, over-long lines reported once and skipped, a last line
 without its newline never decoded); :func:`encode` writes one message.
+
+Binary frames (protocol version 2, docs/protocol.md "Binary frames")::
+
+    {"id":1,"op":"send_goal",...,"attachment":{"bytes":N,"dtype":"<f8",...}}\\n
+    <N raw bytes>\\n
+
+A line whose object has an ``attachment`` is followed by exactly ``N`` raw bytes and one
+``\\n``; the decoder reads them without looking for newlines in them and hands the message on
+with an :class:`Attachment` in place of the header's object (:mod:`.protocol` reads its
+numbers). A frame that cannot be trusted -- an attachment header without a usable ``bytes``,
+a header line that is not JSON but names an attachment, raw bytes not followed by ``\\n``, or
+the stream ending inside them -- is ``bad_frame``: the stream is out of sync, the decoder
+reads nothing more and the transport closes the connection. An attachment longer than the
+line limit is ``too_large`` and its bytes are skipped; the connection goes on.
 The error codes and :class:`RequestError` live here because both directions use them; what a
 request means is :mod:`jtc_hw.api.protocol`.
 """
@@ -16,7 +30,8 @@ import gc
 import json
 import math
 import re
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
 from enum import Enum
 from types import ModuleType
 from typing import Any
@@ -32,14 +47,18 @@ except ImportError:  # optional: the standard library decodes everything, only s
     _orjson = None
 
 __all__ = [
-    "BAD_JSON", "BAD_REQUEST", "BUSY", "DEFAULT_MAX_MESSAGE_BYTES", "ERROR_CODES", "GOAL_REJECTED",
-    "HARDWARE", "IDLE", "INTERNAL", "NOT_ACTIVE", "NOT_FOUND", "PROTOCOL_VERSION", "TOO_LARGE",
-    "UNAUTHORIZED", "UNKNOWN_OP", "MessageDecoder", "RequestError", "RequestId", "encode",
-    "error_reply", "reply",
+    "ATTACHMENT_FIELDS", "BAD_FRAME", "BAD_JSON", "BAD_REQUEST", "BUSY",
+    "DEFAULT_MAX_MESSAGE_BYTES", "ERROR_CODES", "GOAL_REJECTED", "HARDWARE", "IDLE", "INTERNAL",
+    "NOT_ACTIVE", "NOT_FOUND", "PROTOCOL_VERSION", "PROTOCOL_VERSIONS", "TOO_LARGE",
+    "UNAUTHORIZED", "UNKNOWN_OP", "Attachment", "MessageDecoder", "RequestError", "RequestId",
+    "encode", "encode_frame", "error_reply", "reply",
 ]
 
-PROTOCOL_VERSION = 1
-"""Version of this wire format; ``hello`` reports it and may ask for it."""
+PROTOCOL_VERSION = 2
+"""Version of this wire format; ``hello`` reports it and may ask for it. Version 2 added binary
+frames (module docstring); a version 1 client (NDJSON only) is served unchanged."""
+PROTOCOL_VERSIONS = (1, 2)
+"""The versions a client may ask for in ``hello``."""
 
 DEFAULT_MAX_MESSAGE_BYTES = 4 << 20
 """Default limit on one request line (bytes, without the newline): 4 MiB, as the robot file's
@@ -47,6 +66,7 @@ DEFAULT_MAX_MESSAGE_BYTES = 4 << 20
 
 # Machine error codes (``error.code`` of a failed reply).
 BAD_JSON = "bad_json"
+BAD_FRAME = "bad_frame"
 TOO_LARGE = "too_large"
 BAD_REQUEST = "bad_request"
 UNKNOWN_OP = "unknown_op"
@@ -60,6 +80,7 @@ HARDWARE = "hardware"
 INTERNAL = "internal"
 ERROR_CODES = (
     BAD_JSON,
+    BAD_FRAME,
     TOO_LARGE,
     BAD_REQUEST,
     UNKNOWN_OP,
@@ -323,128 +344,304 @@ def _refuse_unencodable(obj: Any, lineno: int) -> None:
             )
 
 
+ATTACHMENT_FIELDS = ("bytes", "dtype", "shape", "columns")
+"""The fields of a request's ``attachment`` object (docs/protocol.md, "Binary frames")."""
+
+
+@dataclass(frozen=True)
+class Attachment:
+    """A binary frame's raw bytes and the header that describes them, as received.
+
+    Only ``bytes`` (the length) is checked here: it says where the next message starts. The
+    other fields are the header's values as they came (:mod:`.protocol` checks them, and the
+    numbers).
+
+    Attributes:
+        data: the raw bytes (``header["bytes"]`` of them).
+        header: the request's ``attachment`` object.
+    """
+
+    data: bytes
+    header: dict[str, Any]
+
+    def __repr__(self) -> str:
+        return f"Attachment({len(self.data)} bytes, {self.header!r:.120})"
+
+
+def _frame_length(obj: dict[str, Any]) -> int | str:
+    """The raw byte count a message's ``attachment`` announces, or why it cannot be trusted."""
+    header = obj["attachment"]
+    if not isinstance(header, dict):
+        return f"'attachment' must be an object, got {_describe(header)}"
+    length = header.get("bytes")
+    if isinstance(length, bool) or not isinstance(length, int):
+        return f"attachment.bytes must be an integer, got {_describe(length)}"
+    if length < 0:
+        return f"attachment.bytes must not be negative, got {length}"
+    return length
+
+
 class _Lines:
-    """Splits a byte stream into lines, enforcing the line-length limit."""
+    """A byte stream as lines, or as a given number of raw bytes (a binary frame's).
+
+    ``add`` buffers data; ``line`` and ``take`` consume it. Lines are limited to ``max_bytes``
+    (without the newline); an over-long one is reported once as ``None`` and skipped up to its
+    newline. ``skip`` discards a number of bytes, buffered or still to come.
+    """
 
     def __init__(self, max_bytes: int) -> None:
         if max_bytes < 1:
             raise ValueError(f"max_message_bytes must be >= 1, got {max_bytes}")
         self.max_bytes = max_bytes
         self._buf = bytearray()
-        self._scanned = 0  # bytes of _buf known to hold no newline
+        self._pos = 0  # start of what is not consumed yet
+        self._scanned = 0  # bytes from _pos known to hold no newline
         self._discarding = False
+        self._skipping = 0  # raw bytes still to discard
         self.lineno = 0  # lines completed so far
 
-    def feed(self, data: bytes) -> list[tuple[int, bytes | None]]:
-        """Complete lines as ``(line number, content)``; ``None`` content: it was too long."""
-        out: list[tuple[int, bytes | None]] = []
-        if self._discarding:
+    def add(self, data: bytes) -> None:
+        if self._skipping:
+            n = min(self._skipping, len(data))
+            self._skipping -= n
+            data = data[n:]
+        if self._discarding and data:
             nl = data.find(b"\n")
             if nl < 0:
-                return out
+                return
             self._discarding = False
             self.lineno += 1
             data = data[nl + 1 :]
-        buf = self._buf
-        buf += data
-        start = 0
-        while True:
-            nl = buf.find(b"\n", start + self._scanned)
-            if nl < 0:
-                break
-            self._scanned = 0
-            self.lineno += 1
-            out.append(self._line(bytes(buf[start:nl])))
-            start = nl + 1
-        del buf[:start]
-        if len(buf) > self.max_bytes:
-            out.append((self.lineno + 1, None))
-            buf.clear()
-            self._discarding = True
-        self._scanned = len(buf)
-        return out
+        self._buf += data
+
+    def line(self) -> tuple[int, bytes | None] | None:
+        """The next complete line as ``(line number, content)`` (``None`` content: it was
+        too long), or ``None`` if it has not all arrived."""
+        buf, pos = self._buf, self._pos
+        nl = buf.find(b"\n", pos + self._scanned)
+        if nl < 0:
+            if len(buf) - pos > self.max_bytes:
+                self._drop()
+                self._discarding = True
+                return (self.lineno + 1, None)
+            self._scanned = len(buf) - pos
+            return None
+        self._scanned = 0
+        self._pos = nl + 1
+        self.lineno += 1
+        if nl > pos and buf[nl - 1] == 0x0D:  # "\r\n"
+            nl -= 1
+        if nl - pos > self.max_bytes:
+            return (self.lineno, None)
+        return (self.lineno, bytes(buf[pos:nl]))
+
+    def take(self, n: int) -> bytes | None:
+        """The next ``n`` raw bytes, or ``None`` if they have not all arrived."""
+        if len(self._buf) - self._pos < n:
+            return None
+        data = bytes(self._buf[self._pos : self._pos + n])
+        self._pos += n
+        self._scanned = 0
+        return data
+
+    def skip(self, n: int) -> None:
+        """Discard the next ``n`` raw bytes (those not buffered yet as they arrive)."""
+        held = len(self._buf) - self._pos
+        if held >= n:
+            self._pos += n
+        else:
+            self._drop()
+            self._skipping = n - held
+        self._scanned = 0
+
+    def compact(self) -> None:
+        """Forget what was consumed (after each ``feed``)."""
+        if self._pos:
+            del self._buf[: self._pos]
+            self._pos = 0
+
+    def _drop(self) -> None:
+        self._buf.clear()
+        self._pos = self._scanned = 0
+
+    @property
+    def held(self) -> int:
+        """Bytes received and not consumed."""
+        return len(self._buf) - self._pos
 
     def end(self) -> int | None:
         """Forget the input after the last newline; the line number of that unterminated
         rest if it held anything but blanks (an over-long line was reported already)."""
-        rest, self._buf, self._scanned = bytes(self._buf), bytearray(), 0
+        rest = bytes(self._buf[self._pos :])
+        self._drop()
         discarding, self._discarding = self._discarding, False
         if discarding or not rest.strip():
             return None
         self.lineno += 1
         return self.lineno
 
-    def _line(self, line: bytes) -> tuple[int, bytes | None]:
-        if line.endswith(b"\r"):
-            line = line[:-1]
-        return (self.lineno, line if len(line) <= self.max_bytes else None)
-
 
 class MessageDecoder:
-    """Newline-delimited JSON objects from a byte stream (used by the client for replies).
+    """Messages from a byte stream: NDJSON lines, and binary frames (module docstring).
 
     Args:
-        max_message_bytes: longest accepted line, without its newline.
+        max_message_bytes: longest accepted line, without its newline, and longest accepted
+            attachment.
+        frames: read binary frames (a daemon's requests); ``False``: NDJSON only, an
+            ``attachment`` being a field like any other (a client reading the daemon's
+            messages: the daemon sends no frames).
     """
 
-    def __init__(self, max_message_bytes: int = DEFAULT_MAX_MESSAGE_BYTES) -> None:
+    def __init__(
+        self, max_message_bytes: int = DEFAULT_MAX_MESSAGE_BYTES, frames: bool = True
+    ) -> None:
         self._lines = _Lines(max_message_bytes)
+        self._frames = frames
+        self._frame: tuple[int, dict[str, Any], int] | None = None  # awaiting its raw bytes
+        self._skipped = False  # the awaited frame's bytes are skipped (too_large)
+        self._refusal: RequestError | None = None  # the awaited frame's reply, if refused
+        self.broken = False
+        """A ``bad_frame`` was returned: the stream is out of sync, nothing more is read."""
 
     def feed(self, data: bytes) -> list[dict[str, Any] | RequestError]:
         """Messages completed by ``data``, in order; unusable ones as ``RequestError`` values
         (it never raises).
 
         Blank lines are skipped. An over-long line yields one ``too_large`` error, as soon as
-        the limit is passed, and its remaining bytes are discarded up to the next newline.
+        the limit is passed, and its remaining bytes are discarded up to the next newline. A
+        message with an attachment comes out once its raw bytes and their newline are in,
+        with an :class:`Attachment` as its ``attachment``. After a ``bad_frame``, nothing.
         """
-        return self._decode(self._lines.feed(data))
+        if self.broken:
+            return []
+        lines = self._lines
+        lines.add(data)
+        out: list[dict[str, Any] | RequestError] = []
+        while not self.broken:
+            if self._frame is not None:
+                item = self._frame_bytes()
+                if item is None:
+                    break
+                out.append(item)
+                continue
+            got = lines.line()
+            if got is None:
+                break
+            item = self._decode(*got)
+            if item is not None:
+                out.append(item)
+        lines.compact()
+        return out
 
     def end(self) -> list[dict[str, Any] | RequestError]:
         """Call at end of input. A last message without its newline is never decoded: it may
         be cut off (the peer died mid-write), and a truncated request must not be executed.
-        Returns nothing, or one ``bad_json`` error for the unterminated rest (it never raises).
+        Returns nothing, or one error for the unterminated rest: ``bad_json`` for a line,
+        ``bad_frame`` for a binary frame's bytes (it never raises).
         """
-        lineno = self._lines.end()
-        if lineno is None:
+        if self.broken:
+            return []
+        if self._frame is not None:
+            lineno, obj, length = self._frame
+            held = self._lines.held
+            self._frame = None
+            self._lines.end()
+            return [self._bad_frame(
+                f"line {lineno}: the connection ended after {held} of the attachment's "
+                f"{length} bytes and its newline; the request was not executed",
+                _readable_id(obj))]
+        rest = self._lines.end()
+        if rest is None:
             return []
         return [
             RequestError(
                 BAD_JSON,
-                f"line {lineno}: the connection ended before this message's newline; it was "
+                f"line {rest}: the connection ended before this message's newline; it was "
                 "not executed (end every message with \\n)",
             )
         ]
 
-    def _decode(self, lines: list[tuple[int, bytes | None]]) -> list[dict[str, Any] | RequestError]:
-        out: list[dict[str, Any] | RequestError] = []
-        for lineno, line in lines:
-            if line is None:
-                out.append(
-                    RequestError(
-                        TOO_LARGE,
-                        f"line {lineno}: message longer than the limit of "
-                        f"{self._lines.max_bytes} bytes; it was discarded up to its newline",
-                    )
-                )
-                continue
-            if not line.strip():
-                continue
-            try:
-                with gc_paused(len(line) >= FAST_DECODE_BYTES):
-                    obj = _loads_line(line, lineno)
-            except RequestError as exc:
-                out.append(exc)
-                continue
-            if not isinstance(obj, dict):
-                out.append(
-                    RequestError(
-                        BAD_REQUEST,
-                        f"line {lineno}: a message must be a JSON object, got {_describe(obj)}",
-                    )
-                )
-                continue
-            out.append(obj)
-        return out
+    def _bad_frame(self, message: str, rid: RequestId = None) -> RequestError:
+        self.broken = True
+        return RequestError(
+            BAD_FRAME,
+            f"{message}; the stream is out of sync, closing the connection "
+            "(docs/protocol.md, \"Binary frames\")",
+            rid,
+        )
+
+    def _frame_bytes(self) -> dict[str, Any] | RequestError | None:
+        """The awaited frame's message once its raw bytes and newline are in, else None."""
+        assert self._frame is not None
+        lineno, obj, length = self._frame
+        raw = self._lines.take(1 if self._skipped else length + 1)
+        if raw is None:
+            return None
+        refusal = self._refusal
+        self._frame, self._skipped, self._refusal = None, False, None
+        if raw[-1:] != b"\n":
+            return self._bad_frame(
+                f"line {lineno}: the attachment's {length} bytes are not followed by \\n "
+                f"(byte {raw[-1]:#04x}): its length is wrong",
+                _readable_id(obj),
+            )
+        if refusal is not None:
+            return refusal
+        return {**obj, "attachment": Attachment(raw[:-1], obj["attachment"])}
+
+    def _decode(self, lineno: int, line: bytes | None) -> dict[str, Any] | RequestError | None:
+        """One line's message, or the error; ``None`` for a blank line. A line whose object
+        has an attachment starts a frame (``None`` until its bytes are in)."""
+        if line is None:
+            return RequestError(
+                TOO_LARGE,
+                f"line {lineno}: message longer than the limit of "
+                f"{self._lines.max_bytes} bytes; it was discarded up to its newline",
+            )
+        if not line.strip():
+            return None
+        refusal: RequestError | None = None
+        try:
+            with gc_paused(len(line) >= FAST_DECODE_BYTES):
+                obj = _loads_line(line, lineno)
+        except RequestError as exc:
+            if not self._frames or b'"attachment"' not in line:
+                return exc
+            if exc.code != BAD_REQUEST:
+                return self._bad_frame(f"{exc.message}; the line names an attachment, whose "
+                                       "length cannot be read")
+            # JSON, but a string in it is not Unicode (a lone surrogate escape): the length
+            # can be read, the frame is skipped whole and refused.
+            obj, refusal = json.loads(line.decode("utf-8")), exc
+        if not isinstance(obj, dict):
+            return refusal or RequestError(
+                BAD_REQUEST,
+                f"line {lineno}: a message must be a JSON object, got {_describe(obj)}",
+            )
+        if not self._frames or "attachment" not in obj:
+            return obj if refusal is None else refusal
+        length = _frame_length(obj)
+        if isinstance(length, str):
+            return self._bad_frame(f"line {lineno}: {length}", _readable_id(obj))
+        self._frame = (lineno, obj, length)
+        self._refusal = refusal
+        if length > self._lines.max_bytes:
+            self._lines.skip(length)
+            self._skipped = True
+            self._refusal = refusal or RequestError(
+                TOO_LARGE,
+                f"line {lineno}: attachment of {length} bytes, longer than the limit of "
+                f"{self._lines.max_bytes} bytes; it was skipped and the request not executed",
+                _readable_id(obj),
+            )
+        return self._frame_bytes()
+
+
+def _readable_id(obj: dict[str, Any]) -> RequestId:
+    rid = obj.get("id")
+    if isinstance(rid, str) or (isinstance(rid, int) and not isinstance(rid, bool)):
+        return rid
+    return None
 
 
 # -- encoding ---------------------------------------------------------------------------------
@@ -496,6 +693,28 @@ def encode(obj: Any) -> bytes:
         # are refused), e.g. a driver's error text: U+FFFD, so the message is still sent.
         fixed = text.encode("utf-16", "surrogatepass").decode("utf-16", "replace")
         return fixed.encode("utf-8") + b"\n"
+
+
+def encode_frame(obj: dict[str, Any], values: Any, columns: Sequence[str]) -> bytes:
+    """One message with a binary attachment (docs/protocol.md, "Binary frames"): ``obj`` with
+    an ``attachment`` header as its line, then ``values`` as little-endian float64 bytes (row
+    by row) and a newline.
+
+    Args:
+        obj: the request without its attachment.
+        values: an ``(m, c)`` array of numbers, one row per point.
+        columns: the ``c`` column names.
+
+    Raises:
+        ValueError: ``values`` is not two-dimensional with one column per name.
+    """
+    array = np.ascontiguousarray(values, dtype="<f8")
+    if array.ndim != 2 or array.shape[1] != len(columns):
+        raise ValueError(f"values must have shape (points, {len(columns)}), got {array.shape}")
+    data = array.tobytes()
+    header = {"bytes": len(data), "dtype": "<f8", "shape": list(array.shape),
+              "columns": list(columns)}
+    return b"".join((encode({**obj, "attachment": header}), data, b"\n"))
 
 
 def reply(request_id: RequestId, **fields: Any) -> dict[str, Any]:

@@ -1,4 +1,4 @@
-"""The daemon's socket API wire format (version 1): what a request means, no I/O.
+"""The daemon's socket API wire format (version 2): what a request means, no I/O.
 
 Theory of operation
 -------------------
@@ -14,10 +14,17 @@ offending JSON path, and the request ``id`` when it could be read.
 Beyond what the framing refuses, a request is refused for a number too large for a float64
 where a number is expected, and for an unknown field (a misspelt ``time_from_start`` must not
 silently become 0).
+
+A ``send_goal`` or ``send_trajectory`` may carry its points as a binary attachment (version 2,
+docs/protocol.md "Binary frames"): the framing hands over the raw bytes, and
+:func:`attachment_columns` reads them with ``numpy.frombuffer`` into the same
+``PointColumns`` the JSON points become, checking the header (dtype, shape against the byte
+count, the columns against the joint names) and the numbers (finite, in range) as whole arrays.
 """
 
 from __future__ import annotations
 
+import json
 import math
 from collections.abc import Sequence
 from itertools import chain, compress, repeat
@@ -38,9 +45,11 @@ from ..controller.messages import (
 )
 from ..controller.tolerances import JointTolerance
 from .framing import (
+    ATTACHMENT_FIELDS,
     BAD_REQUEST,
     DEFAULT_MAX_MESSAGE_BYTES,
     UNKNOWN_OP,
+    Attachment,
     MessageDecoder,
     RequestError,
     RequestId,
@@ -70,7 +79,10 @@ from .requests import (
     check_end,
 )
 
-__all__ = ["Decoder", "MAX_JOINT_VALUE", "OPS", "parse_request", "parse_trajectory"]
+__all__ = [
+    "ATTACHMENT_DTYPE", "BINARY_FIELDS", "Decoder", "MAX_JOINT_VALUE", "OPS",
+    "attachment_columns", "column_names", "parse_request", "parse_trajectory",
+]
 
 
 MAX_JOINT_VALUE = 1e6
@@ -84,10 +96,11 @@ _OP_FIELDS: dict[str, tuple[str, ...]] = {
     "hello": ("protocol_version",),
     "auth": ("token",),
     "send_goal": (
-        "trajectory", "path_tolerance", "goal_tolerance", "goal_time_tolerance", "time_scaling"
+        "trajectory", "path_tolerance", "goal_tolerance", "goal_time_tolerance", "time_scaling",
+        "attachment",
     ),
     "cancel_goal": ("goal_id",),
-    "send_trajectory": ("trajectory", "time_scaling"),
+    "send_trajectory": ("trajectory", "time_scaling", "attachment"),
     "stop": (),
     "query_state": ("time_ns", "in"),
     "subscribe_state": ("commands",),
@@ -258,9 +271,15 @@ def _vector(
 
 
 def parse_trajectory(
-    obj: Any, path: str = "trajectory", request_id: RequestId = None
+    obj: Any,
+    path: str = "trajectory",
+    request_id: RequestId = None,
+    attachment: Attachment | None = None,
 ) -> WireTrajectory:
     """Check a trajectory object's shape and types (content is the controller's business).
+
+    With an ``attachment`` (a binary frame's), the points are its columns and the object has
+    no ``points``.
 
     Raises:
         RequestError: ``bad_request`` naming the JSON path of the first problem.
@@ -268,14 +287,20 @@ def parse_trajectory(
     f = _Fields(obj, path, path, _TRAJECTORY_FIELDS, request_id)
     names_raw = f.array("joint_names", f.required("joint_names", "array of joint names"))
     names = tuple(f.string(f"joint_names[{i}]", n) for i, n in enumerate(names_raw))
-    points_raw = f.array("points", f.required("points", "array of points; empty means stop"))
-    points: Sequence[TrajectoryPoint] | None = _point_columns(points_raw)
-    if points is None:  # irregular, or a problem to name: point by point
-        with gc_paused(len(points_raw) >= _MANY_POINTS):  # an object or more per point
-            points = tuple(
-                _parse_point(p, f"{path}.points[{i}]", request_id, names)
-                for i, p in enumerate(points_raw)
-            )
+    points: Sequence[TrajectoryPoint] | None
+    if attachment is not None:
+        if f.has("points"):
+            raise f.error("the points are in the attachment: leave 'points' out", "points")
+        points = attachment_columns(attachment, names, request_id)
+    else:
+        points_raw = f.array("points", f.required("points", "array of points; empty means stop"))
+        points = _point_columns(points_raw)
+        if points is None:  # irregular, or a problem to name: point by point
+            with gc_paused(len(points_raw) >= _MANY_POINTS):  # an object or more per point
+                points = tuple(
+                    _parse_point(p, f"{path}.points[{i}]", request_id, names)
+                    for i, p in enumerate(points_raw)
+                )
     start_time_ns: int | None = None
     start_in: float | None = None
     if f.has("start_time_ns") and f.has("start_in"):
@@ -293,6 +318,138 @@ def parse_trajectory(
     if f.has("start_in"):
         start_in = _seconds(f.obj["start_in"], join(path, "start_in"), request_id)
     return WireTrajectory(names, points, start_time_ns, start_in)
+
+
+ATTACHMENT_DTYPE = "<f8"
+"""The one ``dtype`` an attachment may have: little-endian IEEE 754 float64."""
+BINARY_FIELDS = _POINT_FIELDS[1:]
+"""The per-joint fields an attachment may carry, in the order its columns must have them."""
+
+
+def column_names(joint_names: Sequence[str], fields: Sequence[str]) -> list[str]:
+    """An attachment's columns: ``time_from_start``, then ``<field>.<joint>`` for each field
+    given (in :data:`BINARY_FIELDS` order) and each joint (in ``joint_names`` order)."""
+    return ["time_from_start", *(f"{f}.{j}" for f in fields for j in joint_names)]
+
+
+def _attachment_error(problem: str, rid: RequestId) -> RequestError:
+    return RequestError(BAD_REQUEST, f"attachment{problem}; the request was not executed", rid)
+
+
+def _attachment_fields(
+    columns: list[str], names: Sequence[str], rid: RequestId
+) -> list[str]:
+    """The fields ``columns`` carry, checked against :func:`column_names`.
+
+    Raises:
+        RequestError: ``bad_request`` naming the first column that is not the expected one.
+    """
+    fields: list[str] = []
+    i, k = 1, len(names)
+    while i < len(columns):
+        field = columns[i].split(".", 1)[0]
+        later = BINARY_FIELDS[BINARY_FIELDS.index(fields[-1]) + 1 :] if fields else BINARY_FIELDS
+        if field not in later or not k:
+            choices = ", ".join(f"'{f}.<joint>'" for f in later) if k else "none (no joints)"
+            raise _attachment_error(
+                f".columns[{i}]: {json.dumps(columns[i])} is not a column here; expected one "
+                f"of {choices} (time_from_start, then positions, velocities, accelerations, "
+                "effort as present, one column per joint in joint_names order)", rid)
+        want = column_names(names, [field])[1:]
+        for j, (got, expected) in enumerate(zip(columns[i : i + k], want, strict=False)):
+            if got != expected:
+                raise _attachment_error(
+                    f".columns[{i + j}]: expected {json.dumps(expected)} (joint_names[{j}] "
+                    f"is {json.dumps(names[j])}), got {json.dumps(got)}", rid)
+        if len(columns) < i + k:
+            raise _attachment_error(
+                f".columns: '{field}' has {len(columns) - i} column(s), expected one per "
+                f"joint ({k})", rid)
+        fields.append(field)
+        i += k
+    return fields
+
+
+def _attachment_shape(header: dict[str, Any], size: int, rid: RequestId) -> tuple[int, int]:
+    """The header's ``(points, columns)``, checked against its dtype, columns and ``size``."""
+    for key in header:
+        if key not in ATTACHMENT_FIELDS:
+            raise _attachment_error(
+                f": unknown field '{key}'{did_you_mean(key, ATTACHMENT_FIELDS)} (fields here: "
+                f"{', '.join(ATTACHMENT_FIELDS)})", rid)
+    for key in ATTACHMENT_FIELDS[1:]:
+        if key not in header:
+            raise _attachment_error(f": missing required field '{key}'", rid)
+    dtype = header["dtype"]
+    if dtype != ATTACHMENT_DTYPE:
+        raise _attachment_error(
+            f".dtype: {_describe(dtype)} is not supported; the only dtype is "
+            f'"{ATTACHMENT_DTYPE}" (little-endian float64)', rid)
+    shape, columns = header["shape"], header["columns"]
+    if not (isinstance(shape, list) and len(shape) == 2 and all(
+            type(n) is int and n >= 0 for n in shape)):
+        raise _attachment_error(
+            f".shape: expected [points, columns], two integers >= 0, got {_describe(shape)}"
+            f"{' ' + json.dumps(shape) if isinstance(shape, list) else ''}", rid)
+    if not isinstance(columns, list) or not all(isinstance(c, str) for c in columns):
+        raise _attachment_error(
+            f".columns: expected an array of strings, got {_describe(columns)}", rid)
+    m, c = shape
+    if c != len(columns):
+        raise _attachment_error(
+            f".shape: {c} columns, but 'columns' names {len(columns)}", rid)
+    if not columns or columns[0] != "time_from_start":
+        raise _attachment_error(".columns[0]: the first column must be \"time_from_start\"", rid)
+    if m * c * 8 != size:
+        raise _attachment_error(
+            f".shape: [{m}, {c}] of {ATTACHMENT_DTYPE} is {m * c * 8} bytes, the attachment "
+            f"has {size} (attachment.bytes)", rid)
+    return m, c
+
+
+def attachment_columns(
+    attachment: Attachment, names: Sequence[str], rid: RequestId = None
+) -> PointColumns:
+    """A binary frame's points (docs/protocol.md, "Binary frames"), read with
+    ``numpy.frombuffer``: no Python object per number.
+
+    Raises:
+        RequestError: ``bad_request``, one per problem: a field of the header unknown or
+            missing, a dtype other than ``"<f8"``, a shape that does not match the bytes or
+            the columns, columns that do not match ``names``, a number that is not finite or
+            out of range (naming the point and the column).
+    """
+    m, c = _attachment_shape(attachment.header, len(attachment.data), rid)
+    columns: list[str] = attachment.header["columns"]
+    fields = _attachment_fields(columns, names, rid)
+    values = np.frombuffer(attachment.data, dtype=ATTACHMENT_DTYPE).reshape(m, c)
+    bad = ~np.isfinite(values)
+    if bad.any():
+        row, col = (int(i) for i in np.argwhere(bad)[0])
+        raise _attachment_error(
+            f": point {row}, column {json.dumps(columns[col])}: {float(values[row, col])!r} "
+            "is not a finite number (NaN and infinities are refused)", rid)
+    times = values[:, 0]
+    ns_float = np.rint(times * NS_PER_S)  # as seconds_to_ns: rounded half to even
+    over = (np.abs(times) > _MAX_SECONDS) | (np.abs(ns_float) >= 2.0**63)
+    if over.any():
+        row = int(over.argmax())
+        raise _attachment_error(
+            f": point {row}, time_from_start: {float(times[row])!r} s is out of range; expected at "
+            f"most {_MAX_SECONDS:.6g} s in magnitude", rid)
+    joints = values[:, 1:]
+    over = np.abs(joints) > MAX_JOINT_VALUE
+    if over.any():
+        row, col = (int(i) for i in np.argwhere(over)[0])
+        raise _attachment_error(
+            f": point {row}, column {json.dumps(columns[col + 1])}: "
+            f"{float(joints[row, col])!r} is out of range; a joint value must be at most "
+            f"{MAX_JOINT_VALUE:g} in magnitude", rid)
+    ns = ns_float.astype(np.int64)
+    k = len(names)
+    arrays: dict[str, NDArray[np.float64]] = {
+        f: values[:, 1 + j * k : 1 + (j + 1) * k] for j, f in enumerate(fields)}
+    return PointColumns(ns, present=None, **arrays)
 
 
 _MISSING = object()
@@ -412,6 +569,23 @@ def _parse_tolerances(value: Any, path: str, rid: RequestId) -> tuple[JointToler
     return tuple(out)
 
 
+def _attachment(f: _Fields) -> Attachment | None:
+    """The request's binary attachment, if it has one.
+
+    Raises:
+        RequestError: ``attachment`` is there but is no binary frame's (a JSON object where
+            the transport carries no raw bytes).
+    """
+    if not f.has("attachment"):
+        return None
+    value = f.obj["attachment"]
+    if not isinstance(value, Attachment):
+        raise f.error(
+            "an attachment header is only valid on a binary frame, followed by its raw bytes "
+            "(docs/protocol.md, \"Binary frames\")", "attachment")
+    return value
+
+
 def _request_id(obj: dict[str, Any]) -> RequestId:
     rid = obj.get("id")
     if rid is None or isinstance(rid, str) or (isinstance(rid, int) and not isinstance(rid, bool)):
@@ -455,7 +629,8 @@ def parse_request(obj: Any) -> Request:
         return Auth(rid, f.string("token", f.required("token", "the daemon's TCP token")))
     if op == "send_goal":
         traj = parse_trajectory(
-            f.required("trajectory", "the trajectory to execute"), "trajectory", rid
+            f.required("trajectory", "the trajectory to execute"), "trajectory", rid,
+            _attachment(f),
         )
         path_tol = _parse_tolerances(o.get("path_tolerance", []), "path_tolerance", rid)
         goal_tol = _parse_tolerances(o.get("goal_tolerance", []), "goal_tolerance", rid)
@@ -469,7 +644,8 @@ def parse_request(obj: Any) -> Request:
         return CancelGoal(rid, goal_id)
     if op == "send_trajectory":
         traj = parse_trajectory(
-            f.required("trajectory", "the trajectory; no points means stop"), "trajectory", rid
+            f.required("trajectory", "the trajectory; no points means stop"), "trajectory", rid,
+            _attachment(f),
         )
         return SendTrajectory(rid, traj, _time_scaling(f))
     if op == "query_state":

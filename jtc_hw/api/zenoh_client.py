@@ -8,7 +8,8 @@ query on ``<prefix>/rpc/<op>`` with the socket's request body as payload, waited
 caller's thread (Zenoh's ``get`` with the request's timeout); its reply is the socket's reply.
 With a ``token``, every query carries it as its attachment (the daemon requires it for
 commands, ``jtc_hw.daemon.transports.zenoh_iface``); without one, commands come back
-``unauthorized``.
+``unauthorized``. A large trajectory goes as a binary frame, as on the socket: the raw bytes
+are the payload, the attachment the token, a newline and the request line.
 
 Events come from two subscribers declared at connection, called in Zenoh's threads:
 ``<prefix>/events`` (goal feedback and results, for every goal of the daemon: those of this
@@ -37,8 +38,8 @@ from typing import Any, Final
 
 from ..errors import ProtocolError
 from .calls import ClientConnectionError, Pending
-from .client import OPENERS, Client
-from .framing import PROTOCOL_VERSION, encode
+from .client import OPENERS, Client, Frame
+from .framing import PROTOCOL_VERSION, encode, encode_frame
 
 __all__ = [
     "DEFAULT_ZENOH_CONNECT",
@@ -253,6 +254,7 @@ class ZenohClient(Client):
         fields: dict[str, Any],
         timeout_s: float | None,
         pending: Pending | None = None,
+        frame: Frame | None = None,
     ) -> dict[str, Any]:
         timeout = self.timeout_s if timeout_s is None else timeout_s
         pending = pending or Pending(op, None, 0)
@@ -264,7 +266,15 @@ class ZenohClient(Client):
             if op == "send_goal":
                 self._sending_goals += 1
         try:
-            message = self._query(op, encode({"id": request_id, "op": op, **fields}), timeout)
+            request = {"id": request_id, "op": op, **fields}
+            if frame is None:
+                body, attachment = encode(request), self._attachment
+            else:
+                # docs/protocol.md, "Binary frames": the raw bytes as the payload, the token,
+                # a newline and the request line in the attachment.
+                line, _, raw = encode_frame(request, *frame).partition(b"\n")
+                body, attachment = raw[:-1], (self._attachment or b"") + b"\n" + line + b"\n"
+            message = self._query(op, body, timeout, attachment)
             with self._events_lock:
                 self._deliver(request_id, message, pending)
         finally:
@@ -278,10 +288,12 @@ class ZenohClient(Client):
         assert pending.reply is not None
         return pending.reply
 
-    def _query(self, op: str, body: bytes, timeout: float) -> dict[str, Any]:
+    def _query(
+        self, op: str, body: bytes, timeout: float, attachment: bytes | None = None
+    ) -> dict[str, Any]:
         try:
             replies = self._session.get(f"{self.prefix}/rpc/{op}", payload=body,
-                                        attachment=self._attachment, timeout=timeout)
+                                        attachment=attachment, timeout=timeout)
             for reply in replies:
                 sample = reply.ok if reply.ok is not None else reply.err
                 if sample is None:

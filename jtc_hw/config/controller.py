@@ -88,6 +88,10 @@ CONTROLLER_TYPE: Final = "joint_trajectory_controller/JointTrajectoryController"
 
 CONTROLLER_MANAGER: Final = "controller_manager"
 ROS_PARAMETERS: Final = "ros__parameters"
+MAX_SECONDS: Final = (2**63 - 1) / 1_000_000_000
+"""Longest duration a time parameter may have: the controller counts in int64 nanoseconds (a
+``cmd_timeout`` of 1e308 s crashed the control loop at its next activation, found by the
+protocol fuzz)."""
 RESERVED_TOP_LEVEL_KEYS: Final = frozenset({"hardware", "daemon", "limits"})
 """Top-level keys that are not controller parameters: :func:`load_config` skips ``hardware``
 and ``daemon`` (the daemon's) and reads ``limits`` itself (the joint limits, issue 12)."""
@@ -124,6 +128,23 @@ PID_TERMS: Final = ("p", "i", "d", "i_clamp", "ff_velocity_scale")
 _F, _B, _S, _A = ParamKind.FLOAT, ParamKind.BOOL, ParamKind.STRING, ParamKind.STRINGS
 _CYCLE, _ACTIVATION = Effect.NEXT_CYCLE, Effect.NEXT_ACTIVATION
 
+def _seconds(spec: ParamSpec, value: Any, path: str) -> float:
+    """A duration: the standard check (a number >= 0), then at most :data:`MAX_SECONDS`."""
+    number: float = check_value(spec, value, path)
+    if number > MAX_SECONDS:
+        raise ConfigurationError(
+            f"must be at most {MAX_SECONDS:.6g} s (int64 nanoseconds), got {value!r}", path,
+            value)
+    return number
+
+
+PARAMETERS_SECONDS: Final = {
+    "cmd_timeout": ParamSpec("cmd_timeout", _F, 0.0, "seconds", minimum=0.0),
+    "goal_time": ParamSpec("goal_time", _F, 0.0, "seconds", minimum=0.0),
+}
+"""The standard checks of the durations :func:`_seconds` bounds."""
+
+
 PARAMETERS: Final[Mapping[str, ParamSpec]] = param_table(
     ParamSpec("joints", _A, (), "joint names to control and listen to",
               required=True, unique=True, non_empty=True, read_only=True),
@@ -156,7 +177,8 @@ PARAMETERS: Final[Mapping[str, ParamSpec]] = param_table(
               "if false, goals whose last point has a non-zero velocity are rejected"),
     ParamSpec("cmd_timeout", _F, 0.0,
               "seconds after the last point after which the command is stale (0: off)", minimum=0.0,
-              effect=_ACTIVATION),
+              effect=_ACTIVATION, coerce=lambda v, p: _seconds(PARAMETERS_SECONDS["cmd_timeout"],
+                                                                v, p)),
     ParamSpec("start_with_holding", _B, True,
               "hold the position after activation (otherwise command nothing until a trajectory)",
               effect=_ACTIVATION),
@@ -170,7 +192,8 @@ CONSTRAINT_PARAMETERS: Final[Mapping[str, ParamSpec]] = param_table(
               "velocity below which the system counts as stopped at the trajectory end",
               minimum=0.0),
     ParamSpec("goal_time", _F, 0.0,
-              "time tolerance for reaching the goal, seconds (0: wait indefinitely)", minimum=0.0),
+              "time tolerance for reaching the goal, seconds (0: wait indefinitely)", minimum=0.0,
+              coerce=lambda v, p: _seconds(PARAMETERS_SECONDS["goal_time"], v, p)),
     ParamSpec("decelerate_on_cancel", _B, False,
               "stop by decelerating to rest (cancel, aborts, cmd_timeout, stop, shutdown) "
               "instead of holding on the spot", read_only=True),

@@ -34,7 +34,7 @@ def trajectory(positions: tuple[float, float] = (0.5, -0.5), t: float = 1.0) -> 
 
 def test_connect_hello_and_close(daemon: ServerThread, sock: Path) -> None:
     with Client.connect(sock) as client:
-        assert client.info["protocol_version"] == 1
+        assert client.info["protocol_version"] == 2  # binary frames (version 2)
         assert client.joint_names == ["j1", "j2"]
         hello = client.hello()
         assert hello["now_ns"] == daemon.backend.t and hello["update_rate"] == 100.0

@@ -23,6 +23,8 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
+import numpy as np
+
 from jtc_hw.api.protocol import OPS
 from jtc_hw.config.controller import (
     CONSTRAINT_PARAMETERS,
@@ -92,15 +94,33 @@ class Line:
     """One message to send.
 
     Attributes:
-        data: the bytes, ending with exactly one newline.
+        data: the bytes, ending with exactly one newline (a binary frame: its line, raw bytes
+            and newline; one that ``closes`` may end anywhere).
         op: the op it was made from.
         request_id: the id the reply must echo, when the line is certain to carry it to the
             server readably (an unmutated object with an integer id, not over-long).
+        closes: a binary frame that cannot be trusted: its one reply is ``bad_frame`` and the
+            daemon then closes the connection. The sender ends its writing after it (a frame
+            cut short or announcing more bytes than follow is told by the end of the stream),
+            and the next line goes on a new connection (:func:`segments`).
+        binary: a binary frame (protocol version 2).
     """
 
     data: bytes
     op: str
     request_id: int | None
+    closes: bool = False
+    binary: bool = False
+
+
+def segments(lines: Sequence[Line]) -> list[list[Line]]:
+    """``lines`` cut after each one that ``closes``: what goes on one connection."""
+    out: list[list[Line]] = [[]]
+    for line in lines:
+        out[-1].append(line)
+        if line.closes:
+            out.append([])
+    return [segment for segment in out if segment]
 
 
 class Fuzzer:
@@ -111,6 +131,7 @@ class Fuzzer:
         joint_names: the controller's joints (most trajectories use them).
         components: names for ``sim`` (simulated components, and others).
         max_message_bytes: the daemon's line limit; a few lines are made longer than it.
+        binary: the share of lines that are binary frames (:meth:`frame`).
     """
 
     def __init__(
@@ -119,7 +140,9 @@ class Fuzzer:
         joint_names: Sequence[str],
         components: Sequence[str] = ("mirror",),
         max_message_bytes: int = 65536,
+        binary: float = 0.0,
     ) -> None:
+        self.binary = binary
         self.random = random.Random(seed)
         self.joints = list(joint_names)
         self.components = list(components)
@@ -372,6 +395,8 @@ class Fuzzer:
 
     def line(self) -> Line:
         r = self.random
+        if self.binary and r.random() < self.binary:
+            return self.frame()
         op = r.choice(OPS)
         self.ids += 1
         rid = self.ids
@@ -405,3 +430,101 @@ class Fuzzer:
         if not data.strip():
             data = b"x"
         return Line(data + b"\n", op, known_id)
+
+    # -- binary frames (docs/protocol.md, "Binary frames") -------------------------------------
+
+    def frame(self) -> Line:
+        """A binary frame: mostly a plausible goal or trajectory, else one of the doc's wrong
+        kinds: a shape that does not match the bytes, NaN or infinity, a dtype other than
+        ``<f8``, columns that do not match the joints, header fields of the wrong type, an
+        attachment on another op, an oversized attachment (``bad_request`` / ``too_large``,
+        the stream goes on), and frames that cannot be trusted (``closes``): lengths that lie,
+        a length that is no integer, raw bytes without their newline, frames cut short."""
+        r = self.random
+        self.ids += 1
+        rid = self.ids
+        op = r.choice(["send_goal", "send_goal", "send_trajectory"])
+        names = list(self.joints)
+        fields = [f for f in ("positions", "velocities", "accelerations", "effort")
+                  if r.random() < (0.95 if f == "positions" else 0.3)]
+        m = r.choice([1, 2, 3, 5, 10, 20, 40, 120]) if r.random() < 0.98 else 600
+        clock = np.cumsum(np.round(np.array([r.uniform(0.02, 0.3) for _ in range(m)]), 4))
+        values = np.column_stack([clock] + [
+            np.round(np.array([[r.uniform(-1.0, 1.0) for _ in names] for _ in range(m)]), 4)
+            for _ in fields]) if fields else clock[:, None]
+        columns = ["time_from_start", *(f"{f}.{j}" for f in fields for j in names)]
+        request: dict[str, Any] = {"id": rid, "op": op, "trajectory": {"joint_names": names}}
+        if op == "send_goal" and r.random() < 0.2:
+            request["goal_time_tolerance"] = r.choice([0.0, 0.5, 1.0])
+        if r.random() < 0.1:
+            request["trajectory"]["start_in"] = r.choice([0.0, 0.1, -0.1])
+        header: dict[str, Any] = {}
+        raw = values.astype("<f8").tobytes()
+        roll = r.random()
+        closes = False
+        cut: int | None = None
+        if roll < 0.45:
+            pass  # plausible: ok, or goal_rejected
+        elif roll < 0.52:  # a shape that does not match the bytes or the columns
+            header["shape"] = r.choice([[m + 1, len(columns)], [m, len(columns) + 1],
+                                        [len(columns), m], [m * len(columns)], [-1, 3],
+                                        [m, 0], "2x3", None, [m, True], [2**40, 2**40]])
+        elif roll < 0.6:  # NaN or an infinity somewhere
+            bad = values.copy()
+            bad[r.randrange(m), r.randrange(bad.shape[1])] = r.choice([np.nan, np.inf, -np.inf])
+            raw = bad.astype("<f8").tobytes()
+        elif roll < 0.66:  # values out of range (times beyond int64 ns, huge positions)
+            bad = values.copy()
+            bad[r.randrange(m), r.randrange(bad.shape[1])] = r.choice(
+                [1e300, -1e300, 1.7976931348623157e308, 9223372037.0, 2e6, 5e-324])
+            raw = bad.astype("<f8").tobytes()
+        elif roll < 0.72:  # a dtype that is not little-endian float64
+            header["dtype"] = r.choice([">f8", "<f4", "float64", "<i8", "f8", "", 8, None,
+                                        ["<f8"]])
+        elif roll < 0.78:  # columns that do not match the joints
+            shuffled = list(columns)
+            choice = r.randrange(5)
+            if choice == 0 and len(shuffled) > 2:
+                r.shuffle(shuffled)
+            elif choice == 1:
+                shuffled[r.randrange(len(shuffled))] = r.choice(EDGE_STRINGS)
+            elif choice == 2:
+                shuffled = [c.replace("positions", "position") for c in shuffled]
+            elif choice == 3:
+                shuffled = shuffled[::-1]
+            else:
+                shuffled = "time_from_start"  # type: ignore[assignment]
+            header["columns"] = shuffled
+        elif roll < 0.8:  # header fields missing or unknown
+            header[r.choice(["extra", "byte_order", "Shape"])] = self.any_value()
+        elif roll < 0.82:  # an attachment where none belongs, or points as well
+            if r.random() < 0.5:
+                request = {"id": rid, "op": r.choice(["hello", "stop", "get_status"])}
+            else:
+                request["trajectory"]["points"] = []
+        elif roll < 0.835:  # longer than the daemon's limit: skipped, too_large
+            raw = bytes(self.max_message_bytes + 8)
+            header["shape"] = [len(raw) // 8 // len(columns), len(columns)]
+        else:  # cannot be trusted: bad_frame, and the connection closes
+            closes = True
+            kind = r.randrange(5)
+            if kind == 0:  # announces fewer bytes than follow (the byte there is no newline)
+                shorter = [n for n in range(len(raw)) if raw[n : n + 1] != b"\n"]
+                header["bytes"] = r.choice(shorter) if shorter else len(raw) + 7
+            elif kind == 1:  # announces more than follow before the stream ends
+                header["bytes"] = len(raw) + r.choice([1, 8, 1000])
+            elif kind == 2:  # a length that is no integer
+                header["bytes"] = r.choice([str(len(raw)), -1, float(len(raw)), None, [1],
+                                            True])
+            elif kind == 3:  # the raw bytes' newline missing
+                cut = -1
+            else:  # the stream ends inside the raw bytes
+                cut = r.randrange(len(raw) + 1) - len(raw) - 1
+        attachment = {"bytes": len(raw), "dtype": "<f8", "shape": list(values.shape),
+                      "columns": columns, **header}
+        line = json.dumps({**request, "attachment": attachment}).encode()
+        data = line + b"\n" + raw + b"\n"
+        if cut is not None:
+            data = data[:cut] + (r.choice([b"x", b"\r", b" "]) if cut == -1 else b"")
+        return Line(data, op, None if closes else rid, closes=closes, binary=True)
+

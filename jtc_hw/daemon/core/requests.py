@@ -61,6 +61,7 @@ from ...api.framing import (
     NOT_ACTIVE,
     NOT_FOUND,
     PROTOCOL_VERSION,
+    PROTOCOL_VERSIONS,
     RequestError,
     encode,
     error_reply,
@@ -300,11 +301,13 @@ class Requests:
         backend = self.backend
         match req:
             case Hello():
-                if req.protocol_version is not None and req.protocol_version != PROTOCOL_VERSION:
+                asked = req.protocol_version
+                if asked is not None and asked not in PROTOCOL_VERSIONS:
                     raise RequestError(
                         BAD_REQUEST,
-                        f"protocol_version: this daemon speaks version {PROTOCOL_VERSION}; "
-                        f"the client asked for {req.protocol_version}",
+                        f"protocol_version: this daemon speaks versions "
+                        f"{', '.join(map(str, PROTOCOL_VERSIONS))} (version 1: NDJSON only, "
+                        f"{PROTOCOL_VERSION}: also binary frames); the client asked for {asked}",
                         req.id,
                     )
                 ours = {

@@ -3,8 +3,9 @@
 Theory of operation
 -------------------
 What this adds to the request layer (``jtc_hw.daemon.core.requests``, which executes every
-operation): **framing** (``protocol.Decoder`` reads NDJSON lines, ``framing.encode``'s bytes
-are written), **slots** (who may connect, how many), **authentication** on TCP (the token
+operation): **framing** (``protocol.Decoder`` reads NDJSON lines and binary frames; after a
+``bad_frame`` the connection is closed, its stream being out of sync; ``framing.encode``'s
+bytes are written), **slots** (who may connect, how many), **authentication** on TCP (the token
 handshake, ``jtc_hw.daemon.transports.tcp_door``) and **deadlines** (authentication, idleness). Each
 connection is a ``Connection``: the request layer's ``Outlet`` for its client's later
 messages (goal events, state), and the holder of its ``Caller``. Long lines are decoded in a
@@ -41,6 +42,7 @@ from typing import Any
 
 from ... import __version__
 from ...api.framing import (
+    BAD_FRAME,
     BUSY,
     IDLE,
     PROTOCOL_VERSION,
@@ -476,6 +478,10 @@ class Server:
             pending = pending + len(data) if newline < 0 else len(data) - newline - 1
             for item in items:
                 await self._handle(conn, item)
+                if isinstance(item, RequestError) and item.code == BAD_FRAME:
+                    # The decoder reads nothing more: the stream is out of sync.
+                    conn.close_reason = "bad_frame: the stream is out of sync"
+                    conn.closing = True
                 if conn.closing:
                     return
             if not data:

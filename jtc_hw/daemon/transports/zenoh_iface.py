@@ -24,10 +24,11 @@ thread; the loop process knows nothing of it.
 
 Credentials: loopback is no door at all on a machine with other users, so every query of an
 operation in :data:`COMMANDS` (everything that moves the robot or changes its settings, ``stop``
-included) must carry ``daemon.zenoh.token`` as its attachment, checked in Zenoh's thread before
-the payload is read: none is answered ``unauthorized`` at once, a wrong one after
-:data:`WRONG_TOKEN_DELAY_S` with at most :data:`MAX_REFUSALS_WAITING` refusals waiting
-(docs/zenoh.md, "The token"). Watching needs no token.
+included) must carry ``daemon.zenoh.token`` as its attachment (a binary frame's query: the
+token, ``\\n``, the request line, ``\\n``; its payload the raw bytes: :func:`split_attachment`),
+checked in Zenoh's thread before the payload is read: none is answered ``unauthorized`` at
+once, a wrong one after :data:`WRONG_TOKEN_DELAY_S` with at most :data:`MAX_REFUSALS_WAITING`
+refusals waiting (docs/zenoh.md, "The token"). Watching needs no token.
 
 Memory: Zenoh reassembles a query's whole payload in malloc'd buffers that glibc keeps once
 freed, so a payload longer than ``daemon.max_message_bytes`` is answered ``too_large`` from its
@@ -58,6 +59,7 @@ from typing import TYPE_CHECKING, Any, Final
 
 from ...api.events import command_event, feedback_event, result_event
 from ...api.framing import (
+    BAD_FRAME,
     BAD_REQUEST,
     BUSY,
     TOO_LARGE,
@@ -93,6 +95,7 @@ __all__ = [
     "WRONG_TOKEN_DELAY_S",
     "ZenohInterface",
     "keys",
+    "split_attachment",
 ]
 
 ZENOH_PROTOCOL_VERSION: Final = 2
@@ -143,6 +146,18 @@ def keys(prefix: str) -> dict[str, str]:
         "events": f"{prefix}/events",
         "rpc": f"{prefix}/rpc/*",
     }
+
+
+def split_attachment(attachment: Any) -> tuple[bytes, bytes | None]:
+    """A query's attachment as ``(token, header)``: ``header`` is a binary frame's request
+    line, when the attachment is ``token \\n line \\n`` (docs/protocol.md, "Binary frames"),
+    else None and the whole attachment is the token. A request line holds no newline (JSON
+    escapes them in strings), so the last one before the end separates the two."""
+    given = b"" if attachment is None else bytes(attachment.to_bytes())
+    if not given.endswith(b"\n"):
+        return given, None
+    token, _, header = given[:-1].rpartition(b"\n")
+    return token, header
 
 
 class _Discard:
@@ -440,7 +455,8 @@ class ZenohInterface:
                 # The query names no operation (``jtc/**``): not a request to this daemon.
                 self._end(query)
                 return
-            if op in COMMANDS and not self._authorized(query, op):
+            token, header = split_attachment(query.attachment)
+            if op in COMMANDS and not self._authorized(query, op, token):
                 return
             with self._lock:
                 busy = self._inflight >= MAX_QUERIES or self._aio is None
@@ -453,7 +469,8 @@ class ZenohInterface:
                     "try again later")))
                 return
             assert self._aio is not None
-            self._aio.call_soon_threadsafe(self._start_query, query, op, self._body(query))
+            self._aio.call_soon_threadsafe(self._start_query, query, op, self._body(query),
+                                           header)
         except RuntimeError:  # the event loop is closed: the daemon is exiting
             with self._lock:
                 self._inflight -= 1
@@ -507,11 +524,9 @@ class ZenohInterface:
         self.releases += 1
         asyncio.get_running_loop().run_in_executor(None, release_freed_memory)
 
-    def _authorized(self, query: Any, op: str) -> bool:
-        """Whether ``query`` carries the token; if not, its refusal is under way (module
-        docstring). Zenoh's thread."""
-        attachment = query.attachment
-        given = b"" if attachment is None else attachment.to_bytes()
+    def _authorized(self, query: Any, op: str, given: bytes) -> bool:
+        """Whether ``query`` carries the token (``given``, from its attachment); if not, its
+        refusal is under way (module docstring). Zenoh's thread."""
         if self._token and given and hmac.compare_digest(given, self._token):
             return True
         what = "a wrong token" if given else "no token"
@@ -556,17 +571,21 @@ class ZenohInterface:
         if outbox is None or not outbox.put(partial(self._reply, query, data)):
             self._end(query)
 
-    def _start_query(self, query: Any, op: str, body: bytes | RequestError) -> None:
+    def _start_query(
+        self, query: Any, op: str, body: bytes | RequestError, header: bytes | None
+    ) -> None:
         if self._session is None:  # closing
             self._end(query)
             with self._lock:
                 self._inflight -= 1
             return
-        task = asyncio.get_running_loop().create_task(self._execute(query, op, body))
+        task = asyncio.get_running_loop().create_task(self._execute(query, op, body, header))
         self._tasks.add(task)
         task.add_done_callback(self._tasks.discard)
 
-    async def _execute(self, query: Any, op: str, body: bytes | RequestError) -> None:
+    async def _execute(
+        self, query: Any, op: str, body: bytes | RequestError, header: bytes | None = None
+    ) -> None:
         self._queries += 1
         caller = Caller(self._queries, f"zenoh query {self._queries} (zenoh)", _DISCARD)
         try:
@@ -575,9 +594,9 @@ class ZenohInterface:
                 item = body
             elif len(body) >= DECODE_IN_WORKER_BYTES:
                 item = await asyncio.get_running_loop().run_in_executor(
-                    None, self.decode, op, body, self._max_bytes)
+                    None, self.decode, op, body, self._max_bytes, header)
             else:
-                item = self.decode(op, body, self._max_bytes)
+                item = self.decode(op, body, self._max_bytes, header)
             del body
             data = (await self._requests.answer(caller, item)).data
             if self._outbox is None or not self._outbox.put(partial(self._reply, query, data)):
@@ -592,11 +611,23 @@ class ZenohInterface:
                 self._inflight -= 1
 
     @staticmethod
-    def decode(op: str, body: bytes, max_message_bytes: int) -> Request | RequestError:
+    def decode(
+        op: str, body: bytes, max_message_bytes: int, header: bytes | None = None
+    ) -> Request | RequestError:
         """A query's request: the body read as a socket message (the same errors), with the key
-        expression's ``op``. Never raises: every problem is returned as a value."""
-        if not body.strip():
-            obj: dict[str, Any] | RequestError = {}
+        expression's ``op``; with a binary frame's ``header`` (the request line, from the
+        query's attachment: :func:`split_attachment`), the body is the frame's raw bytes.
+        Never raises: every problem is returned as a value."""
+        if header is not None:
+            if not header.strip():
+                return RequestError(BAD_FRAME, "the query's attachment ends with a newline "
+                                    "but holds no request line after the token")
+            frames = MessageDecoder(max_message_bytes)
+            # A payload shorter than the header says leaves the frame waiting: end() names it.
+            items = frames.feed(header + b"\n" + body + b"\n") or frames.end()
+            obj: dict[str, Any] | RequestError = items[0] if items else {}
+        elif not body.strip():
+            obj = {}
         else:
             # One message: JSON allows a newline wherever it allows a space (and nowhere
             # else), so the body is one NDJSON line once its newlines are spaces.

@@ -66,12 +66,15 @@ def test_hello(sock: Path) -> None:
             await peer.send({"id": "h", "op": "hello", "protocol_version": 1})
             hello = await peer.recv()
             assert hello["id"] == "h" and hello["ok"] is True
-            assert hello["protocol_version"] == 1 and hello["server_version"] == "0.1.0"
+            # Version 2 added binary frames; a version 1 client is served (NDJSON unchanged).
+            assert hello["protocol_version"] == 2 and hello["server_version"] == "0.1.0"
             assert hello["joint_names"] == ["j1", "j2"] and hello["update_rate"] == 100.0
             assert hello["now_ns"] == backend.t and hello["max_message_bytes"] == 4 << 20
-            wrong = await peer.request("hello", protocol_version=2)
+            v2 = await peer.request("hello", protocol_version=2)
+            assert v2["ok"] is True and v2["protocol_version"] == 2
+            wrong = await peer.request("hello", protocol_version=3)
             assert wrong["error"]["code"] == "bad_request"
-            assert "speaks version 1" in wrong["error"]["message"]
+            assert "speaks versions 1, 2" in wrong["error"]["message"]
             await peer.close()
 
     run(main())

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import struct
 import threading
 from types import SimpleNamespace
 from typing import Any
@@ -14,6 +15,8 @@ import pytest
 from helpers.fake_backend import FakeBackend
 from helpers.peers import goal_msg
 
+from jtc_hw.api.framing import RequestError
+from jtc_hw.api.requests import SendGoal
 from jtc_hw.daemon.core.requests import Requests
 from jtc_hw.daemon.transports.zenoh_iface import (
     MAX_QUERIES,
@@ -21,6 +24,7 @@ from jtc_hw.daemon.transports.zenoh_iface import (
     WRONG_TOKEN_DELAY_S,
     ZenohInterface,
     _Outbox,
+    split_attachment,
 )
 from jtc_hw.daemon.zenoh_config import ZenohSettings
 
@@ -195,3 +199,20 @@ def test_a_query_is_answered_by_the_request_layer_with_no_stand_in_connection() 
     finally:
         aio.close()
         requests.close()
+
+
+def test_a_binary_query_is_decoded_from_its_attachment_and_payload() -> None:
+    """docs/protocol.md, "Binary frames": the payload is the raw bytes, the attachment the
+    token, a newline and the request line; a payload shorter than announced is bad_frame."""
+    raw = struct.pack("<6d", 1.0, 0.5, -0.5, 2.0, 1.0, 0.0)
+    header = json.dumps({"id": 3, "trajectory": {"joint_names": ["j1", "j2"]}, "attachment": {
+        "bytes": 48, "dtype": "<f8", "shape": [2, 3],
+        "columns": ["time_from_start", "positions.j1", "positions.j2"]}}).encode()
+    attachment = FakeQuery("k", b"", token=TOKEN + "\n" + header.decode() + "\n").attachment
+    token, line = split_attachment(attachment)
+    assert token == TOKEN.encode() and line == header
+    goal = ZenohInterface.decode("send_goal", raw, 1024, line)
+    assert isinstance(goal, SendGoal) and len(goal.trajectory.points) == 2
+    short = ZenohInterface.decode("send_goal", raw[:40], 1024, line)
+    assert isinstance(short, RequestError) and short.code == "bad_frame"
+    assert split_attachment(FakeQuery("k", b"", token=TOKEN).attachment) == (TOKEN.encode(), None)

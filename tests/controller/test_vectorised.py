@@ -357,6 +357,25 @@ def test_long_velocity_only_goal_integrates_in_one_run() -> None:
     np.testing.assert_allclose(traj.sample(traj.end_ns).positions, expected, atol=1e-6)
 
 
+@pytest.mark.parametrize("fields", ["p", "pv", "pva"])
+def test_a_long_goal_at_a_fixed_rate_fits_bit_identically(fields: str) -> None:
+    """A goal of hundreds of segments with few distinct durations (a fixed rate, and the
+    nanosecond rounding of its times) takes the path that raises each distinct duration once
+    (``interpolation._powers``): the same bits as one ``pow`` per segment."""
+    cfg = config(3, False, False, False, "splines", True)
+    points = []
+    for i in range(1, 1201):
+        s = i * 0.004 + (0.002 if i > 600 else 0.0)  # 3 distinct durations, after rounding
+        values = {"positions": [math.sin(s), math.cos(s), s]}
+        if "v" in fields:
+            values["velocities"] = [math.cos(s), -math.sin(s), 1.0]
+        if "a" in fields:
+            values["accelerations"] = [-math.sin(s), -math.cos(s), 0.0]
+        points.append(TrajectoryPoint(s, **values))
+    traj = splice_both(cfg, JointTrajectory(JOINTS[:3], points))
+    assert len(traj.breakpoints_ns) == 1201
+
+
 def test_first_point_due_at_the_splice_has_no_bridge() -> None:
     cfg = config(1, False, False, False, "splines", True)
     msg = JointTrajectory(("j1",), [TrajectoryPoint(0.0, [1.0]), TrajectoryPoint(1.0, [2.0])])

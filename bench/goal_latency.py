@@ -65,6 +65,7 @@ import math
 import multiprocessing
 import pickle
 import pstats
+import random
 import sys
 import tempfile
 import threading
@@ -105,7 +106,8 @@ SIZES = (2, 200, 2000, 20000)
 SPACING_S = 0.001
 AMPLITUDE = 0.02  # rad: a preempting goal's bridge stays well inside the path tolerance (0.1)
 PHASES = (0.0, 0.5)  # successive goals alternate between these (not the same goal twice)
-PAUSE_S = 0.05  # between an accepted goal and the next send
+PAUSE_S = 0.05  # between an accepted goal and the next send, plus up to a period (dephase)
+SEED = 24
 HUGE_POINTS = 75000
 HUGE_EXECUTE_S = 1.0  # the huge goal runs this long before it is cancelled
 SETTLE_S = 1.5  # after a goal ended: the loop releases retired plans in spare cycles
@@ -258,10 +260,14 @@ def measure_sizes(args: argparse.Namespace, note: Callable[[str], None]) -> list
                 accept: dict[str, list[float]] = {e: [] for e in encodings}
                 call: dict[str, list[float]] = {e: [] for e in encodings}
                 rejected = dict.fromkeys(encodings, 0)
+                dephase = random.Random(SEED)
                 for i in range(runs * len(encodings)):
                     encoding = encodings[i % len(encodings)]
                     use_encoding(client, encoding)
-                    time.sleep(PAUSE_S)
+                    # The reply comes right after a loop cycle: a fixed pause would send every
+                    # goal at one phase of the loop's period, and the median would measure the
+                    # wait for the next cycle from that phase only. Goals arrive at any phase.
+                    time.sleep(PAUSE_S + dephase.uniform(0.0, 1.0 / args.rate))
                     try:
                         a, c, _ = timed_goal(client, stamped, goals[(i // len(encodings)) % 2])
                     except Exception as exc:  # report it, keep measuring

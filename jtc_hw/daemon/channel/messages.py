@@ -64,6 +64,7 @@ __all__ = [
     "Ready",
     "Rearm",
     "Reference",
+    "Released",
     "Reply",
     "Request",
     "SetParameters",
@@ -256,6 +257,14 @@ class Fault:
 
 
 @dataclasses.dataclass(frozen=True, slots=True)
+class Released:
+    """The loop unmapped these regions of shared memory (their pool's tokens): the API process
+    may reuse or free them (``channel.shared``)."""
+
+    tokens: tuple[int, ...]
+
+
+@dataclasses.dataclass(frozen=True, slots=True)
 class Exit:
     """The loop process ends with exit status ``code`` (its last message)."""
 
@@ -347,6 +356,6 @@ def _unpack_state(scalars: tuple[Any, ...], shapes: tuple[tuple[int, ...] | None
 
 LoopMessage = (
     Ready | Reference | Committed | Stale | Reply | Failed | Log | Fault | Exit | Status
-    | Events | State
+    | Events | State | Released
 )
 """Every record the loop process sends."""

@@ -47,12 +47,14 @@ from ..channel.messages import (
     LoopMessage,
     LoopOp,
     Ready,
+    Released,
     Reply,
     Request,
     Shutdown,
     Stale,
 )
-from ..channel.pipe import Inbox, PlanWriter
+from ..channel.pipe import SHARED_MIN_BYTES, Inbox, Outgoing, PlanWriter, prepare
+from ..channel.shared import IDLE_S, SHARED_AVAILABLE, SharedPool
 from ..loop.cycle import INBOX_SPARE, inbox_budget, loop_main
 
 __all__ = ["LoopProcess"]
@@ -121,6 +123,8 @@ class LoopProcess:
         self._process: multiprocessing.process.BaseProcess | None = None
         self._inbox: Inbox | None = None
         self._writer: PlanWriter | None = None
+        self._pool: SharedPool | None = None  # the shared memory large plans travel in
+        self._trim: asyncio.TimerHandle | None = None  # dropping its idle regions, pending
         self._writing = False  # waiting for the pipe to be writable (add_writer)
         self._stopping = False
         self._last_error: str | None = None  # the loop's last error log line
@@ -171,6 +175,7 @@ class LoopProcess:
         child.close()
         self._inbox = Inbox(parent, READ_BUDGET_BYTES, framed=False)
         self._writer = PlanWriter(parent)
+        self._pool = SharedPool() if SHARED_AVAILABLE else None
         aio.add_reader(parent.fileno(), self._readable)
         aio.add_reader(self._process.sentinel, self._process_ended)
         waiters: set[asyncio.Future[Any]] = {self._ready, self._exited}
@@ -274,6 +279,34 @@ class LoopProcess:
                 self._writer = None
             self._conn.close()
             self._conn = None
+        self._close_pool()
+
+    def _close_pool(self) -> None:
+        if self._trim is not None:
+            self._trim.cancel()
+            self._trim = None
+        if self._pool is not None:
+            self._pool.close()
+            self._pool = None
+
+    def _released(self, tokens: tuple[int, ...]) -> None:
+        """The loop unmapped these regions: reusable now; dropped if idle for ``IDLE_S``."""
+        pool = self._pool
+        if pool is None:
+            return
+        pool.released(tokens)
+        if self._trim is None:
+            aio = asyncio.get_running_loop()
+
+            def trim() -> None:
+                self._trim = None
+                if self._pool is not pool:
+                    return
+                # Freeing tens of megabytes takes milliseconds: not in the event loop.
+                done = aio.run_in_executor(None, pool.trim)
+                done.add_done_callback(lambda _: self._released(()) if pool.free_bytes else None)
+
+            self._trim = aio.call_later(IDLE_S, trim)
 
     # -- messages from the loop ---------------------------------------------------------------
 
@@ -303,6 +336,8 @@ class LoopProcess:
                 self._log_start_error()
                 if self._ready is not None and not self._ready.done():
                     self._ready.set_result(message)
+            case Released(tokens):
+                self._released(tokens)
             case Exit(code):
                 # The process is ending; its sentinel settles the goals (_process_ended).
                 self.exit_code = code
@@ -360,6 +395,7 @@ class LoopProcess:
             if not future.done():
                 future.set_exception(ControllerStateError(reason))
         self._waiting.clear()
+        self._close_pool()  # nothing reads it any more
         if self._exited is not None and not self._exited.done():
             self._exited.set_result(self.exit_code)
 
@@ -373,19 +409,34 @@ class LoopProcess:
             return "the control loop is not running"
         return None
 
+    def plan_memory(self) -> dict[str, Any] | None:
+        """The shared memory large plans travel in (``get_status``'s ``plan_memory``), or
+        ``None`` when plans go through the pipe (no ``memfd`` on this system)."""
+        return None if self._pool is None else self._pool.status()
+
+    def transfer_cycles(self, nbytes: int) -> int:
+        """Cycles a plan of ``nbytes`` takes to reach the loop beyond the one it waits for:
+        none in shared memory, else the loop's read budget per cycle sets it."""
+        if SHARED_AVAILABLE and nbytes >= SHARED_MIN_BYTES:
+            return 0
+        return -(-nbytes // self.bytes_per_cycle) - 1
+
     def next_id(self) -> int:
         """A new id for a plan or a request (one sequence: their answers share a table)."""
         return next(self._ids)
 
-    def _send(self, message: Commit | Request, bulk: bool = False) -> None:
-        """Queue ``message`` for the loop (a plan ``bulk``), write what the pipe takes now, and
-        the rest when it becomes writable (module docstring).
+    def _send(self, message: Commit | Request | Outgoing, bulk: bool = False) -> None:
+        """Queue ``message`` for the loop (a plan ``bulk``, or prepared: owned from now on),
+        write what the pipe takes now, and the rest when it becomes writable (module
+        docstring).
 
         Raises:
             ControllerStateError: the loop is not running (:meth:`refusal`), or just exited.
         """
         reason = self.refusal()
         if reason is not None:
+            if isinstance(message, Outgoing):
+                message.close()
             raise ControllerStateError(reason)
         writer = self._writer
         assert self._conn is not None and writer is not None
@@ -442,10 +493,21 @@ class LoopProcess:
             ControllerStateError: the loop is not running, or died before it answered.
             TimeoutError: no answer within ``REQUEST_TIMEOUT_S``.
         """
-        future = asyncio.get_running_loop().create_future()
+        aio = asyncio.get_running_loop()
+        # Pickled, and a large plan's arrays written into shared memory (milliseconds for
+        # tens of megabytes), in a worker thread: the event loop serves other clients meanwhile.
+        try:
+            outgoing = await aio.run_in_executor(
+                None, prepare, Commit(plan_id, plan), SHARED_MIN_BYTES, self._pool
+            )
+        except OSError as exc:  # no shared memory to be had, or the loop ended meanwhile
+            raise ControllerStateError(
+                self.refusal() or f"the plan could not be handed to the control loop: {exc}"
+            ) from None
+        future = aio.create_future()
         self._waiting[plan_id] = future
         try:
-            self._send(Commit(plan_id, plan), bulk=True)
+            self._send(outgoing)
             answer = await asyncio.wait_for(future, REQUEST_TIMEOUT_S)
         except ControllerStateError:
             self._waiting.pop(plan_id, None)

@@ -76,6 +76,7 @@ from ..channel.messages import (
     Ready,
     Rearm,
     Reference,
+    Released,
     Reply,
     Request,
     SetParameters,
@@ -616,7 +617,11 @@ class ControlLoop:
             elif deadline + self.period_ns - clock() > GC_SLACK_NS:
                 if self._retired:
                     self._retired.popleft()
-                elif not inbox.release():
+                elif inbox.release():
+                    if inbox.released:  # shared memory unmapped: its pool may reuse it
+                        self.send(Released(tuple(inbox.released)))
+                        inbox.released.clear()
+                else:
                     self.collect_garbage(0)
         self.shutdown(clock())
 

@@ -368,6 +368,25 @@ class Attachment:
         return f"Attachment({len(self.data)} bytes, {self.header!r:.120})"
 
 
+RAW_BYTES_PER_JSON_BYTE = 32
+"""A binary frame's raw bytes cost about this many times less to decode than JSON text (a
+2,000-point goal: 0.14 ms for its 208 kB frame, 24 ms for its 617 kB line)."""
+
+
+def _announced_length(line: bytes) -> int | None:
+    """The attachment length a (short) header line announces, or ``None`` (not readable)."""
+    if len(line) > 1 << 16:
+        return None
+    try:
+        obj = json.loads(line)
+    except ValueError:
+        return None
+    if not isinstance(obj, dict) or "attachment" not in obj:
+        return None
+    length = _frame_length(obj)
+    return None if isinstance(length, str) else length
+
+
 def _frame_length(obj: dict[str, Any]) -> int | str:
     """The raw byte count a message's ``attachment`` announces, or why it cannot be trusted."""
     header = obj["attachment"]
@@ -464,6 +483,12 @@ class _Lines:
         self._buf.clear()
         self._pos = self._scanned = 0
 
+    def unconsumed(self, limit: int) -> bytes:
+        """The bytes received and not consumed, if at most ``limit``; else nothing."""
+        if len(self._buf) - self._pos > limit:
+            return b""
+        return bytes(self._buf[self._pos :])
+
     @property
     def held(self) -> int:
         """Bytes received and not consumed."""
@@ -532,6 +557,40 @@ class MessageDecoder:
                 out.append(item)
         lines.compact()
         return out
+
+    def decode_cost(self, data: bytes) -> int:
+        """About what :meth:`feed` of ``data`` costs, in bytes of JSON decoded: the lines it
+        completes (with what is held of an unfinished one), and a binary frame's raw bytes at
+        :data:`RAW_BYTES_PER_JSON_BYTE` to one (they are sliced, then read with
+        ``numpy.frombuffer``). A caller decides by it whether to feed in a worker thread; it
+        errs high: a header line it cannot read (over 64 KiB, not JSON) counts everything
+        after it as JSON."""
+        held = self._lines.held
+        at, cost = 0, 0
+        if self._frame is not None:  # its raw bytes are arriving
+            due = (1 if self._skipped else self._frame[2] + 1) - held
+            if due > len(data):
+                return 0
+            cost, at, held = due // RAW_BYTES_PER_JSON_BYTE, due, 0
+        while True:
+            newline = data.find(b"\n", at)
+            if newline < 0:
+                return cost
+            cost += held + newline - at
+            line = data[at:newline]
+            if held:
+                line = self._lines.unconsumed(1 << 16) + line
+            at = newline + 1
+            if not self._frames or b'"attachment"' not in line:
+                held = 0
+                continue
+            length = _announced_length(line)
+            if length is None:
+                return cost + len(data) - at
+            due = min(length + 1, len(data) - at)
+            cost += due // RAW_BYTES_PER_JSON_BYTE
+            at += due
+            held = 0
 
     def end(self) -> list[dict[str, Any] | RequestError]:
         """Call at end of input. A last message without its newline is never decoded: it may

@@ -735,6 +735,11 @@ class Decoder:
         (it never raises)."""
         return [self._parse(item) for item in self._messages.feed(data)]
 
+    def decode_cost(self, data: bytes) -> int:
+        """What :meth:`feed` of ``data`` costs, about, in bytes of JSON decoded
+        (``MessageDecoder.decode_cost``)."""
+        return self._messages.decode_cost(data)
+
     def end(self) -> list[Request | RequestError]:
         """Call at end of input. A last request without its newline is never parsed nor
         executed (it may be cut off): it comes back as one ``bad_json`` error (it never raises).

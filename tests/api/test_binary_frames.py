@@ -228,3 +228,34 @@ def test_a_decoder_without_frames_reads_an_attachment_field_as_any_other() -> No
         {"event": "x", "attachment": {"bytes": 5}}, {"id": 1, "ok": True}]
     (error,) = MessageDecoder(frames=False).feed(b'{"attachment": \n')
     assert isinstance(error, RequestError) and error.code == "bad_json"
+
+
+def test_decode_cost_counts_json_and_a_frame_s_raw_bytes_at_their_price() -> None:
+    """What the server decides the worker thread by: the JSON text a feed decodes, a frame's
+    raw bytes at 1/RAW_BYTES_PER_JSON_BYTE; however the stream is cut, never less than the
+    JSON the feed completes."""
+    from jtc_hw.api.framing import RAW_BYTES_PER_JSON_BYTE
+
+    values = np.arange(3 * 20_000, dtype=np.float64).reshape(20_000, 3)
+    big = frame(values)  # 480 kB of raw bytes, some of them newlines
+    line_bytes = big.index(b"\n")
+    raw = len(big) - line_bytes - 1
+    json_line = json.dumps({"id": 3, "op": "get_status", "pad": "x" * 100_000}).encode() + b"\n"
+    decoder = MessageDecoder()
+    whole = decoder.decode_cost(big)
+    assert whole == line_bytes + raw // RAW_BYTES_PER_JSON_BYTE
+    assert whole < 64 * 1024 < decoder.decode_cost(json_line)
+    # Cut anywhere: each piece costs what it completes; the frame never counts as JSON.
+    for cut in (1, line_bytes, line_bytes + 1, line_bytes + 100, len(big) - 1):
+        decoder = MessageDecoder()
+        first, rest = big[:cut], big[cut:] + json_line
+        costs = [decoder.decode_cost(first)]
+        decoder.feed(first)
+        costs.append(decoder.decode_cost(rest))
+        items = decoder.feed(rest)
+        assert [type(i) for i in items] == [dict, dict], (cut, items)
+        assert sum(costs) <= whole + len(json_line), (cut, costs)
+        assert costs[1] >= len(json_line) - 1, (cut, costs)
+    # A header it cannot read (not JSON) counts everything after it: the worker decides.
+    bad = b'{"attachment": \n' + b"x" * 100_000
+    assert MessageDecoder().decode_cost(bad) >= 100_000

@@ -73,7 +73,7 @@ def test_large_plans_share_memory_reuse_it_and_return_it(daemon: DaemonProcess) 
         first = client.send_goal(wave(0.0))
         after_first = client.get_status()["plan_memory"]
         assert after_first["busy_bytes"] > 0  # the loop maps the first plan's region
-        assert after_first["made"] + after_first["reused"] == base["made"] + base["reused"] + 1
+        assert after_first["made"] > base["made"]
 
         second = client.send_goal(wave(0.5))  # preempts the first; its region is still mapped
         # The loop gives the first plan's region back in spare time once nothing uses it.

@@ -60,6 +60,7 @@ from ..channel.messages import (
     Status,
     Stop,
 )
+from ..channel.pipe import Outgoing
 from ..realtime import release_freed_memory
 from ..robot import RobotConfig, joint_position_limits
 from .backend_api import Accepted, Observer
@@ -528,6 +529,14 @@ class LoopBackend:
         memory; the base margin covers the cycle a small plan waits for."""
         return self.loop.transfer_cycles(nbytes) * self._period_ns
 
+    def _plan_and_share(
+        self, plan_id: int, make: Callable[..., Plan], *args: Any
+    ) -> tuple[Plan, Outgoing]:
+        """In the planning thread: the plan, and its records for the loop (a large one copied
+        into shared memory), in one hop from the event loop and back."""
+        plan = make(*args)
+        return plan, self.loop.prepare(plan_id, plan)
+
     async def _plan_and_commit(
         self, sent: JointTrajectory, make: Callable[..., Plan]
     ) -> tuple[int | None, Plan]:
@@ -559,9 +568,16 @@ class LoopBackend:
             # The loop may commit as soon as the plan arrives, at a cycle whose deadline can lie
             # up to a period before now: keep the current reference from there.
             valid_from = begin - 2 * self._period_ns
-            plan: Plan = await aio.run_in_executor(
-                self._executor, make, traj, ref, version, *self._plan_times(planned, valid_from)
-            )
+            plan_id = self.loop.next_id()
+            try:
+                plan, outgoing = await aio.run_in_executor(
+                    self._executor, self._plan_and_share, plan_id, make, traj, ref, version,
+                    *self._plan_times(planned, valid_from),
+                )
+            except OSError as exc:  # no shared memory to be had, or the loop ended meanwhile
+                raise GoalRejected(
+                    self.loop.refusal() or f"the plan could not be handed to the loop: {exc}"
+                ) from None
             took = self.now_ns() - begin
             if points >= 100:  # fixed costs are noise by then
                 self._plan_ns_per_point += 0.25 * (took / points - self._plan_ns_per_point)
@@ -570,11 +586,11 @@ class LoopBackend:
                 # Fitting and sending it take longer than the margin: plan later (without
                 # sending a plan the loop would refuse as late).
                 margin = max(2 * margin, took + transfer + self._margin_ns)
+                outgoing.close()
                 continue
-            plan_id = self.loop.next_id()
             self._plans[plan_id] = plan
             try:
-                reply = await self.loop.commit(plan_id, plan)
+                reply = await self.loop.commit(plan_id, outgoing)
             except ControllerStateError as exc:  # the loop died before it answered
                 raise GoalRejected(str(exc)) from None
             if plan.reference.nbytes >= TRIM_AFTER_BYTES:

@@ -486,24 +486,34 @@ class LoopProcess:
                 raise answer.exception()
         raise HardwareError(f"the control loop answered {op.name!r} with {answer!r}")
 
-    async def commit(self, plan_id: int, plan: Plan) -> Committed | Stale:
-        """Send ``plan`` (its id from :meth:`next_id`) and wait for the loop's answer.
+    def prepare(self, plan_id: int, plan: Plan) -> Outgoing:
+        """``plan`` (its id from :meth:`next_id`) made ready for :meth:`commit`: pickled, a
+        large one's arrays copied into shared memory (milliseconds for tens of megabytes: call
+        it in a worker thread). Thread-safe.
+
+        Raises:
+            OSError: no shared memory could be had (out of memory, or the loop ended).
+        """
+        return prepare(Commit(plan_id, plan), SHARED_MIN_BYTES, self._pool)
+
+    async def commit(self, plan_id: int, plan: Plan | Outgoing) -> Committed | Stale:
+        """Send ``plan`` (its id from :meth:`next_id`; or as :meth:`prepare` made it ready,
+        owned from now on) and wait for the loop's answer.
 
         Raises:
             ControllerStateError: the loop is not running, or died before it answered.
             TimeoutError: no answer within ``REQUEST_TIMEOUT_S``.
         """
         aio = asyncio.get_running_loop()
-        # Pickled, and a large plan's arrays written into shared memory (milliseconds for
-        # tens of megabytes), in a worker thread: the event loop serves other clients meanwhile.
-        try:
-            outgoing = await aio.run_in_executor(
-                None, prepare, Commit(plan_id, plan), SHARED_MIN_BYTES, self._pool
-            )
-        except OSError as exc:  # no shared memory to be had, or the loop ended meanwhile
-            raise ControllerStateError(
-                self.refusal() or f"the plan could not be handed to the control loop: {exc}"
-            ) from None
+        outgoing = plan
+        if not isinstance(outgoing, Outgoing):
+            # In a worker thread: the event loop serves other clients meanwhile.
+            try:
+                outgoing = await aio.run_in_executor(None, self.prepare, plan_id, outgoing)
+            except OSError as exc:  # no shared memory to be had, or the loop ended meanwhile
+                raise ControllerStateError(
+                    self.refusal() or f"the plan could not be handed to the control loop: {exc}"
+                ) from None
         future = aio.create_future()
         self._waiting[plan_id] = future
         try:

@@ -451,16 +451,16 @@ class Server:
         conn.close_reason = f"idle for {idle:g} s (idle_timeout_s)"
         return True
 
-    async def _decode(self, decoder: Decoder, data: bytes, pending: int) -> list[Any]:
-        """``decoder.feed(data)``; in the worker thread when it completes a long line.
+    async def _decode(self, decoder: Decoder, data: bytes) -> list[Any]:
+        """``decoder.feed(data)``; in the worker thread when it completes a long line (a binary
+        frame's raw bytes count for less: ``Decoder.decode_cost``).
 
-        ``pending`` is how many bytes of an unfinished line the decoder held before ``data``.
         Each connection's reader awaits its own decode, so its requests stay in order; the
         event loop serves the other connections meanwhile (the worker holds the interpreter
-        lock only for switch intervals at a time).
+        lock only for switch intervals at a time). A cheap feed stays in the event loop: the
+        hop to the worker and back cost 0.4 ms of a 2,000-point goal frame's 0.6.
         """
-        newline = data.rfind(b"\n")
-        if newline < 0 or pending + newline + 1 < DECODE_IN_WORKER_BYTES:
+        if decoder.decode_cost(data) < DECODE_IN_WORKER_BYTES:
             return decoder.feed(data)
         if self._decoding is None:
             self._decoding = ThreadPoolExecutor(max_workers=1, thread_name_prefix="jtc-hw-decode")
@@ -468,7 +468,6 @@ class Server:
 
     async def _read_loop(self, conn: Connection) -> None:
         decoder = Decoder(self.settings.max_message_bytes)
-        pending = 0  # bytes since the last newline: the unfinished line the decoder holds
         while not conn.closing:
             timeout = self._read_timeout(conn, time.monotonic())
             try:
@@ -483,9 +482,7 @@ class Server:
             except OSError as exc:
                 conn.close_reason = f"connection error: {exc}"
                 return
-            items = await self._decode(decoder, data, pending) if data else decoder.end()
-            newline = data.rfind(b"\n")
-            pending = pending + len(data) if newline < 0 else len(data) - newline - 1
+            items = await self._decode(decoder, data) if data else decoder.end()
             for item in items:
                 await self._handle(conn, item)
                 if isinstance(item, RequestError) and item.code == BAD_FRAME:

@@ -7,7 +7,8 @@ two scenarios on it, one after the other:
 
   idle    no client but the measuring one, which asks for ``get_status`` twice a second.
   loaded  8 more connections, each subscribed to ``state`` and read by its own thread, plus one
-          connection sending a 2,000-point goal every second (6 joints, positions and velocities
+          connection sending a 2,000-point goal (``--goal-points``) every second (6 joints,
+          positions and velocities
           of a smooth wave, points 1 ms apart over 2 s, stamped with the client's "now" on the
           shared CLOCK_MONOTONIC) and waiting for its acceptance. Each goal continues the wave of
           the previous one and preempts it after about 1 s plus its planning time; each would
@@ -52,7 +53,8 @@ With ``--breakdown`` the loop process times each phase of its period (``JTC_HW_L
 the status, the outbox, the inbox, gc, ...) and each run prints their p50, p99, max and mean
 over its cycles, with ``period``, the whole work between two wake-ups; the wrappers that time
 the phases add about 0.25 us per call, 3-4 us, to it. ``--joints N`` runs the daemon on N
-mirror joints (default 6, the demo arm's).
+mirror joints (default 6, the demo arm's). ``--goal-points 20000`` makes the loaded scenario's
+goals 20,000 points (issue 24: the loop's figures while a large goal arrives every second).
 
 Everything the daemon writes (its socket, configuration, log, flight recordings, the phase
 file) goes into one temporary directory, removed when the daemon has stopped.
@@ -60,7 +62,7 @@ file) goes into one temporary directory, removed when the daemon has stopped.
 Usage:  python bench/loop_jitter.py [--duration S] [--rates 500 1000]
             [--scenarios [bare] idle loaded] [--priority N] [--cpu N] [--lock-memory]
             [--live-view] [--zenoh] [--flight-recorder-s S] [--record] [--breakdown]
-            [--joints N] [--json]
+            [--joints N] [--goal-points N] [--json]
 Target: at 1 kHz, p99 lateness < 300 us and no overruns, idle and loaded.
 """
 
@@ -360,8 +362,10 @@ class ZenohViewer:
 # -- the load ---------------------------------------------------------------------------------
 
 
-def wave_goal(start_ns: int, epoch_ns: int, joint_names: list[str]) -> dict[str, Any]:
-    """2,000 points, 1 ms apart, of q_j(t) = A_j (1 - cos w_j t) for t > 0 (0 before), t from
+def wave_goal(
+    start_ns: int, epoch_ns: int, joint_names: list[str], points: int = GOAL_POINTS
+) -> dict[str, Any]:
+    """``points`` points (2,000), 1 ms apart, of q_j(t) = A_j (1 - cos w_j t) for t > 0 (0 before), t from
     ``epoch_ns``.
 
     The wave starts at rest at 0, where the idle robot holds, and every goal continues it
@@ -369,8 +373,8 @@ def wave_goal(start_ns: int, epoch_ns: int, joint_names: list[str]) -> dict[str,
     that the wave's time slows down smoothly (a raised-cosine time warp) to stop at the last
     point, so a goal without a successor ends at rest.
     """
-    tau = np.arange(1, GOAL_POINTS + 1) * GOAL_SPACING_S
-    span = GOAL_POINTS * GOAL_SPACING_S - BRAKE_FROM_S
+    tau = np.arange(1, points + 1) * GOAL_SPACING_S
+    span = points * GOAL_SPACING_S - BRAKE_FROM_S
     u = np.clip(tau - BRAKE_FROM_S, 0.0, None)
     warp = np.where(
         tau <= BRAKE_FROM_S,
@@ -397,8 +401,9 @@ def wave_goal(start_ns: int, epoch_ns: int, joint_names: list[str]) -> dict[str,
 class Load:
     """8 state subscribers (one connection and one reading thread each) and a goal sender."""
 
-    def __init__(self, socket_path: str, joints: list[str]) -> None:
+    def __init__(self, socket_path: str, joints: list[str], points: int = GOAL_POINTS) -> None:
         self.joints = joints
+        self.points = points
         self.stop = threading.Event()
         self.clients = [Client.connect(socket_path, timeout_s=10.0) for _ in range(SUBSCRIBERS)]
         self.subscriptions = [c.subscribe_state(timeout_s=2.0) for c in self.clients]
@@ -431,7 +436,7 @@ class Load:
             sent = time.monotonic()
             handle = None
             try:
-                goal = wave_goal(time.monotonic_ns(), epoch, self.joints)
+                goal = wave_goal(time.monotonic_ns(), epoch, self.joints, self.points)
                 handle = self.goal_client.send_goal(goal)
                 outcome = "accepted"
             except GoalRejected as exc:
@@ -598,10 +603,11 @@ def phase_count(daemon: Daemon) -> int:
 
 
 def run_scenario(
-    daemon: Daemon, client: Client, rate_hz: float, scenario: str, duration_s: float
+    daemon: Daemon, client: Client, rate_hz: float, scenario: str, duration_s: float,
+    goal_points: int = GOAL_POINTS,
 ) -> dict[str, Any]:
     """Set the scenario up, warm up, measure for ``duration_s``, tear it down."""
-    load = Load(daemon.socket, daemon.joints) if scenario == "loaded" else None
+    load = Load(daemon.socket, daemon.joints, goal_points) if scenario == "loaded" else None
     try:
         # Every statistics window that begins after this many cycles is this scenario's alone.
         scenario_start = next_loop_stats(client)["cycles"]
@@ -666,6 +672,7 @@ def run_scenario(
         "warmup_s": round(warmup_s, 2),
         "joints": len(daemon.joints),
         **({} if phases is None else {"phases_us": phases}),
+        **({"goal_points": goal_points} if load is not None else {}),
         **extra,
     }
 
@@ -702,7 +709,8 @@ def measure_rate(
                 note(f"{rate_hz:g} Hz {scenario}: measuring {args.duration:g} s")
                 seen = viewer.messages if viewer is not None else 0
                 zseen = zviewer.messages if zviewer is not None else 0
-                row = run_scenario(daemon, client, rate_hz, scenario, args.duration)
+                row = run_scenario(daemon, client, rate_hz, scenario, args.duration,
+                                   args.goal_points)
                 if viewer is not None:
                     row["live_view_messages"] = viewer.messages - seen
                 if zviewer is not None:
@@ -749,6 +757,7 @@ def print_table(
 ) -> None:
     print(
         f"control-loop wake-up lateness, jtc_hw daemon on {args.joints} mirror joints, "
+        f"loaded: {args.goal_points}-point goals, "
         f"{args.duration:g} s per run; Python {sys.version.split()[0]}, {os.cpu_count()} CPUs"
     )
     print(
@@ -913,12 +922,22 @@ def main(argv: list[str] | None = None) -> int:
         metavar="N",
         help="mirror joints of the daemon's arm (default 6)",
     )
+    parser.add_argument(
+        "--goal-points",
+        type=int,
+        default=GOAL_POINTS,
+        metavar="N",
+        help=f"points of each goal of the loaded scenario (default {GOAL_POINTS}; 20000: a "
+        "large goal every second)",
+    )
     parser.add_argument("--json", action="store_true", help="one JSON object per run")
     args = parser.parse_args(argv)
     if args.duration <= 0:
         parser.error("--duration must be positive")
     if args.joints < 1:
         parser.error("--joints must be at least 1")
+    if args.goal_points < 2:
+        parser.error("--goal-points must be at least 2")
 
     def note(message: str) -> None:
         print(message, file=sys.stderr, flush=True)

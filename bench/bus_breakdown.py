@@ -29,6 +29,7 @@ Neighbour (``--neighbour``)
 from __future__ import annotations
 
 import multiprocessing
+import os
 import signal
 import statistics
 import time
@@ -47,6 +48,9 @@ def neighbour_modes(mode: str) -> list[bool]:
 def _spin() -> None:
     signal.signal(signal.SIGINT, signal.SIG_DFL)
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    # Forked from a bench that may run at SCHED_FIFO (bus_rate --priority): a neighbour is an
+    # ordinary process.
+    os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
     x = 0
     while True:
         x = (x + 1) & 0xFFFF

@@ -35,9 +35,14 @@ python-can's calls, our own driver code's CPU and time blocked, and prints the p
 and stops after (rows say ``neighbour: true``); ``--neighbour both`` alternates an idle run and
 a run with the neighbour for each configuration, so their ratios compare in one sitting.
 
+``--priority N`` runs the driver as the daemon runs its loop with ``daemon.realtime.priority:
+N`` (SCHED_FIFO), and the emulators at the same priority: they stand for the motors, whose
+electronics share no CPU with the robot's computer, so a neighbour must not slow the replies
+down either. The neighbour stays at normal priority. Rows say ``priority``.
+
 Usage:  python bench/bus_rate.py [--duration 3] [--bus dynamixel can-mit can-cia402]
                                  [--bitrates 1000000 2000000 4000000] [--profile] [--json]
-                                 [--breakdown] [--neighbour [on|both]]
+                                 [--breakdown] [--neighbour [on|both]] [--priority N]
 """
 
 from __future__ import annotations
@@ -342,12 +347,21 @@ def main(argv: list[str] | None = None) -> int:
                         help="run beside one busy process the bench starts and stops "
                         "('on', the default when given bare), or 'both': an idle run then a "
                         "run with the neighbour, for each configuration")
+    parser.add_argument("--priority", type=int, default=0, metavar="N",
+                        help="SCHED_FIFO priority of the driver and the emulators (the "
+                        "daemon's daemon.realtime.priority; default 0: normal scheduling)")
     parser.add_argument("--json", action="store_true", help="one JSON object per line")
     args = parser.parse_args(argv)
+    if args.priority:
+        try:  # inherited by the emulators this process starts; the neighbour resets its own
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(args.priority))
+        except (OSError, ValueError) as exc:
+            parser.error(f"--priority {args.priority}: {exc} (needs CAP_SYS_NICE or root)")
     neighbours = neighbour_modes(args.neighbour)
     rows: list[dict[str, Any]] = []
     notes: list[str] = []
     for bus in args.bus:
+        first = len(rows)
         if bus == "dynamixel":
             rows += dynamixel_rows(args.duration, args.bitrates, args.profile,
                                    args.health_period_s, args.breakdown, neighbours)
@@ -358,6 +372,8 @@ def main(argv: list[str] | None = None) -> int:
                 notes.append(got)
             else:
                 rows += got
+        for row in rows[first:]:
+            row["priority"] = args.priority
     if args.json:
         for row in rows:
             print(json.dumps(row))
@@ -367,6 +383,9 @@ def main(argv: list[str] | None = None) -> int:
         for note in notes:
             print(note, file=sys.stderr)
     else:
+        if args.priority:
+            print(f"driver and emulators at SCHED_FIFO priority {args.priority}; the neighbour "
+                  "at normal priority")
         print_table(rows, notes)
     return 0
 

@@ -113,3 +113,48 @@ def test_a_request_is_answered_by_the_after_cycle_that_completes_it(rig: Rig) ->
     rig.loop.after_cycle(rig.now, rig.loop_inbox)  # one record: read whatever the time
     assert Reply(5, True) in rig.received()
 
+
+
+def test_a_state_is_written_a_cycle_after_the_one_that_builds_it(rig: Rig) -> None:
+    """No cycle pays for both building the State and writing it (the period's p99): the State
+    waits in the outbox for the next cycle's write, unless an ordered message is behind it;
+    and none is dropped for it when the next cycle publishes one too."""
+    from jtc_hw.daemon.channel.messages import State
+
+    def states() -> list[State]:
+        return [m for m in rig.received() if isinstance(m, State)]
+
+    rig.loop.state_every_ns = 10 * PERIOD_NS
+    rig.cycle()  # the first State, the reference: written at once (ordered messages wait)
+    rig.loop.serve_outbox(rig.now)
+    rig.received()
+    for _ in range(30):  # until a cycle publishes the next
+        rig.cycle()
+        if rig.loop._state_cycle:
+            break
+        rig.loop.serve_outbox(rig.now)
+    built = rig.now
+    rig.loop.serve_outbox(rig.now)
+    assert states() == []  # not written by the cycle that built it
+    rig.cycle()
+    rig.loop.serve_outbox(rig.now)
+    assert [s.time_ns for s in states()] == [built]  # the next one did
+    # An ordered message behind it: written at once, State and all, in order.
+    for _ in range(30):
+        rig.cycle()
+        if rig.loop._state_cycle:
+            break
+    rig.loop.send(Reply(9, True))
+    rig.loop.serve_outbox(rig.now)
+    got = rig.received()
+    assert [type(m) for m in got][-2:] == [State, Reply]
+    # A State every cycle: each one written by its own cycle (deferring would drop half).
+    rig.loop.state_every_ns = PERIOD_NS
+    rig.loop._next_state_ns = 0
+    written = []
+    for _ in range(5):
+        rig.cycle()
+        rig.loop.serve_outbox(rig.now)
+        written += [s.time_ns for s in states()]
+    assert written == [rig.now - k * PERIOD_NS for k in range(4, -1, -1)]
+    assert rig.outbox.dropped == 0

@@ -140,7 +140,7 @@ def broken(draw: st.DrawFn, points: list[TrajectoryPoint], k: int) -> list[Traje
                 )
             )
             row = list(fields[name] or [0.0] * k)
-            row[draw(st.integers(0, k - 1))] = bad
+            row[draw(st.integers(0, len(row) - 1))] = bad  # a row made shorter before
             fields[name] = row
         elif how == "length":
             fields[name] = [0.5] * draw(st.sampled_from([k - 1, k + 1])) or None

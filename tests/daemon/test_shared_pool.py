@@ -5,6 +5,7 @@ from __future__ import annotations
 import fcntl
 import os
 from collections.abc import Iterator
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -93,3 +94,53 @@ def test_a_closed_pool_makes_no_region(pool: SharedPool) -> None:
     with pytest.raises(OSError, match="closed"):
         pool.acquire(100)
     assert _open_fds() == before
+
+
+def test_no_shared_memory_rejects_the_large_goal_clearly_and_the_loop_holds_on(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Out of memory for a plan's region: that goal is rejected with the reason (nothing is
+    sent to the loop), the controller keeps holding, small goals (through the pipe) are still
+    accepted, and a large goal is again once memory can be had."""
+    import asyncio
+    import errno
+
+    from jtc_hw.controller.messages import JointTrajectory, TrajectoryPoint
+    from jtc_hw.daemon.core.backend import LoopBackend
+    from jtc_hw.daemon.robot import load_robot
+    from jtc_hw.errors import GoalRejected
+
+    from conftest import make_robot_config
+
+    joints = ["a", "b", "c"]
+    hardware = [{"name": "arm", "kind": "mirror", "joints": joints, "params": {}}]
+    source = make_robot_config(tmp_path / "x.sock", joints, hardware)
+
+    def goal(points: int) -> JointTrajectory:  # 600 points: a plan of ~360 kB over 256 KiB
+        return JointTrajectory(joints, [
+            TrajectoryPoint(0.01 * (i + 1), [0.001 * i] * 3, [0.0] * 3) for i in range(points)
+        ])
+
+    real_acquire = SharedPool.acquire
+
+    def refuse(self: SharedPool, nbytes: int) -> object:
+        raise OSError(errno.ENOMEM, "Cannot allocate memory")
+
+    async def scenario() -> None:
+        backend = LoopBackend(load_robot(source), source)
+        await backend.start()
+        try:
+            monkeypatch.setattr(SharedPool, "acquire", refuse)
+            with pytest.raises(GoalRejected, match="could not be handed to the loop: .*memory"):
+                await backend.send_goal(goal(600))
+            status = backend.status()
+            assert status["alive"] and status["controller"]["fault"] is None
+            assert status["plan_memory"]["busy_bytes"] == 0
+            await backend.send_goal(goal(1))  # small: through the pipe, accepted
+            monkeypatch.setattr(SharedPool, "acquire", real_acquire)
+            await backend.send_goal(goal(600))
+            assert backend.status()["plan_memory"]["busy_bytes"] > 0
+        finally:
+            assert await backend.stop("test over") == 0
+
+    asyncio.run(scenario())

@@ -258,7 +258,7 @@ def prepare(
         and SHARED_AVAILABLE
         and sum(sizes) >= shared_min_bytes
     ):
-        return _shared(raws, payload, pool)
+        return _shared(raws, sizes, payload, pool)
     out: list[bytes | memoryview] = [_RECORD.pack(HEAD, len(payload)) + payload]
     for raw in raws:
         for start in range(0, raw.nbytes, CHUNK_BYTES):
@@ -268,9 +268,12 @@ def prepare(
     return Outgoing(out)
 
 
-def _shared(raws: list[memoryview], payload: bytes, pool: SharedPool | None) -> Outgoing:
-    """The SHARED record of a message whose buffers ``raws`` are copied into shared memory."""
-    offsets, total = layout([raw.nbytes for raw in raws])
+def _shared(
+    raws: list[memoryview], sizes: list[int], payload: bytes, pool: SharedPool | None
+) -> Outgoing:
+    """The SHARED record of a message whose buffers ``raws`` (of ``sizes`` bytes) are copied
+    into shared memory."""
+    offsets, total = layout(sizes)
     if pool is None:
         fd = new_memfd(total)
         try:

@@ -303,8 +303,12 @@ class LoopProcess:
                 if self._pool is not pool:
                     return
                 # Freeing tens of megabytes takes milliseconds: not in the event loop.
-                done = aio.run_in_executor(None, pool.trim)
-                done.add_done_callback(lambda _: self._released(()) if pool.free_bytes else None)
+                # (RuntimeError: the executor was shut down, the daemon is stopping.)
+                with contextlib.suppress(RuntimeError):
+                    done = aio.run_in_executor(None, pool.trim)
+                    done.add_done_callback(
+                        lambda _: self._released(()) if pool.free_bytes else None
+                    )
 
             self._trim = aio.call_later(IDLE_S, trim)
 
@@ -425,10 +429,10 @@ class LoopProcess:
         """A new id for a plan or a request (one sequence: their answers share a table)."""
         return next(self._ids)
 
-    def _send(self, message: Commit | Request | Outgoing, bulk: bool = False) -> None:
-        """Queue ``message`` for the loop (a plan ``bulk``, or prepared: owned from now on),
-        write what the pipe takes now, and the rest when it becomes writable (module
-        docstring).
+    def _send(self, message: Request | Outgoing) -> None:
+        """Queue ``message`` for the loop (a request, or a plan :meth:`prepare` made ready:
+        owned from now on), write what the pipe takes now, and the rest when it becomes
+        writable (module docstring).
 
         Raises:
             ControllerStateError: the loop is not running (:meth:`refusal`), or just exited.
@@ -440,7 +444,7 @@ class LoopProcess:
             raise ControllerStateError(reason)
         writer = self._writer
         assert self._conn is not None and writer is not None
-        writer.put(message, bulk)
+        writer.put(message)
         self._write()
         if writer.closed:
             # The loop is gone (its death is being reported by _process_ended).
@@ -496,25 +500,15 @@ class LoopProcess:
         """
         return prepare(Commit(plan_id, plan), SHARED_MIN_BYTES, self._pool)
 
-    async def commit(self, plan_id: int, plan: Plan | Outgoing) -> Committed | Stale:
-        """Send ``plan`` (its id from :meth:`next_id`; or as :meth:`prepare` made it ready,
-        owned from now on) and wait for the loop's answer.
+    async def commit(self, plan_id: int, outgoing: Outgoing) -> Committed | Stale:
+        """Send the plan :meth:`prepare` made ready (owned from now on) and wait for the
+        loop's answer.
 
         Raises:
             ControllerStateError: the loop is not running, or died before it answered.
             TimeoutError: no answer within ``REQUEST_TIMEOUT_S``.
         """
-        aio = asyncio.get_running_loop()
-        outgoing = plan
-        if not isinstance(outgoing, Outgoing):
-            # In a worker thread: the event loop serves other clients meanwhile.
-            try:
-                outgoing = await aio.run_in_executor(None, self.prepare, plan_id, outgoing)
-            except OSError as exc:  # no shared memory to be had, or the loop ended meanwhile
-                raise ControllerStateError(
-                    self.refusal() or f"the plan could not be handed to the control loop: {exc}"
-                ) from None
-        future = aio.create_future()
+        future = asyncio.get_running_loop().create_future()
         self._waiting[plan_id] = future
         try:
             self._send(outgoing)

@@ -10,10 +10,24 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+from typing import Any
 
 import pytest
 
 from conftest import ROOT
+
+
+def bench_rows(script: str, *args: str) -> list[dict[str, Any]]:
+    """``bench/<script> <args> --json`` run to its end (exit status 0): its JSON lines."""
+    done = subprocess.run(
+        [sys.executable, str(ROOT / "bench" / script), *args, "--json"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=False,
+    )
+    assert done.returncode == 0, done.stderr
+    return [json.loads(line) for line in done.stdout.splitlines() if line.strip()]
 
 
 @pytest.mark.parametrize(
@@ -25,32 +39,15 @@ from conftest import ROOT
     ],
 )
 def test_bench_runs_and_prints_json_lines(script: str, args: list[str], key: str) -> None:
-    done = subprocess.run(
-        [sys.executable, str(ROOT / "bench" / script), *args, "--json"],
-        capture_output=True,
-        text=True,
-        timeout=120,
-        check=False,
-    )
-    assert done.returncode == 0, done.stderr
-    rows = [json.loads(line) for line in done.stdout.splitlines() if line.strip()]
+    rows = bench_rows(script, *args)
     assert rows and all(row["joints"] == 6 and key in row for row in rows)
 
 
 def test_bus_rate_breakdown_alternates_idle_and_neighbour_runs() -> None:
     """``bus_rate.py --breakdown --neighbour both``: per bit rate an idle row then a row beside
     the busy process, each with the per-cycle split; the existing keys are still there."""
-    done = subprocess.run(
-        [sys.executable, str(ROOT / "bench" / "bus_rate.py"), "--bus", "dynamixel",
-         "--bitrates", "4000000", "--duration", "0.2", "--breakdown", "--neighbour", "both",
-         "--json"],
-        capture_output=True,
-        text=True,
-        timeout=120,
-        check=False,
-    )
-    assert done.returncode == 0, done.stderr
-    rows = [json.loads(line) for line in done.stdout.splitlines() if line.strip()]
+    rows = bench_rows("bus_rate.py", "--bus", "dynamixel", "--bitrates", "4000000",
+                      "--duration", "0.2", "--breakdown", "--neighbour", "both")
     assert [row["neighbour"] for row in rows] == [False, True]
     for row in rows:
         assert {"cycle_us", "wire_us", "ratio", "driver_cpu_us", "target_met"} <= set(row)

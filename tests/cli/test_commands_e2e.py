@@ -11,8 +11,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-import yaml
-from helpers.daemon import DaemonProcess, daemon_env
+from helpers.daemon import ConfiguredDaemon, DaemonProcess, daemon_env
 
 from jtc_hw.cli.demo import demo_config
 
@@ -27,8 +26,7 @@ JOINTS = [f"joint{i}" for i in range(1, 7)]
 @pytest.fixture(scope="module")
 def demo(tmp_path_factory: pytest.TempPathFactory) -> Iterator[DaemonProcess]:
     """The daemon ``jtc-hw demo`` starts (its configuration, simulated joints)."""
-    d = DaemonProcess(tmp_path_factory.mktemp("cli"))
-    d.config_path.write_text(yaml.safe_dump(demo_config(str(d.socket)), sort_keys=False))
+    d = ConfiguredDaemon(tmp_path_factory.mktemp("cli"), lambda sock: demo_config(str(sock)))
     with d.serving():
         yield d
 

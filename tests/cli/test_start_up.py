@@ -21,8 +21,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-import yaml
-from helpers.daemon import DaemonProcess, daemon_env
+from helpers.daemon import ConfiguredDaemon, DaemonProcess, daemon_env
 
 from jtc_hw.cli.common import Progress
 from jtc_hw.cli.demo import demo_config
@@ -50,6 +49,12 @@ def test_each_command_alone_parses_and_helps_as_in_the_whole_parser() -> None:
         assert alone[name].format_help() == expected.format_help(), name
 
 
+def _python(code: str) -> subprocess.CompletedProcess[str]:
+    """``code`` run by a fresh interpreter (nothing imported yet), its output captured."""
+    return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          check=True, env=daemon_env(), timeout=60)
+
+
 def test_send_loads_neither_numpy_nor_the_client_before_its_bar() -> None:
     code = (
         "import sys\n"
@@ -60,8 +65,7 @@ def test_send_loads_neither_numpy_nor_the_client_before_its_bar() -> None:
         " if m in sys.modules)\n"
         "print(loaded)\n"
     )
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                         check=True, env=daemon_env(), timeout=60)
+    out = _python(code)
     assert out.stdout.strip() == "[]", out.stderr
 
 
@@ -73,8 +77,7 @@ def test_the_package_loads_its_names_when_first_used() -> None:
         "missing = sorted(set(jtc_hw.__all__) - set(dir(jtc_hw)))\n"
         "print(before, JointTrajectory.__module__, load_config.__module__, missing)\n"
     )
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                         check=True, env=daemon_env(), timeout=60)
+    out = _python(code)
     assert out.stdout.split() == [
         "False", "jtc_hw.controller.messages", "jtc_hw.config.reading", "[]"
     ], out.stderr
@@ -110,8 +113,7 @@ def test_stages_show_the_empty_bar_on_a_terminal_and_nothing_in_a_pipe() -> None
 @pytest.fixture(scope="module")
 def demo(tmp_path_factory: pytest.TempPathFactory) -> Iterator[DaemonProcess]:
     """The daemon ``jtc-hw demo`` starts (its configuration, simulated joints)."""
-    d = DaemonProcess(tmp_path_factory.mktemp("start-up"))
-    d.config_path.write_text(yaml.safe_dump(demo_config(str(d.socket)), sort_keys=False))
+    d = ConfiguredDaemon(tmp_path_factory.mktemp("start-up"), lambda sock: demo_config(str(sock)))
     with d.serving():
         yield d
 

@@ -13,7 +13,7 @@ from numpy.typing import NDArray
 from .goals import ErrorCode, GoalHandle, GoalTransition
 from .joints import F64
 from .messages import NS_PER_S
-from .tolerances import SegmentTolerances, violated
+from .tolerances import SegmentTolerances, exceeds, violated
 
 PREEMPTED_BY_ACTION = "Current goal cancelled due to new incoming action."
 PREEMPTED_BY_TOPIC = "Current goal cancelled due to new incoming trajectory on the topic interface."
@@ -70,8 +70,8 @@ def judge(
     before_end = ahead_ns < ex.end_ns
     first, ex.first_sample = ex.first_sample, False
     if before_end or first:
-        bad = violated(error, tol.path)
-        if bad.any():
+        if exceeds(error, tol.path_limit):
+            bad = violated(error, tol.path)
             return Outcome(
                 GoalTransition.ABORT,
                 ErrorCode.PATH_TOLERANCE_VIOLATED,
@@ -81,9 +81,8 @@ def judge(
             )
     if before_end:
         return None
-    outside = violated(error, tol.goal)
     late_ns = now_ns - ex.end_ns
-    if not outside.any():
+    if not exceeds(error, tol.goal_limit):
         if ex.goal is None and cmd_timeout_ns:
             # A topic trajectory never succeeds upstream (section 7 step 8e): it is watched
             # until cmd_timeout stops it, which is what ends a streamed motion whose last
@@ -99,6 +98,7 @@ def judge(
                 )
             return None
         return Outcome(GoalTransition.SUCCEED, ErrorCode.SUCCESSFUL, SUCCEEDED, False)
+    outside = violated(error, tol.goal)
     if tol.goal_time > 0.0 and late_ns > round(tol.goal_time * NS_PER_S):
         return Outcome(
             GoalTransition.ABORT,

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
@@ -44,11 +44,19 @@ class SegmentTolerances:
             error (upstream 8.4: a velocity or effort command interface for velocity, an
             acceleration command interface for acceleration); elsewhere the error is 0.
         goal_time: seconds allowed past the end to get inside ``goal``; 0 waits forever.
+        path_limit, goal_limit: ``path`` and ``goal`` with infinity where a tolerance is not
+            checked: an error beyond its limit is a violation (:func:`exceeds`).
     """
 
     path: NDArray[np.float64]
     goal: NDArray[np.float64]
     goal_time: float
+    path_limit: NDArray[np.float64] = field(init=False, repr=False)
+    goal_limit: NDArray[np.float64] = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        for name, table in (("path_limit", self.path), ("goal_limit", self.goal)):
+            object.__setattr__(self, name, np.where(table > 0.0, table, np.inf))
 
     @classmethod
     def from_config(cls, config: ControllerConfig) -> SegmentTolerances:
@@ -120,6 +128,12 @@ def _resolve(default: float, value: float, where: str) -> float:
         "-1 to erase it",
         INVALID_GOAL,
     )
+
+
+def exceeds(error: NDArray[np.float64], limit: NDArray[np.float64]) -> bool:
+    """Whether any field of ``error`` (3, n) is beyond its ``limit`` (3, n; a tolerance's
+    ``*_limit``): ``violated(...).any()`` in one comparison, the check of every cycle."""
+    return bool((np.abs(error) > limit).any())
 
 
 def violated(error: NDArray[np.float64], tolerance: NDArray[np.float64]) -> NDArray[np.bool_]:

@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -198,6 +198,7 @@ class Trajectory:
         "_start",
         "_end",
         "_last",
+        "_memo",
         "n_joints",
         "state_before_ns",
     )
@@ -225,11 +226,23 @@ class Trajectory:
         # The segment the last sample fell in, (start, end, index): the loop samples increasing
         # times, mostly in the same segment, and comparing two ints is cheaper than a search.
         # Replaced whole (one assignment), so threads sampling at once each read a consistent
-        # one; it changes no answer.
-        self._last = (0, 0, 0)
+        # one; it changes no answer. At first: an empty segment just before the first, so
+        # that the first sample inside finds it as "the next one".
+        self._last = (self._start, self._start, -1)
+        # The last sample taken, (time, sample): the loop samples each cycle at ``now`` and
+        # one period ahead, and the next cycle's ``now`` is mostly this cycle's "ahead". Its
+        # arrays are read-only, as every sample is (the state past the end is ``_final``'s
+        # rows), so handing the same one out twice is the same answer. Replaced whole.
+        self._memo: tuple[int, TrajectorySample] | None = None
         self.n_joints = final.shape[1]
         for array in (breaks_array, blocks, origins, kinds, final):
             array.setflags(write=False)
+
+    def __getstate__(self) -> tuple[None, dict[str, Any]]:
+        """Pickled without its memo (a sample, not part of the trajectory)."""
+        state = {name: getattr(self, name) for name in self.__slots__}
+        state["_memo"] = None
+        return None, state
 
     # -- construction -------------------------------------------------------------------------
 
@@ -567,16 +580,30 @@ class Trajectory:
         if t_ns >= self._end or not self._blocks.shape[0]:
             f = self._final
             return TrajectorySample(f[0], f[1], f[2], f[3])
+        memo = self._memo
+        if memo is not None and memo[0] == t_ns:
+            return memo[1]
+        asked = t_ns
         lo, hi, i = self._last
         if not lo <= t_ns < hi:
-            i = int(self._breaks.searchsorted(t_ns, side="right")) - 1
-            if i < 0:
-                i, t_ns = 0, self._start
+            breaks = self._breaks
+            # Mostly the next segment (points a period or so apart); else a search.
+            following = int(breaks[i + 2]) if hi <= t_ns and i + 2 < breaks.shape[0] else hi
+            if hi <= t_ns < following:
+                i += 1
+                self._last = (hi, following, i)
             else:
-                self._last = (int(self._breaks[i]), int(self._breaks[i + 1]), i)
+                i = int(breaks.searchsorted(t_ns, side="right")) - 1
+                if i < 0:
+                    i, t_ns = 0, self._start
+                else:
+                    self._last = (int(breaks[i]), int(breaks[i + 1]), i)
         tau = (t_ns - self._origins[i]) * 1e-9
         out = evaluate(self._blocks[i], tau)
-        return TrajectorySample(out[0], out[1], out[2], out[3])
+        out.setflags(write=False)
+        sample = TrajectorySample(out[0], out[1], out[2], out[3])
+        self._memo = (asked, sample)
+        return sample
 
     def pieces(
         self,

@@ -15,7 +15,7 @@ import pytest
 from jtc_hw import GoalRejected, JointTrajectory, Trajectory, TrajectoryPoint
 from jtc_hw.controller.config import ControllerConfig
 from jtc_hw.controller.goals import ErrorCode
-from jtc_hw.controller.interpolation import SegmentKind
+from jtc_hw.controller.interpolation import SegmentKind, evaluate
 from jtc_hw.controller.validation import prepare
 
 from conftest import MS, S, frange, kinds_at, make_config
@@ -259,6 +259,32 @@ def test_sample_is_pure() -> None:
     order = rng.permutation(len(times))
     shuffled = {times[i]: traj.sample(times[i]).positions[0] for i in order}
     assert forward == [shuffled[t] for t in times]
+
+
+def test_each_sample_is_its_segment_polynomial_whatever_the_order_of_times() -> None:
+    """``sample`` remembers the segment and the sample of its last call (the loop samples at
+    now and a period ahead, segment after segment): every order of times -- the next segment,
+    a skip, a breakpoint exactly, backwards, the same time twice -- gives each time's own
+    segment polynomial, to the bit, in read-only arrays."""
+    times_s = [0.01 * k for k in range(1, 41)]
+    traj = build(
+        one_joint(),
+        pts(pos=[math.sin(t) for t in times_s], vel=[math.cos(t) for t in times_s],
+            times=times_s),
+    )
+    breaks, blocks, origins, _, _ = traj.pieces()
+    end = int(breaks[-1])
+    rng = np.random.default_rng(24)
+    walk = [int(b) for b in breaks[:-1]]  # every breakpoint exactly, in order
+    walk += list(range(T0, end, 7 * MS))  # segment after segment, and skips
+    walk += [int(t) for t in rng.integers(T0, end, 200)]  # anywhere, backwards too
+    walk += [walk[-1], walk[-1], int(breaks[5]) - 1, int(breaks[5]), int(breaks[6]) - 1]
+    for t in walk:
+        got = traj.sample(t)
+        i = int(breaks.searchsorted(t, side="right")) - 1
+        want = evaluate(blocks[i], (t - origins[i]) * 1e-9)
+        assert np.array_equal(np.stack(got), want), t
+        assert not any(field.flags.writeable for field in got)
 
 
 def test_effort_is_linear_feed_forward() -> None:

@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from .joints import F64, JointCommand
+from .joints import F64, JointCommand, all_finite
 from .messages import NS_PER_S
 from .pid import Pid
 from .speed_scaling import SpeedScaling
@@ -118,7 +118,7 @@ class ControlLaw(SpeedScaling):
                 continue
             if values is None or values.shape != (self._n,):
                 return
-            if not np.isfinite(values if mask is None else values[mask]).all():
+            if not all_finite(values if mask is None else values[mask]):
                 return
             if mask is not None and not np.isnan(values[~mask]).all():
                 exact = False

@@ -64,7 +64,7 @@ from .goals import (
     GoalTransition,
     TrajectoryStopped,
 )
-from .joints import F64, JointCommand, JointState
+from .joints import F64, JointCommand, JointState, all_finite
 from .limits_check import TimeScaling
 from .messages import NS_PER_S, JointTrajectory
 from .outcomes import (
@@ -673,7 +673,7 @@ class JointTrajectoryController(ControlLaw, Stops):
                 f"state has {positions.shape} positions, expected {self._n} "
                 f"({', '.join(self.joint_names)})"
             )
-        if not np.isfinite(positions).all():
+        if not all_finite(positions):
             bad = [self.joint_names[i] for i in np.flatnonzero(~np.isfinite(positions))]
             raise HardwareError(
                 f"state position of joint(s) {', '.join(bad)} is not finite; check the "

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -11,10 +12,20 @@ from numpy.typing import NDArray
 F64 = NDArray[np.float64]
 
 
+_FLOAT64 = np.dtype(np.float64)
+
+
 def _array(values: Sequence[float] | F64 | None) -> F64 | None:
-    if values is None:
-        return None
+    if values is None or (type(values) is np.ndarray and values.dtype is _FLOAT64):
+        return values  # what ``asarray`` would return, without its call (every cycle)
     return np.asarray(values, dtype=np.float64)
+
+
+def all_finite(values: F64) -> bool:
+    """Whether every value is finite. A finite sum says so in one call (the check of every
+    cycle); a sum that is not (a NaN, an infinity, or finite values whose sum overflows) is
+    checked value by value."""
+    return math.isfinite(np.add.reduce(values, axis=None)) or bool(np.isfinite(values).all())
 
 
 @dataclass(frozen=True, eq=False, init=False)
@@ -37,7 +48,8 @@ class JointState:
         velocities: Sequence[float] | F64 | None = None,
         accelerations: Sequence[float] | F64 | None = None,
     ) -> None:
-        object.__setattr__(self, "positions", np.asarray(positions, dtype=np.float64))
+        object.__setattr__(self, "positions", np.asarray(positions, dtype=np.float64)
+                           if positions is None else _array(positions))
         object.__setattr__(self, "velocities", _array(velocities))
         object.__setattr__(self, "accelerations", _array(accelerations))
 

@@ -333,7 +333,7 @@ class MirrorHardware(HardwareInterface):
             if self._lag_s == 0.0:
                 p = target.copy()
             else:
-                p = target - (target - p0) * np.exp(-dt / self._lag_s)
+                p = target - (target - p0) * math.exp(-dt / self._lag_s)
             v = (p - p0) / dt
             return p, v, (v - v0) / dt
         vmax = self._vmax[i]

@@ -39,6 +39,7 @@ affect one sample of a recording, never control.
 from __future__ import annotations
 
 import contextlib
+import math
 import os
 import secrets
 from dataclasses import dataclass
@@ -47,12 +48,17 @@ from typing import Any
 
 import numpy as np
 
+from ...controller.joints import JointCommand
 from ...errors import JtcHwError
+from .messages import State
 
 MAGIC = 0x4A54435249  # "JTCRI"
-VERSION = 1
+VERSION = 2
 HEADER_SLOTS = 8
-_H_MAGIC, _H_VERSION, _H_CAPACITY, _H_WIDTH, _H_JOINTS, _H_COUNT = range(6)
+_H_MAGIC, _H_VERSION, _H_CAPACITY, _H_WIDTH, _H_JOINTS, _H_COUNT, _H_STATES = range(7)
+
+STATE_SLOTS = 16
+"""States the ring holds (0.3 s at 50 Hz): the API process reads them about once each."""
 
 RING_S = 2.0
 """Seconds of cycles the shared ring holds: 20 reader periods, so a reader delayed by a busy
@@ -76,6 +82,19 @@ BLOCKS = (
     "reference_effort",
     "output_positions", "output_velocities", "output_accelerations", "output_effort",
 )
+
+
+_STATE_SCALARS = (
+    "seq",  # int64 bits: the state's number (-1 while it is being written)
+    "row",  # int64 bits: the sequence number of its cycle's row
+    "present",  # int64 bits: which of the State's optional arrays it has (_PRESENT)
+    "speed_scaling_target",
+    "trajectory_time_ns",  # int64 bits
+)
+_PRESENT = ("measured_velocities", "measured_accelerations",
+            "command_positions", "command_velocities", "command_accelerations", "command_effort",
+            "output_positions", "output_velocities", "output_accelerations", "output_effort")
+"""Bit ``k`` of a state's ``present``: its ``_PRESENT[k]`` is an array (else None)."""
 
 
 SHM_DIR = "/dev/shm"
@@ -138,6 +157,12 @@ class CycleLayout:
         """The deadlines (int64) of ``rows`` (an array of rows)."""
         return rows[:, self.column("time_ns")].view(np.int64)
 
+    @property
+    def state_width(self) -> int:
+        """float64 values per state slot: ``_STATE_SCALARS``, error ``(3, n)``, command
+        ``(4, n)``."""
+        return len(_STATE_SCALARS) + 7 * self.joints
+
 
 class CycleRing:
     """The shared ring (see the module docstring); make it with :meth:`create` or
@@ -156,6 +181,14 @@ class CycleRing:
         self._rows = np.ndarray((self.capacity, width), dtype=np.float64, buffer=shm.buf,
                                 offset=HEADER_SLOTS * 8)
         self._ints = self._rows.view(np.int64)  # the same memory: seq and time_ns columns
+        self._states = np.ndarray((STATE_SLOTS, self.layout.state_width), dtype=np.float64,
+                                  buffer=shm.buf, offset=(HEADER_SLOTS + self.capacity * width) * 8)
+        self._state_ints = self._states.view(np.int64)
+        n = self.layout.joints
+        self._s_error = slice(len(_STATE_SCALARS), len(_STATE_SCALARS) + 3 * n)
+        self._s_command = tuple(slice(self._s_error.stop + k * n, self._s_error.stop + (k + 1) * n)
+                                for k in range(4))
+        self._state_count = int(header[_H_STATES])
         layout = self.layout
         self._c_seq, self._c_time = layout.column("seq"), layout.column("time_ns")
         self._c_goal, self._c_hold = layout.column("active_goal"), layout.column("holding")
@@ -183,7 +216,7 @@ class CycleRing:
             OSError: the segment cannot be created (``/dev/shm`` full or missing).
         """
         layout = CycleLayout(joints)
-        size = (HEADER_SLOTS + capacity * layout.width) * 8
+        size = (HEADER_SLOTS + capacity * layout.width + STATE_SLOTS * layout.state_width) * 8
         name = f"jtc_hw_{os.getpid()}_{secrets.token_hex(4)}"
         shm = shared_memory.SharedMemory(name=name, create=True, size=size)
         header = np.ndarray((HEADER_SLOTS,), dtype=np.int64, buffer=shm.buf)
@@ -262,7 +295,67 @@ class CycleRing:
         self._count = count + 1
         self._header[_H_COUNT] = count + 1  # published
 
+    def write_state(self, error: Any, command: Any, output: Any, measured: Any,
+                    speed_scaling_target: float, trajectory_time_ns: int) -> None:
+        """Make the row just written a State the API process publishes (at
+        ``state_publish_rate``): what its row does not hold, in a state slot.
+
+        Args:
+            error: ``(3, n)``; command, output: ``JointCommand``; measured: ``JointState``
+                (only which of their arrays are None is taken from ``output`` and
+                ``measured``: their values are in the row).
+        """
+        count = self._state_count
+        i = count % STATE_SLOTS
+        slot, ints = self._states[i], self._state_ints[i]
+        ints[0] = -1  # being written: a reader copying it now drops it
+        present = 0
+        for bit, value in enumerate((
+                measured.velocities, measured.accelerations, command.positions,
+                command.velocities, command.accelerations, command.effort, output.positions,
+                output.velocities, output.accelerations, output.effort)):
+            if value is not None:
+                present |= 1 << bit
+        ints[1] = self._count - 1
+        ints[2] = present
+        slot[3] = speed_scaling_target
+        ints[4] = trajectory_time_ns
+        slot[self._s_error] = error.ravel()
+        for where, value in zip(self._s_command, (command.positions, command.velocities,
+                                                  command.accelerations, command.effort),
+                                strict=True):
+            if value is not None:
+                slot[where] = value
+        ints[0] = count  # complete
+        self._state_count = count + 1
+        self._header[_H_STATES] = count + 1  # published
+
     # -- reader (the API process) -------------------------------------------------------------
+
+    def read_states(self, since: int) -> tuple[list[Any], int, int]:
+        """The States written from number ``since`` on: ``(states, next_since, lost)``, each
+        a :class:`~.messages.State` (its arrays copies), in order, and how many since
+        ``since`` were overwritten (with their rows) before they could be copied."""
+        end = int(self._header[_H_STATES])
+        start = max(since, end - STATE_SLOTS)
+        lost = start - since if end > since else 0
+        states = []
+        for number in range(start, end):
+            i = number % STATE_SLOTS
+            slot = self._states[i].copy()
+            seq = int(slot.view(np.int64)[0])
+            row_seq = int(slot.view(np.int64)[1])
+            row = self._rows[row_seq % self.capacity].copy()
+            # Each copy is trusted only if what was copied was not being rewritten meanwhile.
+            if (seq != number or int(self._state_ints[i, 0]) != number
+                    or int(row.view(np.int64)[self._c_seq]) != row_seq
+                    or row_seq <= int(self._header[_H_COUNT]) - self.capacity):
+                lost += 1
+                continue
+            states.append(_state_from_ring(self.layout, row, slot, self._s_error,
+                                           self._s_command))
+        return states, max(since, end), lost
+
 
     def read(self, since: int) -> tuple[Any, int, int]:
         """The rows written from sequence number ``since`` on, as a copy: ``(rows, next_since,
@@ -298,3 +391,38 @@ class CycleRing:
         if self.owner:
             with contextlib.suppress(FileNotFoundError):
                 self._shm.unlink()
+
+
+def _state_from_ring(layout: CycleLayout, row: Any, slot: Any, error: slice,
+                     command: tuple[slice, ...]) -> State:
+    """The :class:`~.messages.State` a row and its state slot (copies) hold: the record the
+    loop would have sent, value for value."""
+    present = int(slot.view(np.int64)[2])
+    n = layout.joints
+
+    def block(name: str) -> Any:
+        return row[layout.block(name)]
+
+    def given(bit: int, values: Any) -> Any:
+        return values if present >> bit & 1 else None
+
+    goal = float(row[layout.column("active_goal")])
+    first = layout.block("reference_positions").start
+    return State(
+        int(layout.times(row[None, :])[0]),
+        row[first:first + 4 * n].reshape(4, n),
+        block("measured_positions"),
+        given(0, block("measured_velocities")),
+        slot[error].reshape(3, n),
+        JointCommand(*(given(2 + k, slot[where]) for k, where in enumerate(command))),
+        bool(row[layout.column("holding")]),
+        None if math.isnan(goal) else int(goal),
+        float(row[layout.column("reference_time_from_start")]),
+        float(row[layout.column("feedback_time_from_start")]),
+        given(1, block("measured_accelerations")),
+        JointCommand(*(given(6 + k, block(f"output_{field}")) for k, field in enumerate(
+            ("positions", "velocities", "accelerations", "effort")))),
+        float(row[layout.column("speed_scaling")]),
+        float(slot[3]),
+        int(slot.view(np.int64)[4]),
+    )

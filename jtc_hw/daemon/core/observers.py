@@ -174,24 +174,31 @@ class Recorders:
                                      d.flight_recorder_keep, config.name, tolerances,
                                      cycle_rate_hz=config.update_rate,
                                      joint_names=joint_names)
-        if self.flight.available:
-            # Every cycle's row, for the flight recorder (see .cyclering): created here, the
-            # owner, and removed by close_ring once the loop has ended.
-            for name in remove_stale():
-                log.info("removed %s, the cycle ring of a daemon that was killed", name)
-            try:
-                self._ring = CycleRing.create(
-                    len(joint_names), max(64, math.ceil(RING_S * config.update_rate)))
-            except OSError as exc:
-                log.warning("flight recorder: no shared memory for every cycle (%s); it keeps "
-                            "the published states instead", exc)
-                self.flight.cycle_rate_hz = None
+        # Every cycle's row, for the flight recorder, and the published states (see
+        # .cyclering): created here, the owner, and removed by close_ring once the loop has
+        # ended.
+        for name in remove_stale():
+            log.info("removed %s, the cycle ring of a daemon that was killed", name)
+        try:
+            self._ring = CycleRing.create(
+                len(joint_names), max(64, math.ceil(RING_S * config.update_rate)))
+        except OSError as exc:
+            log.warning("no shared memory for the control loop's cycles (%s): its states come "
+                        "through its pipe, and the flight recorder keeps those", exc)
+            self.flight.cycle_rate_hz = None
         if d.record is not None:
             self.recording = ContinuousRecorder(d.record, config.name, self._status, tolerances)
         if self._ring is None:
             return None
-        self._ring_timer = asyncio.get_running_loop().call_later(READ_PERIOD_S, self.read_ring)
+        if self.flight.available:
+            self._ring_timer = asyncio.get_running_loop().call_later(
+                READ_PERIOD_S, self.read_ring)
         return self._ring.name
+
+    @property
+    def ring(self) -> CycleRing | None:
+        """The cycle ring (None: none, or removed)."""
+        return self._ring
 
     # -- Observer ----------------------------------------------------------------------------
 
@@ -256,7 +263,7 @@ class Recorders:
         """Copy the cycles the loop wrote since the last time into the flight recorder;
         again in ``READ_PERIOD_S`` unless ``again`` is False."""
         ring = self._ring
-        if ring is None:
+        if ring is None or self.flight is None or not self.flight.available:
             return
         rows, self._ring_next, lost = ring.read(self._ring_next)
         if self.flight is not None:

@@ -314,6 +314,11 @@ class LoopProcess:
 
     # -- messages from the loop ---------------------------------------------------------------
 
+    def poll(self) -> None:
+        """Take what the loop has written so far, without waiting (as when its pipe is
+        readable): the messages before a State read from the cycle ring go first."""
+        self._readable()
+
     def _readable(self) -> None:
         inbox = self._inbox
         if inbox is None or self._conn is None:

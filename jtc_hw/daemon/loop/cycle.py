@@ -490,23 +490,19 @@ class ControlLoop:
         if now_ns >= self._next_state_ns:
             self._next_state_ns = now_ns + self.state_every_ns
             cs = out.state
+            if ring is not None:
+                # The row just written is the State: the API process reads it from the ring
+                # at state_publish_rate. Nothing to pickle, nothing to write to it, no wake-up.
+                ring.write_state(out.error, out.command, cs.output, cs.feedback,
+                                 cs.speed_scaling_target, self.ctrl.trajectory_time_ns)
+                return
+            # Without the ring (no shared memory). A driver may reuse its arrays: copies.
             message = State(
-                now_ns,
-                np.stack(out.desired),
-                _copy(state.positions),  # a driver may reuse its arrays at the next read
-                _copy(cs.feedback.velocities),
-                out.error,
-                out.command,
-                self.ctrl.holding,
-                self.ctrl.active_goal,
-                cs.reference_time_from_start,
-                cs.feedback_time_from_start,
-                _copy(cs.feedback.accelerations),
-                cs.output,
-                cs.speed_scaling_factor,
-                cs.speed_scaling_target,
-                self.ctrl.trajectory_time_ns,
-            )
+                now_ns, np.stack(out.desired), _copy(state.positions),
+                _copy(cs.feedback.velocities), out.error, out.command, self.ctrl.holding,
+                self.ctrl.active_goal, cs.reference_time_from_start,
+                cs.feedback_time_from_start, _copy(cs.feedback.accelerations), cs.output,
+                cs.speed_scaling_factor, cs.speed_scaling_target, self.ctrl.trajectory_time_ns)
             if self.state_every_ns >= 3 * self.period_ns:
                 # Built here, pickled into the outbox at the next cycle's start (before any
                 # message of that cycle), written by the cycle after: each of the three pays a

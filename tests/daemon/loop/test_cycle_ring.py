@@ -128,3 +128,89 @@ def test_a_killed_daemons_ring_is_removed_by_the_next_one(tmp_path: Path) -> Non
     assert remove_stale(str(tmp_path)) == [f"jtc_hw_{dead}_0badc0de"]
     assert sorted(p.name for p in tmp_path.iterdir()) == sorted(
         [f"jtc_hw_{os.getpid()}_0badc0de", "other_1_2", f"jtc_hw_{dead}"])
+
+
+# -- the States -------------------------------------------------------------------------------
+
+
+def test_a_state_slot_and_its_row_give_the_state_the_loop_would_have_sent() -> None:
+    """Every field of the loop's ``State``, from the row and its state slot, value for value,
+    with None where the loop's arrays were None (an interface not configured)."""
+    rng = np.random.default_rng(49)
+    ring = CycleRing.create(JOINTS, 64)
+
+    def arrays(k: int) -> list[np.ndarray]:
+        return [rng.standard_normal(JOINTS) for _ in range(k)]
+
+    try:
+        states = []
+        for k in range(5):
+            p, v, a = arrays(3)
+            desired = TrajectorySample(*arrays(4))
+            error = rng.standard_normal((3, JOINTS))
+            measured = JointState(p, v if k % 2 else None, a if k % 3 == 0 else None)
+            command = JointCommand(*arrays(2), None, arrays(1)[0] if k else None)
+            output = JointCommand(command.positions, None, None, command.effort)
+            ring.write(10_000 + k, None if k == 1 else 7 + k, k == 2, False, 0.25 * k, k / 3,
+                       k / 7, measured, desired, output)
+            ring.write_state(error, command, output, measured, 0.125 * k, 2**40 + k)
+            states.append((k, desired, error, measured, command, output))
+        got, next_since, lost = ring.read_states(0)
+        assert (len(got), next_since, lost) == (5, 5, 0)
+        for state, (k, desired, error, measured, command, output) in zip(
+                got, states, strict=True):
+            assert state.time_ns == 10_000 + k
+            assert np.array_equal(state.desired, np.stack(desired))
+            assert np.array_equal(state.positions, measured.positions)
+            for mine, theirs in ((state.velocities, measured.velocities),
+                                 (state.accelerations, measured.accelerations)):
+                assert (mine is None) == (theirs is None)
+                assert theirs is None or np.array_equal(mine, theirs)
+            assert np.array_equal(state.error, error)
+            for mine_command, theirs_command in ((state.command, command),
+                                                 (state.output, output)):
+                for field in ("positions", "velocities", "accelerations", "effort"):
+                    mine, theirs = getattr(mine_command, field), getattr(theirs_command, field)
+                    assert (mine is None) == (theirs is None), (k, field)
+                    assert theirs is None or np.array_equal(mine, theirs)
+            assert state.holding is (k == 2)
+            assert state.active_goal == (None if k == 1 else 7 + k)
+            assert (state.reference_time_from_start, state.feedback_time_from_start) == (
+                k / 3, k / 7)
+            assert (state.speed_scaling_factor, state.speed_scaling_target) == (
+                0.25 * k, 0.125 * k)
+            assert state.trajectory_time_ns == 2**40 + k
+        assert ring.read_states(next_since) == ([], 5, 0)
+    finally:
+        ring.close()
+
+
+def test_states_overwritten_before_they_were_read_are_counted_not_returned() -> None:
+    ring = CycleRing.create(JOINTS, 64)
+    try:
+        x = np.zeros(JOINTS)
+        for k in range(40):
+            ring.write(k, None, True, False, 1.0, 0.0, 0.0, JointState(x, x, None),
+                       TrajectorySample(x, x, x, x), JointCommand(x, None, None, None))
+            if k % 2:  # a State every other cycle: 20
+                ring.write_state(np.zeros((3, JOINTS)), JointCommand(x, None, None, None),
+                                 JointCommand(x, None, None, None), JointState(x, x, None),
+                                 1.0, k)
+        got, next_since, lost = ring.read_states(0)
+        assert (next_since, lost) == (20, 4)  # the ring keeps the newest 16
+        assert [s.time_ns for s in got] == list(range(9, 40, 2))
+        # A State whose row was overwritten since (the rows wrapped) is lost too.
+        small = CycleRing.create(JOINTS, 4)
+        try:
+            for k in range(6):
+                small.write(k, None, True, False, 1.0, 0.0, 0.0, JointState(x, x, None),
+                            TrajectorySample(x, x, x, x), JointCommand(x, None, None, None))
+                if k == 0:
+                    small.write_state(np.zeros((3, JOINTS)), JointCommand(x, None, None, None),
+                                      JointCommand(x, None, None, None),
+                                      JointState(x, x, None), 1.0, 0)
+            assert small.read_states(0) == ([], 1, 1)
+        finally:
+            small.close()
+    finally:
+        ring.close()

@@ -62,7 +62,7 @@ COLUMNS = (
     "update",
     "write",
     "ring",  # the cycle ring's row (the flight recorder's feed)
-    "state",  # publishing the State (pickled into the outbox)
+    "state",  # publishing the State (its slot in the cycle ring, or pickled into the outbox)
     "stats",  # LoopStats.record
     "status",  # building and publishing the Status (2 Hz)
     "outbox",  # serve_outbox: writing the outbox to the API process
@@ -84,7 +84,7 @@ class Loop(Protocol):
 
     hardware: object  # read, write
     ctrl: object  # update
-    ring: object | None  # write
+    ring: object | None  # write, write_state
     stats: object  # record
     cycle: Callable[..., None]
     handle_inbox: Callable[..., bool]
@@ -219,6 +219,7 @@ class PhaseRecorder:
         self.wrap(loop.hardware, "write", "write")
         if loop.ring is not None:
             self.wrap(loop.ring, "write", "ring")
+            self.wrap(loop.ring, "write_state", "state")
         self.wrap(loop.stats, "record", "stats")
         self.wrap(loop, "status", "status")
         self.wrap(loop, "serve_outbox", "outbox")

@@ -191,10 +191,13 @@ class LoopBackend:
             self._state_timer = asyncio.get_running_loop().call_soon(self._read_states)
         return ready
 
-    def _read_states(self) -> None:
+    def _read_states(self, again: bool = True) -> None:
         """Publish the States the loop marked in the cycle ring since the last call, after the
-        loop's messages written before them; again when the next is due (module docstring)."""
+        loop's messages written before them; again when the next is due (module docstring),
+        unless ``again`` is False (and then no more)."""
         ring = self.recorders.ring
+        if self._state_timer is not None:
+            self._state_timer.cancel()
         self._state_timer = None
         if ring is None:
             return
@@ -203,6 +206,8 @@ class LoopBackend:
         self._states_lost += lost
         for state in states:
             self._on_state(state)
+        if not again:
+            return
         now = time.monotonic_ns()
         period = self._period_ns
         if states:
@@ -227,15 +232,14 @@ class LoopBackend:
         ``record``: the flight recorder writes a ``shutdown`` bag (False for a start that
         failed: nothing ran, nothing to look at; a bag per failed start under a restarting
         service manager would push out the bags worth keeping)."""
-        if self._state_timer is not None:
-            self._state_timer.cancel()
-            self._state_timer = None
         if not self.loop.started:
+            self._read_states(again=False)
             self.recorders.close_ring()
             return 0
         if self.loop.running and record:
             self.recorders.trigger("shutdown", due=False)  # written by close()
-        await self.loop.stop(reason)
+        await self.loop.stop(reason)  # (the States of a decelerating stop go on meanwhile)
+        self._read_states(again=False)  # the loop's last States
         self.recorders.read_ring(again=False)  # the loop's last cycles
         await self.recorders.close()
         self.recorders.close_ring()

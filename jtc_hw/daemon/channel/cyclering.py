@@ -22,6 +22,14 @@ fixed-size row of float64 per cycle into a single-producer/single-consumer ring 
   and the count again: a row the writer overwrote meanwhile (the reader fell more than
   ``capacity`` rows behind) is dropped and counted as overrun, never taken for a newer cycle.
   The ring holds ``RING_S`` seconds, many reader periods.
+- **States** (decisions 49): after the rows, ``STATE_SLOTS`` state slots. At each
+  ``state_publish_rate`` cycle the loop adds one (:meth:`CycleRing.write_state`: its row's
+  number and what a ``State`` holds that the row does not: error, command, which arrays are
+  None, speed scaling target, trajectory time), marking it -1 while writing it and publishing
+  the count of states in the header. The API process (:meth:`CycleRing.read_states`) copies a
+  slot and its row and trusts them only if neither was rewritten meanwhile; the pair becomes
+  the very ``State`` the loop used to pickle into its pipe. The error and command are in the
+  slots only: the rows of other cycles do not carry them.
 - **Ownership**: the API process creates the segment (``jtc_hw_<pid>_<random>`` in
   ``/dev/shm``) before it starts the loop process, which attaches by name; the API process
   unlinks it when the loop has ended (the daemon's stop, SIGTERM included). If the API process

@@ -20,12 +20,12 @@ locks every device its components drive (``HardwareInterface.devices()``, :mod:`
 second daemon on the same hardware stops there, having sent nothing.
 
 One cycle at deadline ``t``: drain requests -> ``hardware.read(t)`` -> ``controller.update`` ->
-``hardware.write`` -> report events; a state snapshot at ``state_publish_rate`` (pickled by the
-next cycle, written by the one after), statistics at 2 Hz. After it, before ``t + period``:
-write the outbox, read the inbox (a bounded amount) and handle what that completed at ``t`` (a
-plan committed, a request served, their answers written at once, not a period later), then
-free or collect in spare time. The controller's clock is the deadline grid (multiples of the
-period); how late the process woke is measured and published, never fed into the control law. Garbage
+``hardware.write`` -> report events; a state snapshot at ``state_publish_rate`` (a slot of the
+cycle ring; without one, pickled by the next cycle and written by the one after), statistics at
+2 Hz. After it, before ``t + period``: write the outbox, read the inbox (a bounded amount) and
+handle what that completed at ``t`` (a plan committed, a request served, their answers written
+at once), then free or collect in spare time. The controller's clock is the deadline grid;
+how late the process woke is measured and published, never fed into the control law. Garbage
 collection is disabled in the loop and run explicitly (generation 0) when a cycle has slack.
 
 Shutdown (the ``shutdown`` request: SIGTERM, SIGINT): the active goal gets its result, the

@@ -267,3 +267,30 @@ def test_a_hold_reads_fresh_positions(
     while any(abs(emu.positions()[i] - goals[i]) > 2 for i in IDS):  # and stay there
         assert time.monotonic() < deadline, (emu.positions(), goals)
         time.sleep(0.005)  # watching the emulated motors come to rest
+
+
+def test_health_reports_temperature_voltage_status_and_warns_at_temperature_warn_c(
+    make: Callable[..., FeetechHardware], emu: FeetechEmulator
+) -> None:
+    hw = make(health_period_s=0.05, temperature_warn_c=60.0, voltage_range=[11.0, 13.0])
+    hw.configure()
+    hw.activate(now_ns())
+    emu.set_temperature(2, 65.0)  # warm, below the servo's own 70 degC protection
+    emu.set_supply_voltage(3, 15.0)  # above its Max Input Voltage (14 V): the voltage bit
+    command = JointCommand(hw.read(now_ns()).positions, None, None, None)
+    deadline = time.monotonic() + WAIT_S
+    while True:
+        hw.write(now_ns(), command)  # the health block is read after a write, when due
+        motors = {m["motor"]: m for m in hw.health()["motors"]}
+        if motors[2]["temperature_c"] == 65 and motors[3]["voltage_v"] == 15.0:
+            break
+        assert time.monotonic() < deadline, motors
+        time.sleep(0.01)  # the next health slot
+    warnings = hw.health()["warnings"]
+    assert any("motor 2 (joint 'shoulder_lift'): temperature 65 degC" in w for w in warnings)
+    assert any("motor 3 (joint 'elbow_flex'): supply 15 V outside" in w for w in warnings)
+    assert motors[3]["errors"] == ["status: input voltage out of range"]
+    assert motors[1]["temperature_c"] == 35 and motors[1]["voltage_v"] == 12.0
+    assert motors[1]["current_a"] is not None and motors[1]["stale"] is False
+    hw.read(now_ns())  # the voltage bit is a warning, no fault: the servo keeps driving
+    assert hw.health()["bus"]["crc_errors"] == 0

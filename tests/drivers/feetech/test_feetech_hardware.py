@@ -294,3 +294,26 @@ def test_health_reports_temperature_voltage_status_and_warns_at_temperature_warn
     assert motors[1]["current_a"] is not None and motors[1]["stale"] is False
     hw.read(now_ns())  # the voltage bit is a warning, no fault: the servo keeps driving
     assert hw.health()["bus"]["crc_errors"] == 0
+
+
+def test_scs_servos_big_endian_and_read_one_at_a_time() -> None:
+    """SCS0009: 1024 steps over 300 degrees, big-endian words, no Sync Read."""
+    with emulator([1, 2], "SCS0009", initial_positions={1: 512, 2: 700}) as scs:
+        step = ct.MODELS["SCS0009"].rad_per_step
+        hw = FeetechHardware("hand", ["a", "b"], ("position",), ("position", "velocity"),
+                             {"port": scs.device_path, "ids": [1, 2], "model": "SCS0009",
+                              "offset": -512 * step, "timeout_ms": TIMEOUT_MS})
+        try:
+            hw.configure()
+            hw.activate(now_ns())
+            assert hw.read(now_ns()).positions == pytest.approx([0.0, 188 * step], abs=1e-9)
+            served_before = scs.stats()["packets_served"]
+            hw.read(now_ns())
+            assert scs.stats()["packets_served"] - served_before == 2  # one READ per servo
+            target = np.array([0.2, -0.2])
+            hw.write(now_ns(), JointCommand(target, None, None, None))
+            deadline = time.monotonic() + WAIT_S
+            while not np.allclose(hw.read(now_ns()).positions, target, atol=2 * step):
+                assert time.monotonic() < deadline, hw.last_positions
+        finally:
+            hw.shutdown(now_ns())

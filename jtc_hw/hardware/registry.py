@@ -41,6 +41,7 @@ ENTRY_POINT_GROUP: Final = "jtc_hw.hardware"
 BUILTIN_HARDWARE: Final[Mapping[str, str]] = MappingProxyType({
     "mirror": "jtc_hw.hardware.mirror:MirrorHardware",
     "dynamixel": "jtc_hw.drivers.dynamixel.hardware:DynamixelHardware",
+    "feetech": "jtc_hw.drivers.feetech.hardware:FeetechHardware",
     "can-mit": "jtc_hw.drivers.can.mit.hardware:MitHardware",
     "can-cia402": "jtc_hw.drivers.can.cia402.hardware:Cia402Hardware",
 })
@@ -48,6 +49,7 @@ BUILTIN_HARDWARE: Final[Mapping[str, str]] = MappingProxyType({
 
 _BUILTIN_EXTRAS: Final[Mapping[str, str]] = MappingProxyType({
     "dynamixel": "dynamixel",
+    "feetech": "feetech",
     "can-mit": "can",
     "can-cia402": "can",
 })

@@ -745,10 +745,12 @@ def test_builtin_kinds_are_lazy_import_strings() -> None:
     assert dict(BUILTIN_HARDWARE) == {
         "mirror": "jtc_hw.hardware.mirror:MirrorHardware",
         "dynamixel": "jtc_hw.drivers.dynamixel.hardware:DynamixelHardware",
+        "feetech": "jtc_hw.drivers.feetech.hardware:FeetechHardware",
         "can-mit": "jtc_hw.drivers.can.mit.hardware:MitHardware",
         "can-cia402": "jtc_hw.drivers.can.cia402.hardware:Cia402Hardware",
     }
-    assert {"mirror", "dynamixel", "can-mit", "can-cia402"} <= set(available_hardware())
+    assert {"mirror", "dynamixel", "feetech", "can-mit", "can-cia402"} <= set(
+        available_hardware())
     assert hardware_class("mirror") is MirrorHardware
     hw = create_hardware(spec("mirror", lag_s=0.5))
     assert isinstance(hw, MirrorHardware) and hw.state is UNC and hw.params["lag_s"] == 0.5

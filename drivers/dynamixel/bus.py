@@ -50,7 +50,6 @@ from __future__ import annotations
 
 import logging
 import os
-import select
 import time
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
@@ -61,6 +60,7 @@ import dynamixel_sdk as _sdk  # type: ignore[import-untyped]
 
 from jtc_hw.errors import CommunicationError, HardwareError
 
+from ..sdk_port import DescriptorIO
 from .packets import Decoder, crc16, encode_sync_read, encode_sync_write
 
 __all__ = [
@@ -199,14 +199,14 @@ def latency_timer_ms(port: str, sysfs_root: Path = Path("/sys")) -> int | None:
         return None
 
 
-class _Port(_sdk.PortHandler):  # type: ignore[misc]
-    """``PortHandler`` with monotonic time, a blocking bounded read and our timeout allowance."""
+class _Port(DescriptorIO, _sdk.PortHandler):  # type: ignore[misc]
+    """``PortHandler`` with monotonic time, a blocking bounded read (``DescriptorIO``) and our
+    timeout allowance."""
 
     def __init__(self, port_name: str, allowance_ms: float) -> None:
         super().__init__(port_name)
+        self.init_io()
         self.allowance_ms = allowance_ms
-        self.fd = -1
-        self._rx = bytearray()
         # When the last broadcast instruction (the group instructions of every cycle) was
         # handed to the adapter, time.monotonic(): every servo's Bus Watchdog counts from it;
         # and the longest interval between two of them since DynamixelBus.take_silence_s().
@@ -214,76 +214,21 @@ class _Port(_sdk.PortHandler):  # type: ignore[misc]
         self.longest_gap_s = 0.0
 
     # The SDK's names are kept on this subclass only: they are what it calls.
-    def getCurrentTime(self) -> float:  # noqa: N802 - SDK override
-        return time.monotonic_ns() / 1e6
-
     def setPacketTimeout(self, packet_length: int) -> None:  # noqa: N802 - SDK override
         self.packet_start_time = self.getCurrentTime()
         self.packet_timeout = self.tx_time_per_byte * packet_length + self.allowance_ms
 
-    def setupPort(self, cflag_baud: int) -> bool:  # noqa: N802 - SDK override
-        ok = bool(super().setupPort(cflag_baud))
-        self.fd = self.ser.fileno()
-        return ok
-
     def clearPort(self) -> None:  # noqa: N802 - SDK override
-        self._rx.clear()
+        self.drop_input()
         super().clearPort()
 
-    def readPort(self, length: int) -> bytes:  # noqa: N802 - SDK override
-        # Whatever has arrived is taken in one system call and served from a buffer: the SDK
-        # asks for a header first, then the rest, then the next servo's reply; reading only
-        # what it asks for doubles the select/read calls per reply.
-        if length <= 0:
-            return b""
-        rx = self._rx
-        if not rx:
-            remaining_s = (self.packet_timeout - self.getTimeSinceStart()) / 1000.0
-            ready, _, _ = select.select([self.fd], [], [], max(0.0, remaining_s))
-            if not ready:
-                return b""
-            try:
-                rx += os.read(self.fd, 4096)
-            except BlockingIOError:
-                return b""
-        data = bytes(rx[:length])
-        del rx[:length]
-        return data
-
     def writePort(self, packet: list[int] | bytes) -> int:  # noqa: N802 - SDK override
-        # Straight to the descriptor: pyserial's write adds a timeout object and a select per
-        # call, which is measurable at 4 Mbit/s.
-        data = memoryview(bytes(packet))
-        written = 0
-        while written < len(data):
-            try:
-                written += os.write(self.fd, data[written:])
-            except BlockingIOError:
-                # The adapter's buffer is full; a port that stays full this long is gone (the
-                # SDK then reports a transmit failure).
-                _, ready, _ = select.select([], [self.fd], [], 0.1)
-                if not ready:
-                    break
-        if written and len(data) > 4 and data[4] == BROADCAST_ID:  # id byte, after the header
+        written = super().writePort(packet)
+        if written and len(packet) > 4 and packet[4] == BROADCAST_ID:  # id, after the header
             now = time.monotonic()
             self.longest_gap_s = max(self.longest_gap_s, now - self.last_broadcast_s)
             self.last_broadcast_s = now
         return written
-
-    def drain(self, quiet_s: float) -> int:
-        """Discard input until the line has been quiet for ``quiet_s``; bytes discarded."""
-        discarded = len(self._rx)
-        self._rx.clear()
-        deadline = time.monotonic() + 10 * quiet_s  # bounded even if a servo keeps talking
-        while time.monotonic() < deadline:
-            ready, _, _ = select.select([self.fd], [], [], quiet_s)
-            if not ready:
-                break
-            try:
-                discarded += len(os.read(self.fd, 4096))
-            except BlockingIOError:
-                break
-        return discarded
 
 
 class _Protocol2(_sdk.Protocol2PacketHandler):  # type: ignore[misc]

@@ -59,9 +59,6 @@ wrapper"):
 from __future__ import annotations
 
 import logging
-import os
-import select
-import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Final
@@ -70,6 +67,7 @@ import scservo_sdk as _sdk  # type: ignore[import-untyped]
 
 from jtc_hw.errors import CommunicationError
 
+from ..sdk_port import DescriptorIO
 from .codec import Decoder, Instruction, encode_sync_read, encode_sync_write, unpack_word
 from .control_table import Series
 
@@ -159,21 +157,18 @@ class BusStats:
         }
 
 
-class _Port(_sdk.PortHandler):  # type: ignore[misc]
-    """``PortHandler`` with monotonic time, a blocking bounded read, an input that is cleared
-    before each request, and deadlines from the transaction's real duration."""
+class _Port(DescriptorIO, _sdk.PortHandler):  # type: ignore[misc]
+    """``PortHandler`` with monotonic time, a blocking bounded read (``DescriptorIO``), an
+    input that is cleared before each request, and deadlines from the transaction's real
+    duration."""
 
     def __init__(self, port_name: str, allowance_ms: float, return_delay_ms: float) -> None:
         super().__init__(port_name)
+        self.init_io()
         self.allowance_ms = allowance_ms
         self.return_delay_ms = return_delay_ms
-        self.fd = -1
-        self._rx = bytearray()
 
     # The SDK's names are kept on this subclass only: they are what it calls.
-    def getCurrentTime(self) -> float:  # noqa: N802 - SDK override
-        return time.monotonic_ns() / 1e6
-
     def setPacketTimeout(self, packet_length: int) -> None:  # noqa: N802 - SDK override
         # The SDK arms this after a single-servo request, with the reply's byte count: the
         # request's and the reply's wire time, the servo's return delay, our allowance.
@@ -185,63 +180,11 @@ class _Port(_sdk.PortHandler):  # type: ignore[misc]
         self.packet_start_time = self.getCurrentTime()
         self.packet_timeout = expected_ms + self.allowance_ms
 
-    def setupPort(self, cflag_baud: int) -> bool:  # noqa: N802 - SDK override
-        ok = bool(super().setupPort(cflag_baud))
-        self.fd = self.ser.fileno()
-        return ok
-
     def clearPort(self) -> None:  # noqa: N802 - SDK override
         # The SDK's flushes the output only; a late reply left in the input would be taken
         # for the next request's answer.
-        self._rx.clear()
+        self.drop_input()
         self.ser.reset_input_buffer()
-
-    def readPort(self, length: int) -> bytes:  # noqa: N802 - SDK override
-        # Whatever has arrived is taken in one system call and served from a buffer (the SDK
-        # asks for a few bytes at a time); an empty buffer blocks until bytes or the deadline.
-        if length <= 0:
-            return b""
-        rx = self._rx
-        if not rx:
-            remaining_s = (self.packet_timeout - self.getTimeSinceStart()) / 1000.0
-            ready, _, _ = select.select([self.fd], [], [], max(0.0, remaining_s))
-            if not ready:
-                return b""
-            try:
-                rx += os.read(self.fd, 4096)
-            except BlockingIOError:
-                return b""
-        data = bytes(rx[:length])
-        del rx[:length]
-        return data
-
-    def writePort(self, packet: list[int] | bytes) -> int:  # noqa: N802 - SDK override
-        # Straight to the descriptor (pyserial adds a timeout object and a select per call).
-        data = memoryview(bytes(packet))
-        written = 0
-        while written < len(data):
-            try:
-                written += os.write(self.fd, data[written:])
-            except BlockingIOError:
-                _, ready, _ = select.select([], [self.fd], [], 0.1)
-                if not ready:
-                    break  # an adapter that stays full this long is gone
-        return written
-
-    def drain(self, quiet_s: float) -> int:
-        """Discard input until the line has been quiet for ``quiet_s``; bytes discarded."""
-        discarded = len(self._rx)
-        self._rx.clear()
-        deadline = time.monotonic() + 10 * quiet_s  # bounded even if a servo keeps talking
-        while time.monotonic() < deadline:
-            ready, _, _ = select.select([self.fd], [], [], quiet_s)
-            if not ready:
-                break
-            try:
-                discarded += len(os.read(self.fd, 4096))
-            except BlockingIOError:
-                break
-        return discarded
 
 
 class FeetechBus:

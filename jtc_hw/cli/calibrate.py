@@ -107,7 +107,12 @@ class _EnterReader:
 def _measure(args: argparse.Namespace, cal: Any, model: Any, ids: list[int], joints: list[str],
              directions: list[int], gears: list[float]) -> dict[str, list[Any]]:
     """Steps 1-4 of the driver's procedure on the bus; the joints' values."""
-    bus_module = importlib.import_module("jtc_hw.drivers.feetech.bus")
+    try:
+        bus_module = importlib.import_module("jtc_hw.drivers.feetech.bus")
+    except ImportError as exc:
+        raise ConfigurationError(f"Feetech's SDK is not installed ({exc}): pip install "
+                                 "'jtc_hw[feetech]' (or calibrate --from-lerobot, which needs "
+                                 "no bus)") from None
     bus = bus_module.FeetechBus(args.port, args.baud_rate, model.series, timeout_ms=50.0,
                                 return_delay_us=500.0)
     enter = _EnterReader()
@@ -162,7 +167,10 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     gears = [float(g) for g in _per_joint(params.get("gear_ratio"), n, 1.0)]
     gears = [gears[k] for k in index]
     if args.from_lerobot:
-        source = Path(args.from_lerobot).read_text(encoding="utf-8")
+        try:
+            source = Path(args.from_lerobot).read_text(encoding="utf-8")
+        except OSError as exc:
+            raise ConfigurationError(f"cannot read {args.from_lerobot}: {exc.strerror}") from None
         values = cal.from_lerobot(source, args.from_lerobot, joints, ids, model, gears,
                                   math.radians(args.margin_deg))
         print(f"From {args.from_lerobot} (LeRobot's calibration; the servos must still hold "
@@ -176,8 +184,10 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         try:
             values = _measure(args, cal, model, ids, joints, directions, gears)
         except HardwareError as exc:
-            print(f"error: {exc}; check the port ({args.port}), the baud rate and the ids "
-                  "(LeRobot's lerobot-setup-motors gives them 1..6 at 1000000)", file=sys.stderr)
+            hint = ("" if getattr(exc, "servo_id", None) is None else
+                    "; check the baud rate and the ids (LeRobot's lerobot-setup-motors gives "
+                    "them 1..6 at 1000000)")
+            print(f"error: {exc}{hint}", file=sys.stderr)
             return EXIT_BUS_FAILED
     merged = _merge(params, values, index, n)
     new_text = set_component_params(text, path, node, merged)

@@ -24,9 +24,8 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-import yaml
-
 from ..config.editing import hardware_components, set_component_params
+from ..config.reading import decode_text, load_yaml
 from ..errors import ConfigurationError, HardwareError
 from .common import EXIT_BAD_INPUT, EXIT_OK
 
@@ -52,8 +51,11 @@ def _per_joint(value: Any, n: int, default: Any) -> list[Any]:
 
 def _component(text: str, path: str, name: str | None) -> tuple[Any, dict[str, Any]]:
     """The feetech component to calibrate: its node (for editing) and its parsed entry."""
+    data = load_yaml(text, path)  # strict: refuses what the composer below must not see
+    if not isinstance(data, dict):
+        raise ConfigurationError(f"{path}: not a robot file (a mapping with a 'hardware' list)")
     nodes = hardware_components(text, path)
-    entries = (yaml.safe_load(text) or {}).get("hardware") or []
+    entries = data.get("hardware") or []
     by_name = {e.get("name"): e for e in entries if isinstance(e, dict)}
     feetech = [(n, node) for n, kind, node in nodes if kind == "feetech"]
     if name is not None:
@@ -144,7 +146,7 @@ def _measure(args: argparse.Namespace, cal: Any, model: Any, ids: list[int], joi
 def cmd_calibrate(args: argparse.Namespace) -> int:
     path = args.robot_file
     try:
-        text = Path(path).read_text(encoding="utf-8")
+        text = decode_text(Path(path).read_bytes(), path)
     except OSError as exc:
         raise ConfigurationError(f"cannot read {path}: {exc.strerror}") from None
     node, entry = _component(text, path, args.component)

@@ -182,7 +182,10 @@ def demo_hardware(kind: str, line: str) -> tuple[list[dict[str, Any]], int]:
             "model": "STS3215",
             "offset": -math.pi,  # the emulated servos start at step 2048 (pi): joint zero
             "return_delay_time_us": 0,
-            "timeout_ms": 20.0,  # a pty served by another process on a possibly busy machine
+            # A pty served by another process on a possibly busy machine: with 20 ms and one
+            # retry the demo aborted on a missing reply beside two test suites on two cores.
+            "timeout_ms": 50.0,
+            "max_retries": 2,
         }
         return [{"name": "arm", "kind": "feetech", "joints": DEMO_JOINTS, "params": params}], 100
     fields = dict(item.split("=", 1) for item in line.split() if "=" in item)

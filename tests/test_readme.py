@@ -83,7 +83,7 @@ def test_demo_runs_the_daemon_and_a_goal_succeeds() -> None:
     assert "WARNING" not in done.stderr, done.stderr
 
 
-@pytest.mark.parametrize("hardware", ["dynamixel", "can-mit", "can-cia402"])
+@pytest.mark.parametrize("hardware", ["dynamixel", "feetech", "can-mit", "can-cia402"])
 def test_demo_on_emulated_motors(hardware: str, busy_beside: int) -> None:
     """``jtc-hw demo --hardware KIND``: the emulator in its own process, the daemon driving it
     through the real driver (and SDK / python-can), a goal that succeeds, a clean stop --

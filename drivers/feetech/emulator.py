@@ -52,7 +52,9 @@ Faults for tests (all thread-safe): :meth:`~FeetechEmulator.set_silent`,
 servo's torque builds until its overload protection), :meth:`~FeetechEmulator.set_temperature`
 (overheat), :meth:`~FeetechEmulator.set_supply_voltage`,
 :meth:`~FeetechEmulator.set_angle_fault` and :meth:`~FeetechEmulator.power_cycle` (what the
-EPROM lock kept). Protections entered are recorded with the emulator's clock
+EPROM lock kept). A test plays the user's hand with :meth:`~FeetechEmulator.turn_by_hand` (a
+servo with its torque off, as ``jtc-hw calibrate feetech`` asks the user to move them).
+Protections entered are recorded with the emulator's clock
 (:meth:`~FeetechEmulator.protection_events`, :meth:`~FeetechEmulator.wait_protection`); the
 command line prints each as a JSON line ``protection {...}`` on stderr.
 """
@@ -252,6 +254,25 @@ class FeetechEmulator(PtyBusEmulator[Packet, EmulatedServo]):
         """
         with self._lock:
             self._servo(servo_id).power_cycle(time.monotonic())
+
+    def turn_by_hand(self, servo_id: int, shaft_steps: int) -> None:
+        """Turn servo ``servo_id``'s shaft by hand to ``shaft_steps`` (what Present Position
+        reads with no homing offset), at rest: the user's hand during a calibration.
+
+        Raises:
+            KeyError: unknown servo.
+            RuntimeError: its torque is on: a hand cannot turn a servo holding its goal (switch
+                the torque off first, as a calibration must).
+        """
+        with self._lock:
+            s = self._servo_now(servo_id)
+            if s.torque_on:
+                raise RuntimeError(f"servo {servo_id} holds its position (torque on): switch "
+                                   "its torque off before turning it by hand")
+            s.motor.position = float(shaft_steps) * s.model.rad_per_step
+            s.motor.velocity = 0.0
+            s.motor.reset_reference()
+            s.stale = True
 
     # -- serving ----------------------------------------------------------------------------------
 

@@ -9,7 +9,7 @@ request, not active); 3 only when no daemon answers (none running, no reply).
 command group is a module that adds its subcommands (``add_parsers``) and runs them (``cmd_*``):
 
 - :mod:`.run`: ``run``, ``check`` (the daemon and its configuration)
-- :mod:`.demo`: ``demo``;  :mod:`.emulate`: ``emulate``
+- :mod:`.demo`: ``demo``;  :mod:`.emulate`: ``emulate``;  :mod:`.calibrate`: ``calibrate``
 - :mod:`.goals`: ``send``, ``cancel`` (trajectory files);  :mod:`.state`: ``state``, ``query``
 - :mod:`.motion`: ``stop``, ``rearm``, ``speed``, ``pause``, ``resume``
 - :mod:`.params`: ``param``

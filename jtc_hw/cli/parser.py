@@ -38,6 +38,8 @@ Drive robot joints with ROS 2 joint_trajectory_controller semantics, without ROS
                                change a controller parameter while the daemon runs
                                ('jtc-hw param get' lists them)
   jtc-hw emulate dynamixel     emulated servos on a pseudo-terminal (no robot needed)
+  jtc-hw calibrate feetech robot.yaml --ids 1-6
+                               each joint's zero and range by hand (LeRobot's SO-101)
   jtc-hw fleet --watch         the daemons on Zenoh, one line each (docs/zenoh.md)
 
 Client commands find the daemon's socket from --socket, else --config's daemon.socket,
@@ -58,6 +60,7 @@ GROUPS: dict[str, tuple[str, ...]] = {
     "motion": ("stop", "rearm", "speed", "pause", "resume"),
     "params": ("param",),
     "emulate": ("emulate",),
+    "calibrate": ("calibrate",),
     "status": ("status", "hardware"),
     "record": ("record", "plot"),
     "fleet": ("fleet",),

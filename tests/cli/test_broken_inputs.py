@@ -120,6 +120,7 @@ def cases(d: Path) -> list[tuple[list[str], int]]:
             (["plot", str(d / f"bag-{Path(f).stem}")], BAD_FILE),
             (["fleet", "--zenoh-config", str(d / f), "--timeout", "1"], BAD_FILE),
             (["emulate", "dynamixel", "--ids", "1", "--model", str(d / f)], BAD_FILE),
+            (["calibrate", "feetech", str(d / f)], BAD_FILE),
         ]
     return out
 

@@ -82,3 +82,20 @@ def test_the_dynamixel_demo_prints_the_emulator_statistics_once_after_the_demo(
     stopped = [i for i, line in enumerate(lines) if "daemon stopped (SIGTERM)" in line]
     assert stopped and stats[0] > stopped[0], text
     assert "emulator | " in lines[stats[0]]
+
+
+def test_the_feetech_demo_runs_the_goal_to_success_on_emulated_so101_servos(
+    tmp_path: Path,
+) -> None:
+    """``jtc-hw demo --hardware feetech``: six emulated STS3215 at 1 Mbit/s, driven by the
+    feetech kind through Feetech's SDK; the goal succeeds and the emulator reports its
+    statistics once, with no error reply and no corrupt byte."""
+    pytest.importorskip("scservo_sdk", reason="feetech-servo-sdk (jtc_hw[feetech]) is missing")
+    code, lines = demo(tmp_path, "--hardware", "feetech")
+    text = "\n".join(lines)
+    assert code == 0, text
+    assert any("goal 1 succeeded" in line for line in lines), text
+    assert any("emulated feetech motors: " in line for line in lines), text
+    stats = [line for line in lines if "packets_served=" in line]
+    assert len(stats) == 1, text
+    assert "errors_sent=0" in stats[0] and "checksum_errors=0" in stats[0], text

@@ -28,6 +28,12 @@ CAN rows (``--bus can-mit`` / ``can-cia402``) come from ``bench/bus_rate_can.py`
 (``mit_rows(duration_s)``) and ``bench/bus_rate_cia402.py`` (``cia402_rows(duration_s)``) when
 those files exist; otherwise those buses are reported as not available.
 
+Feetech rows (``--bus feetech``, issue 26) come from ``bench/bus_rate_feetech.py``
+(``feetech_rows``): six STS3215 at 1 Mbit/s on ``jtc-hw emulate feetech``, our
+``FeetechHardware`` (row ``feetech jtc_hw``) beside a hand-written ``scservo_sdk`` loop doing the
+same two transactions, as a LeRobot user runs them (row ``feetech sdk loop``); the target
+``ratio <= 1.3`` is our row's, with a verdict line that names the SDK loop's figure too.
+
 ``--breakdown`` splits each measured cycle into wire time, time inside dynamixel-sdk's /
 python-can's calls, our own driver code's CPU and time blocked, and prints the p50 of each
 (keys under ``breakdown`` in ``--json`` rows; bench/bus_breakdown.py says how they are taken).
@@ -40,7 +46,7 @@ N`` (SCHED_FIFO), and the emulators at the same priority: they stand for the mot
 electronics share no CPU with the robot's computer, so a neighbour must not slow the replies
 down either. The neighbour stays at normal priority. Rows say ``priority``.
 
-Usage:  python bench/bus_rate.py [--duration 3] [--bus dynamixel can-mit can-cia402]
+Usage:  python bench/bus_rate.py [--duration 3] [--bus dynamixel can-mit can-cia402 feetech]
                                  [--bitrates 1000000 2000000 4000000] [--profile] [--json]
                                  [--breakdown] [--neighbour [on|both]] [--priority N]
 """
@@ -57,7 +63,7 @@ import subprocess
 import sys
 import tempfile
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
@@ -93,6 +99,8 @@ CAN_SOURCES = {
     "can-mit": ("bus_rate_can.py", "mit_rows"),
     "can-cia402": ("bus_rate_cia402.py", "cia402_rows"),
 }
+FEETECH_SOURCE = ("bus_rate_feetech.py", "feetech_rows")
+BUSES = ("dynamixel", *CAN_SOURCES, "feetech")
 
 
 @contextmanager
@@ -263,10 +271,8 @@ def _dynamixel_row(bitrate: int, duration_s: float, profile: bool,
     return row
 
 
-def can_rows(bus: str, duration_s: float, breakdown: bool = False,
-             neighbours: list[bool] | None = None) -> list[dict[str, Any]] | str:
-    """Rows from another helper's bench module, or why there are none."""
-    filename, function = CAN_SOURCES[bus]
+def _bench_module(bus: str, filename: str) -> Any:
+    """Another bench module of this folder, loaded by path, or why it cannot be (a str)."""
     path = Path(__file__).resolve().parent / filename
     if not path.exists():
         return f"{bus}: bench/{filename} is not available"
@@ -275,20 +281,49 @@ def can_rows(bus: str, duration_s: float, breakdown: bool = False,
         return f"{bus}: cannot load bench/{filename}"
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
+    return module
+
+
+def can_rows(bus: str, duration_s: float, breakdown: bool = False,
+             neighbours: list[bool] | None = None) -> list[dict[str, Any]] | str:
+    """Rows from another helper's bench module, or why there are none."""
+    filename, function = CAN_SOURCES[bus]
+    module = _bench_module(bus, filename)
+    if isinstance(module, str):
+        return module
     produce: Callable[..., list[dict[str, Any]]] = getattr(module, function)
     if not breakdown and neighbours is None:
         return list(produce(duration_s))
     return list(produce(duration_s, breakdown=breakdown, neighbours=neighbours or [False]))
 
 
-def print_table(rows: list[dict[str, Any]], notes: list[str]) -> None:
+def feetech_rows(duration_s: float, breakdown: bool, neighbours: list[bool],
+                 priority: int) -> tuple[list[dict[str, Any]], list[str]]:
+    """The Feetech rows (ours, then the SDK loop, per neighbour mode) and their verdict lines,
+    or no rows and why (bench/bus_rate_feetech.py needs ``scservo_sdk``: ``jtc_hw[feetech]``)."""
+    try:
+        module = _bench_module("feetech", FEETECH_SOURCE[0])
+    except ImportError as exc:
+        return [], [f"feetech: {exc}; install the extra: pip install 'jtc_hw[feetech]'"]
+    if isinstance(module, str):
+        return [], [module]
+    rows = list(getattr(module, FEETECH_SOURCE[1])(duration_s, breakdown=breakdown,
+                                                   neighbours=neighbours, priority=priority))
+    return rows, list(module.verdicts(rows))
+
+
+def print_table(rows: list[dict[str, Any]], notes: list[str],
+                verdicts: Sequence[str] = ()) -> None:
     print(f"{'bus':<21} {'bit/s':>9} {'motors':>6} {'buses':>5} {'nb':>3} {'rate Hz':>9} "
           f"{'cycle us':>9} {'wire us':>9} {'ratio':>6} {'cpu us':>7} {'cpu ratio':>9}")
     for r in rows:
         flag = ""
         if r["bus"] == "dynamixel" and r["bitrate"] == 4_000_000:
             flag = "  ok" if r["target_met"] else f"  above target {TARGET_RATIO}"
+        if r["bus"] == "feetech" and r["client"] == "jtc_hw":
+            flag = "  ok" if r["target_met"] else f"  above target {TARGET_RATIO}"
         label = r["bus"] + (f"/{r['transport']}" if "transport" in r else "")
+        label += f" {r['client']}" if "client" in r else ""
         busy = "yes" if r.get("neighbour") else "no"
         print(f"{label:<21} {r['bitrate']:>9} {r['motors']:>6} {r['buses']:>5} {busy:>3} "
               f"{r['rate_hz']:>9.1f} {r['cycle_us']:>9.1f} {r['wire_us']:>9.1f} "
@@ -304,6 +339,8 @@ def print_table(rows: list[dict[str, Any]], notes: list[str]) -> None:
     for r in rows:
         if r["bus"] == "dynamixel":
             print(verdict(r))
+    for line in verdicts:
+        print(line)
     for note in notes:
         print(note)
 
@@ -325,13 +362,15 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         description=__doc__.split("\n\n")[0] if __doc__ else None,
         epilog="CAN buses are measured by bench/bus_rate_can.py (mit_rows) and "
-        "bench/bus_rate_cia402.py (cia402_rows), imported only if those files exist.",
+        "bench/bus_rate_cia402.py (cia402_rows), Feetech by bench/bus_rate_feetech.py "
+        "(feetech_rows), imported only if those files exist.",
     )
     parser.add_argument("--duration", type=float, default=3.0,
                         help="seconds per configuration (default 3)")
-    parser.add_argument("--bus", nargs="+", default=["dynamixel", *CAN_SOURCES],
-                        choices=["dynamixel", *CAN_SOURCES],
-                        help="buses to measure (default: all)")
+    parser.add_argument("--bus", nargs="+", default=list(BUSES), choices=BUSES,
+                        help="buses to measure (default: all); feetech: six STS3215 at 1 "
+                        "Mbit/s, our driver then a hand-written scservo_sdk loop (LeRobot's "
+                        "way) doing the same Sync Read + Sync Write (bench/bus_rate_feetech.py)")
     parser.add_argument("--bitrates", nargs="+", type=int, default=list(BITRATES),
                         help="Dynamixel bit rates (default 1000000 2000000 4000000)")
     parser.add_argument("--profile", action="store_true",
@@ -348,8 +387,9 @@ def main(argv: list[str] | None = None) -> int:
                         "('on', the default when given bare), or 'both': an idle run then a "
                         "run with the neighbour, for each configuration")
     parser.add_argument("--priority", type=int, default=0, metavar="N",
-                        help="SCHED_FIFO priority of the driver and the emulators (the "
-                        "daemon's daemon.realtime.priority; default 0: normal scheduling)")
+                        help="SCHED_FIFO priority of the driver (or the SDK loop) and the "
+                        "emulators (the daemon's daemon.realtime.priority; default 0: normal "
+                        "scheduling)")
     parser.add_argument("--json", action="store_true", help="one JSON object per line")
     args = parser.parse_args(argv)
     if args.priority:
@@ -360,9 +400,15 @@ def main(argv: list[str] | None = None) -> int:
     neighbours = neighbour_modes(args.neighbour)
     rows: list[dict[str, Any]] = []
     notes: list[str] = []
+    verdicts: list[str] = []
     for bus in args.bus:
         first = len(rows)
-        if bus == "dynamixel":
+        if bus == "feetech":
+            got_rows, lines = feetech_rows(args.duration, args.breakdown, neighbours,
+                                           args.priority)
+            rows += got_rows
+            (verdicts if got_rows else notes).extend(lines)
+        elif bus == "dynamixel":
             rows += dynamixel_rows(args.duration, args.bitrates, args.profile,
                                    args.health_period_s, args.breakdown, neighbours)
         else:
@@ -380,13 +426,15 @@ def main(argv: list[str] | None = None) -> int:
         for row in rows:
             if row["bus"] == "dynamixel":
                 print(verdict(row), file=sys.stderr)
+        for line in verdicts:
+            print(line, file=sys.stderr)
         for note in notes:
             print(note, file=sys.stderr)
     else:
         if args.priority:
             print(f"driver and emulators at SCHED_FIFO priority {args.priority}; the neighbour "
                   "at normal priority")
-        print_table(rows, notes)
+        print_table(rows, notes, verdicts)
     return 0
 
 

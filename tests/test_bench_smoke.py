@@ -58,3 +58,20 @@ def test_bus_rate_breakdown_alternates_idle_and_neighbour_runs() -> None:
         assert parts["calls_per_cycle"] == 0 and parts["sdk_cpu_p50_us"] == 0
         assert 0 < parts["driver_cpu_p50_us"] < parts["cycle_p50_us"]
         assert parts["blocked_p50_us"] >= 0
+
+
+def test_bus_rate_feetech_rows_put_our_driver_beside_the_sdk_loop() -> None:
+    """``bus_rate.py --bus feetech``: our driver's row then the hand-written scservo_sdk loop's,
+    on the same wire time; our cycle makes no SDK call, the loop's is nothing but SDK calls."""
+    rows = bench_rows("bus_rate.py", "--bus", "feetech", "--duration", "0.2", "--breakdown")
+    assert [(row["bus"], row["client"]) for row in rows] == [("feetech", "jtc_hw"),
+                                                            ("feetech", "sdk loop")]
+    ours, sdk = rows
+    # Sync Read request 14 bytes, six 12-byte replies, Sync Write 26 bytes, 10 us a byte.
+    assert ours["wire_us"] == sdk["wire_us"] == 1120.0
+    for row in rows:
+        assert row["bitrate"] == 1_000_000 and row["motors"] == 6
+        assert {"cycle_us", "ratio", "driver_cpu_us", "target_met"} <= set(row)
+        assert row["breakdown"]["cycles"] > 0 and row["cycle_us"] > 0
+    assert ours["breakdown"]["calls_per_cycle"] == 0
+    assert sdk["breakdown"]["calls_per_cycle"] > 0 and sdk["breakdown"]["sdk_p50_us"] > 0

@@ -201,11 +201,15 @@ class LoopBackend:
         self._state_timer = None
         if ring is None:
             return
-        self.loop.poll()
-        states, self._state_next, lost = ring.read_states(self._state_next)
-        self._states_lost += lost
-        for state in states:
-            self._on_state(state)
+        states: list[State] = []
+        try:
+            self.loop.poll()
+            states, self._state_next, lost = ring.read_states(self._state_next)
+            self._states_lost += lost
+            for state in states:
+                self._on_state(state)
+        except Exception:  # a programming error: said, and the States go on (the loop too)
+            log.exception("publishing the control loop's states failed")
         if not again:
             return
         now = time.monotonic_ns()

@@ -21,7 +21,7 @@ second daemon on the same hardware stops there, having sent nothing.
 
 One cycle at deadline ``t``: drain requests -> ``hardware.read(t)`` -> ``controller.update`` ->
 ``hardware.write`` -> report events; a state snapshot at ``state_publish_rate`` (a slot of the
-cycle ring; without one, pickled by the next cycle and written by the one after), statistics at
+cycle ring; without one, pickled into the outbox and written by the next cycle), statistics at
 2 Hz. After it, before ``t + period``: write the outbox, read the inbox (a bounded amount) and
 handle what that completed at ``t`` (a plan committed, a request served, their answers written
 at once), then free or collect in spare time. The controller's clock is the deadline grid;
@@ -163,7 +163,6 @@ class ControlLoop:
         self._retired: collections.deque[tuple[Any, Any]] = collections.deque()
         self._next_state_ns = 0
         self._state_cycle = False  # this cycle published a State (serve_outbox)
-        self._state_built: State | None = None  # built by the last cycle, published by this
         self._next_status_ns = 0
         self._last_state: JointState | None = None
         self._shutdown_reason = "daemon stopping"
@@ -448,8 +447,6 @@ class ControlLoop:
         message = inbox.pop()
         if message is None:
             return False
-        if self._state_built is not None:
-            self._publish_built()  # the State of an earlier deadline goes first
         while message is not None:
             self._handle(message, now_ns)
             message = inbox.pop()
@@ -457,8 +454,6 @@ class ControlLoop:
 
     def cycle(self, now_ns: int, period_ns: int, inbox: Inbox) -> None:
         """One read -> update -> write at deadline ``now_ns``."""
-        if self._state_built is not None:
-            self._publish_built()
         self.handle_inbox(inbox, now_ns)
         if self.fault is not None or not self.ctrl.active:
             if self.fault is not None:
@@ -496,28 +491,14 @@ class ControlLoop:
                 ring.write_state(out.error, out.command, cs.output, cs.feedback,
                                  cs.speed_scaling_target, self.ctrl.trajectory_time_ns)
                 return
-            # Without the ring (no shared memory). A driver may reuse its arrays: copies.
-            message = State(
-                now_ns, np.stack(out.desired), _copy(state.positions),
-                _copy(cs.feedback.velocities), out.error, out.command, self.ctrl.holding,
-                self.ctrl.active_goal, cs.reference_time_from_start,
-                cs.feedback_time_from_start, _copy(cs.feedback.accelerations), cs.output,
-                cs.speed_scaling_factor, cs.speed_scaling_target, self.ctrl.trajectory_time_ns)
-            if self.state_every_ns >= 3 * self.period_ns:
-                # Built here, pickled into the outbox at the next cycle's start (before any
-                # message of that cycle), written by the cycle after: each of the three pays a
-                # third of the work, which runs cold at 50 Hz (the period's p99).
-                self._state_built = message
-            else:
-                self.publish(message)
-                self._state_cycle = True
-
-    def _publish_built(self) -> None:
-        """Queue the State the last cycle built (the pickling)."""
-        message, self._state_built = self._state_built, None
-        assert message is not None
-        self.publish(message)
-        self._state_cycle = True
+            # Without the ring (no shared memory): pickled now, written by the next cycle.
+            self._state_cycle = True
+            self.publish(State(
+                now_ns, np.stack(out.desired), state.positions, cs.feedback.velocities,
+                out.error, out.command, self.ctrl.holding, self.ctrl.active_goal,
+                cs.reference_time_from_start, cs.feedback_time_from_start,
+                cs.feedback.accelerations, cs.output, cs.speed_scaling_factor,
+                cs.speed_scaling_target, self.ctrl.trajectory_time_ns))
 
     def _monitor(self, now_ns: int) -> None:
         """While faulted: what the hardware can read without commanding anything (its motors'
@@ -653,8 +634,6 @@ class ControlLoop:
         With decelerating stops, a requested shutdown (``_begin_shutdown``) comes here once
         the joints are at rest; the goal already has its result then."""
         reason = self._shutdown_reason
-        if self._state_built is not None:
-            self._publish_built()
         if self.ctrl.active:
             events = self.ctrl.deactivate(now_ns, f"{reason}: holding position")
             self._write_deactivation_command(now_ns)
@@ -666,10 +645,6 @@ class ControlLoop:
         except JtcHwError as exc:
             log.error("releasing the hardware failed: %s", exc)
         self.send(Status(self.status()))
-
-
-def _copy(values: np.ndarray | None) -> np.ndarray | None:
-    return None if values is None else values.copy()
 
 
 QUIET_LOGGERS = {

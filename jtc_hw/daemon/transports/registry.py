@@ -97,8 +97,20 @@ def _zenoh(wiring: Wiring) -> Transport | None:
                           add_observer=wiring.add_observer)
 
 
+def _ros2(wiring: Wiring) -> Transport | None:
+    """ROS 2 over rmw_zenoh (``daemon.ros2``), off when absent."""
+    settings = wiring.daemon.ros2
+    if settings is None:
+        return None
+    from .ros2.node import Ros2Interface  # numpy, and rosbags when started: only if asked
+
+    return Ros2Interface(settings, wiring.controller, wiring.requests,
+                         add_observer=wiring.add_observer)
+
+
 TRANSPORTS: tuple[Registration, ...] = (
     Registration("socket", _socket, "cannot open the socket"),
     Registration("zenoh", _zenoh),
+    Registration("ros2", _ros2),
 )
 """Every transport, in the order they start (closed in the reverse order)."""

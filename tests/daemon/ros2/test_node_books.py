@@ -1,0 +1,170 @@
+"""The ROS 2 transport's pure parts: the action server's books (actions.py) and daemon.ros2.
+
+No Zenoh session: these run without a router.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from jtc_hw.daemon.robot import load_robot
+from jtc_hw.daemon.transports.ros2 import actions as a
+from jtc_hw.daemon.transports.ros2.actions import GoalBook
+from jtc_hw.errors import ConfigurationError
+
+from conftest import make_robot_config
+
+S = 10**9
+
+
+def uuid(n: int) -> bytes:
+    return bytes([n]) * 16
+
+
+# -- the books ----------------------------------------------------------------------------------
+
+
+def test_accept_releases_events_held_before() -> None:
+    book = GoalBook()
+    book.hold(7, "feedback")
+    book.hold(7, "result")
+    book.hold(8, "another transport's")
+    goal, held = book.accept(uuid(1), 7, 5 * S)
+    assert held == ["feedback", "result"]
+    assert goal.status == a.EXECUTING and book.by_id(7) is goal and book.known(uuid(1))
+    assert book.accept(uuid(2), 9, 6 * S)[1] == []
+    with pytest.raises(ValueError):
+        book.accept(uuid(1), 10, 7 * S)
+
+
+def test_holding_is_bounded_and_keeps_the_last_event() -> None:
+    book = GoalBook()
+    for goal_id in range(a.EARLY_GOALS + 5):
+        book.hold(goal_id, "x")
+    assert book.accept(uuid(1), 0, 0)[1] == []  # the oldest held goals were forgotten
+    for i in range(a.EARLY_EVENTS + 10):
+        book.hold(1000, i)
+    book.hold(1000, "result")
+    held = book.accept(uuid(2), 1000, 0)[1]
+    assert len(held) == a.EARLY_EVENTS and held[-1] == "result"
+
+
+def test_one_result_and_waiting_requests() -> None:
+    book = GoalBook()
+    goal, _ = book.accept(uuid(1), 1, 0)
+    assert book.want_result(uuid(1), "q1") and book.want_result(uuid(1), "q2")
+    assert not book.want_result(uuid(9), "unknown")
+    assert book.waiting == 2
+    done = book.finish(1, a.SUCCEEDED, 0, "Goal successfully reached!", 3 * S)
+    assert done is goal and goal.terminal and goal.ended_ns == 3 * S
+    assert book.answered(goal) == ["q1", "q2"] and book.waiting == 0
+    assert book.finish(1, a.ABORTED, -4, "second", 4 * S) is None  # one result per goal
+    assert goal.status == a.SUCCEEDED
+    assert not book.want_result(uuid(1), "late")  # has its result: answered at once
+    assert book.finish(99, a.SUCCEEDED, 0, "", 0) is None  # not ours
+
+
+def test_waiting_requests_are_bounded() -> None:
+    book = GoalBook()
+    book.accept(uuid(1), 1, 0)
+    for i in range(a.MAX_WAITING):
+        assert book.want_result(uuid(1), i)
+    assert not book.want_result(uuid(1), "one too many")
+
+
+def test_results_kept_for_the_result_timeout_and_bounded() -> None:
+    book = GoalBook()
+    book.accept(uuid(1), 1, 0)
+    book.finish(1, a.ABORTED, -4, "Aborted due to path tolerance violation", 10 * S)
+    assert book.expire(10 * S + a.RESULT_TIMEOUT_NS - 1) == 0 and book.known(uuid(1))
+    assert book.expire(10 * S + a.RESULT_TIMEOUT_NS) == 1 and not book.known(uuid(1))
+    assert book.by_id(1) is None
+    for n in range(a.MAX_KEPT + 3):
+        book.accept(bytes(8) + n.to_bytes(8, "little"), 100 + n, n)
+        book.finish(100 + n, a.SUCCEEDED, 0, "", n)
+    assert book.kept == a.MAX_KEPT
+    assert not book.known(bytes(8) + (0).to_bytes(8, "little"))
+    assert len(book.status_list()) == a.MAX_STATUS
+
+
+def test_cancel_rules_as_rcl_action() -> None:
+    book = GoalBook()
+    g1, _ = book.accept(uuid(1), 1, 1 * S)
+    g2, _ = book.accept(uuid(2), 2, 2 * S)
+    g3, _ = book.accept(uuid(3), 3, 3 * S)
+    book.finish(3, a.SUCCEEDED, 0, "", 4 * S)
+    # zero UUID, zero stamp: every goal that can be canceled
+    assert book.cancel_targets(a.ZERO_UUID, 0) == (a.ERROR_REJECTED, [g1, g2])
+    # zero UUID, a stamp: those accepted at or before it
+    assert book.cancel_targets(a.ZERO_UUID, 1 * S) == (a.ERROR_REJECTED, [g1])
+    # one UUID
+    assert book.cancel_targets(uuid(2), 0) == (a.ERROR_REJECTED, [g2])
+    assert book.cancel_targets(uuid(9), 0) == (a.ERROR_UNKNOWN_GOAL_ID, [])
+    assert book.cancel_targets(uuid(3), 0) == (a.ERROR_GOAL_TERMINATED, [])
+    # a UUID and a stamp: that goal and those accepted at or before the stamp
+    assert book.cancel_targets(uuid(2), 1 * S) == (a.ERROR_REJECTED, [g1, g2])
+    book.canceling(g2)
+    assert g2.status == a.CANCELING
+    book.finish(2, a.CANCELED, 0, "", 5 * S)
+    assert [g.status for g in book.status_list()] == [a.EXECUTING, a.CANCELED, a.SUCCEEDED]
+
+
+def test_status_codes_of_our_goal_statuses() -> None:
+    from jtc_hw.controller.goals import GoalStatus
+
+    assert [a.status_code(s) for s in (GoalStatus.SUCCEEDED, GoalStatus.CANCELED,
+                                       GoalStatus.ABORTED)] == [4, 5, 6]
+
+
+# -- daemon.ros2 --------------------------------------------------------------------------------
+
+
+def robot(tmp_path: Path, **ros2: Any) -> Any:
+    hardware = [{"name": "m", "kind": "mirror", "joints": ["j1"]}]
+    return load_robot(make_robot_config(tmp_path / "d.sock", ["j1"], hardware, ros2=ros2))
+
+
+def test_ros2_section_defaults_are_rmw_zenohs(tmp_path: Path) -> None:
+    settings = robot(tmp_path).daemon.ros2
+    assert settings.domain_id == 0 and settings.namespace == "" and settings.distro == "jazzy"
+    assert settings.controller_name is None and settings.joint_state_broadcaster
+    assert settings.node_name("joint_trajectory_controller") == "joint_trajectory_controller"
+    z = settings.zenoh
+    assert z.mode == "client" and z.connect == ("tcp/127.0.0.1:7447",) and z.listen == ()
+    named = robot(tmp_path, controller_name="arm_controller", namespace="robot1/",
+                  distro="humble", domain_id=7).daemon.ros2
+    assert named.node_name("x") == "arm_controller" and named.namespace == "/robot1"
+    assert named.distro == "humble" and named.domain_id == 7
+
+
+@pytest.mark.parametrize(("ros2", "path", "words"), [
+    ({"distro": "iron"}, "daemon.ros2.distro", "jazzy"),
+    ({"domain_id": 300}, "daemon.ros2.domain_id", "232"),
+    ({"namespace": "/9lives"}, "daemon.ros2.namespace", "not a ROS name"),
+    ({"controller_name": "arm-controller"}, "daemon.ros2.controller_name", "not a ROS node"),
+    ({"zenoh": {"listen": ["tcp/0.0.0.0:7447"]}}, "daemon.ros2.zenoh.listen",
+     "neither TLS nor authentication"),
+    ({"zenoh": {"connect": [], "listen": []}}, "daemon.ros2.zenoh", "reach nobody"),
+    ({"zenoh": {"connect": ["127.0.0.1:7447"]}}, "daemon.ros2.zenoh", "<protocol>/<address>"),
+    ({"zenoh": {"mode": "router"}}, "daemon.ros2.zenoh.mode", "client"),
+    ({"zenoh": {"config": "missing.json5"}}, "daemon.ros2.zenoh.config", "not a file"),
+    ({"colour": "blue"}, "daemon.ros2", "colour"),
+])
+def test_ros2_section_errors_name_the_key(tmp_path: Path, ros2: dict[str, Any], path: str,
+                                          words: str) -> None:
+    with pytest.raises(ConfigurationError) as info:
+        robot(tmp_path, **ros2)
+    assert info.value.path.startswith(path) and words in str(info.value), str(info.value)
+
+
+def test_ros2_listen_beyond_loopback_with_authentication(tmp_path: Path) -> None:
+    pytest.importorskip("zenoh")
+    config = tmp_path / "z.json5"
+    config.write_text(json.dumps({"transport": {"auth": {"usrpwd": {
+        "user": "robot", "password": "a long enough password"}}}}))
+    z = robot(tmp_path, zenoh={"listen": ["tcp/0.0.0.0:7447"], "config": str(config)})
+    assert z.daemon.ros2.zenoh.listen == ("tcp/0.0.0.0:7447",)

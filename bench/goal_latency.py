@@ -265,9 +265,10 @@ class Ros2Goals:
     def __init__(self) -> None:
         import zenoh
 
-        from jtc_hw.daemon.transports.ros2 import _interim as rt
+        from jtc_hw.daemon.transports.ros2 import wire
+        from jtc_hw.daemon.transports.ros2.types import ros_types
 
-        self._rt = rt
+        self._wire = wire
         self.endpoint = free_endpoint()
         quiet = {"scouting/multicast/enabled": "false", "scouting/gossip/enabled": "false"}
         router = zenoh.Config()
@@ -281,16 +282,16 @@ class Ros2Goals:
                 config.insert_json5(key, value)
         self.router = zenoh.open(router)
         self.session = zenoh.open(client)
-        self.types = rt.RosTypes("jazzy")
+        self.types = ros_types("jazzy")
         store = self.types.typestore
         action = "control_msgs/action/FollowJointTrajectory"
         self._request = f"{action}_SendGoal_Request"
         self._response = f"{action}_SendGoal_Response"
         name = f"/{self.CONTROLLER}/follow_joint_trajectory/_action/send_goal"
         service = f"{action}_SendGoal"
-        self.key = rt.topic_key(0, name, self.types.dds_name(service),
+        self.key = wire.topic_key(0, name, self.types.dds_name(service),
                                 self.types.type_hash(service))
-        self.gid = rt.new_gid()
+        self.gid = wire.new_gid()
         self.seq = 0
         self.store = store
 
@@ -323,7 +324,7 @@ class Ros2Goals:
 
         request[4:20] = os.urandom(16)  # goal_id, the request's first field
         self.seq += 1
-        attachment = self._rt.encode_attachment(self.seq, time.time_ns(), self.gid)
+        attachment = self._wire.encode_attachment(self.seq, time.time_ns(), self.gid)
         begin = time.perf_counter_ns()
         replies = list(self.session.get(self.key, payload=bytes(request), attachment=attachment,
                                         timeout=TIMEOUT_S))

@@ -25,7 +25,7 @@ import numpy as np
 
 from ....controller.goals import GoalFeedback
 from ....controller.trajectory import QueriedState
-from . import _interim as _rt
+from .cdr import CdrError
 
 __all__ = ["Messages", "make", "ros_time"]
 
@@ -237,12 +237,12 @@ class Messages:
 
     def _decode(self, data: bytes, typename: str) -> Any:
         if len(data) > SMALL_REQUEST_BYTES:
-            raise _rt.CdrError(f"{typename}: {len(data)} bytes, more than this request can "
+            raise CdrError(f"{typename}: {len(data)} bytes, more than this request can "
                                "hold")
         try:
             return self.store.deserialize_cdr(data, typename)
         except Exception as exc:  # rosbags' own errors, struct's, IndexError...
-            raise _rt.CdrError(f"{typename}: {type(exc).__name__}: {exc}") from None
+            raise CdrError(f"{typename}: {type(exc).__name__}: {exc}") from None
 
     def cancel_request(self, data: bytes) -> tuple[bytes, int]:
         """(UUID, stamp in ns) of a ``CancelGoal`` request.

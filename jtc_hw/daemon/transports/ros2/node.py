@@ -74,8 +74,18 @@ from ....controller.messages import JointTrajectory
 from ...core.requests import Caller, Requests
 from ...ros2_config import INSTALL_HINT
 from ...zenoh_config import import_zenoh, session_config
-from . import _interim as rt
-from . import actions
+from . import actions, cdr, wire
+from .types import ros_types
+from .wire import (
+    QOS_ACTION_STATUS,
+    QOS_DEFAULT,
+    QOS_SERVICES,
+    QOS_SYSTEM_DEFAULT,
+    Durability,
+    EntityKind,
+    Qos,
+    Reliability,
+)
 from .actions import Goal, GoalBook
 from .messages import (
     CANCEL_GOAL,
@@ -111,8 +121,9 @@ MAX_REQUESTS: Final = 64
 HEARTBEAT_S: Final = 0.5
 """rmw_zenoh's sample-miss heartbeat of a reliable transient-local publisher (500 ms)."""
 
-# Kinds of entity, as rmw_zenoh's liveliness tokens name them.
-PUB, SUB, SERVICE = "MP", "MS", "SS"
+PUB, SUB, SERVICE = EntityKind.PUBLISHER, EntityKind.SUBSCRIPTION, EntityKind.SERVICE
+QOS_SPEED_SCALING: Final = Qos(Reliability.RELIABLE, Durability.TRANSIENT_LOCAL, depth=1)
+"""``speed_scaling_input``: transient local, as upstream subscribes (the last factor counts)."""
 
 
 def entity_names(namespace: str, controller: str) -> dict[str, str]:
@@ -137,18 +148,18 @@ def entity_names(namespace: str, controller: str) -> dict[str, str]:
 class _Entity:
     """A publisher, subscription or service server: its names, GID and sequence counter."""
 
-    kind: str
+    kind: EntityKind
     name: str
     ros_type: str
     node: int
     qos: Any
-    gid: bytes = field(default_factory=rt.new_gid)
+    gid: bytes = field(default_factory=wire.new_gid)
     key: str = ""
     handle: Any = None
     seq: itertools.count = field(default_factory=lambda: itertools.count(1))
 
     def attachment(self) -> bytes:
-        return rt.encode_attachment(next(self.seq), time.time_ns(), self.gid)
+        return wire.encode_attachment(next(self.seq), time.time_ns(), self.gid)
 
 
 class _Discard:
@@ -278,7 +289,7 @@ class Ros2Interface:
 
         zenoh = import_zenoh()
         try:
-            self.types = rt.RosTypes(self.settings.distro)
+            self.types = ros_types(self.settings.distro)
         except ImportError as exc:
             raise ConfigurationError(f"needs {exc.name}: {INSTALL_HINT}, or remove "
                                      "daemon.ros2", "daemon.ros2") from None
@@ -307,37 +318,39 @@ class Ros2Interface:
         """Every entity, then the tokens: the nodes' first, each entity's after it."""
         s = self.settings
         jazzy_on = s.distro != "humble"
-        default, latched = _qos(), _qos(transient_local=True, depth=1)
         node = 0
         nodes = [(0, self.node_name)]
         if s.joint_state_broadcaster:
             nodes.append((1, "joint_state_broadcaster"))
+        # QoS as upstream's nodes have them: the broadcaster's and the controller's topics
+        # rclcpp::SystemDefaultsQoS(), rcl_action's defaults for the action's parts.
         self._entity(zenoh, "joint_states", PUB, JOINT_STATE,
-                     1 if s.joint_state_broadcaster else node, default,
+                     1 if s.joint_state_broadcaster else node, QOS_SYSTEM_DEFAULT,
                      enabled=s.joint_state_broadcaster)
-        self._entity(zenoh, "controller_state", PUB, CONTROLLER_STATE, node, default)
-        self._entity(zenoh, "feedback", PUB, FEEDBACK_MESSAGE, node, default)
-        self._entity(zenoh, "status", PUB, STATUS_ARRAY, node, latched)
-        self._entity(zenoh, "joint_trajectory", SUB, TRAJECTORY, node, default,
+        self._entity(zenoh, "controller_state", PUB, CONTROLLER_STATE, node, QOS_SYSTEM_DEFAULT)
+        self._entity(zenoh, "feedback", PUB, FEEDBACK_MESSAGE, node, QOS_DEFAULT)
+        self._entity(zenoh, "status", PUB, STATUS_ARRAY, node, QOS_ACTION_STATUS)
+        self._entity(zenoh, "joint_trajectory", SUB, TRAJECTORY, node, QOS_SYSTEM_DEFAULT,
                      callback=self._on_trajectory)
-        self._entity(zenoh, "speed_scaling_input", SUB, SPEED_SCALING, node, latched,
+        self._entity(zenoh, "speed_scaling_input", SUB, SPEED_SCALING, node, QOS_SPEED_SCALING,
                      callback=self._on_speed_scaling, enabled=jazzy_on)
-        self._entity(zenoh, "query_state", SERVICE, QUERY_STATE, node, default,
+        self._entity(zenoh, "query_state", SERVICE, QUERY_STATE, node, QOS_SERVICES,
                      callback=partial(self._on_query, self._query_state))
-        self._entity(zenoh, "send_goal", SERVICE, SEND_GOAL, node, default,
+        self._entity(zenoh, "send_goal", SERVICE, SEND_GOAL, node, QOS_SERVICES,
                      callback=self._on_send_goal)
-        self._entity(zenoh, "cancel_goal", SERVICE, CANCEL_GOAL, node, default,
+        self._entity(zenoh, "cancel_goal", SERVICE, CANCEL_GOAL, node, QOS_SERVICES,
                      callback=partial(self._on_query, self._cancel_goal))
-        self._entity(zenoh, "get_result", SERVICE, GET_RESULT, node, default,
+        self._entity(zenoh, "get_result", SERVICE, GET_RESULT, node, QOS_SERVICES,
                      callback=partial(self._on_query, self._get_result))
         liveliness = self._session.liveliness()
+        namespace = s.namespace or "/"  # rcl's name of no namespace
         for node_id, name in nodes:
-            self._tokens.append(liveliness.declare_token(rt.node_token(
-                s.domain_id, self._zid, node_id, s.namespace, name)))
+            self._tokens.append(liveliness.declare_token(wire.node_token(
+                s.domain_id, self._zid, node_id, namespace, name)))
         for entity in self._entities.values():
-            token = rt.entity_token(
+            token = wire.entity_token(
                 entity.kind, s.domain_id, self._zid, entity.node, self._next_entity_id(),
-                s.namespace, nodes[entity.node][1], entity.name,
+                namespace, nodes[entity.node][1], entity.name,
                 self.types.dds_name(entity.ros_type), self.types.type_hash(entity.ros_type),
                 entity.qos)
             self._tokens.append(liveliness.declare_token(token))
@@ -351,12 +364,12 @@ class Ros2Interface:
             return
         s = self.settings
         entity = _Entity(kind, self.names[what], ros_type, node, qos)
-        entity.key = rt.topic_key(s.domain_id, entity.name, self.types.dds_name(ros_type),
+        entity.key = wire.topic_key(s.domain_id, entity.name, self.types.dds_name(ros_type),
                                   self.types.type_hash(ros_type))
         session = self._session
         if kind == PUB and _transient_local(qos):
             entity.handle = zenoh.ext.declare_advanced_publisher(
-                session, entity.key, cache=zenoh.ext.CacheConfig(max_samples=1),
+                session, entity.key, cache=zenoh.ext.CacheConfig(max_samples=qos.depth),
                 sample_miss_detection=zenoh.ext.MissDetectionConfig(
                     sporadic_heartbeat=HEARTBEAT_S),
                 publisher_detection=True)
@@ -366,7 +379,8 @@ class Ros2Interface:
         elif kind == SUB and _transient_local(qos):
             entity.handle = zenoh.ext.declare_advanced_subscriber(
                 session, entity.key, _guard(callback, self.counters),
-                history=zenoh.ext.HistoryConfig(detect_late_publishers=True, max_samples=1),
+                history=zenoh.ext.HistoryConfig(detect_late_publishers=True,
+                                                max_samples=qos.depth),
                 recovery=zenoh.ext.RecoveryConfig(heartbeat=True), subscriber_detection=True)
         elif kind == SUB:
             entity.handle = session.declare_subscriber(entity.key,
@@ -476,7 +490,7 @@ class Ros2Interface:
 
     def _send_reply(self, query: Any, att: Any, data: bytes) -> None:
         try:
-            query.reply(query.key_expr, data, attachment=rt.encode_attachment(
+            query.reply(query.key_expr, data, attachment=wire.encode_attachment(
                 att.sequence_number, time.time_ns(), att.gid))
         finally:
             query.drop()
@@ -492,6 +506,11 @@ class Ros2Interface:
         self._reply(query, att, data)
 
     # -- in Zenoh's threads: hand over to the event loop --------------------------------------
+
+    def _clock_offset(self) -> int:
+        """The daemon clock minus ROS time (the system clock), now: a header stamp's place on
+        the daemon clock (``cdr``'s ``clock_offset_ns``). Any thread."""
+        return self._requests.backend.now_ns() - time.time_ns()
 
     def _admit(self) -> bool:
         """Whether one more request may execute (:data:`MAX_REQUESTS`); Zenoh's threads."""
@@ -534,19 +553,20 @@ class Ros2Interface:
         if not self._admit():
             return
         try:
-            wire = rt.decode_joint_trajectory_message(_payload(sample))
-        except rt.CdrError as exc:
+            trajectory = cdr.decode_joint_trajectory_message(
+                _payload(sample), clock_offset_ns=self._clock_offset())
+        except cdr.CdrError as exc:
             self._release()
             self._drop("joint_trajectory", f"malformed: {exc}")
             return
-        self._hand(self._answer_topic, "joint_trajectory", SendTrajectory(trajectory=wire))
+        self._hand(self._answer_topic, "joint_trajectory", SendTrajectory(trajectory=trajectory))
 
     def _on_speed_scaling(self, sample: Any) -> None:
         if not self._admit():
             return
         try:
             factor = self.messages.speed_scaling(_payload(sample))
-        except rt.CdrError as exc:
+        except cdr.CdrError as exc:
             self._release()
             self._drop("speed_scaling_input", f"malformed: {exc}")
             return
@@ -559,8 +579,9 @@ class Ros2Interface:
             query.drop()
             return
         try:
-            decoded: tuple[bytes, Any] | str = rt.decode_send_goal_request(_payload(query))
-        except rt.CdrError as exc:
+            decoded: tuple[bytes, Any] | str = cdr.decode_send_goal_request(
+                _payload(query), clock_offset_ns=self._clock_offset())
+        except cdr.CdrError as exc:
             decoded = str(exc)
         self._hand(self._send_goal, query, att, decoded)
 
@@ -624,7 +645,7 @@ class Ros2Interface:
     async def _cancel_goal(self, query: Any, att: Any, data: bytes) -> None:
         try:
             uuid, stamp = self.messages.cancel_request(data)
-        except rt.CdrError as exc:
+        except cdr.CdrError as exc:
             self.counters["requests_malformed"] += 1
             log.info("ros2: malformed cancel_goal: %s", exc)
             self._reply(query, att, self.messages.cancel_response(actions.ERROR_REJECTED, []))
@@ -646,7 +667,7 @@ class Ros2Interface:
     def _get_result(self, query: Any, att: Any, data: bytes) -> None:
         try:
             uuid = self.messages.get_result_request(data)
-        except rt.CdrError as exc:
+        except cdr.CdrError as exc:
             self.counters["requests_malformed"] += 1
             log.info("ros2: malformed get_result: %s", exc)
             self._reply(query, att, self.messages.get_result_response(actions.UNKNOWN, 0, ""))
@@ -664,7 +685,7 @@ class Ros2Interface:
     async def _query_state(self, query: Any, att: Any, data: bytes) -> None:
         try:
             ros_ns = self.messages.query_state_request(data)
-        except rt.CdrError as exc:
+        except cdr.CdrError as exc:
             self.counters["requests_malformed"] += 1
             self._reply(query, att, self.messages.query_state_response(None, str(exc)))
             return
@@ -712,13 +733,9 @@ class _Queried:
     success: bool
 
 
-def _qos(transient_local: bool = False, depth: int = 10) -> Any:
-    """A reliable keep-last QoS (``wire.Qos``)."""
-    return rt.Qos(durability=1 if transient_local else 2, depth=depth)
-
-
-def _transient_local(qos: Any) -> bool:
-    return bool(qos.durability == 1)
+def _transient_local(qos: Qos) -> bool:
+    """Whether rmw_zenoh makes an advanced publisher / subscriber with history for ``qos``."""
+    return qos.adapted().durability is Durability.TRANSIENT_LOCAL
 
 
 def _payload(item: Any) -> bytes:
@@ -733,7 +750,7 @@ def _attachment(query: Any) -> Any:
     if raw is None:
         return None
     try:
-        return rt.decode_attachment(bytes(raw.to_bytes()))
+        return wire.decode_attachment(bytes(raw.to_bytes()))
     except ValueError:
         return None
 

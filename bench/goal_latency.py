@@ -325,14 +325,22 @@ class Ros2Goals:
         request[4:20] = os.urandom(16)  # goal_id, the request's first field
         self.seq += 1
         attachment = self._wire.encode_attachment(self.seq, time.time_ns(), self.gid)
+        first: list[tuple[int, Any]] = []
+        done = threading.Event()
+
+        def on_reply(reply: Any) -> None:
+            if not first:  # the response's arrival, not the query's end
+                first.append((time.perf_counter_ns(), reply.ok))
+
+        import zenoh
+
         begin = time.perf_counter_ns()
-        replies = list(self.session.get(self.key, payload=bytes(request), attachment=attachment,
-                                        timeout=TIMEOUT_S))
-        end = time.perf_counter_ns()
-        ok = [r.ok for r in replies if r.ok is not None]
-        if not ok:
+        self.session.get(self.key, zenoh.handlers.Callback(on_reply, done.set),
+                         payload=bytes(request), attachment=attachment, timeout=TIMEOUT_S)
+        if not done.wait(TIMEOUT_S) or not first or first[0][1] is None:
             raise RuntimeError("no send_goal response")
-        response = self.store.deserialize_cdr(bytes(ok[0].payload.to_bytes()), self._response)
+        end, sample = first[0]
+        response = self.store.deserialize_cdr(bytes(sample.payload.to_bytes()), self._response)
         if not response.accepted:
             raise RuntimeError("goal rejected")
         return (end - begin) / 1e6

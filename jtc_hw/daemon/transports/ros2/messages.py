@@ -18,6 +18,7 @@ Stamps are ROS time: the system clock, as upstream's nodes stamp with their node
 from __future__ import annotations
 
 import math
+import struct
 from collections.abc import Mapping, Sequence
 from typing import Any, Final
 
@@ -29,6 +30,10 @@ from .cdr import CdrError
 
 __all__ = ["Messages", "make", "ros_time"]
 
+CDR_LE: Final = b"\x00\x01\x00\x00"
+"""The encapsulation header: CDR, little-endian."""
+_SEND_GOAL_RESPONSE: Final = struct.Struct("<4s?3xiI")
+"""``bool accepted`` then ``builtin_interfaces/Time stamp`` (int32 aligned to 4 in the body)."""
 SMALL_REQUEST_BYTES: Final = 4096
 """The longest cancel / get_result / query_state / speed-scaling payload decoded."""
 
@@ -204,9 +209,10 @@ class Messages:
     # -- replies ------------------------------------------------------------------------------
 
     def send_goal_response(self, accepted: bool, stamp_ns: int) -> bytes:
-        name = f"{SEND_GOAL}_Response"
-        return self._cdr(make(self.store, name, accepted=accepted,
-                              stamp=ros_time(stamp_ns)), name)
+        """``SendGoal``'s response, written directly: it is on every goal's acceptance path
+        (the same bytes as rosbags' serializer: tests/daemon/ros2/test_node_books.py)."""
+        sec, nanosec = divmod(stamp_ns, 10**9)
+        return _SEND_GOAL_RESPONSE.pack(CDR_LE, accepted, sec, nanosec)
 
     def get_result_response(self, status: int, error_code: int, error_string: str) -> bytes:
         name = f"{GET_RESULT}_Response"

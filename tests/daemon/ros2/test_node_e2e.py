@@ -379,3 +379,74 @@ def test_demo_ros2_is_seen_by_a_second_process(tmp_path: Path) -> None:
     finally:
         peer.close()
         router.close()
+
+
+# -- Humble ---------------------------------------------------------------------------------------
+
+
+def test_humble_layouts_without_type_hashes(tmp_path: Path) -> None:
+    """``distro: humble``: keys and tokens say ``TypeHashNotSupported``, controller_state has
+    Humble's fields, there is no speed_scaling_input, and a goal runs to its result. The peer
+    speaks Jazzy only: here a plain Zenoh session with Humble's rosbags store plays the client
+    (the keys are the design doc's layout with Humble's hash text)."""
+    from jtc_hw.daemon.transports.ros2.types import ros_types
+    from jtc_hw.daemon.transports.ros2.wire import topic_key
+
+    router, endpoint = _router()
+    daemon = ros2_daemon(tmp_path / "humble", endpoint, distro="humble")
+    conf = zenoh.Config()
+    conf.insert_json5("mode", json.dumps("client"))
+    conf.insert_json5("connect/endpoints", json.dumps([endpoint]))
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    session = zenoh.open(conf)
+    store = ros_types("humble").typestore
+    samples: list[Any] = []
+    tokens: list[str] = []
+
+    def key(name: str, ros_type: str) -> str:
+        package, kind, type_name = ros_type.split("/")
+        return topic_key(0, name, f"{package}::{kind}::dds_::{type_name}_",
+                         "TypeHashNotSupported")
+
+    def call(name: str, ros_type: str, request: Any, timeout: float = WAIT_S) -> Any:
+        payload = bytes(store.serialize_cdr(request, f"{ros_type}_Request"))
+        replies = list(session.get(key(name, ros_type), payload=payload,
+                                   attachment=_attachment(), timeout=timeout))
+        assert len(replies) == 1 and replies[0].ok is not None, replies
+        return store.deserialize_cdr(bytes(replies[0].ok.payload.to_bytes()),
+                                     f"{ros_type}_Response")
+
+    try:
+        state_key = key(f"{C}/controller_state", "control_msgs/msg/JointTrajectoryControllerState")
+        sub = session.declare_subscriber(state_key, samples.append)
+        tokens_sub = session.liveliness().declare_subscriber(
+            "@ros2_lv/0/**", lambda s: tokens.append(str(s.key_expr)), history=True)
+        daemon.start()
+        daemon.wait_ready()
+        deadline = time.monotonic() + WAIT_S
+        while not samples or not any("/NN/" in t for t in tokens):
+            assert time.monotonic() < deadline, "no controller_state or no node token"
+            time.sleep(0.02)  # polling lists a Zenoh thread appends to
+        state = store.deserialize_cdr(bytes(samples[-1].payload.to_bytes()),
+                                      "control_msgs/msg/JointTrajectoryControllerState")
+        assert list(state.joint_names) == JOINTS and len(state.actual.positions) == 6
+        assert not hasattr(state, "speed_scaling_factor")
+        assert all("TypeHashNotSupported" in t for t in tokens if "/NN/" not in t)
+        assert not any("speed_scaling_input" in t for t in tokens)
+        from jtc_hw.daemon.transports.ros2.messages import make as build
+
+        uuid = np.frombuffer(os.urandom(16), np.uint8).copy()
+        point = build(store, POINT, positions=np.full(6, 0.05), time_from_start={"sec": 1})
+        request = build(store, f"{FJT}_SendGoal_Request", goal_id={"uuid": uuid}, goal={
+            "trajectory": build(store, TRAJECTORY, joint_names=JOINTS, points=[point])})
+        response = call(f"{ACTION}/_action/send_goal", f"{FJT}_SendGoal", request)
+        assert response.accepted
+        result = call(f"{ACTION}/_action/get_result", f"{FJT}_GetResult", build(
+            store, f"{FJT}_GetResult_Request", goal_id={"uuid": uuid}), 30.0)
+        assert (result.status, result.result.error_code) == (STATUS_SUCCEEDED, 0)
+        sub.undeclare()
+        tokens_sub.undeclare()
+    finally:
+        session.close()
+        daemon.shutdown()
+        router.close()

@@ -218,7 +218,8 @@ def test_messages_round_trip_through_rosbags(distro: str) -> None:
     assert bytes(fb.goal_id.uuid) == uuid(4) and fb.feedback.actual.positions.tolist() == [0.9, 2.1]
     book = GoalBook()
     book.accept(uuid(1), 1, 2 * S)
-    arr = store.deserialize_cdr(m.status_array(book.status_list()), "action_msgs/msg/GoalStatusArray")
+    arr = store.deserialize_cdr(m.status_array(book.status_list()),
+                                "action_msgs/msg/GoalStatusArray")
     assert [(bytes(s.goal_info.goal_id.uuid), s.status) for s in arr.status_list] == [
         (uuid(1), a.EXECUTING)]
     cancel = "action_msgs/srv/CancelGoal_Request"

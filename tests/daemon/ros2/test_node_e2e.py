@@ -26,7 +26,6 @@ from typing import Any
 import numpy as np
 import pytest
 import zenoh
-
 from helpers.daemon import JOINTS, WAIT_S, DaemonProcess, RecordingClient, connect
 from helpers.ros2_peer import (
     FJT,

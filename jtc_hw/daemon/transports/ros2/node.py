@@ -71,21 +71,11 @@ from typing import TYPE_CHECKING, Any, Final
 from ....api.requests import CancelGoal, QueryState, Request, SendTrajectory, SetSpeedScaling
 from ....controller.goals import GoalFeedback, GoalResult
 from ....controller.messages import JointTrajectory
+from ....controller.trajectory import QueriedState
 from ...core.requests import Caller, Requests
 from ...ros2_config import INSTALL_HINT
 from ...zenoh_config import import_zenoh, session_config
 from . import actions, cdr, wire
-from .types import ros_types
-from .wire import (
-    QOS_ACTION_STATUS,
-    QOS_DEFAULT,
-    QOS_SERVICES,
-    QOS_SYSTEM_DEFAULT,
-    Durability,
-    EntityKind,
-    Qos,
-    Reliability,
-)
 from .actions import Goal, GoalBook
 from .messages import (
     CANCEL_GOAL,
@@ -99,6 +89,17 @@ from .messages import (
     STATUS_ARRAY,
     TRAJECTORY,
     Messages,
+)
+from .types import ros_types
+from .wire import (
+    QOS_ACTION_STATUS,
+    QOS_DEFAULT,
+    QOS_SERVICES,
+    QOS_SYSTEM_DEFAULT,
+    Durability,
+    EntityKind,
+    Qos,
+    Reliability,
 )
 
 if TYPE_CHECKING:
@@ -152,11 +153,11 @@ class _Entity:
     name: str
     ros_type: str
     node: int
-    qos: Any
+    qos: Qos
     gid: bytes = field(default_factory=wire.new_gid)
     key: str = ""
     handle: Any = None
-    seq: itertools.count = field(default_factory=lambda: itertools.count(1))
+    seq: itertools.count[int] = field(default_factory=lambda: itertools.count(1))
 
     def attachment(self) -> bytes:
         return wire.encode_attachment(next(self.seq), time.time_ns(), self.gid)
@@ -358,7 +359,7 @@ class Ros2Interface:
     def _next_entity_id(self) -> int:
         return next(self._entity_ids)
 
-    def _entity(self, zenoh: Any, what: str, kind: str, ros_type: str, node: int, qos: Any,
+    def _entity(self, zenoh: Any, what: str, kind: EntityKind, ros_type: str, node: int, qos: Qos,
                 callback: Callable[[Any], None] | None = None, enabled: bool = True) -> None:
         if not enabled:
             return
@@ -697,8 +698,9 @@ class Ros2Interface:
             out = self.messages.query_state_response(None, reply.message["error"]["message"])
         else:
             m = reply.message
-            out = self.messages.query_state_response(_Queried(
-                m["positions"], m["velocities"], m["accelerations"], m["success"]),
+            out = self.messages.query_state_response(QueriedState(
+                m["positions"], m["velocities"], m["accelerations"], m["effort"], m["success"],
+                m["where"]),
                 "" if m["success"] else f"time is {m['where'].replace('_', ' ')} of the "
                 "trajectory")
         self._reply(query, att, out)
@@ -723,14 +725,6 @@ class Ros2Interface:
             "lost": 0 if outbox is None else outbox.lost,
             **dict(sorted(self.counters.items())),
         }
-
-
-@dataclass(frozen=True)
-class _Queried:
-    positions: Any
-    velocities: Any
-    accelerations: Any
-    success: bool
 
 
 def _transient_local(qos: Qos) -> bool:

@@ -133,7 +133,8 @@ def test_dds_names_as_rmw_zenoh_writes_them() -> None:
     assert t.dds_name(JOINT_STATE) == "sensor_msgs::msg::dds_::JointState_"
     assert t.dds_name(CANCEL_GOAL) == "action_msgs::srv::dds_::CancelGoal_"
     # Quoted in public rmw_zenoh traces: "...::action::dds_::Fibonacci_GetResult_".
-    assert t.dds_name(FJT_SEND_GOAL) == "control_msgs::action::dds_::FollowJointTrajectory_SendGoal_"
+    assert t.dds_name(FJT_SEND_GOAL) == (
+        "control_msgs::action::dds_::FollowJointTrajectory_SendGoal_")
     assert t.dds_name(FJT_GET_RESULT) == (
         "control_msgs::action::dds_::FollowJointTrajectory_GetResult_")
     assert t.dds_name(FJT_FEEDBACK_MESSAGE) == (
@@ -182,8 +183,7 @@ def _service_types(t: RosTypes, name: str, text: str) -> dict[str, object]:
 def _default(t: RosTypes, name: str) -> object:
     """A message of type ``name`` with every field at its zero value."""
     import numpy as np
-
-    from rosbags.typesys.base import Nodetype
+    from rosbags.interfaces import Nodetype
 
     fields = {}
     for field, (node, rest) in t.typestore.fielddefs[name][1]:

@@ -54,8 +54,8 @@ from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import Any, Final
 
-from rosbags.typesys import Stores, get_typestore, get_types_from_msg
-from rosbags.typesys.base import Nodetype
+from rosbags.interfaces import Nodetype
+from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from rosbags.typesys.store import Typestore
 
 __all__ = [
@@ -521,7 +521,7 @@ def _parse(text: str, name: str) -> dict[str, Any]:
     return {fix(key): fix(value) for key, value in parsed.items()}
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def ros_types(distro: str) -> RosTypes:
     """The (shared, cached) :class:`RosTypes` of ``distro``.
 

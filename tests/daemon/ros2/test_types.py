@@ -164,6 +164,7 @@ def test_unknown_names_and_distros_are_refused() -> None:
     with pytest.raises(ValueError, match="unknown ROS 2 distro"):
         RosTypes("iron")
     t = ros_types("jazzy")
+    assert not t.is_service("junk") and not t.is_service("a/srv/Nothing")
     for bad in ("sensor_msgs/JointState", "nope/msg/Nothing", ""):
         with pytest.raises(KeyError):
             t.type_hash(bad)

@@ -9,6 +9,8 @@ rmw_zenoh's ``attachment_helpers.cpp`` uses.
 
 from __future__ import annotations
 
+import dataclasses
+
 import pytest
 
 from jtc_hw.daemon.transports.ros2 import wire
@@ -128,6 +130,9 @@ def test_qos_text_of_the_usual_profiles() -> None:
     assert qos_text(QOS_PARAMETERS) == "::,1000:,:,:,,"
     # rclcpp::SystemDefaultsQoS(), adapted: everything rmw_zenoh's default.
     assert qos_text(QOS_SYSTEM_DEFAULT) == "::,:,:,:,,"
+    # joint_trajectory_controller's ~/speed_scaling_input: SystemDefaultsQoS().transient_local()
+    speed_scaling = dataclasses.replace(QOS_SYSTEM_DEFAULT, durability=Durability.TRANSIENT_LOCAL)
+    assert qos_text(speed_scaling) == ":1:,:,:,:,,"
     assert qos_text(Qos(history=History.KEEP_ALL)) == "::2,10:,:,:,,"
     assert qos_text(Qos(deadline=(1, 500))) == "::,10:1,500:,:,,"
 

@@ -359,7 +359,8 @@ class RosTypes:
     def is_service(self, ros_type: str) -> bool:
         """Whether ``ros_type`` is a service (an action's ``X_SendGoal``/``X_GetResult`` too)."""
         return ros_type in self._services or (
-            ros_type.split("/")[1] == "srv" and ros_type + "_Request" in self.typestore.fielddefs
+            ros_type.count("/") == 2 and ros_type.split("/")[1] == "srv"
+            and ros_type + "_Request" in self.typestore.fielddefs
         )
 
     def dds_name(self, ros_type: str) -> str:

@@ -41,7 +41,16 @@ rmw_zenoh's default (keep last 42, reliable, volatile, infinite, automatic) (:fu
 
 The numbers are rmw's enums (``rmw/types.h``): reliability 1 reliable, 2 best effort;
 durability 1 transient local, 2 volatile; history 1 keep last, 2 keep all; liveliness 1
-automatic, 3 manual by topic.
+automatic, 3 manual by topic. The profiles upstream's endpoints use (ros2_controllers'
+joint_trajectory_controller.cpp and joint_state_broadcaster.cpp, rcl_action's
+``rcl_action_server_get_default_options``, rclcpp's parameter service)::
+
+    /joint_states, ~/controller_state, ~/joint_trajectory   QOS_SYSTEM_DEFAULT   ::,:,:,:,,
+    ~/speed_scaling_input (Jazzy+)   QOS_SYSTEM_DEFAULT, transient local         :1:,:,:,:,,
+    ~/query_state, an action's three services               QOS_SERVICES         ::,10:,:,:,,
+    an action's feedback topic                              QOS_DEFAULT          ::,10:,:,:,,
+    an action's status topic                                QOS_ACTION_STATUS    :1:,1:,:,:,,
+    ~/get_parameters, ~/set_parameters, ~/list_parameters   QOS_PARAMETERS       ::,1000:,:,:,,
 
 **Attachment** -- every sample, request and reply carries 33 bytes, zenoh-ext's serialization
 of ``(int64, int64, std::array<uint8_t, 16>)`` (:func:`encode_attachment`)::
@@ -51,6 +60,7 @@ of ``(int64, int64, std::array<uint8_t, 16>)`` (:func:`encode_attachment`)::
     offset 16  uint8     16: the GID's length (zenoh-ext's LEB128 sequence length)
     offset 17  16 bytes  the GID of the publisher, or of the client (echoed in the reply)
 
+rmw_zenoh counts sequence numbers from 1, per publisher and per client.
 A GID is 16 bytes, unique per publisher or client (:func:`new_gid`; rmw_zenoh derives its own
 from a hash of the entity's token, which only needs to be unique: a random one serves).
 """

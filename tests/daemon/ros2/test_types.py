@@ -33,6 +33,8 @@ ADD_TWO_INTS_HASH = "RIHS01_e118de6bf5eeb66a2491b5bda11202e7b68f198d6f67922cf303
 # `ros2 topic info /joint_states --verbose` of a joint_state_broadcaster (a public transcript in
 # the code index; the same value is in rosbags' and several rmw_zenoh clients' tables).
 JOINT_STATE_HASH = "RIHS01_a13ee3a330e346c9d87b5aa18d24e11690752bd33a0350f11c5882bc9179260e"
+# The same transcript's `ros2 topic info -v` of a joint_trajectory_controller's joint_trajectory.
+JOINT_TRAJECTORY_HASH = "RIHS01_179b33eba59d676f6d967ac71fe35e7ca2f64b2f3928f4a018cec115e213796e"
 # control_msgs 4.x/5.x FollowJointTrajectory (no index fields), as rosidl generated it:
 # github.com/saahu27/aprs, aprs_ws/build/control_msgs/rosidl_generator_c/control_msgs/action/
 # detail/follow_joint_trajectory__description.c (and __struct.h beside it).
@@ -65,6 +67,7 @@ def test_message_hashes_match_the_quoted_ones(distro: str) -> None:
     t = ros_types(distro)
     assert t.type_hash("std_msgs/msg/String") == STRING_HASH
     assert t.type_hash(JOINT_STATE) == JOINT_STATE_HASH
+    assert t.type_hash(types.JOINT_TRAJECTORY) == JOINT_TRAJECTORY_HASH
 
 
 def test_a_service_hash_matches_the_design_doc() -> None:
@@ -72,11 +75,38 @@ def test_a_service_hash_matches_the_design_doc() -> None:
     covers AddTwoInts_Event, hence ServiceEventInfo, whose ``char[16]`` rosidl hashes as
     ``uint8[16]``; rosbags' own hash of it would be wrong."""
     t = RosTypes("jazzy")
-    t.typestore.register(_service_types(t, "example_interfaces/srv/AddTwoInts",
-                                        "int64 a\nint64 b\n---\nint64 sum\n"))
+    t.register("example_interfaces/srv/AddTwoInts", "int64 a\nint64 b\n---\nint64 sum\n")
     assert t.type_hash("example_interfaces/srv/AddTwoInts") == ADD_TWO_INTS_HASH
     assert t.dds_name("example_interfaces/srv/AddTwoInts") == (
         "example_interfaces::srv::dds_::AddTwoInts_")
+
+
+def test_an_action_of_the_ros_2_tutorials_matches_ros2_action_info() -> None:
+    """turtlesim_msgs/action/RotateAbsolute from its .action text: the hashes
+    ``ros2 action info -v`` prints in ROS 2's tutorial "Understanding actions"
+    (ros2/ros2_documentation, Tutorials/Beginner-CLI-Tools/Understanding-ROS2-Actions)."""
+    t = RosTypes("jazzy")
+    t.register("turtlesim_msgs/action/RotateAbsolute",
+               "float32 theta\n---\nfloat32 delta\n---\nfloat32 remaining\n")
+    action = "turtlesim_msgs/action/RotateAbsolute"
+    assert t.type_hash(action + "_SendGoal") == (
+        "RIHS01_3d5d3cfcbb721f88038eaedcd4af95565360a82b36f1983e3a6c7448d2d18fbe")
+    assert t.type_hash(action + "_GetResult") == (
+        "RIHS01_f96fd02477be2a47122fca142e960d407b24850c6eac72047872ba764473c4ef")
+    assert t.type_hash(action + "_FeedbackMessage") == (
+        "RIHS01_bef10993e1ee82b35f99f7e390bac1e6cc64e2a3090536887832e122aa71f1b5")
+    # The same page's status and cancel hashes.
+    assert t.type_hash("action_msgs/msg/GoalStatusArray") == (
+        "RIHS01_6c1684b00f177d37438febe6e709fc4e2b0d4248dca4854946f9ed8b30cda83e")
+    assert t.type_hash(CANCEL_GOAL) == CANCEL_GOAL_HASH
+
+
+def test_a_malformed_interface_text_is_refused() -> None:
+    t = RosTypes("jazzy")
+    with pytest.raises(ValueError, match="sections"):
+        t.register("x_msgs/srv/Broken", "int64 a\n")
+    with pytest.raises(ValueError, match="sections"):
+        t.register("x_msgs/action/Broken", "int64 a\n---\nint64 b\n")
 
 
 def test_rosbags_hashes_char_differently_which_is_why_we_do_not_use_it() -> None:
@@ -170,15 +200,6 @@ def test_unknown_names_and_distros_are_refused() -> None:
             t.type_hash(bad)
         with pytest.raises(KeyError):
             t.dds_name(bad)
-
-
-def _service_types(t: RosTypes, name: str, text: str) -> dict[str, object]:
-    from jtc_hw.daemon.transports.ros2.types import _parse
-
-    out: dict[str, object] = {}
-    for part, body in t._service(name, text):
-        out.update(_parse(body, part))
-    return out
 
 
 def _default(t: RosTypes, name: str) -> object:

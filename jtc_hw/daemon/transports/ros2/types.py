@@ -41,8 +41,10 @@ what ``rosidl`` generates on the workstation, for the distro it runs (:data:`DIS
   :data:`TYPE_HASH_NOT_SUPPORTED` where the hash goes.
 
 Checked against (tests/daemon/ros2/test_types.py): the design doc's ``std_msgs/msg/String`` and
-``example_interfaces/srv/AddTwoInts`` hashes, a ``ros2 topic info -v`` JointState hash, and the
-``TYPE_VERSION_HASH__INIT`` values of a rosidl-generated ``follow_joint_trajectory__struct.h``.
+``example_interfaces/srv/AddTwoInts`` hashes; ``ros2 topic info -v`` output for JointState and
+JointTrajectory; ``ros2 action info -v`` output in ROS 2's actions tutorial (turtlesim's
+RotateAbsolute services and feedback, GoalStatusArray, CancelGoal); and every hash of a
+rosidl-generated control_msgs ``follow_joint_trajectory__description.c`` (control_msgs 4.x/5.x).
 """
 
 from __future__ import annotations
@@ -325,6 +327,20 @@ class RosTypes:
                 for name, text in self._expand(interface.name, interface.text):
                     typesdict.update(_parse(text, name))
         self.typestore.register(typesdict)
+
+    def register(self, name: str, text: str) -> None:
+        """Add one more interface from its upstream text: ``pkg/msg/X`` a ``.msg``, ``pkg/srv/X``
+        a ``.srv``, ``pkg/action/X`` a ``.action`` (tests declare others' types this way).
+
+        Raises:
+            ValueError: the text has the wrong number of ``---`` sections for its kind, or
+                rosbags cannot parse it.
+        """
+        typesdict: dict[str, Any] = {}
+        for part, body in self._expand(name, text):
+            typesdict.update(_parse(body, part))
+        self.typestore.register(typesdict)
+        self._hashes.clear()
 
     @property
     def hashed(self) -> bool:

@@ -107,6 +107,10 @@ def test_a_malformed_interface_text_is_refused() -> None:
         t.register("x_msgs/srv/Broken", "int64 a\n")
     with pytest.raises(ValueError, match="sections"):
         t.register("x_msgs/action/Broken", "int64 a\n---\nint64 b\n")
+    for name in ("x_msgs/Broken", "x_msgs/idl/Broken", "x_msgs/msg/"):
+        with pytest.raises(ValueError, match="not an interface name"):
+            t.register(name, "int64 a\n")
+    assert t.is_action(FJT) and not t.is_action(FJT_SEND_GOAL)
 
 
 def test_rosbags_hashes_char_differently_which_is_why_we_do_not_use_it() -> None:

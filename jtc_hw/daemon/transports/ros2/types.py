@@ -349,7 +349,10 @@ class RosTypes:
 
     def _expand(self, name: str, text: str) -> Iterator[tuple[str, str]]:
         """The messages of one interface file: itself, or a service's or an action's parts."""
-        kind = name.split("/")[1]
+        parts = name.split("/")
+        if len(parts) != 3 or not all(parts) or parts[1] not in ("msg", "srv", "action"):
+            raise ValueError(f"not an interface name (package/msg|srv|action/Name): {name!r}")
+        kind = parts[1]
         if kind == "msg":
             yield name, text
         elif kind == "srv":
@@ -378,6 +381,10 @@ class RosTypes:
             ros_type.count("/") == 2 and ros_type.split("/")[1] == "srv"
             and ros_type + "_Request" in self.typestore.fielddefs
         )
+
+    def is_action(self, ros_type: str) -> bool:
+        """Whether ``ros_type`` is an action (``pkg/action/X`` itself, not one of its parts)."""
+        return ros_type in self._actions
 
     def dds_name(self, ros_type: str) -> str:
         """The DDS type name rmw_zenoh writes in keys and tokens.
@@ -422,7 +429,7 @@ class RosTypes:
         if len(parts) != 3 or not all(parts):
             raise KeyError(f"not a ROS 2 type name (package/namespace/Name): {ros_type!r}")
         if not (ros_type in self.typestore.fielddefs or self.is_service(ros_type)
-                or ros_type in self._actions):
+                or self.is_action(ros_type)):
             raise KeyError(f"unknown type {ros_type!r} in ROS 2 {self.distro}")
 
 
@@ -448,7 +455,7 @@ class _Describer:
     def _describe(self, name: str) -> dict[str, Any]:
         if name in self._seen:
             return self._seen[name]
-        if name in self._types._actions:
+        if self._types.is_action(name):
             fields = [
                 _nested("goal", name + "_Goal"), _nested("result", name + "_Result"),
                 _nested("feedback", name + "_Feedback"),

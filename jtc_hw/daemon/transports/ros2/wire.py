@@ -26,7 +26,8 @@ dead, or undeclared) takes the entity out of the graph. There is no action kind:
 
 Names are mangled (:func:`mangle`: every ``/`` becomes ``%``): the enclave and namespace are
 ``%`` when unset (rcl's ``/``), the topic ``/joint_states`` is ``%joint_states``. ``zid`` is the
-Zenoh session id as Zenoh prints it (``str(session.zid())``: lowercase hex); node and entity
+Zenoh session id as Zenoh prints it (``str(session.info.zid())``, lowercase hex, as
+zenoh-c prints it for rmw_zenoh); node and entity
 ids are numbers unique within the session.
 
 **QoS** -- the entity's QoS profile after rmw_zenoh adapts it (``SYSTEM_DEFAULT`` and depth 0 take

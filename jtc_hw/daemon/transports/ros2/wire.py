@@ -12,7 +12,9 @@ and ``qos.cpp`` of the same code) is nothing but Zenoh traffic of four shapes:
     <domain>/<fully qualified name, outer slashes cut>/<DDS type>/<type hash>
     0/arm_controller/joint_trajectory/trajectory_msgs::msg::dds_::JointTrajectory_/RIHS01_179b...
 
-An action is its five parts under ``<action>/_action/`` (:func:`action_names`): the services
+A service server's queryable is declared complete, a client's ``get`` targets all complete
+queryables, and the reply comes on the service's key. An action is its five parts under
+``<action>/_action/`` (:func:`action_names`): the services
 ``send_goal``, ``cancel_goal``, ``get_result`` and the topics ``feedback``, ``status``.
 
 **Graph** -- each node and each publisher (``MP``), subscription (``MS``), service server
@@ -26,9 +28,9 @@ dead, or undeclared) takes the entity out of the graph. There is no action kind:
 
 Names are mangled (:func:`mangle`: every ``/`` becomes ``%``): the enclave and namespace are
 ``%`` when unset (rcl's ``/``), the topic ``/joint_states`` is ``%joint_states``. ``zid`` is the
-Zenoh session id as Zenoh prints it (``str(session.info.zid())``, lowercase hex, as
-zenoh-c prints it for rmw_zenoh); node and entity
-ids are numbers unique within the session.
+Zenoh session id as Zenoh prints it (``str(session.info.zid())``: lowercase hex, the same text
+zenoh-c gives rmw_zenoh); node and entity ids are numbers unique within the session (rmw_zenoh
+draws both from one counter per session).
 
 **QoS** -- the entity's QoS profile after rmw_zenoh adapts it (``SYSTEM_DEFAULT`` and depth 0 take
 its defaults, unspecified durations become infinite), each field left empty where it equals

@@ -288,6 +288,7 @@ def _walk_points(
             n = r.count(where, 8)
             if n:
                 r.align(8)
+                r.need(8 * n, where)
                 rows[name].append(np.frombuffer(buf, dtype="<f8", count=n, offset=r.pos))
                 r.pos += 8 * n
             else:

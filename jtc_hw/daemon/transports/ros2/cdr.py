@@ -215,7 +215,9 @@ def _layout(lengths: tuple[int, ...], residue: int) -> tuple[int, list[int], lis
 
 def _view(buf: Any, dtype: str, shape: tuple[int, ...], offset: int,
           strides: tuple[int, ...]) -> NDArray[Any]:
-    return np.ndarray(shape, dtype=dtype, buffer=buf, offset=offset, strides=strides)
+    view: NDArray[Any] = np.ndarray(shape, dtype=dtype, buffer=buf, offset=offset,
+                                    strides=strides)
+    return view
 
 
 def _regular_points(
@@ -331,7 +333,9 @@ def _points(r: _Reader, what: str) -> PointColumns | tuple[TrajectoryPoint, ...]
     fast = _regular_points(r, m, what)
     if fast is not None:
         times, values = fast
-        return PointColumns(times, **values)
+        return PointColumns(
+            times, values.get("positions"), values.get("velocities"),
+            values.get("accelerations"), values.get("effort"))
     return _walk_points(r, m, what)
 
 

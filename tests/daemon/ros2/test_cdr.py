@@ -20,6 +20,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
+from jtc_hw.api.protocol import parse_request
 from jtc_hw.controller.messages import FIELDS, PointColumns
 from jtc_hw.daemon.transports.ros2 import cdr
 from jtc_hw.daemon.transports.ros2.cdr import (
@@ -441,3 +442,21 @@ def test_random_truncations_and_byte_flips_raise_only_cdr_errors() -> None:
         except CdrError:
             outcomes["error"] += 1
     assert outcomes["ok"] and outcomes["error"]
+
+
+def test_a_goal_decodes_to_the_request_the_socket_makes_of_the_same_goal() -> None:
+    """The same goal as the socket's JSON (``parse_request``) and as CDR: equal requests."""
+    specs = six_joint_points(30, fields=3)
+    specs[4][1][1] = None
+    line = {"op": "send_goal",
+            "trajectory": {"joint_names": NAMES6, "points": [
+                {"time_from_start": tfs[0] + tfs[1] / 1e9,
+                 **{name: values for name, values in zip(FIELDS, fields) if values}}
+                for tfs, fields in specs]},
+            "path_tolerance": [{"name": "joint_1", "position": 0.5, "velocity": 0.25,
+                                "acceleration": 0.0}],
+            "goal_time_tolerance": 0.75}
+    request = goal_request(specs, path_tolerance=[Tol("joint_1", 0.5, 0.25, 0.0)],
+                           goal_time_tolerance=Duration(0, 750_000_000))
+    _, goal = decode_send_goal_request(serialize(request))
+    assert goal == parse_request(line)

@@ -22,9 +22,17 @@ a period of one or two points, so each field of every point is read by one strid
 ``numpy.ndarray`` view over the buffer (two when the period is two), after a vectorised check
 that every length read through the same strides is the one assumed: if so, by induction on
 the points, every assumed offset is the true one. Otherwise (points without some field, mixed
-layouts) one Python step per point walks the lengths and keeps one ``numpy`` row per point; a
+layouts) one Python step per point reads the four counts and notes where the values are, and
+each field is then gathered by one index array (``present`` says which points carry it); a
 field whose present rows are not all of one length (a goal the controller refuses) falls back
 to ``TrajectoryPoint`` objects, for the controller to name the problem in its own words.
+Measured (bench/cdr_decode.py, a 6-joint goal with positions, velocities, accelerations):
+2,000 points 0.12 ms strided, 1.9 ms walked (one point lacking velocities), against 7.4 ms
+for rosbags' ``deserialize_cdr`` and 9.3 ms for the socket's JSON parse of the same goal.
+
+No encoders: what the transport publishes often is left to rosbags' ``serialize_cdr``, which
+takes 7 us for a 6-joint ``JointState`` and 22-26 us for a Jazzy
+``JointTrajectoryControllerState`` (message objects built included), under the 30 us budget.
 
 ``FollowJointTrajectory_SendGoal`` request (control_msgs >= 4, the same on Humble, Jazzy,
 Kilted and Rolling: control_msgs/action/FollowJointTrajectory.action)::
@@ -280,50 +288,78 @@ def _regular_points(
 def _walk_points(
     r: _Reader, m: int, what: str
 ) -> PointColumns | tuple[TrajectoryPoint, ...]:
-    """The points one Python step per point: any mix of lengths."""
-    buf = r.buf
-    times = np.empty(m, dtype=np.int64)
-    rows: dict[str, list[NDArray[np.float64] | None]] = {name: [] for name in FIELDS}
+    """The points one Python step per point: any mix of lengths.
+
+    The loop only reads the four counts and notes where each point's values and Duration are;
+    the values are then gathered by index arrays, one per field (every float64 body is
+    8-aligned relative to the body, so one float64 view of the body holds them all).
+    """
+    buf, pos, end = r.buf, r.pos, r.end
+    u32 = _U32
+    counts = [0] * (4 * m)
+    at = [0] * (4 * m)
+    durations = [0] * m
+    i = 0
     for p in range(m):
-        for name in FIELDS:
-            where = f"{what}[{p}].{name}"
-            n = r.count(where, 8)
+        for _ in range(4):  # a count is always 4-aligned here: after a count or float64s
+            if pos + 4 > end:
+                r.pos = pos
+                r.need(4, f"{what}[{p}].{FIELDS[i % 4]} (count)")
+            (n,) = u32(buf, pos)
+            pos += 4
             if n:
-                r.align(8)
-                r.need(8 * n, where)
-                rows[name].append(np.frombuffer(buf, dtype="<f8", count=n, offset=r.pos))
-                r.pos += 8 * n
-            else:
-                rows[name].append(None)
-        sec, nsec = r.time(f"{what}[{p}].time_from_start")
-        times[p] = sec * NS_PER_S + nsec
+                pos += (pos - _BODY) % 8  # 0 or 4 to the float64s' alignment
+                if n > (end - pos) // 8:
+                    r.pos = pos
+                    r.need(8 * n, f"{what}[{p}].{FIELDS[i % 4]}")
+                counts[i] = n
+                at[i] = pos
+                pos += 8 * n
+            i += 1
+        if pos + 8 > end:
+            r.pos = pos
+            r.need(8, f"{what}[{p}].time_from_start")
+        durations[p] = pos
+        pos += 8
+    r.pos = pos
+    body = memoryview(buf)[_BODY:]
+    words = np.frombuffer(body[: len(body) // 4 * 4], dtype="<u4")
+    where = (np.array(durations, dtype=np.int64) - _BODY) // 4
+    sec = words[where].view("<i4").astype(np.int64)
+    times = sec * NS_PER_S + words[where + 1].astype(np.int64)
+    floats = np.frombuffer(body[: len(body) // 8 * 8], dtype="<f8")
+    n_all = np.array(counts, dtype=np.int64).reshape(m, 4)
+    at_all = (np.array(at, dtype=np.int64).reshape(m, 4) - _BODY) // 8
     arrays: dict[str, NDArray[np.float64]] = {}
     present: dict[str, NDArray[np.bool_]] = {}
-    for name, column in rows.items():
-        given = [row for row in column if row is not None]
-        if not given:
+    for f, name in enumerate(FIELDS):
+        n = n_all[:, f]
+        mask = n > 0
+        if not mask.any():
             continue
-        if len({row.shape[0] for row in given}) != 1:
-            return _points_as_objects(times, rows)
-        mask = np.fromiter((row is not None for row in column), dtype=np.bool_, count=m)
-        full = np.zeros((m, given[0].shape[0]))
-        full[mask] = np.stack(given)
+        lengths = np.unique(n[mask])
+        if lengths.shape[0] != 1:
+            return _points_as_objects(times, n_all, at_all, floats)
+        k = int(lengths[0])
+        full = np.zeros((m, k))
+        full[mask] = floats[at_all[mask, f][:, None] + np.arange(k)]
         arrays[name] = full
         present[name] = mask
     return PointColumns(times, present=present, **arrays)
 
 
 def _points_as_objects(
-    times: NDArray[np.int64], rows: dict[str, list[NDArray[np.float64] | None]]
+    times: NDArray[np.int64], counts: NDArray[np.int64], at: NDArray[np.int64],
+    floats: NDArray[np.float64],
 ) -> tuple[TrajectoryPoint, ...]:
     """Points whose present rows differ in length: objects, for the controller to refuse (or,
     for effort, to accept, as upstream does not check its size)."""
-    fields = [rows[name] for name in FIELDS]
     return tuple(
         TrajectoryPoint(
-            None, *(None if row is None else tuple(row.tolist()) for row in values),
-            time_from_start_ns=int(t))
-        for t, *values in zip(times.tolist(), *fields, strict=True))
+            None, *(tuple(floats[a : a + n].tolist()) if n else None
+                    for n, a in zip(ns, starts, strict=True)),
+            time_from_start_ns=t)
+        for t, ns, starts in zip(times.tolist(), counts.tolist(), at.tolist(), strict=True))
 
 
 def _points(r: _Reader, what: str) -> PointColumns | tuple[TrajectoryPoint, ...]:

@@ -365,13 +365,17 @@ def test_a_ten_million_length_in_a_small_buffer_allocates_nothing(where: str) ->
     assert peak < 200_000
 
 
-def test_a_huge_tolerance_count_is_refused_before_reading() -> None:
+@pytest.mark.parametrize(("at", "field"), [
+    (60, "multi_dof_trajectory.points"), (64, "goal.path_tolerance"),
+    (68, "component_path_tolerance"), (72, "goal.goal_tolerance"),
+    (76, "component_goal_tolerance")])
+def test_a_huge_count_in_a_goal_is_refused_before_reading(at: int, field: str) -> None:
     buf = serialize(goal_request([], names=[]))
     # uuid 16, trajectory: stamp 8, frame 8, names 4, points 4 -> multi-dof at body 40:
-    # stamp 8, frame 8, names 4, points 4 -> path_tolerance count at body 64.
-    assert struct.unpack_from("<I", buf, 4 + 64) == (0,)
-    with pytest.raises(CdrError, match="path_tolerance: 10000000 elements"):
-        decode_send_goal_request(patched(buf, 4 + 64, 10_000_000))
+    # stamp 8, frame 8, names 4, points 4 -> the four tolerance counts from body 64.
+    assert struct.unpack_from("<I", buf, 4 + at) == (0,)
+    with pytest.raises(CdrError, match=f"{field}: 10000000 elements"):
+        decode_send_goal_request(patched(buf, 4 + at, 10_000_000))
 
 
 def test_a_string_without_its_nul_is_refused() -> None:

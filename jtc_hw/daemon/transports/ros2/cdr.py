@@ -7,7 +7,8 @@ A sample's payload is XCDR1 (plain CDR), little-endian, behind a 4-byte encapsul
 as rmw_zenoh (through Fast-CDR) and rosbags' ``serialize_cdr`` write it. Every primitive is
 aligned to its own size *relative to the body* (the byte after the header), sequences and
 strings are a ``uint32`` count then the elements, a string's count includes its NUL, and an
-empty sequence has no padding after its count::
+empty sequence has no padding after its count (eProsima/Fast-CDR src/cpp/Cdr.cpp,
+``serialize_array``: zero elements return before aligning; rosbags writes the same)::
 
     0      2      4 (body offset 0)
     | 00 01 | opt | header.stamp.sec i32 | .nanosec u32 | frame_id: len u32, bytes.., NUL |

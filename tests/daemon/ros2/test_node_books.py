@@ -240,3 +240,50 @@ def test_small_requests_refuse_bad_bytes() -> None:
                        m.speed_scaling):
             with pytest.raises(CdrError):
                 decode(bad)
+
+
+# -- the outbox and the callback guard -----------------------------------------------------------
+
+
+def test_outbox_drops_droppable_first_and_runs_in_order() -> None:
+    import threading
+
+    from jtc_hw.daemon.transports.ros2.outbox import Outbox
+
+    gate, blocked = threading.Event(), threading.Event()
+    ran: list[int] = []
+    outbox = Outbox(size=2, hard_cap=3)
+
+    def block() -> None:
+        blocked.set()
+        gate.wait(10.0)
+
+    try:
+        assert outbox.put(block)
+        assert blocked.wait(10.0)  # the thread is busy: the others queue up
+        assert outbox.offer(lambda: ran.append(1)) and outbox.offer(lambda: ran.append(2))
+        assert not outbox.offer(lambda: ran.append(3))  # beyond size: a state, dropped
+        assert outbox.put(lambda: ran.append(4))  # a result still goes
+        assert not outbox.put(lambda: ran.append(5))  # beyond the hard cap: lost
+    finally:
+        gate.set()
+        outbox.close(5.0)
+    assert ran == [1, 2, 4] and (outbox.dropped, outbox.lost) == (1, 1)
+    assert not outbox.put(lambda: None)  # closed
+
+
+def test_guard_never_raises_into_zenoh() -> None:
+    import collections
+
+    from jtc_hw.daemon.transports.ros2.outbox import guard
+
+    class Query:
+        dropped = False
+
+        def drop(self) -> None:
+            self.dropped = True
+
+    counters: collections.Counter[str] = collections.Counter()
+    query = Query()
+    guard(lambda item: 1 / 0, counters, query=True)(query)
+    assert counters["callback_errors"] == 1 and query.dropped

@@ -126,8 +126,11 @@ def wait_at(arm: Arm, positions: list[float], timeout: float = WAIT_S) -> None:
 
 def test_graph_shows_upstreams_controller(arm: Arm) -> None:
     peer = arm.peer
+    expected = {"/joint_states", f"{C}/controller_state", f"{C}/joint_trajectory",
+                f"{C}/speed_scaling_input"}
     peer.wait_until(lambda: "/joint_state_broadcaster" in peer.nodes()
-                    and f"{ACTION}" in peer.actions(), WAIT_S, "the broadcaster and the action")
+                    and ACTION in peer.actions() and expected <= set(peer.topics())
+                    and f"{C}/query_state" in peer.services(), WAIT_S, "every entity's token")
     assert {C, "/joint_state_broadcaster"} <= set(peer.nodes())
     topics = peer.topics()
     assert topics["/joint_states"] == ["sensor_msgs/msg/JointState"]

@@ -85,11 +85,13 @@ from .messages import (
     JOINT_STATE,
     QUERY_STATE,
     SEND_GOAL,
+    SMALL_REQUEST_BYTES,
     SPEED_SCALING,
     STATUS_ARRAY,
     TRAJECTORY,
     Messages,
 )
+from .outbox import Outbox, guard, quietly
 from .types import ros_types
 from .wire import (
     QOS_ACTION_STATUS,
@@ -178,66 +180,6 @@ class _Discard:
 _DISCARD: Final = _Discard()
 
 
-class _Outbox:
-    """Sends for Zenoh, run in order by one thread: droppable ones beyond ``size`` waiting,
-    the others beyond ``hard_cap``."""
-
-    def __init__(self, size: int, hard_cap: int) -> None:
-        self._items: collections.deque[Callable[[], None]] = collections.deque()
-        self._cond = threading.Condition()
-        self._size, self._hard_cap = size, hard_cap
-        self._closed = False
-        self.dropped = self.lost = self.errors = 0
-        self._thread = threading.Thread(target=self._run, name="jtc_hw-ros2-out", daemon=True)
-        self._thread.start()
-
-    def offer(self, action: Callable[[], None]) -> bool:
-        return self._add(action, self._size)
-
-    def put(self, action: Callable[[], None]) -> bool:
-        return self._add(action, self._hard_cap)
-
-    def _add(self, action: Callable[[], None], limit: int) -> bool:
-        with self._cond:
-            if self._closed or len(self._items) >= limit:
-                if limit == self._size:
-                    self.dropped += 1
-                else:
-                    self.lost += 1
-                    if self.lost <= 3 or self.lost % 1000 == 0:
-                        log.error("ros2: %d sends waiting; a reply or result was lost",
-                                  len(self._items))
-                return False
-            self._items.append(action)
-            self._cond.notify()
-        return True
-
-    def close(self, timeout_s: float) -> None:
-        with self._cond:
-            self._closed = True
-            self._cond.notify()
-        self._thread.join(timeout_s)
-        with self._cond:
-            self._items.clear()
-            self._cond.notify()
-        self._thread.join()
-
-    def _run(self) -> None:
-        while True:
-            with self._cond:
-                while not self._items and not self._closed:
-                    self._cond.wait()
-                if not self._items:
-                    return
-                action = self._items.popleft()
-            try:
-                action()
-            except Exception:
-                self.errors += 1
-                if self.errors <= 3:
-                    log.exception("ros2: cannot send; skipped")
-
-
 class Ros2Interface:
     """The daemon's ROS 2 nodes (module docstring).
 
@@ -261,6 +203,7 @@ class Ros2Interface:
         self.messages: Messages = None  # type: ignore[assignment]  # made by start()
         self.book = GoalBook()
         self._entity_ids = itertools.count(10)
+        self._max_bytes = requests.max_message_bytes
         self._uuids_pending: set[bytes] = set()
         self._lock = threading.Lock()  # _inflight, from Zenoh's threads and ours
         self._session: Any = None
@@ -268,7 +211,7 @@ class Ros2Interface:
         self._tokens: list[Any] = []
         self._declared: list[Any] = []
         self._entities: dict[str, _Entity] = {}
-        self._outbox: _Outbox | None = None
+        self._outbox: Outbox | None = None
         self._aio: asyncio.AbstractEventLoop | None = None
         self._tasks: set[asyncio.Task[None]] = set()
         self._expire: asyncio.TimerHandle | None = None
@@ -304,7 +247,7 @@ class Ros2Interface:
                 f"cannot open the Zenoh session: {exc}; check the endpoints (is the router, "
                 "rmw_zenohd, running?)", "daemon.ros2.zenoh") from None
         self._zid = str(self._session.info.zid())
-        self._outbox = _Outbox(OUTBOX_SIZE, OUTBOX_HARD_CAP)
+        self._outbox = Outbox(OUTBOX_SIZE, OUTBOX_HARD_CAP)
         self._declare(zenoh)
         self._expire = self._aio.call_later(EXPIRE_EVERY_S, self._expire_results)
         if self._add_observer is not None:
@@ -379,16 +322,16 @@ class Ros2Interface:
                 entity.key, congestion_control=zenoh.CongestionControl.DROP)
         elif kind == SUB and _transient_local(qos):
             entity.handle = zenoh.ext.declare_advanced_subscriber(
-                session, entity.key, _guard(callback, self.counters),
+                session, entity.key, guard(callback, self.counters),
                 history=zenoh.ext.HistoryConfig(detect_late_publishers=True,
                                                 max_samples=qos.depth),
                 recovery=zenoh.ext.RecoveryConfig(heartbeat=True), subscriber_detection=True)
         elif kind == SUB:
             entity.handle = session.declare_subscriber(entity.key,
-                                                       _guard(callback, self.counters))
+                                                       guard(callback, self.counters))
         else:
             entity.handle = session.declare_queryable(
-                entity.key, _guard(callback, self.counters, query=True), complete=True)
+                entity.key, guard(callback, self.counters, query=True), complete=True)
         self._declared.append(entity.handle)
         self._entities[what] = entity
 
@@ -409,13 +352,13 @@ class Ros2Interface:
 
         def finish() -> None:
             for token in reversed(self._tokens):
-                _quietly(token.undeclare)
+                quietly(token.undeclare)
             if outbox is not None:
                 outbox.close(CLOSE_FLUSH_S)
             for query in waiting:
-                _quietly(query.drop)
+                quietly(query.drop)
             for entity in reversed(self._declared):
-                _quietly(entity.undeclare)
+                quietly(entity.undeclare)
             session.close()
 
         try:
@@ -500,7 +443,7 @@ class Ros2Interface:
         """Queue a reply to ``query`` (``att``: its request's attachment); any thread."""
         outbox = self._outbox
         if outbox is None or not outbox.put(partial(self._send_reply, query, att, data)):
-            _quietly(query.drop)
+            quietly(query.drop)
 
     def _reply_later(self, parked: tuple[Any, Any], data: bytes) -> None:
         query, att = parked
@@ -555,7 +498,7 @@ class Ros2Interface:
             return
         try:
             trajectory = cdr.decode_joint_trajectory_message(
-                _payload(sample), clock_offset_ns=self._clock_offset())
+                _payload(sample, self._max_bytes), clock_offset_ns=self._clock_offset())
         except cdr.CdrError as exc:
             self._release()
             self._drop("joint_trajectory", f"malformed: {exc}")
@@ -566,7 +509,7 @@ class Ros2Interface:
         if not self._admit():
             return
         try:
-            factor = self.messages.speed_scaling(_payload(sample))
+            factor = self.messages.speed_scaling(_payload(sample, SMALL_REQUEST_BYTES))
         except cdr.CdrError as exc:
             self._release()
             self._drop("speed_scaling_input", f"malformed: {exc}")
@@ -576,12 +519,11 @@ class Ros2Interface:
     def _on_send_goal(self, query: Any) -> None:
         att = _attachment(query)
         if att is None or not self._admit():
-            self.counters["requests_dropped"] += 1
-            query.drop()
+            self._unanswered(query, att)
             return
         try:
             decoded: tuple[bytes, Any] | str = cdr.decode_send_goal_request(
-                _payload(query), clock_offset_ns=self._clock_offset())
+                _payload(query, self._max_bytes), clock_offset_ns=self._clock_offset())
         except cdr.CdrError as exc:
             decoded = str(exc)
         self._hand(self._send_goal, query, att, decoded)
@@ -589,10 +531,20 @@ class Ros2Interface:
     def _on_query(self, handler: Callable[[Any, Any, bytes], Any], query: Any) -> None:
         att = _attachment(query)
         if att is None or not self._admit():
-            self.counters["requests_dropped"] += 1
-            query.drop()
+            self._unanswered(query, att)
             return
-        self._hand(handler, query, att, _payload(query))
+        try:
+            payload = _payload(query, SMALL_REQUEST_BYTES)
+        except cdr.CdrError:
+            payload = b""  # (too long: refused as malformed by the handler's decoder)
+        self._hand(handler, query, att, payload)
+
+    def _unanswered(self, query: Any, att: Any) -> None:
+        """Drop a query without a reply: no rmw_zenoh attachment (not a ROS 2 client: it has
+        no sequence number to be answered with), or :data:`MAX_REQUESTS` executing."""
+        if att is None:
+            self.counters["requests_without_attachment"] += 1
+        query.drop()
 
     # -- in the event loop --------------------------------------------------------------------
 
@@ -732,9 +684,20 @@ def _transient_local(qos: Qos) -> bool:
     return qos.adapted().durability is Durability.TRANSIENT_LOCAL
 
 
-def _payload(item: Any) -> bytes:
+def _payload(item: Any, limit: int) -> bytes:
+    """A sample's or query's payload, refused from its length alone (never copied) when it
+    is longer than ``limit``.
+
+    Raises:
+        CdrError: longer than ``limit`` bytes.
+    """
     payload = item.payload
-    return b"" if payload is None else bytes(payload.to_bytes())
+    if payload is None:
+        return b""
+    if len(payload) > limit:
+        raise cdr.CdrError(f"{len(payload)} bytes, more than the {limit} accepted "
+                           "(daemon.max_message_bytes)")
+    return bytes(payload.to_bytes())
 
 
 def _attachment(query: Any) -> Any:
@@ -747,31 +710,3 @@ def _attachment(query: Any) -> Any:
         return wire.decode_attachment(bytes(raw.to_bytes()))
     except ValueError:
         return None
-
-
-def _guard(callback: Callable[[Any], None] | None, counters: Any,
-           query: bool = False) -> Callable[[Any], None]:
-    """``callback`` that never raises into Zenoh's thread (a failure is logged, counted, and
-    a query dropped)."""
-    assert callback is not None
-
-    def guarded(item: Any) -> None:
-        try:
-            callback(item)
-        except Exception:
-            counters["callback_errors"] += 1
-            if counters["callback_errors"] <= 3:
-                log.exception("ros2: cannot take a sample or request")
-            if query:
-                _quietly(item.drop)
-
-    return guarded
-
-
-def _quietly(fn: Callable[[], Any]) -> None:
-    try:
-        fn()
-    except Exception:
-        log.debug("ros2: ignored while closing", exc_info=True)
-
-

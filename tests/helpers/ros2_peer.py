@@ -488,11 +488,19 @@ class Ros2Peer:
             f"@ros2_lv/{domain_id}/**", self._on_token, history=True)
 
     # -- lifetime --
-    def close(self) -> None:
-        """Undeclare every entity and token, close the session."""
+    def close_entities(self) -> None:
+        """Undeclare every publisher, subscription, server and client (and their tokens); the
+        session and its graph stay."""
         for entity in reversed(self._entities):
             entity.close()
         self._entities.clear()
+        self._publishers.clear()
+        self._clients.clear()
+        self._action_subs.clear()
+
+    def close(self) -> None:
+        """Undeclare every entity and token, close the session."""
+        self.close_entities()
         self._liveliness.undeclare()
         self.session.close()
 

@@ -1,0 +1,177 @@
+"""The harness before the transport: two independent ROS 2 peers (tests/helpers/ros2_peer.py,
+on zenoh-ros2-sdk) talk through the router fixture, and the peer's type hashes agree with the
+values rmw_zenoh's design doc quotes and with rosbags'."""
+
+from __future__ import annotations
+
+import socket
+import subprocess
+from collections.abc import Iterator
+from typing import Any
+
+import numpy as np
+import pytest
+
+from helpers import ros2_peer
+from helpers.ros2_peer import FJT, STORE, OfflineTypeError, Ros2Peer
+
+pytestmark = pytest.mark.usefixtures("no_leaks")
+
+WAIT_S = 10.0
+
+
+@pytest.fixture
+def two(router: str) -> Iterator[tuple[Ros2Peer, Ros2Peer]]:
+    with Ros2Peer(router, node_name="talker") as a, Ros2Peer(router, node_name="listener") as b:
+        yield a, b
+
+
+# -- hashes (no network) ---------------------------------------------------------------------
+
+
+def test_hashes_match_the_design_doc() -> None:
+    # ros2/rmw_zenoh docs/design.md @ 99a6a2bd10b949052f4f12c5854825dc005e95a5, "Topic and
+    # Service name mapping to Zenoh key expressions"
+    assert ros2_peer.message_hash("std_msgs/msg/String") == (
+        "RIHS01_df668c740482bbd48fb39d76a70dfd4bd59db1288021743503259e948f6b1a18")
+    assert ros2_peer.service_hash("example_interfaces/srv/AddTwoInts") == (
+        "RIHS01_e118de6bf5eeb66a2491b5bda11202e7b68f198d6f67922cf30364858239c81a")
+
+
+@pytest.mark.parametrize("typename", [
+    "sensor_msgs/msg/JointState", "trajectory_msgs/msg/JointTrajectory",
+    "action_msgs/msg/GoalStatusArray", "control_msgs/msg/JointTrajectoryControllerState",
+    "control_msgs/msg/SpeedScalingFactor", f"{FJT}_FeedbackMessage"])
+def test_message_hashes_agree_with_rosbags(typename: str) -> None:
+    """Two implementations of REP-2016 (the sdk's, rosbags') on the same definitions."""
+    assert ros2_peer.message_hash(typename) == STORE.hash_rihs01(typename)
+
+
+def test_service_hash_agrees_with_the_sdks_own_for_a_plain_service() -> None:
+    from zenoh_ros2_sdk import utils
+
+    srv = "control_msgs/srv/QueryTrajectoryState"
+    assert ros2_peer.service_hash(srv) == utils.compute_service_type_hash(
+        srv, ros2_peer.msg_text(f"{srv}_Request"), ros2_peer.msg_text(f"{srv}_Response"),
+        {**ros2_peer._dependencies(f"{srv}_Request"),
+         **ros2_peer._dependencies(f"{srv}_Response")})
+
+
+# -- two peers through the router --------------------------------------------------------------
+
+
+def test_discovery_of_the_other_peers_node_and_topic(two: tuple[Ros2Peer, Ros2Peer]) -> None:
+    a, b = two
+    a.publish("/chatter", "std_msgs/msg/String", {"data": "hi"})
+    b.wait_until(lambda: "/talker" in b.nodes() and "/chatter" in b.topics(), WAIT_S)
+    assert b.topics()["/chatter"] == ["std_msgs/msg/String"]
+    (pub,) = b.publishers("/chatter")
+    assert pub["node_name"] == "talker"
+    assert pub["type_hash"] == ros2_peer.message_hash("std_msgs/msg/String")
+    assert pub["qos"] == "::,10:,:,:,,"  # the design doc's default
+    a.close_entities()
+    b.wait_until(lambda: "/chatter" not in b.topics() and "/talker" not in b.nodes(), WAIT_S)
+
+
+def test_joint_state_published_by_one_is_echoed_by_the_other(
+        two: tuple[Ros2Peer, Ros2Peer]) -> None:
+    a, b = two
+    sub = b.subscribe("/joint_states", "sensor_msgs/msg/JointState")
+    msg = {"header": {"stamp": {"sec": 3, "nanosec": 4}}, "name": ["shoulder", "elbow"],
+           "position": [0.5, -1.25], "velocity": [0.0, 0.1], "effort": []}
+    a.publish("/joint_states", "sensor_msgs/msg/JointState", msg, wait_for_subscriber=WAIT_S)
+    (got,) = sub.take(1, WAIT_S)
+    assert got.name == ["shoulder", "elbow"]
+    np.testing.assert_array_equal(got.position, [0.5, -1.25])
+    assert (got.header.stamp.sec, got.header.stamp.nanosec) == (3, 4)
+
+
+def test_a_service_served_by_one_is_called_by_the_other(two: tuple[Ros2Peer, Ros2Peer]) -> None:
+    a, b = two
+    srv = "example_interfaces/srv/AddTwoInts"
+    a.serve("/add_two_ints", srv, lambda req: ros2_peer.make(f"{srv}_Response", sum=req.a + req.b))
+    b.wait_until(lambda: bool(b.servers("/add_two_ints")), WAIT_S)
+    assert b.call("/add_two_ints", srv, {"a": 2, "b": 40}, WAIT_S).sum == 42
+    assert b.services()["/add_two_ints"] == [srv]
+
+
+def test_the_action_client_against_an_action_server_made_of_sdk_parts(
+        two: tuple[Ros2Peer, Ros2Peer]) -> None:
+    """The action client's wire names and types, against a minimal server built here from the
+    sdk's service servers and publishers (a stand-in for the transport): accept, feedback,
+    status, exactly one result, cancel."""
+    a, b = two
+    action = "/arm_controller/follow_joint_trajectory"
+    goals: list[Any] = []
+
+    def send_goal(req: Any) -> Any:
+        goals.append(req)
+        feedback = {"goal_id": {"uuid": req.goal_id.uuid},
+                    "feedback": {"joint_names": list(req.goal.trajectory.joint_names)}}
+        a.publish(f"{action}/_action/feedback", f"{FJT}_FeedbackMessage", feedback)
+        a.publish(f"{action}/_action/status", "action_msgs/msg/GoalStatusArray", {"status_list": [
+            {"goal_info": {"goal_id": {"uuid": req.goal_id.uuid}}, "status": 4}]},
+            qos=ros2_peer.STATUS_QOS)
+        return ros2_peer.make(f"{FJT}_SendGoal_Response", accepted=True)
+
+    a.serve(f"{action}/_action/send_goal", f"{FJT}_SendGoal", send_goal)
+    a.serve(f"{action}/_action/get_result", f"{FJT}_GetResult", lambda req: ros2_peer.make(
+        f"{FJT}_GetResult_Response", status=4, result={"error_string": "done"}))
+    a.serve(f"{action}/_action/cancel_goal", "action_msgs/srv/CancelGoal",
+            lambda req: ros2_peer.make("action_msgs/srv/CancelGoal_Response", return_code=3))
+    # what `ros2 action list` needs: the feedback topic, from a publisher
+    a.publish(f"{action}/_action/feedback", f"{FJT}_FeedbackMessage", {})
+    b.wait_until(lambda: action in b.actions() and len(b.servers(
+        f"{action}/_action/cancel_goal")) == 1 and len(b.servers(
+            f"{action}/_action/get_result")) == 1 and len(b.servers(
+                f"{action}/_action/send_goal")) == 1, WAIT_S)
+    assert b.actions()[action] == [FJT]
+    b._action_topics(action, FJT)  # subscribed before the goal, as send_goal does
+    fb_pub = a._publishers[(f"{action}/_action/feedback", f"{FJT}_FeedbackMessage")]
+    b.wait_until(lambda: fb_pub.pub.matching_status.matching, WAIT_S)
+
+    handle = b.send_goal(action, {"trajectory": {"joint_names": ["shoulder"], "points": [
+        {"positions": [1.0], "time_from_start": {"sec": 1}}]}}, timeout=WAIT_S)
+    assert handle.accepted
+    assert bytes(goals[0].goal_id.uuid) == handle.goal_id
+    assert handle.wait_feedback(1, WAIT_S)[0].joint_names == ["shoulder"]
+    handle.wait_status(4, WAIT_S)
+    status, result = handle.result(WAIT_S)
+    assert (status, result.error_string) == (4, "done")
+    assert handle.result_call is not None and len(handle.result_call.replies) == 1
+    assert handle.cancel(WAIT_S).return_code == 3
+
+
+# -- offline ------------------------------------------------------------------------------------
+
+
+def test_the_sdk_never_reaches_for_the_network(router: str,
+                                               monkeypatch: pytest.MonkeyPatch) -> None:
+    """The sdk's downloader (git clones of message packages) is replaced: building entities,
+    publishing, echoing and asking for a type the store lacks open no connection beyond
+    loopback and start no process."""
+    attempts: list[str] = []
+    real_connect = socket.socket.connect
+
+    def connect(self: socket.socket, address: Any) -> Any:
+        if not (isinstance(address, str) or str(address[0]) in ("127.0.0.1", "::1", "localhost")):
+            attempts.append(f"connect {address}")
+            raise OSError("no network in this test")
+        return real_connect(self, address)
+
+    def popen(*args: Any, **_kwargs: Any) -> Any:
+        attempts.append(f"popen {args}")
+        raise OSError("no processes in this test")
+
+    monkeypatch.setattr(socket.socket, "connect", connect)
+    monkeypatch.setattr(subprocess, "Popen", popen)
+    with Ros2Peer(router) as a, Ros2Peer(router) as b:
+        sub = b.subscribe("/joint_states", "sensor_msgs/msg/JointState")
+        a.publish("/joint_states", "sensor_msgs/msg/JointState", {"name": ["j"]},
+                  wait_for_subscriber=WAIT_S)
+        assert sub.take(1, WAIT_S)[0].name == ["j"]
+        with pytest.raises((OfflineTypeError, KeyError)):
+            a.publish("/odd", "odd_msgs/msg/Unknown", {})
+        with pytest.raises(OfflineTypeError):  # the sdk's own path to a definition
+            a.session.register_message_type(None, "odd_msgs/msg/Unknown")
+    assert attempts == []

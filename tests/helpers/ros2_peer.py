@@ -190,15 +190,23 @@ def _action_parts(action_type: str) -> dict[str, str]:
 
 def _build_store() -> tuple[Typestore, dict[str, str]]:
     """The store and, for the sdk, the name under which it looks each type up -> store key."""
-    store = get_typestore(Stores.ROS2_JAZZY)
+    store, aliases = get_typestore(Stores.ROS2_JAZZY), {}
     texts: dict[str, str] = dict(_CONTROL_MSGS)
     for srv, (req, resp) in _SERVICES.items():
         texts[f"{srv}_Request"], texts[f"{srv}_Response"] = req, resp
-    for action, (goal, result, feedback) in _ACTIONS.items():
-        texts.update({f"{action}_Goal": goal, f"{action}_Result": result,
-                      f"{action}_Feedback": feedback})
-        texts.update(_action_parts(action))
-    aliases: dict[str, str] = {}
+    for action, parts in _ACTIONS.items():
+        texts.update(_action_texts(action, *parts))
+    _register(store, aliases, texts)
+    aliases.update({k: k for k in store.types if k not in aliases})
+    return store, aliases
+
+
+def _action_texts(action_type: str, goal: str, result: str, feedback: str) -> dict[str, str]:
+    return {f"{action_type}_Goal": goal, f"{action_type}_Result": result,
+            f"{action_type}_Feedback": feedback, **_action_parts(action_type)}
+
+
+def _register(store: Typestore, aliases: dict[str, str], texts: dict[str, str]) -> None:
     for name, text in texts.items():
         types = get_types_from_msg(text, name)
         store.register(types)
@@ -207,8 +215,12 @@ def _build_store() -> tuple[Typestore, dict[str, str]]:
         # the sdk names a service's halves <pkg>/srv/<Name>_Request, actions' too
         pkg, _kind, base = name.split("/")
         aliases.setdefault(f"{pkg}/srv/{base}", key)
-    aliases.update({k: k for k in store.types if k not in aliases})
-    return store, aliases
+
+
+def register_action(action_type: str, goal: str, result: str, feedback: str) -> None:
+    """Add an action type (its goal, result and feedback as ``.msg`` text, nested types named
+    in full) and the types rosidl generates for it to :data:`STORE`."""
+    _register(STORE, _SDK_NAMES, _action_texts(action_type, goal, result, feedback))
 
 
 STORE, _SDK_NAMES = _build_store()

@@ -175,3 +175,35 @@ def test_the_sdk_never_reaches_for_the_network(router: str,
         with pytest.raises(OfflineTypeError):  # the sdk's own path to a definition
             a.session.register_message_type(None, "odd_msgs/msg/Unknown")
     assert attempts == []
+
+
+def test_action_hashes_match_rosidls() -> None:
+    """An action's services hash as rosidl hashes them: nav2_msgs/action/Wait, against the
+    type description rosidl_generator_type_description wrote for it in a colcon install
+    (thomasankara/hive_ws2, install/nav2_msgs/share/nav2_msgs/action/Wait.json at
+    a983b6c8e23eae4b246b0cc093a2077cdaa8acec; its fields are the definitions below). The
+    ServiceEventInfo line checks ``char[16] client_gid`` hashed as ``uint8[16]``."""
+    ros2_peer.register_action(
+        "nav2_msgs/action/Wait", "builtin_interfaces/Duration time\n",
+        "builtin_interfaces/Duration total_elapsed_time\nuint16 error_code\nstring error_msg\n",
+        "builtin_interfaces/Duration time_left\n")
+    hashes = {
+        "nav2_msgs/action/Wait_SendGoal":
+            "aa768b9f4248c70a9c68fcf3a52f10300d4b0d21cad3cf39f01f4f3d248c2490",
+        "nav2_msgs/action/Wait_GetResult":
+            "6fa1323df11147db06a24a126119f542104f535108774b930b8047cfa34df466",
+    }
+    for srv, digest in hashes.items():
+        assert ros2_peer.service_hash(srv) == f"RIHS01_{digest}", srv
+    messages = {
+        "nav2_msgs/action/Wait_FeedbackMessage":
+            "cb143310afa60cc18ef814ac127a730d4ee190828ce9b9a943fa8f0cb1a09f7c",
+        "nav2_msgs/action/Wait_SendGoal_Request":
+            "2153054419debd2560f3b9514eeda1b14b31f029ff03383a519568b5f67ba18a",
+        "nav2_msgs/action/Wait_GetResult_Response":
+            "c89ac345ba5364c16099f24b1166e1ca1dd13a0b0f7c7df283cf36f8948759cb",
+        "service_msgs/msg/ServiceEventInfo":
+            "41bcbbe07a75c9b52bc96bfd5c24d7f0fc0a08c0cb7921b3373c5732345a6f45",
+    }
+    for msg, digest in messages.items():
+        assert ros2_peer.message_hash(msg) == f"RIHS01_{digest}", msg

@@ -9,13 +9,14 @@ Theory of operation
 -------------------
 The sdk does the wire: key expressions ``<domain>/<name>/<dds type>/<RIHS01 hash>``, the
 ``@ros2_lv/...`` liveliness tokens (one NN token per entity, then its MP/MS/SS/SC token), the
-17+16-byte attachment (u64 sequence number, u64 source timestamp in ns, u8 GID length, GID) on
-every sample, query and reply, CDR via rosbags. This module fixes what it lacks for our tests::
+33-byte attachment (u64 sequence number, u64 source timestamp in ns, u8 GID length 16, the
+16-byte GID, little-endian) on every sample, query and reply, CDR via rosbags. This module fixes what it lacks for our tests::
 
     Ros2Peer ── one sdk ZenohSession (peer mode, connect <endpoint>, listen tcp/localhost:0)
-      │  store      = STORE: rosbags' Jazzy store + control_msgs 5.8.0 (.msg/.srv/.action text)
-      │                      + the types rosidl generates for an action + CancelGoal, AddTwoInts
-      │  hashes     = the sdk's own RIHS01 code, given rosidl-style text made from STORE
+      │  store      = Types(distro): rosbags' store of the distro + control_msgs of the distro
+      │               (.msg/.srv/.action text) + what rosidl makes of an action + CancelGoal
+      │  hashes     = the sdk's own RIHS01 code, given rosidl-style text made from the store
+      │               (Humble: TypeHashNotSupported)
       │  graph      = a liveliness subscriber (history on): nodes(), topics(), actions(), waits
       └─ entities   = sdk publishers, subscribers, service clients/servers, built on demand
 
@@ -78,9 +79,15 @@ STATUS_SUCCEEDED, STATUS_CANCELED, STATUS_ABORTED = 4, 5, 6
 
 # -- the type store -------------------------------------------------------------------------
 
-# control_msgs as Jazzy ships it: tag 5.8.0 (f901df2662f22a39a06aa04a85a34602c47e3cc0) of
-# ros-controls/control_msgs, branch jazzy; comments dropped, fields and constants as there.
-_CONTROL_MSGS = {
+DISTROS = ("humble", "jazzy", "kilted", "rolling")
+NO_HASH = "TypeHashNotSupported"
+"""What Humble's rmw_zenoh writes where later distros write a RIHS01 hash."""
+
+# control_msgs as each distro ships it (ros-controls/control_msgs; comments dropped, fields and
+# constants as there): Jazzy = tag 5.8.0 (f901df2662f22a39a06aa04a85a34602c47e3cc0, branch
+# jazzy); Humble = branch humble (2e31e46, 4.8.0+29); Kilted and Rolling = master (13dacdd,
+# 6.8.0), where FollowJointTrajectory's feedback has `index` and `multi_dof_index` (6.3.0 on).
+_TOLERANCES = {
     "control_msgs/msg/JointTolerance": """
 string name
 float64 position
@@ -99,7 +106,8 @@ float64 position
 float64 velocity
 float64 acceleration
 """,
-    "control_msgs/msg/JointTrajectoryControllerState": """
+}
+_STATE_JAZZY = """
 std_msgs/Header header
 string[] joint_names
 trajectory_msgs/JointTrajectoryPoint reference
@@ -112,12 +120,26 @@ trajectory_msgs/MultiDOFJointTrajectoryPoint multi_dof_feedback
 trajectory_msgs/MultiDOFJointTrajectoryPoint multi_dof_error
 trajectory_msgs/MultiDOFJointTrajectoryPoint multi_dof_output
 float64 speed_scaling_factor
-""",
-    "control_msgs/msg/SpeedScalingFactor": """
-float64 factor
-""",
-}
-_SERVICES = {  # srv type -> (request, response)
+"""
+_STATE_HUMBLE = """
+std_msgs/Header header
+string[] joint_names
+trajectory_msgs/JointTrajectoryPoint reference
+trajectory_msgs/JointTrajectoryPoint feedback
+trajectory_msgs/JointTrajectoryPoint error
+trajectory_msgs/JointTrajectoryPoint output
+trajectory_msgs/JointTrajectoryPoint desired
+trajectory_msgs/JointTrajectoryPoint actual
+string[] multi_dof_joint_names
+trajectory_msgs/MultiDOFJointTrajectoryPoint multi_dof_reference
+trajectory_msgs/MultiDOFJointTrajectoryPoint multi_dof_feedback
+trajectory_msgs/MultiDOFJointTrajectoryPoint multi_dof_error
+trajectory_msgs/MultiDOFJointTrajectoryPoint multi_dof_output
+trajectory_msgs/MultiDOFJointTrajectoryPoint multi_dof_desired
+trajectory_msgs/MultiDOFJointTrajectoryPoint multi_dof_actual
+"""
+_SPEED_SCALING = {"control_msgs/msg/SpeedScalingFactor": "float64 factor\n"}  # Jazzy and later
+_SERVICES = {  # srv type -> (request, response); the same in every distro
     "control_msgs/srv/QueryTrajectoryState": ("""
 builtin_interfaces/Time time
 """, """
@@ -142,8 +164,7 @@ action_msgs/GoalInfo[] goals_canceling
     # ros2/example_interfaces srv/AddTwoInts.srv: the design doc's hash example
     "example_interfaces/srv/AddTwoInts": ("int64 a\nint64 b\n", "int64 sum\n"),
 }
-_ACTIONS = {  # action type -> (goal, result, feedback): control_msgs 5.8.0
-    FJT: ("""
+_FJT_GOAL = """
 trajectory_msgs/JointTrajectory trajectory
 trajectory_msgs/MultiDOFJointTrajectory multi_dof_trajectory
 control_msgs/JointTolerance[] path_tolerance
@@ -151,7 +172,8 @@ control_msgs/JointComponentTolerance[] component_path_tolerance
 control_msgs/JointTolerance[] goal_tolerance
 control_msgs/JointComponentTolerance[] component_goal_tolerance
 builtin_interfaces/Duration goal_time_tolerance
-""", """
+"""
+_FJT_RESULT = """
 int32 SUCCESSFUL=0
 int32 INVALID_GOAL=-1
 int32 INVALID_JOINTS=-2
@@ -160,7 +182,8 @@ int32 PATH_TOLERANCE_VIOLATED=-4
 int32 GOAL_TOLERANCE_VIOLATED=-5
 int32 error_code
 string error_string
-""", """
+"""
+_FJT_FEEDBACK = """
 std_msgs/Header header
 string[] joint_names
 trajectory_msgs/JointTrajectoryPoint desired
@@ -170,7 +193,25 @@ string[] multi_dof_joint_names
 trajectory_msgs/MultiDOFJointTrajectoryPoint multi_dof_desired
 trajectory_msgs/MultiDOFJointTrajectoryPoint multi_dof_actual
 trajectory_msgs/MultiDOFJointTrajectoryPoint multi_dof_error
-"""),
+"""
+_FJT_FEEDBACK_6_3 = """
+std_msgs/Header header
+string[] joint_names
+trajectory_msgs/JointTrajectoryPoint desired
+trajectory_msgs/JointTrajectoryPoint actual
+trajectory_msgs/JointTrajectoryPoint error
+int32 index
+string[] multi_dof_joint_names
+trajectory_msgs/MultiDOFJointTrajectoryPoint multi_dof_desired
+trajectory_msgs/MultiDOFJointTrajectoryPoint multi_dof_actual
+trajectory_msgs/MultiDOFJointTrajectoryPoint multi_dof_error
+int32 multi_dof_index
+"""
+_DISTRO = {  # distro -> (rosbags store, controller_state, FJT feedback, speed scaling)
+    "humble": (Stores.ROS2_HUMBLE, _STATE_HUMBLE, _FJT_FEEDBACK, False),
+    "jazzy": (Stores.ROS2_JAZZY, _STATE_JAZZY, _FJT_FEEDBACK, True),
+    "kilted": (Stores.ROS2_KILTED, _STATE_JAZZY, _FJT_FEEDBACK_6_3, True),
+    "rolling": (Stores.ROS2_KILTED, _STATE_JAZZY, _FJT_FEEDBACK_6_3, True),
 }
 
 
@@ -188,142 +229,13 @@ def _action_parts(action_type: str) -> dict[str, str]:
     }
 
 
-def _build_store() -> tuple[Typestore, dict[str, str]]:
-    """The store and, for the sdk, the name under which it looks each type up -> store key."""
-    store, aliases = get_typestore(Stores.ROS2_JAZZY), {}
-    texts: dict[str, str] = dict(_CONTROL_MSGS)
-    for srv, (req, resp) in _SERVICES.items():
-        texts[f"{srv}_Request"], texts[f"{srv}_Response"] = req, resp
-    for action, parts in _ACTIONS.items():
-        texts.update(_action_texts(action, *parts))
-    _register(store, aliases, texts)
-    aliases.update({k: k for k in store.types if k not in aliases})
-    return store, aliases
-
-
 def _action_texts(action_type: str, goal: str, result: str, feedback: str) -> dict[str, str]:
     return {f"{action_type}_Goal": goal, f"{action_type}_Result": result,
             f"{action_type}_Feedback": feedback, **_action_parts(action_type)}
 
 
-def _register(store: Typestore, aliases: dict[str, str], texts: dict[str, str]) -> None:
-    for name, text in texts.items():
-        types = get_types_from_msg(text, name)
-        store.register(types)
-        (key,) = types  # rosbags files <pkg>/srv/<T> under <pkg>/srv/msg/<T>
-        aliases[name] = key
-        # the sdk names a service's halves <pkg>/srv/<Name>_Request, actions' too
-        pkg, _kind, base = name.split("/")
-        aliases.setdefault(f"{pkg}/srv/{base}", key)
-
-
-def register_action(action_type: str, goal: str, result: str, feedback: str) -> None:
-    """Add an action type (its goal, result and feedback as ``.msg`` text, nested types named
-    in full) and the types rosidl generates for it to :data:`STORE`."""
-    _register(STORE, _SDK_NAMES, _action_texts(action_type, goal, result, feedback))
-
-
-STORE, _SDK_NAMES = _build_store()
-
-
 def _canonical(store_key: str) -> str:
     return store_key.replace("/srv/msg/", "/srv/")
-
-
-def msg_text(typename: str) -> str:
-    """``typename``'s fields as rosidl-style ``.msg`` text with full type names (constants and
-    defaults dropped: the type hash ignores them; ``char`` written as ``uint8``, as rosidl
-    has it)."""
-
-    def spell(node: tuple[Any, Any]) -> str:
-        kind, desc = node
-        if kind.name == "BASE":
-            base, bound = desc
-            base = {"char": "uint8"}.get(base, base)
-            return f"{base}<={bound}" if bound else base
-        if kind.name == "NAME":
-            return _canonical(desc)
-        inner, size = desc
-        if kind.name == "ARRAY":
-            return f"{spell(inner)}[{size}]"
-        return f"{spell(inner)}[<={size}]" if size else f"{spell(inner)}[]"
-
-    _consts, fields = STORE.fielddefs[_SDK_NAMES.get(typename, typename)]
-    return "".join(f"{spell(node)} {name}\n" for name, node in fields)
-
-
-def _dependencies(typename: str) -> dict[str, str]:
-    """Every type ``typename`` refers to, transitively -> its text."""
-    out: dict[str, str] = {}
-    todo = [_SDK_NAMES.get(typename, typename)]
-    while todo:
-        _consts, fields = STORE.fielddefs[todo.pop()]
-        for _name, node in fields:
-            while node[0].name in ("ARRAY", "SEQUENCE"):
-                node = node[1][0]
-            if node[0].name == "NAME" and _canonical(node[1]) not in out:
-                out[_canonical(node[1])] = msg_text(node[1])
-                todo.append(node[1])
-    return out
-
-
-def message_hash(typename: str) -> str:
-    """The RIHS01 hash of a message type, by the sdk's code (``utils.get_type_hash``)."""
-    return str(utils.get_type_hash(typename, msg_text(typename), _dependencies(typename)))
-
-
-def service_hash(srv_type: str) -> str:
-    """The RIHS01 hash of a service type (an action's ``_SendGoal``/``_GetResult`` too): the
-    description the sdk's ``compute_service_type_hash`` builds, with the halves named as
-    rosidl names them (``<srv_type>_Request``, ``_Response``, ``_Event``)."""
-    req, resp, event = f"{srv_type}_Request", f"{srv_type}_Response", f"{srv_type}_Event"
-    type_map: dict[str, Any] = {}
-    for half in (req, resp):
-        fields = utils._parse_msg_definition(msg_text(half)) or [
-            {"name": utils.EMPTY_STRUCTURE_REQUIRED_MEMBER_NAME, "type": "uint8",
-             "is_array": False, "array_size": 0}]
-        type_map[half] = utils._serialize_type_description(half, fields)
-        for dep, text in _dependencies(half).items():
-            type_map.setdefault(dep, utils._serialize_type_description(
-                dep, utils._parse_msg_definition(text)))
-    info = "service_msgs/msg/ServiceEventInfo"
-    for dep, text in {info: msg_text(info), **_dependencies(info)}.items():
-        type_map.setdefault(dep, utils._serialize_type_description(
-            dep, utils._parse_msg_definition(text)))
-    ids = utils.FIELD_TYPE_NAME_TO_ID
-
-    def field(name: str, type_id: str, nested: str, capacity: int = 0) -> dict[str, Any]:
-        return {"name": name, "type": {"type_id": ids[type_id], "capacity": capacity,
-                                       "string_capacity": 0, "nested_type_name": nested},
-                "default_value": ""}
-
-    seq = "FIELD_TYPE_NESTED_TYPE_BOUNDED_SEQUENCE"
-    type_map[event] = {"type_name": event, "fields": [
-        field("info", "FIELD_TYPE_NESTED_TYPE", info), field("request", seq, req, 1),
-        field("response", seq, resp, 1)]}
-    type_map[srv_type] = {"type_name": srv_type, "fields": [
-        field("request_message", "FIELD_TYPE_NESTED_TYPE", req),
-        field("response_message", "FIELD_TYPE_NESTED_TYPE", resp),
-        field("event_message", "FIELD_TYPE_NESTED_TYPE", event)]}
-    return str(utils._calculate_type_hash(utils._extract_full_type_description(srv_type, type_map)))
-
-
-def make(typename: str, **values: Any) -> Any:
-    """A message of ``typename`` with ``values`` (dicts for nested messages, lists for
-    sequences, made into the numpy arrays rosbags wants) and every other field zero/empty.
-
-    Raises:
-        KeyError: ``typename`` is not in :data:`STORE`.
-        TypeError: a field ``typename`` does not have.
-    """
-    key = _SDK_NAMES.get(typename, typename)
-    cls = STORE.types[key]
-    _consts, fields = STORE.fielddefs[key]
-    names = {name for name, _node in fields}
-    unknown = set(values) - names
-    if unknown:
-        raise TypeError(f"{typename} has no field {sorted(unknown)}")
-    return cls(**{name: _value(node, values.get(name)) for name, node in fields})
 
 
 _NUMPY = {"bool": np.bool_, "int8": np.int8, "uint8": np.uint8, "byte": np.uint8,
@@ -332,23 +244,193 @@ _NUMPY = {"bool": np.bool_, "int8": np.int8, "uint8": np.uint8, "byte": np.uint8
           "float32": np.float32, "float64": np.float64}
 
 
-def _value(node: tuple[Any, Any], value: Any) -> Any:
-    kind, desc = node
-    if kind.name == "BASE":
-        if value is not None:
+class Types:
+    """One distro's message definitions (``store``: rosbags' store of that distro plus
+    control_msgs' text of that distro) and its type hashes, by the sdk's code."""
+
+    def __init__(self, distro: str) -> None:
+        if distro not in _DISTRO:
+            raise ValueError(f"distro must be one of {DISTROS}, not {distro!r}")
+        base, state, feedback, speed_scaling = _DISTRO[distro]
+        self.distro = distro
+        self.hashes = distro != "humble"
+        self.store: Typestore = get_typestore(base)
+        self.aliases: dict[str, str] = {}
+        """Every name the sdk may look a type up by -> the store's key."""
+        texts = {**_TOLERANCES, "control_msgs/msg/JointTrajectoryControllerState": state,
+                 **(_SPEED_SCALING if speed_scaling else {})}
+        for srv, (req, resp) in _SERVICES.items():
+            texts[f"{srv}_Request"], texts[f"{srv}_Response"] = req, resp
+        texts.update(_action_texts(FJT, _FJT_GOAL, _FJT_RESULT, feedback))
+        self._register(texts)
+        self.aliases.update({k: k for k in self.store.types if k not in self.aliases})
+
+    def _register(self, texts: dict[str, str]) -> None:
+        for name, text in texts.items():
+            found = get_types_from_msg(text, name)
+            self.store.register(found)
+            (key,) = found  # rosbags files <pkg>/srv/<T> under <pkg>/srv/msg/<T>
+            self.aliases[name] = key
+            # the sdk names a service's halves <pkg>/srv/<Name>_Request, actions' too
+            pkg, _kind, base = name.split("/")
+            self.aliases.setdefault(f"{pkg}/srv/{base}", key)
+
+    def register_action(self, action_type: str, goal: str, result: str, feedback: str) -> None:
+        """Add an action type (its goal, result and feedback as ``.msg`` text, nested types
+        named in full) and the types rosidl generates for it."""
+        self._register(_action_texts(action_type, goal, result, feedback))
+
+    def key(self, typename: str) -> str:
+        """The store's key of ``typename``.
+
+        Raises:
+            OfflineTypeError: the store does not have it.
+        """
+        key = self.aliases.get(typename)
+        if key is None:
+            raise OfflineTypeError(f"{typename}: not in the {self.distro} test type store")
+        return key
+
+    # -- hashes --
+    def msg_text(self, typename: str) -> str:
+        """``typename``'s fields as rosidl-style ``.msg`` text with full type names (constants
+        and defaults dropped: the type hash ignores them; ``char`` written as ``uint8``, as
+        rosidl has it)."""
+
+        def spell(node: tuple[Any, Any]) -> str:
+            kind, desc = node
+            if kind.name == "BASE":
+                base, bound = desc
+                base = {"char": "uint8"}.get(base, base)
+                return f"{base}<={bound}" if bound else base
+            if kind.name == "NAME":
+                return _canonical(desc)
+            inner, size = desc
+            if kind.name == "ARRAY":
+                return f"{spell(inner)}[{size}]"
+            return f"{spell(inner)}[<={size}]" if size else f"{spell(inner)}[]"
+
+        _consts, fields = self.store.fielddefs[self.key(typename)]
+        return "".join(f"{spell(node)} {name}\n" for name, node in fields)
+
+    def dependencies(self, typename: str) -> dict[str, str]:
+        """Every type ``typename`` refers to, transitively -> its text."""
+        out: dict[str, str] = {}
+        todo = [self.key(typename)]
+        while todo:
+            _consts, fields = self.store.fielddefs[todo.pop()]
+            for _name, node in fields:
+                while node[0].name in ("ARRAY", "SEQUENCE"):
+                    node = node[1][0]
+                if node[0].name == "NAME" and _canonical(node[1]) not in out:
+                    out[_canonical(node[1])] = self.msg_text(node[1])
+                    todo.append(node[1])
+        return out
+
+    def message_hash(self, typename: str) -> str:
+        """The RIHS01 hash of a message type by the sdk's code (``utils.get_type_hash``);
+        Humble's ``TypeHashNotSupported``."""
+        if not self.hashes:
+            return NO_HASH
+        return str(utils.get_type_hash(typename, self.msg_text(typename),
+                                       self.dependencies(typename)))
+
+    def service_hash(self, srv_type: str) -> str:
+        """The RIHS01 hash of a service type (an action's ``_SendGoal``/``_GetResult`` too):
+        the description the sdk's ``compute_service_type_hash`` builds, with the halves named
+        as rosidl names them (``<srv_type>_Request``, ``_Response``, ``_Event``); Humble's
+        ``TypeHashNotSupported``."""
+        if not self.hashes:
+            return NO_HASH
+        req, resp, event = f"{srv_type}_Request", f"{srv_type}_Response", f"{srv_type}_Event"
+        info = "service_msgs/msg/ServiceEventInfo"
+        type_map: dict[str, Any] = {}
+        texts = {req: self.msg_text(req), resp: self.msg_text(resp), info: self.msg_text(info),
+                 **self.dependencies(req), **self.dependencies(resp),
+                 **self.dependencies(info)}
+        for name, text in texts.items():
+            fields = utils._parse_msg_definition(text) or [
+                {"name": utils.EMPTY_STRUCTURE_REQUIRED_MEMBER_NAME, "type": "uint8",
+                 "is_array": False, "array_size": 0}]
+            type_map[name] = utils._serialize_type_description(name, fields)
+        ids = utils.FIELD_TYPE_NAME_TO_ID
+
+        def field(name: str, type_id: str, nested: str, capacity: int = 0) -> dict[str, Any]:
+            return {"name": name, "type": {"type_id": ids[type_id], "capacity": capacity,
+                                           "string_capacity": 0, "nested_type_name": nested},
+                    "default_value": ""}
+
+        nested, seq = "FIELD_TYPE_NESTED_TYPE", "FIELD_TYPE_NESTED_TYPE_BOUNDED_SEQUENCE"
+        type_map[event] = {"type_name": event, "fields": [
+            field("info", nested, info), field("request", seq, req, 1),
+            field("response", seq, resp, 1)]}
+        type_map[srv_type] = {"type_name": srv_type, "fields": [
+            field("request_message", nested, req), field("response_message", nested, resp),
+            field("event_message", nested, event)]}
+        description = utils._extract_full_type_description(srv_type, type_map)
+        return str(utils._calculate_type_hash(description))
+
+    # -- messages --
+    def make(self, typename: str, **values: Any) -> Any:
+        """A message of ``typename`` with ``values`` (dicts for nested messages, lists for
+        sequences, made into the numpy arrays rosbags wants) and every other field
+        zero/empty.
+
+        Raises:
+            OfflineTypeError: ``typename`` is not in the store.
+            TypeError: a field ``typename`` does not have.
+        """
+        key = self.key(typename)
+        _consts, fields = self.store.fielddefs[key]
+        unknown = set(values) - {name for name, _node in fields}
+        if unknown:
+            raise TypeError(f"{typename} has no field {sorted(unknown)}")
+        return self.store.types[key](
+            **{name: self._value(node, values.get(name)) for name, node in fields})
+
+    def _value(self, node: tuple[Any, Any], value: Any) -> Any:
+        kind, desc = node
+        if kind.name == "BASE":
+            if value is not None:
+                return value
+            return "" if desc[0] in ("string", "wstring") else _NUMPY[desc[0]]().item()
+        if kind.name == "NAME":
+            if value is None or isinstance(value, dict):
+                return self.make(_canonical(desc), **(value or {}))
             return value
-        return "" if desc[0] in ("string", "wstring") else _NUMPY[desc[0]]().item()
-    if kind.name == "NAME":
-        if value is None or isinstance(value, dict):
-            return make(_canonical(desc), **(value or {}))
-        return value
-    inner, size = desc
-    if inner[0].name == "BASE" and inner[1][0] in _NUMPY:
-        if value is None:
-            value = np.zeros(size if kind.name == "ARRAY" else 0)
-        return np.asarray(value, dtype=_NUMPY[inner[1][0]])
-    items = list(value) if value is not None else [None] * (size if kind.name == "ARRAY" else 0)
-    return [_value(inner, v) for v in items]
+        inner, size = desc
+        length = size if kind.name == "ARRAY" else 0
+        if inner[0].name == "BASE" and inner[1][0] in _NUMPY:
+            return np.asarray(np.zeros(length) if value is None else value,
+                              dtype=_NUMPY[inner[1][0]])
+        items = list(value) if value is not None else [None] * length
+        return [self._value(inner, v) for v in items]
+
+
+_TYPES: dict[str, Types] = {}
+
+
+def types(distro: str = "jazzy") -> Types:
+    """The :class:`Types` of ``distro`` (built once).
+
+    Raises:
+        ValueError: not one of :data:`DISTROS`.
+    """
+    if distro not in _TYPES:
+        _TYPES[distro] = Types(distro)
+    return _TYPES[distro]
+
+
+class OfflineTypeError(LookupError):
+    """A type the store does not have: the sdk would have downloaded its definition."""
+
+
+JAZZY = types("jazzy")
+STORE = JAZZY.store
+"""Jazzy's store (the default distro's)."""
+make, msg_text, message_hash, service_hash = (
+    JAZZY.make, JAZZY.msg_text, JAZZY.message_hash, JAZZY.service_hash)
+register_action = JAZZY.register_action
 
 
 def fields_of(msg: Any) -> dict[str, Any]:
@@ -357,10 +439,6 @@ def fields_of(msg: Any) -> dict[str, Any]:
 
 
 # -- the sdk, offline -----------------------------------------------------------------------
-
-
-class OfflineTypeError(LookupError):
-    """A type the store does not have: the sdk would have downloaded its definition."""
 
 
 class _OfflineRegistry:
@@ -391,18 +469,18 @@ _CURRENT = threading.Lock()
 """Held while an entity is built on a peer's session (the sdk's one-session-per-process)."""
 
 
-def _open_session(ip: str, port: int) -> ZenohSession:
+def _open_session(ip: str, port: int, defs: Types) -> ZenohSession:
     """The sdk's session (its bundled rmw_zenoh-like config, connect tcp/<ip>:<port>) with
-    STORE as its store; the environment's ZENOH_SESSION_CONFIG_URI / ZENOH_CONFIG_OVERRIDE
-    are not consulted."""
+    ``defs``' store as its store; the environment's ZENOH_SESSION_CONFIG_URI /
+    ZENOH_CONFIG_OVERRIDE are not consulted."""
     saved = {k: os.environ.pop(k) for k in ("ZENOH_SESSION_CONFIG_URI", "ZENOH_CONFIG_OVERRIDE")
              if k in os.environ}
     try:
         session = ZenohSession(ip, port)
     finally:
         os.environ.update(saved)
-    session.store = STORE
-    session._registered_types = dict(_SDK_NAMES)
+    session.store = defs.store
+    session._registered_types = dict(defs.aliases)
     return session
 
 
@@ -423,8 +501,8 @@ class Subscription:
         self._then = on_message
         self._sub = peer._build(lambda: ROS2Subscriber(
             topic, msg_type, self._on_message, node_name=peer.node_name,
-            namespace=peer.namespace, domain_id=peer.domain_id, type_hash=message_hash(msg_type),
-            qos=qos))
+            namespace=peer.namespace, domain_id=peer.domain_id,
+            type_hash=peer.types.message_hash(msg_type), qos=qos))
 
     def _on_message(self, msg: Any) -> None:
         with self._cond:
@@ -477,18 +555,23 @@ class _Call:
 class Ros2Peer:
     """A ROS 2 node on rmw_zenoh, as the tests need one (see the module docstring).
 
-    ``endpoint`` is the router's (``tcp/127.0.0.1:7447``); a context manager, or call
-    :meth:`close`.
+    ``endpoint`` is the router's (``tcp/127.0.0.1:7447``); ``distro`` chooses the definitions
+    and hashes (:class:`Types`); ``peer.types.make(...)`` builds its messages. A context
+    manager, or call :meth:`close`.
+
+    Raises:
+        ValueError: a bad endpoint or distro.
     """
 
     def __init__(self, endpoint: str, domain_id: int = 0, node_name: str = "jtc_hw_test_peer",
-                 namespace: str = "/") -> None:
+                 namespace: str = "/", distro: str = "jazzy") -> None:
         proto, _, address = endpoint.partition("/")
         ip, _, port = address.rpartition(":")
         if proto != "tcp" or not ip or not port.isdigit():
             raise ValueError(f"endpoint must be tcp/<ip>:<port>, not {endpoint!r}")
         self.domain_id, self.node_name, self.namespace = domain_id, node_name, namespace
-        self.session = _open_session(ip.strip("[]"), int(port))
+        self.types = types(distro)
+        self.session = _open_session(ip.strip("[]"), int(port), self.types)
         self._entities: list[Any] = []
         self._publishers: dict[tuple[str, str], ROS2Publisher] = {}
         self._clients: dict[tuple[str, str], ROS2ServiceClient] = {}
@@ -631,7 +714,7 @@ class Ros2Peer:
         if pub is None:
             pub = self._publishers[(topic, msg_type)] = self._build(lambda: ROS2Publisher(
                 topic, msg_type, node_name=self.node_name, namespace=self.namespace,
-                domain_id=self.domain_id, type_hash=message_hash(msg_type), qos=qos))
+                domain_id=self.domain_id, type_hash=self.types.message_hash(msg_type), qos=qos))
         if wait_for_subscriber > 0:
             matched = threading.Event()
             listener = pub.pub.declare_matching_listener(
@@ -642,7 +725,7 @@ class Ros2Peer:
             finally:
                 listener.undeclare()
         if isinstance(msg, dict):
-            msg = make(msg_type, **msg)
+            msg = self.types.make(msg_type, **msg)
         pub.publish(**fields_of(msg))
 
     # -- services --
@@ -650,7 +733,7 @@ class Ros2Peer:
         """Serve ``service``: ``handler(request) -> response`` (the sdk's server)."""
         self._build(lambda: ROS2ServiceServer(
             service, srv_type, handler, node_name=self.node_name, namespace=self.namespace,
-            domain_id=self.domain_id, type_hash=service_hash(srv_type)))
+            domain_id=self.domain_id, type_hash=self.types.service_hash(srv_type)))
 
     def _client(self, service: str, srv_type: str) -> ROS2ServiceClient:
         client = self._clients.get((service, srv_type))
@@ -658,15 +741,17 @@ class Ros2Peer:
             # the query's own timeout is long: every wait here has its own
             client = self._clients[(service, srv_type)] = self._build(lambda: ROS2ServiceClient(
                 service, srv_type, node_name=self.node_name, namespace=self.namespace,
-                domain_id=self.domain_id, type_hash=service_hash(srv_type), timeout=3600.0))
+                domain_id=self.domain_id, type_hash=self.types.service_hash(srv_type),
+                timeout=3600.0))
         return client
 
     def request(self, service: str, srv_type: str, request: Any) -> _Call:
         """Send a request; its replies gather in the returned call as they come."""
         client = self._client(service, srv_type)
         if isinstance(request, dict):
-            request = make(f"{srv_type}_Request", **request)
-        cdr = bytes(STORE.serialize_cdr(request, client.request_store_type))
+            request = self.types.make(f"{srv_type}_Request", **request)
+        store = self.types.store
+        cdr = bytes(store.serialize_cdr(request, client.request_store_type))
         with client._lock:
             seq = client.sequence_number
             client.sequence_number += 1
@@ -678,7 +763,7 @@ class Ros2Peer:
                 call.add(None, reply.err.payload.to_bytes().decode(errors="replace"))
                 return
             try:
-                call.add(STORE.deserialize_cdr(reply.ok.payload.to_bytes(),
+                call.add(store.deserialize_cdr(reply.ok.payload.to_bytes(),
                                                client.response_store_type), None)
             except Exception as exc:  # a reply that does not decode is the server's error
                 call.add(None, f"undecodable reply: {exc!r}")
@@ -733,7 +818,7 @@ class Ros2Peer:
         handle = GoalHandle(self, action, action_type, uuid.uuid4().bytes)
         self._goals[handle.goal_id] = handle
         if isinstance(goal, dict):
-            goal = make(f"{action_type}_Goal", **goal)
+            goal = self.types.make(f"{action_type}_Goal", **goal)
         response = self.call(f"{action}/_action/send_goal", f"{action_type}_SendGoal",
                              {"goal_id": handle._uuid(), "goal": goal}, timeout)
         handle.accepted, handle.stamp = bool(response.accepted), response.stamp

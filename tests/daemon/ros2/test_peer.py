@@ -53,8 +53,28 @@ def test_service_hash_agrees_with_the_sdks_own_for_a_plain_service() -> None:
     srv = "control_msgs/srv/QueryTrajectoryState"
     assert ros2_peer.service_hash(srv) == utils.compute_service_type_hash(
         srv, ros2_peer.msg_text(f"{srv}_Request"), ros2_peer.msg_text(f"{srv}_Response"),
-        {**ros2_peer._dependencies(f"{srv}_Request"),
-         **ros2_peer._dependencies(f"{srv}_Response")})
+        {**ros2_peer.JAZZY.dependencies(f"{srv}_Request"),
+         **ros2_peer.JAZZY.dependencies(f"{srv}_Response")})
+
+
+def test_the_distros_differ_where_upstream_does() -> None:
+    """Humble writes no hash; Kilted/Rolling's FollowJointTrajectory feedback (control_msgs
+    >= 6.3) has two more fields, so another hash; Humble's controller_state has no
+    speed_scaling_factor and Humble has no SpeedScalingFactor."""
+    humble, jazzy, rolling = (ros2_peer.types(d) for d in ("humble", "jazzy", "rolling"))
+    assert humble.message_hash("sensor_msgs/msg/JointState") == "TypeHashNotSupported"
+    assert humble.service_hash(f"{FJT}_SendGoal") == "TypeHashNotSupported"
+    feedback = f"{FJT}_FeedbackMessage"
+    assert rolling.message_hash(feedback) != jazzy.message_hash(feedback)
+    assert rolling.make(f"{FJT}_Feedback").index == 0
+    state = "control_msgs/msg/JointTrajectoryControllerState"
+    assert hasattr(humble.make(state), "desired")
+    assert not hasattr(humble.make(state), "speed_scaling_factor")
+    assert jazzy.make(state).speed_scaling_factor == 0.0
+    with pytest.raises(OfflineTypeError):
+        humble.make("control_msgs/msg/SpeedScalingFactor")
+    with pytest.raises(ValueError):
+        ros2_peer.types("iron")
 
 
 # -- two peers through the router --------------------------------------------------------------
@@ -140,6 +160,22 @@ def test_the_action_client_against_an_action_server_made_of_sdk_parts(
     assert (status, result.error_string) == (4, "done")
     assert handle.result_call is not None and len(handle.result_call.replies) == 1
     assert handle.cancel(WAIT_S).return_code == 3
+
+
+def test_humble_peers_meet_on_no_hash_and_never_meet_jazzys(router: str) -> None:
+    state = "control_msgs/msg/JointTrajectoryControllerState"
+    with Ros2Peer(router, node_name="h", distro="humble") as h, \
+            Ros2Peer(router, node_name="j") as j, \
+            Ros2Peer(router, node_name="h2", distro="humble") as h2:
+        from_humble, from_jazzy = h2.subscribe("/c/controller_state", state), \
+            j.subscribe("/c/controller_state", state)
+        h.publish("/c/controller_state", state, {"joint_names": ["a"]}, wait_for_subscriber=WAIT_S)
+        assert from_humble.take(1, WAIT_S)[0].joint_names == ["a"]
+        (pub,) = j.publishers("/c/controller_state")
+        assert pub["type_hash"] == "TypeHashNotSupported"
+        # the same topic, another key: the Jazzy subscription can never match
+        assert from_humble._sub.keyexpr.endswith("/TypeHashNotSupported")
+        assert from_jazzy._sub.keyexpr.split("/")[-1].startswith("RIHS01_")
 
 
 # -- offline ------------------------------------------------------------------------------------

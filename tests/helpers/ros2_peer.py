@@ -46,6 +46,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import sys
 import threading
 import time
 import uuid
@@ -836,6 +837,7 @@ class GoalHandle:
         self.statuses: list[int] = []
         self.result_call: _Call | None = None
         self._cond = threading.Condition()
+        self._on_change: Callable[[str, Any], None] | None = None
 
     def _uuid(self) -> dict[str, Any]:
         return {"uuid": np.frombuffer(self.goal_id, dtype=np.uint8)}
@@ -844,6 +846,8 @@ class GoalHandle:
         with self._cond:
             getattr(self, what).append(value)
             self._cond.notify_all()
+            if self._on_change is not None:
+                self._on_change(what, value)
 
     def wait_feedback(self, n: int = 1, timeout: float = 5.0) -> list[Any]:
         """The first ``n`` feedback messages of this goal.
@@ -921,3 +925,91 @@ def peer(endpoint: str, **kwargs: Any) -> Iterator[Ros2Peer]:
         yield p
     finally:
         p.close()
+
+
+# -- a second process -------------------------------------------------------------------------
+
+
+def plain(msg: Any) -> Any:
+    """A decoded message as JSON-ready data (dicts, lists, numbers, strings)."""
+    if dataclasses.is_dataclass(msg) and not isinstance(msg, type):
+        return {f.name: plain(getattr(msg, f.name)) for f in dataclasses.fields(msg)}
+    if isinstance(msg, np.ndarray):
+        return msg.tolist()
+    if isinstance(msg, (list, tuple)):
+        return [plain(m) for m in msg]
+    return msg.item() if isinstance(msg, np.generic) else msg
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m helpers.ros2_peer`` (from tests/): the peer as a process of its own, e.g.
+    the workstation's ``ros2`` in an end-to-end test. One JSON object per line on stdout.
+
+    Exit status: 0 done; 1 a goal rejected or not SUCCEEDED; 2 a timeout.
+    """
+    import argparse
+    import json
+
+    parser = argparse.ArgumentParser(prog="python -m helpers.ros2_peer")
+    parser.add_argument("--endpoint", default="tcp/127.0.0.1:7447")
+    parser.add_argument("--domain-id", type=int, default=0)
+    parser.add_argument("--distro", default="jazzy", choices=DISTROS)
+    parser.add_argument("--timeout", type=float, default=10.0)
+    sub = parser.add_subparsers(dest="command", required=True)
+    for name in ("nodes", "topics", "actions"):
+        sub.add_parser(name, help=f"wait for --until, then print {name} (ros2 ... list)") \
+            .add_argument("--until", default="", help="a name to wait for")
+    echo = sub.add_parser("echo", help="print the next N messages of a topic")
+    echo.add_argument("topic")
+    echo.add_argument("type")
+    echo.add_argument("-n", type=int, default=1)
+    goal = sub.add_parser("send_goal", help="send a goal (JSON), print feedback and result")
+    goal.add_argument("action")
+    goal.add_argument("goal", help="the goal as JSON, as make() takes it")
+    goal.add_argument("--type", default=FJT)
+    args = parser.parse_args(argv)
+
+    def out(obj: Any) -> None:
+        print(json.dumps(obj), flush=True)
+
+    with Ros2Peer(args.endpoint, domain_id=args.domain_id, distro=args.distro,
+                  node_name="jtc_hw_test_cli") as p:
+        try:
+            if args.command in ("nodes", "topics", "actions"):
+                listing = getattr(p, args.command)
+                if args.until:
+                    p.wait_until(lambda: args.until in listing(), args.timeout, args.until)
+                out(listing())
+            elif args.command == "echo":
+                sub_ = p.subscribe(args.topic, args.type)
+                for msg in sub_.take(args.n, args.timeout):
+                    out(plain(msg))
+            else:
+                p.wait_until(lambda: bool(p.servers(f"{args.action}/_action/send_goal")),
+                             args.timeout, "the action server")
+                handle = p.send_goal(args.action, json.loads(args.goal), args.type, args.timeout)
+                out({"accepted": handle.accepted})
+                if not handle.accepted:
+                    return 1
+                printed = 0
+
+                def print_feedback(_what: str, _value: Any) -> None:
+                    nonlocal printed
+                    with handle._cond:  # reentrant: _add calls this holding it
+                        while printed < len(handle.feedback):
+                            out({"feedback": plain(handle.feedback[printed])})
+                            printed += 1
+
+                handle._on_change = print_feedback
+                status, result = handle.result(3600.0)
+                print_feedback("", None)
+                out({"status": status, "result": plain(result)})
+                return 0 if status == STATUS_SUCCEEDED else 1
+        except TimeoutError as exc:
+            print(f"timeout: {exc}", file=sys.stderr)
+            return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

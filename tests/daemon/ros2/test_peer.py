@@ -4,8 +4,11 @@ values rmw_zenoh's design doc quotes and with rosbags'."""
 
 from __future__ import annotations
 
+import json
 import socket
 import subprocess
+import sys
+from pathlib import Path
 from collections.abc import Iterator
 from typing import Any
 
@@ -176,6 +179,27 @@ def test_humble_peers_meet_on_no_hash_and_never_meet_jazzys(router: str) -> None
         # the same topic, another key: the Jazzy subscription can never match
         assert from_humble._sub.keyexpr.endswith("/TypeHashNotSupported")
         assert from_jazzy._sub.keyexpr.split("/")[-1].startswith("RIHS01_")
+
+
+def test_a_second_process_echoes_what_this_one_publishes(router: str) -> None:
+    """``python -m helpers.ros2_peer echo``: the peer as a process of its own (the issue's
+    "a second process using the independent client sees /joint_states")."""
+    tests = Path(__file__).resolve().parents[2]
+    cmd = [sys.executable, "-m", "helpers.ros2_peer", "--endpoint", router, "--timeout",
+           str(WAIT_S), "echo", "/joint_states", "sensor_msgs/msg/JointState"]
+    with subprocess.Popen(cmd, cwd=tests, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                          text=True) as proc, Ros2Peer(router) as a:
+        try:
+            a.publish("/joint_states", "sensor_msgs/msg/JointState",
+                      {"name": ["joint1"], "position": [0.25]}, wait_for_subscriber=WAIT_S * 3)
+            out, err = proc.communicate(timeout=WAIT_S * 3)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.communicate()
+    assert proc.returncode == 0, err
+    msg = json.loads(out.splitlines()[0])
+    assert (msg["name"], msg["position"]) == (["joint1"], [0.25])
 
 
 # -- offline ------------------------------------------------------------------------------------

@@ -202,6 +202,37 @@ def test_a_second_process_echoes_what_this_one_publishes(router: str) -> None:
     assert (msg["name"], msg["position"]) == (["joint1"], [0.25])
 
 
+def test_a_second_process_sends_a_goal(router: str) -> None:
+    """``python -m helpers.ros2_peer send_goal``: accepted, the feedback, the result, one JSON
+    line each, exit 0 on SUCCEEDED. The stand-in server publishes the feedback when asked
+    for the result, once the client's feedback subscription has matched."""
+    action = "/arm_controller/follow_joint_trajectory"
+    tests = Path(__file__).resolve().parents[2]
+    with Ros2Peer(router) as a:
+        a.serve(f"{action}/_action/send_goal", f"{FJT}_SendGoal", lambda req: ros2_peer.make(
+            f"{FJT}_SendGoal_Response", accepted=True))
+
+        def get_result(req: Any) -> Any:
+            a.publish(f"{action}/_action/feedback", f"{FJT}_FeedbackMessage",
+                      {"goal_id": {"uuid": req.goal_id.uuid}, "feedback": {"joint_names": ["j"]}},
+                      wait_for_subscriber=WAIT_S)
+            return ros2_peer.make(f"{FJT}_GetResult_Response", status=4,
+                                  result={"error_string": "fine"})
+
+        a.serve(f"{action}/_action/get_result", f"{FJT}_GetResult", get_result)
+        goal = json.dumps({"trajectory": {"joint_names": ["j"], "points": [
+            {"positions": [0.5], "time_from_start": {"sec": 1}}]}})
+        proc = subprocess.run(
+            [sys.executable, "-m", "helpers.ros2_peer", "--endpoint", router, "--timeout",
+             str(WAIT_S), "send_goal", action, goal], cwd=tests, capture_output=True, text=True,
+            timeout=WAIT_S * 3)
+    assert proc.returncode == 0, proc.stderr
+    lines = [json.loads(line) for line in proc.stdout.splitlines()]
+    assert lines[0] == {"accepted": True}
+    assert lines[1]["feedback"]["joint_names"] == ["j"]
+    assert lines[-1]["status"] == 4 and lines[-1]["result"]["error_string"] == "fine"
+
+
 # -- offline ------------------------------------------------------------------------------------
 
 

@@ -574,8 +574,8 @@ class Ros2Peer:
         self.types = types(distro)
         self.session = _open_session(ip.strip("[]"), int(port), self.types)
         self._entities: list[Any] = []
-        self._publishers: dict[tuple[str, str], ROS2Publisher] = {}
-        self._clients: dict[tuple[str, str], ROS2ServiceClient] = {}
+        self._publishers: dict[tuple[str, str, str | None], ROS2Publisher] = {}
+        self._clients: dict[tuple[str, str, str | None], ROS2ServiceClient] = {}
         self._action_subs: dict[str, tuple[Subscription, Subscription]] = {}
         self._goals: dict[bytes, GoalHandle] = {}
         self._graph: dict[str, dict[str, Any]] = {}
@@ -703,28 +703,54 @@ class Ros2Peer:
             sub.close()
             self._entities.remove(sub._sub)
 
+    def _publisher(self, topic: str, msg_type: str, qos: QosProfile | None,
+                   type_hash: str | None) -> ROS2Publisher:
+        key = (topic, msg_type, type_hash)
+        pub = self._publishers.get(key)
+        if pub is None:
+            pub = self._publishers[key] = self._build(lambda: ROS2Publisher(
+                topic, msg_type, node_name=self.node_name, namespace=self.namespace,
+                domain_id=self.domain_id, qos=qos,
+                type_hash=type_hash or self.types.message_hash(msg_type)))
+        return pub
+
+    def wait_for_subscriber(self, topic: str, msg_type: str, timeout: float,
+                            qos: QosProfile | None = None, type_hash: str | None = None) -> None:
+        """Declare the publisher of ``topic`` (if not yet) and wait until a subscriber matches
+        its key expression.
+
+        Raises:
+            TimeoutError: none did within ``timeout`` seconds.
+        """
+        pub = self._publisher(topic, msg_type, qos, type_hash)
+        matched = threading.Event()
+        listener = pub.pub.declare_matching_listener(
+            lambda status: matched.set() if status.matching else None)
+        try:
+            if not (pub.pub.matching_status.matching or matched.wait(timeout)):
+                raise TimeoutError(f"no subscriber on {topic} in {timeout} s")
+        finally:
+            listener.undeclare()
+
     def publish(self, topic: str, msg_type: str, msg: Any, wait_for_subscriber: float = 0.0,
-                qos: QosProfile | None = None) -> None:
-        """Publish ``msg`` (a message of ``msg_type``, or a dict for :func:`make`); first wait
-        up to ``wait_for_subscriber`` seconds for a subscriber to match.
+                qos: QosProfile | None = None, type_hash: str | None = None) -> None:
+        """Publish ``msg`` (a message of ``msg_type``, or a dict for ``types.make``, or raw
+        ``bytes`` sent as the payload as they are: malformed CDR for the bad-input tests);
+        first wait up to ``wait_for_subscriber`` seconds for a subscriber to match.
+        ``type_hash`` replaces the type's own in the key expression and token.
 
         Raises:
             TimeoutError: no subscriber matched in time.
         """
-        pub = self._publishers.get((topic, msg_type))
-        if pub is None:
-            pub = self._publishers[(topic, msg_type)] = self._build(lambda: ROS2Publisher(
-                topic, msg_type, node_name=self.node_name, namespace=self.namespace,
-                domain_id=self.domain_id, type_hash=self.types.message_hash(msg_type), qos=qos))
+        pub = self._publisher(topic, msg_type, qos, type_hash)
         if wait_for_subscriber > 0:
-            matched = threading.Event()
-            listener = pub.pub.declare_matching_listener(
-                lambda status: matched.set() if status.matching else None)
-            try:
-                if not (pub.pub.matching_status.matching or matched.wait(wait_for_subscriber)):
-                    raise TimeoutError(f"no subscriber on {topic} in {wait_for_subscriber} s")
-            finally:
-                listener.undeclare()
+            self.wait_for_subscriber(topic, msg_type, wait_for_subscriber, qos, type_hash)
+        if isinstance(msg, (bytes, bytearray)):
+            attachment = Attachment(pub.sequence_number, time.time_ns(), pub.publisher_gid)
+            pub.pub.put(bytes(msg), encoding=zenoh.Encoding("application/cdr"),
+                        attachment=attachment.to_bytes())
+            pub.sequence_number += 1
+            return
         if isinstance(msg, dict):
             msg = self.types.make(msg_type, **msg)
         pub.publish(**fields_of(msg))
@@ -736,23 +762,34 @@ class Ros2Peer:
             service, srv_type, handler, node_name=self.node_name, namespace=self.namespace,
             domain_id=self.domain_id, type_hash=self.types.service_hash(srv_type)))
 
-    def _client(self, service: str, srv_type: str) -> ROS2ServiceClient:
-        client = self._clients.get((service, srv_type))
+    def _client(self, service: str, srv_type: str, type_hash: str | None) -> ROS2ServiceClient:
+        key = (service, srv_type, type_hash)
+        client = self._clients.get(key)
         if client is None:
             # the query's own timeout is long: every wait here has its own
-            client = self._clients[(service, srv_type)] = self._build(lambda: ROS2ServiceClient(
+            client = self._clients[key] = self._build(lambda: ROS2ServiceClient(
                 service, srv_type, node_name=self.node_name, namespace=self.namespace,
-                domain_id=self.domain_id, type_hash=self.types.service_hash(srv_type),
-                timeout=3600.0))
+                domain_id=self.domain_id, timeout=3600.0,
+                type_hash=type_hash or self.types.service_hash(srv_type)))
         return client
 
-    def request(self, service: str, srv_type: str, request: Any) -> _Call:
-        """Send a request; its replies gather in the returned call as they come."""
-        client = self._client(service, srv_type)
+    def request(self, service: str, srv_type: str, request: Any, decode: bool = True,
+                type_hash: str | None = None) -> _Call:
+        """Send a request (a message, a dict for ``types.make``, or raw ``bytes`` sent as they
+        are); its replies gather in the returned call as they come (decoded, or the payload's
+        bytes with ``decode=False``). ``type_hash`` replaces the type's own in the key.
+
+        Raises:
+            OfflineTypeError, TypeError: ``request`` does not make a ``<srv_type>_Request``.
+        """
+        client = self._client(service, srv_type, type_hash)
+        store = self.types.store
         if isinstance(request, dict):
             request = self.types.make(f"{srv_type}_Request", **request)
-        store = self.types.store
-        cdr = bytes(store.serialize_cdr(request, client.request_store_type))
+        if isinstance(request, (bytes, bytearray)):
+            cdr = bytes(request)
+        else:
+            cdr = bytes(store.serialize_cdr(request, client.request_store_type))
         with client._lock:
             seq = client.sequence_number
             client.sequence_number += 1
@@ -763,9 +800,12 @@ class Ros2Peer:
             if reply.ok is None:
                 call.add(None, reply.err.payload.to_bytes().decode(errors="replace"))
                 return
+            payload = reply.ok.payload.to_bytes()
+            if not decode:
+                call.add(payload, None)
+                return
             try:
-                call.add(store.deserialize_cdr(reply.ok.payload.to_bytes(),
-                                               client.response_store_type), None)
+                call.add(store.deserialize_cdr(payload, client.response_store_type), None)
             except Exception as exc:  # a reply that does not decode is the server's error
                 call.add(None, f"undecodable reply: {exc!r}")
 

@@ -118,6 +118,25 @@ def test_a_service_served_by_one_is_called_by_the_other(two: tuple[Ros2Peer, Ros
     assert b.services()["/add_two_ints"] == [srv]
 
 
+def test_raw_bytes_for_the_bad_input_tests(two: tuple[Ros2Peer, Ros2Peer]) -> None:
+    """A payload sent as bytes goes as it is: good CDR decodes on the other side; bad CDR in
+    a request gets the sdk server's error reply, raised as Ros2CallError."""
+    a, b = two
+    sub = b.subscribe("/joint_states", "sensor_msgs/msg/JointState")
+    good = ros2_peer.JAZZY.make("sensor_msgs/msg/JointState", name=["raw"])
+    a.publish("/joint_states", "sensor_msgs/msg/JointState",
+              bytes(STORE.serialize_cdr(good, "sensor_msgs/msg/JointState")),
+              wait_for_subscriber=WAIT_S)
+    assert sub.take(1, WAIT_S)[0].name == ["raw"]
+    srv = "example_interfaces/srv/AddTwoInts"
+    a.serve("/add", srv, lambda req: ros2_peer.make(f"{srv}_Response", sum=req.a + req.b))
+    b.wait_until(lambda: bool(b.servers("/add")), WAIT_S)
+    with pytest.raises(ros2_peer.Ros2CallError):
+        b.request("/add", srv, b"\x00\x01").first(WAIT_S, "/add")
+    raw = b.request("/add", srv, {"a": 1, "b": 2}, decode=False).first(WAIT_S, "/add")
+    assert STORE.deserialize_cdr(raw, "example_interfaces/srv/msg/AddTwoInts_Response").sum == 3
+
+
 def test_the_action_client_against_an_action_server_made_of_sdk_parts(
         two: tuple[Ros2Peer, Ros2Peer]) -> None:
     """The action client's wire names and types, against a minimal server built here from the
@@ -150,8 +169,7 @@ def test_the_action_client_against_an_action_server_made_of_sdk_parts(
                 f"{action}/_action/send_goal")) == 1, WAIT_S)
     assert b.actions()[action] == [FJT]
     b._action_topics(action, FJT)  # subscribed before the goal, as send_goal does
-    fb_pub = a._publishers[(f"{action}/_action/feedback", f"{FJT}_FeedbackMessage")]
-    b.wait_until(lambda: fb_pub.pub.matching_status.matching, WAIT_S)
+    a.wait_for_subscriber(f"{action}/_action/feedback", f"{FJT}_FeedbackMessage", WAIT_S)
 
     handle = b.send_goal(action, {"trajectory": {"joint_names": ["shoulder"], "points": [
         {"positions": [1.0], "time_from_start": {"sec": 1}}]}}, timeout=WAIT_S)

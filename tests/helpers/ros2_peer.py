@@ -10,7 +10,8 @@ Theory of operation
 The sdk does the wire: key expressions ``<domain>/<name>/<dds type>/<RIHS01 hash>``, the
 ``@ros2_lv/...`` liveliness tokens (one NN token per entity, then its MP/MS/SS/SC token), the
 33-byte attachment (u64 sequence number, u64 source timestamp in ns, u8 GID length 16, the
-16-byte GID, little-endian) on every sample, query and reply, CDR via rosbags. This module fixes what it lacks for our tests::
+16-byte GID, little-endian) on every sample, query and reply, CDR via rosbags. This module
+fixes what it lacks for our tests::
 
     Ros2Peer ── one sdk ZenohSession (peer mode, connect <endpoint>, listen tcp/localhost:0)
       │  store      = Types(distro): rosbags' store of the distro + control_msgs of the distro
@@ -31,13 +32,20 @@ The sdk does the wire: key expressions ``<domain>/<name>/<dds type>/<RIHS01 hash
 * **Hashes.** The sdk hashes a message from its ``.msg`` text and a service from its two
   halves (with ``service_msgs/msg/ServiceEventInfo`` written out as rosidl has it: ``char`` is
   ``uint8``). Its service hash spells the request ``<pkg>/srv/<Name>_Request``, which is wrong
-  for an action's services (``<pkg>/action/<Name>_SendGoal_Request``): :func:`service_hash`
-  builds the same description with the right names from the sdk's parts.
+  for an action's services (``<pkg>/action/<Name>_SendGoal_Request``):
+  :meth:`Types.service_hash` builds the same description with the right names from the
+  sdk's parts (checked against rosidl's own output: tests/daemon/ros2/test_peer.py).
 * **Actions** (the sdk has none) are what rclcpp_action makes of them: the services
   ``<action>/_action/send_goal``, ``cancel_goal`` (``action_msgs/srv/CancelGoal``) and
   ``get_result``, the topics ``<action>/_action/feedback`` (``<Type>_FeedbackMessage``) and
   ``<action>/_action/status`` (``action_msgs/msg/GoalStatusArray``, transient local, depth 1).
   ``ros2 action list`` finds an action by its feedback topic; :meth:`Ros2Peer.actions` too.
+* **Transient local** subscriptions (the status topic) get the last samples as rmw_zenoh's
+  do, by asking the publisher's cache (the sdk queries ``<key>/@adv/pub/<zid>/**``, the
+  AdvancedPublisher's), once, when declared.
+* **Bad input** for the tests: a payload given as ``bytes`` is sent as it is, and a
+  ``type_hash`` may replace the type's own.
+* **A process of its own**: ``python -m helpers.ros2_peer`` (from tests/), :func:`main`.
 
 Everything that waits, waits on an event (a reply, a sample, a graph change) with a timeout.
 """

@@ -853,6 +853,22 @@ class Ros2Peer:
             if handle is not None:
                 handle._add("statuses", int(status.status))
 
+    def action_ready(self, action: str) -> bool:
+        """What rclcpp_action's ``wait_for_action_server`` waits for: the action's three
+        services served, and its feedback and status topics published."""
+        services = ("send_goal", "cancel_goal", "get_result")
+        published = {e["qualified_name"] for e in self._entries("MP")}
+        return all(self.servers(f"{action}/_action/{s}") for s in services) and {
+            f"{action}/_action/feedback", f"{action}/_action/status"} <= published
+
+    def wait_for_action(self, action: str, timeout: float = 5.0) -> None:
+        """Return once :meth:`action_ready`.
+
+        Raises:
+            TimeoutError: it was not within ``timeout`` seconds.
+        """
+        self.wait_until(lambda: self.action_ready(action), timeout, f"the action {action}")
+
     def send_goal(self, action: str, goal: Any, action_type: str = FJT,
                   timeout: float = 5.0) -> GoalHandle:
         """Send a goal as rclcpp_action's client does: subscribe to the action's feedback and
@@ -1034,7 +1050,7 @@ def main(argv: list[str] | None = None) -> int:
                     out(plain(msg))
             else:
                 p.wait_until(lambda: bool(p.servers(f"{args.action}/_action/send_goal")),
-                             args.timeout, "the action server")
+                             args.timeout, "the action server")  # the stand-in's: no topics
                 handle = p.send_goal(args.action, json.loads(args.goal), args.type, args.timeout)
                 out({"accepted": handle.accepted})
                 if not handle.accepted:

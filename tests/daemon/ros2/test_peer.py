@@ -161,12 +161,12 @@ def test_the_action_client_against_an_action_server_made_of_sdk_parts(
         f"{FJT}_GetResult_Response", status=4, result={"error_string": "done"}))
     a.serve(f"{action}/_action/cancel_goal", "action_msgs/srv/CancelGoal",
             lambda req: ros2_peer.make("action_msgs/srv/CancelGoal_Response", return_code=3))
-    # what `ros2 action list` needs: the feedback topic, from a publisher
+    # what `ros2 action list` needs: the feedback topic, from a publisher; and the status
     a.publish(f"{action}/_action/feedback", f"{FJT}_FeedbackMessage", {})
-    b.wait_until(lambda: action in b.actions() and len(b.servers(
-        f"{action}/_action/cancel_goal")) == 1 and len(b.servers(
-            f"{action}/_action/get_result")) == 1 and len(b.servers(
-                f"{action}/_action/send_goal")) == 1, WAIT_S)
+    a.publish(f"{action}/_action/status", "action_msgs/msg/GoalStatusArray", {},
+              qos=ros2_peer.STATUS_QOS)
+    assert not b.action_ready(f"{action}_not")
+    b.wait_for_action(action, WAIT_S)
     assert b.actions()[action] == [FJT]
     b._action_topics(action, FJT)  # subscribed before the goal, as send_goal does
     a.wait_for_subscriber(f"{action}/_action/feedback", f"{FJT}_FeedbackMessage", WAIT_S)

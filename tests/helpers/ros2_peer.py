@@ -338,7 +338,12 @@ class Types:
 
     def message_hash(self, typename: str) -> str:
         """The RIHS01 hash of a message type by the sdk's code (``utils.get_type_hash``);
-        Humble's ``TypeHashNotSupported``."""
+        Humble's ``TypeHashNotSupported``.
+
+        Raises:
+            OfflineTypeError: the store does not have ``typename``.
+        """
+        self.key(typename)  # a type it does not have is an error in every distro
         if not self.hashes:
             return NO_HASH
         return str(utils.get_type_hash(typename, self.msg_text(typename),
@@ -348,7 +353,12 @@ class Types:
         """The RIHS01 hash of a service type (an action's ``_SendGoal``/``_GetResult`` too):
         the description the sdk's ``compute_service_type_hash`` builds, with the halves named
         as rosidl names them (``<srv_type>_Request``, ``_Response``, ``_Event``); Humble's
-        ``TypeHashNotSupported``."""
+        ``TypeHashNotSupported``.
+
+        Raises:
+            OfflineTypeError: the store does not have the service.
+        """
+        self.key(f"{srv_type}_Request")
         if not self.hashes:
             return NO_HASH
         req, resp, event = f"{srv_type}_Request", f"{srv_type}_Response", f"{srv_type}_Event"

@@ -76,6 +76,8 @@ def test_the_distros_differ_where_upstream_does() -> None:
     assert jazzy.make(state).speed_scaling_factor == 0.0
     with pytest.raises(OfflineTypeError):
         humble.make("control_msgs/msg/SpeedScalingFactor")
+    with pytest.raises(OfflineTypeError):
+        humble.message_hash("control_msgs/msg/SpeedScalingFactor")
     with pytest.raises(ValueError):
         ros2_peer.types("iron")
 

@@ -287,3 +287,38 @@ def test_guard_never_raises_into_zenoh() -> None:
     query = Query()
     guard(lambda item: 1 / 0, counters, query=True)(query)
     assert counters["callback_errors"] == 1 and query.dropped
+
+
+# -- parameters (params.py) -----------------------------------------------------------------------
+
+
+def test_parameter_values_both_ways() -> None:
+    from types import SimpleNamespace
+
+    from jtc_hw.daemon.transports.ros2 import params as p
+
+    for value, kind in ((True, p.BOOL), (3, p.INTEGER), (0.5, p.DOUBLE), ("spline", p.STRING),
+                        ([True, False], p.BOOL_ARRAY), ([1, 2], p.INTEGER_ARRAY),
+                        ([1, 2.5], p.DOUBLE_ARRAY), (["a", "b"], p.STRING_ARRAY),
+                        (None, p.NOT_SET)):
+        fields = p.to_parameter_value(value)
+        assert fields["type"] == kind
+        msg = SimpleNamespace(**{"bool_value": False, "integer_value": 0, "double_value": 0.0,
+                                 "string_value": "", "bool_array_value": [],
+                                 "integer_array_value": [], "double_array_value": [],
+                                 "string_array_value": [], **fields})
+        back = p.from_parameter_value(msg)
+        assert back == (list(value) if isinstance(value, list) else value)
+    with pytest.raises(ValueError):
+        p.from_parameter_value(SimpleNamespace(type=p.BYTE_ARRAY))
+
+
+def test_list_parameters_as_rclcpp() -> None:
+    from jtc_hw.daemon.transports.ros2.params import list_names
+
+    names = ["cmd_timeout", "constraints.goal_time", "constraints.j1.goal", "gains.j1.p"]
+    assert list_names(names, [], 0) == (names, ["constraints", "constraints.j1", "gains.j1"])
+    assert list_names(names, [], 1) == (["cmd_timeout"], [])
+    assert list_names(names, ["constraints"], 1) == (["constraints.goal_time"], ["constraints"])
+    assert list_names(names, ["constraints", "gains"], 0)[0] == names[1:]
+    assert list_names(names, ["cmd_timeout"], 0) == (["cmd_timeout"], [])

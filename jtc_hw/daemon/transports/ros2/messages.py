@@ -48,6 +48,10 @@ SEND_GOAL: Final = f"{ACTION}_SendGoal"
 GET_RESULT: Final = f"{ACTION}_GetResult"
 CANCEL_GOAL: Final = "action_msgs/srv/CancelGoal"
 QUERY_STATE: Final = "control_msgs/srv/QueryTrajectoryState"
+GET_PARAMETERS: Final = "rcl_interfaces/srv/GetParameters"
+SET_PARAMETERS: Final = "rcl_interfaces/srv/SetParameters"
+LIST_PARAMETERS: Final = "rcl_interfaces/srv/ListParameters"
+PARAMETER_VALUE: Final = "rcl_interfaces/msg/ParameterValue"
 
 
 def ros_time(ns: int) -> dict[str, int]:
@@ -239,7 +243,20 @@ class Messages:
                        acceleration=np.asarray(queried.accelerations, np.float64))
         return self._cdr(msg, name)
 
+    def response(self, service: str, **fields: Any) -> bytes:
+        """The response of ``service`` (``pkg/srv/Name``) with ``fields`` (:func:`make`)."""
+        name = f"{service}_Response"
+        return self._cdr(make(self.store, name, **fields), name)
+
     # -- small requests -----------------------------------------------------------------------
+
+    def decode(self, data: bytes, typename: str) -> Any:
+        """A small request or sample of ``typename`` (at most :data:`SMALL_REQUEST_BYTES`).
+
+        Raises:
+            CdrError: not such a message, or longer.
+        """
+        return self._decode(data, typename)
 
     def _decode(self, data: bytes, typename: str) -> Any:
         if len(data) > SMALL_REQUEST_BYTES:

@@ -13,6 +13,8 @@ upstream's ``joint_trajectory_controller`` (node ``<c>``, the controller's name)
     /<ns>/<c>/speed_scaling_input              MS control_msgs/SpeedScalingFactor (Jazzy+,
                                                   transient local) -> SetSpeedScaling
     /<ns>/<c>/query_state                      SS control_msgs/QueryTrajectoryState -> QueryState
+    /<ns>/<c>/get_parameters, set_parameters,  SS rcl_interfaces (``ros2 param``; params.py)
+              list_parameters                     -> GetParameters / SetParameters
     /<ns>/<c>/follow_joint_trajectory/_action/ send_goal, cancel_goal, get_result (SS);
                                                feedback, status (MP; status transient local)
 
@@ -68,34 +70,48 @@ from dataclasses import dataclass, field
 from functools import partial
 from typing import TYPE_CHECKING, Any, Final
 
-from ....api.requests import CancelGoal, QueryState, Request, SendTrajectory, SetSpeedScaling
+from ....api.requests import (
+    CancelGoal,
+    GetParameters,
+    QueryState,
+    Request,
+    SendTrajectory,
+    SetParameters,
+    SetSpeedScaling,
+)
 from ....controller.goals import GoalFeedback, GoalResult
 from ....controller.messages import JointTrajectory
 from ....controller.trajectory import QueriedState
 from ...core.requests import Caller, Requests
 from ...ros2_config import INSTALL_HINT
 from ...zenoh_config import import_zenoh, session_config
-from . import actions, cdr, wire
+from . import actions, cdr, params, wire
 from .actions import Goal, GoalBook
 from .messages import (
     CANCEL_GOAL,
     CONTROLLER_STATE,
     FEEDBACK_MESSAGE,
+    GET_PARAMETERS,
     GET_RESULT,
     JOINT_STATE,
+    LIST_PARAMETERS,
+    PARAMETER_VALUE,
     QUERY_STATE,
     SEND_GOAL,
+    SET_PARAMETERS,
     SMALL_REQUEST_BYTES,
     SPEED_SCALING,
     STATUS_ARRAY,
     TRAJECTORY,
     Messages,
+    make,
 )
 from .outbox import Outbox, guard, quietly
 from .types import ros_types
 from .wire import (
     QOS_ACTION_STATUS,
     QOS_DEFAULT,
+    QOS_PARAMETERS,
     QOS_SERVICES,
     QOS_SYSTEM_DEFAULT,
     Durability,
@@ -139,6 +155,9 @@ def entity_names(namespace: str, controller: str) -> dict[str, str]:
         "joint_trajectory": f"{c}/joint_trajectory",
         "speed_scaling_input": f"{c}/speed_scaling_input",
         "query_state": f"{c}/query_state",
+        "get_parameters": f"{c}/get_parameters",
+        "set_parameters": f"{c}/set_parameters",
+        "list_parameters": f"{c}/list_parameters",
         "send_goal": f"{action}/send_goal",
         "cancel_goal": f"{action}/cancel_goal",
         "get_result": f"{action}/get_result",
@@ -280,6 +299,12 @@ class Ros2Interface:
                      callback=self._on_speed_scaling, enabled=jazzy_on)
         self._entity(zenoh, "query_state", SERVICE, QUERY_STATE, node, QOS_SERVICES,
                      callback=partial(self._on_query, self._query_state))
+        for what, service, handler in (
+                ("get_parameters", GET_PARAMETERS, self._get_parameters),
+                ("set_parameters", SET_PARAMETERS, self._set_parameters),
+                ("list_parameters", LIST_PARAMETERS, self._list_parameters)):
+            self._entity(zenoh, what, SERVICE, service, node, QOS_PARAMETERS,
+                         callback=partial(self._on_query, handler))
         self._entity(zenoh, "send_goal", SERVICE, SEND_GOAL, node, QOS_SERVICES,
                      callback=self._on_send_goal)
         self._entity(zenoh, "cancel_goal", SERVICE, CANCEL_GOAL, node, QOS_SERVICES,
@@ -656,6 +681,55 @@ class Ros2Interface:
                 "" if m["success"] else f"time is {m['where'].replace('_', ' ')} of the "
                 "trajectory")
         self._reply(query, att, out)
+
+    # -- parameters (params.py) ---------------------------------------------------------------
+
+    async def _parameter_values(self, att: Any) -> dict[str, Any]:
+        reply = await self._requests.answer(self._caller("parameters", att),
+                                            GetParameters(names=None))
+        return dict(reply.message.get("parameters", {})) if reply.ok else {}
+
+    def _value(self, value: Any) -> Any:
+        return make(self.messages.store, PARAMETER_VALUE, **params.to_parameter_value(value))
+
+    async def _get_parameters(self, query: Any, att: Any, data: bytes) -> None:
+        try:
+            names = list(self.messages.decode(data, f"{GET_PARAMETERS}_Request").names)
+        except cdr.CdrError:
+            names = []
+        values = await self._parameter_values(att)
+        self._reply(query, att, self.messages.response(
+            GET_PARAMETERS, values=[self._value(values.get(n)) for n in names]))
+
+    async def _set_parameters(self, query: Any, att: Any, data: bytes) -> None:
+        try:
+            request = self.messages.decode(data, f"{SET_PARAMETERS}_Request").parameters
+        except cdr.CdrError:
+            request = []
+        caller = self._caller("set_parameters", att)
+        results = []
+        for parameter in request:  # one by one, as rclcpp's service
+            try:
+                change = {str(parameter.name): params.from_parameter_value(parameter.value)}
+            except ValueError as exc:
+                results.append({"successful": False, "reason": str(exc)})
+                continue
+            reply = await self._requests.answer(caller, SetParameters(parameters=change))
+            results.append({"successful": reply.ok, "reason": "" if reply.ok
+                            else reply.message["error"]["message"]})
+        self._reply(query, att, self.messages.response(SET_PARAMETERS, results=[make(
+            self.messages.store, "rcl_interfaces/msg/SetParametersResult", **r)
+            for r in results]))
+
+    async def _list_parameters(self, query: Any, att: Any, data: bytes) -> None:
+        try:
+            request = self.messages.decode(data, f"{LIST_PARAMETERS}_Request")
+            prefixes, depth = list(request.prefixes), int(request.depth)
+        except cdr.CdrError:
+            prefixes, depth = [], 0
+        names, parents = params.list_names(await self._parameter_values(att), prefixes, depth)
+        self._reply(query, att, self.messages.response(
+            LIST_PARAMETERS, result={"names": names, "prefixes": parents}))
 
     def _expire_results(self) -> None:
         if self.book.expire(time.time_ns()):

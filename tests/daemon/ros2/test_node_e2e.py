@@ -377,7 +377,7 @@ def test_demo_ros2_is_seen_by_a_second_process(tmp_path: Path) -> None:
                 demo.wait()
         assert demo.returncode == 0, out
         assert [list(m.name) for m in seen] == [JOINTS] * 3
-        assert "succeeded" in out
+        assert "succeeded" in out and "/arm_controller/follow_joint_trajectory" in out
     finally:
         peer.close()
         router.close()

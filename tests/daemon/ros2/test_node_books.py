@@ -322,3 +322,26 @@ def test_list_parameters_as_rclcpp() -> None:
     assert list_names(names, ["constraints"], 1) == (["constraints.goal_time"], ["constraints"])
     assert list_names(names, ["constraints", "gains"], 0)[0] == names[1:]
     assert list_names(names, ["cmd_timeout"], 0) == (["cmd_timeout"], [])
+
+
+# -- jtc-hw check and status --------------------------------------------------------------------
+
+
+def test_check_and_status_say_the_ros2_section(tmp_path: Path) -> None:
+    from jtc_hw.cli.run import _ros2_line
+    from jtc_hw.cli.status import status_lines
+
+    daemon = robot(tmp_path, controller_name="arm_controller", namespace="robot1").daemon
+    assert _ros2_line(daemon, "joint_trajectory_controller") == (
+        "  ros2            node /robot1/arm_controller, /joint_states in domain 0, jazzy "
+        "(client; connect tcp/127.0.0.1:7447)")
+    off = load_robot(make_robot_config(tmp_path / "d.sock", ["j1"], [
+        {"name": "m", "kind": "mirror", "joints": ["j1"]}])).daemon
+    assert _ros2_line(off, "x") == "  ros2            off (daemon.ros2)"
+    lines = status_lines({"ros2": {"node": "/arm_controller", "domain_id": 0,
+                                   "goals_accepted": 3, "goals_rejected": 1, "goals_running": 1,
+                                   "joint_trajectory_dropped": 2, "published": 40,
+                                   "dropped": 0}})
+    assert ("ros2          node /arm_controller in domain 0: goals accepted 3, rejected 1, "
+            "running 1; samples dropped 2; published 40, dropped 0") in lines
+    assert not any(x.startswith("ros2") for x in status_lines({}))

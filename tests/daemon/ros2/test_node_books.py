@@ -345,3 +345,30 @@ def test_check_and_status_say_the_ros2_section(tmp_path: Path) -> None:
     assert ("ros2          node /arm_controller in domain 0: goals accepted 3, rejected 1, "
             "running 1; samples dropped 2; published 40, dropped 0") in lines
     assert not any(x.startswith("ros2") for x in status_lines({}))
+
+
+def test_without_rosbags_the_transport_says_what_to_install(monkeypatch: pytest.MonkeyPatch
+                                                           ) -> None:
+    """The daemon imports the transport (registry) without rosbags; starting it says the
+    extra to install, as a ConfigurationError naming daemon.ros2 (exit 2, one line)."""
+    import asyncio
+    import builtins
+    from types import SimpleNamespace
+
+    from jtc_hw.daemon.ros2_config import Ros2Settings
+    from jtc_hw.daemon.transports.ros2.node import Ros2Interface
+
+    real_import = builtins.__import__
+
+    def no_rosbags(name: str, *args: Any, **kwargs: Any) -> Any:
+        if name.startswith("rosbags") or (name == "types" and len(args) > 3 and args[3] > 0):
+            raise ImportError("no rosbags here", name="rosbags")
+        return real_import(name, *args, **kwargs)
+
+    requests = SimpleNamespace(backend=SimpleNamespace(joint_names=("a",)),
+                               max_message_bytes=1 << 20, status_sections={})
+    transport = Ros2Interface(Ros2Settings(), "c", requests)  # type: ignore[arg-type]
+    monkeypatch.setattr(builtins, "__import__", no_rosbags)
+    with pytest.raises(ConfigurationError) as info:
+        asyncio.run(transport.start())
+    assert info.value.path == "daemon.ros2" and "jtc_hw[ros2]" in str(info.value)

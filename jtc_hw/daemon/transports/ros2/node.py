@@ -107,7 +107,6 @@ from .messages import (
     make,
 )
 from .outbox import Outbox, guard, quietly
-from .types import ros_types
 from .wire import (
     QOS_ACTION_STATUS,
     QOS_DEFAULT,
@@ -250,12 +249,14 @@ class Ros2Interface:
         """
         from ....errors import ConfigurationError
 
-        zenoh = import_zenoh()
         try:
-            self.types = ros_types(self.settings.distro)
-        except ImportError as exc:
-            raise ConfigurationError(f"needs {exc.name}: {INSTALL_HINT}, or remove "
+            zenoh = import_zenoh()
+            from .types import ros_types  # rosbags: only for a daemon with daemon.ros2
+        except (ConfigurationError, ImportError) as exc:
+            what = getattr(exc, "name", None) or "eclipse-zenoh"
+            raise ConfigurationError(f"needs the {what} package: {INSTALL_HINT}, or remove "
                                      "daemon.ros2", "daemon.ros2") from None
+        self.types = ros_types(self.settings.distro)
         self.messages = Messages(self.types, self._requests.backend.joint_names)
         config = session_config(self.settings.zenoh)
         self._aio = asyncio.get_running_loop()

@@ -238,6 +238,8 @@ def bench_daemon(args: argparse.Namespace, limit: int,
     settings: dict[str, Any] = {"max_message_bytes": limit}
     if ros2_endpoint is not None:
         settings["ros2"] = {"zenoh": {"connect": [ros2_endpoint]}}
+        if args.ros2_mode == "peer":  # rmw_zenoh's own session default: peers, p2p on loopback
+            settings["ros2"]["zenoh"].update(mode="peer", listen=["tcp/127.0.0.1:0"])
     with tempfile.TemporaryDirectory(prefix="jtc-hw-latency-flight-") as flight, Daemon(
         args.rate, args.priority, None, False,
         daemon_settings={**settings, "flight_recorder_dir": flight},
@@ -262,7 +264,7 @@ class Ros2Goals:
 
     CONTROLLER = "joint_trajectory_controller"
 
-    def __init__(self) -> None:
+    def __init__(self, mode: str = "client") -> None:
         import zenoh
 
         from jtc_hw.daemon.transports.ros2 import wire
@@ -275,11 +277,15 @@ class Ros2Goals:
         router.insert_json5("mode", '"router"')
         router.insert_json5("listen/endpoints", json.dumps([self.endpoint]))
         client = zenoh.Config()
-        client.insert_json5("mode", '"client"')
+        client.insert_json5("mode", json.dumps(mode))
         client.insert_json5("connect/endpoints", json.dumps([self.endpoint]))
         for config in (router, client):
             for key, value in quiet.items():
                 config.insert_json5(key, value)
+        if mode == "peer":  # as rmw_zenoh's sessions: the router's gossip tells where to dial
+            client.insert_json5("listen/endpoints", '["tcp/127.0.0.1:0"]')
+            for config in (router, client):
+                config.insert_json5("scouting/gossip/enabled", "true")
         self.router = zenoh.open(router)
         self.session = zenoh.open(client)
         self.types = ros_types("jazzy")
@@ -373,7 +379,7 @@ def measure_sizes(args: argparse.Namespace, note: Callable[[str], None]) -> list
     if limit != DEFAULT_MAX_MESSAGE_BYTES:
         note(f"daemon.max_message_bytes raised to {limit} for the largest request")
     encodings = list(args.encodings)
-    ros2 = Ros2Goals() if "ros2" in args.transport else None
+    ros2 = Ros2Goals(args.ros2_mode) if "ros2" in args.transport else None
     if ros2 is not None:
         encodings.append("ros2")
     with contextlib.ExitStack() as stack:
@@ -787,6 +793,11 @@ def main(argv: list[str] | None = None) -> int:
         "--transport", nargs="+", choices=("socket", "ros2"), default=["socket"],
         help="ros2: also a row per size through the daemon's ROS 2 transport (needs "
         "jtc_hw[ros2]; the bench runs its own Zenoh router)")
+    parser.add_argument(
+        "--ros2-mode", choices=("client", "peer"), default="client",
+        help="with --transport ros2: the daemon's and the bench's Zenoh sessions as clients of "
+        "the router (daemon.ros2's default: every message through the router), or as peers "
+        "listening on loopback that the router's gossip joins directly (rmw_zenoh's sessions)")
     args = parser.parse_args(argv)
     if any(p < 1 for p in args.points) or args.huge_points < 1:
         parser.error("point counts must be >= 1")

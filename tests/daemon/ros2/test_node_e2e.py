@@ -64,8 +64,14 @@ def _router() -> tuple[Any, str]:
     raise AssertionError("no free port for the router")
 
 
+MAX_MESSAGE_BYTES = 1 << 20
+"""``daemon.max_message_bytes`` of the test daemons: a goal beyond it is refused from its
+length."""
+
+
 def ros2_daemon(directory: Path, endpoint: str, **ros2: Any) -> DaemonProcess:
-    return DaemonProcess(directory, ros2={"zenoh": {"connect": [endpoint]}, **ros2})
+    return DaemonProcess(directory, ros2={"zenoh": {"connect": [endpoint]}, **ros2},
+                         max_message_bytes=MAX_MESSAGE_BYTES)
 
 
 class Arm:
@@ -289,7 +295,9 @@ def test_bad_input_gets_upstreams_reject_or_is_dropped_never_motion(arm: Arm) ->
         huge = header + uuid + struct.pack("<iiI", 0, 0, 1) + b"\x00" + b"\x00" * 3 \
             + struct.pack("<I", 10_000_000)
         huge += b"\x00" * (100 - len(huge))
-        for payload in (b"", b"\x00\x01\x00\x00garbage", header + uuid, huge, b"\x00" * 100):
+        too_long = header + uuid + b"\x00" * MAX_MESSAGE_BYTES
+        for payload in (b"", b"\x00\x01\x00\x00garbage", header + uuid, huge, b"\x00" * 100,
+                        too_long):
             assert not _raw_goal(session, payload).accepted
         topic = _raw_key(f"{C}/joint_trajectory", TRAJECTORY)
         session.put(topic, header + struct.pack("<iiI", 0, 0, 1) + b"\x00" * 4
@@ -304,7 +312,7 @@ def test_bad_input_gets_upstreams_reject_or_is_dropped_never_motion(arm: Arm) ->
             assert time.monotonic() < deadline, arm.ros2_status()
             time.sleep(0.05)  # polling a counter of another process
         after = arm.ros2_status()
-        assert after["goals_rejected"] == before.get("goals_rejected", 0) + 5
+        assert after["goals_rejected"] == before.get("goals_rejected", 0) + 6
         assert after.get("callback_errors", 0) == 0
         assert arm.client.get_status()["controller"].get("active_goal") is None
         now = arm.peer.echo("/joint_states", "sensor_msgs/msg/JointState", 1, WAIT_S)[0]

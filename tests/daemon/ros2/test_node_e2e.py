@@ -18,6 +18,7 @@ import signal
 import struct
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -26,7 +27,14 @@ from typing import Any
 import numpy as np
 import pytest
 import zenoh
-from helpers.daemon import JOINTS, WAIT_S, DaemonProcess, RecordingClient, connect
+from helpers.daemon import (
+    JOINTS,
+    WAIT_S,
+    DaemonProcess,
+    RecordingClient,
+    connect,
+    next_state,
+)
 from helpers.ros2_peer import (
     FJT,
     STATUS_CANCELED,
@@ -174,6 +182,39 @@ def test_goal_feedback_and_exactly_one_result_while_joint_states_flow(arm: Arm) 
     assert (again.status, again.result.error_string) == (4, "Goal successfully reached!")
 
 
+def test_status_is_transient_local_a_late_client_gets_the_last(arm: Arm) -> None:
+    """A client that subscribes after the goal ended still gets its status: rmw_zenoh's
+    transient-local subscription is zenoh-ext's AdvancedSubscriber with history, here Zenoh's
+    own (the peer's sdk looks for the publishers' cache under the topic name unmangled, which
+    finds none for a name of several chunks such as an action's)."""
+    handle = arm.peer.send_goal(ACTION, goal([0.1] * 6, 0.5))
+    assert handle.result(WAIT_S)[0] == STATUS_SUCCEEDED
+    handle.wait_status(STATUS_SUCCEEDED, WAIT_S)
+    key = _raw_key(f"{ACTION}/_action/status", "action_msgs/msg/GoalStatusArray")
+    session = _client_session(arm.endpoint)
+    samples: list[Any] = []
+    got = threading.Event()
+
+    def on_sample(sample: Any) -> None:
+        samples.append(sample)
+        got.set()
+
+    try:
+        sub = zenoh.ext.declare_advanced_subscriber(
+            session, key, on_sample,
+            history=zenoh.ext.HistoryConfig(detect_late_publishers=True, max_samples=1))
+        assert got.wait(WAIT_S), "no status from the publisher's cache"
+        sub.undeclare()
+    finally:
+        session.close()
+    from helpers.ros2_peer import STORE
+
+    last = STORE.deserialize_cdr(bytes(samples[0].payload.to_bytes()),
+                                 "action_msgs/msg/GoalStatusArray")
+    statuses = {bytes(s.goal_info.goal_id.uuid): s.status for s in last.status_list}
+    assert statuses[handle.goal_id] == STATUS_SUCCEEDED
+
+
 def test_cancel_as_rcl_action(arm: Arm) -> None:
     peer = arm.peer
     handle = peer.send_goal(ACTION, goal([-0.3] * 6, 5.0))
@@ -255,6 +296,40 @@ def test_speed_scaling_input(arm: Arm) -> None:
                          {"factor": 1.0})
 
 
+def test_speed_scaling_input_is_transient_local_the_daemon_gets_a_factor_sent_before(
+        tmp_path: Path) -> None:
+    """A factor published (transient local, as rmw_zenoh's AdvancedPublisher with its cache:
+    Zenoh's own) before the daemon starts is the factor it starts with."""
+    from helpers.ros2_peer import STORE
+
+    router, endpoint = _router()
+    session = _client_session(endpoint)
+    key = _raw_key(f"{C}/speed_scaling_input", "control_msgs/msg/SpeedScalingFactor")
+    daemon = ros2_daemon(tmp_path / "late", endpoint)
+    try:
+        publisher = zenoh.ext.declare_advanced_publisher(  # as rmw_zenoh's, reliable
+            session, key, cache=zenoh.ext.CacheConfig(max_samples=1), publisher_detection=True,
+            sample_miss_detection=zenoh.ext.MissDetectionConfig(sporadic_heartbeat=0.5))
+        factor = bytes(STORE.serialize_cdr(make("control_msgs/msg/SpeedScalingFactor",
+                                                factor=0.25),
+                                           "control_msgs/msg/SpeedScalingFactor"))
+        publisher.put(factor, attachment=_attachment())
+        daemon.start()
+        daemon.wait_ready()
+        client = connect(daemon)
+        try:
+            with client.subscribe_state() as states:
+                next_state(states, lambda s: s["speed_scaling"]["target"] == 0.25)
+            assert client.get_status()["ros2"]["speed_scaling_input_accepted"] == 1
+        finally:
+            client.close()
+        publisher.undeclare()
+    finally:
+        session.close()
+        daemon.shutdown()
+        router.close()
+
+
 # -- bad input ----------------------------------------------------------------------------------
 
 
@@ -264,6 +339,15 @@ def _raw_key(name: str, ros_type: str) -> str:
 
     types = ros_types("jazzy")
     return topic_key(0, name, types.dds_name(ros_type), types.type_hash(ros_type))
+
+
+def _client_session(endpoint: str) -> Any:
+    """A plain Zenoh client of the router (loopback, no multicast)."""
+    conf = zenoh.Config()
+    conf.insert_json5("mode", json.dumps("client"))
+    conf.insert_json5("connect/endpoints", json.dumps([endpoint]))
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    return zenoh.open(conf)
 
 
 def _attachment() -> bytes:
@@ -282,11 +366,7 @@ def _raw_goal(session: Any, payload: bytes) -> Any:
 
 
 def test_bad_input_gets_upstreams_reject_or_is_dropped_never_motion(arm: Arm) -> None:
-    conf = zenoh.Config()
-    conf.insert_json5("mode", json.dumps("client"))
-    conf.insert_json5("connect/endpoints", json.dumps([arm.endpoint]))
-    conf.insert_json5("scouting/multicast/enabled", "false")
-    session = zenoh.open(conf)
+    session = _client_session(arm.endpoint)
     try:
         rest = arm.peer.echo("/joint_states", "sensor_msgs/msg/JointState", 1, WAIT_S)[0]
         before = arm.ros2_status()
@@ -404,11 +484,7 @@ def test_humble_layouts_without_type_hashes(tmp_path: Path) -> None:
 
     router, endpoint = _router()
     daemon = ros2_daemon(tmp_path / "humble", endpoint, distro="humble")
-    conf = zenoh.Config()
-    conf.insert_json5("mode", json.dumps("client"))
-    conf.insert_json5("connect/endpoints", json.dumps([endpoint]))
-    conf.insert_json5("scouting/multicast/enabled", "false")
-    session = zenoh.open(conf)
+    session = _client_session(endpoint)
     store = ros_types("humble").typestore
     samples: list[Any] = []
     tokens: list[str] = []

@@ -77,8 +77,9 @@ MAX_MESSAGE_BYTES = 1 << 20
 length."""
 
 
-def ros2_daemon(directory: Path, endpoint: str, **ros2: Any) -> DaemonProcess:
-    return DaemonProcess(directory, ros2={"zenoh": {"connect": [endpoint]}, **ros2},
+def ros2_daemon(directory: Path, endpoint: str, mode: str = "client", **ros2: Any
+                ) -> DaemonProcess:
+    return DaemonProcess(directory, ros2={"zenoh": {"mode": mode, "connect": [endpoint]}, **ros2},
                          max_message_bytes=MAX_MESSAGE_BYTES)
 
 
@@ -442,6 +443,33 @@ def test_killed_daemon_tokens_vanish(tmp_path: Path) -> None:
             os.killpg(daemon.pid, signal.SIGKILL)
             daemon.proc.wait(WAIT_S)
         router.close()
+
+
+def test_peer_mode_starts_before_the_router_and_joins_it(tmp_path: Path) -> None:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        endpoint = f"tcp/127.0.0.1:{s.getsockname()[1]}"
+    daemon = ros2_daemon(tmp_path / "early", endpoint, mode="peer")
+    router = None
+    try:
+        daemon.start()
+        daemon.wait_ready()  # no router yet
+        conf = zenoh.Config()
+        conf.insert_json5("mode", json.dumps("router"))
+        conf.insert_json5("listen/endpoints", json.dumps([endpoint]))
+        conf.insert_json5("scouting/multicast/enabled", "false")
+        router = zenoh.open(conf)
+        peer = Ros2Peer(endpoint)
+        try:
+            peer.wait_until(lambda: ACTION in peer.actions(), 20.0, "the action, once joined")
+        finally:
+            peer.close()
+    finally:
+        daemon.shutdown()
+        if router is not None:
+            router.close()
 
 
 # -- the demo -------------------------------------------------------------------------------------

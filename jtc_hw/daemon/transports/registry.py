@@ -4,9 +4,10 @@ Theory of operation
 -------------------
 A transport is a peer over the request layer (``jtc_hw.daemon.core.requests`` draws them);
 what it adds is its own (framing, authentication, slots, key expressions), and it never
-reaches into another transport. Adding one (ROS 2, say) is one module and one line::
+reaches into another transport. Adding one is one module (or package: ``ros2/``) and one
+line::
 
-    1. transports/ros2_iface.py: a class with ``async start()`` and ``async close()``
+    1. transports/<name>.py: a class with ``async start()`` and ``async close()``
        (``Transport``) over a ``Requests``; a ``Caller`` per client or per request, its
        ``Outlet`` delivering the goal events and states the layer routes to it;
     2. here: an opener ``(Wiring) -> Transport | None`` (``None``: not configured) and its

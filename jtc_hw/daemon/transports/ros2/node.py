@@ -42,10 +42,13 @@ waits forever), so a query waits here until the result exists; results are kept 
 rclcpp_action's ``result_timeout`` (15 min, ``actions.RESULT_TIMEOUT_NS``). A client that dies
 mid-goal changes nothing: the goal runs to its result, kept for whoever asks.
 
-Bad input (malformed CDR, a sequence length beyond the buffer, a wrong type, NaN, an unknown
-joint): a goal gets upstream's reject (``accepted: false``; the reason is logged), a topic
-sample is dropped and counted (``get_status``'s ``ros2`` section). Nothing raises into Zenoh's
-threads; nothing moves.
+Bad input (malformed CDR, a sequence length beyond the buffer, NaN, an unknown joint, a
+payload longer than ``daemon.max_message_bytes``, refused from its length before it is
+copied): a goal gets upstream's reject (``accepted: false``; the reason is logged), a topic
+sample is dropped and counted (``get_status``'s ``ros2`` section). A sample of another type
+(or of another distro's hash) is on another key: nothing here hears it. A query without an
+rmw_zenoh attachment (no sequence number to answer with) is dropped unanswered and counted.
+Nothing raises into Zenoh's threads (``outbox.guard``); nothing moves.
 
 Threads (as ``zenoh_iface``): Zenoh calls back in its threads, which decode and hand the work
 to the event loop; everything sent to Zenoh goes through one bounded outbox drained by a thread
@@ -54,7 +57,8 @@ only beyond :data:`OUTBOX_HARD_CAP`), where the periodic messages are also encod
 loop never waits on Zenoh and the control loop never sees any of it.
 
 Stamps are ROS time, the system clock (upstream stamps with its node's clock); a
-``query_state`` time is converted to the daemon clock by the offset between the two at arrival.
+``query_state`` time, and a trajectory's non-zero ``header.stamp`` (``cdr``: its start), are
+converted to the daemon clock by the offset between the two at arrival.
 """
 
 from __future__ import annotations

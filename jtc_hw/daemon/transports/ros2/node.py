@@ -620,7 +620,9 @@ class Ros2Interface:
                 for event in held:
                     self._goal_event(goal, event)
                 return
-            reason = reply.message["error"]["message"]
+            self.counters["goals_rejected"] += 1  # (the request layer logged why)
+            self._reply(query, att, self.messages.send_goal_response(False, stamp))
+            return
         self.counters["goals_rejected"] += 1
         log.info("%s: goal rejected: %s", caller.label, reason)
         self._reply(query, att, self.messages.send_goal_response(False, stamp))

@@ -153,6 +153,15 @@ def test_graph_shows_upstreams_controller(arm: Arm) -> None:
     assert topics[f"{C}/joint_trajectory"] == ["trajectory_msgs/msg/JointTrajectory"]
     assert topics[f"{C}/speed_scaling_input"] == ["control_msgs/msg/SpeedScalingFactor"]
     assert peer.actions() == {ACTION: [FJT]}
+    # QoS as upstream's endpoints have them (wire.py's table): SystemDefaultsQoS topics, the
+    # speed scaling input transient local, the action's status transient local, depth 1
+    ours = {"joint_trajectory_controller", "joint_state_broadcaster"}
+    qos = {t.split("/")[9]: t.rsplit("/", 1)[1] for t in peer.tokens()
+           if len(t.split("/")) > 9 and t.split("/")[8] in ours}
+    assert qos["%joint_states"] == "::,:,:,:,,"
+    assert qos[f"{C}/speed_scaling_input".replace("/", "%")] == ":1:,:,:,:,,"
+    assert qos[f"{ACTION}/_action/status".replace("/", "%")] == ":1:,1:,:,:,,"
+    assert qos[f"{ACTION}/_action/send_goal".replace("/", "%")] == "::,10:,:,:,,"
     assert peer.services()[f"{C}/query_state"] == ["control_msgs/srv/QueryTrajectoryState"]
 
 

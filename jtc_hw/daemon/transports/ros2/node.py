@@ -70,7 +70,7 @@ import logging
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import partial
 from typing import TYPE_CHECKING, Any, Final
 
@@ -120,7 +120,6 @@ from .wire import (
     Durability,
     EntityKind,
     Qos,
-    Reliability,
 )
 
 if TYPE_CHECKING:
@@ -144,8 +143,8 @@ HEARTBEAT_S: Final = 0.5
 """rmw_zenoh's sample-miss heartbeat of a reliable transient-local publisher (500 ms)."""
 
 PUB, SUB, SERVICE = EntityKind.PUBLISHER, EntityKind.SUBSCRIPTION, EntityKind.SERVICE
-QOS_SPEED_SCALING: Final = Qos(Reliability.RELIABLE, Durability.TRANSIENT_LOCAL, depth=1)
-"""``speed_scaling_input``: transient local, as upstream subscribes (the last factor counts)."""
+QOS_SPEED_SCALING: Final = replace(QOS_SYSTEM_DEFAULT, durability=Durability.TRANSIENT_LOCAL)
+"""``speed_scaling_input``: upstream's ``SystemDefaultsQoS().transient_local()`` (``wire.py``)."""
 
 
 def entity_names(namespace: str, controller: str) -> dict[str, str]:
@@ -343,7 +342,7 @@ class Ros2Interface:
         session = self._session
         if kind == PUB and _transient_local(qos):
             entity.handle = zenoh.ext.declare_advanced_publisher(
-                session, entity.key, cache=zenoh.ext.CacheConfig(max_samples=qos.depth),
+                session, entity.key, cache=zenoh.ext.CacheConfig(max_samples=qos.adapted().depth),
                 sample_miss_detection=zenoh.ext.MissDetectionConfig(
                     sporadic_heartbeat=HEARTBEAT_S),
                 publisher_detection=True)
@@ -354,7 +353,7 @@ class Ros2Interface:
             entity.handle = zenoh.ext.declare_advanced_subscriber(
                 session, entity.key, guard(callback, self.counters),
                 history=zenoh.ext.HistoryConfig(detect_late_publishers=True,
-                                                max_samples=qos.depth),
+                                                max_samples=qos.adapted().depth),
                 recovery=zenoh.ext.RecoveryConfig(heartbeat=True), subscriber_detection=True)
         elif kind == SUB:
             entity.handle = session.declare_subscriber(entity.key,

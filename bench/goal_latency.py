@@ -17,7 +17,13 @@ Three measurements (the first by default, or when ``--sizes`` is given with the 
     skipped while the size was measured (its statistics, ``get_status()["loop"]``). Each
     size has a row per ``--encodings``: ``binary`` (the client's default: goals of 100 points
     or more as binary frames, protocol version 2) and ``ndjson`` (JSON lines only), their
-    goals alternated one by one.
+    goals alternated one by one. ``--transport socket ros2`` adds a ``ros2`` row per size: the
+    same goal as a ``control_msgs/action/FollowJointTrajectory`` goal through the daemon's
+    ROS 2 transport (``daemon.ros2``, issue 25), alternated with the socket's; the bench runs a
+    Zenoh router on a free loopback port and a Zenoh client speaking rmw_zenoh's wire
+    (``jtc_hw.daemon.transports.ros2``'s keys and attachment). ``accept`` is then the
+    ``send_goal`` query sent (its CDR encoded beforehand) -> the ``accepted`` response received;
+    ``call`` adds the CDR encoding (rosbags' serializer: a client's cost, not the daemon's).
 
 ``huge`` (``--huge``)
     One goal of ``--huge-points`` (default 75,000) points on a fresh daemon at ``--rate``:
@@ -45,6 +51,7 @@ Three measurements (the first by default, or when ``--sizes`` is given with the 
 Usage:  python bench/goal_latency.py [--points 2 200 2000 20000] [--runs N] [--rate HZ]
             [--priority N] [--encodings binary ndjson] [--sizes] [--huge] [--huge-points N]
             [--huge-encoding ndjson|binary] [--breakdown] [--cprofile] [--limits] [--json]
+            [--transport socket ros2]
 ``--json`` prints one JSON object per line instead of the tables; a ``sizes`` row holds
 ``{"points", "encoding", "accept_ms_p50", "accept_ms_p99", ...}``.
 Targets (issue 24): 2,000 points accepted in <= 5 ms and 20,000 in <= 30 ms (medians); a
@@ -223,14 +230,143 @@ def runs_for(points: int, runs: int | None) -> int:
 
 
 @contextlib.contextmanager
-def bench_daemon(args: argparse.Namespace, limit: int) -> Iterator[Daemon]:
+def bench_daemon(args: argparse.Namespace, limit: int,
+                 ros2_endpoint: str | None = None) -> Iterator[Daemon]:
     """The daemon, its flight recorder writing into a temporary directory removed afterwards
-    (its shutdown recording would otherwise land in the user's state directory)."""
+    (its shutdown recording would otherwise land in the user's state directory); with
+    ``ros2_endpoint``, also on ROS 2 as a client of that router."""
+    settings: dict[str, Any] = {"max_message_bytes": limit}
+    if ros2_endpoint is not None:
+        settings["ros2"] = {"zenoh": {"connect": [ros2_endpoint]}}
+        if args.ros2_mode == "peer":  # rmw_zenoh's own session default: peers, p2p on loopback
+            settings["ros2"]["zenoh"].update(mode="peer", listen=["tcp/127.0.0.1:0"])
     with tempfile.TemporaryDirectory(prefix="jtc-hw-latency-flight-") as flight, Daemon(
         args.rate, args.priority, None, False,
-        daemon_settings={"max_message_bytes": limit, "flight_recorder_dir": flight},
+        daemon_settings={**settings, "flight_recorder_dir": flight},
     ) as daemon:
         yield daemon
+
+
+# -- ROS 2 ------------------------------------------------------------------------------------
+
+
+def free_endpoint() -> str:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return f"tcp/127.0.0.1:{s.getsockname()[1]}"
+
+
+class Ros2Goals:
+    """A Zenoh router on a free loopback port, and a client sending FollowJointTrajectory goals
+    to the daemon's ROS 2 transport as an rmw_zenoh action client does (module docstring)."""
+
+    CONTROLLER = "joint_trajectory_controller"
+
+    def __init__(self, mode: str = "client") -> None:
+        import zenoh
+
+        from jtc_hw.daemon.transports.ros2 import wire
+        from jtc_hw.daemon.transports.ros2.types import ros_types
+
+        self._wire = wire
+        self.endpoint = free_endpoint()
+        quiet = {"scouting/multicast/enabled": "false", "scouting/gossip/enabled": "false"}
+        router = zenoh.Config()
+        router.insert_json5("mode", '"router"')
+        router.insert_json5("listen/endpoints", json.dumps([self.endpoint]))
+        client = zenoh.Config()
+        client.insert_json5("mode", json.dumps(mode))
+        client.insert_json5("connect/endpoints", json.dumps([self.endpoint]))
+        for config in (router, client):
+            for key, value in quiet.items():
+                config.insert_json5(key, value)
+        if mode == "peer":  # as rmw_zenoh's sessions: the router's gossip tells where to dial
+            client.insert_json5("listen/endpoints", '["tcp/127.0.0.1:0"]')
+            for config in (router, client):
+                config.insert_json5("scouting/gossip/enabled", "true")
+        self.router = zenoh.open(router)
+        self.session = zenoh.open(client)
+        self.types = ros_types("jazzy")
+        store = self.types.typestore
+        action = "control_msgs/action/FollowJointTrajectory"
+        self._request = f"{action}_SendGoal_Request"
+        self._response = f"{action}_SendGoal_Response"
+        name = f"/{self.CONTROLLER}/follow_joint_trajectory/_action/send_goal"
+        service = f"{action}_SendGoal"
+        self.key = wire.topic_key(0, name, self.types.dds_name(service),
+                                self.types.type_hash(service))
+        self.gid = wire.new_gid()
+        self.seq = 0
+        self.store = store
+
+    def encode(self, goal: dict[str, Any]) -> bytearray:
+        """The ``SendGoal`` request of ``goal`` (its UUID filled in by :meth:`send`)."""
+        t = self.store.types
+        dur = t["builtin_interfaces/msg/Duration"]
+        header = t["std_msgs/msg/Header"](t["builtin_interfaces/msg/Time"](0, 0), "")
+        empty = np.zeros(0)
+        points = [t["trajectory_msgs/msg/JointTrajectoryPoint"](
+            positions=np.asarray(p["positions"], np.float64),
+            velocities=np.asarray(p.get("velocities", ()), np.float64), accelerations=empty,
+            effort=empty, time_from_start=dur(int(p["time_from_start"]),
+                                              round(p["time_from_start"] % 1 * 1e9)))
+            for p in goal["points"]]
+        from jtc_hw.daemon.transports.ros2.messages import make
+
+        msg = make(self.store, self._request, goal={
+            "trajectory": t["trajectory_msgs/msg/JointTrajectory"](
+                header, list(goal["joint_names"]), points)})
+        return bytearray(self.store.serialize_cdr(msg, self._request))
+
+    def send(self, request: bytearray) -> float:
+        """Send a goal under a fresh UUID; ms from the query sent to the response received.
+
+        Raises:
+            RuntimeError: no response, or the goal was rejected.
+        """
+        import os
+
+        request[4:20] = os.urandom(16)  # goal_id, the request's first field
+        self.seq += 1
+        attachment = self._wire.encode_attachment(self.seq, time.time_ns(), self.gid)
+        first: list[tuple[int, Any]] = []
+        done = threading.Event()
+
+        def on_reply(reply: Any) -> None:
+            if not first:  # the response's arrival, not the query's end
+                first.append((time.perf_counter_ns(), reply.ok))
+
+        import zenoh
+
+        begin = time.perf_counter_ns()
+        self.session.get(self.key, zenoh.handlers.Callback(on_reply, done.set),
+                         payload=bytes(request), attachment=attachment, timeout=TIMEOUT_S)
+        if not done.wait(TIMEOUT_S) or not first or first[0][1] is None:
+            raise RuntimeError("no send_goal response")
+        end, sample = first[0]
+        response = self.store.deserialize_cdr(bytes(sample.payload.to_bytes()), self._response)
+        if not response.accepted:
+            raise RuntimeError("goal rejected")
+        return (end - begin) / 1e6
+
+    def wait_served(self) -> None:
+        """Until the daemon's action server answers (its queryable reached the router)."""
+        request = self.encode(wave_goal(2))
+        deadline = time.monotonic() + TIMEOUT_S
+        while True:
+            try:
+                self.send(request)
+                return
+            except RuntimeError:
+                if time.monotonic() > deadline:
+                    raise
+                time.sleep(0.1)
+
+    def close(self) -> None:
+        self.session.close()
+        self.router.close()
 
 
 def measure_sizes(args: argparse.Namespace, note: Callable[[str], None]) -> list[dict[str, Any]]:
@@ -243,17 +379,33 @@ def measure_sizes(args: argparse.Namespace, note: Callable[[str], None]) -> list
     if limit != DEFAULT_MAX_MESSAGE_BYTES:
         note(f"daemon.max_message_bytes raised to {limit} for the largest request")
     encodings = list(args.encodings)
-    with bench_daemon(args, limit) as daemon:
+    ros2 = Ros2Goals(args.ros2_mode) if "ros2" in args.transport else None
+    if ros2 is not None:
+        encodings.append("ros2")
+    with contextlib.ExitStack() as stack:
+        if ros2 is not None:
+            stack.callback(ros2.close)
+        daemon = stack.enter_context(bench_daemon(
+            args, limit, None if ros2 is None else ros2.endpoint))
         daemon.connect().close()
+        if ros2 is not None:
+            ros2.wait_served()
         client, stamped = stamped_client(daemon.socket)
         try:
             for points in args.points:
                 goals = [wave_goal(points, phase) for phase in PHASES]
+                cdr = [] if ros2 is None else [ros2.encode(g) for g in goals]
+                sizes = {e: len(cdr[0]) if e == "ros2" else request_bytes(goals[0], e)
+                         for e in encodings}
                 runs = runs_for(points, args.runs)
                 note(f"{points} points: {runs} goals per encoding ("
-                     + ", ".join(f"{e} {request_bytes(goals[0], e)} bytes" for e in encodings)
+                     + ", ".join(f"{e} {sizes[e]} bytes" for e in encodings)
                      + ")")
                 for encoding in encodings:  # warm-up: each path once
+                    if encoding == "ros2":
+                        assert ros2 is not None
+                        ros2.send(cdr[1])
+                        continue
                     use_encoding(client, encoding)
                     timed_goal(client, stamped, goals[1])
                 before = next_loop_stats(client)
@@ -263,13 +415,21 @@ def measure_sizes(args: argparse.Namespace, note: Callable[[str], None]) -> list
                 dephase = random.Random(SEED)
                 for i in range(runs * len(encodings)):
                     encoding = encodings[i % len(encodings)]
-                    use_encoding(client, encoding)
                     # The reply comes right after a loop cycle: a fixed pause would send every
                     # goal at one phase of the loop's period, and the median would measure the
                     # wait for the next cycle from that phase only. Goals arrive at any phase.
                     time.sleep(PAUSE_S + dephase.uniform(0.0, 1.0 / args.rate))
+                    which = (i // len(encodings)) % 2
                     try:
-                        a, c, _ = timed_goal(client, stamped, goals[(i // len(encodings)) % 2])
+                        if encoding == "ros2":
+                            assert ros2 is not None
+                            begin = time.perf_counter_ns()
+                            request = ros2.encode(goals[which])
+                            a = ros2.send(request)
+                            c = (time.perf_counter_ns() - begin) / 1e6
+                        else:
+                            use_encoding(client, encoding)
+                            a, c, _ = timed_goal(client, stamped, goals[which])
                     except Exception as exc:  # report it, keep measuring
                         note(f"  goal {i} ({encoding}): {type(exc).__name__}: {exc}")
                         rejected[encoding] += 1
@@ -288,7 +448,7 @@ def measure_sizes(args: argparse.Namespace, note: Callable[[str], None]) -> list
                             "rate_hz": args.rate,
                             "runs": len(done),
                             "failed": rejected[encoding],
-                            "request_bytes": request_bytes(goals[0], encoding),
+                            "request_bytes": sizes[encoding],
                             "max_message_bytes": limit,
                             "accept_ms_p50": round(percentile(done, 50), 2) if done else None,
                             "accept_ms_p99": round(percentile(done, 99), 2) if done else None,
@@ -629,6 +789,15 @@ def main(argv: list[str] | None = None) -> int:
         "--huge or --breakdown)"
     )
     parser.add_argument("--json", action="store_true", help="one JSON object per line")
+    parser.add_argument(
+        "--transport", nargs="+", choices=("socket", "ros2"), default=["socket"],
+        help="ros2: also a row per size through the daemon's ROS 2 transport (needs "
+        "jtc_hw[ros2]; the bench runs its own Zenoh router)")
+    parser.add_argument(
+        "--ros2-mode", choices=("client", "peer"), default="client",
+        help="with --transport ros2: the daemon's and the bench's Zenoh sessions as clients of "
+        "the router (daemon.ros2's default: every message through the router), or as peers "
+        "listening on loopback that the router's gossip joins directly (rmw_zenoh's sessions)")
     args = parser.parse_args(argv)
     if any(p < 1 for p in args.points) or args.huge_points < 1:
         parser.error("point counts must be >= 1")

@@ -48,6 +48,12 @@ With ``--zenoh`` the daemon is also on Zenoh (``daemon.zenoh``, listening on a f
 port) and a Zenoh session of this process subscribes to its state stream and events throughout
 (needs jtc_hw[zenoh]): the same comparison for the Zenoh interface (issue 14).
 
+With ``--ros2`` the daemon is also upstream's controller in a ROS 2 graph (``daemon.ros2``,
+issue 25), a client of a Zenoh router this process runs on a free loopback port, and a Zenoh
+session of this process subscribes to its ``/joint_states`` and ``controller_state`` (decoding
+each with rosbags, as a ROS 2 client would) throughout: the same comparison for the ROS 2
+transport.
+
 With ``--breakdown`` the loop process times each phase of its period (``JTC_HW_LOOP_PHASES``,
 ``jtc_hw.daemon.loop.phases``: read, update, write, the cycle ring, the State, the statistics,
 the status, the outbox, the inbox, gc, ...) and each run prints their p50, p99, max and mean
@@ -61,7 +67,7 @@ file) goes into one temporary directory, removed when the daemon has stopped.
 
 Usage:  python bench/loop_jitter.py [--duration S] [--rates 500 1000]
             [--scenarios [bare] idle loaded] [--priority N] [--cpu N] [--lock-memory]
-            [--live-view] [--zenoh] [--flight-recorder-s S] [--record] [--breakdown]
+            [--live-view] [--zenoh] [--ros2] [--flight-recorder-s S] [--record] [--breakdown]
             [--joints N] [--goal-points N] [--json]
 Target: at 1 kHz, p99 lateness < 300 us and no overruns, idle and loaded.
 """
@@ -357,6 +363,52 @@ class ZenohViewer:
         for sub in self.subs:
             sub.undeclare()
         self.session.close()
+
+
+class Ros2Viewer:
+    """A Zenoh router, and a session subscribed to the daemon's ``/joint_states`` and
+    ``controller_state`` as a ROS 2 client (``--ros2``; needs jtc_hw[ros2])."""
+
+    CONTROLLER = "joint_trajectory_controller"
+
+    def __init__(self) -> None:
+        import zenoh
+
+        from jtc_hw.daemon.transports.ros2.types import ros_types
+        from jtc_hw.daemon.transports.ros2.wire import topic_key
+
+        self.endpoint = f"tcp/127.0.0.1:{free_port()}"
+        configs = []
+        for mode in ("router", "client"):
+            config = zenoh.Config()
+            config.insert_json5("mode", json.dumps(mode))
+            key = "listen/endpoints" if mode == "router" else "connect/endpoints"
+            config.insert_json5(key, json.dumps([self.endpoint]))
+            config.insert_json5("scouting/multicast/enabled", "false")
+            configs.append(config)
+        self.router = zenoh.open(configs[0])
+        self.session = zenoh.open(configs[1])
+        types = ros_types("jazzy")
+        self.store = types.typestore
+        self.messages = 0
+        self.subs = []
+        for name, ros_type in (
+                ("/joint_states", "sensor_msgs/msg/JointState"),
+                (f"/{self.CONTROLLER}/controller_state",
+                 "control_msgs/msg/JointTrajectoryControllerState")):
+            key = topic_key(0, name, types.dds_name(ros_type), types.type_hash(ros_type))
+            self.subs.append(self.session.declare_subscriber(
+                key, lambda sample, t=ros_type: self._count(sample, t)))
+
+    def _count(self, sample: Any, ros_type: str) -> None:
+        self.store.deserialize_cdr(sample.payload.to_bytes(), ros_type)  # to use it
+        self.messages += 1
+
+    def close(self) -> None:
+        for sub in self.subs:
+            sub.undeclare()
+        self.session.close()
+        self.router.close()
 
 
 # -- the load ---------------------------------------------------------------------------------
@@ -693,6 +745,9 @@ def measure_rate(
     if args.zenoh:
         settings["zenoh"] = {"prefix": prefix, "listen": [endpoint],
                              "token": secrets.token_hex(16)}  # the bench only watches
+    rviewer = Ros2Viewer() if args.ros2 else None
+    if rviewer is not None:
+        settings["ros2"] = {"zenoh": {"connect": [rviewer.endpoint]}}
     record_dir = None
     if args.record:
         record_dir = tempfile.mkdtemp(prefix="jtc-hw-jitter-record-")
@@ -709,14 +764,18 @@ def measure_rate(
                 note(f"{rate_hz:g} Hz {scenario}: measuring {args.duration:g} s")
                 seen = viewer.messages if viewer is not None else 0
                 zseen = zviewer.messages if zviewer is not None else 0
+                rseen = rviewer.messages if rviewer is not None else 0
                 row = run_scenario(daemon, client, rate_hz, scenario, args.duration,
                                    args.goal_points)
                 if viewer is not None:
                     row["live_view_messages"] = viewer.messages - seen
                 if zviewer is not None:
                     row["zenoh_messages"] = zviewer.messages - zseen
+                if rviewer is not None:
+                    row["ros2_messages"] = rviewer.messages - rseen
                 rows.append(row)
             rows = [dict(row, scheduling=scheduling, live_view=args.live_view, zenoh=args.zenoh,
+                         ros2=args.ros2,
                          record=args.record, flight_recorder_s=args.flight_recorder_s)
                     for row in rows]
         finally:
@@ -724,6 +783,8 @@ def measure_rate(
                 viewer.close()
             if zviewer is not None:
                 zviewer.close()
+            if rviewer is not None:
+                rviewer.close()
             client.close()
             if daemon.process.poll() is not None:
                 note(f"the daemon died:\n{daemon.log_tail()}")
@@ -762,7 +823,8 @@ def print_table(
     )
     print(
         f"asked: --priority {args.priority} --cpu {'any' if args.cpu is None else args.cpu} "
-        f"--lock-memory {args.lock_memory} --live-view {args.live_view} --zenoh {args.zenoh}; "
+        f"--lock-memory {args.lock_memory} --live-view {args.live_view} --zenoh {args.zenoh} "
+        f"--ros2 {args.ros2}; "
         "the loop process ran with:"
     )
     for rate, how in schedulings.items():
@@ -803,6 +865,10 @@ def print_table(
         if "live_view_messages" in r:
             print(f"    live view: {r['live_view_messages']} messages to the viewer "
                   f"({r['live_view_messages'] / r['duration_s']:.0f}/s, warm-up included)")
+        if "ros2_messages" in r:
+            print(f"    ros2: {r['ros2_messages']} joint_states and controller_state messages "
+                  f"to the subscriber ({r['ros2_messages'] / r['duration_s']:.0f}/s, warm-up "
+                  "included)")
         if "zenoh_messages" in r:
             print(f"    zenoh: {r['zenoh_messages']} state and event messages to the subscriber "
                   f"({r['zenoh_messages'] / r['duration_s']:.0f}/s, warm-up included)")
@@ -890,6 +956,12 @@ def main(argv: list[str] | None = None) -> int:
         action="store_true",
         help="daemon.foxglove on, with a viewer subscribed to every channel (needs "
         "jtc_hw[foxglove] and websockets)",
+    )
+    parser.add_argument(
+        "--ros2",
+        action="store_true",
+        help="daemon.ros2 on (a client of this process's router on loopback), with a ROS 2 "
+        "subscriber to /joint_states and controller_state (needs jtc_hw[ros2])",
     )
     parser.add_argument(
         "--zenoh",

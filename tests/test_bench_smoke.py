@@ -36,6 +36,7 @@ def bench_rows(script: str, *args: str) -> list[dict[str, Any]]:
         ("update_cost.py", ["--cycles", "50", "--joints", "6"], "case"),
         ("stop_cost.py", ["--repeat", "1", "--joints", "6"], "kind"),
         ("ring_write.py", ["--cycles", "300", "--joints", "6"], "write_median_us"),
+        ("cdr_decode.py", ["--points", "50", "--repeat", "1"], "ours_ms"),
     ],
 )
 def test_bench_runs_and_prints_json_lines(script: str, args: list[str], key: str) -> None:

@@ -30,7 +30,7 @@ from ..errors import JtcHwError
 from .common import EXIT_BAD_INPUT, EXIT_NO_DAEMON, goal_result
 
 __all__ = [
-    "DEMO_EMULATED_WATCHDOG_S", "DEMO_HARDWARE", "DEMO_JOINTS",
+    "DEMO_EMULATED_WATCHDOG_S", "DEMO_HARDWARE", "DEMO_JOINTS", "DEMO_ROS2_CONTROLLER",
     "DEMO_LOOP_PRIORITY", "add_parsers", "cmd_demo", "demo_config", "demo_goal",
     "demo_hardware", "fifo_permitted",
 ]
@@ -51,6 +51,9 @@ DEMO_EXIT_HELP = (
 # Dynamixel demos failed one run in five or two: a demo is not a test of the watchdog.
 
 DEMO_JOINTS = [f"joint{i}" for i in range(1, 7)]
+
+DEMO_ROS2_CONTROLLER = "arm_controller"
+"""The controller node's name with ``--ros2``: /arm_controller/follow_joint_trajectory."""
 
 DEMO_LOOP_PRIORITY = 2
 """SCHED_FIFO priority of the demo's control loop where permitted: above its emulators'."""
@@ -79,11 +82,14 @@ def demo_config(
     hardware: list[dict[str, Any]] | None = None,
     update_rate: int = 500,
     priority: int = 0,
+    ros2_connect: str | None = None,
 ) -> dict[str, Any]:
     """A six-joint arm, by default on simulated (mirror) hardware at 500 Hz, its loop at
     SCHED_FIFO ``priority`` (0: normally scheduled). ``jtc-hw demo`` asks for
     :data:`DEMO_LOOP_PRIORITY` when this user may have it (:func:`fifo_permitted`), else 0:
-    no warning, a laptop's normal state."""
+    no warning, a laptop's normal state. With ``ros2_connect`` (``--ros2``), the daemon is
+    also upstream's controller in ROS 2 domain 0, named :data:`DEMO_ROS2_CONTROLLER` as in
+    MoveIt's configurations, a Zenoh client of that router (``daemon.ros2``, docs/ros2.md)."""
     if hardware is None:
         hardware = [
             {"name": "arm", "kind": "mirror", "joints": DEMO_JOINTS, "params": {"lag_s": 0.005}}
@@ -108,6 +114,9 @@ def demo_config(
         "daemon": {
             "socket": socket_path,
             "realtime": {"priority": priority},
+            **({} if ros2_connect is None else {
+                "ros2": {"domain_id": 0, "controller_name": DEMO_ROS2_CONTROLLER,
+                         "zenoh": {"mode": "client", "connect": [ros2_connect]}}}),
         },
     }
 
@@ -240,6 +249,10 @@ def _forward(stream: Any, prefix: str) -> None:
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
+    if args.ros2 and args.config:
+        print("error: --ros2 runs the built-in arm; for your robot file, add a daemon.ros2 "
+              "section to it (docs/ros2.md)", file=sys.stderr)
+        return EXIT_BAD_INPUT
     emulator = None
     forward = None
     hardware = None
@@ -278,9 +291,14 @@ def _demo(args: argparse.Namespace, hardware: list[dict[str, Any]] | None, rate:
             socket_path = os.path.join(tmp, "jtc-hw.sock")
             config_path = os.path.join(tmp, "robot.yaml")
             priority = DEMO_LOOP_PRIORITY if fifo_permitted(DEMO_LOOP_PRIORITY) else 0
-            config = demo_config(socket_path, hardware, rate, priority)
+            config = demo_config(socket_path, hardware, rate, priority,
+                                 args.ros2_connect if args.ros2 else None)
             Path(config_path).write_text(yaml.safe_dump(config))
             goal = demo_goal()
+            if args.ros2:
+                print(f"jtc-hw demo: ROS 2 domain 0 through the router {args.ros2_connect}: "
+                      f"node /{DEMO_ROS2_CONTROLLER}, /joint_states, action "
+                      f"/{DEMO_ROS2_CONTROLLER}/follow_joint_trajectory")
         print(f"jtc-hw demo: starting the daemon ({config_path})")
         daemon = subprocess.Popen(
             [sys.executable, "-m", "jtc_hw", "run", config_path],
@@ -386,6 +404,24 @@ def add_parsers(sub: Any) -> None:
             "AK80-9 in MIT mode) or can-cia402 (six CiA 402 drives), both over python-can's "
             "socketcand interface"
         ),
+    )
+    p.add_argument(
+        "--ros2",
+        action="store_true",
+        help=(
+            "also serve the arm as upstream's joint_trajectory_controller in ROS 2 domain 0 "
+            f"(node /{DEMO_ROS2_CONTROLLER}, /joint_states, the "
+            f"/{DEMO_ROS2_CONTROLLER}/follow_joint_trajectory action) over rmw_zenoh. Needs "
+            "jtc_hw[ros2] and a Zenoh router on "
+            "tcp/127.0.0.1:7447 (on a ROS 2 machine: ros2 run rmw_zenoh_cpp rmw_zenohd); "
+            "docs/ros2.md"
+        ),
+    )
+    p.add_argument(
+        "--ros2-connect",
+        default="tcp/127.0.0.1:7447",
+        metavar="ENDPOINT",
+        help="with --ros2: the router to connect to (default tcp/127.0.0.1:7447)",
     )
     p.add_argument(
         "--timeout",

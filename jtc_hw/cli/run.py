@@ -98,6 +98,7 @@ def cmd_check(args: argparse.Namespace) -> int:
         f"{f'{view.rate:g} Hz' if view.rate else 'every state'}" if view else
         "off (daemon.foxglove)"))
     print(_zenoh_line(d, c.name))
+    print(_ros2_line(d, c.name))
     for line in _recording_lines(d):
         print(line)
     print_warnings(
@@ -164,6 +165,21 @@ def _zenoh_line(daemon: Any, controller: str) -> str:
             "multicast scouting" if z.multicast_scouting else "",
         ) if part) or "no endpoint"
     return f"  zenoh           {z.resolved_prefix(controller)} ({z.mode or 'peer'}; {where})"
+
+
+def _ros2_line(daemon: Any, controller: str) -> str:
+    """``jtc-hw check``'s line about ``daemon.ros2``."""
+    r = daemon.ros2
+    if r is None:
+        return "  ros2            off (daemon.ros2)"
+    z = r.zenoh
+    where = ", ".join(part for part in (
+        f"connect {', '.join(z.connect)}" if z.connect else "",
+        f"listen {', '.join(z.listen)}" if z.listen else "",
+        f"config {z.config}" if z.config else "") if part) or "no endpoint"
+    broadcaster = ", /joint_states" if r.joint_state_broadcaster else ""
+    return (f"  ros2            node {r.namespace}/{r.node_name(controller)}{broadcaster} in "
+            f"domain {r.domain_id}, {r.distro} ({z.mode}; {where})")
 
 
 def _recording_lines(daemon: Any) -> list[str]:

@@ -108,6 +108,15 @@ def status_lines(status: dict[str, Any]) -> list[str]:
             f"published {_num(zenoh.get('published'))}, "
             f"dropped {_num(zenoh.get('dropped'))}, lost {_num(zenoh.get('lost'))}"
         )
+    ros2 = status.get("ros2") or {}
+    if ros2:
+        lines.append(
+            f"ros2          node {ros2.get('node', '?')} in domain {_num(ros2.get('domain_id'))}: "
+            f"goals accepted {_num(ros2.get('goals_accepted', 0))}, rejected "
+            f"{_num(ros2.get('goals_rejected', 0))}, running {_num(ros2.get('goals_running'))}; "
+            f"samples dropped {_num(ros2.get('joint_trajectory_dropped', 0))}; "
+            f"published {_num(ros2.get('published', 0))}, dropped {_num(ros2.get('dropped'))}"
+        )
     if server:
         clients = server.get("clients", [])
         lines.append(

@@ -32,6 +32,7 @@ from ..config.schema import (
 )
 from ..config.values import describe
 from ..errors import ConfigurationError
+from .ros2_config import ROS2_PARAMETERS, Ros2Settings, ros2_settings
 from .zenoh_config import (
     MIN_TOKEN_LENGTH,
     TOKEN_HINT,
@@ -227,6 +228,9 @@ DAEMON_PARAMETERS: Final[Mapping[str, ParamSpec]] = param_table(
     ParamSpec("zenoh", ParamKind.SECTION, None,
               "the daemon on a Zenoh network (off when absent; needs jtc_hw[zenoh]; "
               "docs/zenoh.md)", nullable=True, fields=ZENOH_PARAMETERS),
+    ParamSpec("ros2", ParamKind.SECTION, None,
+              "the daemon as upstream's controller in a ROS 2 graph over rmw_zenoh (off when "
+              "absent; needs jtc_hw[ros2]; docs/ros2.md)", nullable=True, fields=ROS2_PARAMETERS),
 )
 """``daemon.*``."""
 
@@ -358,6 +362,7 @@ class DaemonSettings:
     flight_recorder_keep: int = _D["flight_recorder_keep"].default
     record: str | None = None
     zenoh: ZenohSettings | None = None
+    ros2: Ros2Settings | None = None
     client_queue_size: int = _S["client_queue_size"].default
     client_queue_hard_cap: int = _S["client_queue_hard_cap"].default
     close_timeout_s: float = _S["close_timeout_s"].default
@@ -411,6 +416,7 @@ def daemon_settings(raw: Any, base_dir: str) -> DaemonSettings:
         else _absolute(flight_dir, base_dir, "daemon.flight_recorder_dir"),
         "record": None if record is None else _absolute(record, base_dir, "daemon.record"),
         "zenoh": None if values["zenoh"] is None else zenoh_settings(values["zenoh"], base_dir),
+        "ros2": None if values["ros2"] is None else ros2_settings(values["ros2"], base_dir),
     })
 
 

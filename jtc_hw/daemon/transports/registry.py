@@ -4,9 +4,10 @@ Theory of operation
 -------------------
 A transport is a peer over the request layer (``jtc_hw.daemon.core.requests`` draws them);
 what it adds is its own (framing, authentication, slots, key expressions), and it never
-reaches into another transport. Adding one (ROS 2, say) is one module and one line::
+reaches into another transport. Adding one is one module (or package: ``ros2/``) and one
+line::
 
-    1. transports/ros2_iface.py: a class with ``async start()`` and ``async close()``
+    1. transports/<name>.py: a class with ``async start()`` and ``async close()``
        (``Transport``) over a ``Requests``; a ``Caller`` per client or per request, its
        ``Outlet`` delivering the goal events and states the layer routes to it;
     2. here: an opener ``(Wiring) -> Transport | None`` (``None``: not configured) and its
@@ -97,8 +98,20 @@ def _zenoh(wiring: Wiring) -> Transport | None:
                           add_observer=wiring.add_observer)
 
 
+def _ros2(wiring: Wiring) -> Transport | None:
+    """ROS 2 over rmw_zenoh (``daemon.ros2``), off when absent."""
+    settings = wiring.daemon.ros2
+    if settings is None:
+        return None
+    from .ros2.node import Ros2Interface  # numpy, and rosbags when started: only if asked
+
+    return Ros2Interface(settings, wiring.controller, wiring.requests,
+                         add_observer=wiring.add_observer)
+
+
 TRANSPORTS: tuple[Registration, ...] = (
     Registration("socket", _socket, "cannot open the socket"),
     Registration("zenoh", _zenoh),
+    Registration("ros2", _ros2),
 )
 """Every transport, in the order they start (closed in the reverse order)."""

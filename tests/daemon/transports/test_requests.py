@@ -234,11 +234,12 @@ def test_a_transport_is_one_registration_over_the_shared_layer(tmp_path: Path) -
     observers: list[object] = []
     socket = str(tmp_path / "d.sock")
     plain = Wiring(requests, DaemonSettings(socket=socket), "arm", observers.append, backend.status)
-    assert [r.name for r in TRANSPORTS] == ["socket", "zenoh"]
+    assert [r.name for r in TRANSPORTS] == ["socket", "zenoh", "ros2"]
     opened = {r.name: r.open(plain) for r in TRANSPORTS}
     server = opened["socket"]
     assert isinstance(server, Server) and server.requests is requests
     assert opened["zenoh"] is None  # daemon.zenoh absent: off
+    assert opened["ros2"] is None  # daemon.ros2 absent: off
     zenoh = ZenohSettings(prefix="jtc/t/a", token="0123456789abcdef-token")
     wired = Wiring(requests, DaemonSettings(socket=socket, zenoh=zenoh), "arm", observers.append,
                    backend.status)

@@ -77,6 +77,7 @@ from ...errors import ConfigurationError
 from ..core.requests import Caller, Requests
 from ..realtime import release_freed_memory, return_freed_memory_promptly
 from ..zenoh_config import import_zenoh, session_config
+from .zenoh_outbox import Outbox
 
 if TYPE_CHECKING:
     from ..zenoh_config import ZenohSettings
@@ -176,70 +177,6 @@ class _Discard:
 _DISCARD: Final = _Discard()
 
 
-class _Outbox:
-    """Actions for Zenoh, run in order by one thread: droppable ones (state, feedback) beyond
-    ``size`` waiting, the others beyond ``hard_cap``."""
-
-    def __init__(self, size: int, hard_cap: int) -> None:
-        self._items: collections.deque[Callable[[], None]] = collections.deque()
-        self._cond = threading.Condition()
-        self._size = size
-        self._hard_cap = hard_cap
-        self._closed = False
-        self.dropped = 0
-        self.lost = 0
-        self.errors = 0
-        self._thread = threading.Thread(target=self._run, name="jtc_hw-zenoh-out", daemon=True)
-        self._thread.start()
-
-    def offer(self, action: Callable[[], None]) -> bool:
-        with self._cond:
-            if self._closed or len(self._items) >= self._size:
-                self.dropped += 1
-                return False
-            self._items.append(action)
-            self._cond.notify()
-        return True
-
-    def put(self, action: Callable[[], None]) -> bool:
-        with self._cond:
-            if self._closed or len(self._items) >= self._hard_cap:
-                self.lost += 1
-                if self.lost <= 3 or self.lost % 1000 == 0:
-                    log.error("zenoh: %d messages waiting; a reply or result was lost (%d so "
-                              "far)", len(self._items), self.lost)
-                return False
-            self._items.append(action)
-            self._cond.notify()
-        return True
-
-    def close(self, timeout_s: float) -> None:
-        """Run what is waiting (for up to ``timeout_s``), then stop the thread."""
-        with self._cond:
-            self._closed = True
-            self._cond.notify()
-        self._thread.join(timeout_s)
-        with self._cond:
-            self._items.clear()  # not sent in time: the session closes now
-            self._cond.notify()
-        self._thread.join()
-
-    def _run(self) -> None:
-        while True:
-            with self._cond:
-                while not self._items and not self._closed:
-                    self._cond.wait()
-                if not self._items:
-                    return
-                action = self._items.popleft()
-            try:
-                action()
-            except Exception:
-                self.errors += 1
-                if self.errors <= 3:
-                    log.exception("zenoh: cannot send; skipped")
-
-
 class ZenohInterface:
     """The daemon's Zenoh session (module docstring).
 
@@ -272,7 +209,7 @@ class ZenohInterface:
         self._declared: list[Any] = []
         self._state_pub: Any = None
         self._events_pub: Any = None
-        self._outbox: _Outbox | None = None
+        self._outbox: Outbox | None = None
         self._aio: asyncio.AbstractEventLoop | None = None
         self._tasks: set[asyncio.Task[None]] = set()
         self._inflight = 0
@@ -315,7 +252,7 @@ class ZenohInterface:
                 "daemon.zenoh",
             ) from None
         session = self._session
-        self._outbox = _Outbox(OUTBOX_SIZE, OUTBOX_HARD_CAP)
+        self._outbox = Outbox(OUTBOX_SIZE, OUTBOX_HARD_CAP, "zenoh")
         self._state_pub = session.declare_publisher(
             self.keys["state"], congestion_control=zenoh.CongestionControl.DROP,
             priority=zenoh.Priority.DATA)

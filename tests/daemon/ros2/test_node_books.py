@@ -252,7 +252,7 @@ def test_outbox_drops_droppable_first_and_runs_in_order() -> None:
 
     gate, blocked = threading.Event(), threading.Event()
     ran: list[int] = []
-    outbox = Outbox(size=2, hard_cap=3)
+    outbox = Outbox(size=2, hard_cap=3, label="ros2")
 
     def block() -> None:
         blocked.set()

@@ -143,9 +143,19 @@ def test_graph_shows_upstreams_controller(arm: Arm) -> None:
     peer = arm.peer
     expected = {"/joint_states", f"{C}/controller_state", f"{C}/joint_trajectory",
                 f"{C}/speed_scaling_input"}
+    ours = {"joint_trajectory_controller", "joint_state_broadcaster"}
+
+    def qos_of_tokens() -> dict[str, str]:
+        return {t.split("/")[9]: t.rsplit("/", 1)[1] for t in peer.tokens()
+                if len(t.split("/")) > 9 and t.split("/")[8] in ours}
+
+    # Each entity has its own token, and they arrive in no particular order: wait for all.
+    action_parts = {f"{ACTION}/_action/{part}".replace("/", "%") for part in (
+        "send_goal", "cancel_goal", "get_result", "feedback", "status")}
     peer.wait_until(lambda: "/joint_state_broadcaster" in peer.nodes()
                     and ACTION in peer.actions() and expected <= set(peer.topics())
-                    and f"{C}/query_state" in peer.services(), WAIT_S, "every entity's token")
+                    and f"{C}/query_state" in peer.services()
+                    and action_parts <= set(qos_of_tokens()), WAIT_S, "every entity's token")
     assert {C, "/joint_state_broadcaster"} <= set(peer.nodes())
     topics = peer.topics()
     assert topics["/joint_states"] == ["sensor_msgs/msg/JointState"]
@@ -155,9 +165,7 @@ def test_graph_shows_upstreams_controller(arm: Arm) -> None:
     assert peer.actions() == {ACTION: [FJT]}
     # QoS as upstream's endpoints have them (wire.py's table): SystemDefaultsQoS topics, the
     # speed scaling input transient local, the action's status transient local, depth 1
-    ours = {"joint_trajectory_controller", "joint_state_broadcaster"}
-    qos = {t.split("/")[9]: t.rsplit("/", 1)[1] for t in peer.tokens()
-           if len(t.split("/")) > 9 and t.split("/")[8] in ours}
+    qos = qos_of_tokens()
     assert qos["%joint_states"] == "::,:,:,:,,"
     assert qos[f"{C}/speed_scaling_input".replace("/", "%")] == ":1:,:,:,:,,"
     assert qos[f"{ACTION}/_action/status".replace("/", "%")] == ":1:,1:,:,:,,"

@@ -23,9 +23,9 @@ from jtc_hw.daemon.transports.zenoh_iface import (
     MAX_REFUSALS_WAITING,
     WRONG_TOKEN_DELAY_S,
     ZenohInterface,
-    _Outbox,
     split_attachment,
 )
+from jtc_hw.daemon.transports.zenoh_outbox import Outbox
 from jtc_hw.daemon.zenoh_config import ZenohSettings
 
 pytestmark = pytest.mark.usefixtures("no_leaks")
@@ -34,7 +34,7 @@ pytestmark = pytest.mark.usefixtures("no_leaks")
 def test_outbox_drops_state_first_and_keeps_results_up_to_its_hard_cap() -> None:
     gate = threading.Event()
     ran: list[str] = []
-    outbox = _Outbox(size=2, hard_cap=4)
+    outbox = Outbox(size=2, hard_cap=4, label="zenoh")
     try:
         assert outbox.put(lambda: (gate.wait(10), ran.append("blocker"))[1])  # Zenoh is slow
         assert outbox.offer(lambda: ran.append("state 1"))
@@ -117,14 +117,14 @@ def test_a_query_naming_no_operation_is_not_answered() -> None:
 def test_a_missing_token_is_refused_at_once_a_wrong_one_late_and_bounded() -> None:
     iface = interface()
     aio = iface._aio = asyncio.new_event_loop()
-    iface._outbox = _Outbox(OUTBOX, OUTBOX)
+    iface._outbox = Outbox(OUTBOX, OUTBOX, "zenoh")
     try:
         missing = FakeQuery("jtc/t/a/rpc/stop")
         iface._on_query(missing)
         iface._outbox.close(timeout_s=10)  # runs what waits: the refusal, sent at once
         assert missing.dropped and [r["error"]["code"] for _, r in missing.replies] == [
             "unauthorized"]
-        iface._outbox = _Outbox(OUTBOX, OUTBOX)
+        iface._outbox = Outbox(OUTBOX, OUTBOX, "zenoh")
         t0 = aio.time()
         wrong = [FakeQuery("jtc/t/a/rpc/send_goal", token="x" * 16)
                  for _ in range(MAX_REFUSALS_WAITING + 1)]
@@ -181,7 +181,7 @@ def test_a_query_is_answered_by_the_request_layer_with_no_stand_in_connection() 
     requests.listen()
     iface = ZenohInterface(ZenohSettings(prefix="jtc/t/a", token=TOKEN), "c", requests, dict)
     aio = iface._aio = asyncio.new_event_loop()
-    iface._outbox = _Outbox(OUTBOX, OUTBOX)
+    iface._outbox = Outbox(OUTBOX, OUTBOX, "zenoh")
     body = json.dumps({"id": 5, "trajectory": goal_msg()}).encode()
     query = FakeQuery("jtc/t/a/rpc/send_goal", body, token=TOKEN)
     try:

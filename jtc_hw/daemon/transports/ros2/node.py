@@ -270,7 +270,7 @@ class Ros2Interface:
                 f"cannot open the Zenoh session: {exc}; check the endpoints (is the router, "
                 "rmw_zenohd, running?)", "daemon.ros2.zenoh") from None
         self._zid = str(self._session.info.zid())
-        self._outbox = Outbox(OUTBOX_SIZE, OUTBOX_HARD_CAP)
+        self._outbox = Outbox(OUTBOX_SIZE, OUTBOX_HARD_CAP, "ros2")
         self._declare(zenoh)
         self._expire = self._aio.call_later(EXPIRE_EVERY_S, self._expire_results)
         if self._add_observer is not None:

@@ -72,6 +72,7 @@ __all__ = [
     "GOAL_STATUS_ARRAY",
     "JOINT_STATE",
     "JOINT_TRAJECTORY",
+    "LIST_CONTROLLERS",
     "LIST_PARAMETERS",
     "QUERY_TRAJECTORY_STATE",
     "SET_PARAMETERS",
@@ -103,6 +104,7 @@ QUERY_TRAJECTORY_STATE: Final = "control_msgs/srv/QueryTrajectoryState"
 GET_PARAMETERS: Final = "rcl_interfaces/srv/GetParameters"
 SET_PARAMETERS: Final = "rcl_interfaces/srv/SetParameters"
 LIST_PARAMETERS: Final = "rcl_interfaces/srv/ListParameters"
+LIST_CONTROLLERS: Final = "controller_manager_msgs/srv/ListControllers"
 
 _STORES: Final = {
     "humble": Stores.ROS2_HUMBLE,
@@ -222,7 +224,36 @@ trajectory_msgs/MultiDOFJointTrajectoryPoint multi_dof_actual
 trajectory_msgs/MultiDOFJointTrajectoryPoint multi_dof_error
 int32 multi_dof_index
 """
+# controller_manager_msgs: ros-controls/ros2_control, branches humble, jazzy, kilted, master.
+_CONTROLLER_STATE_HUMBLE = """\
+string name
+string state
+string type
+string[] claimed_interfaces
+string[] required_command_interfaces
+string[] required_state_interfaces
+bool is_chainable
+bool is_chained
+string[] reference_interfaces
+controller_manager_msgs/ChainConnection[] chain_connections
+"""
+_CONTROLLER_STATE = """\
+string name
+string state
+string type
+bool is_async
+uint16 update_rate
+string[] claimed_interfaces
+string[] required_command_interfaces
+string[] required_state_interfaces
+bool is_chainable
+bool is_chained
+string[] exported_state_interfaces
+string[] reference_interfaces
+controller_manager_msgs/ChainConnection[] chain_connections
+"""
 _CM = "ros-controls/control_msgs control_msgs/"
+_R2C = "ros-controls/ros2_control controller_manager_msgs/"
 _RCL = "ros2/rcl_interfaces "
 _INTERFACES: Final = (
     _Interface("control_msgs/msg/JointTolerance", _JOINT_TOLERANCE, _ALL,
@@ -240,6 +271,16 @@ _INTERFACES: Final = (
     _Interface(FOLLOW_JOINT_TRAJECTORY, _FJT_GOAL_RESULT + _FJT_FEEDBACK_INDEXED,
                ("kilted", "rolling"),
                _CM + "action/FollowJointTrajectory.action, master (>= 6.3: index fields)"),
+    _Interface("controller_manager_msgs/msg/ChainConnection",
+               "string name\nstring[] reference_interfaces\n", _ALL,
+               _R2C + "msg/ChainConnection.msg, humble/jazzy/kilted/master (the same)"),
+    _Interface("controller_manager_msgs/msg/ControllerState", _CONTROLLER_STATE_HUMBLE,
+               ("humble",), _R2C + "msg/ControllerState.msg, humble"),
+    _Interface("controller_manager_msgs/msg/ControllerState", _CONTROLLER_STATE, _JAZZY_ON,
+               _R2C + "msg/ControllerState.msg, jazzy, kilted and master (is_async, "
+               "update_rate, exported_state_interfaces)"),
+    _Interface(LIST_CONTROLLERS, "---\ncontroller_manager_msgs/ControllerState[] controller\n",
+               _ALL, _R2C + "srv/ListControllers.srv, humble/jazzy/kilted/master (the same)"),
     _Interface(QUERY_TRAJECTORY_STATE, """\
 builtin_interfaces/Time time
 ---

@@ -147,6 +147,10 @@ def test_list_controllers_shows_an_active_trajectory_controller(
     assert peer.services()[SERVICE] == [cm.LIST_CONTROLLERS]
     (server,) = peer.servers(SERVICE)
     assert server["node_name"] == "controller_manager"
+    # its token: a service server's, with rclcpp's services QoS (reliable, volatile, keep last 10)
+    qos = {t.split("/")[9]: t.rsplit("/", 1)[1] for t in peer.tokens()
+           if len(t.split("/")) > 9 and t.split("/")[8] == "controller_manager"}
+    assert qos == {"%controller_manager%list_controllers": "::,10:,:,:,,"}
     # active once the loop reports it (get_status refreshes at 2 Hz): ask until then
     deadline = time.monotonic() + WAIT_S
     while (listed := _list(peer))[C[1:]].state != "active":

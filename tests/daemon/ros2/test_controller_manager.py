@@ -88,6 +88,14 @@ def test_the_controller_and_the_broadcaster_as_upstream_lists_them() -> None:
         (entry,) = cm.controllers("arm", ["a"], CONFIG, status, broadcaster=False)
         assert entry.state == "inactive" and entry.claimed_interfaces == ()
         assert entry.required_command_interfaces == ("a/position", "a/velocity")
+    # a speed scaling interface configured: upstream's JTC requires it after the joints'
+    scaled = {**CONFIG, "speed_scaling": {"state_interface": "speed_scaling/factor",
+                                          "command_interface": "speed_scaling/target"}}
+    jtc, jsb = cm.controllers("arm", ["a"], scaled, active, broadcaster=True)
+    assert jtc.required_command_interfaces == ("a/position", "a/velocity",
+                                               "speed_scaling/target")
+    assert jtc.required_state_interfaces == ("a/position", "speed_scaling/factor")
+    assert jsb.required_state_interfaces == ("a/position",)
 
 
 @pytest.mark.parametrize("distro", DISTROS)

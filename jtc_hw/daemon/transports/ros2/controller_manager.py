@@ -16,8 +16,10 @@ configuration and status (``get_config``, ``get_status``), as upstream's would b
   ``get_status`` says the controller is active and not faulted, else ``inactive``;
   ``update_rate`` the loop's (Jazzy and later; uint16); ``claimed_interfaces`` and
   ``required_command_interfaces`` ``<joint>/<interface>`` for every joint and configured command
-  interface, joint by joint as upstream's ``command_interface_configuration`` names them;
-  ``required_state_interfaces`` the same for the state interfaces;
+  interface, joint by joint as upstream's ``command_interface_configuration`` names them, then
+  ``speed_scaling.command_interface`` if one is configured; ``required_state_interfaces`` the
+  same for the state interfaces (and ``speed_scaling.state_interface``). rqt takes the joints
+  from the ``<joint>/position`` state interfaces, which every configuration has;
 - the broadcaster, when ``daemon.ros2.joint_state_broadcaster`` makes its node:
   ``joint_state_broadcaster/JointStateBroadcaster``, the state interfaces required and none
   claimed (a broadcaster claims no command interface), active while the daemon runs.
@@ -94,19 +96,22 @@ def controllers(node_name: str, joints: Sequence[str], config: Mapping[str, Any]
         node_name: the trajectory controller's node name.
         joints: its joints, in order.
         config: ``get_config``'s ``controller`` section (``command_interfaces``,
-            ``state_interfaces``, ``update_rate``).
+            ``state_interfaces``, ``update_rate``, ``speed_scaling``).
         status: ``get_status``'s reply (its ``controller`` section says ``active``, ``fault``).
         broadcaster: whether the ``joint_state_broadcaster`` node exists.
     """
     controller = status.get("controller") or {}
     active = bool(controller.get("active")) and not controller.get("fault")
     rate = _rate(config.get("update_rate"))
-    command = _interfaces(joints, config.get("command_interfaces") or ())
     state = _interfaces(joints, config.get("state_interfaces") or ())
+    scaling = config.get("speed_scaling") or {}
+    command = _interfaces(joints, config.get("command_interfaces") or ()) + tuple(
+        filter(None, [scaling.get("command_interface")]))
+    jtc_state = state + tuple(filter(None, [scaling.get("state_interface")]))
     entries = [ControllerEntry(node_name, "active" if active else "inactive", JTC_TYPE, rate,
                                claimed_interfaces=command if active else (),
                                required_command_interfaces=command,
-                               required_state_interfaces=state)]
+                               required_state_interfaces=jtc_state)]
     if broadcaster:
         entries.append(ControllerEntry(BROADCASTER_NODE, "active", BROADCASTER_TYPE, rate,
                                        required_state_interfaces=state))

@@ -12,8 +12,8 @@ A peer whose name or hash differs is another type: its samples never meet ours. 
 what ``rosidl`` generates on the workstation, for the distro it runs (:data:`DISTROS`):
 
 - **Definitions.** rosbags' type store of the distro has the common messages (sensor_msgs,
-  trajectory_msgs, action_msgs, rcl_interfaces, ...). What it lacks (control_msgs, and every
-  service and action, which rosbags does not model) is declared once below, in
+  trajectory_msgs, action_msgs, rcl_interfaces, ...). What it lacks (control_msgs,
+  controller_manager_msgs, and every service and action, which rosbags does not model) is declared once below, in
   :data:`_INTERFACES`, from the upstream ``.msg``/``.srv``/``.action`` text of the branch that
   distro builds (comments dropped: they change neither bytes nor hashes). A ``.srv`` becomes
   ``X_Request``, ``X_Response`` and, on Jazzy and later, ``X_Event``; a ``.action`` becomes
@@ -21,7 +21,9 @@ what ``rosidl`` generates on the workstation, for the distro it runs (:data:`DIS
   (both services) and ``X_FeedbackMessage``, as ``rosidl_parser``'s ``Action`` defines them.
   The distros differ where control_msgs does: Humble's controller state has the deprecated
   ``desired``/``actual`` and no ``speed_scaling_factor``; Kilted and Rolling (control_msgs
-  >= 6.3) add ``index`` and ``multi_dof_index`` to the action's feedback.
+  >= 6.3) add ``index`` and ``multi_dof_index`` to the action's feedback; Jazzy's
+  ``controller_manager_msgs/msg/ControllerState`` adds ``is_async``, ``update_rate`` and
+  ``exported_state_interfaces`` to Humble's.
 - **DDS names** (:meth:`RosTypes.dds_name`): ``pkg/ns/Name`` -> ``pkg::ns::dds_::Name_``.
   A service is named without ``_Request``/``_Response`` (rmw_zenoh cuts its response type's
   name at ``Response_``), so an action's goal service is
@@ -44,7 +46,9 @@ Checked against (tests/daemon/ros2/test_types.py): the design doc's ``std_msgs/m
 ``example_interfaces/srv/AddTwoInts`` hashes; ``ros2 topic info -v`` output for JointState and
 JointTrajectory; ``ros2 action info -v`` output in ROS 2's actions tutorial (turtlesim's
 RotateAbsolute services and feedback, GoalStatusArray, CancelGoal); and every hash of a
-rosidl-generated control_msgs ``follow_joint_trajectory__description.c`` (control_msgs 4.x/5.x).
+rosidl-generated control_msgs ``follow_joint_trajectory__description.c`` (control_msgs 4.x/5.x);
+every hash of a rosidl-generated controller_manager_msgs ``list_controllers__description.c``
+(Jazzy's layout; tests/daemon/ros2/test_controller_manager.py).
 """
 
 from __future__ import annotations

@@ -189,3 +189,21 @@ def test_without_the_setting_no_controller_manager(tmp_path: Path) -> None:
             assert SERVICE not in peer.services()
     finally:
         router.close()
+
+
+def test_humble_lists_in_humbles_layout(tmp_path: Path) -> None:
+    """``distro: humble``: the service's key says ``TypeHashNotSupported`` and the answer is
+    Humble's ControllerState (no ``update_rate``), read by a Humble peer."""
+    router, endpoint = _router()
+    try:
+        daemon = ros2_daemon(tmp_path, endpoint, distro="humble")
+        with daemon.serving(), Ros2Peer(endpoint, distro="humble") as peer:
+            peer.wait_until(lambda: SERVICE in peer.services(), WAIT_S, "list_controllers")
+            (token,) = [t for t in peer.tokens() if "%list_controllers" in t]
+            assert "/TypeHashNotSupported/" in token
+            listed = _list(peer)
+            assert listed[C[1:]].type == cm.JTC_TYPE
+            assert not hasattr(listed[C[1:]], "update_rate")
+            assert "joint_state_broadcaster" in listed
+    finally:
+        router.close()

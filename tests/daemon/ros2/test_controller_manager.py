@@ -57,7 +57,8 @@ def test_list_controllers_hashes_are_rosidls(distro: str) -> None:
     types = ros_types(distro)
     for name, digest in LIST_CONTROLLERS_HASHES.items():
         assert types.type_hash(name) == "RIHS01_" + digest, name
-    assert types.dds_name(LIST_CONTROLLERS) == "controller_manager_msgs::srv::dds_::ListControllers_"
+    dds = "controller_manager_msgs::srv::dds_::ListControllers_"
+    assert types.dds_name(LIST_CONTROLLERS) == dds
 
 
 def test_humble_controller_state_is_humbles() -> None:

@@ -13,12 +13,13 @@ what ``rosidl`` generates on the workstation, for the distro it runs (:data:`DIS
 
 - **Definitions.** rosbags' type store of the distro has the common messages (sensor_msgs,
   trajectory_msgs, action_msgs, rcl_interfaces, ...). What it lacks (control_msgs,
-  controller_manager_msgs, and every service and action, which rosbags does not model) is declared once below, in
-  :data:`_INTERFACES`, from the upstream ``.msg``/``.srv``/``.action`` text of the branch that
-  distro builds (comments dropped: they change neither bytes nor hashes). A ``.srv`` becomes
-  ``X_Request``, ``X_Response`` and, on Jazzy and later, ``X_Event``; a ``.action`` becomes
-  ``X_Goal``, ``X_Result``, ``X_Feedback`` and the generated ``X_SendGoal``, ``X_GetResult``
-  (both services) and ``X_FeedbackMessage``, as ``rosidl_parser``'s ``Action`` defines them.
+  controller_manager_msgs, and every service and action, which rosbags does not model) is
+  declared once below, in :data:`_INTERFACES`, from the upstream ``.msg``/``.srv``/``.action``
+  text of the branch that distro builds (comments dropped: they change neither bytes nor
+  hashes). A ``.srv`` becomes ``X_Request``, ``X_Response`` and, on Jazzy and later,
+  ``X_Event``; a ``.action`` becomes ``X_Goal``, ``X_Result``, ``X_Feedback`` and the
+  generated ``X_SendGoal``, ``X_GetResult`` (both services) and ``X_FeedbackMessage``, as
+  ``rosidl_parser``'s ``Action`` defines them.
   The distros differ where control_msgs does: Humble's controller state has the deprecated
   ``desired``/``actual`` and no ``speed_scaling_factor``; Kilted and Rolling (control_msgs
   >= 6.3) add ``index`` and ``multi_dof_index`` to the action's feedback; Jazzy's

@@ -10,6 +10,7 @@
         controller_name: arm_controller # default: the controller's name in this file
         distro: jazzy                   # humble | jazzy | kilted | rolling: message layouts
         joint_state_broadcaster: true   # a second node publishing /joint_states
+        controller_manager: true        # a node answering list_controllers (ros2 control)
         zenoh:                          # the session, as rmw_zenoh's nodes open theirs
           mode: client                  # client of the router (rmw_zenohd), or peer
           connect: [tcp/127.0.0.1:7447]
@@ -87,6 +88,9 @@ ROS2_PARAMETERS: Final[Mapping[str, ParamSpec]] = param_table(
               choices=DISTROS),
     ParamSpec("joint_state_broadcaster", ParamKind.BOOL, True,
               "publish /joint_states from a second node named joint_state_broadcaster"),
+    ParamSpec("controller_manager", ParamKind.BOOL, True,
+              "a node named controller_manager answering list_controllers, which ros2 control "
+              "and rqt_joint_trajectory_controller ask first"),
     ParamSpec("zenoh", ParamKind.SECTION, MappingProxyType({}),
               "the Zenoh session (rmw_zenoh's defaults: client of tcp/127.0.0.1:7447)",
               nullable=True, fields=ROS2_ZENOH_PARAMETERS),
@@ -105,6 +109,7 @@ class Ros2Settings:
     controller_name: str | None = None
     distro: str = "jazzy"
     joint_state_broadcaster: bool = True
+    controller_manager: bool = True
     zenoh: ZenohSettings = field(
         default_factory=lambda: ZenohSettings(mode="client", connect=DEFAULT_CONNECT, listen=()))
 
@@ -175,5 +180,6 @@ def ros2_settings(values: Mapping[str, Any], base_dir: str) -> Ros2Settings:
         controller_name=name,
         distro=values["distro"],
         joint_state_broadcaster=values["joint_state_broadcaster"],
+        controller_manager=values["controller_manager"],
         zenoh=zenoh,
     )

@@ -148,6 +148,38 @@ trajectory_msgs/MultiDOFJointTrajectoryPoint multi_dof_desired
 trajectory_msgs/MultiDOFJointTrajectoryPoint multi_dof_actual
 """
 _SPEED_SCALING = {"control_msgs/msg/SpeedScalingFactor": "float64 factor\n"}  # Jazzy and later
+# controller_manager_msgs (ros-controls/ros2_control, comments dropped): ControllerState of
+# branch humble, and of jazzy / kilted / master (is_async, update_rate, exported_state_interfaces
+# added); ChainConnection and ListControllers.srv the same on all four.
+_CM_STATE_HUMBLE = """
+string name
+string state
+string type
+string[] claimed_interfaces
+string[] required_command_interfaces
+string[] required_state_interfaces
+bool is_chainable
+bool is_chained
+string[] reference_interfaces
+controller_manager_msgs/ChainConnection[] chain_connections
+"""
+_CM_STATE_JAZZY = """
+string name
+string state
+string type
+bool is_async
+uint16 update_rate
+string[] claimed_interfaces
+string[] required_command_interfaces
+string[] required_state_interfaces
+bool is_chainable
+bool is_chained
+string[] exported_state_interfaces
+string[] reference_interfaces
+controller_manager_msgs/ChainConnection[] chain_connections
+"""
+_CHAIN_CONNECTION = {"controller_manager_msgs/msg/ChainConnection":
+                     "string name\nstring[] reference_interfaces\n"}
 _SERVICES = {  # srv type -> (request, response); the same in every distro
     "control_msgs/srv/QueryTrajectoryState": ("""
 builtin_interfaces/Time time
@@ -170,6 +202,8 @@ int8 ERROR_GOAL_TERMINATED=3
 int8 return_code
 action_msgs/GoalInfo[] goals_canceling
 """),
+    "controller_manager_msgs/srv/ListControllers": (
+        "", "controller_manager_msgs/ControllerState[] controller\n"),
     # ros2/example_interfaces srv/AddTwoInts.srv: the design doc's hash example
     "example_interfaces/srv/AddTwoInts": ("int64 a\nint64 b\n", "int64 sum\n"),
 }
@@ -267,7 +301,9 @@ class Types:
         self.aliases: dict[str, str] = {}
         """Every name the sdk may look a type up by -> the store's key."""
         texts = {**_TOLERANCES, "control_msgs/msg/JointTrajectoryControllerState": state,
-                 **(_SPEED_SCALING if speed_scaling else {})}
+                 **(_SPEED_SCALING if speed_scaling else {}), **_CHAIN_CONNECTION,
+                 "controller_manager_msgs/msg/ControllerState":
+                     _CM_STATE_JAZZY if speed_scaling else _CM_STATE_HUMBLE}
         for srv, (req, resp) in _SERVICES.items():
             texts[f"{srv}_Request"], texts[f"{srv}_Response"] = req, resp
         texts.update(_action_texts(FJT, _FJT_GOAL, _FJT_RESULT, feedback))

@@ -17,6 +17,7 @@ upstream's ``joint_trajectory_controller`` (node ``<c>``, the controller's name)
               list_parameters                     -> GetParameters / SetParameters
     /<ns>/<c>/follow_joint_trajectory/_action/ send_goal, cancel_goal, get_result (SS);
                                                feedback, status (MP; status transient local)
+    /<ns>/controller_manager/list_controllers  SS controller_manager_msgs (controller_manager.py)
 
 Each entity is a Zenoh publisher, subscriber or queryable on ``<domain>/<name>/<type>/<hash>``
 plus a liveliness token under ``@ros2_lv`` (``wire.py``), declared last so that a peer that
@@ -89,7 +90,7 @@ from ....controller.trajectory import QueriedState
 from ...core.requests import Caller, Requests
 from ...ros2_config import INSTALL_HINT
 from ...zenoh_config import import_zenoh, session_config
-from . import actions, cdr, params, wire
+from . import actions, cdr, controller_manager, params, wire
 from .actions import Goal, GoalBook
 from .messages import (
     CANCEL_GOAL,
@@ -165,6 +166,7 @@ def entity_names(namespace: str, controller: str) -> dict[str, str]:
         "get_result": f"{action}/get_result",
         "feedback": f"{action}/feedback",
         "status": f"{action}/status",
+        "list_controllers": f"{namespace}/controller_manager/list_controllers",
     }
 
 
@@ -289,6 +291,9 @@ class Ros2Interface:
         nodes = [(0, self.node_name)]
         if s.joint_state_broadcaster:
             nodes.append((1, "joint_state_broadcaster"))
+        manager = len(nodes)
+        if s.controller_manager:
+            nodes.append((manager, controller_manager.CONTROLLER_MANAGER_NODE))
         # QoS as upstream's nodes have them: the broadcaster's and the controller's topics
         # rclcpp::SystemDefaultsQoS(), rcl_action's defaults for the action's parts.
         self._entity(zenoh, "joint_states", PUB, JOINT_STATE,
@@ -315,6 +320,9 @@ class Ros2Interface:
                      callback=partial(self._on_query, self._cancel_goal))
         self._entity(zenoh, "get_result", SERVICE, GET_RESULT, node, QOS_SERVICES,
                      callback=partial(self._on_query, self._get_result))
+        self._entity(zenoh, "list_controllers", SERVICE, controller_manager.LIST_CONTROLLERS,
+                     manager, QOS_SERVICES, enabled=s.controller_manager,
+                     callback=partial(self._on_query, self._list_controllers))
         liveliness = self._session.liveliness()
         namespace = s.namespace or "/"  # rcl's name of no namespace
         for node_id, name in nodes:
@@ -322,14 +330,11 @@ class Ros2Interface:
                 s.domain_id, self._zid, node_id, namespace, name)))
         for entity in self._entities.values():
             token = wire.entity_token(
-                entity.kind, s.domain_id, self._zid, entity.node, self._next_entity_id(),
+                entity.kind, s.domain_id, self._zid, entity.node, next(self._entity_ids),
                 namespace, nodes[entity.node][1], entity.name,
                 self.types.dds_name(entity.ros_type), self.types.type_hash(entity.ros_type),
                 entity.qos)
             self._tokens.append(liveliness.declare_token(token))
-
-    def _next_entity_id(self) -> int:
-        return next(self._entity_ids)
 
     def _entity(self, zenoh: Any, what: str, kind: EntityKind, ros_type: str, node: int, qos: Qos,
                 callback: Callable[[Any], None] | None = None, enabled: bool = True) -> None:
@@ -436,8 +441,8 @@ class Ros2Interface:
         self._put_status()
         data = self.messages.get_result_response(goal.status, goal.error_code,
                                                  goal.error_string)
-        for query in self.book.answered(goal):
-            self._reply_later(query, data)
+        for query, att in self.book.answered(goal):
+            self._reply(query, att, data)
 
     # -- in the outbox's thread ---------------------------------------------------------------
 
@@ -473,10 +478,6 @@ class Ros2Interface:
         outbox = self._outbox
         if outbox is None or not outbox.put(partial(self._send_reply, query, att, data)):
             quietly(query.drop)
-
-    def _reply_later(self, parked: tuple[Any, Any], data: bytes) -> None:
-        query, att = parked
-        self._reply(query, att, data)
 
     # -- in Zenoh's threads: hand over to the event loop --------------------------------------
 
@@ -687,6 +688,11 @@ class Ros2Interface:
                 "" if m["success"] else f"time is {m['where'].replace('_', ' ')} of the "
                 "trajectory")
         self._reply(query, att, out)
+
+    async def _list_controllers(self, query: Any, att: Any, data: bytes) -> None:
+        self._reply(query, att, await controller_manager.list_controllers(
+            self._requests, self._caller("list_controllers", att), self.messages,
+            self.node_name, self.settings.joint_state_broadcaster))
 
     # -- parameters (params.py) ---------------------------------------------------------------
 

@@ -12,16 +12,19 @@ A peer whose name or hash differs is another type: its samples never meet ours. 
 what ``rosidl`` generates on the workstation, for the distro it runs (:data:`DISTROS`):
 
 - **Definitions.** rosbags' type store of the distro has the common messages (sensor_msgs,
-  trajectory_msgs, action_msgs, rcl_interfaces, ...). What it lacks (control_msgs, and every
-  service and action, which rosbags does not model) is declared once below, in
-  :data:`_INTERFACES`, from the upstream ``.msg``/``.srv``/``.action`` text of the branch that
-  distro builds (comments dropped: they change neither bytes nor hashes). A ``.srv`` becomes
-  ``X_Request``, ``X_Response`` and, on Jazzy and later, ``X_Event``; a ``.action`` becomes
-  ``X_Goal``, ``X_Result``, ``X_Feedback`` and the generated ``X_SendGoal``, ``X_GetResult``
-  (both services) and ``X_FeedbackMessage``, as ``rosidl_parser``'s ``Action`` defines them.
+  trajectory_msgs, action_msgs, rcl_interfaces, ...). What it lacks (control_msgs,
+  controller_manager_msgs, and every service and action, which rosbags does not model) is
+  declared once below, in :data:`_INTERFACES`, from the upstream ``.msg``/``.srv``/``.action``
+  text of the branch that distro builds (comments dropped: they change neither bytes nor
+  hashes). A ``.srv`` becomes ``X_Request``, ``X_Response`` and, on Jazzy and later,
+  ``X_Event``; a ``.action`` becomes ``X_Goal``, ``X_Result``, ``X_Feedback`` and the
+  generated ``X_SendGoal``, ``X_GetResult`` (both services) and ``X_FeedbackMessage``, as
+  ``rosidl_parser``'s ``Action`` defines them.
   The distros differ where control_msgs does: Humble's controller state has the deprecated
   ``desired``/``actual`` and no ``speed_scaling_factor``; Kilted and Rolling (control_msgs
-  >= 6.3) add ``index`` and ``multi_dof_index`` to the action's feedback.
+  >= 6.3) add ``index`` and ``multi_dof_index`` to the action's feedback; Jazzy's
+  ``controller_manager_msgs/msg/ControllerState`` adds ``is_async``, ``update_rate`` and
+  ``exported_state_interfaces`` to Humble's.
 - **DDS names** (:meth:`RosTypes.dds_name`): ``pkg/ns/Name`` -> ``pkg::ns::dds_::Name_``.
   A service is named without ``_Request``/``_Response`` (rmw_zenoh cuts its response type's
   name at ``Response_``), so an action's goal service is
@@ -44,7 +47,9 @@ Checked against (tests/daemon/ros2/test_types.py): the design doc's ``std_msgs/m
 ``example_interfaces/srv/AddTwoInts`` hashes; ``ros2 topic info -v`` output for JointState and
 JointTrajectory; ``ros2 action info -v`` output in ROS 2's actions tutorial (turtlesim's
 RotateAbsolute services and feedback, GoalStatusArray, CancelGoal); and every hash of a
-rosidl-generated control_msgs ``follow_joint_trajectory__description.c`` (control_msgs 4.x/5.x).
+rosidl-generated control_msgs ``follow_joint_trajectory__description.c`` (control_msgs 4.x/5.x);
+every hash of a rosidl-generated controller_manager_msgs ``list_controllers__description.c``
+(Jazzy's layout; tests/daemon/ros2/test_controller_manager.py).
 """
 
 from __future__ import annotations
@@ -72,6 +77,7 @@ __all__ = [
     "GOAL_STATUS_ARRAY",
     "JOINT_STATE",
     "JOINT_TRAJECTORY",
+    "LIST_CONTROLLERS",
     "LIST_PARAMETERS",
     "QUERY_TRAJECTORY_STATE",
     "SET_PARAMETERS",
@@ -103,6 +109,7 @@ QUERY_TRAJECTORY_STATE: Final = "control_msgs/srv/QueryTrajectoryState"
 GET_PARAMETERS: Final = "rcl_interfaces/srv/GetParameters"
 SET_PARAMETERS: Final = "rcl_interfaces/srv/SetParameters"
 LIST_PARAMETERS: Final = "rcl_interfaces/srv/ListParameters"
+LIST_CONTROLLERS: Final = "controller_manager_msgs/srv/ListControllers"
 
 _STORES: Final = {
     "humble": Stores.ROS2_HUMBLE,
@@ -222,7 +229,36 @@ trajectory_msgs/MultiDOFJointTrajectoryPoint multi_dof_actual
 trajectory_msgs/MultiDOFJointTrajectoryPoint multi_dof_error
 int32 multi_dof_index
 """
+# controller_manager_msgs: ros-controls/ros2_control, branches humble, jazzy, kilted, master.
+_CONTROLLER_STATE_HUMBLE = """\
+string name
+string state
+string type
+string[] claimed_interfaces
+string[] required_command_interfaces
+string[] required_state_interfaces
+bool is_chainable
+bool is_chained
+string[] reference_interfaces
+controller_manager_msgs/ChainConnection[] chain_connections
+"""
+_CONTROLLER_STATE = """\
+string name
+string state
+string type
+bool is_async
+uint16 update_rate
+string[] claimed_interfaces
+string[] required_command_interfaces
+string[] required_state_interfaces
+bool is_chainable
+bool is_chained
+string[] exported_state_interfaces
+string[] reference_interfaces
+controller_manager_msgs/ChainConnection[] chain_connections
+"""
 _CM = "ros-controls/control_msgs control_msgs/"
+_R2C = "ros-controls/ros2_control controller_manager_msgs/"
 _RCL = "ros2/rcl_interfaces "
 _INTERFACES: Final = (
     _Interface("control_msgs/msg/JointTolerance", _JOINT_TOLERANCE, _ALL,
@@ -240,6 +276,16 @@ _INTERFACES: Final = (
     _Interface(FOLLOW_JOINT_TRAJECTORY, _FJT_GOAL_RESULT + _FJT_FEEDBACK_INDEXED,
                ("kilted", "rolling"),
                _CM + "action/FollowJointTrajectory.action, master (>= 6.3: index fields)"),
+    _Interface("controller_manager_msgs/msg/ChainConnection",
+               "string name\nstring[] reference_interfaces\n", _ALL,
+               _R2C + "msg/ChainConnection.msg, humble/jazzy/kilted/master (the same)"),
+    _Interface("controller_manager_msgs/msg/ControllerState", _CONTROLLER_STATE_HUMBLE,
+               ("humble",), _R2C + "msg/ControllerState.msg, humble"),
+    _Interface("controller_manager_msgs/msg/ControllerState", _CONTROLLER_STATE, _JAZZY_ON,
+               _R2C + "msg/ControllerState.msg, jazzy, kilted and master (is_async, "
+               "update_rate, exported_state_interfaces)"),
+    _Interface(LIST_CONTROLLERS, "---\ncontroller_manager_msgs/ControllerState[] controller\n",
+               _ALL, _R2C + "srv/ListControllers.srv, humble/jazzy/kilted/master (the same)"),
     _Interface(QUERY_TRAJECTORY_STATE, """\
 builtin_interfaces/Time time
 ---

@@ -1079,8 +1079,14 @@ def main(argv: list[str] | None = None) -> int:
     goal.add_argument("--type", default=FJT)
     args = parser.parse_args(argv)
 
+    printing = threading.Lock()
+
     def out(obj: Any) -> None:
-        print(json.dumps(obj), flush=True)
+        # One write per line, under a lock: feedback is printed from the sdk's thread while
+        # the main thread prints the result (print's two writes interleaved two lines).
+        with printing:
+            sys.stdout.write(json.dumps(obj) + "\n")
+            sys.stdout.flush()
 
     with Ros2Peer(args.endpoint, domain_id=args.domain_id, distro=args.distro,
                   node_name="jtc_hw_test_cli") as p:

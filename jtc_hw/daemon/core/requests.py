@@ -98,8 +98,8 @@ from ...errors import (
 )
 from .backend_api import Accepted, Backend
 
-__all__ = ["EARLY_EVENTS", "EARLY_GOALS", "FINISHED_GOALS", "Caller", "Outlet", "Reply",
-           "Requests"]
+__all__ = ["DISCARD", "EARLY_EVENTS", "EARLY_GOALS", "FINISHED_GOALS", "Caller", "Outlet",
+           "Reply", "Requests"]
 
 log = logging.getLogger("jtc_hw.server")
 
@@ -132,6 +132,24 @@ class Outlet(Protocol):
     def offer(self, data: bytes) -> bool:
         """Deliver a droppable message (``state``, ``feedback``) if there is room; False if it
         was dropped (counted in the client's next ``state``)."""
+
+
+class _Discard:
+    """The outlet of a transport that hears what comes later as an observer of the backend
+    (Zenoh, ROS 2): each request's one reply is the request's; what is routed to its caller
+    later (its goal's feedback and result) the transport publishes from its observer."""
+
+    gone = False
+
+    def send(self, data: bytes) -> bool:
+        return True
+
+    def offer(self, data: bytes) -> bool:
+        return True
+
+
+DISCARD: Outlet = _Discard()
+"""An :class:`Outlet` that discards (``_Discard``)."""
 
 
 @dataclass(eq=False)

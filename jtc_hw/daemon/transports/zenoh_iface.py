@@ -74,7 +74,7 @@ from ...api.requests import Request
 from ...controller.goals import GoalFeedback, GoalResult
 from ...controller.messages import JointTrajectory
 from ...errors import ConfigurationError
-from ..core.requests import Caller, Requests
+from ..core.requests import DISCARD, Caller, Requests
 from ..realtime import release_freed_memory, return_freed_memory_promptly
 from ..zenoh_config import import_zenoh, session_config
 from .zenoh_outbox import Outbox
@@ -159,22 +159,6 @@ def split_attachment(attachment: Any) -> tuple[bytes, bytes | None]:
         return given, None
     token, _, header = given[:-1].rpartition(b"\n")
     return token, header
-
-
-class _Discard:
-    """The outlet of a query's ``Caller``: the query's one reply is the query's; what is routed
-    to it later (its goal's feedback and result) is on ``<prefix>/events`` already."""
-
-    gone = False
-
-    def send(self, data: bytes) -> bool:
-        return True
-
-    def offer(self, data: bytes) -> bool:
-        return True
-
-
-_DISCARD: Final = _Discard()
 
 
 class ZenohInterface:
@@ -524,7 +508,7 @@ class ZenohInterface:
         self, query: Any, op: str, body: bytes | RequestError, header: bytes | None = None
     ) -> None:
         self._queries += 1
-        caller = Caller(self._queries, f"zenoh query {self._queries} (zenoh)", _DISCARD)
+        caller = Caller(self._queries, f"zenoh query {self._queries} (zenoh)", DISCARD)
         try:
             item: Request | RequestError
             if isinstance(body, RequestError):

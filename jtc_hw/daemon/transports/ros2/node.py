@@ -87,7 +87,7 @@ from ....api.requests import (
 from ....controller.goals import GoalFeedback, GoalResult
 from ....controller.messages import JointTrajectory
 from ....controller.trajectory import QueriedState
-from ...core.requests import Caller, Requests
+from ...core.requests import DISCARD, Caller, Requests
 from ...ros2_config import INSTALL_HINT
 from ...zenoh_config import import_zenoh, session_config
 from . import actions, cdr, controller_manager, params, wire
@@ -186,21 +186,6 @@ class _Entity:
 
     def attachment(self) -> bytes:
         return wire.encode_attachment(next(self.seq), time.time_ns(), self.gid)
-
-
-class _Discard:
-    """A request's outlet: its goal's later events reach the transport as an observer."""
-
-    gone = False
-
-    def send(self, data: bytes) -> bool:
-        return True
-
-    def offer(self, data: bytes) -> bool:
-        return True
-
-
-_DISCARD: Final = _Discard()
 
 
 class Ros2Interface:
@@ -581,7 +566,7 @@ class Ros2Interface:
     def _caller(self, what: str, att: Any = None) -> Caller:
         number = next(self._callers)
         who = f" {att.gid.hex()[:8]}" if att is not None else ""
-        return Caller(number, f"ros2 {what} {number}{who}", _DISCARD)
+        return Caller(number, f"ros2 {what} {number}{who}", DISCARD)
 
     def _drop(self, topic: str, why: str) -> None:
         count = self.counters[f"{topic}_dropped"] = self.counters[f"{topic}_dropped"] + 1

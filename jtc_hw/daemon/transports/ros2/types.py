@@ -65,6 +65,8 @@ from rosbags.interfaces import Nodetype
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from rosbags.typesys.store import Typestore
 
+from ....rec.bag import CONTROLLER_STATE_MSG
+
 __all__ = [
     "CANCEL_GOAL",
     "CONTROLLER_STATE",
@@ -172,20 +174,8 @@ trajectory_msgs/MultiDOFJointTrajectoryPoint multi_dof_output
 trajectory_msgs/MultiDOFJointTrajectoryPoint multi_dof_desired
 trajectory_msgs/MultiDOFJointTrajectoryPoint multi_dof_actual
 """
-_JTC_STATE = """\
-std_msgs/Header header
-string[] joint_names
-trajectory_msgs/JointTrajectoryPoint reference
-trajectory_msgs/JointTrajectoryPoint feedback
-trajectory_msgs/JointTrajectoryPoint error
-trajectory_msgs/JointTrajectoryPoint output
-string[] multi_dof_joint_names
-trajectory_msgs/MultiDOFJointTrajectoryPoint multi_dof_reference
-trajectory_msgs/MultiDOFJointTrajectoryPoint multi_dof_feedback
-trajectory_msgs/MultiDOFJointTrajectoryPoint multi_dof_error
-trajectory_msgs/MultiDOFJointTrajectoryPoint multi_dof_output
-float64 speed_scaling_factor
-"""
+# Jazzy's and later (speed_scaling_factor, no desired/actual): the recordings' text, one copy.
+_JTC_STATE = CONTROLLER_STATE_MSG
 _FJT_GOAL_RESULT = """\
 trajectory_msgs/JointTrajectory trajectory
 trajectory_msgs/MultiDOFJointTrajectory multi_dof_trajectory

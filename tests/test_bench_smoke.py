@@ -44,6 +44,15 @@ def test_bench_runs_and_prints_json_lines(script: str, args: list[str], key: str
     assert rows and all(row["joints"] == 6 and key in row for row in rows)
 
 
+def test_zenoh_rtt_prints_a_row_per_mode_and_express() -> None:
+    """``zenoh_rtt.py`` (the floor under the ROS 2 figures): its router, server process and
+    queries run to the end, one row per reply setting, with the socket's round trip beside."""
+    rows = bench_rows("zenoh_rtt.py", "--queries", "20", "--modes", "client")
+    assert [(row["mode"], row["express"]) for row in rows] == [("client", False),
+                                                               ("client", True)]
+    assert all(row["zenoh_p50_us"] > 0 and row["socket_p50_us"] > 0 for row in rows)
+
+
 def test_bus_rate_breakdown_alternates_idle_and_neighbour_runs() -> None:
     """``bus_rate.py --breakdown --neighbour both``: per bit rate an idle row then a row beside
     the busy process, each with the per-cycle split; the existing keys are still there."""

@@ -8,6 +8,7 @@ import json
 import socket
 import subprocess
 import sys
+import time
 from pathlib import Path
 from collections.abc import Iterator
 from typing import Any
@@ -133,6 +134,15 @@ def test_raw_bytes_for_the_bad_input_tests(two: tuple[Ros2Peer, Ros2Peer]) -> No
     srv = "example_interfaces/srv/AddTwoInts"
     a.serve("/add", srv, lambda req: ros2_peer.make(f"{srv}_Response", sum=req.a + req.b))
     b.wait_until(lambda: bool(b.servers("/add")), WAIT_S)
+    # The server's token can be seen before its queryable is routed to us (a query then ends
+    # with no reply at all): ask until one is answered, then the route is there.
+    deadline = time.monotonic() + WAIT_S
+    while True:
+        call = b.request("/add", srv, {"a": 1, "b": 1})
+        assert call.done.wait(WAIT_S), "the query never ended"
+        if call.replies or call.errors:
+            break
+        assert time.monotonic() < deadline, "/add: never routed"
     with pytest.raises(ros2_peer.Ros2CallError):
         b.request("/add", srv, b"\x00\x01").first(WAIT_S, "/add")
     raw = b.request("/add", srv, {"a": 1, "b": 2}, decode=False).first(WAIT_S, "/add")
@@ -224,22 +234,24 @@ def test_a_second_process_echoes_what_this_one_publishes(router: str) -> None:
 
 def test_a_second_process_sends_a_goal(router: str) -> None:
     """``python -m helpers.ros2_peer send_goal``: accepted, the feedback, the result, one JSON
-    line each, exit 0 on SUCCEEDED. The stand-in server publishes the feedback when asked
-    for the result, once the client's feedback subscription has matched."""
+    line each, exit 0 on SUCCEEDED. The stand-in server publishes the feedback while it
+    accepts the goal, once the client's feedback subscription has matched."""
     action = "/arm_controller/follow_joint_trajectory"
     tests = Path(__file__).resolve().parents[2]
     with Ros2Peer(router) as a:
-        a.serve(f"{action}/_action/send_goal", f"{FJT}_SendGoal", lambda req: ros2_peer.make(
-            f"{FJT}_SendGoal_Response", accepted=True))
-
-        def get_result(req: Any) -> Any:
+        def send_goal(req: Any) -> Any:
+            # The feedback goes out before the acceptance (the client subscribes first), so it
+            # is delivered a whole get_result round trip before the result: a sample and a
+            # reply travel apart, and one sent just before the result could come after it.
             a.publish(f"{action}/_action/feedback", f"{FJT}_FeedbackMessage",
                       {"goal_id": {"uuid": req.goal_id.uuid}, "feedback": {"joint_names": ["j"]}},
                       wait_for_subscriber=WAIT_S)
-            return ros2_peer.make(f"{FJT}_GetResult_Response", status=4,
-                                  result={"error_string": "fine"})
+            return ros2_peer.make(f"{FJT}_SendGoal_Response", accepted=True)
 
-        a.serve(f"{action}/_action/get_result", f"{FJT}_GetResult", get_result)
+        a.serve(f"{action}/_action/send_goal", f"{FJT}_SendGoal", send_goal)
+        a.serve(f"{action}/_action/get_result", f"{FJT}_GetResult",
+                lambda req: ros2_peer.make(f"{FJT}_GetResult_Response", status=4,
+                                           result={"error_string": "fine"}))
         goal = json.dumps({"trajectory": {"joint_names": ["j"], "points": [
             {"positions": [0.5], "time_from_start": {"sec": 1}}]}})
         proc = subprocess.run(

@@ -8,6 +8,11 @@ SDK) mixes :class:`DescriptorIO` in before the SDK's ``PortHandler``: the time i
 clock; a read takes whatever has arrived in one system call and serves the SDK from a buffer,
 blocking in ``select`` until bytes or the SDK's deadline, never spinning; a write goes straight
 to the descriptor. The deadline (``packet_timeout``) stays each wrapper's own business.
+
+What the two wrappers also share after a failed transaction: :class:`SdkBusErrors` counts it in
+the bus's :class:`BusStats`, names it in one :class:`ServoCommunicationError` message (vendor,
+servo, port, bit rate, what to check) and drains late replies so that none is taken for the
+next request's.
 """
 
 from __future__ import annotations
@@ -15,9 +20,93 @@ from __future__ import annotations
 import os
 import select
 import time
-from typing import Any
+from dataclasses import dataclass, field
+from typing import Any, ClassVar
 
-__all__ = ["DescriptorIO"]
+from jtc_hw.errors import CommunicationError
+
+__all__ = ["BusStats", "DescriptorIO", "SdkBusErrors", "ServoCommunicationError"]
+
+
+class ServoCommunicationError(CommunicationError):
+    """A servo did not answer, or answered garbage.
+
+    Attributes:
+        servo_id: the servo concerned (``None``: the bus itself, e.g. the port).
+        cause: short cause (``"timeout (no reply)"``, ``"corrupt reply ..."``).
+    """
+
+    def __init__(self, message: str, servo_id: int | None, cause: str) -> None:
+        super().__init__(message)
+        self.servo_id = servo_id
+        self.cause = cause
+
+
+@dataclass
+class BusStats:
+    """Counters of one bus (JSON-able with :meth:`as_dict`; ``CORRUPT_KEY`` names the corrupt
+    replies there, as each family's status has always called them)."""
+
+    CORRUPT_KEY: ClassVar[str] = "corrupt"
+
+    transactions: int = 0
+    timeouts: int = 0
+    corrupt: int = 0
+    other_errors: int = 0
+    last_error: str | None = None
+    by_servo: dict[int, int] = field(default_factory=dict)
+
+    def as_dict(self) -> dict[str, Any]:
+        """The counters as a JSON-able mapping."""
+        return {
+            "transactions": self.transactions,
+            "timeouts": self.timeouts,
+            self.CORRUPT_KEY: self.corrupt,
+            "other_errors": self.other_errors,
+            "last_error": self.last_error,
+            "errors_by_servo": {str(k): v for k, v in sorted(self.by_servo.items())},
+        }
+
+
+class SdkBusErrors:
+    """A bus wrapper's failed transactions (a mixin: the wrapper has these attributes)."""
+
+    VENDOR: ClassVar[str]
+    port: str
+    baud_rate: int
+    timeout_ms: float
+    stats: BusStats
+    _port: Any  # the wrapper's DescriptorIO PortHandler
+    _open: bool
+
+    def _comm_error(self, servo_id: int | None, cause: str, what: str) -> ServoCommunicationError:
+        """Count the failure and describe it (raised by the caller)."""
+        if cause.startswith("timeout"):
+            self.stats.timeouts += 1
+        elif cause.startswith("corrupt"):
+            self.stats.corrupt += 1
+        else:
+            self.stats.other_errors += 1
+        if servo_id is not None:
+            self.stats.by_servo[servo_id] = self.stats.by_servo.get(servo_id, 0) + 1
+            who = f"servo {servo_id}"
+        else:
+            who = "the bus"
+        message = (
+            f"{self.VENDOR} {who} on {self.port} ({self.baud_rate} bit/s): {what}: {cause}; "
+            "check its power, cable and id, and that every servo uses this baud rate"
+        )
+        self.stats.last_error = message
+        return ServoCommunicationError(message, servo_id, cause)
+
+    def _recover_port(self) -> None:
+        """After a failure: drop late replies so that they are not taken for the next one."""
+        self._port.is_using = False
+        if self._open:
+            try:
+                self._port.drain(min(self.timeout_ms, 20.0) / 1000.0)
+            except OSError:
+                pass
 
 
 class DescriptorIO:

@@ -52,15 +52,15 @@ import logging
 import os
 import time
 from collections.abc import Iterable, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Final
+from typing import Any, ClassVar, Final
 
 import dynamixel_sdk as _sdk  # type: ignore[import-untyped]
 
-from jtc_hw.errors import CommunicationError, HardwareError
+from jtc_hw.errors import HardwareError
 
-from ..sdk_port import DescriptorIO
+from ..sdk_port import BusStats, DescriptorIO, SdkBusErrors, ServoCommunicationError
 from .packets import Decoder, crc16, encode_sync_read, encode_sync_write
 
 __all__ = [
@@ -114,20 +114,6 @@ def _check_id(servo_id: int) -> None:
         raise ValueError(f"servo id must be an integer in 0..{MAX_ID}, got {servo_id!r}")
 
 
-class ServoCommunicationError(CommunicationError):
-    """A servo did not answer, or answered garbage.
-
-    Attributes:
-        servo_id: the servo concerned (``None``: the bus itself, e.g. the port).
-        cause: short cause (``"timeout (no reply)"``, ``"corrupt reply ..."``).
-    """
-
-    def __init__(self, message: str, servo_id: int | None, cause: str) -> None:
-        super().__init__(message)
-        self.servo_id = servo_id
-        self.cause = cause
-
-
 class ServoStatusError(HardwareError):
     """A servo answered with an error in its status packet (other than the alert bit).
 
@@ -154,29 +140,6 @@ class SyncReadResult:
 
     data: Mapping[int, bytes]
     errors: Mapping[int, int]
-
-
-@dataclass
-class BusStats:
-    """Counters of one bus (JSON-able with :meth:`as_dict`)."""
-
-    transactions: int = 0
-    timeouts: int = 0
-    corrupt: int = 0
-    other_errors: int = 0
-    last_error: str | None = None
-    by_servo: dict[int, int] = field(default_factory=dict)
-
-    def as_dict(self) -> dict[str, Any]:
-        """The counters as a JSON-able mapping."""
-        return {
-            "transactions": self.transactions,
-            "timeouts": self.timeouts,
-            "corrupt": self.corrupt,
-            "other_errors": self.other_errors,
-            "last_error": self.last_error,
-            "errors_by_servo": {str(k): v for k, v in sorted(self.by_servo.items())},
-        }
 
 
 def usb_serial_tty(port: str) -> str:
@@ -255,7 +218,7 @@ class _Protocol2(_sdk.Protocol2PacketHandler):  # type: ignore[misc]
         return result
 
 
-class DynamixelBus:
+class DynamixelBus(SdkBusErrors):
     """One Protocol 2.0 bus on a serial port.
 
     Args:
@@ -270,6 +233,9 @@ class DynamixelBus:
     Raises:
         ValueError: ``timeout_ms`` is not positive.
     """
+
+    VENDOR: ClassVar[str] = "Dynamixel"
+    """Named in its communication errors (``SdkBusErrors``)."""
 
     def __init__(
         self,
@@ -673,34 +639,6 @@ class DynamixelBus:
             message = f"Dynamixel servo {servo_id} on {self.port}: {what} refused: {cause}"
             self.stats.last_error = message
             raise ServoStatusError(message, servo_id, error)
-
-    def _comm_error(self, servo_id: int | None, cause: str, what: str) -> ServoCommunicationError:
-        if cause.startswith("timeout"):
-            self.stats.timeouts += 1
-        elif cause.startswith("corrupt"):
-            self.stats.corrupt += 1
-        else:
-            self.stats.other_errors += 1
-        if servo_id is not None:
-            self.stats.by_servo[servo_id] = self.stats.by_servo.get(servo_id, 0) + 1
-            who = f"servo {servo_id}"
-        else:
-            who = "the bus"
-        message = (
-            f"Dynamixel {who} on {self.port} ({self.baud_rate} bit/s): {what}: {cause}; check "
-            "its power, cable and id, and that every servo uses this baud rate"
-        )
-        self.stats.last_error = message
-        return ServoCommunicationError(message, servo_id, cause)
-
-    def _recover_port(self) -> None:
-        """After a failure: drop late replies so that they are not taken for the next one."""
-        self._port.is_using = False
-        if self._open:
-            try:
-                self._port.drain(min(self.timeout_ms, 20.0) / 1000.0)
-            except OSError:
-                pass
 
 
 def _sync_write_what(address: int, size: int) -> str:

@@ -60,14 +60,13 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
-from typing import Any, Final
+from dataclasses import dataclass
+from typing import Any, ClassVar, Final
 
 import scservo_sdk as _sdk  # type: ignore[import-untyped]
 
-from jtc_hw.errors import CommunicationError
-
-from ..sdk_port import DescriptorIO
+from ..sdk_port import BusStats as _BusStats
+from ..sdk_port import DescriptorIO, SdkBusErrors, ServoCommunicationError
 from .codec import Decoder, Instruction, encode_sync_read, encode_sync_write, unpack_word
 from .control_table import Series
 
@@ -107,20 +106,6 @@ def _check_id(servo_id: int) -> None:
         raise ValueError(f"servo id must be an integer in 0..{MAX_ID}, got {servo_id!r}")
 
 
-class ServoCommunicationError(CommunicationError):
-    """A servo did not answer, or answered garbage.
-
-    Attributes:
-        servo_id: the servo concerned (``None``: the bus itself, e.g. the port).
-        cause: short cause (``"timeout (no reply)"``, ``"corrupt reply ..."``).
-    """
-
-    def __init__(self, message: str, servo_id: int | None, cause: str) -> None:
-        super().__init__(message)
-        self.servo_id = servo_id
-        self.cause = cause
-
-
 @dataclass(frozen=True)
 class GroupReadResult:
     """A successful group read (every servo answered with a good checksum).
@@ -134,27 +119,16 @@ class GroupReadResult:
     errors: Mapping[int, int]
 
 
-@dataclass
-class BusStats:
-    """Counters of one bus (JSON-able with :meth:`as_dict`); the hardware counts retries."""
+class BusStats(_BusStats):
+    """Counters of one bus (JSON-able with :meth:`as_dict`); the hardware counts retries.
+    Feetech's status has called its corrupt replies ``checksum_errors``."""
 
-    transactions: int = 0
-    timeouts: int = 0
-    checksum_errors: int = 0
-    other_errors: int = 0
-    last_error: str | None = None
-    by_servo: dict[int, int] = field(default_factory=dict)
+    CORRUPT_KEY: ClassVar[str] = "checksum_errors"
 
-    def as_dict(self) -> dict[str, Any]:
-        """The counters as a JSON-able mapping."""
-        return {
-            "transactions": self.transactions,
-            "timeouts": self.timeouts,
-            "checksum_errors": self.checksum_errors,
-            "other_errors": self.other_errors,
-            "last_error": self.last_error,
-            "errors_by_servo": {str(k): v for k, v in sorted(self.by_servo.items())},
-        }
+    @property
+    def checksum_errors(self) -> int:
+        """Replies whose checksum did not match (``corrupt``, by Feetech's name)."""
+        return self.corrupt
 
 
 class _Port(DescriptorIO, _sdk.PortHandler):  # type: ignore[misc]
@@ -187,7 +161,7 @@ class _Port(DescriptorIO, _sdk.PortHandler):  # type: ignore[misc]
         self.ser.reset_input_buffer()
 
 
-class FeetechBus:
+class FeetechBus(SdkBusErrors):
     """One bus of Feetech servos of one series on a serial port.
 
     Args:
@@ -201,6 +175,9 @@ class FeetechBus:
     Raises:
         ValueError: ``timeout_ms`` is not positive, or a baud rate the SDK cannot set.
     """
+
+    VENDOR: ClassVar[str] = "Feetech"
+    """Named in its communication errors (``SdkBusErrors``)."""
 
     def __init__(
         self,
@@ -469,31 +446,3 @@ class FeetechBus:
             self._recover_port()
             raise self._comm_error(servo_id, _COMM_CAUSES.get(result, f"error {result}"), what)
         return value, int(error)
-
-    def _comm_error(self, servo_id: int | None, cause: str, what: str) -> ServoCommunicationError:
-        if cause.startswith("timeout"):
-            self.stats.timeouts += 1
-        elif cause.startswith("corrupt"):
-            self.stats.checksum_errors += 1
-        else:
-            self.stats.other_errors += 1
-        if servo_id is not None:
-            self.stats.by_servo[servo_id] = self.stats.by_servo.get(servo_id, 0) + 1
-            who = f"servo {servo_id}"
-        else:
-            who = "the bus"
-        message = (
-            f"Feetech {who} on {self.port} ({self.baud_rate} bit/s): {what}: {cause}; check "
-            "its power, cable and id, and that every servo uses this baud rate"
-        )
-        self.stats.last_error = message
-        return ServoCommunicationError(message, servo_id, cause)
-
-    def _recover_port(self) -> None:
-        """After a failure: drop late replies so that they are not taken for the next one."""
-        self._port.is_using = False
-        if self._open:
-            try:
-                self._port.drain(min(self.timeout_ms, 20.0) / 1000.0)
-            except OSError:
-                pass

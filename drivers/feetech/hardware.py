@@ -552,7 +552,7 @@ class FeetechHardware(HardwareInterface):
         bus = None if stats is None else {
             "transactions": stats.transactions,
             "timeouts": stats.timeouts,
-            "crc_errors": stats.checksum_errors,
+            "crc_errors": stats.corrupt,
             "retries": self._retries,
             "health_read_errors": self._servo_health.read_errors,
         }

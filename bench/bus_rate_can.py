@@ -58,7 +58,7 @@ from jtc_hw.drivers.can.mit.hardware import MitHardware  # noqa: E402
 from jtc_hw.hardware.timing import reduce_timer_slack  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bus_breakdown import Breakdown, breakdown_line, neighbour  # noqa: E402
+from bus_breakdown import Breakdown, neighbour  # noqa: E402
 
 CAN_CALLS = ("send", "recv")
 """The python-can bus methods our driver calls each cycle (the python-can boundary)."""

@@ -417,8 +417,8 @@ class Ros2Viewer:
 def wave_goal(
     start_ns: int, epoch_ns: int, joint_names: list[str], points: int = GOAL_POINTS
 ) -> dict[str, Any]:
-    """``points`` points (2,000), 1 ms apart, of q_j(t) = A_j (1 - cos w_j t) for t > 0 (0 before), t from
-    ``epoch_ns``.
+    """``points`` points (2,000), 1 ms apart, of q_j(t) = A_j (1 - cos w_j t) for t > 0 (0
+    before), t from ``epoch_ns``.
 
     The wave starts at rest at 0, where the idle robot holds, and every goal continues it
     exactly up to ``BRAKE_FROM_S``, so a successor spliced in before then steps nothing. After

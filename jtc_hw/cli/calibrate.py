@@ -27,7 +27,7 @@ from typing import Any
 from ..config.editing import hardware_components, set_component_params
 from ..config.reading import decode_text, load_yaml
 from ..errors import ConfigurationError, HardwareError
-from .common import EXIT_BAD_INPUT, EXIT_OK
+from .common import EXIT_OK
 
 __all__ = ["add_parsers", "cmd_calibrate"]
 

@@ -17,12 +17,13 @@ import sys
 from pathlib import Path
 
 import pytest
-from conftest import make_config
 from helpers.daemon import DaemonProcess, wait_gone
 
 from jtc_hw.daemon.channel import cyclering
 from jtc_hw.daemon.core.observers import Recorders
 from jtc_hw.daemon.settings import DaemonSettings
+
+from conftest import make_config
 
 pytestmark = pytest.mark.usefixtures("no_leaks")
 

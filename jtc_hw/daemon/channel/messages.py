@@ -19,9 +19,9 @@ on the class, as h11 matches its events), never by a string tag or a tuple's len
 
 ``State`` and ``Status`` are droppable (the outbox keeps the newest of each class while the
 API process lags); every other record is delivered in order. With a cycle ring, the States do
-not cross the pipe at all: the API process reads them from the ring (decisions 49). A request's failure crosses as
-:class:`Failed`, which keeps the exception's class from the one tree (``jtc_hw.errors``): the
-API process raises that class again, no name table in between.
+not cross the pipe at all: the API process reads them from the ring (decisions 49). A
+request's failure crosses as :class:`Failed`, which keeps the exception's class from the one
+tree (``jtc_hw.errors``): the API process raises that class again, no name table in between.
 
 What is written in a cycle (``State``, ``Events``) is a ``NamedTuple``: measured, pickling a
 15-field state costs ~2 us more as a ``NamedTuple`` than as a plain tuple, ~6 us more as a

@@ -47,7 +47,6 @@ the loop.
 from __future__ import annotations
 
 import asyncio
-import collections
 import contextlib
 import hmac
 import logging

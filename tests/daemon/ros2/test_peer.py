@@ -9,13 +9,12 @@ import socket
 import subprocess
 import sys
 import time
-from pathlib import Path
 from collections.abc import Iterator
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
-
 from helpers import ros2_peer
 from helpers.ros2_peer import FJT, STORE, OfflineTypeError, Ros2Peer
 

@@ -6,10 +6,10 @@ Theory of operation
 Zenoh's Python API is synchronous: a ``put`` or a ``reply`` may wait on the network. The event
 loop never calls it: everything for Zenoh goes into one bounded :class:`Outbox` that a thread of
 ours runs in order (``zenoh_iface``'s too: ``..zenoh_outbox``, docs/decisions.md 21), where the
-periodic messages are also encoded. Droppable sends (states, feedback) are refused beyond ``size`` waiting and counted;
-replies and results only beyond ``hard_cap`` (logged). In the other direction Zenoh calls back in
-its own threads: :func:`guard` wraps each callback so that nothing raises into them (a failure
-is logged, counted, and a query dropped unanswered).
+periodic messages are also encoded. Droppable sends (states, feedback) are refused beyond
+``size`` waiting and counted; replies and results only beyond ``hard_cap`` (logged). In the
+other direction Zenoh calls back in its own threads: :func:`guard` wraps each callback so that
+nothing raises into them (a failure is logged, counted, and a query dropped unanswered).
 """
 
 from __future__ import annotations

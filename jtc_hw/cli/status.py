@@ -67,7 +67,7 @@ def status_lines(status: dict[str, Any]) -> list[str]:
             f"loop          {_num(loop.get('rate_hz'), ' Hz')}, {_num(loop.get('cycles'))} "
             f"cycles, overruns {_num(loop.get('overruns'))}"
         )
-        for label, stats in (("lateness  ", late), ("cycle cost", cost)):
+        for label, stats in (("lateness   ", late), ("period work", cost)):
             lines.append(
                 f"  {label}  p50 {_num(stats.get('p50'))} us, p99 {_num(stats.get('p99'))} us, "
                 f"max {_num(stats.get('max'))} us"

@@ -690,11 +690,11 @@ class JointTrajectoryController(ControlLaw, Stops):
                 desired.positions - positions,
             )
         else:
-            error[0] = desired.positions - positions
+            np.subtract(desired.positions, positions, out=error[0])
         if self._vel_error and state.velocities is not None:
-            error[1] = desired.velocities - state.velocities
+            np.subtract(desired.velocities, state.velocities, out=error[1])
         if self._acc_error and state.accelerations is not None:
-            error[2] = desired.accelerations - state.accelerations
+            np.subtract(desired.accelerations, state.accelerations, out=error[2])
         return error
 
     def _conclude(

@@ -22,10 +22,12 @@ def _array(values: Sequence[float] | F64 | None) -> F64 | None:
 
 
 def all_finite(values: F64) -> bool:
-    """Whether every value is finite. A finite sum says so in one call (the check of every
-    cycle); a sum that is not (a NaN, an infinity, or finite values whose sum overflows) is
-    checked value by value."""
-    return math.isfinite(np.add.reduce(values, axis=None)) or bool(np.isfinite(values).all())
+    """Whether every value is finite. A finite sum of squares says so in one call (the check of
+    every cycle); one that is not (a NaN, an infinity, or finite values whose squares overflow)
+    is checked value by value. The sum is a dot product: numpy's reductions (``sum``, ``all``)
+    pay about 0.6 us of set-up each, a dot product of a few values a third of that."""
+    flat = values if values.ndim == 1 else values.ravel()
+    return math.isfinite(flat.dot(flat)) or bool(np.isfinite(values).all())
 
 
 @dataclass(frozen=True, eq=False, init=False)

@@ -104,9 +104,9 @@ class SegmentTolerances:
                         f"{label}: joint '{tol.name}' is listed twice", INVALID_JOINTS
                     )
                 seen.add(tol.name)
-                for row, field in enumerate(_FIELDS):
-                    value = getattr(tol, field)
-                    where = f"{label}.{tol.name}.{field}"
+                for row, name in enumerate(_FIELDS):
+                    value = getattr(tol, name)
+                    where = f"{label}.{tol.name}.{name}"
                     table[row, index[tol.name]] = _resolve(
                         table[row, index[tol.name]], value, where
                     )
@@ -132,8 +132,9 @@ def _resolve(default: float, value: float, where: str) -> float:
 
 def exceeds(error: NDArray[np.float64], limit: NDArray[np.float64]) -> bool:
     """Whether any field of ``error`` (3, n) is beyond its ``limit`` (3, n; a tolerance's
-    ``*_limit``): ``violated(...).any()`` in one comparison, the check of every cycle."""
-    return bool((np.abs(error) > limit).any())
+    ``*_limit``): ``violated(...).any()`` in one comparison, the check of every cycle
+    (``count_nonzero`` rather than ``any``: a third of its cost on a few values)."""
+    return np.count_nonzero(np.abs(error) > limit) != 0
 
 
 def violated(error: NDArray[np.float64], tolerance: NDArray[np.float64]) -> NDArray[np.bool_]:

@@ -110,6 +110,11 @@ class HardwareSet:
         self._pairs = tuple(zip(self._components, indices, strict=True))
         self._n = len(self.joints)
         self._identity = len(self._components) == 1 and first.joints == self.joints
+        if self._identity:
+            # One component in the controller's order (most robots): the loop's read and write
+            # of every cycle go straight to it, without a call through this set.
+            self.read = first.read  # type: ignore[method-assign]
+            self.write = first.write  # type: ignore[method-assign]
         self._velocity_state = "velocity" in self.state_interfaces
         self._acceleration_state = "acceleration" in self.state_interfaces
         self._command_fields = tuple(i in self.command_interfaces for i in COMMAND_INTERFACE_TYPES)
@@ -230,14 +235,13 @@ class HardwareSet:
             done.append(comp)
 
     def read(self, now_ns: int) -> JointState:
-        """Read every component once; return the state in the controller's joint order.
+        """Read every component once; return the state in the controller's joint order (one
+        component in that order: its own ``read``, bound in its place when the set is made).
 
         Raises:
             ControllerStateError: a component is not INACTIVE or ACTIVE.
             HardwareError: a component's read failed (the others after it are not read).
         """
-        if self._identity:
-            return self._components[0].read(now_ns)
         return self._merged((comp.read(now_ns), index) for comp, index in self._pairs)
 
     def monitor(self, now_ns: int) -> JointState | None:
@@ -267,15 +271,13 @@ class HardwareSet:
         return JointState(positions, velocities, accelerations)
 
     def write(self, now_ns: int, command: JointCommand) -> None:
-        """Split the command by component and write each once.
+        """Split the command by component and write each once (one component in the
+        controller's order: its own ``write``, bound in its place when the set is made).
 
         Raises:
             ControllerStateError: a component is not ACTIVE.
             HardwareError: a component's write failed (the others after it are not written).
         """
-        if self._identity:
-            self._components[0].write(now_ns, command)
-            return
         values = (command.positions, command.velocities, command.accelerations, command.effort)
         for comp, index in self._pairs:
             comp.write(now_ns, JointCommand(*(_take(v, index) for v in values)))

@@ -607,8 +607,6 @@ class ControlLoop:
             self.cycle(deadline, period, inbox)
             if self._stopping_until_ns is not None and self._shutdown_stop_done(deadline):
                 self.running = False
-            done = clock()
-            self.stats.record(woke - deadline, done - woke, skipped)
             if deadline >= self._next_status_ns:
                 self._next_status_ns = deadline + STATUS_PERIOD_NS
                 self.publish(Status(self.status()))
@@ -626,6 +624,10 @@ class ControlLoop:
                         inbox.released.clear()
                 else:
                     self.collect_garbage(0)
+            # The cost is the whole period's work, wake-up to sleep: the cycle, the status,
+            # the outbox, the inbox and the spare-time step (the status shows the cycles
+            # before this one).
+            self.stats.record(woke - deadline, clock() - woke, skipped)
         self.shutdown(clock())
 
     def shutdown(self, now_ns: int) -> None:

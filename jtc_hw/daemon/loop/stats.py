@@ -70,7 +70,8 @@ class LoopStats:
 
         Args:
             lateness_ns: how long after its deadline the cycle started (negative if early).
-            cost_ns: how long the cycle's work took.
+            cost_ns: how long the cycle's work took (the daemon's loop: everything it did
+                between waking and sleeping again).
             overruns: deadlines skipped before this cycle (0 normally).
 
         Raises:

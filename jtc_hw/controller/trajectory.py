@@ -38,6 +38,7 @@ from .interpolation import (
     SegmentKind,
     constant_blocks,
     evaluate,
+    evaluate_at,
     kinds_for,
     segment_blocks,
 )
@@ -199,6 +200,7 @@ class Trajectory:
         "_end",
         "_last",
         "_memo",
+        "_past_end",
         "n_joints",
         "state_before_ns",
     )
@@ -223,25 +225,33 @@ class Trajectory:
         self._end = int(breaks_array[-1])
         # The earliest time the trajectory is defined (default: its first breakpoint).
         self.state_before_ns = self._start if state_before_ns is None else int(state_before_ns)
-        # The segment the last sample fell in, (start, end, index): the loop samples increasing
-        # times, mostly in the same segment, and comparing two ints is cheaper than a search.
-        # Replaced whole (one assignment), so threads sampling at once each read a consistent
-        # one; it changes no answer. At first: an empty segment just before the first, so
-        # that the first sample inside finds it as "the next one".
-        self._last = (self._start, self._start, -1)
+        # The segment the last sample fell in, (start, end, index, origin): the loop samples
+        # increasing times, mostly in the same segment, and comparing two ints is cheaper than
+        # a search; ``origin`` is the segment's time origin (ns) when every joint has the same
+        # (``_shared_origin``), else None. Replaced whole (one assignment), so threads
+        # sampling at once each read a consistent one; it changes no answer. At first: an
+        # empty segment just before the first, so that the first sample inside finds it as
+        # "the next one".
+        self._last: tuple[int, int, int, int | None] = (self._start, self._start, -1, None)
         # The last sample taken, (time, sample): the loop samples each cycle at ``now`` and
         # one period ahead, and the next cycle's ``now`` is mostly this cycle's "ahead". Its
         # arrays are read-only, as every sample is (the state past the end is ``_final``'s
         # rows), so handing the same one out twice is the same answer. Replaced whole.
         self._memo: tuple[int, TrajectorySample] | None = None
+        # The sample at and past the end (``_final``'s rows), made at its first use: the same
+        # every time, as a trajectory is immutable (an idle controller samples it twice a
+        # cycle).
+        self._past_end: TrajectorySample | None = None
         self.n_joints = final.shape[1]
         for array in (breaks_array, blocks, origins, kinds, final):
             array.setflags(write=False)
 
     def __getstate__(self) -> tuple[None, dict[str, Any]]:
-        """Pickled without its memo (a sample, not part of the trajectory)."""
+        """Pickled without its memo and past-the-end sample (samples, not part of the
+        trajectory: views that would be pickled as copies)."""
         state = {name: getattr(self, name) for name in self.__slots__}
         state["_memo"] = None
+        state["_past_end"] = None
         return None, state
 
     # -- construction -------------------------------------------------------------------------
@@ -578,32 +588,47 @@ class Trajectory:
         """``sample`` without the check of ``state_before_ns`` (before the first breakpoint:
         the state at it), for building trajectories."""
         if t_ns >= self._end or not self._blocks.shape[0]:
-            f = self._final
-            return TrajectorySample(f[0], f[1], f[2], f[3])
+            past = self._past_end
+            if past is None:
+                f = self._final
+                past = self._past_end = TrajectorySample(f[0], f[1], f[2], f[3])
+            return past
         memo = self._memo
         if memo is not None and memo[0] == t_ns:
             return memo[1]
         asked = t_ns
-        lo, hi, i = self._last
+        lo, hi, i, origin = self._last
         if not lo <= t_ns < hi:
             breaks = self._breaks
             # Mostly the next segment (points a period or so apart); else a search.
             following = int(breaks[i + 2]) if hi <= t_ns and i + 2 < breaks.shape[0] else hi
             if hi <= t_ns < following:
                 i += 1
-                self._last = (hi, following, i)
+                origin = self._shared_origin(i)
+                self._last = (hi, following, i, origin)
             else:
                 i = int(breaks.searchsorted(t_ns, side="right")) - 1
                 if i < 0:
                     i, t_ns = 0, self._start
+                    origin = self._shared_origin(0)
                 else:
-                    self._last = (int(breaks[i]), int(breaks[i + 1]), i)
-        tau = (t_ns - self._origins[i]) * 1e-9
-        out = evaluate(self._blocks[i], tau)
+                    origin = self._shared_origin(i)
+                    self._last = (int(breaks[i]), int(breaks[i + 1]), i, origin)
+        if origin is not None:
+            out = evaluate_at(self._blocks[i], (t_ns - origin) * 1e-9)
+        else:
+            out = evaluate(self._blocks[i], (t_ns - self._origins[i]) * 1e-9)
         out.setflags(write=False)
         sample = TrajectorySample(out[0], out[1], out[2], out[3])
         self._memo = (asked, sample)
         return sample
+
+    def _shared_origin(self, i: int) -> int | None:
+        """Segment ``i``'s time origin (ns) if every joint has the same (a segment is built
+        for all joints at once, except where a partial goal spliced some), else None."""
+        row = self._origins[i].tolist()
+        first: int = row[0]
+        return first if row.count(first) == len(row) else None
 
     def pieces(
         self,

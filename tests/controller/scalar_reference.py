@@ -129,12 +129,16 @@ def constant_block(position: F64, velocity: F64, acceleration: F64, effort: F64)
     return block
 
 
-_EXPONENTS = np.arange(6, dtype=np.float64)[:, None]
-
-
 def evaluate(block: F64, tau: F64) -> F64:
-    """Evaluate a ``(4, 6, n)`` block at per-joint ``tau`` (seconds); returns ``(4, n)``."""
-    powers = tau[None, :] ** _EXPONENTS
+    """Evaluate a ``(4, 6, n)`` block at per-joint ``tau`` (seconds); returns ``(4, n)``.
+
+    Issue 24: the powers of ``tau`` are products (``t2 = tau * tau``, ``t3 = t2 * tau``,
+    ``t4 = t2 * t2``, ``t5 = t4 * tau``), no longer ``tau ** k``: the package samples the
+    loop's reference from one float that way, and both give the same bits. The values move by
+    an ulp or two at most, the polynomials do not change."""
+    t2 = tau * tau
+    t4 = t2 * t2
+    powers = np.stack((np.ones_like(tau), tau, t2, t2 * tau, t4, t4 * tau))
     result: F64 = (block * powers).sum(axis=1)
     return result
 

@@ -141,6 +141,9 @@ class MirrorHardware(HardwareInterface):
         self._speed_limited = bool(np.isfinite(self._vmax).any())
         self._bounded = bool(np.isfinite(self._lower).any() or np.isfinite(self._upper).any())
         self._t_ns: int | None = None
+        # dt (s) of the last step without a speed limit, and its arrays (``_position_step``).
+        self._dt = math.nan
+        self._dts = self._decay = np.zeros(n)
         self._frozen = False
         self._fault: str | None = None
         # speed_scaling_factor: as the last read left it, written (for the next read), set
@@ -332,13 +335,23 @@ class MirrorHardware(HardwareInterface):
         else:
             p0, v0, target = self._p[i], self._v[i], self._target[i]
         if not self._speed_limited:
-            # What the general case below gives without a speed limit, in fewer operations.
+            # What the general case below gives without a speed limit, in fewer operations;
+            # with dt and the lag's decay over it as arrays (one per period length, kept): the
+            # same values, and an operation between two arrays costs 60 % of one with a float.
+            if dt != self._dt:
+                n = len(self.joints)
+                self._dt = dt
+                self._dts = np.full(n, dt)
+                self._decay = np.full(n, math.exp(-dt / self._lag_s) if self._lag_s else 0.0)
+            dts, decay = self._dts, self._decay
+            if i is not _ALL:
+                dts, decay = dts[i], decay[i]
             if self._lag_s == 0.0:
                 p = target.copy()
             else:
-                p = target - (target - p0) * math.exp(-dt / self._lag_s)
-            v = (p - p0) / dt
-            return p, v, (v - v0) / dt
+                p = target - (target - p0) * decay
+            v = (p - p0) / dts
+            return p, v, (v - v0) / dts
         vmax = self._vmax[i]
         error = target - p0
         if self._lag_s == 0.0:

@@ -16,6 +16,9 @@ from .pid import Pid
 from .speed_scaling import SpeedScaling
 from .trajectory import TrajectorySample
 
+_POSITION_ONLY = (True, False, False, False)
+"""``_cmd_fields`` of a position-only controller."""
+
 
 class ControlLaw(SpeedScaling):
     """The command methods of the controller (module docstring)."""
@@ -111,6 +114,14 @@ class ControlLaw(SpeedScaling):
         Joints that are not command joints read NaN."""
         mask = self._cmd_mask
         fields = (command.positions, command.velocities, command.accelerations, command.effort)
+        if (mask is None and self._cmd_fields == _POSITION_ONLY and fields[1] is None
+                and fields[2] is None and fields[3] is None):
+            # Position commanded on every joint (the usual arm): what the loop below decides,
+            # without it.
+            values = fields[0]
+            if values is not None and values.shape == (self._n,) and all_finite(values):
+                self._output = command
+            return
         exact = True  # ``command`` has exactly the configured fields, NaN off command joints
         for on, values in zip(self._cmd_fields, fields, strict=True):
             if not on:

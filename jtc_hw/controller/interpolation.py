@@ -170,9 +170,13 @@ def evaluate(block: F64, tau: F64) -> F64:
     The powers of ``tau`` are products (``t2 = tau * tau``, ``t3 = t2 * tau``, ``t4 = t2 * t2``,
     ``t5 = t4 * tau``), as :func:`evaluate_at` computes them from one float: where the two
     meet (joints sharing a time origin, sampled either way), they give the same bits."""
-    t2 = tau * tau
-    t4 = t2 * t2
-    powers = np.stack((np.ones_like(tau), tau, t2, t2 * tau, t4, t4 * tau))
+    powers = np.empty((6, tau.shape[0]))
+    powers[0] = 1.0
+    powers[1] = tau
+    np.multiply(tau, tau, out=powers[2])
+    np.multiply(powers[2], tau, out=powers[3])
+    np.multiply(powers[2], powers[2], out=powers[4])
+    np.multiply(powers[4], tau, out=powers[5])
     result: F64 = (block * powers).sum(axis=1)
     return result
 
